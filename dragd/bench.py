@@ -1,0 +1,86 @@
+"""Benchmarks: ``dragd bench [NAME ...] --json`` → ``{"NAME": {"value": x, "unit": "..."}}``.
+
+Performance goals live here, not in timed tests. Each benchmark is a function returning (value, unit);
+figures and the commands that made them are recorded in docs/PERFORMANCE.md.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Benchmark:
+    name: str
+    unit: str
+    doc: str
+    run: Callable[[dict], float]
+
+
+REGISTRY: dict[str, Benchmark] = {}
+
+
+def benchmark(name: str, unit: str) -> Callable[[Callable[[dict], float]], Callable[[dict], float]]:
+    def wrap(fn: Callable[[dict], float]) -> Callable[[dict], float]:
+        REGISTRY[name] = Benchmark(name, unit, (fn.__doc__ or "").strip().splitlines()[0], fn)
+        return fn
+
+    return wrap
+
+
+@benchmark("compensation_us", "us")
+def compensation_us(opts: dict) -> float:
+    """Median wall time of one full 6-joint evaluation of the law including G(q) (Pinocchio)."""
+    from .config import load_config
+    from .law import LawOutput, LawParams, Workspace, compensate
+    from .model import RobotModel
+
+    cfg = load_config(opts.get("config"))
+    model = RobotModel.from_urdf(cfg.robot.urdf, cfg.base_dir, cfg.robot.gravity_m_s2)
+    p = LawParams.from_config(cfg)
+    n = model.nq
+    rng = np.random.default_rng(1)
+    qs = rng.uniform(-np.pi, np.pi, (1000, n))
+    dqs = rng.normal(0.0, 0.2, (1000, n))
+    out, ws, g = LawOutput.zeros(n), Workspace(n), np.zeros(n)
+    samples = np.empty(int(opts.get("iterations", 20000)))
+    for k in range(samples.shape[0]):
+        q, dq = qs[k % 1000], dqs[k % 1000]
+        t0 = time.perf_counter_ns()
+        model.gravity(q, g)
+        compensate(g, dq, k * 1e-3, p, out, ws)
+        samples[k] = time.perf_counter_ns() - t0
+    return float(np.median(samples) / 1e3)
+
+
+def _load_plugins() -> None:
+    """Import modules that register further benchmarks (kept lazy: some pull in heavy dependencies)."""
+    import importlib
+
+    for mod in ("dragd.bench_loop",):
+        try:
+            importlib.import_module(mod)
+        except ModuleNotFoundError as exc:
+            if exc.name != mod:
+                raise
+
+
+def names() -> list[str]:
+    _load_plugins()
+    return sorted(REGISTRY)
+
+
+def run(selected: list[str], opts: dict) -> dict[str, dict[str, float | str]]:
+    _load_plugins()
+    unknown = [n for n in selected if n not in REGISTRY]
+    if unknown:
+        raise KeyError(f"unknown benchmark(s) {', '.join(unknown)}; expected some of: {', '.join(sorted(REGISTRY))}")
+    result: dict[str, dict[str, float | str]] = {}
+    for name in selected or sorted(REGISTRY):
+        b = REGISTRY[name]
+        result[name] = {"value": round(float(b.run(opts)), 6), "unit": b.unit}
+    return result

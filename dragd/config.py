@@ -1,0 +1,500 @@
+"""dragd's configuration: a typed schema of the YAML files in ``config/`` and of identified-params files.
+
+Every error names the file, the key path and what was expected, e.g.
+``config/default.yaml: joints[2].gear_ratio: expected a positive number, got 'abc'``.
+Unknown keys are errors. An identified-parameters file (written by ``dragd identify fit``) overrides
+per-joint torque constants and friction of the configuration it is loaded with.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+REPO_CONFIG_DIR = Path(__file__).resolve().parents[1] / "config"
+SYSTEM_CONFIG = Path("/etc/dragd/dragd.yaml")
+
+
+class ConfigError(ValueError):
+    """A configuration or parameters file that cannot be used; the message names file, key path and expectation."""
+
+
+class Expect:
+    """Annotation marker: how to describe a field's expected value in an error message."""
+
+    def __init__(self, text: str) -> None:
+        self.text = text
+
+
+PosFloat = Annotated[float, Field(gt=0, allow_inf_nan=False), Expect("a positive number")]
+NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False), Expect("a number >= 0")]
+NonPosFloat = Annotated[float, Field(le=0, allow_inf_nan=False), Expect("a number <= 0 (negative direction level)")]
+Finite = Annotated[float, Field(allow_inf_nan=False), Expect("a finite number")]
+PosInt = Annotated[int, Field(gt=0, strict=False), Expect("a positive integer")]
+NodeId = Annotated[int, Field(ge=1, le=127), Expect("a CANopen node id 1..127")]
+Fraction = Annotated[float, Field(ge=0, le=1), Expect("a number between 0 and 1")]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_default=True, frozen=True)
+
+
+class RobotConfig(_Strict):
+    urdf: str = Field("seed_cobot", description="bundled robot name or URDF path (relative to the config file)")
+    gravity_m_s2: tuple[Finite, Finite, Finite] = (0.0, 0.0, -9.81)
+
+
+class BusConfig(_Strict):
+    name: str = "arm"
+    interface: Literal["socketcan", "udp_multicast", "virtual", "pcan", "kvaser", "slcan", "vector", "ixxat"] = "socketcan"
+    channel: str = "can0"
+    bitrate: PosInt = 1_000_000
+    fd: bool = False
+    data_bitrate: PosInt | None = None
+    load_limit_pct: Annotated[float, Field(gt=0, le=100), Expect("a percentage in (0, 100]")] = 70.0
+
+    @model_validator(mode="after")
+    def _fd_rate(self) -> BusConfig:
+        if self.fd and self.data_bitrate is None:
+            raise ValueError("data_bitrate: expected the CAN FD data-phase bitrate when fd is true")
+        return self
+
+
+class FrictionConfig(_Strict):
+    """Joint friction as motor current [A] (joint-side torque / K_t); negative-direction levels are negative."""
+
+    coulomb_pos_A: NonNegFloat = 0.0
+    coulomb_neg_A: NonPosFloat = 0.0
+    static_pos_A: NonNegFloat | None = None  # None: equal to Coulomb (no Stribeck hump)
+    static_neg_A: NonPosFloat | None = None
+    stribeck_velocity_rad_s: PosFloat = 0.02
+    stribeck_exponent: Annotated[float, Field(gt=0, le=4), Expect("a number in (0, 4] (seed 001: 1 or 2)")] = 2.0
+    viscous_pos_A_s_per_rad: NonNegFloat = 0.0
+    viscous_neg_A_s_per_rad: NonNegFloat = 0.0
+
+
+class StartupConfig(_Strict):
+    """Seed 001's start-up term f_s·sin(2πft) for a joint at rest, faded out as it starts moving."""
+
+    amplitude_pos_A: NonNegFloat | None = None  # None: the joint's static friction level × law.startup_scale
+    amplitude_neg_A: NonNegFloat | None = None
+    frequency_Hz: Annotated[float, Field(gt=0, le=250), Expect("a frequency in (0, 250] Hz")] = 16.0
+    rest_threshold_rad_s: PosFloat = 0.01  # Φ: |q̇| below it counts as rest
+    fade_width_rad_s: PosFloat = 0.02  # the term fades to zero over [Φ, Φ + width]
+
+
+class BackEmfConfig(_Strict):
+    """Motor electrical constants for seed 000 eq. 26's back-EMF headroom term."""
+
+    constant_V_s_per_rad: NonNegFloat = 0.0
+    resistance_ohm: PosFloat = 1.0
+
+
+class JointConfig(_Strict):
+    name: str
+    node_id: NodeId
+    bus: str = "arm"
+    gear_ratio: PosFloat
+    torque_constant_Nm_per_A: PosFloat | None = None  # joint side K_t
+    motor_torque_constant_Nm_per_A: PosFloat | None = None  # K_m; then K_t = K_m · gear · efficiency
+    gear_efficiency: Annotated[float, Field(gt=0, le=1), Expect("a number in (0, 1]")] = 1.0
+    current_limit_A: PosFloat
+    rated_current_A: PosFloat  # 6075h
+    rated_torque_Nm: PosFloat | None = None  # 6076h, motor side; default K_m · rated current
+    encoder_counts_per_rev: PosInt  # per joint revolution
+    encoder_offset_counts: int = 0  # counts at the URDF's zero
+    direction: Literal[1, -1] = 1  # +1: drive's positive = URDF's positive
+    position_limits_rad: tuple[Finite, Finite] | None = None  # soft limits; default: the URDF's
+    velocity_limit_rad_s: PosFloat = 1.0  # drag speed cap
+    friction: FrictionConfig = FrictionConfig()
+    startup: StartupConfig = StartupConfig()
+    back_emf: BackEmfConfig = BackEmfConfig()
+
+    @model_validator(mode="after")
+    def _kt(self) -> JointConfig:
+        if (self.torque_constant_Nm_per_A is None) == (self.motor_torque_constant_Nm_per_A is None):
+            raise ValueError("torque_constant_Nm_per_A: expected exactly one of torque_constant_Nm_per_A (joint side) "
+                             "or motor_torque_constant_Nm_per_A (motor side, with gear_ratio)")
+        if self.position_limits_rad is not None and self.position_limits_rad[0] >= self.position_limits_rad[1]:
+            raise ValueError(f"position_limits_rad: expected [lower, upper] with lower < upper, got {list(self.position_limits_rad)}")
+        return self
+
+    @property
+    def kt_Nm_per_A(self) -> float:
+        """Joint-side torque constant: joint torque per ampere of motor current."""
+        if self.torque_constant_Nm_per_A is not None:
+            return self.torque_constant_Nm_per_A
+        return self.motor_torque_constant_Nm_per_A * self.gear_ratio * self.gear_efficiency  # type: ignore[operator]
+
+    @property
+    def km_Nm_per_A(self) -> float:
+        """Motor-side torque constant (6076h/6075h)."""
+        return self.kt_Nm_per_A / (self.gear_ratio * self.gear_efficiency)
+
+    @property
+    def rated_torque_motor_Nm(self) -> float:
+        return self.rated_torque_Nm if self.rated_torque_Nm is not None else self.km_Nm_per_A * self.rated_current_A
+
+
+class LawConfig(_Strict):
+    """Switches and shared shaping of the compensation law's terms."""
+
+    gravity: bool = True
+    friction: bool = True
+    stribeck: bool = True
+    startup: bool = True
+    back_emf: bool = False
+    friction_smoothing_rad_s: PosFloat = 0.005  # tanh width of the zero crossing
+    friction_deadband_rad_s: NonNegFloat = 0.0  # seed 000's v_lim: no friction compensation inside ±v_lim
+    startup_scale: NonNegFloat = 1.0  # default start-up amplitude = scale × static friction level
+    velocity_filter_Hz: Annotated[float, Field(gt=0, le=500), Expect("a cutoff in (0, 500] Hz")] = 40.0
+
+
+class LoopConfig(_Strict):
+    rate_Hz: Annotated[float, Field(gt=0, le=4000), Expect("a rate in (0, 4000] Hz")] = 1000.0
+    tpdo_deadline_us: PosInt = 600  # collect TPDOs until SYNC + this
+    stale_cycles_hold: PosInt = 3  # an axis missing this many TPDOs in a row -> hold
+    stale_cycles_disable: PosInt = 20  # ... and this many -> disable all
+    realtime_priority: Annotated[int, Field(ge=1, le=99), Expect("a SCHED_FIFO priority 1..99")] | None = None
+    cpus: list[Annotated[int, Field(ge=0)]] | None = None
+
+
+class SafetyConfig(_Strict):
+    soft_limit_margin_rad: PosFloat = 0.1  # walls start this far inside the position limits
+    wall_stiffness_Nm_per_rad: PosFloat = 200.0
+    wall_damping_Nm_s_per_rad: NonNegFloat = 10.0
+    speed_cap_damping_Nm_s_per_rad: NonNegFloat = 20.0
+    hold_kp_Nm_per_rad: PosFloat = 300.0
+    hold_kd_Nm_s_per_rad: NonNegFloat = 15.0
+    mode_ramp_s: PosFloat = 0.2  # blend time between modes' command laws
+    rpdo_timeout_ms: PosInt = 50  # drive-side watchdog (1400h sub 5) and heartbeat consumer margin
+    heartbeat_ms: PosInt = 100  # master heartbeat producer period
+    abort_connection_option: Literal[1, 2, 3] = 3  # 6007h: 1 fault, 2 disable voltage, 3 quick stop
+    quick_stop_option: Literal[0, 1, 2, 5, 6] = 2  # 605Ah
+
+
+class TelemetryConfig(_Strict):
+    path: str | None = None
+    capacity_rows: PosInt = 8192
+    rerun: bool = False
+
+
+class ControlConfig(_Strict):
+    socket: str = "/run/dragd/dragd.sock"
+
+
+class Config(_Strict):
+    robot: RobotConfig = RobotConfig()
+    params: str | None = None  # identified-parameters file, relative to the config file
+    buses: list[BusConfig] = Field(default_factory=lambda: [BusConfig()])
+    joints: list[JointConfig]
+    law: LawConfig = LawConfig()
+    loop: LoopConfig = LoopConfig()
+    safety: SafetyConfig = SafetyConfig()
+    telemetry: TelemetryConfig = TelemetryConfig()
+    control: ControlConfig = ControlConfig()
+    source: str = Field("<memory>", exclude=True)  # file it came from (not a YAML key)
+
+    @model_validator(mode="after")
+    def _cross(self) -> Config:
+        names = [j.name for j in self.joints]
+        expected = [f"joint{i + 1}" for i in range(len(names))]
+        if names != expected:
+            raise ValueError(f"joints: expected joints named {', '.join(expected)} in order, got {', '.join(names)}")
+        bus_names = [b.name for b in self.buses]
+        if len(set(bus_names)) != len(bus_names):
+            raise ValueError(f"buses: expected unique bus names, got {bus_names}")
+        for i, j in enumerate(self.joints):
+            if j.bus not in bus_names:
+                raise ValueError(f"joints[{i}].bus: expected one of the buses {bus_names}, got '{j.bus}'")
+        seen: dict[tuple[str, int], str] = {}
+        for j in self.joints:
+            key = (j.bus, j.node_id)
+            if key in seen:
+                raise ValueError(f"joints: {j.name} and {seen[key]} share node id {j.node_id} on bus '{j.bus}'")
+            seen[key] = j.name
+        return self
+
+    @property
+    def joint_names(self) -> list[str]:
+        return [j.name for j in self.joints]
+
+    @property
+    def base_dir(self) -> Path:
+        return Path(self.source).resolve().parent if self.source != "<memory>" else Path.cwd()
+
+    def bus(self, name: str) -> BusConfig:
+        return next(b for b in self.buses if b.name == name)
+
+
+# ----------------------------------------------------------------------------------------------- params
+
+
+class FrictionParams(_Strict):
+    """Identified friction of one joint (amperes); a None value was not identifiable and keeps the config's."""
+
+    coulomb_pos_A: NonNegFloat | None = None
+    coulomb_neg_A: NonPosFloat | None = None
+    viscous_A_s_per_rad: NonNegFloat | None = None  # one viscous slope for both directions
+    viscous_pos_A_s_per_rad: NonNegFloat | None = None
+    viscous_neg_A_s_per_rad: NonNegFloat | None = None
+    static_pos_A: NonNegFloat | None = None
+    static_neg_A: NonPosFloat | None = None
+    stribeck_velocity_rad_s: PosFloat | None = None
+    stribeck_exponent: PosFloat | None = None
+
+
+class StartupParams(_Strict):
+    frequency_Hz: Annotated[float, Field(gt=0, le=250)] | None = None
+    amplitude_pos_A: NonNegFloat | None = None
+    amplitude_neg_A: NonNegFloat | None = None
+
+
+class JointParams(_Strict):
+    torque_constant_Nm_per_A: PosFloat | None = None
+    friction: FrictionParams = FrictionParams()
+    startup: StartupParams = StartupParams()
+    std: dict[str, Any] = Field(default_factory=dict)  # standard deviations, reasons for nulls
+    effects: dict[str, Any] = Field(default_factory=dict)  # model-gap effects added (issue 6)
+
+
+class ParamsFile(_Strict):
+    version: Literal[1] = 1
+    method: str | None = None
+    robot: str | None = None
+    joints: dict[str, JointParams] = Field(default_factory=dict)
+    notes: dict[str, Any] = Field(default_factory=dict)
+
+
+# ----------------------------------------------------------------------------------------------- errors
+
+
+def _unwrap_optional(t: Any) -> Any:
+    """``X | None`` -> X (keeps ``Annotated`` metadata on X)."""
+    import types
+    from typing import Union, get_args, get_origin
+
+    if get_origin(t) in (Union, types.UnionType):
+        args = [a for a in get_args(t) if a is not type(None)]
+        if len(args) == 1:
+            return args[0]
+    return t
+
+
+def _schema_at(model: type[BaseModel], loc: tuple[Any, ...]) -> tuple[Any, Any]:
+    """Follow an error location through the schema: (FieldInfo of the last field or None, type at loc)."""
+    from typing import Annotated as _Ann
+    from typing import get_args, get_origin
+
+    current: Any = model
+    info = None
+    for part in loc:
+        t = _unwrap_optional(current)
+        base = get_args(t)[0] if get_origin(t) is _Ann else t
+        base = _unwrap_optional(base)
+        origin = get_origin(base)
+        if isinstance(base, type) and issubclass(base, BaseModel) and isinstance(part, str):
+            info = base.model_fields.get(part)
+            if info is None:
+                return None, None
+            current = info.annotation
+            if info.metadata:
+                current = _Ann[(current, *info.metadata)]
+        elif origin in (list, tuple) and isinstance(part, int):
+            args = get_args(base)
+            current = args[0] if origin is list or len(args) == 2 and args[1] is Ellipsis else args[min(part, len(args) - 1)]
+            info = None
+        elif origin is dict:
+            current = get_args(base)[1]
+            info = None
+        else:
+            return None, None
+    return info, current
+
+
+def _annotation_expect(model: type[BaseModel], loc: tuple[Any, ...]) -> str | None:
+    """The ``Expect`` text of the schema element at an error location, if any."""
+    from typing import get_args
+
+    _, t = _schema_at(model, loc)
+    stack = [t]
+    while stack:
+        a = _unwrap_optional(stack.pop())
+        if a is None:
+            continue
+        for meta in getattr(a, "__metadata__", ()):
+            if isinstance(meta, Expect):
+                return meta.text
+        if not (isinstance(a, type) and issubclass(a, BaseModel)):
+            stack.extend(get_args(a))
+    return None
+
+
+def _loc_text(loc: tuple[Any, ...]) -> str:
+    out = ""
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        elif part in ("function-after", "constrained-str", "tagged-union") or str(part).startswith(("function-", "union[")):
+            continue
+        else:
+            out += ("." if out else "") + str(part)
+    return out or "(top level)"
+
+
+def _describe(model: type[BaseModel], err: dict[str, Any]) -> str:
+    loc = tuple(p for p in err["loc"] if not (isinstance(p, str) and ("[" in p or p.startswith("function"))))
+    kind = err["type"]
+    given = err.get("input")
+    if kind == "value_error":
+        msg = str(err.get("ctx", {}).get("error", err["msg"]))
+        if ": expected" in msg and not loc:
+            return msg
+        return f"{_loc_text(loc)}: {msg}" if loc else msg
+    if kind == "extra_forbidden":
+        parent = loc[:-1]
+        allowed = _allowed_keys(model, parent)
+        hint = f"; expected one of: {', '.join(allowed)}" if allowed else ""
+        return f"{_loc_text(loc)}: unknown key{hint}"
+    if kind == "missing":
+        return f"{_loc_text(loc)}: missing required key"
+    expect = _annotation_expect(model, loc)
+    if expect is None:
+        if kind == "literal_error":
+            expect = f"one of {err.get('ctx', {}).get('expected', '')}"
+        elif kind in ("float_parsing", "float_type"):
+            expect = "a number"
+        elif kind in ("int_parsing", "int_type", "int_from_float"):
+            expect = "an integer"
+        elif kind in ("bool_parsing", "bool_type"):
+            expect = "true or false"
+        elif kind in ("list_type", "tuple_type"):
+            expect = "a list"
+        elif kind == "too_short" or kind == "too_long":
+            expect = err["msg"].lower()
+        elif kind in ("model_type", "dict_type", "model_attributes_type"):
+            expect = "a mapping of keys"
+        elif kind == "string_type":
+            expect = "a string"
+        else:
+            expect = err["msg"][0].lower() + err["msg"][1:]
+    return f"{_loc_text(loc)}: expected {expect}, got {given!r}"
+
+
+def _allowed_keys(model: type[BaseModel], loc: tuple[Any, ...]) -> list[str]:
+    from typing import Annotated as _Ann
+    from typing import get_args, get_origin
+
+    _, t = _schema_at(model, loc)
+    t = _unwrap_optional(t)
+    if get_origin(t) is _Ann:
+        t = _unwrap_optional(get_args(t)[0])
+    if isinstance(t, type) and issubclass(t, BaseModel):
+        return [k for k, f in t.model_fields.items() if not f.exclude]
+    return []
+
+
+def format_validation_error(path: str, model: type[BaseModel], exc: ValidationError) -> str:
+    lines = [f"{path}: {_describe(model, e)}" for e in exc.errors(include_url=False)]
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------------------------- loading
+
+
+def _read_yaml(path: Path) -> Any:
+    if not path.is_file():
+        raise ConfigError(f"{path}: file not found")
+    try:
+        with path.open() as fh:
+            return yaml.safe_load(fh)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
+        raise ConfigError(f"{path}: not valid YAML{where}: {getattr(exc, 'problem', exc)}") from exc
+
+
+def default_config_path() -> Path:
+    """``$DRAGD_CONFIG``, else /etc/dragd/dragd.yaml if present, else the repository's config/default.yaml."""
+    env = os.environ.get("DRAGD_CONFIG")
+    if env:
+        return Path(env)
+    if SYSTEM_CONFIG.is_file():
+        return SYSTEM_CONFIG
+    return REPO_CONFIG_DIR / "default.yaml"
+
+
+def load_params(path: str | Path) -> ParamsFile:
+    path = Path(path)
+    data = _read_yaml(path)
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping with 'joints', got {type(data).__name__}")
+    try:
+        return ParamsFile.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(str(path), ParamsFile, exc)) from None
+
+
+def save_params(params: ParamsFile, path: str | Path) -> None:
+    """Write a params file (YAML), the format ``load_config`` overlays and the simulator reads."""
+    data = params.model_dump(mode="json", exclude_none=False)
+    Path(path).write_text(yaml.safe_dump(data, sort_keys=False))
+
+
+def apply_params(cfg: Config, params: ParamsFile, source: str = "params") -> Config:
+    """Return a new Config with identified values overriding the configured ones (None keeps the config's)."""
+    by_name = {j.name: j for j in cfg.joints}
+    unknown = sorted(set(params.joints) - set(by_name))
+    if unknown:
+        raise ConfigError(f"{source}: joints: expected joint names among {', '.join(by_name)}, got {', '.join(unknown)}")
+    joints = []
+    for j in cfg.joints:
+        p = params.joints.get(j.name)
+        if p is None:
+            joints.append(j)
+            continue
+        update: dict[str, Any] = {}
+        if p.torque_constant_Nm_per_A is not None:
+            update["torque_constant_Nm_per_A"] = p.torque_constant_Nm_per_A
+            update["motor_torque_constant_Nm_per_A"] = None
+        fr = {k: v for k, v in p.friction.model_dump().items() if v is not None}
+        if "viscous_A_s_per_rad" in fr:
+            v = fr.pop("viscous_A_s_per_rad")
+            fr.setdefault("viscous_pos_A_s_per_rad", v)
+            fr.setdefault("viscous_neg_A_s_per_rad", v)
+        if fr:
+            update["friction"] = j.friction.model_copy(update=fr)
+        st = {k: v for k, v in p.startup.model_dump().items() if v is not None}
+        if st:
+            update["startup"] = j.startup.model_copy(update=st)
+        joints.append(j.model_copy(update=update))
+    # revalidate the result so the overlay can't produce an invalid joint
+    data = cfg.model_dump(mode="python")
+    data["joints"] = [jj.model_dump(mode="python") for jj in joints]
+    try:
+        out = Config.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(source, Config, exc)) from None
+    return out.model_copy(update={"source": cfg.source})
+
+
+def load_config(path: str | Path | None = None, params: str | Path | None = None) -> Config:
+    """Load and validate a configuration file; overlay its ``params`` file, or ``params`` when given."""
+    path = Path(path) if path is not None else default_config_path()
+    data = _read_yaml(path)
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping of sections (robot, buses, joints, ...), got {type(data).__name__}")
+    if "source" in data:
+        raise ConfigError(f"{path}: source: unknown key")
+    try:
+        cfg = Config.model_validate({**data, "source": str(path)})
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(str(path), Config, exc)) from None
+    params_path = Path(params) if params is not None else (cfg.base_dir / cfg.params if cfg.params else None)
+    if params_path is not None:
+        cfg = apply_params(cfg, load_params(params_path), str(params_path))
+    return cfg

@@ -1,0 +1,283 @@
+"""The compensation law: per-joint motor current [A] that makes the arm weightless under the hand.
+
+    I = G(q)/K_t + I_friction(q̇) + I_startup(t, q̇) + I_back_emf(q̇)   (+ extra terms), clamped per joint.
+
+Pure functions over numpy arrays; no I/O. Each takes an ``out`` array (and a ``Workspace`` of scratch arrays)
+so the 1 kHz cycle evaluates the law without allocating; called without them they allocate and return.
+
+Terms
+- gravity: I_g = G(q)/K_t.
+- friction (seed 001 eq. 19 with seed 000 eq. 25 / seed 002 eq. 5 direction-dependent levels):
+      I_f = w(q̇)·[F_c,d + (F_s,d − F_c,d)·exp(−(|q̇|/v_s)^δ)] + F_v,d·q̇,   d = sign of q̇
+  with the smooth zero crossing w = tanh(max(|q̇| − v_lim, 0)/ε): w = 0 at rest and inside seed 000's
+  velocity band ±v_lim, → 1 once |q̇| ≫ v_lim + ε. The level of the side the joint moves to is used, so
+  asymmetric levels (e.g. +0.89 A / −1.27 A) never bias a joint at rest.
+- start-up (seed 001 eq. 25/28): I_s = r(|q̇|)·A_d·sin(2πft), A_d = amplitude of the half-wave's direction.
+  Seed 001 switches abruptly between I_s and friction at |q̇| = Φ; here r fades from 1 at Φ to 0 at
+  Φ + width (smoothstep) and the friction level is weighted by (1 − r)·w, so it fades in as the start-up
+  term fades out: the hand-over never steps the current.
+- back-EMF headroom (seed 000 eq. 26, I = I_s − K_b·ω/R_m): the command adds K_b·n·q̇/R_m so that a drive
+  whose current falls with the motor's back-EMF still delivers the intended current. Off by default.
+- clamp: |I| ≤ the joint's current limit; clamped joints are flagged.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
+
+from .config import Config
+
+TWO_PI = 2.0 * np.pi
+
+
+@dataclass(frozen=True)
+class LawParams:
+    """The law's constants as per-joint arrays (shape (n,)), plus the switches of each term."""
+
+    kt_Nm_per_A: np.ndarray
+    current_limit_A: np.ndarray
+    coulomb_pos_A: np.ndarray
+    coulomb_neg_A: np.ndarray  # negative numbers
+    static_pos_A: np.ndarray
+    static_neg_A: np.ndarray  # negative numbers
+    stribeck_velocity_rad_s: np.ndarray
+    stribeck_exponent: np.ndarray
+    viscous_pos_A_s_per_rad: np.ndarray
+    viscous_neg_A_s_per_rad: np.ndarray
+    startup_amp_pos_A: np.ndarray
+    startup_amp_neg_A: np.ndarray
+    startup_freq_Hz: np.ndarray
+    rest_threshold_rad_s: np.ndarray
+    fade_width_rad_s: np.ndarray
+    back_emf_A_s_per_rad: np.ndarray
+    smoothing_rad_s: float = 0.005
+    deadband_rad_s: float = 0.0
+    use_gravity: bool = True
+    use_friction: bool = True
+    use_stribeck: bool = True
+    use_startup: bool = True
+    use_back_emf: bool = False
+
+    @property
+    def n(self) -> int:
+        return int(self.kt_Nm_per_A.shape[0])
+
+    def replace(self, **changes: object) -> LawParams:
+        """A copy with some fields changed (arrays are converted)."""
+        arrays = {f.name for f in fields(self) if f.type == "np.ndarray"}
+        conv = {k: (np.array(v, dtype=float) if k in arrays else v) for k, v in changes.items()}
+        return replace(self, **conv)
+
+    @classmethod
+    def from_config(cls, cfg: Config) -> LawParams:
+        js = cfg.joints
+
+        def arr(get) -> np.ndarray:  # noqa: ANN001
+            return np.array([float(get(j)) for j in js], dtype=float)
+
+        fs_pos = arr(lambda j: j.friction.static_pos_A if j.friction.static_pos_A is not None else j.friction.coulomb_pos_A)
+        fs_neg = arr(lambda j: j.friction.static_neg_A if j.friction.static_neg_A is not None else j.friction.coulomb_neg_A)
+        scale = cfg.law.startup_scale
+        amp_pos = np.array([j.startup.amplitude_pos_A if j.startup.amplitude_pos_A is not None else scale * fs_pos[i]
+                            for i, j in enumerate(js)], dtype=float)
+        amp_neg = np.array([j.startup.amplitude_neg_A if j.startup.amplitude_neg_A is not None else -scale * fs_neg[i]
+                            for i, j in enumerate(js)], dtype=float)
+        return cls(
+            kt_Nm_per_A=arr(lambda j: j.kt_Nm_per_A),
+            current_limit_A=arr(lambda j: j.current_limit_A),
+            coulomb_pos_A=arr(lambda j: j.friction.coulomb_pos_A),
+            coulomb_neg_A=arr(lambda j: j.friction.coulomb_neg_A),
+            static_pos_A=fs_pos,
+            static_neg_A=fs_neg,
+            stribeck_velocity_rad_s=arr(lambda j: j.friction.stribeck_velocity_rad_s),
+            stribeck_exponent=arr(lambda j: j.friction.stribeck_exponent),
+            viscous_pos_A_s_per_rad=arr(lambda j: j.friction.viscous_pos_A_s_per_rad),
+            viscous_neg_A_s_per_rad=arr(lambda j: j.friction.viscous_neg_A_s_per_rad),
+            startup_amp_pos_A=amp_pos,
+            startup_amp_neg_A=amp_neg,
+            startup_freq_Hz=arr(lambda j: j.startup.frequency_Hz),
+            rest_threshold_rad_s=arr(lambda j: j.startup.rest_threshold_rad_s),
+            fade_width_rad_s=arr(lambda j: j.startup.fade_width_rad_s),
+            back_emf_A_s_per_rad=arr(lambda j: j.back_emf.constant_V_s_per_rad * j.gear_ratio / j.back_emf.resistance_ohm),
+            smoothing_rad_s=cfg.law.friction_smoothing_rad_s,
+            deadband_rad_s=cfg.law.friction_deadband_rad_s,
+            use_gravity=cfg.law.gravity,
+            use_friction=cfg.law.friction,
+            use_stribeck=cfg.law.stribeck,
+            use_startup=cfg.law.startup,
+            use_back_emf=cfg.law.back_emf,
+        )
+
+
+class Workspace:
+    """Scratch arrays for one law evaluation (like Pinocchio's Data: allocate once, reuse every cycle)."""
+
+    def __init__(self, n: int) -> None:
+        self.a = np.zeros(n)
+        self.b = np.zeros(n)
+        self.c = np.zeros(n)
+        self.total = np.zeros(n)
+        self.rest = np.zeros(n)
+        self.pos = np.zeros(n, dtype=bool)
+
+
+@dataclass
+class LawOutput:
+    """Per-joint components [A]; ``current_A`` = clamp(sum of components + extra)."""
+
+    current_A: np.ndarray
+    gravity_A: np.ndarray
+    friction_A: np.ndarray
+    startup_A: np.ndarray
+    back_emf_A: np.ndarray
+    clamped: np.ndarray  # bool
+
+    @classmethod
+    def zeros(cls, n: int) -> LawOutput:
+        return cls(*(np.zeros(n) for _ in range(5)), clamped=np.zeros(n, dtype=bool))
+
+
+def _out(out: np.ndarray | None, n: int) -> np.ndarray:
+    return np.zeros(n) if out is None else out
+
+
+def gravity_current(tau_g_Nm: np.ndarray, kt_Nm_per_A: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """I_g = G(q)/K_t."""
+    out = _out(out, tau_g_Nm.shape[0])
+    np.divide(tau_g_Nm, kt_Nm_per_A, out=out)
+    return out
+
+
+def friction_current(dq_rad_s: np.ndarray, p: LawParams, out: np.ndarray | None = None,
+                     ws: Workspace | None = None, rest_weight: np.ndarray | None = None) -> np.ndarray:
+    """Direction-dependent Coulomb/Stribeck/viscous friction current with a smooth zero crossing.
+
+    With ``rest_weight`` r (the start-up term's weight) the Coulomb/Stribeck level is further weighted by
+    (1 − r), so it fades in exactly as the start-up term fades out.
+    """
+    n = dq_rad_s.shape[0]
+    out = _out(out, n)
+    ws = ws or Workspace(n)
+    a, b, c, pos = ws.a, ws.b, ws.c, ws.pos
+    np.greater_equal(dq_rad_s, 0.0, out=pos)
+    np.abs(dq_rad_s, out=a)  # a = |v|
+    # level of the side moved to: c = F_c,d (+ Stribeck hump)
+    np.copyto(c, p.coulomb_neg_A)
+    np.copyto(c, p.coulomb_pos_A, where=pos)
+    if p.use_stribeck:
+        np.copyto(b, p.static_neg_A)
+        np.copyto(b, p.static_pos_A, where=pos)
+        b -= c  # F_s - F_c
+        np.divide(a, p.stribeck_velocity_rad_s, out=out)
+        np.power(out, p.stribeck_exponent, out=out)
+        np.negative(out, out=out)
+        np.exp(out, out=out)
+        b *= out
+        c += b
+    # smooth zero crossing / seed 000 dead band: w = tanh(max(|v| - v_lim, 0)/eps)
+    np.subtract(a, p.deadband_rad_s, out=b)
+    np.maximum(b, 0.0, out=b)
+    b /= p.smoothing_rad_s
+    np.tanh(b, out=b)
+    if rest_weight is not None:
+        np.subtract(1.0, rest_weight, out=a)
+        b *= a
+    np.multiply(b, c, out=out)
+    # viscous, direction-dependent slope
+    np.copyto(c, p.viscous_neg_A_s_per_rad)
+    np.copyto(c, p.viscous_pos_A_s_per_rad, where=pos)
+    c *= dq_rad_s
+    out += c
+    return out
+
+
+def startup_weight(dq_rad_s: np.ndarray, p: LawParams, out: np.ndarray | None = None,
+                   ws: Workspace | None = None) -> np.ndarray:
+    """r(|q̇|) = 1 − x²(3 − 2x), x = clip((|q̇| − Φ)/width, 0, 1): 1 at rest, 0 from Φ + width on."""
+    n = dq_rad_s.shape[0]
+    out = _out(out, n)
+    x = (ws or Workspace(n)).a
+    np.abs(dq_rad_s, out=x)
+    x -= p.rest_threshold_rad_s
+    x /= p.fade_width_rad_s
+    np.clip(x, 0.0, 1.0, out=x)
+    np.multiply(x, 2.0, out=out)
+    out -= 3.0
+    out *= x
+    out *= x
+    out += 1.0
+    return out
+
+
+def startup_current(t_s: float, dq_rad_s: np.ndarray, p: LawParams, out: np.ndarray | None = None,
+                    ws: Workspace | None = None, rest_weight: np.ndarray | None = None) -> np.ndarray:
+    """Seed 001's start-up term A_d·sin(2πft) for joints at rest, faded out over [Φ, Φ + width]."""
+    n = dq_rad_s.shape[0]
+    out = _out(out, n)
+    ws = ws or Workspace(n)
+    a, s, pos = ws.a, ws.c, ws.pos
+    r = rest_weight if rest_weight is not None else startup_weight(dq_rad_s, p, ws.b, ws)
+    np.multiply(p.startup_freq_Hz, TWO_PI * t_s, out=s)
+    np.sin(s, out=s)
+    np.greater_equal(s, 0.0, out=pos)
+    np.copyto(a, p.startup_amp_neg_A)
+    np.copyto(a, p.startup_amp_pos_A, where=pos)
+    np.multiply(a, s, out=out)
+    out *= r
+    return out
+
+
+def back_emf_current(dq_rad_s: np.ndarray, p: LawParams, out: np.ndarray | None = None) -> np.ndarray:
+    """Back-EMF headroom K_b·n·q̇/R_m (inverse of seed 000 eq. 26)."""
+    out = _out(out, dq_rad_s.shape[0])
+    np.multiply(p.back_emf_A_s_per_rad, dq_rad_s, out=out)
+    return out
+
+
+def clamp_current(current_A: np.ndarray, limit_A: np.ndarray, out: np.ndarray | None = None,
+                  clamped: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Clamp |I| ≤ limit per joint; return (clamped current, mask of joints that hit their limit)."""
+    n = current_A.shape[0]
+    out = _out(out, n)
+    clamped = np.zeros(n, dtype=bool) if clamped is None else clamped
+    np.abs(current_A, out=out)
+    np.greater(out, limit_A, out=clamped)
+    np.clip(current_A, -limit_A, limit_A, out=out)
+    return out, clamped
+
+
+def compensate(tau_g_Nm: np.ndarray, dq_rad_s: np.ndarray, t_s: float, p: LawParams,
+               out: LawOutput | None = None, ws: Workspace | None = None,
+               extra_A: np.ndarray | None = None) -> LawOutput:
+    """Evaluate every enabled term and the clamped total. ``extra_A`` (e.g. safety walls) adds before the clamp."""
+    n = dq_rad_s.shape[0]
+    out = out or LawOutput.zeros(n)
+    ws = ws or Workspace(n)
+    if p.use_gravity:
+        gravity_current(tau_g_Nm, p.kt_Nm_per_A, out.gravity_A)
+    else:
+        out.gravity_A.fill(0.0)
+    rest = None
+    if p.use_startup:
+        rest = startup_weight(dq_rad_s, p, ws.rest, ws)
+        startup_current(t_s, dq_rad_s, p, out.startup_A, ws, rest)
+    else:
+        out.startup_A.fill(0.0)
+    if p.use_friction:
+        friction_current(dq_rad_s, p, out.friction_A, ws, rest)
+    else:
+        out.friction_A.fill(0.0)
+    if p.use_back_emf:
+        back_emf_current(dq_rad_s, p, out.back_emf_A)
+    else:
+        out.back_emf_A.fill(0.0)
+    total = ws.total
+    np.add(out.gravity_A, out.friction_A, out=total)
+    total += out.startup_A
+    total += out.back_emf_A
+    if extra_A is not None:
+        total += extra_A
+    clamp_current(total, p.current_limit_A, out.current_A, out.clamped)
+    return out

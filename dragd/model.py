@@ -1,0 +1,72 @@
+"""The robot model: a Pinocchio model built from a URDF (constant) plus its scratch data.
+
+One model serves the control law, identification, the model-gap workflow and the simulator.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+
+from .robots import resolve_urdf
+
+
+class RobotModel:
+    """Pinocchio ``Model`` (constant) and ``Data`` (scratch) for a fixed-base serial arm of revolute joints."""
+
+    def __init__(self, model: pin.Model, urdf_path: Path | None = None) -> None:
+        for jid in range(1, model.njoints):
+            if model.joints[jid].nq != 1:
+                raise ValueError(f"{urdf_path or model.name}: joint '{model.names[jid]}' has {model.joints[jid].nq} "
+                                 "position coordinates; dragd expects revolute/prismatic joints (1 each)")
+        self.model = model
+        self.data = model.createData()
+        self.urdf_path = urdf_path
+        self.joint_names: tuple[str, ...] = tuple(model.names[1:])
+        self.nq: int = model.nq
+        self._zero = np.zeros(model.nv)
+
+    @classmethod
+    def from_urdf(cls, name_or_path: str | Path, base_dir: Path | None = None,
+                  gravity_m_s2: tuple[float, float, float] | None = None) -> RobotModel:
+        """Load a bundled robot (``seed_cobot``) or any URDF file."""
+        path = resolve_urdf(name_or_path, base_dir)
+        try:
+            model = pin.buildModelFromUrdf(str(path))
+        except (RuntimeError, ValueError) as exc:
+            raise ValueError(f"{path}: not a loadable URDF: {exc}") from exc
+        if gravity_m_s2 is not None:
+            model.gravity.linear = np.asarray(gravity_m_s2, dtype=float)
+        return cls(model, path)
+
+    @property
+    def position_limits_rad(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.model.lowerPositionLimit.copy(), self.model.upperPositionLimit.copy()
+
+    @property
+    def effort_limits_Nm(self) -> np.ndarray:
+        return self.model.effortLimit.copy()
+
+    def gravity(self, q_rad: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """Generalised gravity torque G(q) [N·m]: the joint torques that hold the arm still at q."""
+        g = pin.computeGeneralizedGravity(self.model, self.data, q_rad)
+        if out is None:
+            return np.array(g)
+        out[:] = g
+        return out
+
+    def inverse_dynamics(self, q_rad: np.ndarray, dq_rad_s: np.ndarray | None = None,
+                         ddq_rad_s2: np.ndarray | None = None) -> np.ndarray:
+        """Joint torques M(q)q̈ + C(q,q̇)q̇ + G(q) [N·m] (RNEA)."""
+        dq = self._zero if dq_rad_s is None else dq_rad_s
+        ddq = self._zero if ddq_rad_s2 is None else ddq_rad_s2
+        return np.array(pin.rnea(self.model, self.data, q_rad, dq, ddq))
+
+    def check_q(self, q_rad: np.ndarray, what: str = "q") -> np.ndarray:
+        """Return q as a float array, or raise naming the expected joint count."""
+        q = np.asarray(q_rad, dtype=float).reshape(-1)
+        if q.shape[0] != self.nq:
+            raise ValueError(f"{what}: expected {self.nq} values ({', '.join(self.joint_names)}), got {q.shape[0]}")
+        return q

@@ -1,0 +1,366 @@
+"""Periodic tick for asyncio from a Linux timerfd with absolute deadlines.
+
+``asyncio.sleep`` rounds timeouts up to whole milliseconds on epoll and drifts by
+the cycle's own run time; a timerfd armed with an absolute CLOCK_MONOTONIC
+deadline and a fixed interval fires on a drift-free grid and counts the
+expirations the loop slept through (missed ticks).
+
+GIL note for the daemon: a Python thread that holds the GIL (e.g. the telemetry
+writer encoding JSON) delays the cycle thread by up to ``sys.getswitchinterval()``
+(5 ms by default) after the timer fires; the daemon should lower it
+(``sys.setswitchinterval(2e-4)`` or similar) when running at 1 kHz.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import ctypes
+import ctypes.util
+import os
+import platform
+import resource
+import sys
+import time
+from typing import Any
+
+__all__ = ["Ticker", "set_realtime", "demote_current_thread"]
+
+_CLOCK_MONOTONIC = 1
+_TFD_NONBLOCK = os.O_NONBLOCK
+_TFD_CLOEXEC = os.O_CLOEXEC
+_TFD_TIMER_ABSTIME = 1
+
+
+class _Timespec(ctypes.Structure):
+    _fields_ = [("tv_sec", ctypes.c_long), ("tv_nsec", ctypes.c_long)]
+
+
+class _Itimerspec(ctypes.Structure):
+    _fields_ = [("it_interval", _Timespec), ("it_value", _Timespec)]
+
+
+_libc: ctypes.CDLL | None = None
+
+
+def _get_libc() -> ctypes.CDLL:
+    global _libc
+    if _libc is None:
+        if not sys.platform.startswith("linux"):
+            raise OSError(f"Ticker needs Linux timerfd; this platform is {sys.platform!r}")
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        libc.timerfd_create.argtypes = [ctypes.c_int, ctypes.c_int]
+        libc.timerfd_create.restype = ctypes.c_int
+        libc.timerfd_settime.argtypes = [
+            ctypes.c_int,
+            ctypes.c_int,
+            ctypes.POINTER(_Itimerspec),
+            ctypes.POINTER(_Itimerspec),
+        ]
+        libc.timerfd_settime.restype = ctypes.c_int
+        libc.mlockall.argtypes = [ctypes.c_int]
+        libc.mlockall.restype = ctypes.c_int
+        _libc = libc
+    return _libc
+
+
+def _oserror(call: str) -> OSError:
+    err = ctypes.get_errno()
+    return OSError(err, f"{call} failed: {os.strerror(err)}")
+
+
+class Ticker:
+    """Drift-free periodic tick: ``n = await ticker.wait()`` once per period.
+
+    The timer is armed on the first `wait` (first deadline one period later) or
+    explicitly with `start`. ``wait`` returns the number of periods elapsed since
+    the previous return (1 normally, >1 when ticks were missed); ``deadline_ns`` is
+    the CLOCK_MONOTONIC deadline of the tick just returned, so
+    ``time.monotonic_ns() - ticker.deadline_ns`` is the wake-up latency.
+    """
+
+    def __init__(self, period_s: float, loop: asyncio.AbstractEventLoop | None = None) -> None:
+        if not (period_s > 0 and period_s < 3600):
+            raise ValueError(f"Ticker period_s must be in (0, 3600) seconds; got {period_s!r}")
+        self.period_ns = int(round(period_s * 1e9))
+        if self.period_ns < 10_000:
+            raise ValueError(f"Ticker period {period_s} s is below 10 us; expected >= 1e-5 s")
+        self._libc = _get_libc()
+        fd = self._libc.timerfd_create(_CLOCK_MONOTONIC, _TFD_NONBLOCK | _TFD_CLOEXEC)
+        if fd < 0:
+            raise _oserror("timerfd_create(CLOCK_MONOTONIC)")
+        self._fd = fd
+        self._loop = loop
+        self._reader_loop: asyncio.AbstractEventLoop | None = None
+        self._waiter: asyncio.Future[None] | None = None
+        self._pending = 0
+        self._start_ns = 0
+        self._armed = False
+        self.ticks = 0
+        """Periods elapsed since start (sum of `wait` results)."""
+        self.missed = 0
+        """Ticks skipped in total (sum of ``n - 1`` over all waits)."""
+
+    # -- arming -----------------------------------------------------------------------------
+    def start(self, first_deadline_ns: int | None = None) -> None:
+        """Arm the timer: first tick at ``first_deadline_ns`` (default now + period)."""
+        if self._fd < 0:
+            raise RuntimeError("Ticker is closed")
+        if first_deadline_ns is None:
+            first_deadline_ns = time.monotonic_ns() + self.period_ns
+        spec = _Itimerspec()
+        spec.it_value.tv_sec, spec.it_value.tv_nsec = divmod(first_deadline_ns, 1_000_000_000)
+        spec.it_interval.tv_sec, spec.it_interval.tv_nsec = divmod(self.period_ns, 1_000_000_000)
+        if self._libc.timerfd_settime(self._fd, _TFD_TIMER_ABSTIME, ctypes.byref(spec), None) != 0:
+            raise _oserror("timerfd_settime(TFD_TIMER_ABSTIME)")
+        self._start_ns = first_deadline_ns
+        self._pending = 0
+        self.ticks = 0
+        self.missed = 0
+        self._armed = True
+
+    @property
+    def fileno(self) -> int:
+        return self._fd
+
+    @property
+    def deadline_ns(self) -> int:
+        """CLOCK_MONOTONIC deadline of the tick most recently returned by `wait`."""
+        return self._start_ns + (self.ticks - 1) * self.period_ns
+
+    @property
+    def next_deadline_ns(self) -> int:
+        return self._start_ns + self.ticks * self.period_ns
+
+    # -- waiting ----------------------------------------------------------------------------
+    def _drain(self) -> int:
+        try:
+            data = os.read(self._fd, 8)
+        except BlockingIOError:
+            return 0
+        n = int.from_bytes(data, sys.byteorder)
+        self._pending += n
+        return n
+
+    def _on_readable(self) -> None:
+        if self._drain() and self._waiter is not None and not self._waiter.done():
+            self._waiter.set_result(None)
+
+    def _register(self) -> asyncio.AbstractEventLoop:
+        running = asyncio.get_running_loop()
+        if self._loop is not None and self._loop is not running:
+            raise RuntimeError("Ticker.wait() called from a loop other than the one it was given")
+        if self._reader_loop is None:
+            running.add_reader(self._fd, self._on_readable)
+            self._reader_loop = running
+        elif self._reader_loop is not running:
+            raise RuntimeError("Ticker.wait() called from a different event loop than before")
+        return running
+
+    async def wait(self) -> int:
+        """Wait for the next tick; return the number of periods since the last return.
+
+        When ticks are already overdue it returns at once but still yields to the
+        loop once, so other tasks (control socket, watchdog) run even if the cycle
+        overruns continuously.
+        """
+        if self._fd < 0:
+            raise RuntimeError("Ticker is closed")
+        loop = self._register()
+        if not self._armed:
+            self.start()
+        if self._pending == 0 and time.monotonic_ns() >= self.next_deadline_ns:
+            self._drain()
+        if self._pending == 0:
+            waiter = loop.create_future()
+            self._waiter = waiter
+            try:
+                await waiter
+            finally:
+                self._waiter = None
+        else:
+            await asyncio.sleep(0)
+        n = self._pending
+        self._pending = 0
+        self.ticks += n
+        self.missed += n - 1
+        return n
+
+    # -- teardown ---------------------------------------------------------------------------
+    def close(self) -> None:
+        """Stop the timer, unregister it from the loop and close the fd (idempotent)."""
+        if self._fd < 0:
+            return
+        if self._reader_loop is not None and not self._reader_loop.is_closed():
+            self._reader_loop.remove_reader(self._fd)
+        self._reader_loop = None
+        if self._waiter is not None and not self._waiter.done():
+            self._waiter.cancel()
+        os.close(self._fd)
+        self._fd = -1
+
+    def __enter__(self) -> "Ticker":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        if getattr(self, "_fd", -1) >= 0:
+            try:
+                os.close(self._fd)
+            except OSError:
+                pass
+
+
+# -- real-time scheduling -------------------------------------------------------------------
+
+def _mcl_flags() -> int:
+    # MCL_CURRENT | MCL_FUTURE; values differ on a few architectures.
+    if platform.machine().lower().startswith(("ppc", "powerpc", "sparc", "alpha")):
+        return 0x2000 | 0x4000
+    return 1 | 2
+
+
+def _rtprio_limit() -> str:
+    soft, _hard = resource.getrlimit(resource.RLIMIT_RTPRIO)
+    return "unlimited" if soft == resource.RLIM_INFINITY else str(soft)
+
+
+def set_realtime(
+    priority: int | None,
+    cpus: set[int] | None,
+    *,
+    lock_memory: bool = False,
+) -> dict[str, Any]:
+    """Pin the calling thread to ``cpus`` and make it SCHED_FIFO at ``priority``.
+
+    Applies to the *calling thread* only; threads started afterwards inherit the
+    policy and affinity (threads that must not run real-time should call
+    `demote_current_thread`). ``lock_memory`` also calls ``mlockall(MCL_CURRENT |
+    MCL_FUTURE)``. Never raises for missing permission: the returned dict tells, per
+    item, what was applied and why not. Raises ValueError for invalid arguments.
+    """
+    result: dict[str, Any] = {}
+
+    if cpus is None:
+        result["affinity"] = {
+            "requested": None,
+            "applied": False,
+            "cpus": sorted(os.sched_getaffinity(0)),
+            "reason": "not requested",
+        }
+    else:
+        wanted = {int(c) for c in cpus}
+        if not wanted or min(wanted) < 0:
+            raise ValueError(f"cpus must be a non-empty set of CPU numbers >= 0; got {cpus!r}")
+        try:
+            os.sched_setaffinity(0, wanted)
+            result["affinity"] = {
+                "requested": sorted(wanted),
+                "applied": True,
+                "cpus": sorted(os.sched_getaffinity(0)),
+                "reason": None,
+            }
+        except OSError as e:
+            result["affinity"] = {
+                "requested": sorted(wanted),
+                "applied": False,
+                "cpus": sorted(os.sched_getaffinity(0)),
+                "reason": f"sched_setaffinity({sorted(wanted)}) failed: {e.strerror}; "
+                f"this process may use CPUs {sorted(os.sched_getaffinity(0))} "
+                f"of {os.cpu_count()} online",
+            }
+
+    if priority is None:
+        result["scheduler"] = {
+            "requested_priority": None,
+            "applied": False,
+            "policy": _policy_name(os.sched_getscheduler(0)),
+            "reason": "not requested",
+        }
+    else:
+        lo = os.sched_get_priority_min(os.SCHED_FIFO)
+        hi = os.sched_get_priority_max(os.SCHED_FIFO)
+        if not (isinstance(priority, int) and lo <= priority <= hi):
+            raise ValueError(f"SCHED_FIFO priority must be an integer in {lo}..{hi}; got {priority!r}")
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+            result["scheduler"] = {
+                "requested_priority": priority,
+                "applied": True,
+                "policy": _policy_name(os.sched_getscheduler(0)),
+                "reason": None,
+            }
+        except PermissionError:
+            result["scheduler"] = {
+                "requested_priority": priority,
+                "applied": False,
+                "policy": _policy_name(os.sched_getscheduler(0)),
+                "reason": f"SCHED_FIFO priority {priority} not permitted: needs CAP_SYS_NICE or "
+                f"RLIMIT_RTPRIO >= {priority} (current soft limit {_rtprio_limit()}); "
+                "under systemd set LimitRTPRIO= in the unit",
+            }
+        except OSError as e:
+            result["scheduler"] = {
+                "requested_priority": priority,
+                "applied": False,
+                "policy": _policy_name(os.sched_getscheduler(0)),
+                "reason": f"sched_setscheduler(SCHED_FIFO, {priority}) failed: {e.strerror}",
+            }
+
+    if not lock_memory:
+        result["memory_lock"] = {"requested": False, "applied": False, "reason": "not requested"}
+    elif _get_libc().mlockall(_mcl_flags()) == 0:
+        result["memory_lock"] = {"requested": True, "applied": True, "reason": None}
+    else:
+        err = ctypes.get_errno()
+        soft, _ = resource.getrlimit(resource.RLIMIT_MEMLOCK)
+        limit = "unlimited" if soft == resource.RLIM_INFINITY else f"{soft} bytes"
+        result["memory_lock"] = {
+            "requested": True,
+            "applied": False,
+            "reason": f"mlockall(MCL_CURRENT|MCL_FUTURE) failed: {os.strerror(err)} "
+            f"(RLIMIT_MEMLOCK {limit}; under systemd set LimitMEMLOCK=infinity)",
+        }
+    return result
+
+
+def demote_current_thread(avoid_cpus: set[int] | None = None) -> dict[str, Any]:
+    """Return the calling thread to SCHED_OTHER and, if possible, off ``avoid_cpus``.
+
+    For helper threads (telemetry writer, executors) started after `set_realtime`,
+    which would otherwise inherit SCHED_FIFO and the real-time CPU set. Never raises.
+    """
+    out: dict[str, Any] = {"policy": None, "cpus": None, "reason": None}
+    reasons: list[str] = []
+    try:
+        if os.sched_getscheduler(0) != os.SCHED_OTHER:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        out["policy"] = _policy_name(os.sched_getscheduler(0))
+    except OSError as e:
+        reasons.append(f"sched_setscheduler(SCHED_OTHER) failed: {e.strerror}")
+    try:
+        allowed = os.sched_getaffinity(0)
+        if avoid_cpus:
+            rest = set(range(os.cpu_count() or 1)) - set(avoid_cpus)
+            if rest:
+                os.sched_setaffinity(0, rest)
+            else:
+                reasons.append(f"no CPU left outside {sorted(avoid_cpus)}; affinity unchanged")
+            allowed = os.sched_getaffinity(0)
+        out["cpus"] = sorted(allowed)
+    except OSError as e:
+        reasons.append(f"sched_setaffinity failed: {e.strerror}")
+    out["reason"] = "; ".join(reasons) or None
+    return out
+
+
+def _policy_name(policy: int) -> str:
+    names = {
+        os.SCHED_OTHER: "SCHED_OTHER",
+        os.SCHED_FIFO: "SCHED_FIFO",
+        os.SCHED_RR: "SCHED_RR",
+        getattr(os, "SCHED_BATCH", -10): "SCHED_BATCH",
+        getattr(os, "SCHED_IDLE", -11): "SCHED_IDLE",
+    }
+    return names.get(policy, f"policy {policy}")

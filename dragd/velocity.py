@@ -1,0 +1,61 @@
+"""Joint velocity from encoder counts: filtered differentiation.
+
+q̇_raw[k] = Δcounts·(2π/cpr)/Δt, then a first-order low-pass y += α(q̇_raw − y) with
+α = 1 − exp(−2π f_c Δt). For signals well below f_c the estimate lags by ≈ 1/(2π f_c) + Δt/2
+(the filter's group delay plus half a sample of the backward difference): 4.5 ms at f_c = 40 Hz, 1 kHz.
+One encoder count per sample is (2π/cpr)/Δt: 0.012 rad/s for 2^19 counts/rev at 1 kHz, which the filter
+averages down. A missed sample is handled by passing the real Δt.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+INT32_SPAN = 1 << 32
+
+
+class VelocityEstimator:
+    """Per-joint filtered differentiation of int32 encoder counts (wrap-safe); allocation-free ``update``."""
+
+    def __init__(self, counts_per_rev: np.ndarray, cutoff_Hz: float, direction: np.ndarray | None = None) -> None:
+        self.rad_per_count = 2.0 * math.pi / np.asarray(counts_per_rev, dtype=float)
+        if direction is not None:
+            self.rad_per_count = self.rad_per_count * np.asarray(direction, dtype=float)
+        self.cutoff_Hz = float(cutoff_Hz)
+        n = self.rad_per_count.shape[0]
+        self.velocity_rad_s = np.zeros(n)
+        self._last = np.zeros(n, dtype=np.int64)
+        self._delta = np.zeros(n, dtype=np.int64)
+        self._raw = np.zeros(n)
+        self._primed = False
+
+    def delay_s(self, dt_s: float) -> float:
+        """Low-frequency delay of the estimate."""
+        return 1.0 / (2.0 * math.pi * self.cutoff_Hz) + dt_s / 2.0
+
+    def reset(self, counts: np.ndarray) -> None:
+        self._last[:] = counts
+        self.velocity_rad_s.fill(0.0)
+        self._primed = True
+
+    def update(self, counts: np.ndarray, dt_s: float) -> np.ndarray:
+        """Feed the latest counts (int array) taken ``dt_s`` after the previous ones; return q̇ [rad/s]."""
+        if not self._primed or dt_s <= 0.0:
+            self.reset(counts)
+            return self.velocity_rad_s
+        d = self._delta
+        np.subtract(counts, self._last, out=d)
+        # int32 wrap-around of 6064h: map the difference into [-2^31, 2^31)
+        d += INT32_SPAN // 2
+        np.remainder(d, INT32_SPAN, out=d)
+        d -= INT32_SPAN // 2
+        self._last[:] = counts
+        np.multiply(d, self.rad_per_count, out=self._raw)
+        self._raw /= dt_s
+        alpha = 1.0 - math.exp(-2.0 * math.pi * self.cutoff_Hz * dt_s)
+        self._raw -= self.velocity_rad_s
+        self._raw *= alpha
+        self.velocity_rad_s += self._raw
+        return self.velocity_rad_s

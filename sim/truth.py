@@ -1,0 +1,286 @@
+"""The simulator's truth: what the simulated robot really is (never read by dragd/).
+
+A YAML file (default ``sim/config/seed_cobot.yaml``) validated by a pydantic schema. Every error names the
+file, the key path and the expectation, e.g.
+``sim/config/seed_cobot.yaml: joints[2].gear_ratio: expected a positive number, got 'abc'``.
+
+Conventions (joint side unless a name says otherwise): rad, rad/s, N·m, A of motor current.
+Negative-direction friction levels are negative numbers (as in dragd's config); viscous slopes are >= 0.
+``static_*_Nm`` is the total breakaway level (|static| >= |Coulomb|); the Stribeck curve falls from it to Coulomb.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from dragd.config import ConfigError, Expect, _read_yaml, format_validation_error
+
+if TYPE_CHECKING:
+    from dragd.model import RobotModel
+    from sim.drive import DriveParams
+
+DEFAULT_TRUTH = Path(__file__).resolve().parent / "config" / "seed_cobot.yaml"
+
+PosFloat = Annotated[float, Field(gt=0, allow_inf_nan=False), Expect("a positive number")]
+NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False), Expect("a number >= 0")]
+NonPosFloat = Annotated[float, Field(le=0, allow_inf_nan=False), Expect("a number <= 0 (negative-direction level)")]
+Finite = Annotated[float, Field(allow_inf_nan=False), Expect("a finite number")]
+PosInt = Annotated[int, Field(gt=0), Expect("a positive integer")]
+NodeId = Annotated[int, Field(ge=1, le=127), Expect("a CANopen node id 1..127")]
+
+
+class TruthError(ConfigError):
+    """A sim truth file that cannot be used; the message names file, key path and expectation."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_default=True, frozen=True)
+
+
+class CspGains(_Strict):
+    """The drive's cyclic-synchronous-position loop (joint side): torque = kp·e + kd·ė (+ ki·∫e)."""
+
+    kp_Nm_per_rad: PosFloat = 800.0
+    kd_Nm_s_per_rad: NonNegFloat = 40.0
+    ki_Nm_per_rad_s: NonNegFloat = 0.0
+
+
+class DriveHardware(_Strict):
+    """The integrated drive's hardware as its object dictionary reports it."""
+
+    node_id: NodeId
+    rated_current_A: PosFloat  # 6075h
+    rated_torque_Nm: PosFloat  # 6076h, motor side; K_m = 6076h / 6075h
+    max_torque_permille: Annotated[int, Field(ge=1, le=32767), Expect("an integer per mille 1..32767")] = 3000  # 6072h
+    max_current_A: PosFloat  # current-loop clamp (6073h = 1000·max/rated)
+    encoder_counts_per_rev: PosInt  # per joint revolution (absolute output encoder)
+    csp: CspGains = CspGains()
+
+
+class FrictionTruth(_Strict):
+    """True joint friction, direction asymmetric: Stribeck curve plus viscous slope."""
+
+    coulomb_pos_Nm: NonNegFloat = 0.0
+    coulomb_neg_Nm: NonPosFloat = 0.0
+    static_pos_Nm: NonNegFloat | None = None  # breakaway level; None: equal to Coulomb
+    static_neg_Nm: NonPosFloat | None = None
+    stribeck_velocity_rad_s: PosFloat = 0.02
+    stribeck_exponent: Annotated[float, Field(gt=0, le=4), Expect("a number in (0, 4]")] = 2.0
+    viscous_pos_Nm_s_per_rad: NonNegFloat = 0.0
+    viscous_neg_Nm_s_per_rad: NonNegFloat = 0.0
+
+    @model_validator(mode="after")
+    def _static_above_coulomb(self) -> FrictionTruth:
+        if self.static_pos_Nm is not None and self.static_pos_Nm < self.coulomb_pos_Nm:
+            raise ValueError(f"expected static_pos_Nm >= coulomb_pos_Nm ({self.coulomb_pos_Nm}), got {self.static_pos_Nm}")
+        if self.static_neg_Nm is not None and self.static_neg_Nm > self.coulomb_neg_Nm:
+            raise ValueError(f"expected static_neg_Nm <= coulomb_neg_Nm ({self.coulomb_neg_Nm}), got {self.static_neg_Nm}")
+        return self
+
+    @property
+    def static_pos(self) -> float:
+        return self.coulomb_pos_Nm if self.static_pos_Nm is None else self.static_pos_Nm
+
+    @property
+    def static_neg(self) -> float:
+        return self.coulomb_neg_Nm if self.static_neg_Nm is None else self.static_neg_Nm
+
+
+class HardStops(_Strict):
+    """Mechanical end stops on the output: a spring-damper beyond each limit."""
+
+    lower_rad: Finite
+    upper_rad: Finite
+    stiffness_Nm_per_rad: PosFloat = 20000.0
+    damping_Nm_s_per_rad: NonNegFloat = 50.0
+
+    @model_validator(mode="after")
+    def _order(self) -> HardStops:
+        if self.lower_rad >= self.upper_rad:
+            raise ValueError(f"expected lower_rad < upper_rad, got {self.lower_rad} >= {self.upper_rad}")
+        return self
+
+
+class Ripple(_Strict):
+    """Position-periodic torque ripple: amplitude·sin(cycles·θ + phase), θ the joint or motor angle."""
+
+    amplitude_Nm: NonNegFloat
+    cycles_per_rev: PosFloat  # per revolution of the reference shaft
+    reference: Literal["joint", "motor"] = "motor"
+    phase_rad: Finite = 0.0
+
+
+class Thermal(_Strict):
+    """First-order thermal model of the joint: C·dT/dt = P_friction + I²R − (T − T_ambient)/R_th.
+
+    Friction levels and viscous slopes scale by 1 + friction_coefficient_per_K·(T − reference_C).
+    """
+
+    ambient_C: Finite = 25.0
+    initial_C: Finite | None = None  # None: ambient
+    reference_C: Finite = 25.0  # the friction truth holds at this temperature
+    heat_capacity_J_per_K: PosFloat = 500.0
+    thermal_resistance_K_per_W: PosFloat = 0.8
+    winding_resistance_ohm: NonNegFloat = 0.4
+    friction_coefficient_per_K: Annotated[float, Field(gt=-0.05, lt=0.05), Expect("a fraction per kelvin in (-0.05, 0.05)")] = -0.005
+
+
+class Hidden(_Strict):
+    """Effects the compensation model does not have (all off by default), for model-gap work."""
+
+    ripple: list[Ripple] = Field(default_factory=list)
+    load_friction_per_Nm: NonNegFloat = 0.0  # Coulomb and static grow by this × |gravity torque|
+    thermal: Thermal | None = None
+    current_offset_A: Finite = 0.0  # Hall-sensor offset: the loop delivers demand − offset, reports demand
+    backlash_rad: NonNegFloat = 0.0  # lost motion between rotor (friction, brake, motor) and output
+    gear_stiffness_Nm_per_rad: PosFloat = 20000.0  # output-side contact stiffness when backlash > 0
+    gear_damping_Nm_s_per_rad: NonNegFloat = 5.0
+
+
+class JointTruth(_Strict):
+    name: str
+    drive: DriveHardware
+    gear_ratio: PosFloat
+    torque_constant_Nm_per_A: PosFloat  # true joint-side K_t
+    rotor_inertia_kgm2: NonNegFloat  # motor side; reflected ×gear² as armature
+    current_loop_time_constant_s: Annotated[float, Field(gt=0, le=0.01), Expect("a time constant in (0, 0.01] s")] = 3e-4
+    current_noise_std_A: NonNegFloat = 0.02  # Hall sensor
+    current_quantum_A: NonNegFloat = 0.0  # ADC step; 0: unquantised
+    friction: FrictionTruth = FrictionTruth()
+    hard_stops: HardStops
+    brake_holding_torque_Nm: PosFloat
+    initial_position_rad: Finite = 0.0
+    hidden: Hidden = Hidden()
+
+    @model_validator(mode="after")
+    def _stops_contain_start(self) -> JointTruth:
+        if not self.hard_stops.lower_rad <= self.initial_position_rad <= self.hard_stops.upper_rad:
+            raise ValueError(f"expected initial_position_rad within hard_stops [{self.hard_stops.lower_rad}, "
+                             f"{self.hard_stops.upper_rad}], got {self.initial_position_rad}")
+        return self
+
+    @property
+    def armature_kgm2(self) -> float:
+        """Rotor inertia reflected to the joint."""
+        return self.rotor_inertia_kgm2 * self.gear_ratio**2
+
+
+class BusTruth(_Strict):
+    channel: str = "udp_multicast:239.74.163.2"  # default for `python -m sim run` without --bus
+    fd: bool = True
+
+
+class Truth(_Strict):
+    robot: str = "seed_cobot"  # bundled robot name or URDF path (relative to the truth file)
+    gravity_m_s2: tuple[Finite, Finite, Finite] = (0.0, 0.0, -9.81)
+    bus: BusTruth = BusTruth()
+    physics_rate_Hz: Annotated[int, Field(ge=4000, le=50000), Expect("an integer rate in [4000, 50000] Hz")] = 4000
+    noise_seed: int = 0
+    joints: list[JointTruth] = Field(min_length=1)
+    source: str = Field("<memory>", exclude=True)  # file it came from (not a YAML key)
+
+    @model_validator(mode="after")
+    def _cross(self) -> Truth:
+        if self.physics_rate_Hz % 1000:
+            raise ValueError(f"physics_rate_Hz: expected a multiple of 1000 Hz (whole steps per 1 ms tick), "
+                             f"got {self.physics_rate_Hz}")
+        names = [j.name for j in self.joints]
+        if len(set(names)) != len(names):
+            raise ValueError(f"joints: expected unique joint names, got {names}")
+        ids = [j.drive.node_id for j in self.joints]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"joints: expected unique drive.node_id values, got {ids}")
+        return self
+
+    @property
+    def dt_s(self) -> float:
+        return 1.0 / self.physics_rate_Hz
+
+    @property
+    def base_dir(self) -> Path:
+        return Path(self.source).resolve().parent if self.source != "<memory>" else Path.cwd()
+
+    def check_model(self, joint_names: tuple[str, ...] | list[str]) -> None:
+        """Raise TruthError unless the truth's joints are the model's, in order."""
+        names = [j.name for j in self.joints]
+        if names != list(joint_names):
+            raise TruthError(f"{self.source}: joints: expected the robot's joints {', '.join(joint_names)} in order, "
+                             f"got {', '.join(names)}")
+
+    def load_model(self) -> RobotModel:
+        """The robot model named by ``robot`` (with the truth's gravity), checked against the joints."""
+        from dragd.model import RobotModel
+
+        try:
+            model = RobotModel.from_urdf(self.robot, base_dir=self.base_dir, gravity_m_s2=self.gravity_m_s2)
+        except (FileNotFoundError, ValueError) as exc:
+            raise TruthError(f"{self.source}: robot: expected a bundled robot name or URDF path, got {self.robot!r} ({exc})") from None
+        self.check_model(model.joint_names)
+        return model
+
+    def with_updates(self, **changes: Any) -> Truth:
+        """A revalidated copy with nested changes merged in; ``joints`` may be a dict keyed by index or name.
+
+        Example: ``truth.with_updates(joints={"joint2": {"friction": {"coulomb_pos_Nm": 0.0}}})``.
+        """
+        data = self.model_dump(mode="python")
+        _merge(data, changes)
+        return validate_truth(data, self.source)
+
+
+def _merge(data: dict[str, Any], changes: dict[str, Any]) -> None:
+    for key, value in changes.items():
+        if key == "joints" and isinstance(value, dict):
+            names = [j["name"] for j in data["joints"]]
+            for jkey, jchange in value.items():
+                idx = names.index(jkey) if isinstance(jkey, str) else int(jkey)
+                _merge(data["joints"][idx], jchange)
+        elif isinstance(value, dict) and isinstance(data.get(key), dict):
+            _merge(data[key], value)
+        else:
+            data[key] = value
+
+
+def validate_truth(data: Any, source: str = "<memory>") -> Truth:
+    """Validate a truth mapping; errors name ``source``, the key path and the expectation."""
+    if not isinstance(data, dict):
+        raise TruthError(f"{source}: expected a mapping of keys (robot, joints, ...), got {type(data).__name__}")
+    try:
+        return Truth.model_validate({**data, "source": source})
+    except ValidationError as exc:
+        raise TruthError(format_validation_error(source, Truth, exc)) from None
+
+
+def load_truth(path: str | Path | None = None) -> Truth:
+    """Load the truth file (default: the bundled seed cobot's)."""
+    path = Path(path) if path is not None else DEFAULT_TRUTH
+    try:
+        data = _read_yaml(path)
+    except ConfigError as exc:
+        raise TruthError(str(exc)) from None
+    if isinstance(data, dict) and "source" in data:
+        raise TruthError(f"{path}: source: unknown key")
+    return validate_truth(data, str(path))
+
+
+def drive_params(joint: JointTruth, fd: bool) -> DriveParams:
+    """The simulated drive's parameters for one joint (what its object dictionary holds)."""
+    from sim.drive import DriveParams
+
+    hw = joint.drive
+    return DriveParams(
+        node_id=hw.node_id,
+        rated_current_A=hw.rated_current_A,
+        rated_torque_Nm=hw.rated_torque_Nm,
+        max_torque_permille=hw.max_torque_permille,
+        max_current_A=hw.max_current_A,
+        encoder_counts_per_rev=hw.encoder_counts_per_rev,
+        csp_kp_Nm_per_rad=hw.csp.kp_Nm_per_rad,
+        csp_kd_Nm_s_per_rad=hw.csp.kd_Nm_s_per_rad,
+        csp_ki_Nm_per_rad_s=hw.csp.ki_Nm_per_rad_s,
+        torque_constant_Nm_per_A=joint.torque_constant_Nm_per_A,
+        fd=fd,
+    )

@@ -1,0 +1,121 @@
+"""Configuration: the shipped files load; bad values, unknown keys and missing files give the promised messages."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from dragd.config import ConfigError, load_config, load_params
+
+from conftest import DEFAULT_CONFIG, REPO, run_cli
+
+
+def _write(tmp_path: Path, data: dict, name: str = "c.yaml") -> Path:
+    p = tmp_path / name
+    p.write_text(yaml.safe_dump(data, sort_keys=False))
+    return p
+
+
+@pytest.fixture
+def base() -> dict:
+    return yaml.safe_load(DEFAULT_CONFIG.read_text())
+
+
+@pytest.mark.parametrize("path", sorted((REPO / "config").glob("*.yaml")))
+def test_shipped_configs_load(path):
+    cfg = load_config(path)
+    assert cfg.joint_names == [f"joint{i}" for i in range(1, len(cfg.joints) + 1)]
+
+
+def test_bad_value_names_file_key_and_expectation(tmp_path, base):
+    base["joints"][2]["gear_ratio"] = "abc"
+    p = _write(tmp_path, base)
+    with pytest.raises(ConfigError) as e:
+        load_config(p)
+    assert str(e.value) == f"{p}: joints[2].gear_ratio: expected a positive number, got 'abc'"
+
+
+def test_negative_and_out_of_range(tmp_path, base):
+    base["joints"][0]["current_limit_A"] = -1
+    base["joints"][1]["node_id"] = 300
+    base["joints"][1]["friction"]["coulomb_neg_A"] = 0.5
+    p = _write(tmp_path, base)
+    with pytest.raises(ConfigError) as e:
+        load_config(p)
+    msg = str(e.value)
+    assert f"{p}: joints[0].current_limit_A: expected a positive number, got -1" in msg
+    assert f"{p}: joints[1].node_id: expected a CANopen node id 1..127, got 300" in msg
+    assert "joints[1].friction.coulomb_neg_A: expected a number <= 0" in msg
+
+
+def test_unknown_key(tmp_path, base):
+    base["joints"][1]["gear_ratoi"] = 100
+    base["loop"]["rate"] = 5
+    p = _write(tmp_path, base)
+    with pytest.raises(ConfigError) as e:
+        load_config(p)
+    msg = str(e.value)
+    assert f"{p}: joints[1].gear_ratoi: unknown key; expected one of: name, node_id" in msg
+    assert f"{p}: loop.rate: unknown key" in msg
+
+
+def test_missing_file_and_bad_yaml(tmp_path):
+    with pytest.raises(ConfigError, match=r"nope\.yaml: file not found"):
+        load_config(tmp_path / "nope.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("joints: [\n  - name: joint1\n   node_id: 1\n")
+    with pytest.raises(ConfigError, match=r"bad\.yaml: not valid YAML \(line"):
+        load_config(bad)
+
+
+def test_missing_required_and_cross_checks(tmp_path, base):
+    del base["joints"][0]["rated_current_A"]
+    base["joints"][4]["bus"] = "nonexistent"
+    p = _write(tmp_path, base)
+    msg = str(pytest.raises(ConfigError, load_config, p).value)
+    assert "joints[0].rated_current_A: missing required key" in msg
+    base = yaml.safe_load(DEFAULT_CONFIG.read_text())
+    base["joints"][4]["bus"] = "nonexistent"
+    msg = str(pytest.raises(ConfigError, load_config, _write(tmp_path, base)).value)
+    assert "joints[4].bus: expected one of the buses ['arm'], got 'nonexistent'" in msg
+    base = yaml.safe_load(DEFAULT_CONFIG.read_text())
+    base["joints"][3]["torque_constant_Nm_per_A"] = None
+    msg = str(pytest.raises(ConfigError, load_config, _write(tmp_path, base)).value)
+    assert "expected exactly one of torque_constant_Nm_per_A" in msg
+
+
+def test_params_file_overrides_config(tmp_path, base):
+    params = {"version": 1, "method": "synchronous",
+              "joints": {"joint2": {"torque_constant_Nm_per_A": 9.5,
+                                    "friction": {"coulomb_pos_A": 0.8, "coulomb_neg_A": -1.2, "viscous_A_s_per_rad": 0.4,
+                                                 "static_pos_A": None}}}}
+    pp = _write(tmp_path, params, "params.yaml")
+    base["params"] = "params.yaml"
+    cfg = load_config(_write(tmp_path, base))
+    j2 = cfg.joints[1]
+    assert j2.kt_Nm_per_A == 9.5
+    assert j2.friction.coulomb_pos_A == 0.8 and j2.friction.coulomb_neg_A == -1.2
+    assert j2.friction.viscous_pos_A_s_per_rad == 0.4 == j2.friction.viscous_neg_A_s_per_rad
+    assert j2.friction.static_pos_A == 1.10  # null in params keeps the config's value
+    # explicit --params wins over the file's own reference, and errors name the params file
+    params["joints"]["joint9"] = {}
+    bad = _write(tmp_path, params, "bad_params.yaml")
+    with pytest.raises(ConfigError, match=r"bad_params\.yaml: joints: expected joint names among"):
+        load_config(DEFAULT_CONFIG, bad)
+    params["joints"] = {"joint2": {"friction": {"coulomb_pos_A": "x"}}}
+    with pytest.raises(ConfigError, match=r"joints\.joint2\.friction\.coulomb_pos_A: expected a number >= 0, got 'x'"):
+        load_params(_write(tmp_path, params, "p3.yaml"))
+    assert pp.exists()
+
+
+def test_cli_reports_config_errors(tmp_path, base):
+    base["joints"][2]["gear_ratio"] = "abc"
+    p = _write(tmp_path, base)
+    proc = run_cli("model", "current", "--q", "0,0,0,0,0,0", "--dq", "0,0,0,0,0,0", "--config", str(p), check=False)
+    assert proc.returncode == 2
+    assert f"{p}: joints[2].gear_ratio: expected a positive number, got 'abc'" in proc.stderr
+    proc = run_cli("config", "check", "--config", str(tmp_path / "missing.yaml"), check=False)
+    assert proc.returncode == 2 and "missing.yaml: file not found" in proc.stderr
+    assert run_cli("config", "check", "--config", str(DEFAULT_CONFIG)).returncode == 0

@@ -1,0 +1,163 @@
+"""The compensation law: each term's sign, continuity, the faded hand-over, clamps, the velocity estimator."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dragd.config import load_config
+from dragd.law import (LawOutput, LawParams, Workspace, back_emf_current, clamp_current, compensate,
+                       friction_current, gravity_current, startup_current, startup_weight)
+from dragd.model import RobotModel
+from dragd.velocity import VelocityEstimator
+
+from conftest import DEFAULT_CONFIG, cli_json
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return load_config(DEFAULT_CONFIG)
+
+
+@pytest.fixture(scope="module")
+def params(cfg):
+    return LawParams.from_config(cfg)
+
+
+def test_gravity_current_is_g_over_kt(cfg, params):
+    model = RobotModel.from_urdf(cfg.robot.urdf)
+    q = np.array([0.1, -0.5, 0.8, 0.2, 0.3, 0.0])
+    g = model.gravity(q)
+    assert np.allclose(gravity_current(g, params.kt_Nm_per_A), g / np.array([j.kt_Nm_per_A for j in cfg.joints]))
+
+
+def test_friction_signs_and_direction_dependent_levels(params):
+    fast = np.full(6, 0.5)
+    f_pos = friction_current(fast, params)
+    f_neg = friction_current(-fast, params)
+    assert np.all(f_pos > 0) and np.all(f_neg < 0)
+    # well above the Stribeck velocity: Coulomb level + viscous slope of that direction
+    assert f_pos[1] == pytest.approx(params.coulomb_pos_A[1] + 0.5 * params.viscous_pos_A_s_per_rad[1], rel=1e-6)
+    assert f_neg[1] == pytest.approx(params.coulomb_neg_A[1] - 0.5 * params.viscous_neg_A_s_per_rad[1], rel=1e-6)
+    assert abs(f_neg[1]) > abs(f_pos[1])  # joint 2's levels are asymmetric in the default config
+
+
+def test_friction_stribeck_hump_and_switch(params):
+    v = np.full(6, 0.02)  # at the Stribeck velocity, past the tanh crossing
+    with_s = friction_current(v, params)
+    without = friction_current(v, params.replace(use_stribeck=False))
+    assert np.all(with_s > without)
+    expected = params.coulomb_pos_A + (params.static_pos_A - params.coulomb_pos_A) * np.exp(-1.0)
+    w = np.tanh(0.02 / params.smoothing_rad_s)
+    assert np.allclose(with_s, w * expected + 0.02 * params.viscous_pos_A_s_per_rad)
+
+
+def test_friction_continuous_at_zero_and_zero_at_rest(params):
+    assert np.allclose(friction_current(np.zeros(6), params), 0.0)
+    eps = 1e-7
+    assert np.allclose(friction_current(np.full(6, eps), params), 0.0, atol=1e-4)
+    assert np.allclose(friction_current(np.full(6, -eps), params), 0.0, atol=1e-4)
+    v = np.linspace(-0.05, 0.05, 2001)
+    f = np.array([friction_current(np.full(6, x), params) for x in v])
+    assert np.max(np.abs(np.diff(f, axis=0))) < 0.02  # no jump anywhere on a 50 µrad/s grid
+
+
+def test_seed000_velocity_band(params):
+    p = params.replace(deadband_rad_s=0.05)
+    assert np.allclose(friction_current(np.full(6, 0.04), p)[:1], 0.04 * p.viscous_pos_A_s_per_rad[:1])
+    assert friction_current(np.full(6, 0.2), p)[0] > 0.9 * p.coulomb_pos_A[0]
+
+
+def test_startup_term_at_rest_and_faded_when_moving(params):
+    t = 1.0 / (4 * 16.0)  # quarter period of joint 1's 16 Hz: sin = 1
+    s = startup_current(t, np.zeros(6), params)
+    assert s[0] == pytest.approx(params.startup_amp_pos_A[0])
+    s_neg = startup_current(3 * t, np.zeros(6), params)
+    assert s_neg[0] == pytest.approx(-params.startup_amp_neg_A[0])
+    moving = params.rest_threshold_rad_s + params.fade_width_rad_s + 1e-3
+    assert np.allclose(startup_current(t, moving, params), 0.0)
+    r = startup_weight(np.array([0.0, 0.01, 0.02, 0.03, 0.05, -0.02]), params)
+    assert r[0] == 1.0 and r[1] == 1.0 and 0 < r[2] < 1 and r[3] == 0.0 and r[4] == 0.0 and r[5] == r[2]
+
+
+def test_handover_has_no_current_step(cfg, params):
+    """Sweep |q̇| through Φ..Φ+width at fixed t: total current changes smoothly (seed 001 eq. 28 would step)."""
+    model = RobotModel.from_urdf(cfg.robot.urdf)
+    g = model.gravity(np.zeros(6))
+    t = 1.0 / 64.0
+    v = np.linspace(0.0, 0.1, 4001)
+    totals = np.array([compensate(g, np.full(6, x), t, params).current_A for x in v])
+    steps = np.max(np.abs(np.diff(totals, axis=0)), axis=0)
+    assert np.all(steps < 0.01), steps
+    # the seed's abrupt switch steps by up to the static level at Φ (worst when the sine is at zero)
+    phi = params.rest_threshold_rad_s[0]
+    abrupt_before = params.startup_amp_pos_A[0] * np.sin(2 * np.pi * 16 * 0.0)
+    abrupt_after = friction_current(np.full(6, phi), params.replace(smoothing_rad_s=1e-9))[0]
+    assert abs(abrupt_after - abrupt_before) > 0.05
+
+
+def test_clamp_reports_joints(params):
+    i = np.array([20.0, -20.0, 1.0, 7.0, -7.0, 0.0])
+    out, mask = clamp_current(i, params.current_limit_A)
+    assert np.allclose(out, [12, -12, 1, 6, -6, 0])
+    assert mask.tolist() == [True, True, False, True, True, False]
+    o = compensate(np.array([0, 500.0, 0, 0, 0, 0]), np.zeros(6), 0.0, params)
+    assert o.clamped[1] and o.current_A[1] == pytest.approx(12.0)
+
+
+def test_back_emf_term_switch(params):
+    p = params.replace(back_emf_A_s_per_rad=np.full(6, 0.5), use_back_emf=True)
+    assert np.allclose(back_emf_current(np.full(6, 2.0), p), 1.0)
+    o = compensate(np.zeros(6), np.full(6, 2.0), 0.0, p)
+    assert np.allclose(o.back_emf_A, 1.0)
+    o = compensate(np.zeros(6), np.full(6, 2.0), 0.0, params)
+    assert np.allclose(o.back_emf_A, 0.0)
+
+
+def test_every_term_switchable(params):
+    g = np.full(6, 5.0)
+    dq = np.full(6, 0.005)
+    base = compensate(g, dq, 0.01, params)
+    for flag, field in [("use_gravity", "gravity_A"), ("use_friction", "friction_A"), ("use_startup", "startup_A")]:
+        assert np.any(getattr(base, field) != 0)
+        off = compensate(g, dq, 0.01, params.replace(**{flag: False}))
+        assert np.all(getattr(off, field) == 0)
+
+
+def test_in_place_evaluation_matches_allocating(params):
+    out, ws = LawOutput.zeros(6), Workspace(6)
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        g, dq, t = rng.normal(0, 10, 6), rng.normal(0, 0.05, 6), rng.uniform(0, 10)
+        a = compensate(g, dq, t, params)
+        b = compensate(g, dq, t, params, out, ws)
+        assert np.array_equal(a.current_A, b.current_A) and np.array_equal(a.friction_A, b.friction_A)
+        assert np.allclose(a.current_A, np.clip(a.gravity_A + a.friction_A + a.startup_A + a.back_emf_A,
+                                                -params.current_limit_A, params.current_limit_A))
+
+
+def test_cli_current_is_sum_of_parts():
+    out = cli_json("model", "current", "--q", "0,0.3,0.2,0.1,0.5,0", "--dq", "0,0.1,-0.1,0,0.012,0", "--t", "0.013")
+    parts = np.array(out["gravity_A"]) + np.array(out["friction_A"]) + np.array(out["startup_A"])
+    assert np.allclose(out["current_A"], parts)
+    assert out["friction_A"][1] > 0 and out["friction_A"][2] < 0
+
+
+def test_velocity_estimator_tracks_ramp_with_documented_delay():
+    cpr = np.full(2, 2**19)
+    est = VelocityEstimator(cpr, cutoff_Hz=40.0)
+    dt, v = 1e-3, np.array([0.3, -0.2])
+    for k in range(400):
+        counts = np.round(v * k * dt * cpr / (2 * np.pi)).astype(np.int64)
+        out = est.update(counts, dt)
+    assert np.allclose(out, v, rtol=0.02)
+    assert est.delay_s(dt) == pytest.approx(1 / (2 * np.pi * 40) + 0.5e-3)
+
+
+def test_velocity_estimator_int32_wrap():
+    est = VelocityEstimator(np.array([1000]), cutoff_Hz=400.0)
+    est.update(np.array([2**31 - 5]), 1e-3)
+    for k in range(1, 50):
+        val = ((2**31 - 5 + 10 * k + 2**31) % 2**32) - 2**31  # int32 wrap
+        out = est.update(np.array([val]), 1e-3)
+    assert out[0] == pytest.approx(10 * 2 * np.pi / 1000 / 1e-3, rel=1e-3)
