@@ -56,6 +56,7 @@ class BusConfig(_Strict):
     fd: bool = False
     data_bitrate: PosInt | None = None
     load_limit_pct: Annotated[float, Field(gt=0, le=100), Expect("a percentage in (0, 100]")] = 70.0
+    layout: Literal["shared", "compact"] = "shared"  # PDO layout, see dragd/pdo.py
 
     @model_validator(mode="after")
     def _fd_rate(self) -> BusConfig:
@@ -157,8 +158,9 @@ class LawConfig(_Strict):
 class LoopConfig(_Strict):
     rate_Hz: Annotated[float, Field(gt=0, le=4000), Expect("a rate in (0, 4000] Hz")] = 1000.0
     tpdo_deadline_us: PosInt = 600  # collect TPDOs until SYNC + this
-    stale_cycles_hold: PosInt = 3  # an axis missing this many TPDOs in a row -> hold
-    stale_cycles_disable: PosInt = 20  # ... and this many -> disable all
+    stale_cycles_hold: PosInt = 10  # an axis missing this many TPDOs in a row -> hold (feedback hold)
+    stale_cycles_disable: PosInt = 50  # ... and this many -> disable all (fault)
+    fresh_cycles_resume: PosInt = 100  # all axes fresh this long after a feedback hold -> back to the requested mode
     realtime_priority: Annotated[int, Field(ge=1, le=99), Expect("a SCHED_FIFO priority 1..99")] | None = None
     cpus: list[Annotated[int, Field(ge=0)]] | None = None
 
@@ -171,15 +173,28 @@ class SafetyConfig(_Strict):
     hold_kp_Nm_per_rad: PosFloat = 300.0
     hold_kd_Nm_s_per_rad: NonNegFloat = 15.0
     mode_ramp_s: PosFloat = 0.2  # blend time between modes' command laws
-    rpdo_timeout_ms: PosInt = 50  # drive-side watchdog (1400h sub 5) and heartbeat consumer margin
-    heartbeat_ms: PosInt = 100  # master heartbeat producer period
+    rpdo_timeout_ms: PosInt = 50  # drive-side watchdog on the cyclic command RPDO (1400h+k sub 5)
     abort_connection_option: Literal[1, 2, 3] = 3  # 6007h: 1 fault, 2 disable voltage, 3 quick stop
     quick_stop_option: Literal[0, 1, 2, 5, 6] = 2  # 605Ah
+
+
+class MasterConfig(_Strict):
+    """The CANopen master's own parameters."""
+
+    node_id: NodeId = 127  # the master's heartbeat COB-ID is 0x700 + node_id
+    heartbeat_ms: PosInt = 100  # master heartbeat producer period
+    heartbeat_consumer_ms: PosInt = 300  # drives' 1016h: master heartbeat loss after this long
+    drive_heartbeat_ms: PosInt = 100  # drives' 1017h
+    boot_timeout_s: PosFloat = 5.0
+    enable_timeout_s: PosFloat = 1.0  # CiA 402 walk to operation enabled
+    sdo_timeout_s: PosFloat = 0.3
 
 
 class TelemetryConfig(_Strict):
     path: str | None = None
     capacity_rows: PosInt = 8192
+    max_file_MiB: PosInt = 512  # rotate the MCAP file beyond this size
+    keep_rotated: PosInt = 20
     rerun: bool = False
 
 
@@ -195,6 +210,7 @@ class Config(_Strict):
     law: LawConfig = LawConfig()
     loop: LoopConfig = LoopConfig()
     safety: SafetyConfig = SafetyConfig()
+    master: MasterConfig = MasterConfig()
     telemetry: TelemetryConfig = TelemetryConfig()
     control: ControlConfig = ControlConfig()
     source: str = Field("<memory>", exclude=True)  # file it came from (not a YAML key)

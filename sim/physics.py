@@ -3,19 +3,20 @@
 Per fixed step (``truth.physics_rate_Hz``, >= 4 kHz), reading each joint's :class:`~sim.axis.AxisIO`:
 
 * current loop: first-order lag of the motor current towards ``current_demand_A`` (zero with the power stage off);
-  joint torque = true K_t · I; the Hall reading adds noise and quantisation (``current_measured_A``);
-* friction: direction-asymmetric Stribeck curve plus viscous slope, with stick–slip as a constraint: a joint at
-  rest gets exactly the torque that keeps it at rest (solved for all stuck joints together through M⁻¹) until
-  that torque exceeds its static level, and a sliding joint whose velocity crosses zero sticks — no chatter,
-  no drift;
-* brakes: an engaged brake adds its holding torque to the joint's static and sliding friction (locks it, slips
-  above the holding torque);
+  joint torque = true K_t · I; the Hall reading adds offset, noise and quantisation (``current_measured_A``);
+* friction: direction-asymmetric Stribeck curve plus viscous slope, with stick–slip as a constraint (Karnopp-like,
+  exact): a joint at rest gets exactly the torque that keeps it at rest — solved for all stuck joints together
+  through M⁻¹ — until that torque exceeds its static level; a sliding joint whose velocity reverses sticks.
+  No chatter, no drift: a stuck joint's velocity is exactly zero;
+* brakes: an engaged brake adds its holding torque to the joint's static and sliding friction (it locks the
+  joint and slips above the holding torque);
 * hard stops: spring–damper beyond each limit, never pulling;
 * hidden effects (off by default): torque ripple, load-dependent friction, thermal friction drift, Hall offset,
-  backlash (a separate rotor inertia coupled to the output through a dead zone);
+  backlash (a separate rotor inertia coupled to the output through a dead zone and the gear stiffness);
 * semi-implicit Euler: v += a·dt, then q += v·dt.
 
 Rotor inertia × gear² enters the Pinocchio model as armature (joints without backlash), so ABA includes it.
+Per-joint scalar work runs on Python floats (cheaper than numpy calls for six joints); Pinocchio gets numpy.
 """
 
 from __future__ import annotations
@@ -32,18 +33,48 @@ from sim.truth import Truth, TruthError
 if TYPE_CHECKING:
     from dragd.model import RobotModel
 
-NOISE_BLOCK_ROWS = 4096
+NOISE_BLOCK_ROWS = 256
 STABILITY_MARGIN = 0.5  # max ω·dt (springs) and c·dt/I (dampers) accepted at the truth's step
 
 
 class ExternalTorque(Protocol):
-    """Something that writes the operator's joint torques each step (see :class:`sim.operator.Operator`)."""
+    """Writes the operator's joint torques each step (see :class:`sim.operator.Operator`)."""
 
     def apply(self, t_s: float, q_rad: np.ndarray, dq_rad_s: np.ndarray, out_Nm: np.ndarray) -> None: ...
 
 
+def _solve_spd(a: list[list[float]], idx: list[int], rhs: list[float]) -> list[float]:
+    """Solve A[idx, idx]·x = rhs for a small symmetric positive-definite A (Gaussian elimination, no pivoting)."""
+    m = len(idx)
+    if m == 1:
+        return [rhs[0] / a[idx[0]][idx[0]]]
+    rows = [[a[i][j] for j in idx] + [rhs[r]] for r, i in enumerate(idx)]
+    for c in range(m):
+        piv = rows[c]
+        inv = 1.0 / piv[c]
+        for r in range(c + 1, m):
+            row = rows[r]
+            f = row[c] * inv
+            if f != 0.0:
+                for k in range(c, m + 1):
+                    row[k] -= f * piv[k]
+    x = [0.0] * m
+    for c in range(m - 1, -1, -1):
+        row = rows[c]
+        s = row[m]
+        for k in range(c + 1, m):
+            s -= row[k] * x[k]
+        x[c] = s / row[c]
+    return x
+
+
 class ArmPhysics:
-    """The simulated arm: call :meth:`step` once per physics step after the drives' ``update``."""
+    """The simulated arm: call :meth:`step` once per physics step after the drives' ``update``.
+
+    Truth state: ``q_rad``, ``dq_rad_s`` (numpy views, current), ``tau_ext_Nm`` (numpy, the operator's — write
+    it directly when no ``operator`` is set), ``current_A``, ``current_measured_A``, ``tau_motor_Nm``,
+    ``tau_friction_Nm``, ``tau_stop_Nm``, ``stuck``, ``brakes``, ``temperature_C`` (fresh arrays), ``t_s``, ``steps``.
+    """
 
     def __init__(self, truth: Truth, model: RobotModel | pin.Model, axes: list[AxisIO]) -> None:
         src = getattr(model, "model", model)
@@ -59,142 +90,175 @@ class ArmPhysics:
         self.dt_s = truth.dt_s
         joints = truth.joints
 
-        # private model copy: the truth's gravity and armature (never touch the caller's constant model)
+        # private model copy with the truth's gravity and armature (the caller's model stays constant)
         self.model = pin.Model(src)
         self.model.gravity.linear = np.asarray(truth.gravity_m_s2, dtype=float)
-        backlash = np.array([j.hidden.backlash_rad > 0 for j in joints])
-        self._bj = np.flatnonzero(backlash)  # joints with a separate rotor
+        self._bj = [i for i, j in enumerate(joints) if j.hidden.backlash_rad > 0]  # joints with a separate rotor
         self.nb = nb = len(self._bj)
         self.nf = nf = n + nb
-        armature = np.array([j.armature_kgm2 for j in joints])
-        self.model.armature[:] = np.where(backlash, 0.0, armature)
+        armature = [j.armature_kgm2 for j in joints]
+        self.model.armature[:] = [0.0 if i in self._bj else a for i, a in enumerate(armature)]
         self.data = self.model.createData()
 
-        # state: positions/velocities of the n links followed by the nb rotors (rotor angle in joint units)
+        # DOFs: the n outputs, then one rotor per backlash joint (rotor angle in joint units)
+        self._fdof = list(range(n))  # the DOF carrying each joint's motor torque, friction and brake
+        for r, i in enumerate(self._bj):
+            self._fdof[i] = n + r
+        self._dof_joint = [-1] * nf  # joint of each friction DOF (-1: output of a backlash joint, frictionless)
+        for i, k in enumerate(self._fdof):
+            self._dof_joint[k] = i
+        self._rotor_inertia = [armature[i] for i in self._bj]
         self._x = np.zeros(nf)
         self._v = np.zeros(nf)
         self.q_rad = self._x[:n]
         self.dq_rad_s = self._v[:n]
-        self.rotor_rad = self._x[n:]
-        self._fdof = np.arange(n)
-        self._fdof[self._bj] = n + np.arange(nb)
-        self._fsl: slice | np.ndarray = slice(0, n) if nb == 0 else self._fdof  # friction DOF of each joint
-        self._rotor_inertia = armature[self._bj]
+        self._xs = [0.0] * nf
+        self._vs = [0.0] * nf
 
         # drive train
-        self._kt = np.array([j.torque_constant_Nm_per_A for j in joints])
-        self._alpha = np.array([1.0 - math.exp(-self.dt_s / j.current_loop_time_constant_s) for j in joints])
-        self._offset = np.array([j.hidden.current_offset_A for j in joints])
+        self._kt = [j.torque_constant_Nm_per_A for j in joints]
+        self._alpha = [1.0 - math.exp(-self.dt_s / j.current_loop_time_constant_s) for j in joints]
+        self._offset = [j.hidden.current_offset_A for j in joints]
         self._noise_std = np.array([j.current_noise_std_A for j in joints])
-        quantum = np.array([j.current_quantum_A for j in joints])
-        self._quantum = np.where(quantum > 0, quantum, 1.0)
-        self._quantised = quantum > 0
+        self._quantum = [j.current_quantum_A for j in joints]
         self._rng = np.random.default_rng(truth.noise_seed)
-        self._noise = np.zeros((NOISE_BLOCK_ROWS, n))
-        self._noise_row = NOISE_BLOCK_ROWS
+        self._noise: list[float] = []  # flat rows of n Hall noise samples
+        self._noise_pos = 0
 
-        # friction truth in DOF space (zero on the outputs of backlash joints: their friction is on the rotor)
-        def dof(values: list[float]) -> np.ndarray:
-            out = np.zeros(nf)
-            out[self._fsl] = values
-            return out
-
+        # friction truth per joint (it acts on the joint's friction DOF); negative-direction levels as magnitudes
         fr = [j.friction for j in joints]
-        self._fc_pos = dof([f.coulomb_pos_Nm for f in fr])
-        self._fc_neg = dof([-f.coulomb_neg_Nm for f in fr])  # magnitudes
-        self._fs_pos = dof([f.static_pos for f in fr])
-        self._fs_neg = dof([-f.static_neg for f in fr])
-        self._vs_inv = dof([1.0 / f.stribeck_velocity_rad_s for f in fr])
-        self._delta = dof([f.stribeck_exponent for f in fr])
-        self._visc_pos = dof([f.viscous_pos_Nm_s_per_rad for f in fr])
-        self._visc_neg = dof([f.viscous_neg_Nm_s_per_rad for f in fr])
-        self._hold = dof([j.brake_holding_torque_Nm for j in joints])
-        self._load_coef = np.array([j.hidden.load_friction_per_Nm for j in joints])
-        self._load_on = bool(self._load_coef.any())
+        self._fc_pos = [f.coulomb_pos_Nm for f in fr]
+        self._fc_neg = [-f.coulomb_neg_Nm for f in fr]
+        self._fs_pos = [f.static_pos for f in fr]
+        self._fs_neg = [-f.static_neg for f in fr]
+        self._vs_inv = [1.0 / f.stribeck_velocity_rad_s for f in fr]
+        self._delta = [f.stribeck_exponent for f in fr]
+        self._visc_pos = [f.viscous_pos_Nm_s_per_rad for f in fr]
+        self._visc_neg = [f.viscous_neg_Nm_s_per_rad for f in fr]
+        self._hold = [j.brake_holding_torque_Nm for j in joints]
+        self._load_coef = [j.hidden.load_friction_per_Nm for j in joints]
+        self._load_on = any(c > 0 for c in self._load_coef)
 
         # hard stops (outputs)
-        self._lower = np.array([j.hard_stops.lower_rad for j in joints])
-        self._upper = np.array([j.hard_stops.upper_rad for j in joints])
-        self._k_stop = np.array([j.hard_stops.stiffness_Nm_per_rad for j in joints])
-        self._d_stop = np.array([j.hard_stops.damping_Nm_s_per_rad for j in joints])
+        self._lower = [j.hard_stops.lower_rad for j in joints]
+        self._upper = [j.hard_stops.upper_rad for j in joints]
+        self._k_stop = [j.hard_stops.stiffness_Nm_per_rad for j in joints]
+        self._d_stop = [j.hard_stops.damping_Nm_s_per_rad for j in joints]
 
-        # ripple: one row per (joint, harmonic); the angle is the friction DOF's (rotor for backlash joints)
-        rows = [(i, r) for i, j in enumerate(joints) for r in j.hidden.ripple if r.amplitude_Nm > 0]
-        self._ripple_joint = np.array([i for i, _ in rows], dtype=int)
-        self._ripple_dof = self._fdof[self._ripple_joint] if rows else self._ripple_joint
-        self._ripple_amp = np.array([r.amplitude_Nm for _, r in rows])
-        self._ripple_k = np.array([r.cycles_per_rev * (joints[i].gear_ratio if r.reference == "motor" else 1.0)
-                                   for i, r in rows])
-        self._ripple_phase = np.array([r.phase_rad for _, r in rows])
+        # ripple rows (friction DOF, amplitude, cycles per joint-unit radian of that DOF, phase)
+        self._ripple = [(self._fdof[i], r.amplitude_Nm, r.cycles_per_rev * (j.gear_ratio if r.reference == "motor" else 1.0),
+                         r.phase_rad) for i, j in enumerate(joints) for r in j.hidden.ripple if r.amplitude_Nm > 0]
 
-        # backlash coupling
-        self._half_gap = np.array([joints[i].hidden.backlash_rad / 2 for i in self._bj])
-        self._k_gear = np.array([joints[i].hidden.gear_stiffness_Nm_per_rad for i in self._bj])
-        self._d_gear = np.array([joints[i].hidden.gear_damping_Nm_s_per_rad for i in self._bj])
+        # backlash coupling rows (output DOF, rotor DOF, half gap, stiffness, damping); the damping is the given
+        # fraction of critical for the output/rotor pair at the initial pose
+        self._gear: list[tuple[int, int, float, float, float]] = []
 
-        # thermal
-        th = [j.hidden.thermal for j in joints]
-        self._thermal_on = any(t is not None for t in th)
-        self._th_ambient = np.array([t.ambient_C if t else 25.0 for t in th])
-        self._th_ref = np.array([t.reference_C if t else 25.0 for t in th])
-        self._th_cap = np.array([t.heat_capacity_J_per_K if t else 1.0 for t in th])
-        self._th_res = np.array([t.thermal_resistance_K_per_W if t else 1.0 for t in th])
-        self._th_rw = np.array([t.winding_resistance_ohm if t else 0.0 for t in th])
-        self._th_coef = np.array([t.friction_coefficient_per_K if t else 0.0 for t in th])
-        self._th_mask = np.array([t is not None for t in th])
-        self.temperature_C = np.array([(t.initial_C if t.initial_C is not None else t.ambient_C) if t else 25.0
-                                       for t in th])
-        self._scale = np.ones(n)
+        # thermal rows (joint, ambient, reference, capacity, resistance, winding ohm, coefficient per K)
+        self._thermal = [(i, t.ambient_C, t.reference_C, t.heat_capacity_J_per_K, t.thermal_resistance_K_per_W,
+                          t.winding_resistance_ohm, t.friction_coefficient_per_K)
+                         for i, j in enumerate(joints) if (t := j.hidden.thermal) is not None]
+        self._temp = [25.0] * n
+        for i, j in enumerate(joints):
+            if (t := j.hidden.thermal) is not None:
+                self._temp[i] = t.initial_C if t.initial_C is not None else t.ambient_C
+        self._scale = [1.0] * n
 
-        # drive signals and outputs (joint space)
-        self.current_demand_A = np.zeros(n)
-        self.power_on = np.zeros(n, dtype=bool)
-        self.brakes = np.ones(n, dtype=bool)
-        self.current_A = np.zeros(n)  # actual motor current
-        self.current_measured_A = np.zeros(n)
-        self.tau_motor_Nm = np.zeros(n)
+        # per-step signals
+        self._demand = [0.0] * n
+        self._on = [False] * n
+        self._brakes = [True] * n
+        self._cur = [0.0] * n
+        self._meas = [0.0] * n
+        self._tau_m = [0.0] * n
+        self._tau_stop = [0.0] * n
+        self._gravity = [0.0] * n
         self.tau_ext_Nm = np.zeros(n)  # operator's joint torques (written by the operator, or directly)
-        self.tau_stop_Nm = np.zeros(n)
-        self.tau_friction_Nm = np.zeros(n)  # torque friction and brakes exert on each joint (stiction included)
-        self.gravity_Nm = np.zeros(n)  # G(q) at the last step that needed it (load-dependent friction)
         self.operator: ExternalTorque | None = None
 
         # stick–slip bookkeeping (DOF space)
-        self.stuck = np.zeros(nf, dtype=bool)
-        self._dir = np.zeros(nf)  # sliding direction (+1/−1), 0 while stuck
-        self._sticky = np.zeros(nf, dtype=bool)  # DOFs with friction or brake > 0 (can stick)
-        self._F = np.zeros(nf)
-        self._fric = np.zeros(nf)
-        self._lim_pos = np.zeros(nf)
-        self._lim_neg = np.zeros(nf)
-        self._minv = np.zeros((nf, nf))
-        self._a = np.zeros(nf)
-        self._v_old = np.zeros(nf)
-        self._meas = np.zeros(n)
+        self._stuck = [False] * nf
+        self._dir = [0.0] * nf  # sliding direction (+1/−1); 0 while stuck or resting without friction
+        self._sticky = [False] * nf  # friction or brake > 0: the DOF can stick
+        self._fric = [0.0] * nf  # torque friction/brake exert on each DOF (stiction included)
+        self._lim_pos = [0.0] * nf
+        self._lim_neg = [0.0] * nf
 
         self.t_s = 0.0
         self.steps = 0
         self.set_state(np.array([j.initial_position_rad for j in joints]))
+        minv = self._inverse_inertia()
+        for r, i in enumerate(self._bj):
+            h = joints[i].hidden
+            reduced = 1.0 / (minv[i][i] + minv[n + r][n + r])
+            damping = 2.0 * h.gear_damping_ratio * math.sqrt(h.gear_stiffness_Nm_per_rad * reduced)
+            self._gear.append((i, n + r, h.backlash_rad / 2, h.gear_stiffness_Nm_per_rad, damping))
         self._check_stability()
-        self._write_outputs()
 
     # ------------------------------------------------------------------------------------------- state
 
+    @property
+    def current_A(self) -> np.ndarray:
+        """Actual motor currents."""
+        return np.array(self._cur)
+
+    @property
+    def current_measured_A(self) -> np.ndarray:
+        return np.array(self._meas)
+
+    @property
+    def current_demand_A(self) -> np.ndarray:
+        return np.array(self._demand)
+
+    @property
+    def tau_motor_Nm(self) -> np.ndarray:
+        return np.array(self._tau_m)
+
+    @property
+    def tau_friction_Nm(self) -> np.ndarray:
+        """Torque friction and brakes exert on each joint's friction DOF (the rotor for backlash joints)."""
+        return np.array([self._fric[k] for k in self._fdof])
+
+    @property
+    def tau_stop_Nm(self) -> np.ndarray:
+        return np.array(self._tau_stop)
+
+    @property
+    def stuck(self) -> np.ndarray:
+        return np.array([self._stuck[k] for k in self._fdof])
+
+    @property
+    def brakes(self) -> np.ndarray:
+        return np.array(self._brakes)
+
+    @property
+    def power_on(self) -> np.ndarray:
+        return np.array(self._on)
+
+    @property
+    def temperature_C(self) -> np.ndarray:
+        return np.array(self._temp)
+
+    @property
+    def rotor_rad(self) -> np.ndarray:
+        """Rotor angles (joint units) of backlash joints, in joint order."""
+        return self._x[self.n:].copy()
+
     def set_state(self, q_rad: np.ndarray, dq_rad_s: np.ndarray | None = None) -> None:
-        """Teleport the arm (rotors follow with the gap centred); a zero velocity leaves every joint stuck."""
+        """Teleport the arm (rotors follow with the gap centred); joints at zero velocity are stuck."""
         q = np.asarray(q_rad, dtype=float).reshape(-1)
-        if q.shape[0] != self.n:
-            raise ValueError(f"set_state: expected {self.n} joint positions, got {q.shape[0]}")
+        if q.shape[0] != self.n or not np.all(np.isfinite(q)):
+            raise ValueError(f"set_state: expected {self.n} finite joint positions, got {q.tolist()}")
         dq = np.zeros(self.n) if dq_rad_s is None else np.asarray(dq_rad_s, dtype=float).reshape(-1)
-        self._x[: self.n] = q
-        self._v[: self.n] = dq
-        self._x[self.n:] = q[self._bj]
-        self._v[self.n:] = dq[self._bj]
-        self._dir[:] = np.sign(self._v)
-        self.stuck[:] = False
-        self.stuck[self._fsl] = self._v[self._fsl] == 0.0
-        self._dir[self.stuck] = 0.0
-        self.current_A[:] = 0.0
+        xs = q.tolist() + [float(q[i]) for i in self._bj]
+        vs = dq.tolist() + [float(dq[i]) for i in self._bj]
+        self._xs[:] = xs
+        self._vs[:] = vs
+        self._x[:] = xs
+        self._v[:] = vs
+        for k in range(self.nf):
+            self._stuck[k] = self._dof_joint[k] >= 0 and vs[k] == 0.0
+            self._dir[k] = 0.0 if vs[k] == 0.0 else math.copysign(1.0, vs[k])
+        self._cur[:] = [0.0] * self.n
         self._write_outputs()
 
     def snapshot(self) -> dict[str, Any]:
@@ -204,261 +268,282 @@ class ArmPhysics:
             "steps": self.steps,
             "q_rad": self.q_rad.tolist(),
             "dq_rad_s": self.dq_rad_s.tolist(),
-            "current_A": self.current_A.tolist(),
-            "current_measured_A": self.current_measured_A.tolist(),
-            "current_demand_A": self.current_demand_A.tolist(),
-            "tau_motor_Nm": self.tau_motor_Nm.tolist(),
+            "current_A": list(self._cur),
+            "current_measured_A": list(self._meas),
+            "current_demand_A": list(self._demand),
+            "tau_motor_Nm": list(self._tau_m),
             "tau_ext_Nm": self.tau_ext_Nm.tolist(),
             "tau_friction_Nm": self.tau_friction_Nm.tolist(),
-            "tau_stop_Nm": self.tau_stop_Nm.tolist(),
-            "stuck": self.stuck[self._fsl].tolist(),
-            "brakes": self.brakes.tolist(),
-            "power_on": self.power_on.tolist(),
-            "temperature_C": self.temperature_C.tolist(),
+            "tau_stop_Nm": list(self._tau_stop),
+            "stuck": self.stuck.tolist(),
+            "brakes": list(self._brakes),
+            "power_on": list(self._on),
+            "temperature_C": list(self._temp),
             "rotor_rad": self.rotor_rad.tolist(),
         }
 
     def static_friction_Nm(self, joint: int, direction: int) -> float:
-        """The breakaway level of one joint (friction + engaged brake) in a direction (+1/−1), at present."""
+        """Breakaway level of one joint in a direction (+1/−1): friction with the present load term and thermal
+        scale, plus the holding torque if the brake was engaged at the last step."""
         self._limits()
         k = self._fdof[joint]
-        return float(self._lim_pos[k] if direction > 0 else self._lim_neg[k])
+        return self._lim_pos[k] if direction > 0 else self._lim_neg[k]
 
     # ------------------------------------------------------------------------------------------- step
 
     def step(self) -> None:
         """Advance one physics step."""
-        n, dt = self.n, self.dt_s
+        n, nf, dt = self.n, self.nf, self.dt_s
         axes = self.axes
-        self.current_demand_A[:] = [ax.current_demand_A for ax in axes]
-        self.power_on[:] = [ax.power_stage_on for ax in axes]
-        self.brakes[:] = [ax.brake_engaged for ax in axes]
+        demand, on, cur, tau_m = self._demand, self._on, self._cur, self._tau_m
+        alpha, offset, kt = self._alpha, self._offset, self._kt
+        for j, ax in enumerate(axes):
+            demand[j] = ax.current_demand_A
+            on[j] = ax.power_stage_on
+            self._brakes[j] = ax.brake_engaged
+            if on[j]:
+                c = cur[j]
+                c += alpha[j] * (demand[j] - offset[j] - c)  # the loop regulates the reading (offset included)
+            else:
+                c = 0.0
+            cur[j] = c
+            tau_m[j] = kt[j] * c
 
-        # current loop: the Hall offset makes the loop deliver demand − offset
-        cur = self.current_A
-        cur += self._alpha * (self.current_demand_A - self._offset - cur)
-        cur *= self.power_on
-        np.multiply(self._kt, cur, out=self.tau_motor_Nm)
-
-        q, dq = self.q_rad, self.dq_rad_s
         if self.operator is not None:
-            self.operator.apply(self.t_s, q, dq, self.tau_ext_Nm)
-
-        F = self._F
-        F[:n] = self.tau_ext_Nm
-        F[n:] = 0.0
-        self._hard_stops(q, dq)
-        F[:n] += self.tau_stop_Nm
-        F[self._fsl] += self.tau_motor_Nm
-        if self._ripple_amp.size:
-            rip = self._ripple_amp * np.sin(self._ripple_k * self._x[self._ripple_dof] + self._ripple_phase)
-            F += np.bincount(self._ripple_dof, rip, minlength=self.nf)
+            self.operator.apply(self.t_s, self.q_rad, self.dq_rad_s, self.tau_ext_Nm)
+        F = self.tau_ext_Nm.tolist()
         if self.nb:
-            self._gear_coupling(F)
+            F += [0.0] * self.nb
+        xs, vs = self._xs, self._vs
+
+        # hard stops: push out, never pull in
+        lower, upper, ts = self._lower, self._upper, self._tau_stop
+        for j in range(n):
+            qj = xs[j]
+            if qj < lower[j]:
+                t = -self._k_stop[j] * (qj - lower[j]) - self._d_stop[j] * vs[j]
+                ts[j] = t if t > 0.0 else 0.0
+            elif qj > upper[j]:
+                t = -self._k_stop[j] * (qj - upper[j]) - self._d_stop[j] * vs[j]
+                ts[j] = t if t < 0.0 else 0.0
+            else:
+                ts[j] = 0.0
+            F[j] += ts[j]
+        fdof = self._fdof
+        for j in range(n):
+            F[fdof[j]] += tau_m[j]
+        for k, amp, cyc, ph in self._ripple:
+            F[k] += amp * math.sin(cyc * xs[k] + ph)
+        for jo, kr, half, kg, dg in self._gear:
+            gap = xs[kr] - xs[jo]
+            e = gap - half if gap > half else (gap + half if gap < -half else 0.0)
+            if e != 0.0:
+                t = kg * e + dg * (vs[kr] - vs[jo])
+                t = (t if t > 0.0 else 0.0) if e > 0.0 else (t if t < 0.0 else 0.0)  # teeth push, never pull
+                F[jo] += t
+                F[kr] -= t
         if self._load_on:
-            self.gravity_Nm[:] = pin.computeGeneralizedGravity(self.model, self.data, q)
-        if self._thermal_on:
-            self._scale[:] = np.where(self._th_mask, 1.0 + self._th_coef * (self.temperature_C - self._th_ref), 1.0)
-
+            self._gravity[:] = pin.computeGeneralizedGravity(self.model, self.data, self.q_rad).tolist()
         self._limits()
-        stuck = self.stuck
-        fric = self._fric
-        any_stuck = bool(stuck.any())
-        if any_stuck and stuck.all():
-            fric[:] = 0.0
+        n_stuck = self._sliding_friction(F)
+        if n_stuck == 0:
+            a = self._free_acceleration(F)
         else:
-            self._sliding_friction()  # into fric (0 on stuck DOFs)
-        F += fric
-        a = self._a
-        if not any_stuck:
-            self._free_acceleration(F, a)
-        else:
-            self._constrained_acceleration(F, a)
+            a = self._constrained_acceleration(F, n_stuck)
 
-        # semi-implicit Euler; a sliding joint whose velocity reverses sticks (friction would have stopped it)
-        v = self._v
-        self._v_old[:] = v
-        v += a * dt
-        if not stuck.all():
-            halt = (v * self._dir <= 0.0) & self._sticky & ~stuck
-            if halt.any():
-                v[halt] = 0.0
-                stuck |= halt
-                self._dir[halt] = 0.0
-            moving = ~stuck & (v != 0.0)
-            self._dir[moving] = np.sign(v[moving])
-        self._x += v * dt
+        # semi-implicit Euler; a sliding DOF whose velocity reverses sticks (friction would have stopped it)
+        stuck, dirs, sticky = self._stuck, self._dir, self._sticky
+        for k in range(nf):
+            v = vs[k] + a[k] * dt
+            if not stuck[k]:
+                d = dirs[k]
+                if sticky[k] and v * d <= 0.0:
+                    v = 0.0
+                    stuck[k] = True
+                    dirs[k] = 0.0
+                elif v > 0.0:
+                    dirs[k] = 1.0
+                elif v < 0.0:
+                    dirs[k] = -1.0
+            vs[k] = v
+            xs[k] += v * dt
+        self._x[:] = xs
+        self._v[:] = vs
 
-        self.tau_friction_Nm[:] = fric[self._fsl]  # stiction included (solved into fric)
-        if self._thermal_on:
+        if self._thermal:
             self._heat()
-        self.t_s = (self.steps + 1) * dt
         self.steps += 1
+        self.t_s = self.steps * dt
         self._write_outputs()
 
     # ------------------------------------------------------------------------------------------- parts
 
     def _limits(self) -> None:
-        """Breakaway levels per direction (friction × thermal scale + load term + engaged brake), DOF space."""
-        lp, ln = self._lim_pos, self._lim_neg
-        if not (self._thermal_on or self._load_on):
-            np.copyto(lp, self._fs_pos)
-            np.copyto(ln, self._fs_neg)
-        else:
-            extra = self._load_coef * np.abs(self.gravity_Nm)
-            lp[self._fsl] = self._fs_pos[self._fsl] * self._scale + extra
-            ln[self._fsl] = self._fs_neg[self._fsl] * self._scale + extra
-        hold = np.zeros(self.nf)
-        hold[self._fsl] = self.brakes
-        hold *= self._hold
-        lp += hold
-        ln += hold
-        np.greater(lp + ln, 0.0, out=self._sticky)
+        """Breakaway level per DOF and direction: static × thermal scale + load term + engaged brake."""
+        lp, ln, sticky = self._lim_pos, self._lim_neg, self._sticky
+        brakes, hold, scale = self._brakes, self._hold, self._scale
+        for j, _amb, ref, _cap, _res, _rw, coef in self._thermal:
+            scale[j] = 1.0 + coef * (self._temp[j] - ref)
+        load = self._load_on
+        for j, k in enumerate(self._fdof):
+            extra = self._load_coef[j] * abs(self._gravity[j]) if load else 0.0
+            if brakes[j]:
+                extra += hold[j]
+            s = scale[j]
+            p = self._fs_pos[j] * s + extra
+            m = self._fs_neg[j] * s + extra
+            lp[k] = p
+            ln[k] = m
+            sticky[k] = p + m > 0.0
 
-    def _sliding_friction(self) -> None:
-        """Kinetic friction (Stribeck + viscous + slipping brake) of sliding DOFs into ``self._fric``."""
-        v = self._v
-        d = self._dir
-        pos = d > 0
-        fc = np.where(pos, self._fc_pos, self._fc_neg)
-        visc = np.where(pos, self._visc_pos, self._visc_neg)
-        if self._thermal_on or self._load_on:
-            scale = np.ones(self.nf)
-            scale[self._fsl] = self._scale
-            extra = np.zeros(self.nf)
-            extra[self._fsl] = self._load_coef * np.abs(self.gravity_Nm)
-            fc = fc * scale + extra
-            visc = visc * scale
-        lim = np.where(pos, self._lim_pos, self._lim_neg)  # static (+ load, scale) + brake
-        hold = np.zeros(self.nf)
-        hold[self._fsl] = self.brakes
-        hold *= self._hold
-        fc += hold  # a slipping brake holds its torque
-        stribeck = np.exp(-np.power(np.abs(v) * self._vs_inv, self._delta))
-        mag = fc + (lim - fc) * stribeck
-        np.multiply(d, mag, out=self._fric)
-        self._fric += visc * v
-        np.negative(self._fric, out=self._fric)
-        self._fric[self.stuck] = 0.0
+    def _sliding_friction(self, F: list[float]) -> int:
+        """Add kinetic friction (Stribeck, viscous, slipping brake) of sliding DOFs to F; return the stuck count."""
+        stuck, dirs, vs, fric = self._stuck, self._dir, self._vs, self._fric
+        n_stuck = 0
+        for j, k in enumerate(self._fdof):
+            if stuck[k]:
+                fric[k] = 0.0
+                n_stuck += 1
+                continue
+            d = dirs[k]
+            v = vs[k]
+            s = self._scale[j]
+            extra = self._load_coef[j] * abs(self._gravity[j]) if self._load_on else 0.0
+            if self._brakes[j]:
+                extra += self._hold[j]
+            if d > 0.0:
+                fc = self._fc_pos[j] * s + extra
+                lim = self._lim_pos[k]
+                visc = self._visc_pos[j] * s
+            elif d < 0.0:
+                fc = self._fc_neg[j] * s + extra
+                lim = self._lim_neg[k]
+                visc = self._visc_neg[j] * s
+            else:  # at rest without friction (cannot stick): only a viscous term, which is zero here
+                fric[k] = 0.0
+                continue
+            av = v if v >= 0.0 else -v
+            strib = math.exp(-((av * self._vs_inv[j]) ** self._delta[j])) if av > 0.0 else 1.0
+            f = -(d * (fc + (lim - fc) * strib) + visc * v)
+            fric[k] = f
+            F[k] += f
+        return n_stuck
 
-    def _hard_stops(self, q: np.ndarray, dq: np.ndarray) -> None:
-        ts = self.tau_stop_Nm
-        below = q < self._lower
-        above = q > self._upper
-        if not (below.any() or above.any()):
-            ts[:] = 0.0
-            return
-        pen = np.where(below, q - self._lower, 0.0) + np.where(above, q - self._upper, 0.0)
-        tau = -self._k_stop * pen - self._d_stop * dq * (below | above)
-        # a stop pushes out, never pulls in
-        tau = np.where(below, np.maximum(tau, 0.0), tau)
-        tau = np.where(above, np.minimum(tau, 0.0), tau)
-        ts[:] = tau
-
-    def _gear_coupling(self, F: np.ndarray) -> None:
-        n, bj = self.n, self._bj
-        gap = self._x[n:] - self._x[bj]
-        e = gap - np.clip(gap, -self._half_gap, self._half_gap)
-        contact = e != 0.0
-        tau = self._k_gear * e + self._d_gear * (self._v[n:] - self._v[bj]) * contact
-        # the damper only acts in contact and never pulls the teeth together
-        tau = np.where(e > 0, np.maximum(tau, 0.0), np.where(e < 0, np.minimum(tau, 0.0), 0.0))
-        F[bj] += tau
-        F[n:] -= tau
-
-    def _free_acceleration(self, F: np.ndarray, out: np.ndarray) -> None:
-        """Unconstrained accelerations: ABA for the links (armature included), J⁻¹·τ for separate rotors."""
+    def _free_acceleration(self, F: list[float]) -> list[float]:
+        """Unconstrained accelerations: ABA for the outputs (armature included), τ/J for separate rotors."""
         n = self.n
-        out[:n] = pin.aba(self.model, self.data, self.q_rad, self.dq_rad_s, F[:n])
-        if self.nb:
-            out[n:] = F[n:] / self._rotor_inertia
+        a = pin.aba(self.model, self.data, self.q_rad, self.dq_rad_s, np.array(F[:n])).tolist()
+        for r in range(self.nb):
+            a.append(F[n + r] / self._rotor_inertia[r])
+        return a
 
-    def _inverse_inertia(self) -> np.ndarray:
-        minv = self._minv
-        minv[: self.n, : self.n] = pin.computeMinverse(self.model, self.data, self.q_rad)
+    def _inverse_inertia(self) -> list[list[float]]:
+        """M⁻¹ of all DOFs (outputs from Pinocchio's ABA-based algorithm, rotors block-diagonal)."""
+        minv = pin.computeMinverse(self.model, self.data, self.q_rad).tolist()
         if self.nb:
-            minv[self.n:, self.n:] = np.diag(1.0 / self._rotor_inertia)
+            for row in minv:
+                row.extend([0.0] * self.nb)
+            for r in range(self.nb):
+                row = [0.0] * self.nf
+                row[self.n + r] = 1.0 / self._rotor_inertia[r]
+                minv.append(row)
         return minv
 
-    def _constrained_acceleration(self, F: np.ndarray, out: np.ndarray) -> None:
+    def _constrained_acceleration(self, F: list[float], n_stuck: int) -> list[float]:
         """Accelerations with stuck DOFs held by stiction (their friction torque solved exactly).
 
         A stuck DOF whose required holding torque exceeds its static level in the direction it would move breaks
-        away: it leaves the stuck set and gets its static level as sliding friction (the Stribeck curve at v = 0).
+        away: it leaves the stuck set and gets that static level as sliding friction (the Stribeck curve at v = 0).
         The worst excess is released first and the rest re-solved, since releasing one changes the others' need.
         """
-        stuck, fric = self.stuck, self._fric
-        if self.nb == 0 and stuck.all():
-            # at rest everywhere: the holding torque is G(q) − F, no inertia needed unless something breaks away
-            lam = np.asarray(pin.computeGeneralizedGravity(self.model, self.data, self.q_rad)) - F
-            excess = np.where(lam > 0, lam - self._lim_neg, -lam - self._lim_pos)
-            if excess.max() <= 0.0:
+        stuck, fric, lp, ln, dirs = self._stuck, self._fric, self._lim_pos, self._lim_neg, self._dir
+        nf = self.nf
+        if n_stuck == nf:
+            # everything at rest: the holding torque is G(q) − F without any inertia, unless something breaks away
+            g = pin.computeGeneralizedGravity(self.model, self.data, self.q_rad).tolist()
+            lam = [g[k] - F[k] for k in range(nf)]
+            for k in range(nf):
+                lk = lam[k]
+                if (lk > 0.0 and lk > ln[k]) or (lk < 0.0 and -lk > lp[k]):
+                    break
+            else:
                 fric[:] = lam
-                out[:] = 0.0
-                return
-        self._free_acceleration(F, out)
+                return [0.0] * nf
+        a = self._free_acceleration(F)
         minv = self._inverse_inertia()
-        S = np.flatnonzero(stuck)
-        lam = np.zeros(0)
-        while S.size:
-            lam = -np.linalg.solve(minv[np.ix_(S, S)], out[S])
-            excess = np.where(lam > 0, lam - self._lim_neg[S], -lam - self._lim_pos[S])
-            i = int(np.argmax(excess))
-            if excess[i] <= 0.0:
+        S = [k for k in range(nf) if stuck[k]]
+        lam = []
+        while S:
+            lam = _solve_spd(minv, S, [-a[k] for k in S])
+            worst, worst_excess = -1, 0.0
+            for i, k in enumerate(S):
+                lk = lam[i]
+                excess = lk - ln[k] if lk > 0.0 else -lk - lp[k]
+                if excess > worst_excess:
+                    worst, worst_excess = i, excess
+            if worst < 0:
                 break
-            k = int(S[i])
-            d = -1.0 if lam[i] > 0 else 1.0  # it moves against the torque that would have held it
-            f = -d * (self._lim_pos[k] if d > 0 else self._lim_neg[k])
-            out += minv[:, k] * f
+            k = S.pop(worst)
+            d = -1.0 if lam[worst] > 0.0 else 1.0  # it moves against the torque that would have held it
+            f = -d * (lp[k] if d > 0.0 else ln[k])
+            for i in range(nf):
+                a[i] += minv[i][k] * f
             fric[k] = f
             stuck[k] = False
-            self._dir[k] = d
-            S = np.delete(S, i)
-            lam = np.zeros(0)
-        if S.size:
-            out += minv[:, S] @ lam
-            out[S] = 0.0
-            fric[S] = lam
+            dirs[k] = d
+            lam = []
+        for i, k in enumerate(S):
+            lk = lam[i]
+            fric[k] = lk
+            for r in range(nf):
+                a[r] += minv[r][k] * lk
+        for k in S:
+            a[k] = 0.0
+        return a
 
     def _heat(self) -> None:
         """First-order joint temperature from friction power and copper loss."""
-        p_fric = np.abs(self._fric * self._v)[self._fsl]
-        p = p_fric + self._th_rw * self.current_A**2
-        dT = (p - (self.temperature_C - self._th_ambient) / self._th_res) / self._th_cap * self.dt_s
-        self.temperature_C += np.where(self._th_mask, dT, 0.0)
+        for j, amb, _ref, cap, res, rw, _coef in self._thermal:
+            k = self._fdof[j]
+            p = abs(self._fric[k] * self._vs[k]) + rw * self._cur[j] ** 2
+            self._temp[j] += (p - (self._temp[j] - amb) / res) / cap * self.dt_s
 
     def _write_outputs(self) -> None:
-        """Position, velocity and the Hall reading (noise, quantisation, offset) into each AxisIO."""
-        if self._noise_row >= NOISE_BLOCK_ROWS:
-            self._noise[:] = self._rng.standard_normal((NOISE_BLOCK_ROWS, self.n)) * self._noise_std
-            self._noise_row = 0
-        meas = self._meas
-        np.add(self.current_A, self._offset, out=meas)
-        meas += self._noise[self._noise_row]
-        self._noise_row += 1
-        rounded = np.round(meas / self._quantum) * self._quantum
-        np.copyto(meas, rounded, where=self._quantised)
-        self.current_measured_A[:] = meas
-        for ax, p, w, c in zip(self.axes, self.q_rad.tolist(), self.dq_rad_s.tolist(), meas.tolist()):
-            ax.position_rad = p
-            ax.velocity_rad_s = w
-            ax.current_measured_A = c
+        """Position, velocity and the Hall reading (offset, noise, quantisation) into each AxisIO."""
+        base = self._noise_pos
+        if base >= len(self._noise):
+            # a flat list of floats (not GC-tracked), refilled in small blocks to keep each refill short
+            self._noise = (self._rng.standard_normal((NOISE_BLOCK_ROWS, self.n)) * self._noise_std).ravel().tolist()
+            base = 0
+        self._noise_pos = base + self.n
+        noise = self._noise
+        meas, cur, offset, quantum, xs, vs = self._meas, self._cur, self._offset, self._quantum, self._xs, self._vs
+        for j, ax in enumerate(self.axes):
+            m = cur[j] + offset[j] + noise[base + j]
+            qz = quantum[j]
+            if qz > 0.0:
+                m = round(m / qz) * qz
+            meas[j] = m
+            ax.position_rad = xs[j]
+            ax.velocity_rad_s = vs[j]
+            ax.current_measured_A = m
 
     def _check_stability(self) -> None:
         """Reject truths whose springs/dampers are too stiff for the step (semi-implicit Euler)."""
         dt = self.dt_s
         minv = self._inverse_inertia()
-        inv_i = np.diag(minv)[: self.n]
-        checks = [("hard_stops.stiffness", math.sqrt(k * m) * dt, j) for j, (k, m) in enumerate(zip(self._k_stop, inv_i))]
-        checks += [("hard_stops.damping", c * m * dt, j) for j, (c, m) in enumerate(zip(self._d_stop, inv_i))]
+        checks: list[tuple[str, float, int]] = []
         for j in range(self.n):
+            inv_i = minv[j][j]
+            checks.append(("hard_stops.stiffness_Nm_per_rad", math.sqrt(self._k_stop[j] * inv_i) * dt, j))
+            checks.append(("hard_stops.damping_Nm_s_per_rad", self._d_stop[j] * inv_i * dt, j))
             k = self._fdof[j]
-            inv_f = minv[k, k]
-            checks.append(("friction.viscous", max(self._visc_pos[k], self._visc_neg[k]) * inv_f * dt, j))
-        for r, j in enumerate(self._bj):
-            inv_pair = inv_i[j] + 1.0 / self._rotor_inertia[r]
-            checks.append(("hidden.gear_stiffness", math.sqrt(self._k_gear[r] * inv_pair) * dt, int(j)))
-            checks.append(("hidden.gear_damping", self._d_gear[r] * inv_pair * dt, int(j)))
+            visc = max(self._visc_pos[j], self._visc_neg[j])
+            checks.append(("friction.viscous", visc * minv[k][k] * dt, j))
+        for jo, kr, _half, kg, dg in self._gear:
+            inv_pair = minv[jo][jo] + minv[kr][kr]
+            checks.append(("hidden.gear_stiffness_Nm_per_rad", math.sqrt(kg * inv_pair) * dt, jo))
+            checks.append(("hidden.gear_damping_ratio", dg * inv_pair * dt, jo))
         for what, value, j in checks:
             if value > STABILITY_MARGIN:
                 raise TruthError(f"{self.truth.source}: joints[{j}].{what}: expected a value the {self.truth.physics_rate_Hz} Hz "

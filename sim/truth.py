@@ -40,24 +40,27 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_default=True, frozen=True)
 
 
-class CspGains(_Strict):
-    """The drive's cyclic-synchronous-position loop (joint side): torque = kp·e + kd·ė (+ ki·∫e)."""
-
-    kp_Nm_per_rad: PosFloat = 800.0
-    kd_Nm_s_per_rad: NonNegFloat = 40.0
-    ki_Nm_per_rad_s: NonNegFloat = 0.0
-
-
 class DriveHardware(_Strict):
-    """The integrated drive's hardware as its object dictionary reports it."""
+    """The integrated drive's hardware and built-in loops (what its object dictionary and firmware hold)."""
 
     node_id: NodeId
     rated_current_A: PosFloat  # 6075h
     rated_torque_Nm: PosFloat  # 6076h, motor side; K_m = 6076h / 6075h
-    max_torque_permille: Annotated[int, Field(ge=1, le=32767), Expect("an integer per mille 1..32767")] = 3000  # 6072h
-    max_current_A: PosFloat  # current-loop clamp (6073h = 1000·max/rated)
+    max_torque_permille: Annotated[int, Field(ge=1, le=65535), Expect("an integer per mille 1..65535")] = 3000  # 6072h
+    max_current_A: PosFloat  # 6073h (current-loop clamp)
     encoder_counts_per_rev: PosInt  # per joint revolution (absolute output encoder)
-    csp: CspGains = CspGains()
+    csp_kp_A_per_rad: NonNegFloat = 40.0  # cyclic synchronous position loop, amperes of demand
+    csp_kd_A_s_per_rad: NonNegFloat = 2.0  # ... and the CSV velocity-loop gain
+    quickstop_decel_rad_s2: PosFloat = 10.0  # 6085h
+    slowdown_decel_rad_s2: PosFloat = 4.0  # 6084h
+    brake_release_delay_s: NonNegFloat = 0.05  # operation enabled -> brake released
+
+    @model_validator(mode="after")
+    def _currents(self) -> DriveHardware:
+        if self.max_current_A > 65.535 * self.rated_current_A:
+            raise ValueError(f"expected max_current_A <= 65.535 x rated_current_A (6073h is per mille), "
+                             f"got {self.max_current_A}")
+        return self
 
 
 class FrictionTruth(_Strict):
@@ -137,7 +140,7 @@ class Hidden(_Strict):
     current_offset_A: Finite = 0.0  # Hall-sensor offset: the loop delivers demand − offset, reports demand
     backlash_rad: NonNegFloat = 0.0  # lost motion between rotor (friction, brake, motor) and output
     gear_stiffness_Nm_per_rad: PosFloat = 20000.0  # output-side contact stiffness when backlash > 0
-    gear_damping_Nm_s_per_rad: NonNegFloat = 5.0
+    gear_damping_ratio: Annotated[float, Field(ge=0, le=2), Expect("a fraction of critical damping in [0, 2]")] = 0.5
 
 
 class JointTruth(_Strict):
@@ -267,7 +270,7 @@ def load_truth(path: str | Path | None = None) -> Truth:
 
 
 def drive_params(joint: JointTruth, fd: bool) -> DriveParams:
-    """The simulated drive's parameters for one joint (what its object dictionary holds)."""
+    """The simulated drive's parameters for one joint (what its object dictionary and firmware hold)."""
     from sim.drive import DriveParams
 
     hw = joint.drive
@@ -275,12 +278,13 @@ def drive_params(joint: JointTruth, fd: bool) -> DriveParams:
         node_id=hw.node_id,
         rated_current_A=hw.rated_current_A,
         rated_torque_Nm=hw.rated_torque_Nm,
-        max_torque_permille=hw.max_torque_permille,
         max_current_A=hw.max_current_A,
         encoder_counts_per_rev=hw.encoder_counts_per_rev,
-        csp_kp_Nm_per_rad=hw.csp.kp_Nm_per_rad,
-        csp_kd_Nm_s_per_rad=hw.csp.kd_Nm_s_per_rad,
-        csp_ki_Nm_per_rad_s=hw.csp.ki_Nm_per_rad_s,
-        torque_constant_Nm_per_A=joint.torque_constant_Nm_per_A,
+        max_torque_permille=hw.max_torque_permille,
+        csp_kp_A_per_rad=hw.csp_kp_A_per_rad,
+        csp_kd_A_s_per_rad=hw.csp_kd_A_s_per_rad,
+        quickstop_decel_rad_s2=hw.quickstop_decel_rad_s2,
+        slowdown_decel_rad_s2=hw.slowdown_decel_rad_s2,
+        brake_release_delay_s=hw.brake_release_delay_s,
         fd=fd,
     )

@@ -1,0 +1,335 @@
+"""CAN buses from "INTERFACE:CHANNEL" strings, shared by the daemon and the simulated robot.
+
+Interfaces: ``socketcan:can0`` / ``socketcan:vcan0`` (Linux SocketCAN), ``udp_multicast:239.74.163.2``
+(CAN frames as UDP datagrams between processes on this host) and ``virtual:NAME`` (in-process).
+
+udp_multicast uses python-can's wire format (a msgpack map per frame, as ``can.interfaces.udp_multicast``
+packs it) but its own socket, because python-can's would join the group on the default-route interface
+and send frames onto the LAN. Here the socket is host-local: group joined on the loopback interface
+only, multicast TTL 0, bound to the group address with IP_MULTICAST_ALL off (so tests on different
+groups sharing a port stay apart), and a large receive buffer. On top of that the bus
+
+- drops its own frames (multicast loopback echoes every datagram to its sender),
+- drops duplicated datagrams,
+- counts frames lost between sender and receiver.
+
+For this each sender stamps the msgpack ``channel`` field with a 64-bit integer: a random 32-bit sender
+token (per bus instance) in the high half and a 32-bit sequence number in the low half (the receiver
+replaces the field with its own channel name). Python-can's ``channel`` field accepts any msgpack value,
+so the frames stay readable by python-can. A receiver tracks, per sender token, the highest sequence
+seen plus a 64-frame window: repeats in the window are duplicates, numbers skipped are gaps (a frame that
+arrives late fills its gap again and counts as reordered). Losses the kernel itself counts (receive
+buffer overflow, SO_RXQ_OVFL) are reported as well. Not detectable: frames from senders that do not
+stamp the field (plain python-can peers; these are passed through and counted as foreign), losses after
+a sender's last frame, and the first frames of a sender before its first frame that arrived.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import os
+import re
+import secrets
+import select
+import socket
+import struct
+import threading
+from dataclasses import dataclass
+from typing import Any
+
+import can
+import msgpack
+
+INTERFACES = ("socketcan", "udp_multicast", "virtual")
+DEFAULT_UDP_PORT = 43113
+DEFAULT_RCVBUF_BYTES = 4 * 1024 * 1024
+_IFNAME = re.compile(r"^[A-Za-z0-9_.\-]{1,15}$")
+_LOOPBACK = "127.0.0.1"
+_IP_MULTICAST_ALL = getattr(socket, "IP_MULTICAST_ALL", 49)  # Linux value; absent from Python's socket module
+_SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)
+_SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
+_SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)
+_TIMESPEC = struct.Struct("@ll")
+_U32 = struct.Struct("@I")
+_WINDOW = 64
+_WINDOW_MASK = (1 << _WINDOW) - 1
+
+
+@dataclass(frozen=True)
+class BusSpec:
+    """Where a bus is: python-can interface and channel, plus bit timing (used where the interface has it)."""
+
+    interface: str
+    channel: str
+    bitrate: int = 1_000_000
+    fd: bool = False
+    data_bitrate: int | None = None
+
+    def __str__(self) -> str:
+        return f"{self.interface}:{self.channel}"
+
+
+def parse_bus(text: str, *, bitrate: int = 1_000_000, fd: bool = False, data_bitrate: int | None = None) -> BusSpec:
+    """Parse "INTERFACE:CHANNEL" (e.g. ``socketcan:can0``, ``udp_multicast:239.74.163.2``, ``virtual:arm``)."""
+    expected = (f"expected INTERFACE:CHANNEL with INTERFACE one of {', '.join(INTERFACES)} "
+                "(e.g. socketcan:can0, udp_multicast:239.74.163.2, virtual:arm)")
+    interface, sep, channel = text.strip().partition(":")
+    if not sep or not channel:
+        raise ValueError(f"bus {text!r}: missing channel; {expected}")
+    if interface not in INTERFACES:
+        raise ValueError(f"bus {text!r}: unknown interface {interface!r}; {expected}")
+    if interface == "socketcan" and not _IFNAME.match(channel):
+        raise ValueError(f"bus {text!r}: {channel!r} is not a network interface name "
+                         "(expected 1-15 characters of letters, digits, '_', '.', '-', e.g. can0 or vcan0)")
+    if interface == "udp_multicast":
+        _check_multicast_group(text, channel)
+    if data_bitrate is not None and not fd:
+        raise ValueError(f"bus {text!r}: data_bitrate={data_bitrate} is only meaningful with fd=True")
+    return BusSpec(interface, channel, bitrate, fd, data_bitrate)
+
+
+def _check_multicast_group(text: str, channel: str) -> None:
+    try:
+        address = ipaddress.ip_address(channel)
+    except ValueError:
+        address = None
+    if address is None or address.version != 4 or not address.is_multicast \
+            or address in ipaddress.ip_network("224.0.0.0/24"):
+        raise ValueError(f"bus {text!r}: {channel!r} is not a usable multicast group; expected an IPv4 "
+                         "multicast address outside 224.0.0.0/24, e.g. 239.74.163.2")
+
+
+def socketcan_available(channel: str | None = None) -> tuple[bool, str]:
+    """Whether SocketCAN works here (and `channel` exists and binds); the reason if not."""
+    if not hasattr(socket, "AF_CAN"):
+        return False, "this Python has no AF_CAN support"
+    try:
+        sock = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
+    except OSError as exc:
+        return False, f"the kernel refuses AF_CAN sockets (errno {exc.errno}: {exc.strerror})"
+    try:
+        if channel is None:
+            return True, "AF_CAN sockets available"
+        if not os.path.exists(f"/sys/class/net/{channel}"):
+            return False, (f"no network interface {channel!r} (create one with: ip link add dev {channel} type vcan; "
+                           f"ip link set up {channel})")
+        try:
+            sock.bind((channel,))
+        except OSError as exc:
+            return False, f"cannot bind a CAN socket to {channel!r} (errno {exc.errno}: {exc.strerror})"
+        return True, f"{channel} is available"
+    finally:
+        sock.close()
+
+
+def open_bus(spec: BusSpec, *, receive_own_messages: bool = False, udp_port: int = DEFAULT_UDP_PORT,
+             rcvbuf_bytes: int = DEFAULT_RCVBUF_BYTES) -> can.BusABC:
+    """Open the python-can bus of a spec (udp_multicast: the filtering host-local bus of this module)."""
+    if spec.interface == "udp_multicast":
+        return UdpMulticastCanBus(spec.channel, port=udp_port, fd=spec.fd, rcvbuf_bytes=rcvbuf_bytes,
+                                  receive_own_messages=receive_own_messages)
+    if spec.interface == "virtual":
+        protocol = can.CanProtocol.CAN_FD if spec.fd else can.CanProtocol.CAN_20
+        return can.Bus(interface="virtual", channel=spec.channel, receive_own_messages=receive_own_messages,
+                       protocol=protocol)
+    if spec.interface == "socketcan":
+        ok, reason = socketcan_available(spec.channel)
+        if not ok:
+            raise can.CanInitializationError(f"bus {spec}: SocketCAN unavailable: {reason}")
+        return can.Bus(interface="socketcan", channel=spec.channel, fd=spec.fd,
+                       receive_own_messages=receive_own_messages)
+    raise ValueError(f"bus {spec}: unknown interface {spec.interface!r}; expected one of {', '.join(INTERFACES)}")
+
+
+@dataclass(frozen=True)
+class UdpBusCounters:
+    """A snapshot of a UdpMulticastCanBus's counters."""
+
+    frames_sent: int
+    frames_received: int  # delivered to the caller
+    own_echoes_dropped: int
+    duplicates_dropped: int
+    gaps: int  # frames missing in senders' sequences (not refilled by a late arrival)
+    reordered: int  # frames that arrived after a later one of the same sender
+    too_late_dropped: int  # arrived more than 64 frames behind its sender's newest: dropped
+    kernel_drops: int  # datagrams the kernel dropped for a full receive buffer (SO_RXQ_OVFL)
+    foreign_frames: int  # frames without a sender stamp (passed through, not checked)
+    fd_frames_dropped: int  # CAN FD frames received on a classic-CAN bus
+    undecodable: int
+    rcvbuf_bytes: int  # receive buffer the kernel granted
+
+
+class UdpMulticastCanBus(can.BusABC):
+    """Host-local CAN-over-UDP-multicast bus with echo and duplicate suppression and loss counters."""
+
+    def __init__(self, channel: str, port: int = DEFAULT_UDP_PORT, fd: bool = False,
+                 rcvbuf_bytes: int = DEFAULT_RCVBUF_BYTES, receive_own_messages: bool = False,
+                 can_filters: Any = None, **kwargs: Any) -> None:
+        _check_multicast_group(f"udp_multicast:{channel}", channel)
+        self.group = channel
+        self.port = port
+        self.receive_own_messages = receive_own_messages
+        self._can_protocol = can.CanProtocol.CAN_FD if fd else can.CanProtocol.CAN_20
+        self._token = secrets.randbits(32) or 1
+        self._seq = 0
+        self._tx_lock = threading.Lock()
+        self._rx_lock = threading.Lock()
+        self._senders: dict[int, list[int]] = {}
+        self._c = dict(frames_sent=0, frames_received=0, own_echoes_dropped=0, duplicates_dropped=0, gaps=0,
+                       reordered=0, too_late_dropped=0, kernel_drops=0, foreign_frames=0, fd_frames_dropped=0,
+                       undecodable=0)
+        self._sock = self._open_socket(rcvbuf_bytes)
+        self.rcvbuf_bytes = self._sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+        self._dest = (self.group, self.port)
+        self._ancillary_size = socket.CMSG_SPACE(_TIMESPEC.size) + socket.CMSG_SPACE(_U32.size)
+        self.channel = channel
+        self.channel_info = f"udp_multicast {channel}:{port} (host-local, rcvbuf {self.rcvbuf_bytes} B)"
+        super().__init__(channel=channel, can_filters=can_filters, **kwargs)
+
+    def _open_socket(self, rcvbuf_bytes: int) -> socket.socket:
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+            sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)
+            sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+            sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton(_LOOPBACK))
+            sock.setsockopt(socket.IPPROTO_IP, _IP_MULTICAST_ALL, 0)
+            sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+            sock.setsockopt(socket.SOL_SOCKET, _SO_RXQ_OVFL, 1)
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, _SO_RCVBUFFORCE, rcvbuf_bytes)
+            except PermissionError:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf_bytes)
+            sock.bind((self.group, self.port))
+            membership = socket.inet_aton(self.group) + socket.inet_aton(_LOOPBACK)
+            sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, membership)
+        except OSError as exc:
+            sock.close()
+            raise can.CanInitializationError(
+                f"udp_multicast:{self.group} port {self.port}: cannot set up the host-local multicast socket: "
+                f"{exc}") from exc
+        return sock
+
+    # --- send --------------------------------------------------------------------------------------------
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        if msg.is_fd and self._can_protocol is not can.CanProtocol.CAN_FD:
+            raise can.CanOperationError(f"{self.channel_info}: cannot send a CAN FD frame on a classic-CAN bus")
+        with self._tx_lock:
+            self._seq = (self._seq + 1) & 0xFFFFFFFF
+            data = msgpack.packb({
+                "timestamp": msg.timestamp,
+                "arbitration_id": msg.arbitration_id,
+                "is_extended_id": msg.is_extended_id,
+                "is_remote_frame": msg.is_remote_frame,
+                "is_error_frame": msg.is_error_frame,
+                "channel": self._token << 32 | self._seq,
+                "dlc": msg.dlc,
+                "data": bytes(msg.data),
+                "is_fd": msg.is_fd,
+                "bitrate_switch": msg.bitrate_switch,
+                "error_state_indicator": msg.error_state_indicator,
+            }, use_bin_type=True)
+            try:
+                self._sock.sendto(data, self._dest)
+            except OSError as exc:
+                raise can.CanOperationError(f"{self.channel_info}: send failed: {exc}") from exc
+            self._c["frames_sent"] += 1
+
+    # --- receive -----------------------------------------------------------------------------------------
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        try:
+            ready, _, _ = select.select([self._sock], [], [], timeout)
+        except (OSError, ValueError) as exc:
+            raise can.CanOperationError(f"{self.channel_info}: wait for data failed: {exc}") from exc
+        if not ready:
+            return None, False
+        try:
+            raw, ancillary, _, _ = self._sock.recvmsg(4096, self._ancillary_size, socket.MSG_DONTWAIT)
+        except BlockingIOError:
+            return None, False  # another reader took it
+        except OSError as exc:
+            raise can.CanOperationError(f"{self.channel_info}: receive failed: {exc}") from exc
+        with self._rx_lock:
+            return self._decode(raw, ancillary), False
+
+    def _decode(self, raw: bytes, ancillary: list[tuple[int, int, bytes]]) -> can.Message | None:
+        c = self._c
+        timestamp = 0.0
+        for level, kind, payload in ancillary:
+            if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(payload) >= _TIMESPEC.size:
+                sec, nsec = _TIMESPEC.unpack_from(payload)
+                timestamp = sec + nsec * 1e-9
+            elif level == socket.SOL_SOCKET and kind == _SO_RXQ_OVFL and len(payload) >= _U32.size:
+                c["kernel_drops"] = _U32.unpack_from(payload)[0]
+        try:
+            fields = msgpack.unpackb(raw, raw=False)
+            stamp = fields.get("channel")
+            own = False
+            if isinstance(stamp, int) and stamp >> 32:
+                token = stamp >> 32
+                if token == self._token:
+                    c["own_echoes_dropped"] += 1
+                    if not self.receive_own_messages:
+                        return None
+                    own = True
+                elif not self._accept(token, stamp & 0xFFFFFFFF):
+                    return None
+            else:
+                c["foreign_frames"] += 1
+            if fields["is_fd"] and self._can_protocol is not can.CanProtocol.CAN_FD:
+                c["fd_frames_dropped"] += 1
+                return None
+            msg = can.Message(timestamp=timestamp, arbitration_id=fields["arbitration_id"],
+                              is_extended_id=fields["is_extended_id"], is_remote_frame=fields["is_remote_frame"],
+                              is_error_frame=fields["is_error_frame"], channel=self.channel, dlc=fields["dlc"],
+                              data=fields["data"], is_fd=fields["is_fd"], bitrate_switch=fields["bitrate_switch"],
+                              error_state_indicator=fields["error_state_indicator"], is_rx=not own, check=False)
+        except (ValueError, TypeError, KeyError, msgpack.UnpackException):
+            c["undecodable"] += 1
+            return None
+        c["frames_received"] += 1
+        return msg
+
+    def _accept(self, token: int, seq: int) -> bool:
+        """Sequence bookkeeping for one sender; False for a duplicate or a hopelessly late frame."""
+        c = self._c
+        state = self._senders.get(token)
+        if state is None:
+            self._senders[token] = [seq, 1]
+            return True
+        newest, window = state
+        ahead = (seq - newest) & 0xFFFFFFFF
+        if ahead and ahead < 0x80000000:
+            if ahead > 1:
+                c["gaps"] += ahead - 1
+            state[0] = seq
+            state[1] = ((window << ahead) | 1) & _WINDOW_MASK if ahead < _WINDOW else 1
+            return True
+        behind = (newest - seq) & 0xFFFFFFFF
+        if behind >= _WINDOW:
+            c["too_late_dropped"] += 1
+            return False
+        bit = 1 << behind
+        if window & bit:
+            c["duplicates_dropped"] += 1
+            return False
+        state[1] = window | bit
+        c["gaps"] -= 1
+        c["reordered"] += 1
+        return True
+
+    # --- misc --------------------------------------------------------------------------------------------
+    def counters(self) -> UdpBusCounters:
+        """Current counter values."""
+        with self._rx_lock:
+            return UdpBusCounters(rcvbuf_bytes=self.rcvbuf_bytes, **self._c)
+
+    def fileno(self) -> int:
+        return self._sock.fileno()
+
+    def shutdown(self) -> None:
+        if self._is_shutdown:
+            return
+        super().shutdown()
+        self._sock.close()

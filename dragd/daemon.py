@@ -1,0 +1,832 @@
+"""The dragd daemon: the 1 kHz torque cycle over CANopen, modes, safety reactions and the control surface.
+
+Each cycle (ticked by a timerfd at absolute deadlines):
+
+    read      SYNC → collect every drive's TPDO until all arrived or SYNC + tpdo_deadline_us
+    estimate  q from counts, q̇ by filtered differentiation, measured current
+    compute   the mode's law (idle / hold / drag / track) + safety terms, blended across mode switches
+    write     controlwords + torque commands (+ CSP targets) in the command RPDO(s)
+    log       one telemetry row handed to the MCAP writer thread; timing into histograms
+
+The cycle works on preallocated numpy arrays and precompiled ``struct`` codecs; it does not log, block or
+call SDO. Drive state changes (the CiA 402 walk, fault reset edges) are made by the controlwords it sends.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import os
+import signal
+import sys
+import struct
+import time
+from dataclasses import dataclass
+from enum import IntEnum
+from pathlib import Path
+from typing import Any
+
+import can
+import numpy as np
+
+from . import sdnotify
+from .bus import open_bus, parse_bus
+from .cia402 import (CMD_DISABLE_VOLTAGE, CMD_ENABLE_OPERATION, CMD_QUICK_STOP, CMD_SHUTDOWN, CW_FAULT_RESET, State,
+                     decode_statusword, next_controlword)
+from .config import Config
+from .control import ControlServer
+from .law import LawOutput, LawParams, Workspace, compensate
+from .master import MODE_CSP, MODE_CST, DriveError, Master
+from .model import RobotModel
+from .pdo import SYNC_COB_ID, BusLayout, RpdoEncoder, layout_for
+from .stats import Histogram
+from .ticker import Ticker, set_realtime
+from .velocity import VelocityEstimator
+
+
+class Mode(IntEnum):
+    IDLE = 0  # drives disabled, brakes on
+    HOLD = 1  # gravity + joint PD around the pose
+    DRAG = 2  # gravity + friction + start-up: zero force
+    TRACK = 3  # CSP: follow a joint trajectory (identification runs, replay)
+    FAULT = 4  # a safety reaction disabled the drives; `start` clears it
+
+
+MODE_NAMES = {m: m.name.lower() for m in Mode}
+DRIVE_STATE_NAMES = {s: s.name.lower() for s in State}
+
+
+class BusBudgetError(RuntimeError):
+    """The configured PDO layout would load a bus beyond its limit."""
+
+
+def bus_layouts(cfg: Config) -> dict[str, BusLayout]:
+    """The PDO layout of every configured bus."""
+    out = {}
+    for b in cfg.buses:
+        idx = [i for i, j in enumerate(cfg.joints) if j.bus == b.name]
+        out[b.name] = layout_for(b.name, idx, [cfg.joints[i].node_id for i in idx], fd=b.fd, kind=b.layout,
+                                 rate_Hz=cfg.loop.rate_Hz)
+    return out
+
+
+def check_bus_budget(cfg: Config, layouts: dict[str, BusLayout]) -> dict[str, Any]:
+    """Worst-case load of every bus from its real PDO layout; BusBudgetError with the numbers if over limit."""
+    report: dict[str, Any] = {}
+    for b in cfg.buses:
+        r = layouts[b.name].budget(cfg.loop.rate_Hz, b.bitrate, b.data_bitrate, 1000.0 / cfg.master.heartbeat_ms)
+        report[b.name] = {"load_pct": r.percent, "limit_pct": b.load_limit_pct, "table": r.table()}
+        if r.percent > b.load_limit_pct:
+            raise BusBudgetError(
+                f"{cfg.source}: buses[{cfg.buses.index(b)}] '{b.name}': worst-case bus load {r.percent:.1f} % exceeds "
+                f"load_limit_pct {b.load_limit_pct:.0f} % at {cfg.loop.rate_Hz:.0f} Hz "
+                f"({'CAN FD' if b.fd else 'classic CAN'} {b.bitrate / 1e6:g} Mbit/s, layout '{b.layout}'):\n{r.table()}\n"
+                "Use CAN FD, layout 'compact', fewer joints per bus (split buses) or a lower loop.rate_Hz.")
+    return report
+
+
+@dataclass
+class Trajectory:
+    """A joint trajectory for TRACK mode: samples t [s] (from 0) and q [rad], cubic interpolation."""
+
+    t_s: np.ndarray
+    q_rad: np.ndarray
+    label: str = "track"
+
+    def __post_init__(self) -> None:
+        from scipy.interpolate import CubicSpline
+
+        if self.t_s.ndim != 1 or self.q_rad.ndim != 2 or self.q_rad.shape[0] != self.t_s.shape[0]:
+            raise ValueError(f"trajectory: expected t (N,) and q (N, joints), got {self.t_s.shape} and {self.q_rad.shape}")
+        if np.any(np.diff(self.t_s) <= 0):
+            raise ValueError("trajectory: t must increase strictly")
+        self._spline = CubicSpline(self.t_s, self.q_rad, bc_type="clamped")
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.t_s[-1])
+
+    def sample(self, t: float, out: np.ndarray) -> np.ndarray:
+        out[:] = self._spline(min(max(t, 0.0), self.duration_s))
+        return out
+
+
+class Daemon:
+    """The servo daemon for one arm. ``await Daemon(cfg).run()`` runs until SIGTERM/SIGINT or ``request_exit``."""
+
+    def __init__(self, cfg: Config, *, bus_override: str | None = None, socket_path: str | None = None,
+                 telemetry_path: str | None = None, rerun: bool = False, log=None) -> None:  # noqa: ANN001
+        self.cfg = cfg
+        self.log = log or (lambda msg: print(f"dragd: {msg}", flush=True))
+        self.socket_path = socket_path or cfg.control.socket
+        self.telemetry_path = telemetry_path or cfg.telemetry.path
+        self.rerun = rerun or cfg.telemetry.rerun
+        self.bus_specs = self._bus_specs(bus_override)
+        self.layouts = bus_layouts(cfg)
+        self.budget = check_bus_budget(cfg, self.layouts)
+        self.model = RobotModel.from_urdf(cfg.robot.urdf, cfg.base_dir, cfg.robot.gravity_m_s2)
+        if list(self.model.joint_names) != cfg.joint_names:
+            raise ValueError(f"{cfg.source}: joints: expected the robot's joints {', '.join(self.model.joint_names)}, "
+                             f"got {', '.join(cfg.joint_names)}")
+        self.params = LawParams.from_config(cfg)
+        n = self.n = len(cfg.joints)
+        js = cfg.joints
+        self.dt = 1.0 / cfg.loop.rate_Hz
+        # constants per joint
+        self.kt = self.params.kt_Nm_per_A
+        self.rated_A = np.array([j.rated_current_A for j in js])
+        self.direction = np.array([j.direction for j in js], dtype=float)
+        self.cpr = np.array([j.encoder_counts_per_rev for j in js], dtype=float)
+        self.offset_counts = np.array([j.encoder_offset_counts for j in js], dtype=np.int64)
+        lo, hi = self.model.position_limits_rad
+        self.lim_lo = np.array([j.position_limits_rad[0] if j.position_limits_rad else lo[i] for i, j in enumerate(js)])
+        self.lim_hi = np.array([j.position_limits_rad[1] if j.position_limits_rad else hi[i] for i, j in enumerate(js)])
+        self.vcap = np.array([j.velocity_limit_rad_s for j in js])
+        # cycle state (preallocated)
+        self.counts = np.zeros(n, dtype=np.int64)
+        self.statusword = np.zeros(n, dtype=np.int64)
+        self.current_raw = np.zeros(n)  # per mille of rated current, drive's sign
+        self.rx = np.zeros(n, dtype=bool)
+        self.stale = np.zeros(n, dtype=np.int64)
+        self.q = np.zeros(n)
+        self.q_hold = np.zeros(n)
+        self.q_ref = np.zeros(n)
+        self.current_meas_A = np.zeros(n)
+        self.tau_g = np.zeros(n)
+        self.extra_A = np.zeros(n)
+        self.hold_A = np.zeros(n)
+        self.cmd_A = np.zeros(n)
+        self.prev_cmd_A = np.zeros(n)
+        self.blend_from_A = np.zeros(n)
+        self.tmp = np.zeros(n)
+        self.cw = np.zeros(n, dtype=np.int64)
+        self.target_counts = np.zeros(n, dtype=np.int64)
+        self.offset_permille = np.zeros(n, dtype=np.int64)
+        self.states = [State.NOT_READY_TO_SWITCH_ON] * n
+        self.law_out = LawOutput.zeros(n)
+        self.ws = Workspace(n)
+        self.vel = VelocityEstimator(self.cpr, cfg.law.velocity_filter_Hz, self.direction)
+        self.dq = self.vel.velocity_rad_s
+        # modes
+        self.mode = Mode.IDLE
+        self.prev_mode = Mode.IDLE
+        self.blend_t0 = -1.0
+        self.t = 0.0
+        self.cycles = 0
+        self.missed = 0
+        self.late_tpdo = 0
+        self.enable_t0: float | None = None
+        self.fault_reset_phase = 0
+        self.faults: list[dict[str, Any]] = []
+        self.stop_requested = False
+        self.exit_requested = False
+        self.trajectory: Trajectory | None = None
+        self.track_t0 = 0.0
+        self.drive_mode = MODE_CST
+        self.mode_switch_pending = False
+        self.stop_after_hold_at: float | None = None
+        self.feedback_hold = False  # HOLD forced by stale feedback; the requested mode returns when it is fresh
+        self.resume_mode = Mode.IDLE
+        self.fresh_cycles = 0
+        self.feedback_holds = 0
+        # timing
+        self.period_hist = Histogram(0.0, 20_000.0, 10.0)
+        self.compute_hist = Histogram(0.0, 5_000.0, 2.0)
+        self.rx_hist = Histogram(0.0, 5_000.0, 5.0)
+        self.clamp_cycles = 0
+        # I/O set up in run()
+        self.master: Master | None = None
+        self.buses: dict[str, can.BusABC] = {}
+        self.encoders: list[RpdoEncoder] = []
+        self.telemetry = None
+        self._waiter: asyncio.Future | None = None
+        self._expect_mask = np.ones(n, dtype=bool)
+        self._tpdo: dict[str, dict[int, tuple[int, struct.Struct, tuple[str, ...]]]] = {}
+        self.enabled = np.zeros(n, dtype=bool)
+        self.tmp2 = np.zeros(n)
+        self._sync_msgs: list[tuple[can.BusABC, can.Message]] = []
+        self._hb_msgs: list[tuple[can.BusABC, can.Message]] = []
+        self._cmd_msgs: list[tuple[can.BusABC, can.Message, RpdoEncoder]] = []
+
+    # ------------------------------------------------------------------------------------------ setup
+
+    def _bus_specs(self, override: str | None) -> dict[str, Any]:
+        specs = {}
+        over = [s for s in (override or "").split(",") if s.strip()]
+        if over and len(over) != len(self.cfg.buses):
+            raise ValueError(f"--bus: expected {len(self.cfg.buses)} INTERFACE:CHANNEL value(s) "
+                             f"(buses {', '.join(b.name for b in self.cfg.buses)}), got {len(over)}")
+        for i, b in enumerate(self.cfg.buses):
+            base = parse_bus(over[i]) if over else parse_bus(f"{b.interface}:{b.channel}")
+            specs[b.name] = type(base)(interface=base.interface, channel=base.channel, bitrate=b.bitrate, fd=b.fd,
+                                       data_bitrate=b.data_bitrate)
+        return specs
+
+    def _build_io(self) -> None:
+        for name, layout in self.layouts.items():
+            bus = self.buses[name]
+            fd = layout.fd
+            table = self._tpdo.setdefault(name, {})
+            for fr in layout.frames:
+                if fr.direction == "tpdo":
+                    (slot,) = fr.slots
+                    table[fr.cob_id] = (slot.joint, struct.Struct(slot.fmt), slot.fields)
+                elif fr.cyclic or fr.name.startswith("RPDO1"):
+                    enc = RpdoEncoder(fr, fd)
+                    msg = can.Message(arbitration_id=fr.cob_id, data=enc.buffer, is_extended_id=False,
+                                      is_fd=fd, bitrate_switch=fd, dlc=len(enc.buffer))
+                    self._cmd_msgs.append((bus, msg, enc))
+            self._sync_msgs.append((bus, can.Message(arbitration_id=SYNC_COB_ID, data=b"", is_extended_id=False)))
+            self._hb_msgs.append((bus, can.Message(arbitration_id=0x700 + self.cfg.master.node_id, data=b"\x05",
+                                                   is_extended_id=False)))
+        self._emcy = {0x80 + j.node_id: i for i, j in enumerate(self.cfg.joints)}
+
+    def _listener(self, bus_name: str) -> can.Listener:
+        on_frame, table = self._on_frame, self._tpdo.setdefault(bus_name, {})
+
+        class _Rx(can.Listener):
+            def on_message_received(self, msg: can.Message) -> None:
+                on_frame(msg, table)
+
+        return _Rx()
+
+    def _on_frame(self, msg: can.Message, table: dict[int, tuple[int, struct.Struct, tuple[str, ...]]]) -> None:
+        """Runs in the loop thread (Notifier with add_reader): decode TPDOs into the cycle's arrays."""
+        entry = table.get(msg.arbitration_id)
+        if entry is not None:
+            j, codec, fields = entry
+            if len(msg.data) < codec.size:
+                return
+            values = codec.unpack_from(msg.data)
+            for f, v in zip(fields, values):
+                if f == "position":
+                    self.counts[j] = v
+                elif f == "current":
+                    self.current_raw[j] = v
+                else:
+                    self.statusword[j] = v
+            if "position" in fields:
+                self.rx[j] = True
+                if self._waiter is not None and not self._waiter.done() and np.all(self.rx[self._expect_mask]):
+                    self._waiter.set_result(True)
+            return
+        j = self._emcy.get(msg.arbitration_id)
+        if j is not None and len(msg.data) >= 3:
+            code = msg.data[0] | (msg.data[1] << 8)
+            if code != 0:
+                self._fault(j, f"EMCY 0x{code:04X} (error register 0x{msg.data[2]:02X}) from node "
+                               f"{self.cfg.joints[j].node_id}", code)
+
+    # ------------------------------------------------------------------------------------------ safety
+
+    def _fault(self, j: int | None, text: str, code: int = 0) -> None:
+        """A safety reaction: every axis to a safe state (quick stop → brakes), mode FAULT."""
+        self.faults.append({"t_s": round(self.t, 4), "joint": self.cfg.joints[j].name if j is not None else None,
+                            "node_id": self.cfg.joints[j].node_id if j is not None else None, "code": code,
+                            "text": text})
+        if len(self.faults) > 100:
+            del self.faults[:-100]
+        self.feedback_hold = False
+        if self.mode != Mode.FAULT:
+            self.prev_mode = self.mode
+            self.mode = Mode.FAULT
+            self.enable_t0 = None
+            self.trajectory = None
+            if self.telemetry is not None:
+                self.telemetry.event("fault", text=text, code=code)
+
+    # ------------------------------------------------------------------------------------------ commands
+
+    def start(self) -> None:
+        """Enable the drives (fault reset first) and hold the pose."""
+        if self.mode == Mode.FAULT:
+            self.faults.clear()
+        self.q_hold[:] = self.q
+        self.stop_after_hold_at = None
+        self.feedback_hold = False
+        self.fault_reset_phase = 2  # two cycles: bit 7 low, then high (rising edge), for drives in fault
+        self._set_mode(Mode.HOLD, blend=False)
+        self.enable_t0 = self.t
+
+    def stop(self) -> None:
+        """Ramp to hold, then disable (brakes on)."""
+        if self.mode in (Mode.IDLE, Mode.FAULT):
+            return
+        self.feedback_hold = False
+        if self.mode != Mode.HOLD:
+            self.q_hold[:] = self.q
+            self._set_mode(Mode.HOLD)
+        self.stop_after_hold_at = self.t + self.cfg.safety.mode_ramp_s + 0.05
+
+    def set_mode(self, name: str) -> None:
+        modes = {"idle": Mode.IDLE, "hold": Mode.HOLD, "drag": Mode.DRAG}
+        if name not in modes:
+            raise ValueError(f"mode: expected one of {', '.join(modes)}, got '{name}'")
+        target = modes[name]
+        if target == Mode.IDLE:
+            self.stop()
+            return
+        if self.mode in (Mode.IDLE, Mode.FAULT):
+            raise ValueError(f"mode {name}: the drives are disabled ({MODE_NAMES[self.mode]}); run 'dragd start' first")
+        if self.mode == Mode.TRACK:
+            raise ValueError(f"mode {name}: a {self.trajectory.label if self.trajectory else 'track'} motion is running; "
+                             "stop it first")
+        if target == Mode.HOLD:
+            self.q_hold[:] = self.q
+        self.stop_after_hold_at = None
+        if self.feedback_hold:  # the feedback hold stays; the new request is what it resumes
+            self.resume_mode = target
+            return
+        self._set_mode(target)
+
+    def _set_mode(self, mode: Mode, blend: bool = True) -> None:
+        if mode == self.mode:
+            return
+        self.blend_from_A[:] = self.prev_cmd_A
+        self.blend_t0 = self.t if blend else -1.0
+        self.prev_mode, self.mode = self.mode, mode
+        if self.telemetry is not None:
+            self.telemetry.event("mode", mode=MODE_NAMES[mode], previous=MODE_NAMES[self.prev_mode])
+
+    async def track(self, traj: Trajectory) -> None:
+        """Switch the drives to CSP and follow ``traj`` (entry point of identification runs and replay)."""
+        if self.mode not in (Mode.HOLD, Mode.DRAG):
+            raise ValueError(f"track: expected the arm enabled in hold or drag, it is {MODE_NAMES[self.mode]}")
+        if traj.q_rad.shape[1] != self.n:
+            raise ValueError(f"track: expected {self.n} joints per sample, got {traj.q_rad.shape[1]}")
+        start_err = np.abs(traj.q_rad[0] - self.q)
+        if np.any(start_err > 0.02):
+            raise ValueError(f"track: the trajectory starts {np.degrees(start_err.max()):.2f}° from the current pose "
+                             "(max 1.1°); move there first")
+        self.q_hold[:] = self.q
+        self._set_mode(Mode.HOLD)
+        await self._switch_drive_mode(MODE_CSP)
+        self.trajectory = traj
+        self.track_t0 = self.t
+        self._set_mode(Mode.TRACK)
+
+    async def _switch_drive_mode(self, mode: int) -> None:
+        assert self.master is not None
+        self.mode_switch_pending = True
+        try:
+            for rt in self.master.runtimes.values():
+                for node_id in rt.nodes:
+                    await self.master.run_sdo(self.master.set_mode, rt, node_id, mode)
+            self.drive_mode = mode
+        finally:
+            self.mode_switch_pending = False
+
+    # ------------------------------------------------------------------------------------------ cycle
+
+    def _drive_controlwords(self) -> None:
+        """CiA 402 walk per drive from its statusword, toward the state the mode needs."""
+        want_enabled = self.mode in (Mode.HOLD, Mode.DRAG, Mode.TRACK)
+        for i in range(self.n):
+            try:
+                st = decode_statusword(int(self.statusword[i]))
+            except ValueError:
+                st = State.NOT_READY_TO_SWITCH_ON
+            self.states[i] = st
+            self.enabled[i] = st == State.OPERATION_ENABLED
+            if self.mode == Mode.FAULT:
+                self.cw[i] = CMD_QUICK_STOP if st == State.OPERATION_ENABLED else CMD_DISABLE_VOLTAGE
+            elif want_enabled:
+                if st in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+                    # rising edge of bit 7: one cycle low, then high
+                    self.cw[i] = CW_FAULT_RESET if self.fault_reset_phase == 1 else CMD_DISABLE_VOLTAGE
+                else:
+                    self.cw[i] = next_controlword(st, State.OPERATION_ENABLED)
+            else:
+                self.cw[i] = CMD_SHUTDOWN if st not in (State.FAULT, State.FAULT_REACTION_ACTIVE) else CMD_DISABLE_VOLTAGE
+        if self.fault_reset_phase > 0:
+            self.fault_reset_phase -= 1
+        if want_enabled and self.enable_t0 is not None:
+            if all(s == State.OPERATION_ENABLED for s in self.states):
+                self.enable_t0 = None
+            elif self.t - self.enable_t0 > self.cfg.master.enable_timeout_s:
+                bad = [f"node {self.cfg.joints[i].node_id} in {DRIVE_STATE_NAMES[s]} (statusword 0x{int(self.statusword[i]):04X})"
+                       for i, s in enumerate(self.states) if s != State.OPERATION_ENABLED]
+                self._fault(None, f"drives did not reach operation enabled within "
+                                  f"{self.cfg.master.enable_timeout_s:.1f} s: {', '.join(bad)}")
+        elif want_enabled and self.enable_t0 is None:
+            for i, s in enumerate(self.states):
+                if s in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+                    self._fault(i, f"node {self.cfg.joints[i].node_id} reports {DRIVE_STATE_NAMES[s]} "
+                                   f"(statusword 0x{int(self.statusword[i]):04X})")
+                    break
+                if s == State.QUICK_STOP_ACTIVE or s == State.SWITCH_ON_DISABLED:
+                    self._fault(i, f"node {self.cfg.joints[i].node_id} left operation enabled: {DRIVE_STATE_NAMES[s]} "
+                                   f"(statusword 0x{int(self.statusword[i]):04X})")
+                    break
+
+    def _safety_terms(self, out: np.ndarray) -> None:
+        """Soft-limit walls (spring/damper before the hard stops) and, in drag, the speed cap: as current [A]."""
+        s = self.cfg.safety
+        q, dq, p, v = self.q, self.dq, self.tmp, self.tmp2
+        out.fill(0.0)
+        # upper wall: penetration p = q - (hi - margin) > 0 pushes back, damping only while moving further in
+        np.subtract(q, self.lim_hi, out=p)
+        p += s.soft_limit_margin_rad
+        np.maximum(p, 0.0, out=p)
+        np.maximum(dq, 0.0, out=v)
+        v *= p > 0.0
+        p *= s.wall_stiffness_Nm_per_rad
+        v *= s.wall_damping_Nm_s_per_rad
+        out -= p
+        out -= v
+        np.subtract(self.lim_lo, q, out=p)
+        p += s.soft_limit_margin_rad
+        np.maximum(p, 0.0, out=p)
+        np.minimum(dq, 0.0, out=v)
+        v *= p > 0.0
+        p *= s.wall_stiffness_Nm_per_rad
+        v *= s.wall_damping_Nm_s_per_rad
+        out += p
+        out -= v
+        if self.mode == Mode.DRAG:  # speed cap: viscous brake on the excess speed
+            np.abs(dq, out=p)
+            p -= self.vcap
+            np.maximum(p, 0.0, out=p)
+            np.sign(dq, out=v)
+            p *= v
+            p *= s.speed_cap_damping_Nm_s_per_rad
+            out -= p
+        out /= self.kt
+
+    def _mode_command(self, mode: Mode, out: np.ndarray) -> None:
+        """The command current [A] of one mode (before the blend)."""
+        s = self.cfg.safety
+        if mode in (Mode.IDLE, Mode.FAULT):
+            out.fill(0.0)
+            return
+        if mode == Mode.DRAG:
+            compensate(self.tau_g, self.dq, self.t, self.params, self.law_out, self.ws, self.extra_A)
+            out[:] = self.law_out.current_A
+            return
+        if mode == Mode.TRACK:  # CSP: the drive's position loop tracks; the torque offset feeds gravity forward
+            out.fill(0.0)
+        else:  # HOLD: gravity + joint PD around the pose
+            np.subtract(self.q_hold, self.q, out=out)
+            out *= s.hold_kp_Nm_per_rad
+            np.multiply(self.dq, s.hold_kd_Nm_s_per_rad, out=self.tmp2)
+            out -= self.tmp2
+        out += self.tau_g
+        out /= self.kt
+        out += self.extra_A
+        np.clip(out, -self.params.current_limit_A, self.params.current_limit_A, out=out)
+
+    def cycle_compute(self) -> None:
+        """estimate → compute: from the arrays the read step filled to the command arrays (no I/O)."""
+        # estimate
+        np.subtract(self.counts, self.offset_counts, out=self.tmp, casting="unsafe")
+        self.tmp *= self.direction
+        self.tmp *= 2.0 * math.pi
+        np.divide(self.tmp, self.cpr, out=self.q)
+        self.vel.update(self.counts, self.dt)
+        np.multiply(self.current_raw, self.rated_A, out=self.current_meas_A)
+        self.current_meas_A *= self.direction
+        self.current_meas_A /= 1000.0
+        self.model.gravity(self.q, self.tau_g)
+        if self.trajectory is not None and self.mode == Mode.TRACK:
+            self.trajectory.sample(self.t - self.track_t0, self.q_ref)
+            if self.t - self.track_t0 > self.trajectory.duration_s:
+                self.q_hold[:] = self.q_ref
+                self.trajectory = None
+                self._set_mode(Mode.HOLD)
+                asyncio.get_running_loop().create_task(self._switch_drive_mode(MODE_CST))
+        # compute
+        self._drive_controlwords()
+        self._safety_terms(self.extra_A)
+        self._mode_command(self.mode, self.cmd_A)
+        if self.blend_t0 >= 0.0:
+            x = (self.t - self.blend_t0) / self.cfg.safety.mode_ramp_s
+            if x >= 1.0:
+                self.blend_t0 = -1.0
+            else:
+                lam = x * x * (3.0 - 2.0 * x)
+                # blend from the command at the switch instant to the new law's command
+                self.cmd_A *= lam
+                self.cmd_A += (1.0 - lam) * self.blend_from_A
+        if self.stop_after_hold_at is not None and self.t >= self.stop_after_hold_at:
+            self.stop_after_hold_at = None
+            self._set_mode(Mode.IDLE, blend=False)
+        self.cmd_A *= self.enabled  # nothing is commanded to a drive that is not enabled
+        self.prev_cmd_A[:] = self.cmd_A
+        if self.law_out.clamped.any():
+            self.clamp_cycles += 1
+        # drive units
+        np.multiply(self.cmd_A, self.direction, out=self.tmp)
+        self.tmp *= 1000.0
+        self.tmp /= self.rated_A
+        np.rint(self.tmp, out=self.tmp)
+        np.clip(self.tmp, -32768, 32767, out=self.tmp)
+        self.offset_permille[:] = self.tmp
+        ref = self.q_ref if self.mode == Mode.TRACK else self.q
+        np.multiply(ref, self.cpr, out=self.tmp)
+        self.tmp /= 2.0 * math.pi
+        self.tmp *= self.direction
+        np.rint(self.tmp, out=self.tmp)
+        self.target_counts[:] = self.tmp
+        self.target_counts += self.offset_counts
+
+    def _write(self) -> None:
+        for bus, msg, enc in self._cmd_msgs:
+            buf = enc.buffer
+            for j, off, codec, fields in enc.slots:
+                if len(fields) == 3:
+                    codec.pack_into(buf, off, int(self.cw[j]), int(self.target_counts[j]), int(self.offset_permille[j]))
+                elif fields[0] == "torque_offset":
+                    codec.pack_into(buf, off, int(self.offset_permille[j]))
+                else:
+                    codec.pack_into(buf, off, int(self.cw[j]))
+            try:
+                bus.send(msg, timeout=0)
+            except can.CanError:
+                self.tx_errors += 1
+
+    tx_errors = 0
+
+    def _log_row(self, period_us: float, compute_us: float) -> None:
+        tw = self.telemetry
+        if tw is None:
+            return
+        row = tw.begin()
+        if row is None:
+            return
+        c = self._cols
+        row[c["t_s"]] = self.t
+        row[c["mode"]] = int(self.mode)
+        row[c["q_rad"]] = self.q
+        row[c["dq_rad_s"]] = self.dq
+        row[c["current_measured_A"]] = self.current_meas_A
+        row[c["current_command_A"]] = self.cmd_A
+        row[c["gravity_A"]] = self.law_out.gravity_A if self.mode == Mode.DRAG else self.tau_g / self.kt
+        row[c["friction_A"]] = self.law_out.friction_A if self.mode == Mode.DRAG else 0.0
+        row[c["startup_A"]] = self.law_out.startup_A if self.mode == Mode.DRAG else 0.0
+        row[c["statusword"]] = self.statusword
+        row[c["rx"]] = self.rx
+        row[c["period_us"]] = period_us
+        row[c["compute_us"]] = compute_us
+        tw.commit()
+
+    async def _cycle_loop(self) -> None:
+        loop = asyncio.get_running_loop()
+        ticker = Ticker(self.dt, loop)
+        ticker.start()
+        deadline_s = self.cfg.loop.tpdo_deadline_us * 1e-6
+        hb_every = max(1, round(self.cfg.master.heartbeat_ms * 1e-3 / self.dt))
+        last_tick = None
+        hold_after = self.cfg.loop.stale_cycles_hold
+        disable_after = self.cfg.loop.stale_cycles_disable
+        primed = False
+        try:
+            while not self.exit_requested:
+                expirations = await ticker.wait()
+                t_tick = time.perf_counter()
+                if expirations > 1:
+                    self.missed += expirations - 1
+                period_us = (t_tick - last_tick) * 1e6 if last_tick is not None else self.dt * 1e6
+                last_tick = t_tick
+                self.t += self.dt * expirations
+                # read
+                self.rx.fill(False)
+                self._waiter = loop.create_future()
+                for bus, msg in self._sync_msgs:
+                    try:
+                        bus.send(msg, timeout=0)
+                    except can.CanError:
+                        self.tx_errors += 1
+                handle = loop.call_at(loop.time() + deadline_s, self._deadline)
+                await self._waiter
+                handle.cancel()
+                self._waiter = None
+                t_rx = time.perf_counter()
+                self.rx_hist.add((t_rx - t_tick) * 1e6)
+                if not self.rx.all():
+                    self.late_tpdo += 1
+                np.add(self.stale, 1, out=self.stale)
+                self.stale[self.rx] = 0
+                if not primed:
+                    if not self.rx.all():
+                        continue  # wait for a first full set of positions before computing anything
+                    self.vel.reset(self.counts)
+                    primed = True
+                self._feedback_watch(hold_after, disable_after)
+                # estimate + compute
+                self.cycle_compute()
+                # write
+                self._write()
+                if self.cycles % hb_every == 0:
+                    for bus, msg in self._hb_msgs:
+                        try:
+                            bus.send(msg, timeout=0)
+                        except can.CanError:
+                            self.tx_errors += 1
+                t_done = time.perf_counter()
+                compute_us = (t_done - t_rx) * 1e6
+                self.compute_hist.add(compute_us)
+                if self.cycles > 0:
+                    self.period_hist.add(period_us)
+                self.cycles += 1
+                self._log_row(period_us, compute_us)
+        finally:
+            ticker.close()
+
+    def _feedback_watch(self, hold_after: int, disable_after: int) -> None:
+        """Stale TPDOs: hold after ``hold_after`` cycles, fault (disable) after ``disable_after``; resume when fresh."""
+        worst = int(self.stale.max())
+        if worst == 0:
+            self.fresh_cycles += 1
+        else:
+            self.fresh_cycles = 0
+        if worst >= disable_after and self.mode not in (Mode.IDLE, Mode.FAULT):
+            j = int(self.stale.argmax())
+            self._fault(j, f"feedback lost: no TPDO from node {self.cfg.joints[j].node_id} for {worst} cycles")
+            self.feedback_hold = False
+        elif worst >= hold_after and self.mode == Mode.DRAG:
+            self.feedback_hold = True
+            self.feedback_holds += 1
+            self.resume_mode = self.mode
+            self.q_hold[:] = self.q
+            self._set_mode(Mode.HOLD)
+        elif (self.feedback_hold and self.mode == Mode.HOLD
+              and self.fresh_cycles >= self.cfg.loop.fresh_cycles_resume):
+            self.feedback_hold = False
+            self._set_mode(self.resume_mode)
+
+    def _deadline(self) -> None:
+        if self._waiter is not None and not self._waiter.done():
+            self._waiter.set_result(False)
+
+    # ------------------------------------------------------------------------------------------ status
+
+    def status(self) -> dict[str, Any]:
+        drives = [{"joint": j.name, "node_id": j.node_id, "state": DRIVE_STATE_NAMES[self.states[i]],
+                   "statusword": int(self.statusword[i]), "stale_cycles": int(self.stale[i])}
+                  for i, j in enumerate(self.cfg.joints)]
+        return {
+            "mode": MODE_NAMES[self.mode],
+            "drives_enabled": all(s == State.OPERATION_ENABLED for s in self.states),
+            "cycles": self.cycles,
+            "period_p50_us": self.period_hist.percentile(50) if self.period_hist.count else None,
+            "period_p99_us": self.period_hist.percentile(99) if self.period_hist.count else None,
+            "period_max_us": self.period_hist.max if self.period_hist.count else None,
+            "compute_p50_us": self.compute_hist.percentile(50) if self.compute_hist.count else None,
+            "compute_p99_us": self.compute_hist.percentile(99) if self.compute_hist.count else None,
+            "missed_cycles": self.missed,
+            "late_tpdo_cycles": self.late_tpdo,
+            "tpdo_latency_p50_us": self.rx_hist.percentile(50) if self.rx_hist.count else None,
+            "tpdo_latency_p99_us": self.rx_hist.percentile(99) if self.rx_hist.count else None,
+            "feedback_hold": self.feedback_hold,
+            "feedback_holds": self.feedback_holds,
+            "requested_mode": MODE_NAMES[self.resume_mode if self.feedback_hold else self.mode],
+            "q_rad": self.q.tolist(),
+            "dq_rad_s": self.dq.tolist(),
+            "current_A": self.current_meas_A.tolist(),
+            "command_A": self.cmd_A.tolist(),
+            "faults": list(self.faults),
+            "drives": drives,
+            "drive_mode": {MODE_CSP: "csp", MODE_CST: "cst"}.get(self.drive_mode, str(self.drive_mode)),
+            "trajectory": (None if self.trajectory is None else
+                           {"label": self.trajectory.label, "t_s": self.t - self.track_t0,
+                            "duration_s": self.trajectory.duration_s}),
+            "bus_load_pct": {k: round(v["load_pct"], 2) for k, v in self.budget.items()},
+            "tx_errors": self.tx_errors,
+            "clamp_cycles": self.clamp_cycles,
+            "telemetry": self.telemetry.stats() if self.telemetry is not None else None,
+            "t_s": self.t,
+        }
+
+    async def _handle(self, req: dict[str, Any]) -> dict[str, Any]:
+        cmd = req.get("cmd")
+        try:
+            if cmd == "status":
+                return {"ok": True, **self.status()}
+            if cmd == "start":
+                self.start()
+                ok = await self._wait_for(lambda: self.mode == Mode.FAULT or
+                                          all(s == State.OPERATION_ENABLED for s in self.states),
+                                          self.cfg.master.enable_timeout_s + 0.5)
+                if self.mode == Mode.FAULT or not ok:
+                    return {"ok": False, "error": "enable failed: " + (self.faults[-1]["text"] if self.faults else "timeout")}
+                return {"ok": True, "mode": MODE_NAMES[self.mode]}
+            if cmd == "stop":
+                self.stop()
+                await self._wait_for(lambda: self.mode in (Mode.IDLE, Mode.FAULT), 5.0)
+                return {"ok": True, "mode": MODE_NAMES[self.mode]}
+            if cmd == "mode":
+                self.set_mode(str(req.get("mode")))
+                return {"ok": True, "mode": MODE_NAMES[self.mode]}
+            if cmd == "track":
+                traj = Trajectory(np.asarray(req["t_s"], dtype=float), np.asarray(req["q_rad"], dtype=float),
+                                  str(req.get("label", "track")))
+                await self.track(traj)
+                return {"ok": True, "mode": MODE_NAMES[self.mode], "duration_s": traj.duration_s}
+            if cmd == "shutdown":
+                self.request_exit()
+                return {"ok": True}
+            return {"ok": False, "error": f"unknown command '{cmd}'; expected status, start, stop, mode, track, shutdown"}
+        except (ValueError, KeyError, DriveError) as exc:
+            return {"ok": False, "error": str(exc)}
+
+    async def _wait_for(self, cond, timeout_s: float) -> bool:  # noqa: ANN001
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            if cond():
+                return True
+            await asyncio.sleep(0.01)
+        return cond()
+
+    # ------------------------------------------------------------------------------------------ run
+
+    def request_exit(self) -> None:
+        self.stop_requested = True
+
+    async def _shutdown_sequence(self) -> None:
+        """SIGTERM: ramp to hold, disable (brakes), NMT pre-operational, then leave the loop."""
+        if self.mode not in (Mode.IDLE, Mode.FAULT):
+            self.stop()
+            await self._wait_for(lambda: self.mode in (Mode.IDLE, Mode.FAULT), self.cfg.safety.mode_ramp_s + 1.0)
+        await self._wait_for(lambda: all(s != State.OPERATION_ENABLED for s in self.states), 0.5)
+        self.exit_requested = True
+
+    async def _watchdog(self) -> None:
+        period = sdnotify.watchdog_period_s()
+        if not period:
+            return
+        last = -1
+        while not self.exit_requested:
+            await asyncio.sleep(period / 2)
+            if self.cycles != last:  # only while the cycle runs
+                sdnotify.watchdog_ping()
+                last = self.cycles
+
+    def _telemetry_layout(self) -> dict[str, Any]:
+        from .telemetry import Field
+
+        n = self.n
+        return {"t_s": 1, "mode": Field(1, kind="int", labels=Mode), "q_rad": n, "dq_rad_s": n, "current_measured_A": n, "current_command_A": n,
+                "gravity_A": n, "friction_A": n, "startup_A": n, "statusword": Field(n, kind="int"), "rx": Field(n, kind="bool"), "period_us": 1,
+                "compute_us": 1}
+
+    def _open_telemetry(self) -> None:
+        if not self.telemetry_path:
+            return
+        from .telemetry import TelemetryWriter
+
+        tc = self.cfg.telemetry
+        self.telemetry = TelemetryWriter(self.telemetry_path, self._telemetry_layout(), capacity=tc.capacity_rows,
+                                         rerun=self.rerun, max_bytes=tc.max_file_MiB * 2**20,
+                                         keep_rotated=tc.keep_rotated, avoid_cpus=set(self.cfg.loop.cpus or ()))
+        self._cols = {name: (sl.start if sl.stop - sl.start == 1 else sl) for name, sl in self.telemetry.slices.items()}
+        self.telemetry.event("start", config=self.cfg.source, joints=self.cfg.joint_names)
+
+    async def run(self) -> int:
+        loop = asyncio.get_running_loop()
+        # a busy helper thread (SDO worker, telemetry encoder) would hold the GIL for the default 5 ms
+        sys.setswitchinterval(5e-4)
+        if self.rerun:
+            from .telemetry import rerun_unavailable
+
+            reason = rerun_unavailable()
+            if reason:
+                raise ValueError(f"--rerun: {reason}")
+        for name, spec in self.bus_specs.items():
+            self.buses[name] = open_bus(spec)
+        self._build_io()
+        self.master = Master(self.cfg, self.buses, self.layouts, loop,
+                             {name: [self._listener(name)] for name in self.buses}, log=self.log)
+        server = None
+        try:
+            await self.master.boot()
+            self._open_telemetry()
+            # real-time scheduling for the loop thread only: threads started before this stay normal
+            rt_info = set_realtime(self.cfg.loop.realtime_priority, set(self.cfg.loop.cpus) if self.cfg.loop.cpus else None)
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                loop.add_signal_handler(sig, self.request_exit)
+            cycle = loop.create_task(self._cycle_loop())
+            server = ControlServer(self.socket_path, self._handle)
+            await server.start()
+            self.log(f"running at {self.cfg.loop.rate_Hz:.0f} Hz; control socket {self.socket_path}; "
+                     f"realtime: {rt_info}")
+            sdnotify.ready(f"running, {self.n} drives")
+            watchdog = loop.create_task(self._watchdog())
+            while not self.stop_requested and not cycle.done():
+                await asyncio.sleep(0.05)
+            if cycle.done():
+                cycle.result()  # re-raise what ended the cycle
+            sdnotify.stopping("ramping down")
+            await self._shutdown_sequence()
+            await cycle
+            watchdog.cancel()
+            return 0
+        finally:
+            if server is not None:
+                await server.close()
+            if self.master is not None:
+                await self.master.shutdown()
+            if self.telemetry is not None:
+                self.telemetry.event("stop", cycles=self.cycles)
+                await self.telemetry.aclose()
+            for bus in self.buses.values():
+                bus.shutdown()

@@ -1,0 +1,248 @@
+"""CANopen master: boots the drives in the CiA 302 manner and configures them over SDO.
+
+Sequence (per bus, all nodes): NMT reset node → wait for every boot-up → check device type (CiA 402),
+supported modes and rated current → configure in pre-operational (heartbeat producer/consumer, PDO
+mappings and transmission types, RPDO deadline, 6007h, 605Ah, 6072h, torque command zero, mode 6060h
+confirmed on 6061h) → read the mappings back and verify → NMT start. SDO runs only here and in the
+reconfiguration worker (``Master.sdo_worker``), never in the cycle.
+
+All frames are read by one ``can.Notifier`` per bus whose callbacks run in the asyncio loop's thread
+(``loop.add_reader`` on the bus's fileno): the cycle's TPDO listener and canopen's SDO/NMT machinery.
+SDO calls block their (worker) thread while the loop delivers the responses.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import struct
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import can
+import canopen
+from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
+
+from .cia402 import (OD_ABORT_CONNECTION_OPTION, OD_MAX_TORQUE, OD_MODES_OF_OPERATION, OD_MODES_OF_OPERATION_DISPLAY,
+                     OD_MOTOR_RATED_CURRENT, OD_QUICK_STOP_OPTION, OD_SUPPORTED_DRIVE_MODES, OD_TARGET_TORQUE,
+                     OD_TORQUE_OFFSET)
+from .config import Config, JointConfig
+from .pdo import BusLayout, PdoSpec
+
+EDS_DIR = Path(__file__).resolve().parents[1] / "canopen_eds"
+DEVICE_TYPE_402 = 0x0192
+MODE_CSP, MODE_CST = 8, 10
+NMT_START, NMT_STOP, NMT_PRE_OP, NMT_RESET_NODE, NMT_RESET_COMM = 0x01, 0x02, 0x80, 0x81, 0x82
+
+
+class DriveError(RuntimeError):
+    """A drive that does not answer or behave as configured; the message names bus, node and object."""
+
+
+@dataclass
+class NodeInfo:
+    node_id: int
+    joint: JointConfig
+    bus: str
+    booted_at: float | None = None
+    device_type: int | None = None
+    vendor_id: int | None = None
+    product_code: int | None = None
+
+
+@dataclass
+class BusRuntime:
+    name: str
+    bus: can.BusABC
+    network: canopen.Network
+    layout: BusLayout
+    nodes: dict[int, NodeInfo] = field(default_factory=dict)
+    notifier: can.Notifier | None = None
+
+
+def _u(fmt: str, value: int) -> bytes:
+    return struct.pack("<" + fmt, value)
+
+
+class Master:
+    """Boots and configures the drives of every bus; owns the canopen networks and the SDO worker thread."""
+
+    def __init__(self, cfg: Config, buses: dict[str, can.BusABC], layouts: dict[str, BusLayout],
+                 loop: asyncio.AbstractEventLoop, listeners: dict[str, list[can.Listener]],
+                 log: Callable[[str], None] = print) -> None:
+        self.cfg = cfg
+        self.loop = loop
+        self.log = log
+        self.sdo_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dragd-sdo")
+        self.runtimes: dict[str, BusRuntime] = {}
+        for name, bus in buses.items():
+            net = canopen.Network(bus)
+            rt = BusRuntime(name, bus, net, layouts[name])
+            for j in cfg.joints:
+                if j.bus == name:
+                    rt.nodes[j.node_id] = NodeInfo(j.node_id, j, name)
+                    node = canopen.RemoteNode(j.node_id, str(EDS_DIR / "joint_drive.eds"))
+                    node.sdo.RESPONSE_TIMEOUT = cfg.master.sdo_timeout_s
+                    node.sdo.MAX_RETRIES = 2
+                    net.add_node(node)
+                    net.subscribe(0x700 + j.node_id, self._heartbeat_cb(rt, j.node_id))
+            rt.notifier = can.Notifier(bus, [*net.listeners, *listeners.get(name, [])], timeout=0.5, loop=loop)
+            net.notifier = rt.notifier
+            self.runtimes[name] = rt
+
+    # ------------------------------------------------------------------------------------------ NMT
+
+    def _heartbeat_cb(self, rt: BusRuntime, node_id: int) -> Callable[[int, bytearray, float], None]:
+        def cb(can_id: int, data: bytearray, timestamp: float) -> None:
+            if len(data) >= 1 and data[0] == 0x00:
+                rt.nodes[node_id].booted_at = time.monotonic()
+
+        return cb
+
+    def nmt(self, command: int, node_id: int = 0, bus: str | None = None) -> None:
+        """Send an NMT command (node 0 = all nodes) on one bus or all."""
+        for rt in self.runtimes.values():
+            if bus is None or rt.name == bus:
+                rt.bus.send(can.Message(arbitration_id=0x000, data=bytes([command, node_id]), is_extended_id=False))
+
+    async def boot(self) -> None:
+        """Reset, check, configure and start every drive; raise DriveError naming what failed."""
+        for rt in self.runtimes.values():
+            for info in rt.nodes.values():
+                info.booted_at = None
+        t0 = time.monotonic()
+        self.nmt(NMT_RESET_NODE)
+        deadline = t0 + self.cfg.master.boot_timeout_s
+        while time.monotonic() < deadline:
+            if all(i.booted_at is not None for rt in self.runtimes.values() for i in rt.nodes.values()):
+                break
+            await asyncio.sleep(0.01)
+        missing = [f"node {i.node_id} on bus '{rt.name}'" for rt in self.runtimes.values() for i in rt.nodes.values()
+                   if i.booted_at is None]
+        if missing:
+            raise DriveError(f"no boot-up from {', '.join(missing)} within {self.cfg.master.boot_timeout_s:.1f} s "
+                             "after NMT reset node (check wiring, node ids, bitrate, power)")
+        self.log(f"all {sum(len(rt.nodes) for rt in self.runtimes.values())} drives booted in "
+                 f"{(time.monotonic() - t0) * 1e3:.0f} ms")
+        for rt in self.runtimes.values():
+            for node_id in rt.nodes:
+                await self.run_sdo(self.configure_node, rt, node_id)
+        self.nmt(NMT_START)
+
+    async def run_sdo(self, fn: Callable[..., object], *args: object) -> object:
+        """Run a blocking SDO sequence on the worker thread (never on the loop or in the cycle)."""
+        return await self.loop.run_in_executor(self.sdo_worker, fn, *args)
+
+    # ------------------------------------------------------------------------------------------ SDO
+
+    def _sdo(self, rt: BusRuntime, node_id: int, index: int, sub: int, data: bytes | None = None) -> bytes:
+        node = rt.network[node_id]
+        what = f"bus '{rt.name}' node {node_id}: {'write' if data is not None else 'read'} {index:04X}h sub {sub}"
+        try:
+            if data is None:
+                return node.sdo.upload(index, sub)
+            node.sdo.download(index, sub, data)
+            return data
+        except SdoAbortedError as exc:
+            raise DriveError(f"{what}: SDO abort 0x{exc.code:08X} ({exc})") from None
+        except SdoCommunicationError as exc:
+            raise DriveError(f"{what}: no SDO response ({exc})") from None
+
+    def read_u(self, rt: BusRuntime, node_id: int, index: int, sub: int = 0) -> int:
+        raw = self._sdo(rt, node_id, index, sub)
+        return int.from_bytes(raw, "little", signed=False)
+
+    def write(self, rt: BusRuntime, node_id: int, index: int, sub: int, fmt: str, value: int) -> None:
+        self._sdo(rt, node_id, index, sub, _u(fmt, value))
+
+    def configure_node(self, rt: BusRuntime, node_id: int) -> None:
+        """Check identity, write the configuration, read it back (worker thread; node in pre-operational)."""
+        info = rt.nodes[node_id]
+        j = info.joint
+        where = f"bus '{rt.name}' node {node_id} ({j.name})"
+        info.device_type = self.read_u(rt, node_id, 0x1000)
+        if info.device_type & 0xFFFF != DEVICE_TYPE_402:
+            raise DriveError(f"{where}: device type 1000h = 0x{info.device_type:08X}, expected a CiA 402 drive (0x....0192)")
+        info.vendor_id = self.read_u(rt, node_id, 0x1018, 1)
+        info.product_code = self.read_u(rt, node_id, 0x1018, 2)
+        modes = self.read_u(rt, node_id, OD_SUPPORTED_DRIVE_MODES)
+        for mode, name in ((MODE_CST, "CST (10)"), (MODE_CSP, "CSP (8)")):
+            if not modes & (1 << (mode - 1)):
+                raise DriveError(f"{where}: 6502h supported modes 0x{modes:08X} lack {name}")
+        rated_mA = self.read_u(rt, node_id, OD_MOTOR_RATED_CURRENT)
+        want_mA = round(j.rated_current_A * 1000)
+        if abs(rated_mA - want_mA) > 1:
+            raise DriveError(f"{where}: 6075h rated current is {rated_mA} mA, the configuration says "
+                             f"rated_current_A = {j.rated_current_A} ({want_mA} mA)")
+        safety, master = self.cfg.safety, self.cfg.master
+        self.write(rt, node_id, 0x1017, 0, "H", master.drive_heartbeat_ms)
+        self.write(rt, node_id, 0x1016, 1, "I", (master.node_id << 16) | master.heartbeat_consumer_ms)
+        # PDOs: disable all, then write each of the layout's
+        for base in (0x1400, 0x1800):
+            for k in range(4):
+                cob = self.read_u(rt, node_id, base + k, 1)
+                self.write(rt, node_id, base + k, 1, "I", cob | 0x8000_0000)
+        for pdo in rt.layout.pdos[node_id]:
+            self._write_pdo(rt, node_id, pdo)
+        self.write(rt, node_id, OD_ABORT_CONNECTION_OPTION, 0, "h", safety.abort_connection_option)
+        self.write(rt, node_id, OD_QUICK_STOP_OPTION, 0, "h", safety.quick_stop_option)
+        max_permille = min(0xFFFF, int(1000 * j.current_limit_A / j.rated_current_A + 0.5))
+        self.write(rt, node_id, OD_MAX_TORQUE, 0, "H", max_permille)
+        self.write(rt, node_id, OD_TARGET_TORQUE, 0, "h", 0)
+        self.write(rt, node_id, OD_TORQUE_OFFSET, 0, "h", 0)
+        self.set_mode(rt, node_id, MODE_CST)
+        for pdo in rt.layout.pdos[node_id]:
+            self._verify_pdo(rt, node_id, pdo)
+
+    def set_mode(self, rt: BusRuntime, node_id: int, mode: int, timeout_s: float = 0.5) -> None:
+        """Write 6060h and wait until 6061h confirms it."""
+        self.write(rt, node_id, OD_MODES_OF_OPERATION, 0, "b", mode)
+        deadline = time.monotonic() + timeout_s
+        while True:
+            shown = int.from_bytes(self._sdo(rt, node_id, OD_MODES_OF_OPERATION_DISPLAY, 0), "little", signed=True)
+            if shown == mode:
+                return
+            if time.monotonic() > deadline:
+                raise DriveError(f"bus '{rt.name}' node {node_id}: 6061h shows mode {shown} {timeout_s:.1f} s after "
+                                 f"6060h = {mode}")
+            time.sleep(0.005)
+
+    def _write_pdo(self, rt: BusRuntime, node_id: int, pdo: PdoSpec) -> None:
+        comm, mapping = pdo.comm_index, pdo.map_index
+        self.write(rt, node_id, comm, 1, "I", pdo.cob_id | 0x8000_0000)
+        self.write(rt, node_id, comm, 2, "B", pdo.transmission_type)
+        if pdo.direction == "tpdo":
+            self.write(rt, node_id, comm, 3, "H", pdo.inhibit_100us)
+            self.write(rt, node_id, comm, 5, "H", pdo.event_timer_ms)
+        else:  # RPDO deadline monitoring on the cyclic command (CiA 301 event timer of an RPDO)
+            timeout = self.cfg.safety.rpdo_timeout_ms if pdo.transmission_type <= 240 else 0
+            self.write(rt, node_id, comm, 5, "H", timeout)
+        self.write(rt, node_id, mapping, 0, "B", 0)
+        for i, e in enumerate(pdo.entries, start=1):
+            self.write(rt, node_id, mapping, i, "I", e.word)
+        self.write(rt, node_id, mapping, 0, "B", len(pdo.entries))
+        self.write(rt, node_id, comm, 1, "I", pdo.cob_id)
+
+    def _verify_pdo(self, rt: BusRuntime, node_id: int, pdo: PdoSpec) -> None:
+        where = f"bus '{rt.name}' node {node_id}: {pdo.direction.upper()}{pdo.number}"
+        cob = self.read_u(rt, node_id, pdo.comm_index, 1)
+        if cob != pdo.cob_id:
+            raise DriveError(f"{where}: COB-ID read back 0x{cob:08X}, wrote 0x{pdo.cob_id:03X}")
+        ttype = self.read_u(rt, node_id, pdo.comm_index, 2)
+        if ttype != pdo.transmission_type:
+            raise DriveError(f"{where}: transmission type read back {ttype}, wrote {pdo.transmission_type}")
+        count = self.read_u(rt, node_id, pdo.map_index, 0)
+        words = [self.read_u(rt, node_id, pdo.map_index, i) for i in range(1, count + 1)]
+        want = [e.word for e in pdo.entries]
+        if words != want:
+            raise DriveError(f"{where}: mapping read back {[hex(w) for w in words]}, wrote {[hex(w) for w in want]}")
+
+    async def shutdown(self) -> None:
+        """NMT pre-operational (PDOs and their watchdogs stop), stop the notifiers and the worker."""
+        self.nmt(NMT_PRE_OP)
+        for rt in self.runtimes.values():
+            if rt.notifier is not None:
+                rt.notifier.stop(timeout=0.5)
+        self.sdo_worker.shutdown(wait=False, cancel_futures=True)

@@ -1,0 +1,157 @@
+"""Running the simulated robot and the daemon as separate processes (demo, benchmarks, integration tests).
+
+dragd never imports ``sim``: the simulator is started as ``python -m sim run`` and driven through its
+control socket.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from .control import ControlClient, DaemonUnavailable
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+class ProcessError(RuntimeError):
+    """A child process that failed to start or answer; the message carries its output's tail."""
+
+
+def multicast_group(tag: str) -> str:
+    """A private udp_multicast group 239.74.X.Y derived from ``tag`` and the pid (no cross-talk between runs)."""
+    h = hashlib.sha256(f"{tag}:{os.getpid()}:{time.monotonic_ns()}".encode()).digest()
+    return f"239.74.{h[0]}.{1 + h[1] % 254}"
+
+
+class Child:
+    """A child process whose stdout/stderr go to a log file; ``tail()`` for error messages."""
+
+    def __init__(self, name: str, argv: list[str], workdir: Path, env: dict[str, str] | None = None) -> None:
+        self.name = name
+        self.argv = argv
+        self.log_path = workdir / f"{name}.log"
+        self._log = self.log_path.open("wb")
+        self.proc = subprocess.Popen(argv, stdout=self._log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                     env={**os.environ, **(env or {})}, cwd=str(REPO))
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def tail(self, lines: int = 25) -> str:
+        try:
+            text = self.log_path.read_text(errors="replace").splitlines()
+        except OSError:
+            return ""
+        return "\n".join(text[-lines:])
+
+    def terminate(self, timeout_s: float = 10.0, sig: int = signal.SIGTERM) -> int:
+        """Send ``sig`` and wait; SIGKILL after ``timeout_s``. Returns the exit status."""
+        if self.alive():
+            self.proc.send_signal(sig)
+            try:
+                self.proc.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(5)
+        self._log.close()
+        return int(self.proc.returncode)
+
+    def output(self) -> str:
+        return self.log_path.read_text(errors="replace") if self.log_path.exists() else ""
+
+
+def wait_until(cond: Callable[[], bool], timeout_s: float, what: str, child: Child | None = None,
+               interval_s: float = 0.05) -> None:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if child is not None and not child.alive():
+            raise ProcessError(f"{child.name} exited ({child.proc.returncode}) while waiting for {what}:\n{child.tail()}")
+        try:
+            if cond():
+                return
+        except DaemonUnavailable:
+            pass
+        time.sleep(interval_s)
+    tail = f":\n{child.tail()}" if child is not None else ""
+    raise ProcessError(f"timed out after {timeout_s:.0f} s waiting for {what}{tail}")
+
+
+class Rig:
+    """The simulated robot and (optionally) the daemon, each its own process, on a private multicast group."""
+
+    def __init__(self, tag: str = "rig", workdir: Path | None = None, config: Path | None = None,
+                 sim_config: Path | None = None, telemetry: Path | None = None, group: str | None = None,
+                 sim_args: list[str] | None = None, daemon_args: list[str] | None = None,
+                 env: dict[str, str] | None = None) -> None:
+        self.workdir = Path(workdir or tempfile.mkdtemp(prefix=f"dragd-{tag}-"))
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        self.group = group or multicast_group(tag)
+        self.bus = f"udp_multicast:{self.group}"
+        self.config = config
+        self.sim_config = sim_config
+        self.telemetry = telemetry
+        self.sim_socket = str(self.workdir / "sim.sock")
+        self.socket = str(self.workdir / "dragd.sock")
+        self.sim_args = sim_args or []
+        self.daemon_args = daemon_args or []
+        self.env = env
+        self.sim: Child | None = None
+        self.daemon: Child | None = None
+
+    # processes
+    def start_sim(self, timeout_s: float = 30.0) -> None:
+        argv = [sys.executable, "-m", "sim", "run", "--bus", self.bus, "--control", self.sim_socket, *self.sim_args]
+        if self.sim_config is not None:
+            argv += ["--config", str(self.sim_config)]
+        self.sim = Child("sim", argv, self.workdir, self.env)
+        wait_until(lambda: "q_rad" in self.sim_call("state"), timeout_s, "the simulator's control socket", self.sim)
+
+    def start_daemon(self, timeout_s: float = 30.0) -> None:
+        argv = [sys.executable, "-m", "dragd", "run", "--bus", self.bus, "--socket", self.socket, *self.daemon_args]
+        if self.config is not None:
+            argv += ["--config", str(self.config)]
+        if self.telemetry is not None:
+            argv += ["--telemetry", str(self.telemetry)]
+        self.daemon = Child("dragd", argv, self.workdir, self.env)
+        wait_until(lambda: self.call("status").get("cycles", 0) > 10, timeout_s, "the daemon's first cycles", self.daemon)
+
+    def __enter__(self) -> Rig:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> dict[str, int]:
+        codes = {}
+        if self.daemon is not None:
+            codes["dragd"] = self.daemon.terminate()
+        if self.sim is not None:
+            codes["sim"] = self.sim.terminate()
+        return codes
+
+    # control sockets
+    def call(self, cmd: str, timeout_s: float = 10.0, **args: Any) -> dict[str, Any]:
+        return ControlClient(self.socket, timeout_s).call(cmd, **args)
+
+    def sim_call(self, cmd: str, timeout_s: float = 5.0, **args: Any) -> dict[str, Any]:
+        return ControlClient(self.sim_socket, timeout_s).call(cmd, **args)
+
+    def cli(self, *args: str, timeout_s: float = 60.0) -> subprocess.CompletedProcess:
+        """Run ``dragd ARGS --socket <this rig's daemon>`` as a real process."""
+        return subprocess.run([sys.executable, "-m", "dragd", *args, "--socket", self.socket], capture_output=True,
+                              text=True, timeout=timeout_s, cwd=str(REPO))
+
+    def must(self, cmd: str, **args: Any) -> dict[str, Any]:
+        resp = self.call(cmd, **args)
+        if not resp.get("ok"):
+            raise ProcessError(f"daemon refused {cmd} {args}: {resp.get('error')}\n{self.daemon.tail() if self.daemon else ''}")
+        return resp

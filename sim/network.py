@@ -1,0 +1,155 @@
+"""The simulated drives' side of one CAN bus: a reader thread that dispatches frames to the drives.
+
+SYNC frames take a fast path: every drive's `on_sync` runs right away so that all synchronous TPDOs
+leave within a few hundred microseconds of the SYNC. Other frames go to the drives that consume their
+COB-ID (NMT to all; SDO requests, RPDOs — also a COB-ID shared by several drives — and consumed
+heartbeats by routing table). The routing table is rebuilt whenever a drive's COB-IDs change.
+
+The network does not own the bus: the caller opens it before and shuts it down after `stop()`.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import threading
+import time
+from dataclasses import dataclass
+
+import can
+
+from sim.drive import SimDrive
+
+log = logging.getLogger(__name__)
+
+# the reader thread must win the GIL quickly from the physics thread when a SYNC arrives
+SWITCH_INTERVAL_S = 0.0005
+
+
+@dataclass
+class NetworkCounters:
+    """What the reader thread handled."""
+
+    frames: int = 0
+    syncs: int = 0
+    unrouted: int = 0
+    late_responses: int = 0  # SYNCs whose TPDOs all left later than late_threshold_s after reception
+    max_sync_latency_s: float = 0.0
+    handler_errors: int = 0
+
+
+class SimNetwork:
+    """Reader thread for a set of drives sharing one bus."""
+
+    def __init__(self, bus: can.BusABC, drives: list[SimDrive], *, late_threshold_s: float = 0.0005,
+                 recv_timeout_s: float = 0.05) -> None:
+        ids = [d.node_id for d in drives]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"SimNetwork: node ids must be unique on one bus, got {ids}")
+        self.bus = bus
+        self.drives = list(drives)
+        self.late_threshold_s = late_threshold_s
+        self.recv_timeout_s = recv_timeout_s
+        self.counters = NetworkCounters()
+        self._routes: dict[int, tuple[SimDrive, ...]] = {}
+        self._sync_routes: dict[int, tuple[SimDrive, ...]] = {}
+        self._epoch = -1
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self, boot: bool = True) -> None:
+        """Start the reader thread, then (by default) boot every drive (boot-up frames)."""
+        if self._thread is not None:
+            raise RuntimeError("SimNetwork.start(): already running")
+        if sys.getswitchinterval() > SWITCH_INTERVAL_S:
+            sys.setswitchinterval(SWITCH_INTERVAL_S)
+        self._stop.clear()
+        self._rebuild_routes()
+        self._thread = threading.Thread(target=self._run, name="sim-can-reader", daemon=True)
+        self._thread.start()
+        if boot:
+            for drive in self.drives:
+                drive.boot()
+
+    def stop(self, timeout_s: float = 2.0) -> None:
+        """Stop the reader thread (the bus stays open)."""
+        thread, self._thread = self._thread, None
+        if thread is None:
+            return
+        self._stop.set()
+        thread.join(timeout_s)
+        if thread.is_alive():
+            raise RuntimeError(f"SimNetwork.stop(): reader thread still running after {timeout_s} s")
+
+    def __enter__(self) -> SimNetwork:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def _run(self) -> None:
+        recv, timeout = self.bus.recv, self.recv_timeout_s
+        while not self._stop.is_set():
+            try:
+                msg = recv(timeout)
+            except can.CanError as exc:
+                log.error("sim bus receive failed: %s", exc)
+                self.counters.handler_errors += 1
+                time.sleep(timeout)
+                continue
+            if msg is not None:
+                self.dispatch(msg)
+
+    def dispatch(self, msg: can.Message) -> None:
+        """Hand one frame to the drives that consume it (also usable without the thread)."""
+        counters = self.counters
+        counters.frames += 1
+        epoch = sum(d.route_epoch for d in self.drives)
+        if epoch != self._epoch:
+            self._rebuild_routes()
+        cob = msg.arbitration_id
+        try:
+            sync_drives = self._sync_routes.get(cob)
+            if sync_drives is not None and not msg.is_extended_id:
+                self._on_sync(msg, sync_drives)
+                others = self._routes.get(cob)
+                if others is None:
+                    return
+            else:
+                others = self._routes.get(cob)
+                if others is None:
+                    counters.unrouted += 1
+                    return
+            for drive in others:
+                drive.on_message(msg)
+        except Exception:
+            counters.handler_errors += 1
+            log.exception("sim drive failed on frame 0x%03X %s", cob, bytes(msg.data).hex())
+
+    def _on_sync(self, msg: can.Message, drives: tuple[SimDrive, ...]) -> None:
+        now = time.monotonic()
+        for drive in drives:
+            drive.on_sync(now)
+        counters = self.counters
+        counters.syncs += 1
+        if msg.timestamp:
+            latency = time.time() - msg.timestamp
+            if latency > counters.max_sync_latency_s:
+                counters.max_sync_latency_s = latency
+            if latency > self.late_threshold_s:
+                counters.late_responses += 1
+
+    def _rebuild_routes(self) -> None:
+        epoch = sum(d.route_epoch for d in self.drives)
+        routes: dict[int, list[SimDrive]] = {}
+        syncs: dict[int, list[SimDrive]] = {}
+        for drive in self.drives:
+            sync_cob = drive.sync_cob_id()
+            syncs.setdefault(sync_cob, []).append(drive)
+            for cob in drive.rx_cob_ids():
+                if cob != sync_cob:
+                    routes.setdefault(cob, []).append(drive)
+        self._routes = {cob: tuple(ds) for cob, ds in routes.items()}
+        self._sync_routes = {cob: tuple(ds) for cob, ds in syncs.items()}
+        self._epoch = epoch

@@ -1,0 +1,412 @@
+"""A scripted virtual operator: external joint torques or a flange wrench on the simulated arm, over time.
+
+A scenario is a list of segments run one after the other (sim time):
+
+* ``push``: a constant load (one joint's torque, a torque vector and/or a flange force/moment) for ``duration_s``;
+* ``ramp``: a joint torque (N·m/s) or a flange force along a direction (N/s) rising from ``start`` until the arm
+  moves beyond ``threshold_rad`` from where the ramp began (the weight-and-pulley start-up test), then ``hold``
+  the load or ``release`` it; records a ``breakaway`` event with the load and time (or ``ramp_limit`` /
+  ``ramp_timeout``);
+* ``hold``: keep the present load for ``duration_s``;
+* ``release``: take the load away (optionally over ``ramp_down_s``), then no load for ``duration_s``;
+* ``hand``: a spring–damper "hand" pulling the joints (``q_rad``) or the flange (``position_m``, optional
+  ``rpy_rad``) to a target, absolute or relative to the pose at the segment's start.
+
+After the last segment the operator lets go (no load).
+Flange wrenches act at the scenario's ``frame`` (default ``tool0``, else the last joint) with world-aligned axes
+and become joint torques through the frame Jacobian: τ = Jᵀ·[f; m].
+From YAML (``sim/scenarios/*.yaml``, schema-validated) or Python (:func:`load_scenario`, :func:`validate_scenario`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Any, Literal, Union
+
+import numpy as np
+import pinocchio as pin
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from dragd.config import ConfigError, Expect, _read_yaml, format_validation_error
+
+if TYPE_CHECKING:
+    from dragd.model import RobotModel
+
+SCENARIO_DIR = Path(__file__).resolve().parent / "scenarios"
+
+PosFloat = Annotated[float, Field(gt=0, allow_inf_nan=False), Expect("a positive number")]
+NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False), Expect("a number >= 0")]
+Finite = Annotated[float, Field(allow_inf_nan=False), Expect("a finite number")]
+Vec3 = tuple[Finite, Finite, Finite]
+
+
+class ScenarioError(ConfigError):
+    """A scenario that cannot be used; the message names file, key path and expectation."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_default=True, frozen=True)
+
+
+class Push(_Strict):
+    kind: Literal["push"]
+    joint: str | None = None  # with torque_Nm
+    torque_Nm: Finite | None = None
+    torques_Nm: list[Finite] | None = None  # one per joint
+    force_N: Vec3 | None = None  # at the flange frame, world axes
+    moment_Nm: Vec3 | None = None
+    duration_s: NonNegFloat
+
+    @model_validator(mode="after")
+    def _load(self) -> Push:
+        if (self.joint is None) != (self.torque_Nm is None):
+            raise ValueError("expected joint and torque_Nm together")
+        if self.joint is None and self.torques_Nm is None and self.force_N is None and self.moment_Nm is None:
+            raise ValueError("expected a load: joint + torque_Nm, torques_Nm, force_N and/or moment_Nm")
+        return self
+
+
+class Ramp(_Strict):
+    kind: Literal["ramp"]
+    joint: str | None = None  # a joint torque ramp [N·m] ...
+    force_direction: Vec3 | None = None  # ... or a flange force ramp along this direction [N]
+    start: Finite = 0.0  # N·m or N
+    rate_per_s: PosFloat  # N·m/s or N/s (magnitude; the sign of the load follows ``sign``)
+    sign: Literal[1, -1] = 1
+    limit: PosFloat | None = None  # stop rising at this magnitude: end (``ramp_limit``), or hold it until timeout_s
+    threshold_rad: PosFloat = 0.002  # displacement (max over the watched joints) that counts as moving
+    timeout_s: PosFloat | None = None
+    then: Literal["hold", "release"] = "release"
+
+    @model_validator(mode="after")
+    def _target(self) -> Ramp:
+        if (self.joint is None) == (self.force_direction is None):
+            raise ValueError("expected exactly one of joint (torque ramp) or force_direction (flange force ramp)")
+        if self.force_direction is not None and np.linalg.norm(self.force_direction) == 0:
+            raise ValueError("expected a non-zero force_direction")
+        return self
+
+
+class Hold(_Strict):
+    kind: Literal["hold"]
+    duration_s: NonNegFloat
+
+
+class Release(_Strict):
+    kind: Literal["release"]
+    ramp_down_s: NonNegFloat = 0.0
+    duration_s: NonNegFloat = 0.0
+
+
+class Hand(_Strict):
+    kind: Literal["hand"]
+    q_rad: list[Finite] | None = None  # joint-space target ...
+    position_m: Vec3 | None = None  # ... or flange position target (world)
+    rpy_rad: Vec3 | None = None  # optional flange orientation target (world roll-pitch-yaw)
+    relative: bool = False  # targets are offsets from the pose at the segment's start
+    stiffness: PosFloat = 300.0  # N·m/rad (joint) or N/m (flange)
+    damping: NonNegFloat = 30.0  # N·m·s/rad or N·s/m
+    rot_stiffness_Nm_per_rad: PosFloat = 10.0
+    rot_damping_Nm_s_per_rad: NonNegFloat = 0.5
+    max_load: PosFloat = 100.0  # saturation: N·m per joint, or N of flange force
+    duration_s: NonNegFloat
+
+    @model_validator(mode="after")
+    def _target(self) -> Hand:
+        if (self.q_rad is None) == (self.position_m is None):
+            raise ValueError("expected exactly one of q_rad (joint target) or position_m (flange target)")
+        if self.rpy_rad is not None and self.position_m is None:
+            raise ValueError("expected rpy_rad only with position_m")
+        return self
+
+
+Segment = Annotated[Union[Push, Ramp, Hold, Release, Hand], Field(discriminator="kind")]
+SEGMENT_KINDS: dict[str, type[_Strict]] = {"push": Push, "ramp": Ramp, "hold": Hold, "release": Release, "hand": Hand}
+
+
+class Scenario(_Strict):
+    name: str = "scenario"
+    frame: str | None = None  # flange frame for wrenches; default tool0 or the last joint
+    segments: list[Segment] = Field(min_length=1)
+    source: str = Field("<memory>", exclude=True)
+
+
+def validate_scenario(data: Any, source: str = "<memory>") -> Scenario:
+    """Validate a scenario mapping; errors name ``source``, the key path and the expectation."""
+    if isinstance(data, Scenario):
+        return data
+    if not isinstance(data, dict):
+        raise ScenarioError(f"{source}: expected a mapping with 'segments', got {type(data).__name__}")
+    if "source" in data:
+        raise ScenarioError(f"{source}: source: unknown key")
+    # segments one by one against their own kind, so errors name the segment's keys and expectations
+    errors: list[str] = []
+    segments = data.get("segments")
+    if isinstance(segments, list):
+        for i, seg in enumerate(segments):
+            where = f"segments[{i}]"
+            kind = seg.get("kind") if isinstance(seg, dict) else None
+            cls = SEGMENT_KINDS.get(kind) if isinstance(kind, str) else None
+            if not isinstance(seg, dict):
+                errors.append(f"{source}: {where}: expected a mapping with 'kind', got {seg!r}")
+            elif cls is None:
+                errors.append(f"{source}: {where}.kind: expected one of {', '.join(SEGMENT_KINDS)}, got {kind!r}")
+            else:
+                try:
+                    cls.model_validate(seg)
+                except ValidationError as exc:
+                    prefix = f"{source}: {where}.{kind}"
+                    for line in format_validation_error(prefix, cls, exc).splitlines():
+                        rest = line[len(prefix) + 2:]
+                        errors.append(f"{prefix}: {rest}" if rest.startswith("expected") else f"{prefix}.{rest}")
+    if errors:
+        raise ScenarioError("\n".join(errors))
+    try:
+        return Scenario.model_validate({**data, "source": source})
+    except ValidationError as exc:
+        raise ScenarioError(format_validation_error(source, Scenario, exc)) from None
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """Load a scenario file; a bare name is looked up in ``sim/scenarios``."""
+    p = Path(path)
+    if not p.is_file() and not p.suffix and (SCENARIO_DIR / f"{p}.yaml").is_file():
+        p = SCENARIO_DIR / f"{p}.yaml"
+    try:
+        data = _read_yaml(p)
+    except ConfigError as exc:
+        raise ScenarioError(str(exc)) from None
+    return validate_scenario(data, str(p))
+
+
+class Operator:
+    """Runs a scenario: :meth:`apply` writes the operator's joint torques for the present sim time."""
+
+    def __init__(self, scenario: Scenario | dict[str, Any] | str | Path, model: RobotModel | pin.Model,
+                 start_t_s: float | None = None) -> None:
+        if isinstance(scenario, (str, Path)):
+            scenario = load_scenario(scenario)
+        self.scenario = validate_scenario(scenario)
+        src = self.scenario.source
+        self.model: pin.Model = getattr(model, "model", model)
+        self.data = self.model.createData()
+        self.n = self.model.nv
+        names = list(self.model.names[1:])
+        self._index = {name: i for i, name in enumerate(names)}
+        if self.scenario.frame is not None:
+            if not self.model.existFrame(self.scenario.frame):
+                raise ScenarioError(f"{src}: frame: expected a frame of the robot, got {self.scenario.frame!r}")
+            self.frame_id = self.model.getFrameId(self.scenario.frame)
+        elif self.model.existFrame("tool0"):
+            self.frame_id = self.model.getFrameId("tool0")
+        else:
+            self.frame_id = self.model.getFrameId(names[-1])
+        for i, seg in enumerate(self.scenario.segments):
+            where = f"{src}: segments[{i}].{seg.kind}"
+            joint = getattr(seg, "joint", None)
+            if joint is not None and joint not in self._index:
+                raise ScenarioError(f"{where}.joint: expected one of {', '.join(names)}, got {joint!r}")
+            for key in ("torques_Nm", "q_rad"):
+                vec = getattr(seg, key, None)
+                if vec is not None and len(vec) != self.n:
+                    raise ScenarioError(f"{where}.{key}: expected {self.n} values ({', '.join(names)}), got {len(vec)}")
+
+        self.events: list[dict[str, Any]] = []
+        self.done = False
+        self._start_t = start_t_s
+        self._seg = -1
+        self._seg_t0 = 0.0
+        self._tau = np.zeros(self.n)  # constant part of the load (joint torques)
+        self._wrench = np.zeros(6)  # constant part of the load (flange force, moment)
+        self._has_wrench = False
+        # per-segment state
+        self._q0 = np.zeros(self.n)
+        self._ramp_value = 0.0
+        self._onset: tuple[float, float] | None = None
+        self._release_from: tuple[np.ndarray, np.ndarray] | None = None
+        self._target_q = np.zeros(self.n)
+        self._target_M: pin.SE3 | None = None
+        self._direction = np.zeros(3)
+        self._scratch = np.zeros(self.n)
+
+    # ------------------------------------------------------------------------------------------- API
+
+    @property
+    def segment_index(self) -> int:
+        return self._seg
+
+    def breakaways(self) -> list[dict[str, Any]]:
+        return [e for e in self.events if e["kind"] == "breakaway"]
+
+    def apply(self, t_s: float, q_rad: np.ndarray, dq_rad_s: np.ndarray, out_Nm: np.ndarray) -> None:
+        """Write the operator's joint torques at sim time ``t_s`` (arm state q, dq) into ``out_Nm``."""
+        if self._start_t is None:
+            self._start_t = t_s
+        if self._seg < 0:
+            if t_s < self._start_t:
+                out_Nm[:] = 0.0
+                return
+            self._event(t_s, "start", name=self.scenario.name)
+            self._enter(0, t_s, q_rad)
+        while not self.done and self._segment_over(t_s, q_rad, dq_rad_s):
+            self._enter(self._seg + 1, t_s, q_rad)
+        if self.done:
+            out_Nm[:] = 0.0
+            return
+        self._load(t_s, q_rad, dq_rad_s, out_Nm)
+
+    # ------------------------------------------------------------------------------------------- segments
+
+    def _event(self, t_s: float, kind: str, **info: Any) -> None:
+        self.events.append({"t": round(t_s, 6), "kind": kind, "segment": self._seg, **info})
+
+    def _enter(self, index: int, t_s: float, q: np.ndarray) -> None:
+        segs = self.scenario.segments
+        if index >= len(segs):
+            self._seg = len(segs)
+            self.done = True
+            self._event(t_s, "done")
+            return
+        self._seg, self._seg_t0 = index, t_s
+        seg = segs[index]
+        self._event(t_s, "segment", segment_kind=seg.kind)
+        np.copyto(self._q0, q)
+        if isinstance(seg, Push):
+            self._tau[:] = 0.0
+            if seg.torques_Nm is not None:
+                self._tau[:] = seg.torques_Nm
+            if seg.joint is not None:
+                self._tau[self._index[seg.joint]] += seg.torque_Nm  # type: ignore[operator]
+            self._wrench[:3] = seg.force_N if seg.force_N is not None else (0.0, 0.0, 0.0)
+            self._wrench[3:] = seg.moment_Nm if seg.moment_Nm is not None else (0.0, 0.0, 0.0)
+            self._has_wrench = seg.force_N is not None or seg.moment_Nm is not None
+        elif isinstance(seg, Ramp):
+            self._tau[:] = 0.0
+            self._wrench[:] = 0.0
+            self._has_wrench = seg.force_direction is not None
+            self._ramp_value = seg.start
+            self._onset = None
+            if seg.force_direction is not None:
+                d = np.asarray(seg.force_direction, dtype=float)
+                self._direction[:] = d / np.linalg.norm(d)
+        elif isinstance(seg, Release):
+            self._release_from = (self._tau.copy(), self._wrench.copy())
+        elif isinstance(seg, Hand):
+            self._tau[:] = 0.0
+            self._wrench[:] = 0.0
+            self._has_wrench = False
+            if seg.q_rad is not None:
+                self._target_q[:] = np.asarray(seg.q_rad) + (q if seg.relative else 0.0)
+            else:
+                pin.framesForwardKinematics(self.model, self.data, q)
+                now = self.data.oMf[self.frame_id]
+                pos = np.asarray(seg.position_m, dtype=float)
+                if seg.rpy_rad is None:
+                    rot = now.rotation.copy()
+                else:
+                    rot = pin.rpy.rpyToMatrix(*seg.rpy_rad)
+                    if seg.relative:
+                        rot = rot @ now.rotation
+                self._target_M = pin.SE3(rot, pos + (now.translation if seg.relative else 0.0))
+
+    def _segment_over(self, t_s: float, q: np.ndarray, dq: np.ndarray) -> bool:
+        seg = self.scenario.segments[self._seg]
+        elapsed = t_s - self._seg_t0
+        if isinstance(seg, Ramp):
+            return self._ramp_over(seg, t_s, elapsed, q, dq)
+        if isinstance(seg, Release):
+            if elapsed >= seg.ramp_down_s + seg.duration_s:
+                self._tau[:] = 0.0
+                self._wrench[:] = 0.0
+                self._has_wrench = False
+                return True
+            return False
+        return elapsed >= seg.duration_s
+
+    def _ramp_over(self, seg: Ramp, t_s: float, elapsed: float, q: np.ndarray, dq: np.ndarray) -> bool:
+        watch = [self._index[seg.joint]] if seg.joint is not None else slice(None)
+        value = seg.start + seg.rate_per_s * elapsed
+        capped = seg.limit is not None and value >= seg.limit
+        if capped:
+            value = seg.limit  # type: ignore[assignment]
+        if self._onset is None and np.any(dq[watch] != 0.0):
+            self._onset = (t_s, seg.sign * self._ramp_value)
+        moved = float(np.max(np.abs(q[watch] - self._q0[watch])))
+        end = None
+        if moved > seg.threshold_rad:
+            end = "breakaway"
+        elif seg.timeout_s is not None and elapsed >= seg.timeout_s:
+            end = "ramp_timeout"
+        elif capped and seg.timeout_s is None:
+            end = "ramp_limit"
+        if end is None:
+            self._ramp_value = value
+            return False
+        load = seg.sign * self._ramp_value  # the load applied up to now (this step's rise not yet applied)
+        info: dict[str, Any] = {"displacement_rad": moved, "elapsed_s": round(elapsed, 6)}
+        if seg.joint is not None:
+            info.update(joint=seg.joint, torque_Nm=load)
+        else:
+            info.update(force_N=load, direction=self._direction.tolist())
+        if self._onset is not None:
+            info.update(onset_t=round(self._onset[0], 6), onset_load=self._onset[1])
+        self._event(t_s, end, **info)
+        if seg.then == "hold":
+            self._set_ramp_load(seg, load)
+        else:
+            self._tau[:] = 0.0
+            self._wrench[:] = 0.0
+            self._has_wrench = False
+        return True
+
+    def _set_ramp_load(self, seg: Ramp, load: float) -> None:
+        self._tau[:] = 0.0
+        self._wrench[:] = 0.0
+        if seg.joint is not None:
+            self._tau[self._index[seg.joint]] = load
+            self._has_wrench = False
+        else:
+            self._wrench[:3] = load * self._direction
+            self._has_wrench = True
+
+    def _load(self, t_s: float, q: np.ndarray, dq: np.ndarray, out: np.ndarray) -> None:
+        seg = self.scenario.segments[self._seg]
+        if isinstance(seg, Ramp):
+            self._set_ramp_load(seg, seg.sign * self._ramp_value)
+        elif isinstance(seg, Release) and self._release_from is not None:
+            frac = 0.0 if seg.ramp_down_s == 0 else max(0.0, 1.0 - (t_s - self._seg_t0) / seg.ramp_down_s)
+            self._tau[:] = self._release_from[0] * frac
+            self._wrench[:] = self._release_from[1] * frac
+            self._has_wrench = frac > 0 and bool(self._wrench.any())
+        elif isinstance(seg, Hand):
+            self._hand(seg, q, dq, out)
+            return
+        out[:] = self._tau
+        if self._has_wrench:
+            out += self._wrench_torque(q, self._wrench)
+
+    def _wrench_torque(self, q: np.ndarray, wrench: np.ndarray) -> np.ndarray:
+        J = pin.computeFrameJacobian(self.model, self.data, q, self.frame_id, pin.LOCAL_WORLD_ALIGNED)
+        return J.T @ wrench
+
+    def _hand(self, seg: Hand, q: np.ndarray, dq: np.ndarray, out: np.ndarray) -> None:
+        if seg.q_rad is not None:
+            np.subtract(self._target_q, q, out=out)
+            out *= seg.stiffness
+            out -= seg.damping * dq
+            np.clip(out, -seg.max_load, seg.max_load, out=out)
+            return
+        J = pin.computeFrameJacobian(self.model, self.data, q, self.frame_id, pin.LOCAL_WORLD_ALIGNED)
+        now = self.data.oMf[self.frame_id]
+        twist = J @ dq
+        wrench = np.zeros(6)
+        assert self._target_M is not None
+        f = seg.stiffness * (self._target_M.translation - now.translation) - seg.damping * twist[:3]
+        norm = float(np.linalg.norm(f))
+        if norm > seg.max_load:
+            f *= seg.max_load / norm
+        wrench[:3] = f
+        if seg.rpy_rad is not None:
+            err = pin.log3(self._target_M.rotation @ now.rotation.T)  # world-frame rotation error
+            wrench[3:] = seg.rot_stiffness_Nm_per_rad * err - seg.rot_damping_Nm_s_per_rad * twist[3:]
+        out[:] = J.T @ wrench

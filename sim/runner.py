@@ -1,0 +1,405 @@
+"""The simulated robot's process: drives on a CAN bus plus arm physics in real time, a control socket, a report.
+
+Threads: the main thread runs the physics on an absolute-deadline 1 ms timerfd grid and executes
+``physics_rate_Hz / 1000`` steps per tick (each step: every drive's ``update``, then ``ArmPhysics.step``);
+a tick that wakes late catches up (``late_steps``), one that is hopelessly late drops steps (``dropped_steps``,
+the sim then runs behind real time: rtf < 1). The SimNetwork reader thread answers the bus; the control socket
+(JSON lines, dragd's protocol) runs in its own asyncio thread. The physics lock is held for one tick's batch.
+
+Control commands: ``state``, ``operator`` (scenario dict or file, starting now), ``operator_events``,
+``set_q`` (teleport, only while every drive's power stage is off), ``drives``, ``stop``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import ctypes
+import ctypes.util
+import gc
+import math
+import os
+import signal
+import struct
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dragd.bus import BusSpec, UdpMulticastCanBus, open_bus, parse_bus
+from dragd.control import CommandTable, ControlError, ControlServer
+from dragd.ticker import demote_current_thread, set_realtime
+from sim.axis import AxisIO
+from sim.drive import SimDrive
+from sim.network import SimNetwork
+from sim.operator import Operator, ScenarioError, load_scenario, validate_scenario
+from sim.physics import ArmPhysics
+from sim.truth import Truth, drive_params
+
+TICK_NS = 1_000_000
+MAX_CATCHUP_TICKS = 100  # a wake-up later than this (100 ms) drops the excess steps instead of catching up
+LATENCY_RING = 1 << 16
+
+_CLOCK_MONOTONIC = 1
+_TFD_CLOEXEC = os.O_CLOEXEC
+_TFD_TIMER_ABSTIME = 1
+_U64 = struct.Struct("=Q")
+
+
+class _Timespec(ctypes.Structure):
+    _fields_ = [("tv_sec", ctypes.c_long), ("tv_nsec", ctypes.c_long)]
+
+
+class _Itimerspec(ctypes.Structure):
+    _fields_ = [("it_interval", _Timespec), ("it_value", _Timespec)]
+
+
+class TimerFd:
+    """Blocking periodic CLOCK_MONOTONIC timerfd with absolute deadlines (no drift, counts missed ticks)."""
+
+    def __init__(self, period_ns: int) -> None:
+        if not sys.platform.startswith("linux"):
+            raise OSError(f"TimerFd needs Linux timerfd; this platform is {sys.platform!r}")
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        libc.timerfd_create.argtypes = [ctypes.c_int, ctypes.c_int]
+        libc.timerfd_settime.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.POINTER(_Itimerspec),
+                                         ctypes.POINTER(_Itimerspec)]
+        self._libc = libc
+        self.period_ns = period_ns
+        self.fd = libc.timerfd_create(_CLOCK_MONOTONIC, _TFD_CLOEXEC)
+        if self.fd < 0:
+            err = ctypes.get_errno()
+            raise OSError(err, f"timerfd_create failed: {os.strerror(err)}")
+        self.deadline_ns = 0  # deadline of the last expiration returned by wait()
+
+    def start(self, first_deadline_ns: int | None = None) -> None:
+        first = time.monotonic_ns() + self.period_ns if first_deadline_ns is None else first_deadline_ns
+        spec = _Itimerspec(_Timespec(0, self.period_ns), _Timespec(first // 1_000_000_000, first % 1_000_000_000))
+        if self._libc.timerfd_settime(self.fd, _TFD_TIMER_ABSTIME, ctypes.byref(spec), None) != 0:
+            err = ctypes.get_errno()
+            raise OSError(err, f"timerfd_settime failed: {os.strerror(err)}")
+        self.deadline_ns = first - self.period_ns
+
+    def wait(self) -> int:
+        """Block until the next deadline; return the number of periods elapsed (>1: ticks were missed)."""
+        n = _U64.unpack(os.read(self.fd, 8))[0]
+        self.deadline_ns += n * self.period_ns
+        return n
+
+    def close(self) -> None:
+        if self.fd >= 0:
+            os.close(self.fd)
+            self.fd = -1
+
+
+class SimProcess:
+    """Drives + network + physics + control socket of one simulated arm on one bus."""
+
+    def __init__(self, truth: Truth, bus: str | None = None, *, scenario: str | Path | dict[str, Any] | None = None,
+                 control_path: str | Path | None = None, seconds: float | None = None,
+                 realtime_priority: int | None = None, cpus: set[int] | None = None) -> None:
+        self.truth = truth
+        self.realtime_priority = realtime_priority
+        self.cpus = cpus
+        self.realtime: dict[str, Any] | None = None
+        self.robot = truth.load_model()
+        self.axes = [AxisIO() for _ in truth.joints]
+        self.physics = ArmPhysics(truth, self.robot, self.axes)
+        self.spec: BusSpec = parse_bus(bus or truth.bus.channel, fd=truth.bus.fd)
+        self.scenario = None if scenario is None else (
+            load_scenario(scenario) if isinstance(scenario, (str, Path)) else validate_scenario(scenario))
+        self.control_path = None if control_path is None else str(control_path)
+        self.seconds = seconds
+        self.operator: Operator | None = None
+        self.lock = threading.Lock()
+        self._stop = threading.Event()
+        self.bus: Any = None
+        self.drives: list[SimDrive] = []
+        self.network: SimNetwork | None = None
+        # run statistics
+        self.substeps = truth.physics_rate_Hz // 1000
+        self.ticks = 0
+        self.late_ticks = 0
+        self.late_steps = 0
+        self.dropped_steps = 0
+        self.max_busy_ns = 0
+        self.late_tick_times: list[float] = []  # sim time of the first late ticks (diagnostics)
+        self._thread_cpu_ns = 0  # CPU time of the physics thread in the loop
+        self.busy_ns = 0
+        self._latency_us = np.zeros(LATENCY_RING, dtype=np.float32)
+        self._wall_start = 0.0
+        self._wall_end = 0.0
+        self._cpu_start = 0.0
+        self._cpu_end = 0.0
+        self._control_loop: asyncio.AbstractEventLoop | None = None
+        self._control_thread: threading.Thread | None = None
+        self._control_ready = threading.Event()
+        self._control_error: BaseException | None = None
+
+    # ------------------------------------------------------------------------------------------- lifecycle
+
+    def request_stop(self) -> None:
+        self._stop.set()
+
+    def run(self, ready: Callable[[SimProcess], None] | None = None) -> dict[str, Any]:
+        """Open the bus, boot the drives, serve control, run physics in real time until stopped; the summary.
+
+        ``ready(self)`` is called once everything is up, just before the real-time loop starts.
+        """
+        if self.realtime_priority is not None or self.cpus is not None:
+            # before any thread starts: the bus reader inherits it (it answers SYNC); the control thread demotes
+            self.realtime = set_realtime(self.realtime_priority, self.cpus)
+        self.bus = open_bus(self.spec)
+        try:
+            self.drives = [SimDrive(drive_params(j, self.spec.fd), ax, self.bus.send)
+                           for j, ax in zip(self.truth.joints, self.axes)]
+            self.network = SimNetwork(self.bus, self.drives)
+            if self.control_path is not None:
+                self._start_control()
+            if self.scenario is not None:
+                self._set_operator(self.scenario)
+            self.network.start(boot=True)
+            try:
+                gc.collect()
+                gc.freeze()  # long-lived objects out of the collector's way: no multi-ms full collections
+                if ready is not None:
+                    ready(self)
+                self._loop()
+            finally:
+                self.network.stop()
+        finally:
+            self._stop_control()
+            self.bus.shutdown()
+        return self.summary()
+
+    def _loop(self) -> None:
+        physics, drives, substeps = self.physics, self.drives, self.substeps
+        dt = physics.dt_s
+        timer = TimerFd(TICK_NS)
+        lat, ring = self._latency_us, LATENCY_RING
+        stop = self._stop
+        limit_steps = None if self.seconds is None else int(round(self.seconds / dt))
+        self._wall_start = time.monotonic()
+        self._cpu_start = time.process_time()
+        thread_cpu0 = time.thread_time_ns()
+        timer.start()
+        try:
+            while not stop.is_set():
+                n = timer.wait()
+                wake = time.monotonic_ns()
+                lat[self.ticks % ring] = (wake - timer.deadline_ns) * 1e-3
+                self.ticks += 1
+                if n > 1:
+                    self.late_ticks += 1
+                    if len(self.late_tick_times) < 20:
+                        self.late_tick_times.append(round(physics.t_s, 4))
+                    if n > MAX_CATCHUP_TICKS:
+                        self.dropped_steps += (n - MAX_CATCHUP_TICKS) * substeps
+                        n = MAX_CATCHUP_TICKS
+                    self.late_steps += (n - 1) * substeps
+                steps = n * substeps
+                if limit_steps is not None:
+                    steps = min(steps, limit_steps - physics.steps)
+                with self.lock:
+                    for _ in range(steps):
+                        t = physics.t_s
+                        for d in drives:
+                            d.update(t, dt)
+                        physics.step()
+                busy = time.monotonic_ns() - wake
+                self.busy_ns += busy
+                if busy > self.max_busy_ns:
+                    self.max_busy_ns = busy
+                if limit_steps is not None and physics.steps >= limit_steps:
+                    break
+        finally:
+            self._wall_end = time.monotonic()
+            self._cpu_end = time.process_time()
+            self._thread_cpu_ns = time.thread_time_ns() - thread_cpu0
+            timer.close()
+
+    # ------------------------------------------------------------------------------------------- reports
+
+    def rtf(self) -> float:
+        wall = (self._wall_end or time.monotonic()) - self._wall_start if self._wall_start else 0.0
+        return self.physics.t_s / wall if wall > 0 else 0.0
+
+    def state(self) -> dict[str, Any]:
+        with self.lock:
+            snap = self.physics.snapshot()
+            op = self.operator
+            op_info = None if op is None else {"name": op.scenario.name, "segment": op.segment_index, "done": op.done}
+        return {
+            "t": snap["t"], "q_rad": snap["q_rad"], "dq_rad_s": snap["dq_rad_s"], "current_A": snap["current_A"],
+            "tau_ext_Nm": snap["tau_ext_Nm"], "brakes": snap["brakes"], "rtf": self.rtf(),
+            "late_steps": self.late_steps, "steps": snap["steps"],
+            "current_measured_A": snap["current_measured_A"], "current_demand_A": snap["current_demand_A"],
+            "tau_motor_Nm": snap["tau_motor_Nm"], "tau_friction_Nm": snap["tau_friction_Nm"],
+            "power_on": snap["power_on"], "stuck": snap["stuck"], "temperature_C": snap["temperature_C"],
+            "dropped_steps": self.dropped_steps, "operator": op_info,
+        }
+
+    def drive_report(self) -> dict[str, Any]:
+        out = {}
+        for d in self.drives:
+            c = d.counters
+            out[str(d.node_id)] = {"state": d.state.name, "nmt": d.nmt_state.name, **vars(c)}
+        return out
+
+    def summary(self) -> dict[str, Any]:
+        wall = (self._wall_end or time.monotonic()) - self._wall_start if self._wall_start else 0.0
+        cpu = (self._cpu_end or time.process_time()) - self._cpu_start
+        n = min(self.ticks, LATENCY_RING)
+        lat = np.sort(self._latency_us[:n]) if n else np.zeros(1, dtype=np.float32)
+        report: dict[str, Any] = {
+            "ok": True,
+            "robot": self.truth.robot,
+            "bus": str(self.spec),
+            "physics_rate_Hz": self.truth.physics_rate_Hz,
+            "sim_time_s": round(self.physics.t_s, 6),
+            "wall_time_s": round(wall, 6),
+            "rtf": round(self.physics.t_s / wall, 6) if wall > 0 else 0.0,
+            "steps": self.physics.steps,
+            "ticks": self.ticks,
+            "late_ticks": self.late_ticks,
+            "late_steps": self.late_steps,
+            "dropped_steps": self.dropped_steps,
+            "wake_latency_us": {"p50": float(lat[int(0.5 * (len(lat) - 1))]), "p99": float(lat[int(0.99 * (len(lat) - 1))]),
+                                "max": float(lat[-1])},
+            "tick_busy_us": {"mean": self.busy_ns / self.ticks / 1e3 if self.ticks else 0.0, "max": self.max_busy_ns / 1e3},
+            "late_tick_times_s": list(self.late_tick_times),
+            "cpu_s": round(cpu, 3),
+            "cpu_pct": round(100.0 * cpu / wall, 1) if wall > 0 else 0.0,  # the whole process
+            "physics_cpu_pct": round(100.0 * self._thread_cpu_ns * 1e-9 / wall, 1) if wall > 0 else 0.0,
+            "physics_step_us": round(self._thread_cpu_ns * 1e-3 / self.physics.steps, 2) if self.physics.steps else 0.0,
+            "drives": self.drive_report(),
+        }
+        if self.realtime is not None:
+            report["realtime"] = self.realtime
+        if self.network is not None:
+            report["network"] = vars(self.network.counters).copy()
+        if isinstance(self.bus, UdpMulticastCanBus):
+            report["bus_counters"] = vars(self.bus.counters())
+        if self.operator is not None:
+            report["operator_events"] = list(self.operator.events)
+        report["final_state"] = {k: v for k, v in self.state().items() if k in ("t", "q_rad", "dq_rad_s", "brakes")}
+        return report
+
+    # ------------------------------------------------------------------------------------------- control
+
+    def _set_operator(self, scenario: Any) -> Operator:
+        op = Operator(scenario, self.physics.model, start_t_s=self.physics.t_s)
+        self.operator = op
+        self.physics.operator = op
+        return op
+
+    def _commands(self) -> CommandTable:
+        table = CommandTable()
+
+        @table.command("state")
+        def state() -> dict[str, Any]:
+            return self.state()
+
+        @table.command("operator")
+        def operator(scenario: Any) -> dict[str, Any]:
+            """Start a scenario now (a mapping, or a file path / bundled scenario name)."""
+            try:
+                scen = load_scenario(scenario) if isinstance(scenario, str) else validate_scenario(scenario, "<control>")
+                with self.lock:
+                    op = self._set_operator(scen)
+                    t = self.physics.t_s
+            except ScenarioError as exc:
+                raise ControlError(str(exc)) from None
+            return {"name": op.scenario.name, "segments": len(op.scenario.segments), "t": t}
+
+        @table.command("operator_events")
+        def operator_events() -> dict[str, Any]:
+            with self.lock:
+                op = self.operator
+                if op is None:
+                    return {"events": [], "done": True, "name": None}
+                return {"events": list(op.events), "done": op.done, "name": op.scenario.name}
+
+        @table.command("set_q")
+        def set_q(q_rad: list[float]) -> dict[str, Any]:
+            """Teleport the arm (zero velocity); only while every drive's power stage is off."""
+            if not isinstance(q_rad, list) or len(q_rad) != self.physics.n or \
+                    not all(isinstance(v, (int, float)) and math.isfinite(v) for v in q_rad):
+                raise ControlError(f"set_q: q_rad: expected a list of {self.physics.n} finite numbers (rad), got {q_rad!r}")
+            for i, (v, j) in enumerate(zip(q_rad, self.truth.joints)):
+                if not j.hard_stops.lower_rad <= v <= j.hard_stops.upper_rad:
+                    raise ControlError(f"set_q: q_rad[{i}]: expected within the hard stops [{j.hard_stops.lower_rad}, "
+                                       f"{j.hard_stops.upper_rad}] of {j.name}, got {v}")
+            with self.lock:
+                powered = [j.name for j, ax in zip(self.truth.joints, self.axes) if ax.power_stage_on]
+                if powered:
+                    raise ControlError(f"set_q: only while the drives are disabled; power stage on at {', '.join(powered)}")
+                self.physics.set_state(np.array(q_rad, dtype=float))
+                return {"q_rad": self.physics.q_rad.tolist(), "t": self.physics.t_s}
+
+        @table.command("drives")
+        def drives() -> dict[str, Any]:
+            return {"drives": self.drive_report()}
+
+        @table.command("stop")
+        def stop() -> dict[str, Any]:
+            # a moment later, so this answer is written before the control thread shuts down
+            asyncio.get_running_loop().call_later(0.05, self.request_stop)
+            return {"stopping": True}
+
+        return table
+
+    def _start_control(self) -> None:
+        table = self._commands()
+        path = self.control_path
+        assert path is not None
+
+        def serve() -> None:
+            if self.realtime is not None:
+                demote_current_thread()
+            loop = asyncio.new_event_loop()
+            self._control_loop = loop
+            server = ControlServer(path, table, mode=0o600)
+            try:
+                loop.run_until_complete(server.start())
+            except BaseException as exc:  # noqa: BLE001 - reported to the starting thread
+                self._control_error = exc
+                self._control_ready.set()
+                loop.close()
+                return
+            self._control_ready.set()
+            try:
+                loop.run_forever()
+            finally:
+                loop.run_until_complete(server.close())
+                loop.close()
+
+        self._control_thread = threading.Thread(target=serve, name="sim-control", daemon=True)
+        self._control_thread.start()
+        self._control_ready.wait(10.0)
+        if self._control_error is not None:
+            raise self._control_error
+
+    def _stop_control(self) -> None:
+        loop, thread = self._control_loop, self._control_thread
+        if loop is not None and thread is not None and thread.is_alive():
+            loop.call_soon_threadsafe(loop.stop)
+            thread.join(5.0)
+
+
+def run(truth: Truth, bus: str | None = None, *, scenario: str | Path | dict[str, Any] | None = None,
+        control_path: str | Path | None = None, seconds: float | None = None,
+        realtime_priority: int | None = None, cpus: set[int] | None = None,
+        ready: Callable[[SimProcess], None] | None = None) -> dict[str, Any]:
+    """Run the sim process in this (main) thread until SIGTERM/SIGINT, ``stop`` or ``seconds``; the summary."""
+    proc = SimProcess(truth, bus, scenario=scenario, control_path=control_path, seconds=seconds,
+                      realtime_priority=realtime_priority, cpus=cpus)
+    previous = {sig: signal.signal(sig, lambda *_: proc.request_stop()) for sig in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        return proc.run(ready)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)

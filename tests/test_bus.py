@@ -1,0 +1,281 @@
+"""dragd.bus: spec parsing, the host-local udp_multicast bus across processes, virtual and SocketCAN buses."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+
+import can
+import canopen
+import msgpack
+import pytest
+
+from dragd.bus import (
+    DEFAULT_UDP_PORT,
+    BusSpec,
+    UdpMulticastCanBus,
+    open_bus,
+    parse_bus,
+    socketcan_available,
+)
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def unique_group(name: str) -> str:
+    """A multicast group derived from the test name and this process id (never the default 239.74.163.x)."""
+    h = int.from_bytes(hashlib.sha256(f"{name}:{os.getpid()}".encode()).digest()[:4], "big")
+    third = (h >> 8) % 160
+    return f"239.74.{third + 1 if third == 163 else third}.{1 + h % 254}"
+
+
+def drain(bus: can.BusABC, quiet_s: float = 0.2) -> list[can.Message]:
+    out = []
+    while (msg := bus.recv(quiet_s)) is not None:
+        out.append(msg)
+    return out
+
+
+# --- parsing ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("text, interface, channel", [
+    ("socketcan:can0", "socketcan", "can0"),
+    ("socketcan:vcan0", "socketcan", "vcan0"),
+    ("udp_multicast:239.74.163.2", "udp_multicast", "239.74.163.2"),
+    ("virtual:arm", "virtual", "arm"),
+    (" virtual:my bus ", "virtual", "my bus"),
+])
+def test_parse_bus_accepts(text: str, interface: str, channel: str) -> None:
+    spec = parse_bus(text)
+    assert spec == BusSpec(interface, channel)
+    assert spec.bitrate == 1_000_000 and spec.fd is False and spec.data_bitrate is None
+    assert str(spec) == f"{interface}:{channel}"
+
+
+def test_parse_bus_keeps_timing() -> None:
+    spec = parse_bus("socketcan:can1", bitrate=500_000, fd=True, data_bitrate=5_000_000)
+    assert (spec.bitrate, spec.fd, spec.data_bitrate) == (500_000, True, 5_000_000)
+
+
+@pytest.mark.parametrize("text, words", [
+    ("can0", ["'can0'", "missing channel", "INTERFACE:CHANNEL"]),
+    ("socketcan:", ["missing channel"]),
+    ("pcan:PCAN_USBBUS1", ["unknown interface 'pcan'", "socketcan, udp_multicast, virtual"]),
+    ("socketcan:this-name-is-too-long", ["not a network interface name"]),
+    ("udp_multicast:10.0.0.1", ["'10.0.0.1' is not a usable multicast group", "IPv4 multicast"]),
+    ("udp_multicast:239.74.163", ["not a usable multicast group"]),
+    ("udp_multicast:224.0.0.5", ["not a usable multicast group", "224.0.0.0/24"]),
+    ("udp_multicast:ff15::1", ["not a usable multicast group", "IPv4"]),
+])
+def test_parse_bus_rejects_with_clear_message(text: str, words: list[str]) -> None:
+    with pytest.raises(ValueError) as info:
+        parse_bus(text)
+    message = str(info.value)
+    assert repr(text) in message or text.strip() in message
+    for word in words:
+        assert word in message
+
+
+def test_data_bitrate_needs_fd() -> None:
+    with pytest.raises(ValueError, match="only meaningful with fd=True"):
+        parse_bus("socketcan:can0", data_bitrate=2_000_000)
+
+
+# --- udp_multicast across processes ------------------------------------------------------------------------------
+_PEER = r"""
+import json, sys, can
+from dragd.bus import open_bus, parse_bus
+group, n = sys.argv[1], int(sys.argv[2])
+bus = open_bus(parse_bus("udp_multicast:" + group))
+bus.send(can.Message(arbitration_id=0x7E0, data=b"ready", is_extended_id=False))
+got = []
+while len(got) < n:
+    msg = bus.recv(5.0)
+    if msg is None:
+        break
+    if msg.arbitration_id == 0x7E1 and msg.data == b"hello":
+        bus.send(can.Message(arbitration_id=0x7E0, data=b"ready", is_extended_id=False))
+        continue
+    got.append((msg.arbitration_id, bytes(msg.data).hex()))
+for i in range(n):
+    bus.send(can.Message(arbitration_id=0x300 + i % 8, data=i.to_bytes(4, "little"), is_extended_id=False))
+while bus.recv(0.3) is not None:  # read the loopback echoes of its own frames (dropped, counted)
+    pass
+c = bus.counters()
+bus.shutdown()
+print(json.dumps({"got": got, "counters": c.__dict__}))
+"""
+
+
+def test_udp_multicast_between_processes_no_echo_no_duplicates(request: pytest.FixtureRequest) -> None:
+    group = unique_group(request.node.name)
+    n = 300
+    bus = open_bus(parse_bus(f"udp_multicast:{group}"))
+    assert isinstance(bus, UdpMulticastCanBus)
+    assert bus.rcvbuf_bytes >= 4 * 1024 * 1024, f"receive buffer only {bus.rcvbuf_bytes} B"
+    peer = subprocess.Popen([sys.executable, "-c", _PEER, group, str(n)], stdout=subprocess.PIPE, text=True)
+    try:
+        ready = None
+        deadline = time.monotonic() + 15
+        while ready is None and time.monotonic() < deadline:
+            bus.send(can.Message(arbitration_id=0x7E1, data=b"hello", is_extended_id=False))
+            ready = bus.recv(0.2)
+        assert ready is not None and ready.arbitration_id == 0x7E0, "peer process did not come up"
+        drain(bus, 0.05)  # further 'ready' answers to repeated hellos
+        sent = []
+        for i in range(n):
+            msg = can.Message(arbitration_id=0x100 + i % 16, data=i.to_bytes(4, "little"), is_extended_id=False)
+            bus.send(msg)
+            sent.append((msg.arbitration_id, bytes(msg.data).hex()))
+            if i % 50 == 49:
+                time.sleep(0.001)
+        received = [m for m in drain(bus, 1.0) if m.arbitration_id != 0x7E0]
+        out, _ = peer.communicate(timeout=15)
+    finally:
+        if peer.poll() is None:
+            peer.kill()
+    report = json.loads(out)
+    got = [tuple(x) for x in report["got"]]
+    assert got == sent, "the peer must see every frame once, in order"
+    assert [(m.arbitration_id, int.from_bytes(m.data, "little")) for m in received] == \
+        [(0x300 + i % 8, i) for i in range(n)], "own frames or duplicates leaked, or frames were lost"
+    assert all(m.is_rx and m.channel == group for m in received)
+    mine = bus.counters()
+    bus.shutdown()
+    assert mine.own_echoes_dropped == mine.frames_sent >= n
+    assert mine.duplicates_dropped == 0 and mine.gaps == 0 and mine.kernel_drops == 0
+    assert mine.frames_received >= n + 1  # the peer's frames and at least one 'ready'
+    theirs = report["counters"]
+    assert theirs["own_echoes_dropped"] == theirs["frames_sent"]
+    assert theirs["duplicates_dropped"] == 0 and theirs["gaps"] == 0 and theirs["foreign_frames"] == 0
+
+
+def _raw_datagram(arbitration_id: int, stamp: object, data: bytes = b"\x01") -> bytes:
+    return msgpack.packb({
+        "timestamp": 0.0, "arbitration_id": arbitration_id, "is_extended_id": False, "is_remote_frame": False,
+        "is_error_frame": False, "channel": stamp, "dlc": len(data), "data": data, "is_fd": False,
+        "bitrate_switch": False, "error_state_indicator": False}, use_bin_type=True)
+
+
+def test_udp_multicast_drops_duplicates_and_counts_gaps(request: pytest.FixtureRequest) -> None:
+    """Datagrams crafted in python-can's wire format, sent from a plain socket on the loopback interface."""
+    group = unique_group(request.node.name)
+    bus = open_bus(parse_bus(f"udp_multicast:{group}"))
+    raw = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    raw.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)
+    raw.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
+    token = 0x5EED0001
+    try:
+        for seq, cob in ((1, 0x101), (1, 0x101), (2, 0x102), (4, 0x104), (3, 0x103), (3, 0x103), (9, 0x109)):
+            raw.sendto(_raw_datagram(cob, token << 32 | seq), (group, DEFAULT_UDP_PORT))
+        raw.sendto(_raw_datagram(0x555, None), (group, DEFAULT_UDP_PORT))  # a plain python-can peer
+        received = [m.arbitration_id for m in drain(bus, 0.3)]
+        counters = bus.counters()
+    finally:
+        raw.close()
+        bus.shutdown()
+    assert received == [0x101, 0x102, 0x104, 0x103, 0x109, 0x555]
+    assert counters.duplicates_dropped == 2
+    assert counters.reordered == 1
+    assert counters.gaps == 4  # 5..8 never arrived; 3 arrived late and refilled its gap
+    assert counters.foreign_frames == 1
+    assert counters.frames_received == 6
+
+
+def test_udp_multicast_groups_are_isolated(request: pytest.FixtureRequest) -> None:
+    group_a = unique_group(request.node.name + "a")
+    group_b = unique_group(request.node.name + "b")
+    assert group_a != group_b
+    a1, a2 = open_bus(parse_bus(f"udp_multicast:{group_a}")), open_bus(parse_bus(f"udp_multicast:{group_a}"))
+    b1 = open_bus(parse_bus(f"udp_multicast:{group_b}"))
+    try:
+        a1.send(can.Message(arbitration_id=0x123, data=b"a", is_extended_id=False))
+        got = drain(a2, 0.2)
+        assert [m.arbitration_id for m in got] == [0x123]
+        assert drain(b1, 0.1) == [] and drain(a1, 0.05) == []
+    finally:
+        for bus in (a1, a2, b1):
+            bus.shutdown()
+
+
+def test_udp_multicast_fd_frames(request: pytest.FixtureRequest) -> None:
+    group = unique_group(request.node.name)
+    fd_tx = open_bus(parse_bus(f"udp_multicast:{group}", fd=True))
+    fd_rx = open_bus(parse_bus(f"udp_multicast:{group}", fd=True))
+    classic = open_bus(parse_bus(f"udp_multicast:{group}"))
+    try:
+        payload = bytes(range(64))
+        fd_tx.send(can.Message(arbitration_id=0x200, data=payload, is_fd=True, bitrate_switch=True,
+                               is_extended_id=False))
+        (msg,) = drain(fd_rx, 0.2)
+        assert msg.is_fd and msg.bitrate_switch and bytes(msg.data) == payload
+        assert drain(classic, 0.05) == []
+        assert classic.counters().fd_frames_dropped == 1
+        with pytest.raises(can.CanOperationError, match="CAN FD frame on a classic-CAN bus"):
+            classic.send(can.Message(arbitration_id=0x200, data=payload, is_fd=True, is_extended_id=False))
+    finally:
+        for bus in (fd_tx, fd_rx, classic):
+            bus.shutdown()
+
+
+def test_udp_multicast_works_under_canopen_network_and_notifier(request: pytest.FixtureRequest) -> None:
+    group = unique_group(request.node.name)
+    bus = open_bus(parse_bus(f"udp_multicast:{group}"))
+    peer = open_bus(parse_bus(f"udp_multicast:{group}"))
+    net = canopen.Network(bus)
+    net.connect()
+    try:
+        seen = []
+        net.subscribe(0x701, lambda cob, data, t: seen.append(bytes(data)))
+        peer.send(can.Message(arbitration_id=0x701, data=b"\x05", is_extended_id=False))
+        net.send_message(0x000, b"\x01\x00")
+        deadline = time.monotonic() + 2.0
+        while not seen and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert seen == [b"\x05"]
+        assert [m.data for m in drain(peer, 0.2)] == [bytearray(b"\x01\x00")]
+    finally:
+        net.disconnect()
+        peer.shutdown()
+
+
+# --- virtual and SocketCAN ---------------------------------------------------------------------------------
+def test_virtual_bus_in_process(request: pytest.FixtureRequest) -> None:
+    spec = parse_bus(f"virtual:{request.node.name}")
+    a, b = open_bus(spec), open_bus(spec)
+    try:
+        a.send(can.Message(arbitration_id=0x181, data=b"\x01\x02", is_extended_id=False))
+        msg = b.recv(1.0)
+        assert msg is not None and msg.arbitration_id == 0x181 and bytes(msg.data) == b"\x01\x02"
+        assert a.recv(0.05) is None, "own frame echoed"
+    finally:
+        a.shutdown()
+        b.shutdown()
+
+
+def test_socketcan_probe_reports_a_reason() -> None:
+    ok, reason = socketcan_available()
+    assert isinstance(ok, bool) and reason
+    ok_ch, reason_ch = socketcan_available("vcan-absent9")
+    assert not ok_ch and reason_ch
+    if not ok:
+        with pytest.raises(can.CanInitializationError, match="SocketCAN unavailable"):
+            open_bus(parse_bus("socketcan:vcan0"))
+
+
+def test_socketcan_vcan_roundtrip() -> None:
+    ok, reason = socketcan_available("vcan0")
+    if not ok:
+        pytest.skip(f"SocketCAN vcan0 unavailable: {reason}")
+    a, b = open_bus(parse_bus("socketcan:vcan0")), open_bus(parse_bus("socketcan:vcan0"))
+    try:
+        a.send(can.Message(arbitration_id=0x123, data=b"\x42", is_extended_id=False))
+        msg = b.recv(1.0)
+        assert msg is not None and msg.arbitration_id == 0x123
+    finally:
+        a.shutdown()
+        b.shutdown()

@@ -1,0 +1,297 @@
+"""The real sim process (`python -m sim run`) on a udp_multicast group of its own, driven by a CANopen master."""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import struct
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import canopen
+import numpy as np
+import pytest
+
+from dragd.bus import open_bus, parse_bus
+from dragd.control import ControlClient
+from dragd.model import RobotModel
+from sim.drive import DEFAULT_EDS_PATH
+from sim.truth import load_truth
+
+REPO = Path(__file__).resolve().parents[1]
+CST = 10
+SW_STATE_MASK, SW_OPERATION_ENABLED = 0x006F, 0x0027
+
+
+def unique_group() -> str:
+    r = random.Random(os.getpid() * 1_000_003 + time.monotonic_ns())
+    return f"239.{r.randint(1, 254)}.{r.randint(1, 254)}.{r.randint(1, 254)}"
+
+
+class SimProc:
+    """`python -m sim run --json` as a child process with a control socket."""
+
+    def __init__(self, tmp_path: Path, group: str, *extra: str) -> None:
+        self.sock = str(tmp_path / "sim.sock")
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "sim", "run", "--bus", f"udp_multicast:{group}", "--control", self.sock, "--json", *extra],
+            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self.client = ControlClient(self.sock, timeout_s=5.0)
+        deadline = time.monotonic() + 60.0
+        while True:
+            if self.proc.poll() is not None:
+                raise AssertionError(f"sim exited early ({self.proc.returncode}): {self.proc.stderr.read()}")
+            if os.path.exists(self.sock):
+                try:
+                    st = self.client.call("state")
+                    if st["ok"] and st["steps"] > 0:  # the real-time loop runs
+                        break
+                except ConnectionError:
+                    pass
+            if time.monotonic() > deadline:
+                raise AssertionError("sim did not come up within 60 s")
+            time.sleep(0.1)
+
+    def call(self, cmd: str, **args: Any) -> dict[str, Any]:
+        return self.client.call(cmd, **args)
+
+    def finish(self, sig: int | None = signal.SIGTERM, timeout: float = 20.0) -> tuple[int, dict[str, Any], str]:
+        if sig is not None:
+            self.proc.send_signal(sig)
+        out, err = self.proc.communicate(timeout=timeout)
+        lines = [ln for ln in out.splitlines() if ln.strip()]
+        return self.proc.returncode, json.loads(lines[-1]) if lines else {}, err
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.communicate(timeout=10)
+
+
+class Master:
+    """A minimal 1 kHz CANopen master: NMT + SDO via `canopen`, controlword/target torque via RPDO1 each SYNC."""
+
+    def __init__(self, group: str) -> None:
+        self.truth = load_truth()
+        self.robot = RobotModel.from_urdf("seed_cobot")
+        self.joints = self.truth.joints
+        self.bus = open_bus(parse_bus(f"udp_multicast:{group}", fd=True))
+        self.net = canopen.Network(self.bus)
+        self.net.connect()
+        self.ids = [j.drive.node_id for j in self.joints]
+        self.status = {n: 0 for n in self.ids}
+        self.counts = {n: None for n in self.ids}
+        self.tpdos = 0
+        for n in self.ids:
+            self.net.subscribe(0x180 + n, self._on_tpdo1)
+        self.nodes = [self.net.add_node(n, str(DEFAULT_EDS_PATH)) for n in self.ids]
+        self.controlword = 0x06
+        self.zero_torque: set[int] = set()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.cycles = 0
+
+    def _on_tpdo1(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        sw, pos, _cur = struct.unpack_from("<Hih", bytes(data))
+        self.status[can_id - 0x180] = sw
+        self.counts[can_id - 0x180] = pos
+        self.tpdos += 1
+
+    def configure(self) -> None:
+        for node in self.nodes:
+            node.sdo.download(0x6060, 0, struct.pack("<b", CST))
+            assert struct.unpack("<b", node.sdo.upload(0x6061, 0))[0] == CST
+        self.net.nmt.state = "OPERATIONAL"
+
+    def q_rad(self) -> np.ndarray | None:
+        if any(c is None for c in self.counts.values()):
+            return None
+        return np.array([self.counts[n] * 2 * np.pi / j.drive.encoder_counts_per_rev for n, j in zip(self.ids, self.joints)])
+
+    def enabled(self) -> bool:
+        return all(sw & SW_STATE_MASK == SW_OPERATION_ENABLED for sw in self.status.values())
+
+    def _cycle(self) -> None:
+        q = self.q_rad()
+        g = self.robot.gravity(q) if q is not None else np.zeros(len(self.ids))
+        for i, (n, j) in enumerate(zip(self.ids, self.joints)):
+            amps = 0.0 if n in self.zero_torque else g[i] / j.torque_constant_Nm_per_A
+            permille = int(np.clip(round(1000.0 * amps / j.drive.rated_current_A), -32768, 32767))
+            self.bus.send(_msg(0x200 + n, struct.pack("<Hh", self.controlword, permille)))
+        self.bus.send(_msg(0x080, b""))
+        self.cycles += 1
+
+    def _run(self) -> None:
+        period = 0.001
+        next_t = time.monotonic()
+        while not self._stop.is_set():
+            self._cycle()
+            next_t += period
+            delay = next_t - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            elif delay < -0.05:
+                next_t = time.monotonic()
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5)
+        self.net.disconnect()
+
+
+def _msg(cob: int, data: bytes) -> Any:
+    import can
+
+    return can.Message(arbitration_id=cob, data=data, is_extended_id=False)
+
+
+def _wait(cond: Any, timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.02)
+
+
+@pytest.mark.timeout(180)
+def test_cst_master_holds_the_arm_through_the_bus(tmp_path: Path) -> None:
+    group = unique_group()
+    sim = SimProc(tmp_path, group)
+    master = None
+    try:
+        master = Master(group)
+        master.configure()
+        master.start()
+        _wait(lambda: master.q_rad() is not None, 5.0, "TPDO1 from every drive")
+        master.controlword = 0x06  # shutdown -> ready to switch on
+        time.sleep(0.05)
+        master.controlword = 0x07  # switch on
+        time.sleep(0.05)
+        master.controlword = 0x0F  # enable operation (target torque = G(q)/K_t already flowing)
+        _wait(master.enabled, 5.0, "operation enabled on every drive")
+        _wait(lambda: not any(sim.call("state")["brakes"]), 2.0, "brakes released")
+        time.sleep(0.2)
+
+        s0 = sim.call("state")
+        assert s0["ok"] and all(s0["power_on"]) and not any(s0["brakes"])
+        time.sleep(2.0)
+        s1 = sim.call("state")
+        assert s1["t"] - s0["t"] > 1.9
+        drift_deg = np.degrees(np.max(np.abs(np.array(s1["q_rad"]) - np.array(s0["q_rad"]))))
+        assert drift_deg < 0.05, drift_deg
+        # the drives' torque is what holds it: the currents carry G(q)
+        g = master.robot.gravity(np.array(s1["q_rad"]))
+        tau = np.array(s1["current_A"]) * np.array([j.torque_constant_Nm_per_A for j in master.joints])
+        assert np.allclose(tau, g, atol=0.05 * np.abs(g).max())
+
+        refused = sim.call("set_q", q_rad=[0.0] * 6)
+        assert not refused["ok"] and "only while the drives are disabled" in refused["error"]
+
+        # negative control: without joint 2's torque the arm sinks
+        master.zero_torque.add(2)
+        time.sleep(0.3)
+        s2 = sim.call("state")
+        assert np.degrees(abs(s2["q_rad"][1] - s1["q_rad"][1])) > 0.5
+    finally:
+        if master is not None:
+            master.stop()
+        if sim.proc.poll() is None:
+            rc, summary, err = sim.finish(signal.SIGTERM)
+        else:
+            sim.kill()
+            rc, summary, err = sim.proc.returncode, {}, ""
+    assert rc == 0, err
+    # real time: the sim kept pace (late wake-ups are caught up within the tick grid; dropping is not routine)
+    assert summary["ok"] and 0.98 < summary["rtf"] < 1.02, summary
+    assert 0 <= summary["late_steps"] < summary["steps"] and summary["dropped_steps"] < 0.005 * summary["steps"], summary
+    assert all(d["state"] == "OPERATION_ENABLED" and d["syncs"] > 1000 for d in summary["drives"].values()), summary["drives"]
+
+
+@pytest.mark.timeout(120)
+def test_control_socket_commands(tmp_path: Path) -> None:
+    group = unique_group()
+    sim = SimProc(tmp_path, group)
+    truth = load_truth()
+    try:
+        st = sim.call("state")
+        for key in ("t", "q_rad", "dq_rad_s", "current_A", "tau_ext_Nm", "brakes", "rtf", "late_steps", "steps"):
+            assert key in st, key
+        assert st["q_rad"] == pytest.approx([j.initial_position_rad for j in truth.joints])
+        assert all(st["brakes"]) and st["steps"] > 0
+
+        q = [0.1, -1.0, 1.4, -0.3, 1.2, 0.2]
+        r = sim.call("set_q", q_rad=q)
+        assert r["ok"], r
+        assert sim.call("state")["q_rad"] == pytest.approx(q)
+        assert not sim.call("set_q", q_rad=[0.0] * 5)["ok"]
+        bad = sim.call("set_q", q_rad=[9.0, 0, 0, 0, 0, 0])
+        assert not bad["ok"] and "hard stops" in bad["error"]
+
+        # the brake slips when the operator's torque exceeds holding torque + static friction
+        limit = truth.joints[0].brake_holding_torque_Nm + truth.joints[0].friction.static_pos
+        scen = {"name": "brake_slip", "segments": [
+            {"kind": "ramp", "joint": "joint1", "start": 140.0, "rate_per_s": 40.0, "threshold_rad": 0.0005,
+             "timeout_s": 5.0, "then": "release"}]}
+        r = sim.call("operator", scenario=scen)
+        assert r["ok"] and r["name"] == "brake_slip", r
+        _wait(lambda: sim.call("operator_events")["done"], 10.0, "the ramp to end")
+        ev = sim.call("operator_events")
+        br = [e for e in ev["events"] if e["kind"] == "breakaway"]
+        assert len(br) == 1, ev
+        assert abs(br[0]["torque_Nm"] - limit) / limit < 0.05, (br, limit)
+
+        bad = sim.call("operator", scenario={"segments": [{"kind": "push", "joint": "joint9", "torque_Nm": 1,
+                                                           "duration_s": 1}]})
+        assert not bad["ok"] and "joint9" in bad["error"]
+        r = sim.call("operator", scenario="j1_startup_ramp")  # a bundled scenario by name
+        assert r["ok"] and r["name"] == "j1_startup_ramp", r
+        assert not sim.call("fly")["ok"]
+        drives = sim.call("drives")["drives"]
+        assert sorted(drives) == [str(j.drive.node_id) for j in truth.joints]
+        assert all(d["state"] == "SWITCH_ON_DISABLED" for d in drives.values())
+
+        assert sim.call("stop")["ok"]
+        rc, summary, err = sim.finish(sig=None)
+    finally:
+        sim.kill()
+    assert rc == 0, err
+    assert summary["ok"] and "rtf" in summary and summary["operator_events"][0]["kind"] == "start"
+    assert not os.path.exists(sim.sock)
+
+
+def test_sigint_and_seconds_exit_cleanly(tmp_path: Path) -> None:
+    group = unique_group()
+    proc = subprocess.run([sys.executable, "-m", "sim", "run", "--bus", f"udp_multicast:{group}", "--seconds", "1.5",
+                           "--json"], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads(proc.stdout.splitlines()[-1])
+    assert summary["sim_time_s"] == pytest.approx(1.5) and summary["steps"] == 6000
+    assert 0.95 < summary["rtf"] < 1.05
+
+    sim = SimProc(tmp_path, unique_group())
+    try:
+        rc, summary, err = sim.finish(signal.SIGINT)
+    finally:
+        sim.kill()
+    assert rc == 0, err
+    assert summary["ok"] and summary["steps"] > 0
+
+
+def test_bad_truth_is_reported(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text((REPO / "sim" / "config" / "seed_cobot.yaml").read_text().replace("gear_ratio: 101", "gear_ratio: abc", 1))
+    proc = subprocess.run([sys.executable, "-m", "sim", "run", "--config", str(bad), "--seconds", "1"], cwd=REPO,
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2
+    assert f"{bad}: joints[0].gear_ratio: expected a positive number, got 'abc'" in proc.stderr

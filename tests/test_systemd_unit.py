@@ -1,0 +1,145 @@
+"""The systemd unit: key settings parsed from the file, plus systemd's own checks."""
+
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+UNIT = ROOT / "systemd" / "dragd.service"
+SYSUSERS = ROOT / "systemd" / "dragd.sysusers.conf"
+TMPFILES = ROOT / "systemd" / "dragd.tmpfiles.conf"
+
+
+def parse_unit(text: str) -> dict[str, dict[str, list[str]]]:
+    """systemd unit syntax: [Section], Key=Value (repeatable), #/; comments, '\\' continuation."""
+    sections: dict[str, dict[str, list[str]]] = {}
+    current = None
+    pending = ""
+    for raw in text.splitlines():
+        line = pending + raw.strip()
+        pending = ""
+        if line.endswith("\\"):
+            pending = line[:-1] + " "
+            continue
+        if not line or line[0] in "#;":
+            continue
+        if line.startswith("[") and line.endswith("]"):
+            current = sections.setdefault(line[1:-1], {})
+            continue
+        assert current is not None, f"key outside a section: {line!r}"
+        key, sep, value = line.partition("=")
+        assert sep, f"not a Key=Value line: {line!r}"
+        current.setdefault(key.strip(), []).append(value.strip())
+    return sections
+
+
+@pytest.fixture(scope="module")
+def unit():
+    return parse_unit(UNIT.read_text())
+
+
+def one(section: dict, key: str) -> str:
+    assert key in section, f"{key}= missing"
+    return section[key][-1]
+
+
+def test_service_type_watchdog_restart(unit):
+    s = unit["Service"]
+    assert one(s, "Type") == "notify"
+    assert one(s, "NotifyAccess") == "main"
+    assert one(s, "WatchdogSec") == "2s"
+    assert one(s, "Restart") == "on-failure"
+    assert one(s, "KillSignal") == "SIGTERM"
+    assert one(s, "TimeoutStopSec").endswith("s")
+    assert "StartLimitIntervalSec" in unit["Unit"]  # belongs to [Unit], not [Service]
+
+
+def test_exec_start(unit):
+    assert one(unit["Service"], "ExecStart") == (
+        "/opt/dragd/.venv/bin/dragd run --config /etc/dragd/dragd.yaml "
+        "--telemetry /var/lib/dragd/telemetry.mcap"
+    )
+
+
+def test_user_directories_and_socket_dir(unit):
+    s = unit["Service"]
+    assert one(s, "User") == "dragd" and one(s, "Group") == "dragd"
+    assert one(s, "RuntimeDirectory") == "dragd"  # /run/dragd/dragd.sock lives here
+    assert one(s, "RuntimeDirectoryMode") == "0750"
+    assert one(s, "StateDirectory") == "dragd"
+    assert "/var/lib/dragd" in one(s, "ReadWritePaths").split()
+
+
+def test_realtime_limits(unit):
+    s = unit["Service"]
+    assert int(one(s, "LimitRTPRIO")) >= 1
+    assert one(s, "LimitMEMLOCK") == "infinity"
+    assert one(s, "RestrictRealtime") == "no"
+    # the cycle thread gets FIFO from set_realtime(); not the whole process
+    assert "CPUSchedulingPolicy" not in s
+
+
+def test_hardening(unit):
+    s = unit["Service"]
+    assert one(s, "NoNewPrivileges") == "yes"
+    assert one(s, "ProtectSystem") == "strict"
+    assert one(s, "ProtectHome") == "yes"
+    assert one(s, "PrivateTmp") == "yes"
+    families = set(one(s, "RestrictAddressFamilies").split())
+    assert {"AF_UNIX", "AF_CAN", "AF_NETLINK"} <= families
+    assert families <= {"AF_UNIX", "AF_CAN", "AF_NETLINK", "AF_INET", "AF_INET6"}
+    assert "AF_PACKET" not in families
+    assert one(s, "CapabilityBoundingSet") == ""
+
+
+def test_install_section(unit):
+    assert one(unit["Install"], "WantedBy") == "multi-user.target"
+
+
+def test_sysusers_and_tmpfiles_content():
+    users = [l.split() for l in SYSUSERS.read_text().splitlines() if l and not l.startswith("#")]
+    assert users[0][:3] == ["u", "dragd", "-"]
+    tmp = [l.split() for l in TMPFILES.read_text().splitlines() if l and not l.startswith("#")]
+    assert ["d", "/var/lib/dragd", "0750", "dragd", "dragd", "-"] in tmp
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze not installed")
+def test_systemd_analyze_verify(tmp_path):
+    # verify insists that ExecStart's binary exists; /opt/dragd is not installed on a
+    # development machine, so check a copy whose ExecStart points at an existing file.
+    exe = shutil.which("true") or "/bin/true"
+    text = UNIT.read_text().replace("ExecStart=/opt/dragd/.venv/bin/dragd", f"ExecStart={exe}")
+    copy = tmp_path / "dragd.service"
+    copy.write_text(text)
+    out = subprocess.run(
+        ["systemd-analyze", "verify", str(copy)], capture_output=True, text=True, timeout=60
+    )
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "dragd.service" not in out.stderr, out.stderr  # no warnings about our unit
+
+
+@pytest.mark.skipif(shutil.which("systemd-sysusers") is None, reason="systemd-sysusers not installed")
+def test_sysusers_and_tmpfiles_apply_to_a_scratch_root(tmp_path):
+    (tmp_path / "etc").mkdir()
+    for src, sub in ((SYSUSERS, "sysusers.d"), (TMPFILES, "tmpfiles.d")):
+        d = tmp_path / "usr" / "lib" / sub
+        d.mkdir(parents=True)
+        shutil.copy(src, d / "dragd.conf")
+    out = subprocess.run(
+        ["systemd-sysusers", f"--root={tmp_path}", "dragd.conf"],
+        capture_output=True, text=True, timeout=60,
+    )
+    assert out.returncode == 0, out.stderr
+    passwd = (tmp_path / "etc" / "passwd").read_text()
+    assert passwd.startswith("dragd:x:") and ":/var/lib/dragd:" in passwd
+    if shutil.which("systemd-tmpfiles") is None:
+        return
+    out = subprocess.run(
+        ["systemd-tmpfiles", f"--root={tmp_path}", "--create", "dragd.conf"],
+        capture_output=True, text=True, timeout=60,
+    )
+    assert out.returncode == 0, out.stderr
+    st = (tmp_path / "var" / "lib" / "dragd").stat()
+    assert oct(st.st_mode & 0o777) == "0o750"

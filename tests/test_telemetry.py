@@ -1,0 +1,565 @@
+import enum
+import errno
+import inspect
+import json
+import os
+import sys
+import threading
+import time
+import tracemalloc
+import types
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from dragd import telemetry
+from dragd.telemetry import (
+    Field,
+    RerunSink,
+    RerunUnavailable,
+    TelemetryError,
+    TelemetryFileError,
+    TelemetryWriter,
+    summarize,
+)
+
+
+class Mode(enum.IntEnum):
+    IDLE = 0
+    DRAG = 1
+    FAULT = 2
+
+
+def cobot_layout(exact: bool = False) -> dict:
+    f = Field(digits=17) if exact else Field()
+    arr = Field(6, digits=17) if exact else 6
+    return {
+        "t_s": f,
+        "mode": Field(labels=Mode),
+        "q_rad": arr,
+        "dq_rad_s": arr,
+        "current_measured_A": arr,
+        "current_command_A": arr,
+        "gravity_A": arr,
+        "friction_A": arr,
+        "startup_A": arr,
+        "statusword": Field(6, kind="int"),
+        "period_us": f,
+        "compute_us": f,
+    }
+
+
+ARRAYS = ["q_rad", "dq_rad_s", "current_measured_A", "current_command_A", "gravity_A", "friction_A", "startup_A"]
+
+
+def fill(w: TelemetryWriter, row: np.ndarray, i: int, rng: np.random.Generator | None = None) -> dict:
+    S = w.slices
+    expect = {"t_s": i * 1e-3, "mode": i % 3, "period_us": 1000.0 + i % 7, "compute_us": 200.0 + i % 5}
+    row[S["t_s"]] = expect["t_s"]
+    row[S["mode"]] = expect["mode"]
+    for k, name in enumerate(ARRAYS):
+        v = rng.normal(size=6) if rng is not None else np.arange(6) + 10.0 * k + i
+        row[S[name]] = v
+        expect[name] = np.array(v, dtype=float)
+    row[S["statusword"]] = 0x0637
+    row[S["period_us"]] = expect["period_us"]
+    row[S["compute_us"]] = expect["compute_us"]
+    return expect
+
+
+def read_all(path):
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        msgs = [(s, c, m) for s, c, m in reader.iter_messages(log_time_order=False)]
+    return summary, msgs
+
+
+def wait_for(pred, timeout_s=10.0):
+    t0 = time.monotonic()
+    while not pred():
+        if time.monotonic() - t0 > timeout_s:
+            raise AssertionError("condition not reached in time")
+        time.sleep(0.01)
+
+
+# -- round trip ------------------------------------------------------------------------------
+
+
+def test_round_trip_values_schema_and_events(tmp_path):
+    path = tmp_path / "t.mcap"
+    rng = np.random.default_rng(7)
+    w = TelemetryWriter(path, cobot_layout(exact=True), capacity=4096)
+    expected = []
+    for i in range(2000):
+        row = w.begin()
+        expected.append(fill(w, row, i, rng))
+        w.commit(log_time_ns=1_700_000_000_000_000_000 + i * 1_000_000)
+        if i == 500:
+            w.event("mode_change", old="IDLE", new="DRAG", joint_limits=[1.0, 2.0])
+    stats = w.close()
+    assert stats["written"] == 2000 and stats["dropped"] == 0 and stats["errors"] == 0
+    assert stats["events_written"] == 1
+    assert stats["bytes"] == os.path.getsize(path)
+
+    summary, msgs = read_all(path)
+    assert summary is not None and summary.statistics.message_count == 2001
+    assert {ci.compression for ci in summary.chunk_indexes} == {"zstd"}
+    cycle = [(s, c, m) for s, c, m in msgs if c.topic == "/dragd/cycle"]
+    events = [(s, c, m) for s, c, m in msgs if c.topic == "/dragd/events"]
+    assert len(cycle) == 2000 and len(events) == 1
+
+    schema, channel, _ = cycle[0]
+    assert channel.message_encoding == "json"
+    assert schema.encoding == "jsonschema" and schema.name == "dragd.Cycle"
+    js = json.loads(schema.data)
+    assert js["properties"]["q_rad"] == {
+        "type": "array", "items": {"type": "number"}, "minItems": 6, "maxItems": 6,
+    }
+    assert js["properties"]["t_s"]["type"] == "number"
+    assert js["properties"]["mode"]["type"] == "string"
+    assert js["properties"]["statusword"]["items"]["type"] == "integer"
+    assert list(js["properties"]) == list(cobot_layout())
+
+    for i, ((_s, _c, m), exp) in enumerate(zip(cycle, expected)):
+        d = json.loads(m.data)
+        assert m.sequence == i + 1
+        assert m.log_time == 1_700_000_000_000_000_000 + i * 1_000_000
+        assert d["t_s"] == exp["t_s"]
+        assert d["mode"] == Mode(exp["mode"]).name
+        for name in ARRAYS:
+            assert d[name] == exp[name].tolist(), name  # exact with digits=17
+        assert d["statusword"] == [0x0637] * 6
+        assert d["period_us"] == exp["period_us"]
+
+    ev = json.loads(events[0][2].data)
+    assert ev == {"name": "mode_change", "old": "IDLE", "new": "DRAG", "joint_limits": [1.0, 2.0]}
+
+
+def test_default_precision_is_12_significant_digits_and_nan_is_null(tmp_path):
+    path = tmp_path / "p.mcap"
+    w = TelemetryWriter(path, {"t_s": 1, "x": 3})
+    row = w.begin()
+    row[:] = [12345.678901234567, 1.0 / 3.0, float("nan"), float("inf")]
+    w.commit()
+    w.close()
+    _, msgs = read_all(path)
+    d = json.loads(msgs[0][2].data)
+    assert d["t_s"] == pytest.approx(12345.678901234567, rel=1e-11, abs=0)
+    assert d["t_s"] != 12345.678901234567  # rounded to 12 digits
+    assert d["x"][0] == pytest.approx(1 / 3, rel=1e-11)
+    assert d["x"][1] is None and d["x"][2] is None
+
+
+# -- the cycle side never blocks ---------------------------------------------------------------
+
+
+class SlowFile:
+    """Binary sink whose writes block until released (a stalled disk)."""
+
+    def __init__(self):
+        self.release = threading.Event()
+        self.data = bytearray()
+
+    def write(self, b):
+        self.release.wait()
+        self.data += bytes(b)
+        return len(b)
+
+    def tell(self):
+        return len(self.data)
+
+
+def test_full_ring_drops_and_never_blocks():
+    f = SlowFile()
+    w = TelemetryWriter(f, {"t_s": 1, "q_rad": 6}, capacity=32, flush_interval_s=0.005)
+    attempts = 0
+    dropped_seen = 0
+    worst_s = 0.0
+    for i in range(500):
+        t0 = time.perf_counter()
+        row = w.begin()
+        if row is None:
+            dropped_seen += 1
+        else:
+            row[0] = i
+            row[1:] = i
+            w.commit()
+        worst_s = max(worst_s, time.perf_counter() - t0)
+        attempts += 1
+        if i % 50 == 0:
+            time.sleep(0.002)
+    st = w.stats()
+    assert dropped_seen > 0
+    assert st["dropped_ring_full"] == dropped_seen
+    assert worst_s < 0.05  # begin/commit never waited for the stalled writer
+    f.release.set()
+    st = w.close()
+    assert st["written"] + st["dropped"] == attempts
+    assert st["written"] >= 32
+    # sequence numbers reveal the gaps
+    import io
+
+    reader = make_reader(io.BytesIO(bytes(f.data)))
+    seqs = [m.sequence for _s, c, m in reader.iter_messages(log_time_order=False) if c.topic == "/dragd/cycle"]
+    assert len(seqs) == st["written"] and seqs == sorted(seqs) and seqs[-1] <= attempts
+
+
+def test_begin_commit_do_not_retain_memory(tmp_path):
+    w = TelemetryWriter(tmp_path / "m.mcap", {"t_s": 1, "q_rad": 6}, capacity=4096)
+    for _ in range(100):  # warm up
+        row = w.begin()
+        row[:] = 1.0
+        w.commit()
+    lines = set()
+    for fn in (TelemetryWriter.begin, TelemetryWriter.commit):
+        src, start = inspect.getsourcelines(fn)
+        lines.update(range(start, start + len(src)))
+    tracemalloc.start()
+    try:
+        for i in range(3000):
+            row = w.begin()
+            if row is not None:
+                row[0] = i
+                w.commit()
+        snap = tracemalloc.take_snapshot()
+    finally:
+        tracemalloc.stop()
+        w.close()
+    retained = sum(
+        st.size
+        for st in snap.statistics("lineno")
+        if st.traceback[0].filename == telemetry.__file__ and st.traceback[0].lineno in lines
+    )
+    assert retained < 1024, retained
+
+
+# -- I/O failures ---------------------------------------------------------------------------
+
+
+class FullDisk:
+    """File object on a full disk: accepts ``ok_bytes`` then raises ENOSPC."""
+
+    def __init__(self, ok_bytes=0):
+        self.ok_bytes = ok_bytes
+        self.n = 0
+        self.calls = 0
+
+    def write(self, b):
+        self.calls += 1
+        if self.n + len(b) > self.ok_bytes:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        self.n += len(b)
+        return len(b)
+
+    def tell(self):
+        return self.n
+
+
+def run_rows(w, n, pause_every=100):
+    ok = 0
+    worst = 0.0
+    for i in range(n):
+        t0 = time.perf_counter()
+        row = w.begin()
+        if row is not None:
+            row[:] = i
+            w.commit()
+            ok += 1
+        worst = max(worst, time.perf_counter() - t0)
+        if i % pause_every == 0:
+            time.sleep(0.001)
+    return ok, worst
+
+
+def test_full_disk_from_the_start_drops_rows_and_keeps_first_error():
+    f = FullDisk(0)
+    w = TelemetryWriter(f, {"t_s": 1, "q_rad": 6}, capacity=64, flush_interval_s=0.005)
+    ok, worst = run_rows(w, 1000)
+    wait_for(lambda: w.stats()["pending"] == 0)
+    st = w.close()
+    assert worst < 0.05
+    assert st["written"] == 0
+    assert st["dropped"] == 1000
+    assert st["errors"] >= 1
+    assert "ENOSPC" in st["first_error"] and "starting" in st["first_error"]
+    assert st["bytes"] == 0
+
+
+def test_full_disk_midway_counts_are_consistent():
+    f = FullDisk(ok_bytes=8_000)
+    w = TelemetryWriter(f, {"t_s": 1, "q_rad": 6}, capacity=256, flush_interval_s=0.005, chunk_size=8 * 1024)
+    ok, worst = run_rows(w, 5000)
+    st = w.close()
+    assert worst < 0.05
+    assert st["written"] > 0 and st["dropped_io"] > 0
+    assert st["written"] + st["dropped"] == 5000
+    assert st["dropped_bytes"] > 0
+    assert "ENOSPC" in st["first_error"] and "writing" in st["first_error"]
+    assert st["bytes"] == f.n
+
+
+def test_dev_full_path(tmp_path):
+    if not os.path.exists("/dev/full"):
+        pytest.skip("/dev/full not available")
+    w = TelemetryWriter("/dev/full", {"t_s": 1}, capacity=64, flush_interval_s=0.005)
+    ok, worst = run_rows(w, 300)
+    st = w.close()
+    assert os.path.exists("/dev/full") and not os.path.isfile("/dev/full")  # never rotated away
+    assert st["written"] == 0 and st["dropped"] == 300
+    assert "ENOSPC" in st["first_error"] and "/dev/full" in st["first_error"]
+
+
+def test_retry_on_a_fresh_file_after_an_io_error(tmp_path, monkeypatch):
+    failing = {"on": False}
+    real_open = open
+
+    class Flaky:
+        def __init__(self, f):
+            self.f = f
+
+        def write(self, b):
+            if failing["on"]:
+                raise OSError(errno.EIO, "Input/output error")
+            return self.f.write(b)
+
+        def flush(self):
+            self.f.flush()
+
+        def close(self):
+            self.f.close()
+
+    monkeypatch.setattr(telemetry, "open", lambda *a, **k: Flaky(real_open(*a, **k)), raising=False)
+    path = tmp_path / "r.mcap"
+    w = TelemetryWriter(path, {"t_s": 1}, capacity=256, flush_interval_s=0.005,
+                        chunk_size=2048, retry_after_s=0.05)
+    run_rows(w, 300)
+    wait_for(lambda: w.stats()["pending"] == 0)
+    failing["on"] = True
+    run_rows(w, 300)
+    wait_for(lambda: w.stats()["errors"] >= 1)
+    failing["on"] = False
+    time.sleep(0.1)
+    run_rows(w, 300)
+    st = w.close()
+    monkeypatch.undo()
+    assert st["segments"] >= 2
+    assert "EIO" in st["first_error"]
+    assert st["written"] + st["dropped"] == 900
+    s = summarize(path)  # the fresh file is complete
+    assert s["complete"] and s["cycle"]["rows"] > 0
+    assert len(list(tmp_path.glob("r.*.mcap"))) == 1  # the failed file was rotated aside
+
+
+def test_max_bytes_rolls_over_and_keeps_n(tmp_path):
+    path = tmp_path / "roll.mcap"
+    w = TelemetryWriter(path, {"t_s": 1, "q_rad": 6}, capacity=4096, flush_interval_s=0.005,
+                        chunk_size=1024, max_bytes=2_000, keep_rotated=2)
+    run_rows(w, 4000, pause_every=50)
+    st = w.close()
+    rotated = sorted(tmp_path.glob("roll.*.mcap"))
+    assert st["segments"] >= 4
+    assert len(rotated) == 2  # older ones pruned
+    ranges = []
+    for p in rotated + [path]:
+        s = summarize(p)
+        assert s["complete"]
+        t = s["cycle"]["fields"]["t_s"]
+        ranges.append((t["min"], t["max"]))
+    ranges.sort()
+    assert ranges[-1][1] == 3999  # the current file holds the newest rows
+    # the two newest rotated files were kept: contiguous with the current file
+    assert ranges[1][1] + 1 == ranges[2][0] and ranges[0][1] + 1 == ranges[1][0]
+
+
+def test_existing_file_is_rotated_or_refused(tmp_path):
+    path = tmp_path / "telemetry.mcap"
+    path.write_bytes(b"old run")
+    w = TelemetryWriter(path, {"t_s": 1})
+    w.close()
+    rotated = list(tmp_path.glob("telemetry.*.mcap"))
+    assert len(rotated) == 1 and rotated[0].read_bytes() == b"old run"
+    with pytest.raises(TelemetryError, match="already exists"):
+        TelemetryWriter(path, {"t_s": 1}, on_exists="error")
+    with pytest.raises(TelemetryError, match="does not exist"):
+        TelemetryWriter(tmp_path / "nope" / "t.mcap", {"t_s": 1})
+
+
+def test_layout_errors():
+    with pytest.raises(ValueError, match="empty"):
+        telemetry.RowLayout({})
+    with pytest.raises(ValueError, match="width"):
+        telemetry.RowLayout({"q": 0})
+    with pytest.raises(ValueError, match="identifier"):
+        telemetry.RowLayout({"q rad": 1})
+    with pytest.raises(ValueError, match="kind"):
+        telemetry.RowLayout({"q": Field(kind="complex")})
+
+
+def test_commit_without_begin_is_an_error(tmp_path):
+    w = TelemetryWriter(tmp_path / "c.mcap", {"t_s": 1})
+    with pytest.raises(RuntimeError, match="begin"):
+        w.commit()
+    w.close()
+
+
+# -- sinks ----------------------------------------------------------------------------------
+
+
+def test_rerun_missing_gives_clear_message(monkeypatch, tmp_path):
+    monkeypatch.setitem(sys.modules, "rerun", None)
+    with pytest.raises(RerunUnavailable, match=r"dragd\[rerun\]"):
+        RerunSink()
+    with pytest.raises(RerunUnavailable, match=r"pip install 'dragd\[rerun\]'"):
+        TelemetryWriter(tmp_path / "x.mcap", {"t_s": 1}, rerun=True)
+    assert "dragd[rerun]" in telemetry.rerun_unavailable()
+
+
+def fake_rerun():
+    calls = []
+    rr = types.ModuleType("rerun")
+    rr.init = lambda app_id, **k: calls.append(("init", app_id))
+    rr.save = lambda path: calls.append(("save", path))
+    rr.spawn = lambda **k: calls.append(("spawn",))
+    rr.connect_grpc = lambda url=None: calls.append(("connect", url))
+    rr.TimeColumn = lambda name, timestamp=None, **k: ("time", name, np.asarray(timestamp))
+    rr.Scalars = types.SimpleNamespace(columns=lambda scalars: ("scalars", np.asarray(scalars)))
+    rr.send_columns = lambda path, indexes, columns: calls.append(("send", path, columns[1].copy()))
+    rr.set_time = lambda *a, **k: None
+    rr.TextLog = lambda text: text
+    rr.log = lambda path, obj: calls.append(("log", path, obj))
+    return rr, calls
+
+
+def test_rerun_flag_connects_to_a_viewer(tmp_path, monkeypatch):
+    rr, calls = fake_rerun()
+    monkeypatch.setitem(sys.modules, "rerun", rr)
+    w = TelemetryWriter(tmp_path / "v.mcap", {"t_s": 1}, rerun="rerun+http://127.0.0.1:9876/proxy")
+    run_rows(w, 5)
+    w.close()
+    assert ("connect", "rerun+http://127.0.0.1:9876/proxy") in calls
+    assert any(c[0] == "send" and c[1] == "cycle/t_s" for c in calls)
+
+
+def test_rerun_sink_receives_rows_off_the_loop(tmp_path, monkeypatch):
+    rr, calls = fake_rerun()
+    monkeypatch.setitem(sys.modules, "rerun", rr)
+    sink = RerunSink(save_path=tmp_path / "x.rrd")
+    w = TelemetryWriter(tmp_path / "s.mcap", {"t_s": 1, "q_rad": 2}, sinks=[sink])
+    for i in range(10):
+        row = w.begin()
+        row[:] = [i, 10 + i, 20 + i]
+        w.commit()
+    w.event("fault", code=7)
+    w.close()
+    assert ("save", str(tmp_path / "x.rrd")) in calls
+    sent = {}
+    for c in calls:
+        if c[0] == "send":
+            sent.setdefault(c[1], []).extend(c[2].tolist())
+    assert sent["cycle/t_s"] == list(range(10))
+    assert sent["cycle/q_rad/1"] == [20 + i for i in range(10)]
+    assert any(c[0] == "log" and "fault" in c[2] for c in calls)
+
+
+def test_failing_sink_is_disabled_and_reported(tmp_path):
+    class Broken:
+        def write_rows(self, layout, rows, t):
+            raise RuntimeError("viewer went away")
+
+        def write_event(self, *a):
+            pass
+
+        def close(self):
+            pass
+
+    w = TelemetryWriter(tmp_path / "b.mcap", {"t_s": 1}, sinks=[Broken()])
+    run_rows(w, 50)
+    st = w.close()
+    assert st["written"] == 50
+    assert st["sink_errors"] and "viewer went away" in st["sink_errors"][0]
+
+
+# -- summarize ------------------------------------------------------------------------------
+
+
+def write_known_file(path, n=1000):
+    w = TelemetryWriter(path, cobot_layout(), capacity=4096)  # >= n: nothing dropped
+    for i in range(n):
+        row = w.begin()
+        fill(w, row, i)
+        w.commit(log_time_ns=1_000_000_000 + i * 1_000_000)
+    w.event("mode_change", new="DRAG")
+    w.event("fault", joint=3, code="0x8611")
+    w.close()
+
+
+def test_summarize_good_file(tmp_path):
+    path = tmp_path / "good.mcap"
+    write_known_file(path, 1000)
+    s = summarize(path)
+    assert s["complete"] is True
+    assert s["schemas"] == ["dragd.Cycle", "dragd.Event"]
+    topics = {c["topic"]: c for c in s["channels"]}
+    assert topics["/dragd/cycle"]["messages"] == 1000
+    assert topics["/dragd/cycle"]["schema"] == "dragd.Cycle"
+    assert topics["/dragd/events"]["messages"] == 2
+    cyc = s["cycle"]
+    assert cyc["rows"] == 1000 and cyc["sequence_gaps"] == 0
+    f = cyc["fields"]
+    assert f["t_s"]["min"] == 0.0 and f["t_s"]["max"] == pytest.approx(0.999)
+    assert f["t_s"]["mean"] == pytest.approx(0.4995)
+    # q_rad[j] = j + i  (k = 0) -> min j, max j + 999, mean j + 499.5 per joint
+    assert f["q_rad"]["min"] == [0, 1, 2, 3, 4, 5]
+    assert f["q_rad"]["max"] == [999 + j for j in range(6)]
+    assert f["q_rad"]["mean"] == pytest.approx([499.5 + j for j in range(6)])
+    assert f["gravity_A"]["min"] == [40 + j for j in range(6)]
+    assert f["mode"] == {"type": "enum", "counts": {"DRAG": 333, "FAULT": 333, "IDLE": 334}}
+    assert f["statusword"]["max"] == [0x0637] * 6
+    assert [e["name"] for e in s["events"]] == ["mode_change", "fault"]
+    assert s["events"][1]["fields"] == {"joint": 3, "code": "0x8611"}
+    assert "dragd.telemetry" in s["metadata"]
+    assert s["metadata"]["dragd.telemetry"]["written"] == "1000"
+    assert s["chunks"].keys() == {"zstd"}
+    json.dumps(s)  # JSON-ready for `dragd log summary --json`
+
+
+def test_summarize_counts_sequence_gaps(tmp_path):
+    f = SlowFile()
+    w = TelemetryWriter(f, {"t_s": 1}, capacity=8, flush_interval_s=0.005)
+    run_rows(w, 100, pause_every=1000)  # writer stalled: 8 rows queued, 92 dropped
+    f.release.set()
+    wait_for(lambda: w.stats()["pending"] == 0)
+    run_rows(w, 5, pause_every=1000)
+    st = w.close()
+    assert st["dropped_ring_full"] == 92 and st["written"] == 13
+    path = tmp_path / "gaps.mcap"
+    path.write_bytes(bytes(f.data))
+    s = summarize(path)
+    assert s["cycle"]["rows"] == 13
+    assert s["cycle"]["sequence_gaps"] == 92
+
+
+def test_summarize_missing_garbage_empty_and_truncated(tmp_path):
+    with pytest.raises(TelemetryFileError, match=r"nope\.mcap: no such file"):
+        summarize(tmp_path / "nope.mcap")
+    garbage = tmp_path / "garbage.mcap"
+    garbage.write_bytes(os.urandom(4096))
+    with pytest.raises(TelemetryFileError, match=r"garbage\.mcap: not an MCAP file"):
+        summarize(garbage)
+    empty = tmp_path / "empty.mcap"
+    empty.write_bytes(b"")
+    with pytest.raises(TelemetryFileError, match="empty file"):
+        summarize(empty)
+
+    good = tmp_path / "good.mcap"
+    write_known_file(good, 3000)
+    cut = tmp_path / "cut.mcap"
+    data = good.read_bytes()
+    cut.write_bytes(data[: len(data) * 2 // 3])
+    with pytest.raises(TelemetryFileError, match=r"cut\.mcap: truncated MCAP"):
+        summarize(cut)
+    partial = summarize(cut, allow_truncated=True)
+    assert partial["complete"] is False
+    assert 0 < partial["cycle"]["rows"] < 3000
