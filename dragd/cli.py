@@ -99,11 +99,13 @@ def cmd_model_current(args: argparse.Namespace) -> int:
         "friction_A": out.friction_A.tolist(),
         "startup_A": out.startup_A.tolist(),
         "back_emf_A": out.back_emf_A.tolist(),
+        "damping_A": out.damping_A.tolist(),
         "clamped": out.clamped.tolist(),
     }
     _emit(args, data, lambda d: _table(
-        ["joint", "current_A", "gravity_A", "friction_A", "startup_A", "back_emf_A", "clamped"],
-        list(zip(d["joints"], d["current_A"], d["gravity_A"], d["friction_A"], d["startup_A"], d["back_emf_A"], d["clamped"]))))
+        ["joint", "current_A", "gravity_A", "friction_A", "startup_A", "back_emf_A", "damping_A", "clamped"],
+        list(zip(d["joints"], d["current_A"], d["gravity_A"], d["friction_A"], d["startup_A"], d["back_emf_A"],
+                 d["damping_A"], d["clamped"]))))
     return 0
 
 

@@ -111,6 +111,7 @@ class JointConfig(_Strict):
     direction: Literal[1, -1] = 1  # +1: drive's positive = URDF's positive
     position_limits_rad: tuple[Finite, Finite] | None = None  # soft limits; default: the URDF's
     velocity_limit_rad_s: PosFloat = 1.0  # drag speed cap
+    drag_damping_Nm_s_per_rad: NonNegFloat = 1.0  # virtual damping in drag: the released arm comes to rest
     friction: FrictionConfig = FrictionConfig()
     startup: StartupConfig = StartupConfig()
     back_emf: BackEmfConfig = BackEmfConfig()
@@ -149,9 +150,10 @@ class LawConfig(_Strict):
     stribeck: bool = True
     startup: bool = True
     back_emf: bool = False
+    damping: bool = True
     friction_smoothing_rad_s: PosFloat = 0.005  # tanh width of the zero crossing
     friction_deadband_rad_s: NonNegFloat = 0.0  # seed 000's v_lim: no friction compensation inside ±v_lim
-    startup_scale: NonNegFloat = 1.0  # default start-up amplitude = scale × static friction level
+    startup_scale: NonNegFloat = 0.8  # default start-up amplitude = scale × believed static friction level
     velocity_filter_Hz: Annotated[float, Field(gt=0, le=500), Expect("a cutoff in (0, 500] Hz")] = 40.0
 
 

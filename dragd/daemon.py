@@ -142,6 +142,9 @@ class Daemon:
         self.lim_lo = np.array([j.position_limits_rad[0] if j.position_limits_rad else lo[i] for i, j in enumerate(js)])
         self.lim_hi = np.array([j.position_limits_rad[1] if j.position_limits_rad else hi[i] for i, j in enumerate(js)])
         self.vcap = np.array([j.velocity_limit_rad_s for j in js])
+        self.neg_limit_A = -self.params.current_limit_A
+        self.wall_hi = self.lim_hi - cfg.safety.soft_limit_margin_rad
+        self.wall_lo = self.lim_lo + cfg.safety.soft_limit_margin_rad
         # cycle state (preallocated)
         self.counts = np.zeros(n, dtype=np.int64)
         self.statusword = np.zeros(n, dtype=np.int64)
@@ -203,6 +206,9 @@ class Daemon:
         self._expect_mask = np.ones(n, dtype=bool)
         self._tpdo: dict[str, dict[int, tuple[int, struct.Struct, tuple[str, ...]]]] = {}
         self.enabled = np.zeros(n, dtype=bool)
+        self._cw_mode: Mode | None = None
+        self._cw_statusword = np.full(n, -1, dtype=np.int64)
+        self._near = np.zeros(n, dtype=bool)
         self.tmp2 = np.zeros(n)
         self._sync_msgs: list[tuple[can.BusABC, can.Message]] = []
         self._hb_msgs: list[tuple[can.BusABC, can.Message]] = []
@@ -379,8 +385,16 @@ class Daemon:
     # ------------------------------------------------------------------------------------------ cycle
 
     def _drive_controlwords(self) -> None:
-        """CiA 402 walk per drive from its statusword, toward the state the mode needs."""
+        """CiA 402 walk per drive from its statusword, toward the state the mode needs.
+
+        Skipped (the controlwords stay) while no statusword, mode or reset phase changed and no enable is pending.
+        """
         want_enabled = self.mode in (Mode.HOLD, Mode.DRAG, Mode.TRACK)
+        if (self.fault_reset_phase == 0 and self.enable_t0 is None and self.mode == self._cw_mode
+                and np.array_equal(self.statusword, self._cw_statusword)):
+            return
+        self._cw_mode = self.mode
+        self._cw_statusword[:] = self.statusword
         for i in range(self.n):
             try:
                 st = decode_statusword(int(self.statusword[i]))
@@ -424,6 +438,12 @@ class Daemon:
         s = self.cfg.safety
         q, dq, p, v = self.q, self.dq, self.tmp, self.tmp2
         out.fill(0.0)
+        np.greater(q, self.wall_hi, out=self._near)
+        near = self._near.any()
+        np.less(q, self.wall_lo, out=self._near)
+        near = near or self._near.any()
+        if not near and self.mode != Mode.DRAG:
+            return
         # upper wall: penetration p = q - (hi - margin) > 0 pushes back, damping only while moving further in
         np.subtract(q, self.lim_hi, out=p)
         p += s.soft_limit_margin_rad
@@ -473,7 +493,8 @@ class Daemon:
         out += self.tau_g
         out /= self.kt
         out += self.extra_A
-        np.clip(out, -self.params.current_limit_A, self.params.current_limit_A, out=out)
+        np.minimum(out, self.params.current_limit_A, out=out)
+        np.maximum(out, self.neg_limit_A, out=out)
 
     def cycle_compute(self) -> None:
         """estimate → compute: from the arrays the read step filled to the command arrays (no I/O)."""
@@ -519,7 +540,8 @@ class Daemon:
         self.tmp *= 1000.0
         self.tmp /= self.rated_A
         np.rint(self.tmp, out=self.tmp)
-        np.clip(self.tmp, -32768, 32767, out=self.tmp)
+        np.minimum(self.tmp, 32767.0, out=self.tmp)
+        np.maximum(self.tmp, -32768.0, out=self.tmp)
         self.offset_permille[:] = self.tmp
         ref = self.q_ref if self.mode == Mode.TRACK else self.q
         np.multiply(ref, self.cpr, out=self.tmp)
@@ -563,6 +585,7 @@ class Daemon:
         row[c["gravity_A"]] = self.law_out.gravity_A if self.mode == Mode.DRAG else self.tau_g / self.kt
         row[c["friction_A"]] = self.law_out.friction_A if self.mode == Mode.DRAG else 0.0
         row[c["startup_A"]] = self.law_out.startup_A if self.mode == Mode.DRAG else 0.0
+        row[c["damping_A"]] = self.law_out.damping_A if self.mode == Mode.DRAG else 0.0
         row[c["statusword"]] = self.statusword
         row[c["rx"]] = self.rx
         row[c["period_us"]] = period_us
@@ -765,8 +788,8 @@ class Daemon:
         from .telemetry import Field
 
         n = self.n
-        return {"t_s": 1, "mode": Field(1, kind="int", labels=Mode), "q_rad": n, "dq_rad_s": n, "current_measured_A": n, "current_command_A": n,
-                "gravity_A": n, "friction_A": n, "startup_A": n, "statusword": Field(n, kind="int"), "rx": Field(n, kind="bool"), "period_us": 1,
+        return {"t_s": 1, "mode": Field(1, kind="int", labels={int(m): name for m, name in MODE_NAMES.items()}), "q_rad": n, "dq_rad_s": n, "current_measured_A": n, "current_command_A": n,
+                "gravity_A": n, "friction_A": n, "startup_A": n, "damping_A": n, "statusword": Field(n, kind="int"), "rx": Field(n, kind="bool"), "period_us": 1,
                 "compute_us": 1}
 
     def _open_telemetry(self) -> None:

@@ -1,6 +1,6 @@
 """The compensation law: per-joint motor current [A] that makes the arm weightless under the hand.
 
-    I = G(q)/K_t + I_friction(q̇) + I_startup(t, q̇) + I_back_emf(q̇)   (+ extra terms), clamped per joint.
+    I = G(q)/K_t + I_friction(q̇) + I_startup(t, q̇) + I_back_emf(q̇) + I_damping(q̇)   (+ extra terms), clamped.
 
 Pure functions over numpy arrays; no I/O. Each takes an ``out`` array (and a ``Workspace`` of scratch arrays)
 so the 1 kHz cycle evaluates the law without allocating; called without them they allocate and return.
@@ -18,6 +18,8 @@ Terms
   term fades out: the hand-over never steps the current.
 - back-EMF headroom (seed 000 eq. 26, I = I_s − K_b·ω/R_m): the command adds K_b·n·q̇/R_m so that a drive
   whose current falls with the motor's back-EMF still delivers the intended current. Off by default.
+- damping: I_d = −b·q̇/K_t, a virtual viscous damper that sets the arm's "feel": with friction compensated the
+  arm is a free mass that coasts when let go; b makes it come to rest (the drag effort it adds is b·q̇).
 - clamp: |I| ≤ the joint's current limit; clamped joints are flagged.
 """
 
@@ -52,6 +54,7 @@ class LawParams:
     rest_threshold_rad_s: np.ndarray
     fade_width_rad_s: np.ndarray
     back_emf_A_s_per_rad: np.ndarray
+    damping_A_s_per_rad: np.ndarray
     smoothing_rad_s: float = 0.005
     deadband_rad_s: float = 0.0
     use_gravity: bool = True
@@ -59,6 +62,7 @@ class LawParams:
     use_stribeck: bool = True
     use_startup: bool = True
     use_back_emf: bool = False
+    use_damping: bool = True
 
     @property
     def n(self) -> int:
@@ -101,6 +105,7 @@ class LawParams:
             rest_threshold_rad_s=arr(lambda j: j.startup.rest_threshold_rad_s),
             fade_width_rad_s=arr(lambda j: j.startup.fade_width_rad_s),
             back_emf_A_s_per_rad=arr(lambda j: j.back_emf.constant_V_s_per_rad * j.gear_ratio / j.back_emf.resistance_ohm),
+            damping_A_s_per_rad=arr(lambda j: j.drag_damping_Nm_s_per_rad / j.kt_Nm_per_A),
             smoothing_rad_s=cfg.law.friction_smoothing_rad_s,
             deadband_rad_s=cfg.law.friction_deadband_rad_s,
             use_gravity=cfg.law.gravity,
@@ -108,6 +113,7 @@ class LawParams:
             use_stribeck=cfg.law.stribeck,
             use_startup=cfg.law.startup,
             use_back_emf=cfg.law.back_emf,
+            use_damping=cfg.law.damping,
         )
 
 
@@ -132,11 +138,12 @@ class LawOutput:
     friction_A: np.ndarray
     startup_A: np.ndarray
     back_emf_A: np.ndarray
+    damping_A: np.ndarray
     clamped: np.ndarray  # bool
 
     @classmethod
     def zeros(cls, n: int) -> LawOutput:
-        return cls(*(np.zeros(n) for _ in range(5)), clamped=np.zeros(n, dtype=bool))
+        return cls(*(np.zeros(n) for _ in range(6)), clamped=np.zeros(n, dtype=bool))
 
 
 def _out(out: np.ndarray | None, n: int) -> np.ndarray:
@@ -202,7 +209,8 @@ def startup_weight(dq_rad_s: np.ndarray, p: LawParams, out: np.ndarray | None = 
     np.abs(dq_rad_s, out=x)
     x -= p.rest_threshold_rad_s
     x /= p.fade_width_rad_s
-    np.clip(x, 0.0, 1.0, out=x)
+    np.maximum(x, 0.0, out=x)
+    np.minimum(x, 1.0, out=x)
     np.multiply(x, 2.0, out=out)
     out -= 3.0
     out *= x
@@ -236,6 +244,14 @@ def back_emf_current(dq_rad_s: np.ndarray, p: LawParams, out: np.ndarray | None 
     return out
 
 
+def damping_current(dq_rad_s: np.ndarray, p: LawParams, out: np.ndarray | None = None) -> np.ndarray:
+    """Virtual damping −b·q̇/K_t."""
+    out = _out(out, dq_rad_s.shape[0])
+    np.multiply(p.damping_A_s_per_rad, dq_rad_s, out=out)
+    np.negative(out, out=out)
+    return out
+
+
 def clamp_current(current_A: np.ndarray, limit_A: np.ndarray, out: np.ndarray | None = None,
                   clamped: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Clamp |I| ≤ limit per joint; return (clamped current, mask of joints that hit their limit)."""
@@ -244,7 +260,10 @@ def clamp_current(current_A: np.ndarray, limit_A: np.ndarray, out: np.ndarray | 
     clamped = np.zeros(n, dtype=bool) if clamped is None else clamped
     np.abs(current_A, out=out)
     np.greater(out, limit_A, out=clamped)
-    np.clip(current_A, -limit_A, limit_A, out=out)
+    np.minimum(current_A, limit_A, out=out)
+    np.negative(out, out=out)  # the lower bound as an upper bound on -I: no temporary array
+    np.minimum(out, limit_A, out=out)
+    np.negative(out, out=out)
     return out, clamped
 
 
@@ -273,10 +292,15 @@ def compensate(tau_g_Nm: np.ndarray, dq_rad_s: np.ndarray, t_s: float, p: LawPar
         back_emf_current(dq_rad_s, p, out.back_emf_A)
     else:
         out.back_emf_A.fill(0.0)
+    if p.use_damping:
+        damping_current(dq_rad_s, p, out.damping_A)
+    else:
+        out.damping_A.fill(0.0)
     total = ws.total
     np.add(out.gravity_A, out.friction_A, out=total)
     total += out.startup_A
     total += out.back_emf_A
+    total += out.damping_A
     if extra_A is not None:
         total += extra_A
     clamp_current(total, p.current_limit_A, out.current_A, out.clamped)

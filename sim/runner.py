@@ -7,7 +7,8 @@ the sim then runs behind real time: rtf < 1). The SimNetwork reader thread answe
 (JSON lines, dragd's protocol) runs in its own asyncio thread. The physics lock is held for one tick's batch.
 
 Control commands: ``state``, ``operator`` (scenario dict or file, starting now), ``operator_events``,
-``set_q`` (teleport, only while every drive's power stage is off), ``drives``, ``stop``.
+``set_q`` (teleport, only while every drive's power stage is off), ``drives``, ``fault`` (inject a
+device fault into one drive), ``stop``.
 """
 
 from __future__ import annotations
@@ -343,6 +344,17 @@ class SimProcess:
         @table.command("drives")
         def drives() -> dict[str, Any]:
             return {"drives": self.drive_report()}
+
+        @table.command("fault")
+        def fault(node_id: int, code: int = 0x2310) -> dict[str, Any]:
+            """Raise a device fault in one drive (EMCY + its fault reaction), e.g. 0x2310 over-current."""
+            drive = next((d for d in self.drives if d.node_id == node_id), None)
+            if drive is None:
+                raise ControlError(f"fault: node_id: expected one of {[d.node_id for d in self.drives]}, got {node_id!r}")
+            if not 0 < int(code) <= 0xFFFF:
+                raise ControlError(f"fault: code: expected an EMCY error code 0x0001..0xFFFF, got {code!r}")
+            drive.inject_fault(int(code))
+            return {"node_id": node_id, "code": int(code)}
 
         @table.command("stop")
         def stop() -> dict[str, Any]:

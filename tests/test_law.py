@@ -114,11 +114,18 @@ def test_back_emf_term_switch(params):
     assert np.allclose(o.back_emf_A, 0.0)
 
 
+def test_damping_opposes_motion(params):
+    o = compensate(np.zeros(6), np.full(6, 0.2), 0.0, params)
+    assert np.all(o.damping_A < 0)
+    assert np.allclose(o.damping_A, -0.2 * params.damping_A_s_per_rad)
+
+
 def test_every_term_switchable(params):
     g = np.full(6, 5.0)
     dq = np.full(6, 0.005)
     base = compensate(g, dq, 0.01, params)
-    for flag, field in [("use_gravity", "gravity_A"), ("use_friction", "friction_A"), ("use_startup", "startup_A")]:
+    for flag, field in [("use_gravity", "gravity_A"), ("use_friction", "friction_A"), ("use_startup", "startup_A"),
+                        ("use_damping", "damping_A")]:
         assert np.any(getattr(base, field) != 0)
         off = compensate(g, dq, 0.01, params.replace(**{flag: False}))
         assert np.all(getattr(off, field) == 0)
@@ -132,13 +139,13 @@ def test_in_place_evaluation_matches_allocating(params):
         a = compensate(g, dq, t, params)
         b = compensate(g, dq, t, params, out, ws)
         assert np.array_equal(a.current_A, b.current_A) and np.array_equal(a.friction_A, b.friction_A)
-        assert np.allclose(a.current_A, np.clip(a.gravity_A + a.friction_A + a.startup_A + a.back_emf_A,
+        assert np.allclose(a.current_A, np.clip(a.gravity_A + a.friction_A + a.startup_A + a.back_emf_A + a.damping_A,
                                                 -params.current_limit_A, params.current_limit_A))
 
 
 def test_cli_current_is_sum_of_parts():
     out = cli_json("model", "current", "--q", "0,0.3,0.2,0.1,0.5,0", "--dq", "0,0.1,-0.1,0,0.012,0", "--t", "0.013")
-    parts = np.array(out["gravity_A"]) + np.array(out["friction_A"]) + np.array(out["startup_A"])
+    parts = sum(np.array(out[k]) for k in ("gravity_A", "friction_A", "startup_A", "back_emf_A", "damping_A"))
     assert np.allclose(out["current_A"], parts)
     assert out["friction_A"][1] > 0 and out["friction_A"][2] < 0
 

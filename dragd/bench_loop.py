@@ -1,0 +1,81 @@
+"""Loop benchmarks: the daemon's 1 kHz cycle with the simulated robot beside it (separate processes).
+
+One session (default 60 s of drag, `--seconds`) yields ``loop_period_p99_us``, ``loop_missed_ratio``,
+``loop_compute_us`` and ``sim_rtf``; running several of them in one ``dragd bench`` call shares the session.
+``bus_load`` is the worst-case load of the configured PDO layout (no session needed).
+"""
+
+from __future__ import annotations
+
+import time
+from functools import lru_cache
+from pathlib import Path
+
+from .bench import benchmark
+
+
+@lru_cache(maxsize=4)
+def _session(seconds: float, config: str | None) -> dict:
+    from .procs import Rig
+
+    with Rig("bench", config=Path(config) if config else None) as rig:
+        rig.start_sim()
+        rig.start_daemon()
+        rig.must("start")
+        time.sleep(0.5)
+        rig.must("mode", mode="drag")
+        rig.sim_call("operator", scenario="flange_drag")
+        before = rig.must("status")
+        sim0, w0 = rig.sim_call("state"), time.monotonic()
+        time.sleep(seconds)
+        sim1, w1 = rig.sim_call("state"), time.monotonic()
+        after = rig.must("status")
+        rig.must("stop")
+    cycles = after["cycles"] - before["cycles"]
+    missed = after["missed_cycles"] - before["missed_cycles"]
+    return {
+        "period_p99_us": after["period_p99_us"],
+        "missed_ratio": missed / max(1, cycles + missed),
+        "compute_p50_us": after["compute_p50_us"],
+        "rtf": (sim1["t"] - sim0["t"]) / (w1 - w0),  # sim time over wall time, this session only
+    }
+
+
+def _opts(opts: dict) -> tuple[float, str | None]:
+    return float(opts.get("seconds", 60.0)), str(opts["config"]) if opts.get("config") else None
+
+
+@benchmark("loop_period_p99_us", "us")
+def loop_period_p99_us(opts: dict) -> float:
+    """99th percentile of the cycle period with the simulated robot beside the daemon (drag, operator pushing)."""
+    return float(_session(*_opts(opts))["period_p99_us"])
+
+
+@benchmark("loop_missed_ratio", "ratio")
+def loop_missed_ratio(opts: dict) -> float:
+    """Missed ticks / ticks over the session (timerfd expirations > 1)."""
+    return float(_session(*_opts(opts))["missed_ratio"])
+
+
+@benchmark("loop_compute_us", "us")
+def loop_compute_us(opts: dict) -> float:
+    """Median time from the last TPDO (or the deadline) to the RPDOs sent: estimate + compute + write."""
+    return float(_session(*_opts(opts))["compute_p50_us"])
+
+
+@benchmark("sim_rtf", "ratio")
+def sim_rtf(opts: dict) -> float:
+    """Real-time factor of the simulated robot (sim time / wall time) while the daemon runs beside it."""
+    return float(_session(*_opts(opts))["rtf"])
+
+
+@benchmark("bus_load", "%")
+def bus_load(opts: dict) -> float:
+    """Worst-case bus load (bit stuffing included) of the configured PDO layout, highest over the buses."""
+    from .config import load_config
+    from .daemon import bus_layouts
+
+    cfg = load_config(opts.get("config"))
+    layouts = bus_layouts(cfg)
+    return max(layouts[b.name].budget(cfg.loop.rate_Hz, b.bitrate, b.data_bitrate, 1000.0 / cfg.master.heartbeat_ms).percent
+               for b in cfg.buses)

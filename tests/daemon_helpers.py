@@ -1,0 +1,50 @@
+"""Helpers for the daemon integration tests: configs derived from the default, MCAP rows, waiting."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from mcap.reader import make_reader
+
+from conftest import DEFAULT_CONFIG
+
+
+def derived_config(tmp: Path, name: str, edit: Callable[[dict], None]) -> Path:
+    """A copy of config/default.yaml with ``edit`` applied, written next to the test's files."""
+    data = yaml.safe_load(DEFAULT_CONFIG.read_text())
+    data["robot"]["urdf"] = "seed_cobot"
+    edit(data)
+    path = tmp / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def cycle_rows(mcap_path: Path) -> dict[str, np.ndarray]:
+    """Every /dragd/cycle row of a telemetry file as arrays (one row per cycle)."""
+    cols: dict[str, list[Any]] = {}
+    with open(mcap_path, "rb") as fh:
+        for _, channel, message in make_reader(fh).iter_messages(topics=["/dragd/cycle"]):
+            row = json.loads(message.data)
+            for k, v in row.items():
+                cols.setdefault(k, []).append(v)
+    return {k: np.array(v) for k, v in cols.items()}
+
+
+def wait_for(cond: Callable[[], bool], timeout_s: float, what: str) -> None:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if cond():
+            return
+        time.sleep(0.02)
+    raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+
+
+def deg(x: float) -> float:
+    return math.degrees(x)
