@@ -237,8 +237,8 @@ class Daemon:
                 if fr.direction == "tpdo":
                     (slot,) = fr.slots
                     table[fr.cob_id] = (slot.joint, struct.Struct(slot.fmt), slot.fields)
-                elif fr.cyclic or fr.name.startswith("RPDO1"):
-                    enc = RpdoEncoder(fr, fd)
+                else:
+                    enc = RpdoEncoder(fr, fd, min_interval_s=1.0 / fr.max_rate_Hz)
                     msg = can.Message(arbitration_id=fr.cob_id, data=enc.buffer, is_extended_id=False,
                                       is_fd=fd, bitrate_switch=fd, dlc=len(enc.buffer))
                     self._cmd_msgs.append((bus, msg, enc))
@@ -561,8 +561,11 @@ class Daemon:
                     codec.pack_into(buf, off, int(self.offset_permille[j]))
                 else:
                     codec.pack_into(buf, off, int(self.cw[j]))
+            if not enc.due(self.t):
+                continue
             try:
                 bus.send(msg, timeout=0)
+                enc.sent(self.t)
             except can.CanError:
                 self.tx_errors += 1
 

@@ -204,8 +204,27 @@ class TpdoDecoder:
 class RpdoEncoder:
     """One outgoing frame: a preallocated buffer and per-slot precompiled structs."""
 
-    def __init__(self, frame: FrameLayout, fd: bool) -> None:
+    def __init__(self, frame: FrameLayout, fd: bool, min_interval_s: float = 0.0, keepalive_s: float = 0.1) -> None:
         self.frame = frame
         self.buffer = bytearray(frame.data_bytes)
         self.slots = [(s.joint, s.offset, struct.Struct(s.fmt), s.fields) for s in frame.slots]
         self.fd = fd and frame.direction == "rpdo"
+        self.cyclic = frame.cyclic
+        # event frames: sent when the payload changes (at most every min_interval_s) and as a keep-alive
+        self.min_interval_s = min_interval_s if not frame.cyclic else 0.0
+        self.keepalive_s = keepalive_s
+        self.last_sent_s = -1e9
+        self.last_payload = bytearray(frame.data_bytes)
+
+    def due(self, t_s: float) -> bool:
+        """Whether an event frame should go out now (cyclic frames always do)."""
+        if self.cyclic:
+            return True
+        since = t_s - self.last_sent_s
+        if since < self.min_interval_s:
+            return False
+        return since >= self.keepalive_s or self.buffer != self.last_payload
+
+    def sent(self, t_s: float) -> None:
+        self.last_sent_s = t_s
+        self.last_payload[:] = self.buffer
