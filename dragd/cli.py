@@ -219,7 +219,7 @@ _EXTRA_COMMANDS: list[Callable[[Any], None]] = []
 def _load_extra_commands() -> None:
     import importlib
 
-    for mod in ("dragd.cli_daemon",):
+    for mod in ("dragd.cli_daemon", "dragd.cli_identify", "dragd.cli_teach", "dragd.cli_gap", "dragd.cli_experiment"):
         try:
             m = importlib.import_module(mod)
         except ModuleNotFoundError as exc:

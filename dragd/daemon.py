@@ -28,6 +28,7 @@ from typing import Any
 
 import can
 import numpy as np
+from scipy.interpolate import CubicSpline  # imported at start-up: an import in the loop's process stalls it
 
 from . import sdnotify
 from .bus import open_bus, parse_bus
@@ -35,7 +36,7 @@ from .cia402 import (CMD_DISABLE_VOLTAGE, CMD_ENABLE_OPERATION, CMD_QUICK_STOP, 
                      decode_statusword, next_controlword)
 from .config import Config
 from .control import ControlServer
-from .law import LawOutput, LawParams, Workspace, compensate
+from .law import LawOutput, LawParams, Workspace, compensate, friction_current
 from .master import MODE_CSP, MODE_CST, DriveError, Master
 from .model import RobotModel
 from .pdo import SYNC_COB_ID, BusLayout, RpdoEncoder, layout_for
@@ -85,29 +86,49 @@ def check_bus_budget(cfg: Config, layouts: dict[str, BusLayout]) -> dict[str, An
     return report
 
 
-@dataclass
 class Trajectory:
-    """A joint trajectory for TRACK mode: samples t [s] (from 0) and q [rad], cubic interpolation."""
+    """A joint trajectory for TRACK mode, resampled once (off the loop) at the loop period.
 
-    t_s: np.ndarray
-    q_rad: np.ndarray
-    label: str = "track"
+    From samples t [s] (from 0, increasing) and q [rad] with a clamped cubic spline; the cycle then indexes the
+    table (O(1), no allocation). ``load`` reads the same from a .npz (arrays ``t_s``, ``q_rad``) or CSV file
+    (``t,q1..qN``).
+    """
 
-    def __post_init__(self) -> None:
-        from scipy.interpolate import CubicSpline
-
-        if self.t_s.ndim != 1 or self.q_rad.ndim != 2 or self.q_rad.shape[0] != self.t_s.shape[0]:
-            raise ValueError(f"trajectory: expected t (N,) and q (N, joints), got {self.t_s.shape} and {self.q_rad.shape}")
-        if np.any(np.diff(self.t_s) <= 0):
+    def __init__(self, t_s: np.ndarray, q_rad: np.ndarray, dt_s: float, label: str = "track") -> None:
+        t_s = np.asarray(t_s, dtype=float)
+        q_rad = np.asarray(q_rad, dtype=float)
+        if t_s.ndim != 1 or q_rad.ndim != 2 or q_rad.shape[0] != t_s.shape[0] or t_s.shape[0] < 2:
+            raise ValueError(f"trajectory: expected t (N ≥ 2,) and q (N, joints), got {t_s.shape} and {q_rad.shape}")
+        if not (np.all(np.isfinite(t_s)) and np.all(np.isfinite(q_rad))):
+            raise ValueError("trajectory: t and q must be finite numbers")
+        if np.any(np.diff(t_s) <= 0):
             raise ValueError("trajectory: t must increase strictly")
-        self._spline = CubicSpline(self.t_s, self.q_rad, bc_type="clamped")
+        if t_s[0] != 0.0:
+            raise ValueError(f"trajectory: t must start at 0, got {t_s[0]}")
+        self.label = label
+        self.dt_s = dt_s
+        self.duration_s = float(t_s[-1])
+        grid = np.arange(0.0, self.duration_s + dt_s / 2, dt_s)
+        self.table = np.ascontiguousarray(CubicSpline(t_s, q_rad, bc_type="clamped")(grid))
+        self.start_q = self.table[0].copy()
 
-    @property
-    def duration_s(self) -> float:
-        return float(self.t_s[-1])
+    @classmethod
+    def load(cls, path: str | Path, dt_s: float, label: str = "track") -> Trajectory:
+        path = Path(path)
+        if not path.is_file():
+            raise ValueError(f"trajectory file {path}: not found")
+        try:
+            if path.suffix == ".npz":
+                with np.load(path) as z:
+                    return cls(z["t_s"], z["q_rad"], dt_s, label)
+            data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+        except (KeyError, ValueError, OSError) as exc:
+            raise ValueError(f"trajectory file {path}: expected .npz with t_s, q_rad or CSV t,q1..qN: {exc}") from None
+        return cls(data[:, 0], data[:, 1:], dt_s, label)
 
     def sample(self, t: float, out: np.ndarray) -> np.ndarray:
-        out[:] = self._spline(min(max(t, 0.0), self.duration_s))
+        k = int(t / self.dt_s + 0.5)
+        out[:] = self.table[min(max(k, 0), self.table.shape[0] - 1)]
         return out
 
 
@@ -154,6 +175,7 @@ class Daemon:
         self.q = np.zeros(n)
         self.q_hold = np.zeros(n)
         self.q_ref = np.zeros(n)
+        self.dq_ref = np.zeros(n)
         self.current_meas_A = np.zeros(n)
         self.tau_g = np.zeros(n)
         self.extra_A = np.zeros(n)
@@ -202,6 +224,10 @@ class Daemon:
         self.buses: dict[str, can.BusABC] = {}
         self.encoders: list[RpdoEncoder] = []
         self.telemetry = None
+        self.recording = None  # a second writer for a time window (`record start|stop`)
+        self.recording_path: str | None = None
+        self._writers: list[Any] = []
+        self._cols = self._layout_columns()
         self._waiter: asyncio.Future | None = None
         self._expect_mask = np.ones(n, dtype=bool)
         self._tpdo: dict[str, dict[int, tuple[int, struct.Struct, tuple[str, ...]]]] = {}
@@ -358,15 +384,17 @@ class Daemon:
         """Switch the drives to CSP and follow ``traj`` (entry point of identification runs and replay)."""
         if self.mode not in (Mode.HOLD, Mode.DRAG):
             raise ValueError(f"track: expected the arm enabled in hold or drag, it is {MODE_NAMES[self.mode]}")
-        if traj.q_rad.shape[1] != self.n:
-            raise ValueError(f"track: expected {self.n} joints per sample, got {traj.q_rad.shape[1]}")
-        start_err = np.abs(traj.q_rad[0] - self.q)
+        if traj.table.shape[1] != self.n:
+            raise ValueError(f"track: expected {self.n} joints per sample, got {traj.table.shape[1]}")
+        start_err = np.abs(traj.start_q - self.q)
         if np.any(start_err > 0.02):
             raise ValueError(f"track: the trajectory starts {np.degrees(start_err.max()):.2f}° from the current pose "
                              "(max 1.1°); move there first")
         self.q_hold[:] = self.q
         self._set_mode(Mode.HOLD)
         await self._switch_drive_mode(MODE_CSP)
+        traj.sample(0.0, self.q_ref)
+        self.dq_ref.fill(0.0)
         self.trajectory = traj
         self.track_t0 = self.t
         self._set_mode(Mode.TRACK)
@@ -483,8 +511,9 @@ class Daemon:
             compensate(self.tau_g, self.dq, self.t, self.params, self.law_out, self.ws, self.extra_A)
             out[:] = self.law_out.current_A
             return
-        if mode == Mode.TRACK:  # CSP: the drive's position loop tracks; the torque offset feeds gravity forward
-            out.fill(0.0)
+        if mode == Mode.TRACK:  # CSP: the drive's position loop tracks; the offset feeds gravity + friction forward
+            friction_current(self.dq_ref, self.params, out, self.ws)
+            out *= self.kt
         else:  # HOLD: gravity + joint PD around the pose
             np.subtract(self.q_hold, self.q, out=out)
             out *= s.hold_kp_Nm_per_rad
@@ -509,7 +538,10 @@ class Daemon:
         self.current_meas_A /= 1000.0
         self.model.gravity(self.q, self.tau_g)
         if self.trajectory is not None and self.mode == Mode.TRACK:
+            self.dq_ref[:] = self.q_ref
             self.trajectory.sample(self.t - self.track_t0, self.q_ref)
+            self.dq_ref -= self.q_ref
+            self.dq_ref /= -self.dt
             if self.t - self.track_t0 > self.trajectory.duration_s:
                 self.q_hold[:] = self.q_ref
                 self.trajectory = None
@@ -572,12 +604,13 @@ class Daemon:
     tx_errors = 0
 
     def _log_row(self, period_us: float, compute_us: float) -> None:
-        tw = self.telemetry
-        if tw is None:
-            return
-        row = tw.begin()
-        if row is None:
-            return
+        for tw in self._writers:
+            row = tw.begin()
+            if row is not None:
+                self._fill_row(row, period_us, compute_us)
+                tw.commit()
+
+    def _fill_row(self, row: np.ndarray, period_us: float, compute_us: float) -> None:
         c = self._cols
         row[c["t_s"]] = self.t
         row[c["mode"]] = int(self.mode)
@@ -593,7 +626,6 @@ class Daemon:
         row[c["rx"]] = self.rx
         row[c["period_us"]] = period_us
         row[c["compute_us"]] = compute_us
-        tw.commit()
 
     async def _cycle_loop(self) -> None:
         loop = asyncio.get_running_loop()
@@ -720,6 +752,7 @@ class Daemon:
             "tx_errors": self.tx_errors,
             "clamp_cycles": self.clamp_cycles,
             "telemetry": self.telemetry.stats() if self.telemetry is not None else None,
+            "recording": self.recording_path,
             "t_s": self.t,
         }
 
@@ -744,15 +777,31 @@ class Daemon:
                 self.set_mode(str(req.get("mode")))
                 return {"ok": True, "mode": MODE_NAMES[self.mode]}
             if cmd == "track":
-                traj = Trajectory(np.asarray(req["t_s"], dtype=float), np.asarray(req["q_rad"], dtype=float),
-                                  str(req.get("label", "track")))
+                # built off the loop: resampling a long trajectory would stall the cycle
+                loop = asyncio.get_running_loop()
+                label = str(req.get("label", "track"))
+                if "file" in req:
+                    traj = await loop.run_in_executor(None, Trajectory.load, req["file"], self.dt, label)
+                else:
+                    traj = await loop.run_in_executor(None, Trajectory, req["t_s"], req["q_rad"], self.dt, label)
                 await self.track(traj)
                 return {"ok": True, "mode": MODE_NAMES[self.mode], "duration_s": traj.duration_s}
+            if cmd == "record":
+                action = req.get("action")
+                if action == "start":
+                    path = await self.start_recording(str(req["path"]), str(req.get("label", "")))
+                    return {"ok": True, "recording": path}
+                if action == "stop":
+                    return {"ok": True, **(await self.stop_recording())}
+                return {"ok": False, "error": f"record: action: expected 'start' or 'stop', got {action!r}"}
             if cmd == "shutdown":
                 self.request_exit()
                 return {"ok": True}
-            return {"ok": False, "error": f"unknown command '{cmd}'; expected status, start, stop, mode, track, shutdown"}
-        except (ValueError, KeyError, DriveError) as exc:
+            return {"ok": False, "error": f"unknown command '{cmd}'; expected status, start, stop, mode, track, record, "
+                                         "shutdown"}
+        except KeyError as exc:
+            return {"ok": False, "error": f"{cmd}: missing field {exc}"}
+        except (ValueError, DriveError, OSError) as exc:
             return {"ok": False, "error": str(exc)}
 
     async def _wait_for(self, cond, timeout_s: float) -> bool:  # noqa: ANN001
@@ -795,6 +844,40 @@ class Daemon:
                 "gravity_A": n, "friction_A": n, "startup_A": n, "damping_A": n, "statusword": Field(n, kind="int"), "rx": Field(n, kind="bool"), "period_us": 1,
                 "compute_us": 1}
 
+    def _layout_columns(self) -> dict[str, Any]:
+        """Column index (width 1) or slice of every telemetry field in a row."""
+        cols, k = {}, 0
+        for name, f in self._telemetry_layout().items():
+            width = f if isinstance(f, int) else f.width
+            cols[name] = k if width == 1 else slice(k, k + width)
+            k += width
+        return cols
+
+    async def start_recording(self, path: str, label: str = "") -> str:
+        """Record every cycle to a separate MCAP file until ``stop_recording`` (identification runs, teach)."""
+        from .telemetry import TelemetryWriter
+
+        if self.recording is not None:
+            raise ValueError(f"record: already recording to {self.recording_path}; stop it first")
+        loop = asyncio.get_running_loop()
+        writer = await loop.run_in_executor(None, lambda: TelemetryWriter(
+            path, self._telemetry_layout(), capacity=self.cfg.telemetry.capacity_rows, on_exists="error",
+            metadata={"label": label, "config": self.cfg.source}, avoid_cpus=set(self.cfg.loop.cpus or ())))
+        self.recording, self.recording_path = writer, str(path)
+        writer.event("record_start", label=label, joints=self.cfg.joint_names)
+        self._writers = [w for w in (self.telemetry, self.recording) if w is not None]
+        return self.recording_path
+
+    async def stop_recording(self) -> dict[str, Any]:
+        if self.recording is None:
+            raise ValueError("record: not recording")
+        writer, path = self.recording, self.recording_path
+        self.recording, self.recording_path = None, None
+        self._writers = [w for w in (self.telemetry,) if w is not None]
+        writer.event("record_stop")
+        await writer.aclose()
+        return {"path": path, **writer.stats()}
+
     def _open_telemetry(self) -> None:
         if not self.telemetry_path:
             return
@@ -804,7 +887,7 @@ class Daemon:
         self.telemetry = TelemetryWriter(self.telemetry_path, self._telemetry_layout(), capacity=tc.capacity_rows,
                                          rerun=self.rerun, max_bytes=tc.max_file_MiB * 2**20,
                                          keep_rotated=tc.keep_rotated, avoid_cpus=set(self.cfg.loop.cpus or ()))
-        self._cols = {name: (sl.start if sl.stop - sl.start == 1 else sl) for name, sl in self.telemetry.slices.items()}
+        self._writers = [w for w in (self.telemetry, self.recording) if w is not None]
         self.telemetry.event("start", config=self.cfg.source, joints=self.cfg.joint_names)
 
     async def run(self) -> int:
@@ -851,6 +934,8 @@ class Daemon:
                 await server.close()
             if self.master is not None:
                 await self.master.shutdown()
+            if self.recording is not None:
+                await self.stop_recording()
             if self.telemetry is not None:
                 self.telemetry.event("stop", cycles=self.cycles)
                 await self.telemetry.aclose()

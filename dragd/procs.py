@@ -86,16 +86,21 @@ def wait_until(cond: Callable[[], bool], timeout_s: float, what: str, child: Chi
 
 
 class Rig:
-    """The simulated robot and (optionally) the daemon, each its own process, on a private multicast group."""
+    """The simulated robot and (optionally) the daemon, each its own process, on a private multicast group.
+
+    ``bus`` ("INTERFACE:CHANNEL", e.g. ``socketcan:vcan0``) puts both on that bus instead of a multicast group.
+    """
 
     def __init__(self, tag: str = "rig", workdir: Path | None = None, config: Path | None = None,
                  sim_config: Path | None = None, telemetry: Path | None = None, group: str | None = None,
                  sim_args: list[str] | None = None, daemon_args: list[str] | None = None,
-                 env: dict[str, str] | None = None) -> None:
+                 env: dict[str, str] | None = None, bus: str | None = None) -> None:
         self.workdir = Path(workdir or tempfile.mkdtemp(prefix=f"dragd-{tag}-"))
         self.workdir.mkdir(parents=True, exist_ok=True)
-        self.group = group or multicast_group(tag)
-        self.bus = f"udp_multicast:{self.group}"
+        if bus is not None and group is not None:
+            raise ValueError(f"Rig: give either bus ({bus!r}) or group ({group!r}), not both")
+        self.group = None if bus is not None else (group or multicast_group(tag))
+        self.bus = bus if bus is not None else f"udp_multicast:{self.group}"
         self.config = config
         self.sim_config = sim_config
         self.telemetry = telemetry

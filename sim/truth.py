@@ -51,6 +51,7 @@ class DriveHardware(_Strict):
     encoder_counts_per_rev: PosInt  # per joint revolution (absolute output encoder)
     csp_kp_A_per_rad: NonNegFloat = 40.0  # cyclic synchronous position loop, amperes of demand
     csp_kd_A_s_per_rad: NonNegFloat = 2.0  # ... and the CSV velocity-loop gain
+    csp_ki_A_per_rad_s: NonNegFloat = 0.0  # integral of the position error (removes the friction offset)
     quickstop_decel_rad_s2: PosFloat = 10.0  # 6085h
     slowdown_decel_rad_s2: PosFloat = 4.0  # 6084h
     brake_release_delay_s: NonNegFloat = 0.05  # operation enabled -> brake released
@@ -283,6 +284,7 @@ def drive_params(joint: JointTruth, fd: bool) -> DriveParams:
         max_torque_permille=hw.max_torque_permille,
         csp_kp_A_per_rad=hw.csp_kp_A_per_rad,
         csp_kd_A_s_per_rad=hw.csp_kd_A_s_per_rad,
+        csp_ki_A_per_rad_s=hw.csp_ki_A_per_rad_s,
         quickstop_decel_rad_s2=hw.quickstop_decel_rad_s2,
         slowdown_decel_rad_s2=hw.slowdown_decel_rad_s2,
         brake_release_delay_s=hw.brake_release_delay_s,

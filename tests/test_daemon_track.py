@@ -1,0 +1,60 @@
+"""TRACK: the CSP entry point that identification runs and replay use — switch to CSP, follow, back to CST."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from dragd.procs import Rig
+
+from daemon_helpers import cycle_rows, wait_for
+
+
+def test_track_follows_trajectory_in_csp_and_returns_to_hold(tmp_path):
+    mcap = tmp_path / "track.mcap"
+    with Rig("track", workdir=tmp_path, telemetry=mcap) as rig:
+        rig.start_sim()
+        rig.start_daemon()
+        rig.must("start")
+        time.sleep(0.3)
+        q0 = np.array(rig.must("status")["q_rad"])
+        t = np.linspace(0.0, 3.0, 31)
+        step = np.array([0.2, 0.1, -0.1, 0.15, 0.1, 0.2])
+        q = q0 + np.outer((1 - np.cos(np.pi * t / 3.0)) / 2, step)
+        np.savez(tmp_path / "traj.npz", t_s=t, q_rad=q)
+        bad = rig.call("track", t_s=[0.0, 1.0], q_rad=[(q0 + 0.5).tolist(), q0.tolist()])
+        assert not bad["ok"] and "starts" in bad["error"]  # refuses a jump to a far start
+        resp = rig.must("track", file=str(tmp_path / "traj.npz"), label="identify")
+        assert resp["mode"] == "track" and resp["duration_s"] == 3.0
+        s = rig.must("status")
+        assert s["drive_mode"] == "csp" and s["trajectory"]["label"] == "identify"
+        wait_for(lambda: rig.must("status")["mode"] == "hold", 6.0, "the end of the motion")
+        wait_for(lambda: rig.must("status")["drive_mode"] == "cst", 2.0, "the drives back in CST")
+        time.sleep(0.3)
+        end = rig.must("status")
+        sim = np.array(rig.sim_call("state")["q_rad"])
+        rig.must("stop")
+    assert end["faults"] == []
+    err = np.degrees(np.abs(sim - q[-1]))
+    assert err.max() < 0.5, err  # the drives' own PD loops with gravity + friction fed forward
+    rows = cycle_rows(mcap)
+    assert "track" in set(rows["mode"])
+
+
+def test_record_window_to_separate_mcap(tmp_path):
+    with Rig("record", workdir=tmp_path) as rig:
+        rig.start_sim()
+        rig.start_daemon()
+        rig.must("start")
+        path = tmp_path / "window.mcap"
+        assert rig.must("record", action="start", path=str(path), label="unit")["recording"] == str(path)
+        again = rig.call("record", action="start", path=str(tmp_path / "other.mcap"))
+        assert not again["ok"] and "already recording" in again["error"]
+        time.sleep(0.5)
+        stats = rig.must("record", action="stop")
+        assert not rig.call("record", action="stop")["ok"]
+        rig.must("stop")
+    rows = cycle_rows(path)
+    assert 400 < len(rows["t_s"]) < 700 and stats["written"] == len(rows["t_s"])
+    assert set(rows["mode"]) == {"hold"}
