@@ -40,7 +40,7 @@ from typing import Any
 import can
 import msgpack
 
-INTERFACES = ("socketcan", "udp_multicast", "virtual")
+INTERFACES = ("socketcan", "udp_multicast", "virtual")  # handled here; any other python-can interface goes to can.Bus
 DEFAULT_UDP_PORT = 43113
 DEFAULT_RCVBUF_BYTES = 4 * 1024 * 1024
 _IFNAME = re.compile(r"^[A-Za-z0-9_.\-]{1,15}$")
@@ -76,8 +76,9 @@ def parse_bus(text: str, *, bitrate: int = 1_000_000, fd: bool = False, data_bit
     interface, sep, channel = text.strip().partition(":")
     if not sep or not channel:
         raise ValueError(f"bus {text!r}: missing channel; {expected}")
-    if interface not in INTERFACES:
-        raise ValueError(f"bus {text!r}: unknown interface {interface!r}; {expected}")
+    if interface not in INTERFACES and interface not in can.interfaces.VALID_INTERFACES:
+        raise ValueError(f"bus {text!r}: unknown interface {interface!r}; {expected}, or another python-can interface "
+                         f"({', '.join(sorted(set(can.interfaces.VALID_INTERFACES) - set(INTERFACES)))})")
     if interface == "socketcan" and not _IFNAME.match(channel):
         raise ValueError(f"bus {text!r}: {channel!r} is not a network interface name "
                          "(expected 1-15 characters of letters, digits, '_', '.', '-', e.g. can0 or vcan0)")
@@ -138,7 +139,13 @@ def open_bus(spec: BusSpec, *, receive_own_messages: bool = False, udp_port: int
             raise can.CanInitializationError(f"bus {spec}: SocketCAN unavailable: {reason}")
         return can.Bus(interface="socketcan", channel=spec.channel, fd=spec.fd,
                        receive_own_messages=receive_own_messages)
-    raise ValueError(f"bus {spec}: unknown interface {spec.interface!r}; expected one of {', '.join(INTERFACES)}")
+    if spec.interface in can.interfaces.VALID_INTERFACES:  # pcan, kvaser, vector, slcan, ...: python-can's plugin
+        kwargs: dict[str, Any] = {"bitrate": spec.bitrate, "receive_own_messages": receive_own_messages}
+        if spec.fd:
+            kwargs.update(fd=True, data_bitrate=spec.data_bitrate)
+        return can.Bus(interface=spec.interface, channel=spec.channel, **kwargs)
+    raise ValueError(f"bus {spec}: unknown interface {spec.interface!r}; expected one of {', '.join(INTERFACES)} "
+                     "or another python-can interface")
 
 
 @dataclass(frozen=True)

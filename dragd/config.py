@@ -50,7 +50,7 @@ class RobotConfig(_Strict):
 
 class BusConfig(_Strict):
     name: str = "arm"
-    interface: Literal["socketcan", "udp_multicast", "virtual", "pcan", "kvaser", "slcan", "vector", "ixxat"] = "socketcan"
+    interface: str = "socketcan"  # socketcan, udp_multicast, virtual, or any python-can interface (pcan, kvaser, ...)
     channel: str = "can0"
     bitrate: PosInt = 1_000_000
     fd: bool = False
@@ -60,6 +60,12 @@ class BusConfig(_Strict):
 
     @model_validator(mode="after")
     def _fd_rate(self) -> BusConfig:
+        import can
+
+        if self.interface not in ("socketcan", "udp_multicast", "virtual") and \
+                self.interface not in can.interfaces.VALID_INTERFACES:
+            raise ValueError(f"interface: expected socketcan, udp_multicast, virtual or a python-can interface "
+                             f"({', '.join(sorted(can.interfaces.VALID_INTERFACES))}), got '{self.interface}'")
         if self.fd and self.data_bitrate is None:
             raise ValueError("data_bitrate: expected the CAN FD data-phase bitrate when fd is true")
         return self

@@ -318,6 +318,10 @@ class Daemon:
                             "text": text})
         if len(self.faults) > 100:
             del self.faults[:-100]
+        try:  # logged after this cycle, not inside it
+            asyncio.get_running_loop().call_soon(self.log, f"fault at t={self.t:.3f} s: {text}")
+        except RuntimeError:
+            self.log(f"fault: {text}")
         self.feedback_hold = False
         if self.mode != Mode.FAULT:
             self.prev_mode = self.mode

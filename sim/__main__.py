@@ -67,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     def ready(proc: Any) -> None:
         where = f", control at {proc.control_path}" if proc.control_path else ""
         print(f"sim: running {truth.robot} ({len(proc.drives)} drives, {truth.physics_rate_Hz} Hz physics) "
-              f"on {proc.spec}{where}", file=sys.stderr, flush=True)
+              f"on {','.join(map(str, proc.specs))}{where}", file=sys.stderr, flush=True)
         for what, item in (proc.realtime or {}).items():
             if item.get("requested") is not None or item.get("requested_priority") is not None:
                 if not item.get("applied"):

@@ -109,7 +109,12 @@ class SimProcess:
         self.robot = truth.load_model()
         self.axes = [AxisIO() for _ in truth.joints]
         self.physics = ArmPhysics(truth, self.robot, self.axes)
-        self.spec: BusSpec = parse_bus(bus or truth.bus.channel, fd=truth.bus.fd)
+        # one or more buses ("A,B"): joint j's drive sits on bus truth.joints[j].bus_index
+        self.specs: list[BusSpec] = [parse_bus(b, fd=truth.bus.fd) for b in (bus or truth.bus.channel).split(",") if b]
+        for j in truth.joints:
+            if j.bus_index >= len(self.specs):
+                raise ValueError(f"{truth.source}: joints.{j.name}.bus_index: expected < {len(self.specs)} "
+                                 f"(the number of buses given: {', '.join(map(str, self.specs))}), got {j.bus_index}")
         self.scenario = None if scenario is None else (
             load_scenario(scenario) if isinstance(scenario, (str, Path)) else validate_scenario(scenario))
         self.control_path = None if control_path is None else str(control_path)
@@ -117,9 +122,9 @@ class SimProcess:
         self.operator: Operator | None = None
         self.lock = threading.Lock()
         self._stop = threading.Event()
-        self.bus: Any = None
+        self.buses: list[Any] = []
         self.drives: list[SimDrive] = []
-        self.network: SimNetwork | None = None
+        self.networks: list[SimNetwork] = []
         # run statistics
         self.substeps = truth.physics_rate_Hz // 1000
         self.ticks = 0
@@ -153,16 +158,19 @@ class SimProcess:
         if self.realtime_priority is not None or self.cpus is not None:
             # before any thread starts: the bus reader inherits it (it answers SYNC); the control thread demotes
             self.realtime = set_realtime(self.realtime_priority, self.cpus)
-        self.bus = open_bus(self.spec)
         try:
-            self.drives = [SimDrive(drive_params(j, self.spec.fd), ax, self.bus.send)
-                           for j, ax in zip(self.truth.joints, self.axes)]
-            self.network = SimNetwork(self.bus, self.drives)
+            self.buses = [open_bus(spec) for spec in self.specs]
+            for j, ax in zip(self.truth.joints, self.axes):
+                bus, spec = self.buses[j.bus_index], self.specs[j.bus_index]
+                self.drives.append(SimDrive(drive_params(j, spec.fd), ax, bus.send))
+            self.networks = [SimNetwork(bus, [d for d, j in zip(self.drives, self.truth.joints) if j.bus_index == k])
+                             for k, bus in enumerate(self.buses)]
             if self.control_path is not None:
                 self._start_control()
             if self.scenario is not None:
                 self._set_operator(self.scenario)
-            self.network.start(boot=True)
+            for net in self.networks:
+                net.start(boot=True)
             try:
                 gc.collect()
                 gc.freeze()  # long-lived objects out of the collector's way: no multi-ms full collections
@@ -170,10 +178,12 @@ class SimProcess:
                     ready(self)
                 self._loop()
             finally:
-                self.network.stop()
+                for net in self.networks:
+                    net.stop()
         finally:
             self._stop_control()
-            self.bus.shutdown()
+            for bus in self.buses:
+                bus.shutdown()
         return self.summary()
 
     def _loop(self) -> None:
@@ -258,7 +268,7 @@ class SimProcess:
         report: dict[str, Any] = {
             "ok": True,
             "robot": self.truth.robot,
-            "bus": str(self.spec),
+            "bus": ",".join(map(str, self.specs)),
             "physics_rate_Hz": self.truth.physics_rate_Hz,
             "sim_time_s": round(self.physics.t_s, 6),
             "wall_time_s": round(wall, 6),
@@ -280,10 +290,13 @@ class SimProcess:
         }
         if self.realtime is not None:
             report["realtime"] = self.realtime
-        if self.network is not None:
-            report["network"] = vars(self.network.counters).copy()
-        if isinstance(self.bus, UdpMulticastCanBus):
-            report["bus_counters"] = vars(self.bus.counters())
+        if self.networks:
+            report["network"] = [vars(net.counters).copy() for net in self.networks]
+            if len(self.networks) == 1:
+                report["network"] = report["network"][0]
+        counters = [vars(b.counters()) for b in self.buses if isinstance(b, UdpMulticastCanBus)]
+        if counters:
+            report["bus_counters"] = counters[0] if len(counters) == 1 else counters
         if self.operator is not None:
             report["operator_events"] = list(self.operator.events)
         report["final_state"] = {k: v for k, v in self.state().items() if k in ("t", "q_rad", "dq_rad_s", "brakes")}

@@ -157,6 +157,7 @@ class JointTruth(_Strict):
     hard_stops: HardStops
     brake_holding_torque_Nm: PosFloat
     initial_position_rad: Finite = 0.0
+    bus_index: Annotated[int, Field(ge=0), Expect("a bus index >= 0")] = 0  # which of `--bus A,B,...` the drive is on
     hidden: Hidden = Hidden()
 
     @model_validator(mode="after")

@@ -61,10 +61,15 @@ def test_parse_bus_keeps_timing() -> None:
     assert (spec.bitrate, spec.fd, spec.data_bitrate) == (500_000, True, 5_000_000)
 
 
+def test_other_python_can_interfaces_parse():
+    spec = parse_bus("pcan:PCAN_USBBUS1", fd=True, data_bitrate=5_000_000)
+    assert (spec.interface, spec.channel, spec.fd) == ("pcan", "PCAN_USBBUS1", True)
+
+
 @pytest.mark.parametrize("text, words", [
     ("can0", ["'can0'", "missing channel", "INTERFACE:CHANNEL"]),
     ("socketcan:", ["missing channel"]),
-    ("pcan:PCAN_USBBUS1", ["unknown interface 'pcan'", "socketcan, udp_multicast, virtual"]),
+    ("nosuchbus:x", ["unknown interface 'nosuchbus'", "socketcan, udp_multicast, virtual", "pcan"]),
     ("socketcan:this-name-is-too-long", ["not a network interface name"]),
     ("udp_multicast:10.0.0.1", ["'10.0.0.1' is not a usable multicast group", "IPv4 multicast"]),
     ("udp_multicast:239.74.163", ["not a usable multicast group"]),

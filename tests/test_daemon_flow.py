@@ -36,7 +36,7 @@ def session(tmp_path_factory):
         out["status_hold"] = json.loads(rig.cli("status", "--json").stdout)
         time.sleep(0.5)
         p = rig.cli("mode", "drag")
-        assert p.returncode == 0, p.stderr
+        assert p.returncode == 0, (p.stderr, rig.daemon.tail())
         time.sleep(0.5)
         s0 = rig.must("status")
         sim0 = rig.sim_call("state")
@@ -58,9 +58,11 @@ def session(tmp_path_factory):
         out["push"] = (sim1, rel, rel2)
         out["status_drag"] = json.loads(rig.cli("status", "--json").stdout)
         # mode switches both ways, then stop
-        assert rig.cli("mode", "hold").returncode == 0
+        p = rig.cli("mode", "hold")
+        assert p.returncode == 0, (p.stderr, rig.daemon.tail())
         time.sleep(0.6)
-        assert rig.cli("mode", "drag").returncode == 0
+        p = rig.cli("mode", "drag")
+        assert p.returncode == 0, (p.stderr, rig.daemon.tail())
         time.sleep(0.6)
         p = rig.cli("stop", "--json")
         assert p.returncode == 0, p.stderr
