@@ -1,0 +1,285 @@
+"""Offline, faster-than-real-time identification logs: the sim's arm driven by a drive-like CSP loop.
+
+``python -m sim log --plan PLAN.npz --out log.mcap|log.csv [--seconds S] [--seed N]`` follows a joint
+trajectory (a plan written by ``dragd identify plan``: arrays ``t_s``, ``q_rad``) the way
+``dragd identify run`` does through the daemon, without a bus or real time:
+
+* every 1 ms cycle the "daemon" samples the drives (position in encoder counts, current in per mille of the
+  rated current, as TPDO1 carries them), computes the TRACK feed-forward current
+  ``G(q)/K_t + friction(q̇_ref)`` from *dragd's* configuration (its beliefs, not the truth) and sends the
+  target position with it as torque offset;
+* the drives apply the command at the next SYNC and run their CSP loop each physics step, exactly as
+  ``sim/drive.py`` does: ``kp·(q_target − q) + kd·(v_ff − q̇) (+ ki·∫e) + offset``, clamped;
+* :class:`sim.physics.ArmPhysics` integrates the arm (friction, stick–slip, Hall noise, quantisation).
+
+The MCAP has the daemon's telemetry layout (topic ``/dragd/cycle``, mode ``track``); the CSV has
+``t,q1..qN,i1..iN,dq1..dqN`` (s, rad, A, rad/s; dq is the daemon-style filtered estimate).
+This is harness code: it reads the truth; dragd/ never imports it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sim.axis import AxisIO
+from sim.physics import ArmPhysics
+from sim.truth import Truth
+
+MODE_LABELS = {0: "IDLE", 1: "HOLD", 2: "DRAG", 3: "TRACK", 4: "FAULT"}
+TRACK_MODE = 3
+STATUSWORD_ENABLED = 0x1237  # operation enabled, voltage, remote, target reached cleared
+
+
+def telemetry_layout(n: int) -> dict[str, Any]:
+    """The daemon's /dragd/cycle layout (dragd/daemon.py ``Daemon._telemetry_layout``)."""
+    from dragd.telemetry import Field
+
+    return {"t_s": 1, "mode": Field(1, kind="int", labels={k: v.lower() for k, v in MODE_LABELS.items()}),
+            "q_rad": n, "dq_rad_s": n, "current_measured_A": n, "current_command_A": n, "gravity_A": n,
+            "friction_A": n, "startup_A": n, "damping_A": n, "statusword": Field(n, kind="int"),
+            "rx": Field(n, kind="bool"), "period_us": 1, "compute_us": 1}
+
+
+def load_plan(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """(t_s, q_rad) of a plan file (.npz with t_s, q_rad; or CSV t,q1..qN)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"plan {path}: file not found")
+    try:
+        if path.suffix == ".npz":
+            with np.load(path, allow_pickle=False) as z:
+                t, q = np.asarray(z["t_s"], float), np.asarray(z["q_rad"], float)
+        else:
+            data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+            t, q = data[:, 0], data[:, 1:]
+    except (KeyError, ValueError, OSError) as exc:
+        raise ValueError(f"plan {path}: expected .npz with t_s, q_rad or CSV t,q1..qN: {exc}") from None
+    if t.ndim != 1 or q.ndim != 2 or q.shape[0] != t.shape[0] or t.shape[0] < 2:
+        raise ValueError(f"plan {path}: expected t_s (N,) and q_rad (N, joints), got {t.shape} and {q.shape}")
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q))) or np.any(np.diff(t) <= 0) or t[0] != 0.0:
+        raise ValueError(f"plan {path}: t_s must start at 0 and increase strictly, q_rad must be finite")
+    return t, q
+
+
+def resample(t_s: np.ndarray, q_rad: np.ndarray, dt_s: float) -> np.ndarray:
+    """The daemon's TRACK table: a clamped cubic spline through the plan, sampled every ``dt_s``."""
+    from scipy.interpolate import CubicSpline
+
+    grid = np.arange(0.0, float(t_s[-1]) + dt_s / 2, dt_s)
+    return np.ascontiguousarray(CubicSpline(t_s, q_rad, bc_type="clamped")(grid))
+
+
+class OfflineArm:
+    """The sim's arm plus drive-like CSP loops and the daemon's TRACK feed-forward, stepped as fast as possible."""
+
+    def __init__(self, truth: Truth, config: str | Path | None = None, rate_Hz: float = 1000.0) -> None:
+        from dragd.config import load_config
+        from dragd.law import LawParams
+
+        self.truth = truth
+        self.model = truth.load_model()
+        self.n = n = self.model.nq
+        self.cfg = load_config(config)
+        if self.cfg.joint_names != list(self.model.joint_names):
+            raise ValueError(f"{self.cfg.source}: joints {self.cfg.joint_names} differ from the sim's "
+                             f"{list(self.model.joint_names)}")
+        self.law = LawParams.from_config(self.cfg)
+        self.axes = [AxisIO() for _ in range(n)]
+        self.physics = ArmPhysics(truth, self.model, self.axes)
+        self.dt = 1.0 / rate_Hz
+        self.sub = int(round(self.dt / truth.dt_s))
+        if abs(self.sub * truth.dt_s - self.dt) > 1e-12:
+            raise ValueError(f"loop period {self.dt} s is not a whole number of physics steps ({truth.dt_s} s)")
+        hw = [j.drive for j in truth.joints]
+        self.kp = [h.csp_kp_A_per_rad for h in hw]
+        self.kd = [h.csp_kd_A_s_per_rad for h in hw]
+        self.ki = [h.csp_ki_A_per_rad_s for h in hw]
+        self.limit = [min(h.max_torque_permille * h.rated_current_A / 1000.0, h.max_current_A) for h in hw]
+        self.rated = np.array([h.rated_current_A for h in hw])
+        self.cpr = np.array([h.encoder_counts_per_rev for h in hw], dtype=float)
+        self.counts_per_rad = self.cpr / (2.0 * math.pi)
+
+    def run(self, table: np.ndarray, progress: Callable[[float], None] | None = None) -> dict[str, np.ndarray]:
+        """Follow ``table`` (rows every loop period, the daemon's TRACK table); return the telemetry arrays."""
+        from dragd.law import Workspace, friction_current
+        from dragd.velocity import VelocityEstimator
+
+        n, sub, dt = self.n, self.sub, self.dt
+        phys, axes, law = self.physics, self.axes, self.law
+        steps = table.shape[0]
+        phys.set_state(table[0])
+        for ax in axes:
+            ax.power_stage_on = True
+            ax.brake_engaged = False
+            ax.current_demand_A = 0.0
+        target_counts = np.rint(table * self.counts_per_rad).astype(np.int64)
+        vel = VelocityEstimator(self.cpr, self.cfg.law.velocity_filter_Hz)
+        ws = Workspace(n)
+        out = {k: np.empty((steps, n)) for k in ("q_rad", "dq_rad_s", "current_measured_A", "current_command_A",
+                                                   "gravity_A", "friction_A")}
+        out["t_s"] = np.arange(steps) * dt
+        kt = law.kt_Nm_per_A
+        kp, kd, ki, limit = self.kp, self.kd, self.ki, self.limit
+        rad_per_count = [1.0 / c for c in self.counts_per_rad]
+        a_per_permille = self.rated / 1000.0
+        integral = [0.0] * n
+        cmd_target = [int(c) for c in target_counts[0]]  # what the drives apply this cycle
+        cmd_offset = [0.0] * n
+        v_ff = [0.0] * n
+        prev_target = cmd_target[:]
+        q_ref_prev = table[0].copy()
+        dq_ref = np.zeros(n)
+        tau_g = np.zeros(n)
+        fr = np.zeros(n)
+        q = np.zeros(n)
+        t_report = time.monotonic()
+        for k in range(steps):
+            # --- SYNC k: drives sample (TPDO), the daemon computes and sends (applied at SYNC k+1)
+            xs = phys.q_rad
+            counts = np.rint(xs * self.counts_per_rad).astype(np.int64)
+            q[:] = counts / self.counts_per_rad
+            meas = np.rint(phys.current_measured_A / a_per_permille) * a_per_permille
+            vel.update(counts, dt)
+            q_ref = table[k]
+            np.subtract(q_ref, q_ref_prev, out=dq_ref)
+            dq_ref /= dt
+            q_ref_prev = q_ref
+            self.model.gravity(q, tau_g)
+            friction_current(dq_ref, law, fr, ws)
+            offset = tau_g / kt + fr
+            out["q_rad"][k] = q
+            out["dq_rad_s"][k] = vel.velocity_rad_s
+            out["current_measured_A"][k] = meas
+            out["current_command_A"][k] = offset
+            out["gravity_A"][k] = tau_g / kt
+            out["friction_A"][k] = fr
+            # --- the drives latch the new command at the next SYNC; CSP velocity feed-forward from target steps
+            new_target = target_counts[k].tolist()
+            for j in range(n):
+                v_ff[j] = (new_target[j] - prev_target[j]) * rad_per_count[j] / dt
+            prev_target = new_target
+            cmd_target = new_target
+            cmd_offset = np.clip(np.rint(offset / a_per_permille), -32768, 32767) * a_per_permille
+            cmd_offset = cmd_offset.tolist()
+            # --- physics steps until the next SYNC, the drives' CSP loop each step
+            for _ in range(sub):
+                pos = phys.q_rad.tolist()
+                v = phys.dq_rad_s.tolist()
+                for j in range(n):
+                    err = cmd_target[j] * rad_per_count[j] - pos[j]
+                    if ki[j]:
+                        integral[j] = max(-limit[j], min(limit[j], integral[j] + ki[j] * err * phys.dt_s))
+                    d = kp[j] * err + kd[j] * (v_ff[j] - v[j]) + integral[j] + cmd_offset[j]
+                    axes[j].current_demand_A = limit[j] if d > limit[j] else (-limit[j] if d < -limit[j] else d)
+                phys.step()
+            if progress is not None and time.monotonic() - t_report > 0.5:
+                t_report = time.monotonic()
+                progress((k + 1) / steps)
+        if progress is not None:
+            progress(1.0)
+        return out
+
+
+def generate(plan_t: np.ndarray, plan_q: np.ndarray, truth: Truth, *, config: str | Path | None = None,
+             seconds: float | None = None, seed: int | None = None,
+             progress: Callable[[float], None] | None = None) -> dict[str, np.ndarray]:
+    """Run a plan (optionally only its first ``seconds``) on the offline arm; return telemetry arrays."""
+    if seed is not None:
+        truth = truth.with_updates(noise_seed=int(seed))
+    arm = OfflineArm(truth, config)
+    if plan_q.shape[1] != arm.n:
+        raise ValueError(f"plan: expected {arm.n} joints per sample ({', '.join(arm.model.joint_names)}), "
+                         f"got {plan_q.shape[1]}")
+    table = resample(plan_t, plan_q, arm.dt)
+    if seconds is not None:
+        table = table[: int(round(seconds / arm.dt)) + 1]
+    return arm.run(table, progress)
+
+
+def write_csv(path: str | Path, data: dict[str, np.ndarray]) -> None:
+    n = data["q_rad"].shape[1]
+    header = ",".join(["t"] + [f"q{i + 1}" for i in range(n)] + [f"i{i + 1}" for i in range(n)]
+                      + [f"dq{i + 1}" for i in range(n)])
+    arr = np.column_stack([data["t_s"], data["q_rad"], data["current_measured_A"], data["dq_rad_s"]])
+    fmt = ["%.6f"] + ["%.9f"] * n + ["%.6f"] * n + ["%.6f"] * n
+    np.savetxt(path, arr, delimiter=",", header=header, comments="", fmt=fmt)
+
+
+def write_mcap(path: str | Path, data: dict[str, np.ndarray], metadata: dict[str, str] | None = None) -> int:
+    """The daemon's telemetry format (``/dragd/cycle`` JSON rows); returns the number of rows."""
+    from mcap.writer import CompressionType, Writer
+
+    from dragd.telemetry import CYCLE_TOPIC, RowLayout
+
+    n = data["q_rad"].shape[1]
+    layout = RowLayout(telemetry_layout(n))
+    rows = np.zeros((data["t_s"].shape[0], layout.width))
+    sl = layout.slices
+    rows[:, sl["t_s"]] = data["t_s"][:, None]
+    rows[:, sl["mode"]] = TRACK_MODE
+    for key in ("q_rad", "dq_rad_s", "current_measured_A", "current_command_A", "gravity_A", "friction_A"):
+        rows[:, sl[key]] = data[key]
+    rows[:, sl["statusword"]] = STATUSWORD_ENABLED
+    rows[:, sl["rx"]] = 1
+    rows[:, sl["period_us"]] = 1000.0
+    t0_ns = time.time_ns()
+    with open(path, "wb") as fh:
+        w = Writer(fh, compression=CompressionType.ZSTD, chunk_size=1 << 20)
+        w.start(profile="", library="sim.offline")
+        schema = w.register_schema("dragd.Cycle", "jsonschema", json.dumps(layout.json_schema()).encode())
+        ch = w.register_channel(CYCLE_TOPIC, "json", schema)
+        stamps = (t0_ns + np.rint(data["t_s"] * 1e9)).astype(np.int64).tolist()
+        encode = layout.encode_json
+        for seq, (values, t) in enumerate(zip(rows.tolist(), stamps), start=1):
+            w.add_message(ch, log_time=t, data=encode(values), publish_time=t, sequence=seq)
+        w.add_metadata("sim.offline", dict(metadata or {}))
+        w.finish()
+    return rows.shape[0]
+
+
+def write_log(path: str | Path, data: dict[str, np.ndarray], metadata: dict[str, str] | None = None) -> None:
+    path = Path(path)
+    if path.suffix == ".csv":
+        write_csv(path, data)
+    elif path.suffix == ".mcap":
+        write_mcap(path, data, metadata)
+    else:
+        raise ValueError(f"--out {path}: expected a .mcap or .csv file name")
+
+
+def truth_summary(truth: Truth) -> dict[str, Any]:
+    """The truth per joint in dragd's units: K_t, friction in amperes (N·m / K_t), noise, armature."""
+    joints = {}
+    for j in truth.joints:
+        kt = j.torque_constant_Nm_per_A
+        f = j.friction
+        joints[j.name] = {
+            "torque_constant_Nm_per_A": kt,
+            "friction": {
+                "coulomb_pos_A": f.coulomb_pos_Nm / kt,
+                "coulomb_neg_A": f.coulomb_neg_Nm / kt,
+                "static_pos_A": f.static_pos / kt,
+                "static_neg_A": f.static_neg / kt,
+                "stribeck_velocity_rad_s": f.stribeck_velocity_rad_s,
+                "stribeck_exponent": f.stribeck_exponent,
+                "viscous_pos_A_s_per_rad": f.viscous_pos_Nm_s_per_rad / kt,
+                "viscous_neg_A_s_per_rad": f.viscous_neg_Nm_s_per_rad / kt,
+            },
+            "friction_Nm": f.model_dump(),
+            "current_noise_std_A": j.current_noise_std_A,
+            "current_quantum_A": j.current_quantum_A,
+            "drive_current_quantum_A": j.drive.rated_current_A / 1000.0,
+            "armature_kgm2": j.armature_kgm2,
+            "gear_ratio": j.gear_ratio,
+            "hidden_effects": any([j.hidden.ripple, j.hidden.load_friction_per_Nm, j.hidden.thermal is not None,
+                                   j.hidden.current_offset_A, j.hidden.backlash_rad]),
+        }
+    return {"source": truth.source, "robot": truth.robot, "physics_rate_Hz": truth.physics_rate_Hz,
+            "noise_seed": truth.noise_seed, "joints": joints}
