@@ -11,11 +11,15 @@ Terms
       I_f = w(q̇)·[F_c,d + (F_s,d − F_c,d)·exp(−(|q̇|/v_s)^δ)] + F_v,d·q̇,   d = sign of q̇
   with the smooth zero crossing w = tanh(max(|q̇| − v_lim, 0)/ε): w = 0 at rest and inside seed 000's
   velocity band ±v_lim, → 1 once |q̇| ≫ v_lim + ε. The level of the side the joint moves to is used, so
-  asymmetric levels (e.g. +0.89 A / −1.27 A) never bias a joint at rest.
+  asymmetric levels (e.g. +0.89 A / −1.27 A) never bias a joint at rest. The whole term is scaled by
+  ``friction_scale`` (default 0.9): a believed level above the true one would otherwise push a released joint
+  along for ever (measured: 0.05 rad/s on joint 1 with a 7 % over-estimate); under-compensation stops it.
 - start-up (seed 001 eq. 25/28): I_s = r(|q̇|)·A_d·sin(2πft), A_d = amplitude of the half-wave's direction.
   Seed 001 switches abruptly between I_s and friction at |q̇| = Φ; here r fades from 1 at Φ to 0 at
   Φ + width (smoothstep) and the friction level is weighted by (1 − r)·w, so it fades in as the start-up
   term fades out: the hand-over never steps the current.
+  Options for comparison: ``startup_square`` (a square wave of the same amplitude, the peers' dither) and
+  ``startup_abrupt`` (seed 001's switch at Φ).
 - back-EMF headroom (seed 000 eq. 26, I = I_s − K_b·ω/R_m): the command adds K_b·n·q̇/R_m so that a drive
   whose current falls with the motor's back-EMF still delivers the intended current. Off by default.
 - damping: I_d = −b·q̇/K_t, a virtual viscous damper that sets the arm's "feel": with friction compensated the
@@ -55,6 +59,7 @@ class LawParams:
     fade_width_rad_s: np.ndarray
     back_emf_A_s_per_rad: np.ndarray
     damping_A_s_per_rad: np.ndarray
+    friction_scale: float = 0.9  # < 1: under-compensate so that belief errors never make a released joint run away
     smoothing_rad_s: float = 0.005
     deadband_rad_s: float = 0.0
     use_gravity: bool = True
@@ -63,6 +68,8 @@ class LawParams:
     use_startup: bool = True
     use_back_emf: bool = False
     use_damping: bool = True
+    startup_square: bool = False  # square wave of the same amplitude (the peers' dither) instead of the sine
+    startup_abrupt: bool = False  # seed 001 eq. 28: switch at |q̇| = Φ instead of fading over [Φ, Φ + width]
 
     @property
     def n(self) -> int:
@@ -106,6 +113,7 @@ class LawParams:
             fade_width_rad_s=arr(lambda j: j.startup.fade_width_rad_s),
             back_emf_A_s_per_rad=arr(lambda j: j.back_emf.constant_V_s_per_rad * j.gear_ratio / j.back_emf.resistance_ohm),
             damping_A_s_per_rad=arr(lambda j: j.drag_damping_Nm_s_per_rad / j.kt_Nm_per_A),
+            friction_scale=cfg.law.friction_scale,
             smoothing_rad_s=cfg.law.friction_smoothing_rad_s,
             deadband_rad_s=cfg.law.friction_deadband_rad_s,
             use_gravity=cfg.law.gravity,
@@ -114,6 +122,8 @@ class LawParams:
             use_startup=cfg.law.startup,
             use_back_emf=cfg.law.back_emf,
             use_damping=cfg.law.damping,
+            startup_square=cfg.law.startup_waveform == "square",
+            startup_abrupt=cfg.law.startup_handover == "abrupt",
         )
 
 
@@ -197,6 +207,8 @@ def friction_current(dq_rad_s: np.ndarray, p: LawParams, out: np.ndarray | None 
     np.copyto(c, p.viscous_pos_A_s_per_rad, where=pos)
     c *= dq_rad_s
     out += c
+    if p.friction_scale != 1.0:
+        out *= p.friction_scale
     return out
 
 
@@ -207,6 +219,9 @@ def startup_weight(dq_rad_s: np.ndarray, p: LawParams, out: np.ndarray | None = 
     out = _out(out, n)
     x = (ws or Workspace(n)).a
     np.abs(dq_rad_s, out=x)
+    if p.startup_abrupt:  # seed 001 eq. 28: 1 below Φ, 0 from Φ on
+        np.less(x, p.rest_threshold_rad_s, out=out, casting="unsafe")
+        return out
     x -= p.rest_threshold_rad_s
     x /= p.fade_width_rad_s
     np.maximum(x, 0.0, out=x)
@@ -229,6 +244,8 @@ def startup_current(t_s: float, dq_rad_s: np.ndarray, p: LawParams, out: np.ndar
     r = rest_weight if rest_weight is not None else startup_weight(dq_rad_s, p, ws.b, ws)
     np.multiply(p.startup_freq_Hz, TWO_PI * t_s, out=s)
     np.sin(s, out=s)
+    if p.startup_square:
+        np.sign(s, out=s)
     np.greater_equal(s, 0.0, out=pos)
     np.copyto(a, p.startup_amp_neg_A)
     np.copyto(a, p.startup_amp_pos_A, where=pos)

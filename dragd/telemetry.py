@@ -1196,3 +1196,20 @@ def _accumulators(schema: Schema | None, first: Mapping[str, Any]) -> dict[str, 
             width = int(spec.get("maxItems") or (len(sample) if isinstance(sample, list) else 1))
             accs[name] = _FieldAcc(max(width, 1), "number", is_array)
     return accs
+
+
+def read_rows(path: str | os.PathLike[str], topic: str = CYCLE_TOPIC) -> dict[str, np.ndarray]:
+    """Every row of ``topic`` as column arrays (label fields stay strings); for analysis, not for the cycle."""
+    from mcap.reader import make_reader
+
+    cols: dict[str, list[Any]] = {}
+    try:
+        with open(path, "rb") as fh:
+            for _, _, message in make_reader(fh).iter_messages(topics=[topic]):
+                for k, v in json.loads(message.data).items():
+                    cols.setdefault(k, []).append(v)
+    except FileNotFoundError:
+        raise TelemetryFileError(f"{path}: no such telemetry file") from None
+    except (ValueError, KeyError) as exc:
+        raise TelemetryFileError(f"{path}: not a readable dragd MCAP log ({exc})") from None
+    return {k: np.array(v) for k, v in cols.items()}

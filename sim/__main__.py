@@ -42,7 +42,24 @@ def main(argv: list[str] | None = None) -> int:
     run_p.add_argument("--realtime-priority", type=int, metavar="N",
                        help="SCHED_FIFO priority for the physics and bus threads (needs CAP_SYS_NICE or RLIMIT_RTPRIO)")
     run_p.add_argument("--cpus", help="pin the physics and bus threads to these CPUs, e.g. 1 or 0,1")
+    truth_p = sub.add_parser("truth", help="print the truth per joint in dragd's units (K_t, friction in A, noise)")
+    truth_p.add_argument("--config", help="truth file (default: sim/config/seed_cobot.yaml)")
+    truth_p.add_argument("--json", action="store_true", help="print one JSON object")
+    log_p = sub.add_parser("log", help="offline, faster than real time: follow a plan with drive-like CSP loops, "
+                                       "write a daemon-format MCAP or a CSV log")
+    log_p.add_argument("--plan", required=True, help="plan file (.npz with t_s, q_rad; from 'dragd identify plan')")
+    log_p.add_argument("--out", required=True, help="log file: .mcap (daemon telemetry) or .csv (t,q1..,i1..,dq1..)")
+    log_p.add_argument("--config", help="truth file (default: sim/config/seed_cobot.yaml)")
+    log_p.add_argument("--dragd-config", help="dragd configuration whose beliefs feed the TRACK feed-forward "
+                                              "(default: config/default.yaml)")
+    log_p.add_argument("--seconds", type=float, help="only the first SECONDS of the plan")
+    log_p.add_argument("--seed", type=int, help="Hall-noise seed (default: the truth's noise_seed)")
+    log_p.add_argument("--json", action="store_true", help="print a JSON summary")
     args = parser.parse_args(argv)
+    if args.command == "truth":
+        return _cmd_truth(args)
+    if args.command == "log":
+        return _cmd_log(args)
 
     from sim.runner import run
     from sim.truth import load_truth
@@ -83,6 +100,58 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(summary), flush=True)
     else:
         print(_text_summary(summary), flush=True)
+    return 0
+
+
+def _cmd_truth(args: argparse.Namespace) -> int:
+    from sim.offline import truth_summary
+    from sim.truth import load_truth
+
+    try:
+        summary = truth_summary(load_truth(args.config))
+    except ConfigError as exc:
+        print(f"sim: {exc}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        for name, j in summary["joints"].items():
+            f = j["friction"]
+            print(f"{name}: K_t {j['torque_constant_Nm_per_A']:.4f} N·m/A, Coulomb {f['coulomb_pos_A']:+.4f}/"
+                  f"{f['coulomb_neg_A']:+.4f} A, static {f['static_pos_A']:+.4f}/{f['static_neg_A']:+.4f} A, "
+                  f"viscous {f['viscous_pos_A_s_per_rad']:.4f}/{f['viscous_neg_A_s_per_rad']:.4f} A·s/rad, "
+                  f"v_s {f['stribeck_velocity_rad_s']:.3f} rad/s, noise {j['current_noise_std_A'] * 1e3:.0f} mA")
+    return 0
+
+
+def _cmd_log(args: argparse.Namespace) -> int:
+    import time
+
+    from sim.offline import generate, load_plan, write_log
+    from sim.truth import load_truth
+
+    if args.seconds is not None and not args.seconds > 0:
+        print(f"sim: --seconds: expected a positive number, got {args.seconds}", file=sys.stderr)
+        return 2
+    if not str(args.out).endswith((".mcap", ".csv")):
+        print(f"sim: --out: expected a .mcap or .csv file name, got {args.out}", file=sys.stderr)
+        return 2
+    t0 = time.monotonic()
+    try:
+        truth = load_truth(args.config)
+        plan_t, plan_q = load_plan(args.plan)
+        data = generate(plan_t, plan_q, truth, config=args.dragd_config, seconds=args.seconds, seed=args.seed)
+        write_log(args.out, data, {"plan": str(args.plan), "truth": truth.source,
+                                   "seed": str(args.seed if args.seed is not None else truth.noise_seed)})
+    except (ConfigError, ValueError, OSError) as exc:
+        print(f"sim: {exc}", file=sys.stderr)
+        return 2
+    wall = time.monotonic() - t0
+    summary = {"out": str(args.out), "rows": int(data["t_s"].shape[0]), "sim_time_s": float(data["t_s"][-1]),
+               "wall_time_s": round(wall, 3), "rtf": round(float(data["t_s"][-1]) / wall, 3) if wall > 0 else None}
+    print(json.dumps(summary) if args.json else
+          f"sim: {summary['rows']} rows ({summary['sim_time_s']:.1f} s) -> {args.out} in {wall:.1f} s "
+          f"(rtf {summary['rtf']})")
     return 0
 
 

@@ -9,6 +9,8 @@ A scenario is a list of segments run one after the other (sim time):
   ``ramp_timeout``);
 * ``hold``: keep the present load for ``duration_s``;
 * ``release``: take the load away (optionally over ``ramp_down_s``), then no load for ``duration_s``;
+* ``move``: a hand moving one joint at ``velocity_rad_s`` (PI loop on its torque); a ``move`` event records the
+  mean torque it took over the segment's second half (drag effort);
 * ``hand``: a spring–damper "hand" pulling the joints (``q_rad``) or the flange (``position_m``, optional
   ``rpy_rad``) to a target, absolute or relative to the pose at the segment's start.
 
@@ -120,8 +122,22 @@ class Hand(_Strict):
         return self
 
 
-Segment = Annotated[Union[Push, Ramp, Hold, Release, Hand], Field(discriminator="kind")]
-SEGMENT_KINDS: dict[str, type[_Strict]] = {"push": Push, "ramp": Ramp, "hold": Hold, "release": Release, "hand": Hand}
+class Move(_Strict):
+    """A hand that moves one joint at a set speed: a PI velocity loop on the joint's torque (the measuring
+    hand of drag-effort tests). Records a ``move`` event with the mean torque and speed over the second half."""
+
+    kind: Literal["move"]
+    joint: str
+    velocity_rad_s: Finite
+    kp_Nm_s_per_rad: PosFloat = 200.0
+    ki_Nm_per_rad: NonNegFloat = 2000.0
+    max_load: PosFloat = 60.0  # N·m saturation
+    duration_s: PosFloat
+
+
+Segment = Annotated[Union[Push, Ramp, Hold, Release, Hand, Move], Field(discriminator="kind")]
+SEGMENT_KINDS: dict[str, type[_Strict]] = {"push": Push, "ramp": Ramp, "hold": Hold, "release": Release, "hand": Hand,
+                                           "move": Move}
 
 
 class Scenario(_Strict):
@@ -228,6 +244,10 @@ class Operator:
         self._target_M: pin.SE3 | None = None
         self._direction = np.zeros(3)
         self._scratch = np.zeros(self.n)
+        self._move_integral = 0.0
+        self._move_sum: list[float] = [0.0, 0.0, 0]
+        self._dt_hint = 2.5e-4  # the physics step; set by apply() from successive calls
+        self._last_t: float | None = None
 
     # ------------------------------------------------------------------------------------------- API
 
@@ -240,6 +260,9 @@ class Operator:
 
     def apply(self, t_s: float, q_rad: np.ndarray, dq_rad_s: np.ndarray, out_Nm: np.ndarray) -> None:
         """Write the operator's joint torques at sim time ``t_s`` (arm state q, dq) into ``out_Nm``."""
+        if self._last_t is not None and t_s > self._last_t:
+            self._dt_hint = t_s - self._last_t
+        self._last_t = t_s
         if self._start_t is None:
             self._start_t = t_s
         if self._seg < 0:
@@ -291,6 +314,12 @@ class Operator:
                 self._direction[:] = d / np.linalg.norm(d)
         elif isinstance(seg, Release):
             self._release_from = (self._tau.copy(), self._wrench.copy())
+        elif isinstance(seg, Move):
+            self._tau[:] = 0.0
+            self._wrench[:] = 0.0
+            self._has_wrench = False
+            self._move_integral = 0.0
+            self._move_sum = [0.0, 0.0, 0]
         elif isinstance(seg, Hand):
             self._tau[:] = 0.0
             self._wrench[:] = 0.0
@@ -321,6 +350,13 @@ class Operator:
                 self._has_wrench = False
                 return True
             return False
+        if isinstance(seg, Move) and elapsed >= seg.duration_s:
+            tau_sum, v_sum, count = self._move_sum
+            self._event(t_s, "move", joint=seg.joint, velocity_rad_s=seg.velocity_rad_s,
+                        torque_Nm_mean=tau_sum / max(1, count), velocity_mean_rad_s=v_sum / max(1, count),
+                        samples=count)
+            self._tau[:] = 0.0
+            return True
         return elapsed >= seg.duration_s
 
     def _ramp_over(self, seg: Ramp, t_s: float, elapsed: float, q: np.ndarray, dq: np.ndarray) -> bool:
@@ -381,6 +417,20 @@ class Operator:
         elif isinstance(seg, Hand):
             self._hand(seg, q, dq, out)
             return
+        elif isinstance(seg, Move):
+            j = self._index[seg.joint]
+            err = seg.velocity_rad_s - dq[j]
+            self._move_integral += err * self._dt_hint
+            tau = seg.kp_Nm_s_per_rad * err + seg.ki_Nm_per_rad * self._move_integral
+            tau = max(-seg.max_load, min(seg.max_load, tau))
+            if abs(tau) >= seg.max_load:  # anti-windup
+                self._move_integral -= err * self._dt_hint
+            self._tau[:] = 0.0
+            self._tau[j] = tau
+            if t_s - self._seg_t0 >= seg.duration_s / 2:
+                self._move_sum[0] += tau
+                self._move_sum[1] += dq[j]
+                self._move_sum[2] += 1
         out[:] = self._tau
         if self._has_wrench:
             out += self._wrench_torque(q, self._wrench)

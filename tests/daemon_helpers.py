@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from collections.abc import Callable
@@ -11,7 +10,7 @@ from typing import Any
 
 import numpy as np
 import yaml
-from mcap.reader import make_reader
+from dragd.telemetry import read_rows
 
 from conftest import DEFAULT_CONFIG
 
@@ -28,13 +27,7 @@ def derived_config(tmp: Path, name: str, edit: Callable[[dict], None]) -> Path:
 
 def cycle_rows(mcap_path: Path) -> dict[str, np.ndarray]:
     """Every /dragd/cycle row of a telemetry file as arrays (one row per cycle)."""
-    cols: dict[str, list[Any]] = {}
-    with open(mcap_path, "rb") as fh:
-        for _, channel, message in make_reader(fh).iter_messages(topics=["/dragd/cycle"]):
-            row = json.loads(message.data)
-            for k, v in row.items():
-                cols.setdefault(k, []).append(v)
-    return {k: np.array(v) for k, v in cols.items()}
+    return read_rows(mcap_path)
 
 
 def wait_for(cond: Callable[[], bool], timeout_s: float, what: str) -> None:

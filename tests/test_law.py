@@ -21,7 +21,15 @@ def cfg():
 
 @pytest.fixture(scope="module")
 def params(cfg):
-    return LawParams.from_config(cfg)
+    """The configured law with friction_scale 1, so the friction model's values can be checked exactly."""
+    return LawParams.from_config(cfg).replace(friction_scale=1.0)
+
+
+def test_friction_scale_under_compensates(cfg):
+    p = LawParams.from_config(cfg)
+    assert p.friction_scale == 0.9
+    v = np.full(6, 0.3)
+    assert np.allclose(friction_current(v, p), 0.9 * friction_current(v, p.replace(friction_scale=1.0)))
 
 
 def test_gravity_current_is_g_over_kt(cfg, params):
@@ -39,7 +47,8 @@ def test_friction_signs_and_direction_dependent_levels(params):
     # well above the Stribeck velocity: Coulomb level + viscous slope of that direction
     assert f_pos[1] == pytest.approx(params.coulomb_pos_A[1] + 0.5 * params.viscous_pos_A_s_per_rad[1], rel=1e-6)
     assert f_neg[1] == pytest.approx(params.coulomb_neg_A[1] - 0.5 * params.viscous_neg_A_s_per_rad[1], rel=1e-6)
-    assert abs(f_neg[1]) > abs(f_pos[1])  # joint 2's levels are asymmetric in the default config
+    assert f_pos[0] > abs(f_neg[0])  # joint 1's levels are asymmetric in the default config (0.55 / -0.52 A)
+    assert f_pos[0] - 0.5 * params.viscous_pos_A_s_per_rad[0] == pytest.approx(params.coulomb_pos_A[0], rel=1e-6)
 
 
 def test_friction_stribeck_hump_and_switch(params):
@@ -47,7 +56,8 @@ def test_friction_stribeck_hump_and_switch(params):
     with_s = friction_current(v, params)
     without = friction_current(v, params.replace(use_stribeck=False))
     assert np.all(with_s > without)
-    expected = params.coulomb_pos_A + (params.static_pos_A - params.coulomb_pos_A) * np.exp(-1.0)
+    expected = params.coulomb_pos_A + (params.static_pos_A - params.coulomb_pos_A) * np.exp(
+        -((0.02 / params.stribeck_velocity_rad_s) ** params.stribeck_exponent))
     w = np.tanh(0.02 / params.smoothing_rad_s)
     assert np.allclose(with_s, w * expected + 0.02 * params.viscous_pos_A_s_per_rad)
 
@@ -168,3 +178,22 @@ def test_velocity_estimator_int32_wrap():
         val = ((2**31 - 5 + 10 * k + 2**31) % 2**32) - 2**31  # int32 wrap
         out = est.update(np.array([val]), 1e-3)
     assert out[0] == pytest.approx(10 * 2 * np.pi / 1000 / 1e-3, rel=1e-3)
+
+
+def test_square_wave_and_abrupt_switch_options(params):
+    t = 1.0 / (8 * 16.0)  # sin(2π·16·t) = 0.707 on joint 1
+    sq = startup_current(t, np.zeros(6), params.replace(startup_square=True))
+    assert sq[0] == pytest.approx(params.startup_amp_pos_A[0])
+    phi = params.rest_threshold_rad_s[0]
+    abrupt = params.replace(startup_abrupt=True)
+    below = startup_current(t, np.full(6, 0.99 * phi), abrupt)
+    above = startup_current(t, np.full(6, 1.01 * phi), abrupt)
+    assert below[0] == pytest.approx(params.startup_amp_pos_A[0] * np.sin(2 * np.pi * 16 * t))
+    assert np.all(above == 0.0)
+    # the abrupt switch steps the total current at Φ; the fade does not
+    g = np.zeros(6)
+    step_abrupt = compensate(g, np.full(6, 1.01 * phi), 0.0, abrupt).current_A - compensate(
+        g, np.full(6, 0.99 * phi), 0.0, abrupt).current_A
+    step_fade = compensate(g, np.full(6, 1.01 * phi), 0.0, params).current_A - compensate(
+        g, np.full(6, 0.99 * phi), 0.0, params).current_A
+    assert np.abs(step_abrupt).max() > 0.3 and np.abs(step_fade).max() < 0.01

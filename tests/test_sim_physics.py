@@ -477,3 +477,19 @@ def test_bundled_scenarios_load(robot: RobotModel) -> None:
     assert files
     for f in files:
         Operator(load_scenario(f), robot)
+
+
+def test_operator_move_segment_measures_effort(truth: Truth, robot: RobotModel) -> None:
+    """The `move` hand drives a joint at a set speed; its torque then equals the friction it overcomes."""
+    phys, axes = make(truth, robot)
+    axes[0].brake_engaged = False  # joint 1 (vertical axis: no gravity), the others braked
+    op = Operator({"name": "m", "segments": [{"kind": "move", "joint": "joint1", "velocity_rad_s": 0.2,
+                                              "duration_s": 2.0}]}, robot, phys.t_s)
+    phys.operator = op
+    while not op.done:
+        phys.step()
+    (ev,) = [e for e in op.events if e["kind"] == "move"]
+    fr = truth.joints[0].friction
+    expected = fr.coulomb_pos_Nm + fr.viscous_pos_Nm_s_per_rad * 0.2
+    assert ev["velocity_mean_rad_s"] == pytest.approx(0.2, rel=0.02)
+    assert ev["torque_Nm_mean"] == pytest.approx(expected, rel=0.05)

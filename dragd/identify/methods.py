@@ -1,0 +1,890 @@
+"""The identification methods: seed 000 (low speed), seed 001 (symmetric), seed 002 (synchronous), full dynamics.
+
+All work on a :class:`~dragd.identify.data.Prepared` log, joint by joint (each joint has its own torque constant),
+in amperes of motor current. Friction uses dragd's law (dragd/law.py) so the result plugs straight in:
+
+    I_f(q̇) = d·[F_c,d + (F_s,d − F_c,d)·exp(−(|q̇|/v_s)^δ)] + F_v,d·q̇,   d = sign q̇
+
+Every regression is the same zero-phase filter H on both sides: H(i) ≈ Σ θ_k·H(column_k(q̃, q̇, q̈)).
+See docs/IDENTIFICATION.md for the equations and how each method follows its seed.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial import cKDTree
+
+from .data import Log, LogError, Prepared, lowpass, motion_summary, prepare, sliding
+from .regressors import RegressorModel
+from .results import FRICTION_KEYS, FitResult, JointResult, LinearFit, linear_fit
+
+METHODS = ("lowspeed", "symmetric", "synchronous", "full", "auto")
+RESOLUTION_A = 0.05  # a friction term whose uncertainty moves the current by more than this over the data is null
+KT_MAX_REL_STD = 0.05  # a torque constant not determined to 5 % is null
+MIN_ROWS = 20
+
+
+@dataclass
+class Options:
+    cutoff_Hz: float = 5.0  # regression filter H (zero-phase), both sides
+    deriv_cutoff_Hz: float = 20.0  # positions before differentiation
+    v_rest: float = 0.005  # |q̇| below this: at rest / stuck [rad/s]
+    v_min: float = 0.01  # steady sliding above this [rad/s]
+    a_max: float = 0.05  # quasi-static: every joint's |H(q̈)| below this [rad/s²]
+    lowspeed_max: float = 0.06  # seed 000: "low speed" up to this [rad/s] (≈ 3.4°/s)
+    lowspeed_cutoff_Hz: float = 0.5  # seed 000 samples at 10 ms and fits straight lines: a slow H
+    stribeck_exponent: float | None = None  # δ; None: fitted when the data has low-speed sliding
+    pair_tol_rad: float = 0.004  # symmetric: positions within this are "the same position"
+    pair_speed_tol: float = 0.15  # symmetric: |q̇_a + q̇_b| ≤ tol·|q̇_a|
+    never_moves_rad: float = 0.5 * math.pi / 180  # a joint whose range stays below this never moves
+
+
+# ------------------------------------------------------------------------------------------ context
+
+
+class Context:
+    """A prepared log plus the robot's regressors, shared by the methods."""
+
+    def __init__(self, log: Log, robot: Any, opts: Options, rm: RegressorModel | None = None) -> None:
+        log.check_robot(robot.joint_names, str(robot.urdf_path or "robot"))
+        self.log = log
+        self.opts = opts
+        self.robot = robot
+        self.p: Prepared = prepare(log, opts.cutoff_Hz, opts.deriv_cutoff_Hz)
+        self.rm = rm or RegressorModel(robot)
+        self.names = list(robot.joint_names)
+        self.n = len(self.names)
+        self.warnings = list(self.p.warnings)
+        self.iH = self.p.regfilter(self.p.i)
+        self.ddqH = self.p.regfilter(self.p.ddq)
+        self.rows = self.p.rows()
+        self.motion = motion_summary(self.p)
+        self._tau: np.ndarray | None = None
+        self._grav: np.ndarray | None = None
+        self._tauH: np.ndarray | None = None
+        self._gravH: np.ndarray | None = None
+
+    @property
+    def tau(self) -> np.ndarray:
+        """The URDF's rigid-body torque RNEA(q̃, q̇, q̈) [N·m] (no rotor inertia, no friction)."""
+        if self._tau is None:
+            self._tau = self.rm.rnea(self.p.q, self.p.dq, self.p.ddq)
+        return self._tau
+
+    @property
+    def tauH(self) -> np.ndarray:
+        if self._tauH is None:
+            self._tauH = self.p.regfilter(self.tau)
+        return self._tauH
+
+    @property
+    def grav(self) -> np.ndarray:
+        if self._grav is None:
+            self._grav = self.rm.gravity(self.p.q)
+        return self._grav
+
+    @property
+    def gravH(self) -> np.ndarray:
+        if self._gravH is None:
+            self._gravH = self.p.regfilter(self.grav)
+        return self._gravH
+
+    def never_moves(self, j: int) -> str | None:
+        m = self.motion[j]
+        if m["range_rad"] < self.opts.never_moves_rad or m["max_speed_rad_s"] < self.opts.v_min:
+            return (f"{self.names[j]} never moves in this log (range {math.degrees(m['range_rad']):.2f}°, max speed "
+                    f"{m['max_speed_rad_s']:.4f} rad/s): its parameters are not identifiable from it")
+        return None
+
+    def steady(self, j: int, guard_s: float | None = None) -> np.ndarray:
+        """Joint j sliding steadily (±guard) while no joint accelerates (H-filtered q̈): quasi-static rows."""
+        p, o = self.p, self.opts
+        guard = int(round((guard_s if guard_s is not None else 1.5 / o.cutoff_Hz) * p.fs))
+        m = sliding(p.dq[:, j:j + 1], o.v_min, guard)[:, 0]
+        calm = np.all(np.abs(self.ddqH) < o.a_max, axis=1)
+        calm = sliding(calm[:, None].astype(float), 0.5, guard)[:, 0]
+        return m & calm
+
+    def sliding(self, j: int, guard_s: float | None = None) -> np.ndarray:
+        p, o = self.p, self.opts
+        guard = int(round((guard_s if guard_s is not None else 1.5 / o.cutoff_Hz) * p.fs))
+        return sliding(p.dq[:, j:j + 1], o.v_rest, guard)[:, 0]
+
+
+# ------------------------------------------------------------------------------------------ friction model
+
+
+def friction_columns(v: np.ndarray, direction: np.ndarray | None = None, vs: float | None = None,
+                     delta: float = 2.0, viscous: bool = True) -> tuple[np.ndarray, list[str]]:
+    """Columns of dragd's friction law: F_c±, F_v±, (F_s − F_c)± for a given v_s, δ; ``direction`` = sign source."""
+    d = np.sign(v) if direction is None else np.sign(direction)
+    pos, neg = (d > 0).astype(float), (d < 0).astype(float)
+    cols, names = [pos, neg], ["coulomb_pos_A", "coulomb_neg_A"]
+    if viscous:
+        cols += [v * pos, v * neg]
+        names += ["viscous_pos_A_s_per_rad", "viscous_neg_A_s_per_rad"]
+    if vs is not None:
+        e = np.exp(-(np.abs(v) / vs) ** delta)
+        cols += [pos * e, neg * e]
+        names += ["dstatic_pos_A", "dstatic_neg_A"]
+    return np.column_stack(cols), names
+
+
+def friction_value(v: np.ndarray, fr: dict[str, float | None]) -> np.ndarray:
+    """I_f(v) of a friction dict (None terms count as zero; no hump without v_s)."""
+    g = {k: (0.0 if fr.get(k) is None else float(fr[k])) for k in FRICTION_KEYS}
+    pos = v > 0
+    out = np.where(pos, g["coulomb_pos_A"], g["coulomb_neg_A"])
+    vp = fr.get("viscous_pos_A_s_per_rad")
+    vn = fr.get("viscous_neg_A_s_per_rad")
+    vv = fr.get("viscous_A_s_per_rad") or 0.0
+    out = out + np.where(pos, vp if vp is not None else vv, vn if vn is not None else vv) * v
+    if fr.get("stribeck_velocity_rad_s") and fr.get("static_pos_A") is not None and fr.get("static_neg_A") is not None:
+        delta = fr.get("stribeck_exponent") or 2.0
+        e = np.exp(-(np.abs(v) / fr["stribeck_velocity_rad_s"]) ** delta)
+        out = out + np.where(pos, g["static_pos_A"] - g["coulomb_pos_A"], g["static_neg_A"] - g["coulomb_neg_A"]) * e
+    return np.where(v == 0, 0.0, out)
+
+
+def _set_friction_from_fit(jr: JointResult, fit: LinearFit, vmax: float, reason_prefix: str = "") -> None:
+    """Coulomb/viscous levels of a linear fit into the result (with resolution checks and reasons)."""
+    for key in ("coulomb_pos_A", "coulomb_neg_A"):
+        v, s = fit.value(key), fit.std(key)
+        if v is None:
+            jr.set(key, None, reason=reason_prefix + fit.dropped.get(key, "not in the model"))
+        elif s is not None and s > RESOLUTION_A:
+            jr.set(key, None, reason=f"{reason_prefix}not determined: {v:.4f} ± {s:.4f} A")
+        else:
+            jr.set(key, v, s)
+    vis = {}
+    for key in ("viscous_pos_A_s_per_rad", "viscous_neg_A_s_per_rad"):
+        v, s = fit.value(key), fit.std(key)
+        if v is None:
+            jr.set(key, None, reason=reason_prefix + fit.dropped.get(key, "not in the model"))
+        elif s is not None and s * vmax > RESOLUTION_A:
+            jr.set(key, None, reason=f"{reason_prefix}not determined: {v:.4f} ± {s:.4f} A·s/rad over speeds up to "
+                                     f"{vmax:.3f} rad/s")
+        else:
+            jr.set(key, v, s)
+            vis[key] = (v, s)
+    if len(vis) == 2:
+        (a, sa), (b, sb) = vis.values()
+        wa, wb = 1 / max(sa, 1e-12) ** 2, 1 / max(sb, 1e-12) ** 2
+        jr.set("viscous_A_s_per_rad", (a * wa + b * wb) / (wa + wb), math.sqrt(1 / (wa + wb)))
+    elif len(vis) == 1:
+        (a, sa), = vis.values()
+        jr.set("viscous_A_s_per_rad", a, sa)
+    else:
+        jr.set("viscous_A_s_per_rad", None, reason=jr.reasons.get("viscous_pos_A_s_per_rad", "not determined"))
+
+
+def _physical(jr: JointResult) -> None:
+    """Signs the params schema requires; an estimate of the wrong sign is zero when within 2σ, else null."""
+    rules = {"coulomb_pos_A": 1, "coulomb_neg_A": -1, "static_pos_A": 1, "static_neg_A": -1,
+             "viscous_A_s_per_rad": 1, "viscous_pos_A_s_per_rad": 1, "viscous_neg_A_s_per_rad": 1}
+    for key, sign in rules.items():
+        v = jr.friction.get(key)
+        if v is None or v * sign >= 0:
+            continue
+        s = jr.std.get(key, 0.0)
+        if abs(v) <= 2 * s:
+            jr.friction[key] = 0.0
+        else:
+            jr.set(key, None, reason=f"estimate {v:.4g} ± {s:.2g} has the wrong sign for this term (model mismatch)")
+            jr.std.pop(key, None)
+    for key in ("stribeck_velocity_rad_s", "stribeck_exponent"):
+        v = jr.friction.get(key)
+        if v is not None and not v > 0:
+            jr.set(key, None, reason=f"estimate {v:.4g} is not positive")
+    kt = jr.torque_constant_Nm_per_A
+    if kt is not None and not kt > 0:
+        jr.set("torque_constant_Nm_per_A", None, reason=f"estimate {kt:.4g} N·m/A is not positive (model mismatch)")
+        jr.std.pop("torque_constant_Nm_per_A", None)
+
+
+def _kt_from_slope(jr: JointResult, a: float | None, sa: float | None, reason_null: str) -> None:
+    """K_t = 1/a from a current-per-torque slope a (delta-method std); null unless determined to 5 %."""
+    if a is None:
+        jr.set("torque_constant_Nm_per_A", None, reason=reason_null)
+        return
+    if not a > 0:
+        jr.set("torque_constant_Nm_per_A", None, reason=f"current falls as gravity torque rises (slope {a:.4g} A/N·m): "
+                                                        "model mismatch")
+        return
+    kt, skt = 1.0 / a, (sa or 0.0) / a**2
+    if skt / kt > KT_MAX_REL_STD:
+        jr.set("torque_constant_Nm_per_A", None, reason=f"not determined: {kt:.4g} ± {skt:.2g} N·m/A "
+                                                        f"(> {KT_MAX_REL_STD:.0%}); too little gravity-torque change")
+        return
+    jr.set("torque_constant_Nm_per_A", kt, skt)
+
+
+NO_GRAVITY = ("no gravity torque change on this joint along the motion (range {rng:.3f} N·m): K_t is not "
+              "identifiable from current (only the friction lines are, seed 002 §3.2)")
+
+
+# ------------------------------------------------------------------------------------------ seed 000
+
+
+def fit_lowspeed(ctx: Context) -> FitResult:
+    """Seed 000 eq. 20: n·K_m·i = M_g·f(θ) + τ_f per direction, at low speed, by least squares.
+
+    Per joint: rows where its mean velocity (H at ``lowspeed_cutoff_Hz``) is low (≤ ``lowspeed_max``) with a
+    steady sign; i = G(q)/K_t + b_d (d = direction). The seed fits each direction on its own (its eqs. 22/23, two
+    slopes, then takes K ≈ their mean, eq. 24): both per-direction lines are in the diagnostics; the result uses
+    one slope with two intercepts (the better-posed form of the same model). Regressing i on G (not G on i as
+    printed) keeps the Hall noise in the dependent variable, so the slope is not attenuated.
+    """
+    p, o = ctx.p, ctx.opts
+    fc = o.lowspeed_cutoff_Hz
+    rows = p.rows(fc)
+    guard = int(round(2.0 / fc * p.fs))
+    iH = p.regfilter(p.i, fc)
+    gH = p.regfilter(ctx.grav, fc)
+    vbar = p.regfilter(p.dq, fc)
+    out = []
+    for j, name in enumerate(ctx.names):
+        jr = JointResult(name)
+        out.append(jr)
+        why = ctx.never_moves(j)
+        if why:
+            jr.null_all(why)
+            continue
+        low = (np.abs(vbar[:, j]) > 0.2 * o.v_min) & (np.abs(vbar[:, j]) <= o.lowspeed_max)
+        sgn = np.sign(vbar[:, j])
+        # a steady direction for ±guard: erosion of each direction's mask
+        posm = sliding(np.where(low & (sgn > 0), 1.0, 0.0)[:, None], 0.5, guard)[:, 0]
+        negm = sliding(np.where(low & (sgn < 0), 1.0, 0.0)[:, None], 0.5, guard)[:, 0]
+        sel = rows[(posm | negm)[rows]]
+        if sel.size < MIN_ROWS:
+            jr.null_all(f"no low-speed motion of {name} (mean speed 0.2·v_min..{o.lowspeed_max} rad/s held for "
+                        f"{2 / fc:.0f} s) in this log: seed 000's method needs ≤ 2°/s reciprocation")
+            continue
+        d = np.where(posm, 1.0, np.where(negm, -1.0, 0.0))
+        F = p.regfilter(np.column_stack([(d > 0).astype(float), (d < 0).astype(float)]), fc)
+        A = np.column_stack([gH[sel, j], F[sel]])
+        gr = float(np.ptp(ctx.grav[sel, j]))
+        explain = {"gravity": NO_GRAVITY.format(rng=gr)}
+        if gr < 0.5:
+            A[:, 0] = 0.0
+        fit = linear_fit(A, iH[sel, j], ["gravity", "coulomb_pos_A", "coulomb_neg_A"], explain=explain)
+        _kt_from_slope(jr, fit.value("gravity"), fit.std("gravity"), fit.dropped.get("gravity", "not determined"))
+        speed = float(np.mean(np.abs(vbar[sel, j])))
+        for key in ("coulomb_pos_A", "coulomb_neg_A"):
+            v, s = fit.value(key), fit.std(key)
+            if v is None:
+                jr.set(key, None, reason=fit.dropped.get(key, "no motion in this direction"))
+            else:
+                jr.set(key, v, s)
+        model_note = ("seed 000's model has one constant friction level per direction (the level at the test speed, "
+                      f"mean {speed:.4f} rad/s, ≈ the static level); this term is not part of it")
+        for key in ("viscous_A_s_per_rad", "viscous_pos_A_s_per_rad", "viscous_neg_A_s_per_rad", "static_pos_A",
+                    "static_neg_A", "stribeck_velocity_rad_s", "stribeck_exponent"):
+            jr.set(key, None, reason=model_note)
+        lines = {}
+        for dname, m in (("pos", d[sel] > 0), ("neg", d[sel] < 0)):
+            if m.sum() >= MIN_ROWS and gr >= 0.5:
+                f1 = linear_fit(np.column_stack([gH[sel][m, j], np.ones(m.sum())]), iH[sel][m, j], ["a", "b"])
+                a, b = f1.value("a"), f1.value("b")
+                if a and b is not None and a > 0:
+                    lines[dname] = {"K_Nm_per_A": 1 / a, "friction_Nm": b / a, "friction_A": b,
+                                    "seed_form": f"M_g·f(θ) = {1 / a:.4f}·i {-b / a:+.4f}"}
+        jr.diagnostics = {"rows": int(sel.size), "condition_number": fit.cond, "residual_A": fit.sigma,
+                          "gravity_range_Nm": gr, "mean_speed_rad_s": speed, "per_direction_lines": lines}
+        _physical(jr)
+    return FitResult("lowspeed", out, ctx.log.path, str(ctx.robot.urdf_path), list(ctx.warnings))
+
+
+# ------------------------------------------------------------------------------------------ seed 002
+
+
+def _quasistatic_fit(ctx: Context, j: int, sel: np.ndarray, stribeck: tuple[float, float] | None,
+                     use_tau: bool = True) -> tuple[LinearFit, float]:
+    """i = τ(q)/K_t + friction(q̇) on quasi-static rows (H on both sides); returns the fit and the τ range."""
+    p = ctx.p
+    v = p.dq[:, j]
+    F, fnames = friction_columns(v, vs=None if stribeck is None else stribeck[0],
+                                 delta=2.0 if stribeck is None else stribeck[1])
+    FH = p.regfilter(F)
+    tau = ctx.tauH[:, j] if use_tau else ctx.gravH[:, j]
+    rng = float(np.ptp(tau[sel]))
+    A = np.column_stack([tau[sel], FH[sel]])
+    explain = {"gravity": NO_GRAVITY.format(rng=rng)}
+    if rng < 0.5:
+        A[:, 0] = 0.0
+    return linear_fit(A, ctx.iH[sel, j], ["gravity"] + fnames, explain=explain), rng
+
+
+def fit_synchronous(ctx: Context) -> FitResult:
+    """Seed 002 §3.4: K_t and forward/reverse friction from the linear fit of friction-free current vs gravity torque.
+
+    The seed removes the friction step at each reversal (step 1), fits the friction-free current against the
+    model's gravity torque (step 3: slope = 1/K_t) and reads the forward/reverse friction from the intercepts at the
+    reversals (step 4); joints without gravity load get viscous lines I = F_v·v + F_c·sgn v (its eq. 3). Here the
+    steps are one least-squares problem on the quasi-static rows — i = τ(q, q̇, q̈)/K_t + F_c,d + F_v,d·q̇ — whose
+    solution is the fixed point of the seed's alternation; τ is the URDF's rigid-body torque (gravity at these
+    speeds). The seed's r² of the friction-free current against the gravity torque is in the diagnostics.
+    """
+    out = []
+    for j, name in enumerate(ctx.names):
+        jr = JointResult(name)
+        out.append(jr)
+        why = ctx.never_moves(j)
+        if why:
+            jr.null_all(why)
+            continue
+        sel = ctx.rows[ctx.steady(j)[ctx.rows]]
+        if sel.size < MIN_ROWS:
+            jr.null_all(f"no steady motion of {name} (|q̇| > {ctx.opts.v_min} rad/s at |q̈| < {ctx.opts.a_max} rad/s² "
+                        f"for {1.5 / ctx.opts.cutoff_Hz:.1f} s) in this log")
+            continue
+        fit, rng = _quasistatic_fit(ctx, j, sel, None)
+        _kt_from_slope(jr, fit.value("gravity"), fit.std("gravity"), fit.dropped.get("gravity", "not determined"))
+        vmax = float(np.abs(ctx.p.dq[sel, j]).max())
+        _set_friction_from_fit(jr, fit, vmax)
+        for key in ("static_pos_A", "static_neg_A", "stribeck_velocity_rad_s", "stribeck_exponent"):
+            jr.set(key, None, reason="seed 002's friction model is Coulomb + viscous per direction (no Stribeck "
+                                     "term); use the symmetric or auto method for it")
+        diag: dict[str, Any] = {"rows": int(sel.size), "condition_number": fit.cond, "residual_A": fit.sigma,
+                                "gravity_range_Nm": rng, "speed_range_rad_s": [float(np.abs(ctx.p.dq[sel, j]).min()), vmax]}
+        a = fit.value("gravity")
+        if a is not None:
+            fric = ctx.iH[sel, j] - fit.residual - a * ctx.tauH[sel, j]
+            i_ff = ctx.iH[sel, j] - fric
+            c = np.corrcoef(i_ff, ctx.tauH[sel, j])[0, 1]
+            diag["r2_friction_free_vs_gravity"] = float(c * c)
+        fc = {k: jr.friction[k] for k in ("coulomb_pos_A", "coulomb_neg_A", "viscous_pos_A_s_per_rad",
+                                           "viscous_neg_A_s_per_rad")}
+        if fc["coulomb_pos_A"] is not None and fc["viscous_pos_A_s_per_rad"] is not None:
+            diag["line_pos"] = f"I = {fc['viscous_pos_A_s_per_rad']:.4f}·v + {fc['coulomb_pos_A']:.4f} A (v > 0, rad/s)"
+        if fc["coulomb_neg_A"] is not None and fc["viscous_neg_A_s_per_rad"] is not None:
+            diag["line_neg"] = f"I = {fc['viscous_neg_A_s_per_rad']:.4f}·v {fc['coulomb_neg_A']:+.4f} A (v < 0, rad/s)"
+        jr.diagnostics = diag
+        _physical(jr)
+    return FitResult("synchronous", out, ctx.log.path, str(ctx.robot.urdf_path), list(ctx.warnings))
+
+
+# ------------------------------------------------------------------------------------------ seed 001
+
+
+def find_pairs(ctx: Context) -> tuple[np.ndarray, np.ndarray]:
+    """Sample pairs (a, b) at the same position crossed in opposite directions at the same speed, both quasi-static.
+
+    Seed 001 eq. 7: q(t₁) = q(t₂), q̇(t₁) = −q̇(t₂), q̈ = 0. Candidates are rows where some joint slides steadily and no
+    joint accelerates; they are grouped by direction signature (sign of each moving joint's velocity) and each row
+    is matched to its nearest neighbour in position among the rows of the opposite signature.
+    """
+    p, o = ctx.p, ctx.opts
+    steady = np.column_stack([ctx.steady(j) for j in range(ctx.n)])
+    resting = np.abs(p.dq) < o.v_rest
+    calm = np.all(np.abs(ctx.ddqH) < o.a_max, axis=1)
+    cand = calm & steady.any(axis=1) & np.all(steady | resting, axis=1)
+    idx = np.nonzero(cand)[0]
+    if idx.size < 2:
+        return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
+    sig = np.where(steady[idx], np.sign(p.dq[idx]), 0).astype(np.int8)
+    keys = {}
+    for k, s in enumerate(map(bytes, sig)):
+        keys.setdefault(s, []).append(k)
+    anchors = set(ctx.rows.tolist())
+    A, B = [], []
+    for s, members in keys.items():
+        opp = bytes((-np.frombuffer(s, dtype=np.int8)).astype(np.int8))
+        if opp not in keys or s > opp:
+            continue  # each unordered pair of signatures once
+        ia = idx[np.array(members)]
+        ib = idx[np.array(keys[opp])]
+        ia_anchor = np.array([a for a in ia if a in anchors], dtype=int)
+        if ia_anchor.size == 0:
+            continue
+        tree = cKDTree(p.q[ib])
+        dist, nb = tree.query(p.q[ia_anchor], k=1, distance_upper_bound=o.pair_tol_rad)
+        ok = np.isfinite(dist)
+        a_ok, b_ok = ia_anchor[ok], ib[nb[ok]]
+        va, vb = p.dq[a_ok], p.dq[b_ok]
+        speed_ok = np.linalg.norm(va + vb, axis=1) <= o.pair_speed_tol * np.linalg.norm(va, axis=1)
+        A.append(a_ok[speed_ok])
+        B.append(b_ok[speed_ok])
+    if not A:
+        return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
+    return np.concatenate(A), np.concatenate(B)
+
+
+def _row_gravity_columns(ctx: Context, j: int) -> np.ndarray:
+    """Joint j's minimal gravity regressor columns (current units come from the fit), at the work rate."""
+    rm = ctx.rm
+    base = rm.row_gravity[j]
+    out = np.empty((ctx.p.q.shape[0], base.r))
+    for s in range(0, ctx.p.q.shape[0], 20000):
+        Y = rm.torque_regressor(ctx.p.q[s:s + 20000])
+        out[s:s + 20000] = Y[:, j, :] @ base.E.T
+    return out
+
+
+def stribeck_lm(v: np.ndarray, f: np.ndarray, delta: float | None, v_s0: float = 0.02) -> dict[str, Any]:
+    """Seed 001 eq. 29 by Levenberg–Marquardt, per direction: f = d·[F_c,d + (F_s,d − F_c,d)e^{−(|v|/v_s)^δ}] + F_v,d·v.
+
+    Parameters [F_c+, F_c−, ΔS+, ΔS−, F_v+, F_v−, ln v_s (, ln δ)] (seed: [f_v, f_c, f_s − f_c, 1/v_s], symmetric,
+    δ fixed). Returns values, standard deviations (σ̂²(JᵀJ)⁻¹), and which terms the data determines.
+    """
+    pos = v > 0
+    x0 = [float(np.median(f[pos])) if pos.any() else 0.1, float(np.median(f[~pos])) if (~pos).any() else -0.1,
+          0.0, 0.0, 0.0, 0.0, math.log(v_s0)] + ([] if delta is not None else [math.log(1.5)])
+
+    def model(x: np.ndarray) -> np.ndarray:
+        fcp, fcn, dsp, dsn, fvp, fvn, lvs = x[:7]
+        dl = delta if delta is not None else math.exp(x[7])
+        e = np.exp(-(np.abs(v) / math.exp(lvs)) ** dl)
+        return np.where(pos, fcp + dsp * e + fvp * v, fcn + dsn * e + fvn * v)
+
+    res = least_squares(lambda x: model(x) - f, np.array(x0), method="lm", x_scale="jac", max_nfev=4000)
+    J = res.jac
+    dof = max(1, f.size - J.shape[1])
+    s2 = float(res.fun @ res.fun / dof)
+    try:
+        cov = s2 * np.linalg.inv(J.T @ J)
+        std = np.sqrt(np.maximum(np.diag(cov), 0))
+    except np.linalg.LinAlgError:
+        std = np.full(J.shape[1], np.inf)
+    x = res.x
+    out = {"coulomb_pos_A": (x[0], std[0]), "coulomb_neg_A": (x[1], std[1]),
+           "dstatic_pos_A": (x[2], std[2]), "dstatic_neg_A": (x[3], std[3]),
+           "viscous_pos_A_s_per_rad": (x[4], std[4]), "viscous_neg_A_s_per_rad": (x[5], std[5]),
+           "stribeck_velocity_rad_s": (math.exp(x[6]), math.exp(x[6]) * std[6]),
+           "stribeck_exponent": (delta, 0.0) if delta is not None else (math.exp(x[7]), math.exp(x[7]) * std[7]),
+           "residual_A": math.sqrt(s2), "samples": int(f.size), "success": bool(res.success)}
+    return out
+
+
+def _apply_stribeck(jr: JointResult, sfit: dict[str, Any], v: np.ndarray) -> None:
+    """Set Coulomb/viscous/static/Stribeck from an LM fit, nulling what the data does not determine."""
+    vmin = float(np.abs(v).min()) if v.size else float("inf")
+    vmax = float(np.abs(v).max()) if v.size else 0.0
+    vs, svs = sfit["stribeck_velocity_rad_s"]
+    hump_seen = vmin < 2.0 * vs and np.isfinite(svs) and svs < 0.5 * vs
+    for key in ("coulomb_pos_A", "coulomb_neg_A"):
+        val, s = sfit[key]
+        jr.set(key, val if s <= RESOLUTION_A else None, s,
+               reason=None if s <= RESOLUTION_A else f"not determined: {val:.4f} ± {s:.4f} A")
+    vis = []
+    for key in ("viscous_pos_A_s_per_rad", "viscous_neg_A_s_per_rad"):
+        val, s = sfit[key]
+        ok = s * vmax <= RESOLUTION_A
+        jr.set(key, val if ok else None, s, reason=None if ok else f"not determined: {val:.4f} ± {s:.4f} A·s/rad")
+        if ok:
+            vis.append((val, s))
+    if vis:
+        w = np.array([1 / max(s, 1e-12) ** 2 for _, s in vis])
+        jr.set("viscous_A_s_per_rad", float(np.sum(w * [a for a, _ in vis]) / w.sum()), float(math.sqrt(1 / w.sum())))
+    else:
+        jr.set("viscous_A_s_per_rad", None, reason="not determined by the friction samples")
+    why = (f"the friction samples reach down to {vmin:.4f} rad/s only; the Stribeck hump (v_s ≈ {vs:.3g} ± {svs:.2g} "
+           "rad/s) is not seen by steady sliding")
+    for d in ("pos", "neg"):
+        dval, ds = sfit[f"dstatic_{d}_A"]
+        c = jr.friction[f"coulomb_{d}_A"]
+        if hump_seen and c is not None and ds <= RESOLUTION_A:
+            jr.set(f"static_{d}_A", c + dval, math.hypot(ds, jr.std.get(f"coulomb_{d}_A", 0.0)))
+        else:
+            jr.set(f"static_{d}_A", None, reason=why)
+    if hump_seen:
+        jr.set("stribeck_velocity_rad_s", vs, svs)
+        dl, sdl = sfit["stribeck_exponent"]
+        jr.set("stribeck_exponent", dl, sdl)
+    else:
+        jr.set("stribeck_velocity_rad_s", None, reason=why)
+        jr.set("stribeck_exponent", None, reason=why)
+
+
+def breakaway_levels(ctx: Context, j: int, i_free: np.ndarray, min_stick_s: float = 0.03) -> dict[str, Any]:
+    """Static (breakaway) friction from stick → slip events: the friction-free current just before each slip.
+
+    A joint held by stiction while its command ramps (low-speed tracking, stick–slip) breaks away when the motor
+    torque beyond gravity reaches the static level; the last ~10 ms before each slip onset give that level.
+    """
+    p, o = ctx.p, ctx.opts
+    v = p.dq[:, j]
+    stuck = np.abs(v) < 0.2 * o.v_rest
+    moving = np.abs(v) > 2 * o.v_min
+    nmin = max(2, int(min_stick_s * p.fs))
+    win = max(1, int(0.01 * p.fs))
+    levels: dict[str, list[float]] = {"pos": [], "neg": []}
+    k = 0
+    N = v.shape[0]
+    starts = np.nonzero(np.diff(stuck.astype(np.int8)) == -1)[0] + 1  # first non-stuck sample after a stuck run
+    for s in starts:
+        run = 0
+        while s - 1 - run >= 0 and stuck[s - 1 - run]:
+            run += 1
+        if run < nmin:
+            continue
+        end = min(N, s + int(0.05 * p.fs))
+        nxt = np.nonzero(moving[s:end])[0]
+        if nxt.size == 0:
+            continue
+        d = "pos" if v[s + nxt[0]] > 0 else "neg"
+        lvl = float(np.mean(i_free[max(0, s - win):s]))
+        if (d == "pos") == (lvl > 0):
+            levels[d].append(lvl)
+        k += 1
+    out: dict[str, Any] = {}
+    for d, xs in levels.items():
+        if len(xs) >= 3:
+            a = np.array(xs)
+            out[d] = (float(np.median(a)), float(1.2533 * a.std(ddof=1) / math.sqrt(a.size)), int(a.size))
+    return out
+
+
+def fit_symmetric(ctx: Context) -> FitResult:
+    """Seed 001: gravity = half-sum, friction = half-difference of opposite passes through the same positions.
+
+    Gravity (eq. 8, 9, 17): per joint, the half-sums of the current at paired samples are fitted with the joint's
+    row of the minimal gravity regressor (computed numerically from Pinocchio's joint-torque regressor at
+    q̇ = q̈ = 0, QR with pivoting) — current-based, K_t not needed — plus a constant: the direction asymmetry
+    (F₊ + F₋)/2 that the seed's odd-friction assumption puts into the half-sum. Friction (eq. 21): the current
+    minus the identified gravity current at the paired samples, fitted per direction with the Stribeck model by
+    Levenberg–Marquardt (eq. 29). K_t is then the ratio of the URDF's gravity torque to the identified gravity
+    current (what the daemon's G(q)/K_t needs); static levels come from breakaway events when the Stribeck hump
+    is not seen in steady sliding.
+    """
+    p, o = ctx.p, ctx.opts
+    a_idx, b_idx = find_pairs(ctx)
+    out = []
+    notes: dict[str, Any] = {"pairs": int(a_idx.size), "minimal_gravity_parameters": {}}
+    rb = ctx.rm.base_gravity
+    notes["global_minimal_gravity_set"] = {"count": rb.r, "names": rb.names,
+                                           "urdf_values": (rb.E @ ctx.rm.pi_urdf).tolist()}
+    for j, name in enumerate(ctx.names):
+        jr = JointResult(name)
+        out.append(jr)
+        why = ctx.never_moves(j)
+        if why:
+            jr.null_all(why)
+            continue
+        sl = ctx.steady(j)
+        m = sl[a_idx] & sl[b_idx]
+        a, b = a_idx[m], b_idx[m]
+        if a.size < MIN_ROWS:
+            jr.null_all(f"too few position pairs of {name} crossed in both directions at the same steady speed "
+                        f"({a.size}; seed 001's symmetric extraction needs forward/backward passes)")
+            continue
+        Yg = _row_gravity_columns(ctx, j)
+        YgH = p.regfilter(Yg) if Yg.shape[1] else Yg
+        y = 0.5 * (ctx.iH[a, j] + ctx.iH[b, j])
+        cols = 0.5 * (YgH[a] + YgH[b])
+        base = ctx.rm.row_gravity[j]
+        A = np.column_stack([cols, np.ones(a.size)])
+        names = [f"beta{k}" for k in range(base.r)] + ["asymmetry_A"]
+        fit = linear_fit(A, y, names, keep=("asymmetry_A",))
+        beta = np.array([fit.value(f"beta{k}") or 0.0 for k in range(base.r)])
+        live = [k for k in range(base.r) if fit.value(f"beta{k}") is not None]
+        ghat = Yg @ beta  # identified gravity current [A], unfiltered
+        # K_t from the URDF reference: a = argmin Σ(Ĝ_A − a·G_urdf)², linear in β -> std from cov(β)
+        gu = ctx.grav[a, j]
+        rng = float(np.ptp(gu))
+        if rng >= 0.5 and live:
+            wvec = (gu @ Yg[a][:, live]) / (gu @ gu)
+            idx = [fit.names.index(f"beta{k}") for k in live]
+            slope = float(wvec @ beta[live])
+            sslope = float(np.sqrt(wvec @ fit.cov[np.ix_(idx, idx)] @ wvec))
+            _kt_from_slope(jr, slope, sslope, "")
+            jr.diagnostics["kt_source"] = "URDF gravity torque / identified gravity current (reference: the URDF's masses)"
+        else:
+            jr.set("torque_constant_Nm_per_A", None, reason=NO_GRAVITY.format(rng=rng)
+                   if rng < 0.5 else "no identifiable gravity parameters in this joint's row")
+        notes["minimal_gravity_parameters"][name] = {
+            "names": [base.names[k] for k in range(base.r)],
+            "current_A": [fit.value(f"beta{k}") for k in range(base.r)],
+            "std_A": [fit.std(f"beta{k}") for k in range(base.r)],
+            "urdf_Nm": (base.E @ ctx.rm.pi_urdf).tolist(),
+            "dropped": fit.dropped}
+        # friction samples: both members of each pair, current minus the identified gravity current
+        c = fit.value("asymmetry_A") or 0.0
+        ghatH = YgH @ beta
+        idx2 = np.concatenate([a, b])
+        vv = p.dq[idx2, j]
+        ff = ctx.iH[idx2, j] - ghatH[idx2]
+        hd = 0.5 * (ctx.iH[a, j] - ctx.iH[b, j])
+        sfit = stribeck_lm(vv, ff, o.stribeck_exponent)
+        _apply_stribeck(jr, sfit, vv)
+        if jr.friction["static_pos_A"] is None or jr.friction["static_neg_A"] is None:
+            brk = breakaway_levels(ctx, j, p.i[:, j] - ghat)
+            for d, (lvl, s, cnt) in brk.items():
+                if jr.friction[f"static_{d}_A"] is None:
+                    jr.set(f"static_{d}_A", lvl, s)
+                    jr.diagnostics[f"static_{d}_source"] = f"breakaway: {cnt} stick→slip events"
+        jr.diagnostics.update({"pairs": int(a.size), "gravity_condition_number": fit.cond,
+                               "gravity_residual_A": fit.sigma, "asymmetry_A": c,
+                               "asymmetry_std_A": fit.std("asymmetry_A"), "stribeck_fit_residual_A": sfit["residual_A"],
+                               "half_difference_mean_abs_A": float(np.mean(np.abs(hd))),
+                               "friction_speed_range_rad_s": [float(np.abs(vv).min()), float(np.abs(vv).max())]})
+        _physical(jr)
+    return FitResult("symmetric", out, ctx.log.path, str(ctx.robot.urdf_path), list(ctx.warnings), notes)
+
+
+# ------------------------------------------------------------------------------------------ full dynamics
+
+
+def _row_full_columns(ctx: Context, j: int) -> tuple[np.ndarray, np.ndarray]:
+    """Joint j's per-row base rigid-body columns (and their gravity part) at the work rate."""
+    rm = ctx.rm
+    base = rm.row_full[j]
+    T = ctx.p.q.shape[0]
+    full = np.empty((T, base.r))
+    grav = np.empty((T, base.r))
+    for s in range(0, T, 10000):
+        sl = slice(s, s + 10000)
+        Y = rm.torque_regressor(ctx.p.q[sl], ctx.p.dq[sl], ctx.p.ddq[sl])
+        full[sl] = Y[:, j, :] @ base.E.T
+        Yg = rm.torque_regressor(ctx.p.q[sl])
+        grav[sl] = Yg[:, j, :] @ base.E.T
+    return full, grav
+
+
+def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
+    """Full dynamics: base parameters of the rigid-body model + rotor inertia + friction, per joint, in amperes.
+
+    i_j = Y_j(q̃, q̇, q̈)·β_j + J_a,j·q̈_j + I_f,j(q̇_j), with Y_j joint j's row of Pinocchio's regressor reduced to
+    its base columns (numerical QR), all columns and the current through the same zero-phase filter H, rows where
+    the joint slides (stiction is not a function of q̇). Least squares weighted by the inverse residual variance of
+    each motion regime (rows grouped by |q̈|: accelerating samples carry the model's derivative noise), parameter
+    standard deviations from the residual covariance. K_t: the ratio of the URDF's gravity torque to the
+    identified model's gravity part (linear in β, so its std follows from cov β). The Stribeck velocity is chosen
+    by variable projection over a grid when low-speed sliding is present.
+    """
+    p, o = ctx.p, ctx.opts
+    out = []
+    notes: dict[str, Any] = {"base_parameters": {}, "armature_kgm2": {}, "global_base_count": ctx.rm.base_full.r}
+    for j, name in enumerate(ctx.names):
+        jr = JointResult(name)
+        out.append(jr)
+        why = ctx.never_moves(j)
+        if why:
+            jr.null_all(why)
+            continue
+        sel = ctx.rows[ctx.sliding(j)[ctx.rows]]
+        if sel.size < MIN_ROWS:
+            jr.null_all(f"{name} hardly slides in this log ({sel.size} rows)")
+            continue
+        Yf, Yg = _row_full_columns(ctx, j)
+        base = ctx.rm.row_full[j]
+        YfH = p.regfilter(Yf)
+        arm = p.regfilter(p.ddq[:, j:j + 1])
+        v = p.dq[:, j]
+        acc_level = float(np.percentile(np.abs(ctx.ddqH[sel, j]), 90))
+        names_rb = [f"beta{k}" for k in range(base.r)]
+
+        def solve(stb: tuple[float, float] | None) -> tuple[LinearFit, list[str]]:
+            F, fnames = friction_columns(v, vs=None if stb is None else stb[0], delta=2.0 if stb is None else stb[1])
+            FH = p.regfilter(F)
+            A = np.column_stack([YfH[sel], arm[sel], FH[sel]])
+            nm = names_rb + ["armature"] + fnames
+            # WLS: weights from the residual variance of low/high-acceleration rows (two-step)
+            f0 = linear_fit(A, ctx.iH[sel, j], nm)
+            hi = np.abs(ctx.ddqH[sel, j]) > max(acc_level * 0.5, 0.05)
+            w = np.ones(sel.size)
+            if hi.any() and (~hi).any():
+                s_hi = np.std(f0.residual[hi])
+                s_lo = np.std(f0.residual[~hi])
+                w[hi] = 1 / max(s_hi, 1e-9) ** 2
+                w[~hi] = 1 / max(s_lo, 1e-9) ** 2
+                w /= w.mean()
+            return linear_fit(A, ctx.iH[sel, j], nm, w=w), nm
+
+        fit, nm = solve(None)
+        best = (fit.sigma, None, fit)
+        vmin_sel = float(np.abs(v[sel]).min())
+        if stribeck_grid and vmin_sel < 0.1:
+            deltas = [o.stribeck_exponent] if o.stribeck_exponent else [1.0, 1.5, 2.0]
+            for dl in deltas:
+                for vs in (0.005, 0.008, 0.012, 0.018, 0.025, 0.035, 0.05, 0.07):
+                    if vs < 0.5 * vmin_sel:
+                        continue
+                    f2, _ = solve((vs, dl))
+                    if f2.sigma < best[0] * 0.999:
+                        best = (f2.sigma, (vs, dl), f2)
+        fit = best[2]
+        stb = best[1]
+        vmax = float(np.abs(v[sel]).max())
+        _set_friction_from_fit(jr, fit, vmax)
+        if stb is not None and fit.value("dstatic_pos_A") is not None and fit.value("dstatic_neg_A") is not None:
+            for d in ("pos", "neg"):
+                c, dv = jr.friction[f"coulomb_{d}_A"], fit.value(f"dstatic_{d}_A")
+                if c is not None and fit.std(f"dstatic_{d}_A") <= RESOLUTION_A:
+                    jr.set(f"static_{d}_A", c + dv, fit.std(f"dstatic_{d}_A"))
+                else:
+                    jr.set(f"static_{d}_A", None, reason="Stribeck hump not determined")
+            jr.set("stribeck_velocity_rad_s", stb[0], None)
+            jr.set("stribeck_exponent", stb[1], None)
+            jr.diagnostics["stribeck"] = "variable projection over a v_s × δ grid (grid resolution, no std)"
+        else:
+            why_s = ("no sliding slow enough to see a Stribeck hump" if vmin_sel >= 0.1 else
+                     "a Stribeck hump does not lower the residual")
+            for key in ("static_pos_A", "static_neg_A", "stribeck_velocity_rad_s", "stribeck_exponent"):
+                jr.set(key, None, reason=why_s)
+        live = [k for k in range(base.r) if fit.value(f"beta{k}") is not None]
+        beta = np.array([fit.value(f"beta{k}") or 0.0 for k in range(base.r)])
+        gu = ctx.grav[sel, j]
+        rng = float(np.ptp(gu))
+        if rng >= 0.5 and live:
+            idx = [fit.names.index(f"beta{k}") for k in live]
+            wvec = (gu @ Yg[sel][:, live]) / (gu @ gu)
+            slope = float(wvec @ beta[live])
+            sslope = float(np.sqrt(wvec @ fit.cov[np.ix_(idx, idx)] @ wvec))
+            _kt_from_slope(jr, slope, sslope, "")
+            jr.diagnostics["kt_source"] = "URDF gravity torque / identified gravity part (reference: the URDF's masses)"
+        else:
+            jr.set("torque_constant_Nm_per_A", None, reason=NO_GRAVITY.format(rng=rng))
+        kt = jr.torque_constant_Nm_per_A
+        arm_A = fit.value("armature")
+        if arm_A is not None:
+            notes["armature_kgm2"][name] = None if kt is None else arm_A * kt
+            jr.diagnostics["armature_A_s2_per_rad"] = arm_A
+            jr.diagnostics["armature_std_A_s2_per_rad"] = fit.std("armature")
+        notes["base_parameters"][name] = {"names": base.names, "current_A": beta.tolist(),
+                                          "std_A": [fit.std(f"beta{k}") for k in range(base.r)],
+                                          "urdf_Nm": (base.E @ ctx.rm.pi_urdf).tolist(),
+                                          "dropped": {k: v for k, v in fit.dropped.items() if k.startswith("beta")}}
+        jr.diagnostics.update({"rows": int(sel.size), "condition_number": fit.cond, "residual_A": fit.sigma,
+                               "base_parameters": base.r, "base_parameters_dropped": len(base.names) - len(live),
+                               "gravity_range_Nm": rng, "acceleration_p90_rad_s2": acc_level})
+        if fit.cond > 1e4:
+            ctx.warnings.append(f"{name}: full-dynamics regressor condition number {fit.cond:.3g}: too little "
+                                "excitation for the rigid-body parameters (use the fourier plan)")
+        _physical(jr)
+    return FitResult("full", out, ctx.log.path, str(ctx.robot.urdf_path), list(ctx.warnings), notes)
+
+
+# ------------------------------------------------------------------------------------------ auto
+
+
+def fit_auto(ctx: Context) -> FitResult:
+    """The best estimate the log supports, per joint.
+
+    Quasi-static logs (plans lowspeed/symmetric/friction/synchronous): the synchronous model on every steady row,
+    i = τ(q)/K_t + F_c,d + (F_s,d − F_c,d)·e^{−(|q̇|/v_s)^δ} + F_v,d·q̇ — K_t, Coulomb and viscous by least squares,
+    v_s and δ by Levenberg–Marquardt over the linear solution (variable projection) when slow steady sliding is
+    present, static levels from breakaway events otherwise. Logs with real accelerations (a fourier plan): the
+    full-dynamics method.
+    """
+    p, o = ctx.p, ctx.opts
+    moving = np.abs(p.dq) > o.v_min
+    dyn = (np.abs(ctx.ddqH) > 0.3) & moving
+    dynamic_share = float(dyn.sum() / max(1, moving.sum()))
+    if dynamic_share > 0.3:
+        res = fit_full(ctx)
+        res.method = "auto"
+        res.notes["auto"] = f"full dynamics: {dynamic_share:.0%} of moving samples accelerate (> 0.3 rad/s²)"
+        return res
+    out = []
+    for j, name in enumerate(ctx.names):
+        jr = JointResult(name)
+        out.append(jr)
+        why = ctx.never_moves(j)
+        if why:
+            jr.null_all(why)
+            continue
+        sel = ctx.rows[ctx.steady(j)[ctx.rows]]
+        if sel.size < MIN_ROWS:
+            jr.null_all(f"no steady motion of {name} (|q̇| > {o.v_min} rad/s at |q̈| < {o.a_max} rad/s²) in this log")
+            continue
+        fit0, rng = _quasistatic_fit(ctx, j, sel, None)
+        vsel = p.dq[sel, j]
+        vmin = float(np.abs(vsel).min())
+        best = fit0
+        stb = None
+        if vmin < 0.05:
+            # variable projection: the linear parameters solved inside, (ln v_s, ln δ) by LM
+            def resid(x: np.ndarray) -> np.ndarray:
+                dl = o.stribeck_exponent or math.exp(x[1])
+                f, _ = _quasistatic_fit(ctx, j, sel, (math.exp(x[0]), dl))
+                return f.residual
+
+            x0 = np.array([math.log(0.02), math.log(1.5)])
+            try:
+                r = least_squares(resid, x0, method="lm", max_nfev=60, diff_step=0.05)
+                dl = o.stribeck_exponent or math.exp(r.x[1])
+                f2, _ = _quasistatic_fit(ctx, j, sel, (math.exp(r.x[0]), dl))
+                if f2.sigma < fit0.sigma * 0.995 and f2.value("dstatic_pos_A") is not None:
+                    J = r.jac
+                    s2 = float(r.fun @ r.fun / max(1, r.fun.size - J.shape[1] - len(f2.names)))
+                    try:
+                        cx = s2 * np.linalg.inv(J.T @ J)
+                        sx = np.sqrt(np.maximum(np.diag(cx), 0))
+                    except np.linalg.LinAlgError:
+                        sx = np.full(2, np.inf)
+                    best, stb = f2, (math.exp(r.x[0]), dl, math.exp(r.x[0]) * sx[0],
+                                     0.0 if o.stribeck_exponent else dl * sx[1])
+            except (ValueError, np.linalg.LinAlgError):
+                pass
+        fit = best
+        _kt_from_slope(jr, fit.value("gravity"), fit.std("gravity"), fit.dropped.get("gravity", "not determined"))
+        vmax = float(np.abs(vsel).max())
+        _set_friction_from_fit(jr, fit, vmax)
+        if stb is not None and stb[2] < 0.5 * stb[0]:
+            for d in ("pos", "neg"):
+                c, dv, ds = jr.friction[f"coulomb_{d}_A"], fit.value(f"dstatic_{d}_A"), fit.std(f"dstatic_{d}_A")
+                if c is not None and dv is not None and ds <= RESOLUTION_A:
+                    jr.set(f"static_{d}_A", c + dv, math.hypot(ds, jr.std.get(f"coulomb_{d}_A", 0.0)))
+            jr.set("stribeck_velocity_rad_s", stb[0], stb[2])
+            jr.set("stribeck_exponent", stb[1], stb[3])
+            jr.diagnostics["stribeck_source"] = "steady sliding, variable projection (LM)"
+        else:
+            why_s = (f"no steady sliding below {vmin:.3f} rad/s (stick–slip or no slow passes): the Stribeck curve is "
+                     "not observable in steady motion")
+            jr.set("stribeck_velocity_rad_s", None, reason=why_s)
+            jr.set("stribeck_exponent", None, reason=why_s)
+        for d in ("pos", "neg"):
+            if jr.friction[f"static_{d}_A"] is None:
+                jr.set(f"static_{d}_A", None, reason="no breakaway events and no steady slow sliding")
+        if jr.friction["static_pos_A"] is None or jr.friction["static_neg_A"] is None:
+            a = fit.value("gravity") or 0.0
+            brk = breakaway_levels(ctx, j, p.i[:, j] - a * ctx.tau[:, j])
+            for d, (lvl, s, cnt) in brk.items():
+                if jr.friction[f"static_{d}_A"] is None:
+                    jr.set(f"static_{d}_A", lvl, s)
+                    jr.diagnostics[f"static_{d}_source"] = f"breakaway: {cnt} stick→slip events"
+        jr.diagnostics.update({"rows": int(sel.size), "condition_number": fit.cond, "residual_A": fit.sigma,
+                               "gravity_range_Nm": rng, "speed_range_rad_s": [vmin, vmax]})
+        _physical(jr)
+    res = FitResult("auto", out, ctx.log.path, str(ctx.robot.urdf_path), list(ctx.warnings))
+    res.notes["auto"] = (f"quasi-static: {dynamic_share:.0%} of moving samples accelerate; synchronous model with "
+                         "Stribeck by variable projection and breakaway static levels")
+    return res
+
+
+# ------------------------------------------------------------------------------------------ entry point
+
+
+FITTERS = {"lowspeed": fit_lowspeed, "symmetric": fit_symmetric, "synchronous": fit_synchronous, "full": fit_full,
+           "auto": fit_auto}
+
+
+def identify(log: Log, robot: Any, method: str = "auto", opts: Options | None = None,
+             rm: RegressorModel | None = None) -> FitResult:
+    """Run one method on a loaded log; the result has per-joint values, std, reasons for nulls, diagnostics."""
+    if method not in FITTERS:
+        raise ValueError(f"--method: expected one of {', '.join(METHODS)}, got '{method}'")
+    t0 = time.perf_counter()
+    ctx = Context(log, robot, opts or Options(), rm)
+    res = FITTERS[method](ctx)
+    never = [jr.name for jr in res.joints if any("never moves" in r for r in jr.reasons.values())]
+    for nm in never:
+        res.warnings.append(f"{nm} never moves in this log: its parameters are reported unidentifiable (null)")
+    res.notes.setdefault("processing", {"rate_Hz": ctx.p.source_rate_Hz, "work_rate_Hz": ctx.p.fs,
+                                        "regression_filter_Hz": ctx.p.cutoff_Hz,
+                                        "derivative_filter_Hz": ctx.p.deriv_cutoff_Hz,
+                                        "duration_s": float(ctx.log.t[-1] - ctx.log.t[0]),
+                                        "samples": int(ctx.log.t.shape[0])})
+    res.elapsed_s = time.perf_counter() - t0
+    return res
+
+
+__all__ = ["METHODS", "Options", "Context", "identify", "find_pairs", "stribeck_lm", "friction_columns",
+           "friction_value", "LogError", "replace", "field", "lowpass"]
