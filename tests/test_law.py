@@ -86,7 +86,9 @@ def test_startup_term_at_rest_and_faded_when_moving(params):
     assert s_neg[0] == pytest.approx(-params.startup_amp_neg_A[0])
     moving = params.rest_threshold_rad_s + params.fade_width_rad_s + 1e-3
     assert np.allclose(startup_current(t, moving, params), 0.0)
-    r = startup_weight(np.array([0.0, 0.01, 0.02, 0.03, 0.05, -0.02]), params)
+    phi, w = params.rest_threshold_rad_s[0], params.fade_width_rad_s[0]
+    assert np.all(params.rest_threshold_rad_s == phi) and np.all(params.fade_width_rad_s == w)
+    r = startup_weight(np.array([0.0, phi, phi + w / 2, phi + w, phi + 2 * w, -(phi + w / 2)]), params)
     assert r[0] == 1.0 and r[1] == 1.0 and 0 < r[2] < 1 and r[3] == 0.0 and r[4] == 0.0 and r[5] == r[2]
 
 
