@@ -14,6 +14,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from dragd.busload import fd_length
 from sim.od import (
     ABORT_CANNOT_MAP,
     ABORT_NO_OBJECT,
@@ -30,16 +31,6 @@ COB_NO_RTR = 0x40000000
 COB_EXTENDED = 0x20000000
 CLASSIC_MAX_BYTES = 8
 FD_MAX_BYTES = 64
-FD_LENGTHS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)
-_DUMMY_BITS = {0x0002: 8, 0x0003: 16, 0x0004: 32, 0x0005: 8, 0x0006: 16, 0x0007: 32}
-
-
-def fd_frame_length(n_bytes: int) -> int:
-    """Smallest CAN FD data length >= n_bytes."""
-    for length in FD_LENGTHS:
-        if length >= n_bytes:
-            return length
-    raise ValueError(f"{n_bytes} bytes exceed the 64-byte CAN FD frame")
 
 
 @dataclass(frozen=True)
@@ -156,7 +147,7 @@ class PdoChannel:
         self.getter = _tuple_getter(self.slots)
         size = self.layout.size
         self.is_fd = fd and size > CLASSIC_MAX_BYTES
-        self.frame_len = fd_frame_length(size) if self.is_fd else size
+        self.frame_len = fd_length(size) if self.is_fd else size
         self.sync_count = 0
         self.last_data = None
         self.last_tx_s = -1e9
