@@ -213,6 +213,32 @@ class ControlConfig(_Strict):
     socket: str = "/run/dragd/dragd.sock"
 
 
+PerJoint = PosFloat | list[PosFloat]  # one value for every joint, or a list with one per joint
+
+
+class ReplayConfig(_Strict):
+    """Teach and replay (dragd/teach, docs/TEACH.md): recording, replay limits, the monitors during replay."""
+
+    program_dir: str = "/var/lib/dragd/programs"  # taught programs (NAME.yaml + NAME.mcap); relative: to this file
+    record_rate_Hz: Annotated[float, Field(gt=0, le=1000), Expect("a rate in (0, 1000] Hz")] = 50.0
+    max_record_s: PosFloat = 1800.0  # recorder capacity (preallocated)
+    frame: str = "tool0"  # the frame of circular moves and TCP speed limits
+    velocity_limits_rad_s: PerJoint | None = None  # default: joints[].velocity_limit_rad_s (and the URDF's)
+    acceleration_limits_rad_s2: PerJoint = 2.0
+    jerk_limits_rad_s3: PerJoint = 20.0
+    cartesian_speed_m_s: PosFloat = 0.5  # TCP speed limit of every replayed move
+    cartesian_acceleration_m_s2: PosFloat = 2.0
+    move_to_start_speed: Annotated[float, Field(gt=0, le=1), Expect("a fraction in (0, 1]")] = 0.25
+    settle_s: NonNegFloat = 0.4  # dwell at every stop (point-to-point waypoints, end of a cycle)
+    keyframe_tolerance_rad: PosFloat = 0.0087  # keyframes of a continuous recording keep the path within this
+    inertia_feedforward: bool = True  # M(q)q̈ + C(q,q̇)q̇ of the planned motion in the CSP torque offset
+    ramp_s: PosFloat = 0.4  # pause / resume / stop / speed-override changes (longer when the path is fast)
+    tracking_error_limit_rad: PerJoint = 0.035  # |q - q_ref| beyond this stops the motion (hold)
+    residual_current_limit_A: PerJoint = 2.0  # |measured - predicted current| beyond this stops the motion
+    residual_filter_Hz: Annotated[float, Field(gt=0, le=500), Expect("a cutoff in (0, 500] Hz")] = 10.0
+    monitor_cycles: PosInt = 20  # a monitor must see its bound exceeded this many cycles in a row
+
+
 class Config(_Strict):
     robot: RobotConfig = RobotConfig()
     params: str | None = None  # identified-parameters file, relative to the config file
@@ -224,6 +250,7 @@ class Config(_Strict):
     master: MasterConfig = MasterConfig()
     telemetry: TelemetryConfig = TelemetryConfig()
     control: ControlConfig = ControlConfig()
+    replay: ReplayConfig = ReplayConfig()
     source: str = Field("<memory>", exclude=True)  # file it came from (not a YAML key)
 
     @model_validator(mode="after")
@@ -244,7 +271,22 @@ class Config(_Strict):
             if key in seen:
                 raise ValueError(f"joints: {j.name} and {seen[key]} share node id {j.node_id} on bus '{j.bus}'")
             seen[key] = j.name
+        r = self.replay
+        for key in ("velocity_limits_rad_s", "acceleration_limits_rad_s2", "jerk_limits_rad_s3",
+                    "tracking_error_limit_rad", "residual_current_limit_A"):
+            v = getattr(r, key)
+            if isinstance(v, list) and len(v) != len(self.joints):
+                raise ValueError(f"replay.{key}: expected one value or {len(self.joints)} (one per joint), got {len(v)}")
         return self
+
+    def per_joint(self, value: float | list[float]) -> list[float]:
+        """A ``PerJoint`` setting as one value per joint."""
+        return list(value) if isinstance(value, list) else [float(value)] * len(self.joints)
+
+    @property
+    def program_dir(self) -> Path:
+        p = Path(self.replay.program_dir).expanduser()
+        return p if p.is_absolute() else self.base_dir / p
 
     @property
     def joint_names(self) -> list[str]:

@@ -15,6 +15,7 @@ call SDO. Drive state changes (the CiA 402 walk, fault reset edges) are made by 
 from __future__ import annotations
 
 import asyncio
+import functools
 import math
 import os
 import signal
@@ -41,7 +42,9 @@ from .master import MODE_CSP, MODE_CST, DriveError, Master
 from .model import RobotModel
 from .pdo import SYNC_COB_ID, BusLayout, RpdoEncoder, layout_for
 from .stats import Histogram
-from .ticker import Ticker, set_realtime
+from .teach.program import ProgramError, check_name, resolve_program
+from .teach.recorder import TeachRecorder
+from .ticker import Ticker, demote_current_thread, set_realtime
 from .velocity import VelocityEstimator
 
 
@@ -91,7 +94,8 @@ class Trajectory:
 
     From samples t [s] (from 0, increasing) and q [rad] with a clamped cubic spline; the cycle then indexes the
     table (O(1), no allocation). ``load`` reads the same from a .npz (arrays ``t_s``, ``q_rad``) or CSV file
-    (``t,q1..qN``).
+    (``t,q1..qN``). ``from_table`` takes a table already at the loop period (replay plans) with optional velocity
+    and feed-forward torque tables, a repeated part (rows ``body_row`` to the end) and the waypoint marks.
     """
 
     def __init__(self, t_s: np.ndarray, q_rad: np.ndarray, dt_s: float, label: str = "track") -> None:
@@ -111,6 +115,44 @@ class Trajectory:
         grid = np.arange(0.0, self.duration_s + dt_s / 2, dt_s)
         self.table = np.ascontiguousarray(CubicSpline(t_s, q_rad, bc_type="clamped")(grid))
         self.start_q = self.table[0].copy()
+        self._init_tables(None, None, 0, [], {})
+
+    def _init_tables(self, dq: np.ndarray | None, ff: np.ndarray | None, body_row: int,
+                     marks: list[dict[str, Any]], info: dict[str, Any]) -> None:
+        self.dq_table = dq  # rad/s at rate 1 (None: the cycle differentiates q_ref)
+        self.ff_table = ff  # N·m of M(q)q̈ + C(q,q̇)q̇ at rate 1 (None: no inertial feed-forward)
+        self.pred_table: np.ndarray | None = None  # the same for the residual monitor only (not commanded)
+        self.residual_monitor = True
+        self.body_row = int(body_row)
+        self.body_start_s = self.body_row * self.dt_s
+        self.marks = marks
+        self.info = info
+        self._d = np.zeros(self.table.shape[1])
+        self.k = 0  # row and fraction of the last sample()
+        self.f = 0.0
+
+    @classmethod
+    def from_table(cls, q: np.ndarray, dt_s: float, label: str = "replay", *, dq: np.ndarray | None = None,
+                   ff_Nm: np.ndarray | None = None, body_row: int = 0, marks: list[dict[str, Any]] | None = None,
+                   info: dict[str, Any] | None = None) -> Trajectory:
+        q = np.ascontiguousarray(q, dtype=float)
+        if q.ndim != 2 or q.shape[0] < 2 or not np.all(np.isfinite(q)):
+            raise ValueError(f"trajectory: expected a finite table (N ≥ 2, joints), got {q.shape}")
+        for name, a in (("dq", dq), ("ff_Nm", ff_Nm)):
+            if a is not None and (a.shape != q.shape or not np.all(np.isfinite(a))):
+                raise ValueError(f"trajectory: {name}: expected a finite table of shape {q.shape}, got {a.shape}")
+        if not 0 <= body_row < q.shape[0] - 1:
+            raise ValueError(f"trajectory: body_row: expected 0..{q.shape[0] - 2}, got {body_row}")
+        self = cls.__new__(cls)
+        self.label = label
+        self.dt_s = dt_s
+        self.table = q
+        self.duration_s = (q.shape[0] - 1) * dt_s
+        self.start_q = q[0].copy()
+        self._init_tables(None if dq is None else np.ascontiguousarray(dq, dtype=float),
+                          None if ff_Nm is None else np.ascontiguousarray(ff_Nm, dtype=float), body_row,
+                          list(marks or []), dict(info or {}))
+        return self
 
     @classmethod
     def load(cls, path: str | Path, dt_s: float, label: str = "track") -> Trajectory:
@@ -127,8 +169,27 @@ class Trajectory:
         return cls(data[:, 0], data[:, 1:], dt_s, label)
 
     def sample(self, t: float, out: np.ndarray) -> np.ndarray:
-        k = int(t / self.dt_s + 0.5)
-        out[:] = self.table[min(max(k, 0), self.table.shape[0] - 1)]
+        """q at time ``t`` (linear interpolation between the table's rows; clamped to the ends)."""
+        last = self.table.shape[0] - 1
+        x = t / self.dt_s
+        if x <= 0.0:
+            k, f = 0, 0.0
+        elif x >= last:
+            k, f = last, 0.0
+        else:
+            k = int(x)
+            f = x - k
+        self.k, self.f = k, f
+        return self.row(self.table, out)
+
+    def row(self, table: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """Another table (velocity, feed-forward) at the time of the last ``sample``."""
+        k, f = self.k, self.f
+        out[:] = table[k]
+        if f > 0.0:
+            np.subtract(table[k + 1], table[k], out=self._d)
+            self._d *= f
+            out += self._d
         return out
 
 
@@ -214,6 +275,46 @@ class Daemon:
         self.resume_mode = Mode.IDLE
         self.fresh_cycles = 0
         self.feedback_holds = 0
+        # TRACK clock: the trajectory time advances at ``track_rate`` (speed override, pause, controlled stop)
+        rc = cfg.replay
+        self.track_tau = 0.0
+        self.track_rate = 1.0
+        self.track_override = 1.0
+        self.track_state = "idle"  # running | pausing | paused | stopping
+        self.track_cycles = 1  # repetitions of the trajectory's body (0: until stopped)
+        self.track_cycle = 0
+        self._track_t_prev = 0.0
+        self._rate_from = 1.0
+        self._rate_target = 1.0
+        self._rate_t0 = -1.0
+        self._rate_T = 1.0
+        self.replay: dict[str, Any] | None = None  # the running (or last) replay: program, options, outcome
+        self.ff_Nm = np.zeros(n)  # inertial feed-forward of the trajectory sample
+        self.pred_A = np.zeros(n)  # the model's current for the commanded motion (TRACK)
+        self.pred_extra_Nm = np.zeros(n)  # rigid-body effort predicted but not commanded (plain tracks)
+        self.residual_A = np.zeros(n)  # measured - predicted, low-pass filtered
+        self.track_err = np.zeros(n)
+        self.err_limit = np.array(cfg.per_joint(rc.tracking_error_limit_rad), dtype=float)
+        self.res_limit = np.array(cfg.per_joint(rc.residual_current_limit_A), dtype=float)
+        self._res_alpha = 1.0 - math.exp(-2.0 * math.pi * rc.residual_filter_Hz * self.dt)
+        self._acc_limit = np.array(cfg.per_joint(rc.acceleration_limits_rad_s2), dtype=float)
+        self._err_count = 0
+        self._res_count = 0
+        self._grace_until = -1.0
+        self._grace_s = 0.1
+        self._lim_count = 0
+        self._over = np.zeros(n, dtype=bool)
+        self.tmp3 = np.zeros(n)
+        self._ref = self.q
+        self.start_offset = np.zeros(n)
+        self._start_blend_s = 0.0
+        self._full_friction = False
+        self._planning = False  # a replay is being planned (the arm held in CSP meanwhile)
+        self.protective_stops = 0
+        # teach
+        self.teach: TeachRecorder | None = None
+        self._worker = None  # the planner process (dragd.teach.worker), started on first use
+        self._helper = None  # normal-priority thread that talks to it
         # timing
         self.period_hist = Histogram(0.0, 20_000.0, 10.0)
         self.compute_hist = Histogram(0.0, 5_000.0, 2.0)
@@ -323,11 +424,18 @@ class Daemon:
         except RuntimeError:
             self.log(f"fault: {text}")
         self.feedback_hold = False
+        if self.replay is not None and self.replay.get("outcome") is None and self.trajectory is not None:
+            self.replay["outcome"] = f"fault: {text}"
+            self.replay["ended_t_s"] = round(self.t, 4)
+        if self.teach is not None and self.telemetry is not None:
+            self.telemetry.event("teach_fault", program=self.teach.name, text=text)
         if self.mode != Mode.FAULT:
             self.prev_mode = self.mode
             self.mode = Mode.FAULT
             self.enable_t0 = None
             self.trajectory = None
+            self.track_state = "idle"
+            self.ff_Nm.fill(0.0)
             if self.telemetry is not None:
                 self.telemetry.event("fault", text=text, code=code)
 
@@ -349,6 +457,8 @@ class Daemon:
         if self.mode in (Mode.IDLE, Mode.FAULT):
             return
         self.feedback_hold = False
+        if self.trajectory is not None:  # a motion: hold where the arm is, drives back to CST, then disable
+            self._end_track("stopped (drives disabled)", hold_at_ref=False)
         if self.mode != Mode.HOLD:
             self.q_hold[:] = self.q
             self._set_mode(Mode.HOLD)
@@ -384,24 +494,268 @@ class Daemon:
         if self.telemetry is not None:
             self.telemetry.event("mode", mode=MODE_NAMES[mode], previous=MODE_NAMES[self.prev_mode])
 
-    async def track(self, traj: Trajectory) -> None:
-        """Switch the drives to CSP and follow ``traj`` (entry point of identification runs and replay)."""
+    async def track(self, traj: Trajectory, *, rate: float = 1.0, cycles: int = 1) -> None:
+        """Switch the drives to CSP and follow ``traj`` (entry point of identification runs and replay).
+
+        ``rate`` is the speed override (the trajectory clock's rate), ``cycles`` the repetitions of its body
+        (rows ``body_row`` to the end; 0: until ``track_stop``).
+        """
         if self.mode not in (Mode.HOLD, Mode.DRAG):
             raise ValueError(f"track: expected the arm enabled in hold or drag, it is {MODE_NAMES[self.mode]}")
+        if self.trajectory is not None or self.mode_switch_pending:
+            raise ValueError("track: a motion is running; stop it first")
         if traj.table.shape[1] != self.n:
             raise ValueError(f"track: expected {self.n} joints per sample, got {traj.table.shape[1]}")
+        if not 0.0 < rate <= 1.0:
+            raise ValueError(f"track: speed: expected a fraction in (0, 1], got {rate}")
+        self._take_over_feedback_hold("track")
         start_err = np.abs(traj.start_q - self.q)
         if np.any(start_err > 0.02):
             raise ValueError(f"track: the trajectory starts {np.degrees(start_err.max()):.2f}° from the current pose "
                              "(max 1.1°); move there first")
-        self.q_hold[:] = self.q
+        if self.mode != Mode.HOLD:
+            self.q_hold[:] = self.q
         self._set_mode(Mode.HOLD)
-        await self._switch_drive_mode(MODE_CSP)
+        if self.drive_mode != MODE_CSP:
+            await self._switch_drive_mode(MODE_CSP)
+        if self.mode != Mode.HOLD:  # a fault or stop while the drives switched
+            raise ValueError(f"track: the arm left hold while the drives switched to CSP ({MODE_NAMES[self.mode]})")
+        self.track_tau = 0.0
+        self.track_rate = self._rate_from = self._rate_target = self.track_override = float(rate)
+        self._rate_t0 = -1.0
+        self.track_state = "running"
+        self.track_cycles = int(cycles)
+        self.track_cycle = 0
+        self._track_t_prev = self.t
+        self._err_count = self._res_count = self._lim_count = 0
+        self.residual_A.fill(0.0)
+        self.ff_Nm.fill(0.0)
+        self.pred_extra_Nm.fill(0.0)
         traj.sample(0.0, self.q_ref)
+        # a replay's move to start begins exactly where the arm is: the small difference to the planned start
+        # fades out over the move (no step in the position target)
+        np.subtract(self.q, self.q_ref, out=self.start_offset)
+        self._start_blend_s = traj.body_start_s if traj.body_start_s > 0.0 else 0.0
+        if self._start_blend_s > 0.0:
+            self.q_ref += self.start_offset
         self.dq_ref.fill(0.0)
+        self._full_friction = traj.dq_table is not None  # replay plans; identification tracks as before
         self.trajectory = traj
         self.track_t0 = self.t
         self._set_mode(Mode.TRACK)
+
+    def _take_over_feedback_hold(self, what: str) -> None:
+        """A motion request supersedes a feedback hold's return to drag, once the feedback is fresh again."""
+        if not self.feedback_hold:
+            return
+        if self.fresh_cycles < 10:
+            raise ValueError(f"{what}: the arm is held because feedback was late (stale TPDOs); try again when "
+                             "'dragd status' shows feedback_hold false")
+        self.feedback_hold = False
+        self.resume_mode = Mode.HOLD
+
+    # -- TRACK clock: speed override, pause / resume, controlled stop (all decelerate along the path)
+
+    def _ramp_rate(self, target: float) -> None:
+        """Ramp the trajectory clock's rate to ``target`` (smoothstep), slower when the path is fast."""
+        tr = self.trajectory
+        delta = abs(target - self.track_rate)
+        T = self.cfg.replay.ramp_s * max(delta, 0.25)
+        if tr is not None and tr.dq_table is not None:
+            # the extra acceleration q'(τ)·dr/dt stays within half the configured acceleration limit
+            tr.row(tr.dq_table, self.tmp3)
+            np.abs(self.tmp3, out=self.tmp3)
+            need = 1.5 * delta * float(np.max(self.tmp3 / self._acc_limit)) / 0.5
+            T = max(T, need)
+        self._rate_from = self.track_rate
+        self._rate_target = float(target)
+        self._rate_t0 = self.t
+        self._rate_T = max(T, 0.02)
+
+    def track_pause(self) -> str:
+        if self.trajectory is None or self.mode != Mode.TRACK:
+            raise ValueError("pause: no motion is running")
+        if self.track_state == "stopping":
+            raise ValueError("pause: the motion is stopping")
+        if self.track_state in ("running",):
+            self.track_state = "pausing"
+            self._ramp_rate(0.0)
+        return self.track_state
+
+    def track_resume(self) -> str:
+        if self.trajectory is None or self.mode != Mode.TRACK:
+            raise ValueError("resume: no motion is running")
+        if self.track_state == "stopping":
+            raise ValueError("resume: the motion is stopping")
+        if self.track_state in ("pausing", "paused"):
+            self.track_state = "running"
+            self._ramp_rate(self.track_override)
+        return self.track_state
+
+    def track_stop(self) -> str:
+        """Controlled stop: decelerate along the path, then hold where the path stopped."""
+        if self.trajectory is None or self.mode != Mode.TRACK:
+            raise ValueError("stop: no motion is running")
+        if self.track_state != "stopping":
+            self.track_state = "stopping"
+            if self.track_rate > 0.0:
+                self._ramp_rate(0.0)
+            else:
+                self._rate_t0 = -1.0
+        return self.track_state
+
+    def set_speed_override(self, speed: float) -> float:
+        if not 0.0 < speed <= 1.0:
+            raise ValueError(f"speed: expected a fraction in (0, 1], got {speed}")
+        self.track_override = float(speed)
+        if self.trajectory is not None and self.mode == Mode.TRACK and self.track_state == "running":
+            self._ramp_rate(self.track_override)
+        return self.track_override
+
+    def _end_track(self, outcome: str, hold_at_ref: bool = True) -> None:
+        """Leave TRACK for HOLD (at the reference, or where the arm is), drives back to CST."""
+        if hold_at_ref:
+            self.q_hold[:] = self.q_ref
+        else:
+            self.q_hold[:] = self.q
+        tr = self.trajectory
+        self.trajectory = None
+        self.track_state = "idle"
+        self.ff_Nm.fill(0.0)
+        self._set_mode(Mode.HOLD)
+        if self.replay is not None and self.replay.get("outcome") is None:
+            self.replay["outcome"] = outcome
+            self.replay["ended_t_s"] = round(self.t, 4)
+            self.replay["cycles_done"] = self.track_cycle + (1 if outcome == "done" else 0)
+        if self.telemetry is not None:
+            self.telemetry.event("track_end", label=tr.label if tr else None, outcome=outcome)
+        asyncio.get_running_loop().create_task(self._switch_drive_mode(MODE_CST))
+
+    def _protective_stop(self, j: int | None, kind: str, text: str) -> None:
+        """A monitor tripped during TRACK: stop now and hold where the arm is (not a drive fault)."""
+        self.protective_stops += 1
+        self.faults.append({"t_s": round(self.t, 4), "joint": self.cfg.joints[j].name if j is not None else None,
+                            "node_id": self.cfg.joints[j].node_id if j is not None else None, "code": 0,
+                            "text": text, "reaction": "hold", "kind": kind})
+        if len(self.faults) > 100:
+            del self.faults[:-100]
+        try:
+            asyncio.get_running_loop().call_soon(self.log, f"protective stop at t={self.t:.3f} s: {text}")
+        except RuntimeError:
+            self.log(f"protective stop: {text}")
+        if self.telemetry is not None:
+            self.telemetry.event("protective_stop", kind=kind, text=text)
+        self._end_track(f"{kind}: {text}", hold_at_ref=False)
+
+    def _track_step(self) -> None:
+        """One cycle of TRACK: advance the clock, sample the reference (+ velocity, feed-forward), monitor."""
+        tr = self.trajectory
+        assert tr is not None
+        elapsed = self.t - self._track_t_prev
+        self._track_t_prev = self.t
+        if elapsed > 2.5 * self.dt:
+            # the loop stalled (missed cycles): the reference waits instead of jumping ahead along the path, and
+            # the monitors give the drives' catch-up transient a moment
+            elapsed = self.dt
+            self._grace_until = self.t + self._grace_s
+        if self._rate_t0 >= 0.0:
+            x = (self.t - self._rate_t0) / self._rate_T
+            if x >= 1.0:
+                self.track_rate = self._rate_target
+                self._rate_t0 = -1.0
+            else:
+                self.track_rate = self._rate_from + (self._rate_target - self._rate_from) * x * x * (3.0 - 2.0 * x)
+        self.track_tau += self.track_rate * elapsed
+        finished = False
+        if self.track_tau >= tr.duration_s:
+            more = self.track_cycles == 0 or self.track_cycle + 1 < self.track_cycles
+            if more and self.track_state != "stopping" and tr.duration_s > tr.body_start_s:
+                self.track_tau -= tr.duration_s - tr.body_start_s
+                self.track_cycle += 1
+            else:
+                self.track_tau = tr.duration_s
+                finished = True
+        if self._rate_t0 < 0.0 and self.track_rate == 0.0:
+            if self.track_state == "pausing":
+                self.track_state = "paused"
+            elif self.track_state == "stopping":
+                finished = True
+        self.dq_ref[:] = self.q_ref
+        tr.sample(self.track_tau, self.q_ref)
+        if tr.dq_table is not None:
+            tr.row(tr.dq_table, self.dq_ref)
+            self.dq_ref *= self.track_rate
+        else:
+            self.dq_ref -= self.q_ref
+            self.dq_ref /= -max(elapsed, self.dt)
+        if tr.ff_table is not None:
+            tr.row(tr.ff_table, self.ff_Nm)
+            self.ff_Nm *= self.track_rate * self.track_rate
+        if tr.pred_table is not None:
+            tr.row(tr.pred_table, self.pred_extra_Nm)
+            self.pred_extra_Nm *= self.track_rate * self.track_rate
+        if self._start_blend_s > 0.0 and self.track_cycle == 0 and self.track_tau < self._start_blend_s:
+            x = self.track_tau / self._start_blend_s
+            np.multiply(self.start_offset, 1.0 - x * x * (3.0 - 2.0 * x), out=self.tmp3)
+            self.q_ref += self.tmp3
+            np.multiply(self.start_offset, -6.0 * x * (1.0 - x) / self._start_blend_s * self.track_rate, out=self.tmp3)
+            self.dq_ref += self.tmp3
+        if finished:
+            self._end_track("stopped" if self.track_state == "stopping" else "done")
+            return
+        self._monitor()
+
+    def _monitor(self) -> None:
+        """Tracking error, residual current and position limits during TRACK: beyond a bound → stop, hold."""
+        k = self.cfg.replay.monitor_cycles
+        if self.stale.max() >= 3:  # positions a few cycles old (late TPDOs): count again once they are fresh
+            self._grace_until = max(self._grace_until, self.t + 0.05)
+        if self.t < self._grace_until:  # after a loop stall or late feedback: keep filtering, do not count
+            self._err_count = self._res_count = self._lim_count = -1
+        np.subtract(self.q, self.q_ref, out=self.track_err)
+        np.abs(self.track_err, out=self.tmp3)
+        self.tmp3 /= self.err_limit
+        if self.tmp3.max() > 1.0 and self._err_count >= 0:
+            self._err_count += 1
+            if self._err_count >= k:
+                j = int(self.tmp3.argmax())
+                self._protective_stop(j, "tracking_error",
+                                      f"tracking error of {self.cfg.joints[j].name} "
+                                      f"{math.degrees(abs(self.track_err[j])):.2f}° beyond "
+                                      f"{math.degrees(self.err_limit[j]):.2f}°")
+                return
+        else:
+            self._err_count = 0
+        # residual: measured current minus the model's current for the commanded motion (low-pass)
+        np.subtract(self.current_meas_A, self.pred_A, out=self.tmp3)
+        self.tmp3 -= self.residual_A
+        self.tmp3 *= self._res_alpha
+        self.residual_A += self.tmp3
+        np.abs(self.residual_A, out=self.tmp3)
+        self.tmp3 /= self.res_limit
+        if self.tmp3.max() > 1.0 and self._res_count >= 0 and self.trajectory.residual_monitor:
+            self._res_count += 1
+            if self._res_count >= k:
+                j = int(self.tmp3.argmax())
+                self._protective_stop(j, "residual_current",
+                                      f"residual current of {self.cfg.joints[j].name} {self.residual_A[j]:+.2f} A beyond "
+                                      f"±{self.res_limit[j]:.2f} A (collision?)")
+                return
+        else:
+            self._res_count = 0
+        np.less(self.q, self.lim_lo, out=self._over)
+        over = self._over.any()
+        np.greater(self.q, self.lim_hi, out=self._over)
+        if (over or self._over.any()) and self._lim_count >= 0:
+            self._lim_count += 1
+            if self._lim_count >= k:
+                np.subtract(self.lim_lo, self.q, out=self.tmp3)
+                np.maximum(self.tmp3, self.q - self.lim_hi, out=self.tmp3)
+                j = int(self.tmp3.argmax())
+                self._protective_stop(j, "soft_limit", f"{self.cfg.joints[j].name} at {self.q[j]:.3f} rad outside its "
+                                                       f"limits [{self.lim_lo[j]:.3f}, {self.lim_hi[j]:.3f}]")
+        else:
+            self._lim_count = 0
 
     async def _switch_drive_mode(self, mode: int) -> None:
         assert self.master is not None
@@ -517,7 +871,11 @@ class Daemon:
             return
         if mode == Mode.TRACK:  # CSP: the drive's position loop tracks; the offset feeds gravity + friction forward
             friction_current(self.dq_ref, self.params, out, self.ws)
+            if self._full_friction and 0.0 < self.params.friction_scale != 1.0:
+                out /= self.params.friction_scale  # replay: the full belief (the drag law's under-compensation
+                # guards a released joint against run-away; in CSP it would only leave more to the drive's loop)
             out *= self.kt
+            out += self.ff_Nm  # + the planned motion's M(q)q̈ + C(q,q̇)q̇ (replay plans)
         else:  # HOLD: gravity + joint PD around the pose
             np.subtract(self.q_hold, self.q, out=out)
             out *= s.hold_kp_Nm_per_rad
@@ -525,6 +883,9 @@ class Daemon:
             out -= self.tmp2
         out += self.tau_g
         out /= self.kt
+        if mode == Mode.TRACK:  # the model's current for the commanded motion (residual monitor)
+            np.divide(self.pred_extra_Nm, self.kt, out=self.pred_A)
+            self.pred_A += out
         out += self.extra_A
         np.minimum(out, self.params.current_limit_A, out=out)
         np.maximum(out, self.neg_limit_A, out=out)
@@ -542,15 +903,9 @@ class Daemon:
         self.current_meas_A /= 1000.0
         self.model.gravity(self.q, self.tau_g)
         if self.trajectory is not None and self.mode == Mode.TRACK:
-            self.dq_ref[:] = self.q_ref
-            self.trajectory.sample(self.t - self.track_t0, self.q_ref)
-            self.dq_ref -= self.q_ref
-            self.dq_ref /= -self.dt
-            if self.t - self.track_t0 > self.trajectory.duration_s:
-                self.q_hold[:] = self.q_ref
-                self.trajectory = None
-                self._set_mode(Mode.HOLD)
-                asyncio.get_running_loop().create_task(self._switch_drive_mode(MODE_CST))
+            self._track_step()
+        if self.teach is not None:
+            self.teach.add(self.t, self.q)
         # compute
         self._drive_controlwords()
         self._safety_terms(self.extra_A)
@@ -579,7 +934,15 @@ class Daemon:
         np.minimum(self.tmp, 32767.0, out=self.tmp)
         np.maximum(self.tmp, -32768.0, out=self.tmp)
         self.offset_permille[:] = self.tmp
-        ref = self.q_ref if self.mode == Mode.TRACK else self.q
+        # CSP target: the reference; after a motion (hold while the drives are still in CSP) the hold pose, so
+        # the drive's own position loop keeps pulling to the same point until it is back in CST
+        if self.mode == Mode.TRACK:
+            ref = self.q_ref
+        elif self.mode == Mode.HOLD and self.drive_mode == MODE_CSP:
+            ref = self.q_hold
+        else:
+            ref = self.q
+        self._ref = ref
         np.multiply(ref, self.cpr, out=self.tmp)
         self.tmp /= 2.0 * math.pi
         self.tmp *= self.direction
@@ -630,6 +993,10 @@ class Daemon:
         row[c["rx"]] = self.rx
         row[c["period_us"]] = period_us
         row[c["compute_us"]] = compute_us
+        row[c["q_ref_rad"]] = self._ref  # the position target (TRACK: the reference; HOLD: the hold pose)
+        track = self.mode == Mode.TRACK
+        row[c["track_t_s"]] = self.track_tau if track else -1.0
+        row[c["residual_A"]] = self.residual_A if track else 0.0
 
     async def _cycle_loop(self) -> None:
         loop = asyncio.get_running_loop()
@@ -750,14 +1117,19 @@ class Daemon:
             "drives": drives,
             "drive_mode": {MODE_CSP: "csp", MODE_CST: "cst"}.get(self.drive_mode, str(self.drive_mode)),
             "trajectory": (None if self.trajectory is None else
-                           {"label": self.trajectory.label, "t_s": self.t - self.track_t0,
-                            "duration_s": self.trajectory.duration_s}),
+                           {"label": self.trajectory.label, "t_s": self.track_tau,
+                            "duration_s": self.trajectory.duration_s, "state": self.track_state,
+                            "rate": self.track_rate, "cycle": self.track_cycle + 1,
+                            "cycles": self.track_cycles}),
             "bus_load_pct": {k: round(v["load_pct"], 2) for k, v in self.budget.items()},
             "tx_errors": self.tx_errors,
             "clamp_cycles": self.clamp_cycles,
             "telemetry": self.telemetry.stats() if self.telemetry is not None else None,
             "recording": self.recording_path,
             "t_s": self.t,
+            "replay": self._replay_status(),
+            "teach": self.teach.status() if self.teach is not None else None,
+            "speed_override": self.track_override,
         }
 
     async def _handle(self, req: dict[str, Any]) -> dict[str, Any]:
@@ -772,13 +1144,22 @@ class Daemon:
                                           self.cfg.master.enable_timeout_s + 0.5)
                 if self.mode == Mode.FAULT or not ok:
                     return {"ok": False, "error": "enable failed: " + (self.faults[-1]["text"] if self.faults else "timeout")}
+                if self.drive_mode != MODE_CST and self.trajectory is None and not self.mode_switch_pending:
+                    await self._switch_drive_mode(MODE_CST)  # e.g. a fault during a motion left them in CSP
                 return {"ok": True, "mode": MODE_NAMES[self.mode]}
             if cmd == "stop":
                 self.stop()
                 await self._wait_for(lambda: self.mode in (Mode.IDLE, Mode.FAULT), 5.0)
                 return {"ok": True, "mode": MODE_NAMES[self.mode]}
             if cmd == "mode":
-                self.set_mode(str(req.get("mode")))
+                target = str(req.get("mode"))
+                if target in ("hold", "drag") and self.trajectory is None and self.mode not in (Mode.IDLE, Mode.FAULT) \
+                        and (self.mode_switch_pending or self.drive_mode != MODE_CST):
+                    # after a motion the drives return to CST; a law in torque mode waits for that (bumpless)
+                    await self._wait_for(lambda: not self.mode_switch_pending and self.drive_mode == MODE_CST, 2.0)
+                    if self.drive_mode != MODE_CST:
+                        raise ValueError(f"mode {target}: the drives did not return to CST after the motion")
+                self.set_mode(target)
                 return {"ok": True, "mode": MODE_NAMES[self.mode]}
             if cmd == "track":
                 # built off the loop: resampling a long trajectory would stall the cycle
@@ -788,6 +1169,14 @@ class Daemon:
                     traj = await loop.run_in_executor(None, Trajectory.load, req["file"], self.dt, label)
                 else:
                     traj = await loop.run_in_executor(None, Trajectory, req["t_s"], req["q_rad"], self.dt, label)
+                # the residual monitor's rigid-body effort of the motion (in the planner process: seconds of
+                # Pinocchio calls for a long run would hold the GIL against the cycle)
+                try:
+                    traj.pred_table = await self._work("rigid_body_effort", str(self.model.urdf_path),
+                                                       tuple(self.cfg.robot.gravity_m_s2), traj.table, self.dt)
+                except RuntimeError as exc:
+                    self.log(f"track: no rigid-body prediction ({exc}); the residual-current monitor is off for it")
+                    traj.residual_monitor = False
                 await self.track(traj)
                 return {"ok": True, "mode": MODE_NAMES[self.mode], "duration_s": traj.duration_s}
             if cmd == "record":
@@ -798,15 +1187,245 @@ class Daemon:
                 if action == "stop":
                     return {"ok": True, **(await self.stop_recording())}
                 return {"ok": False, "error": f"record: action: expected 'start' or 'stop', got {action!r}"}
+            if cmd == "teach":
+                action = req.get("action")
+                if action == "start":
+                    rate = req.get("rate_Hz")
+                    return {"ok": True, **(await self.teach_start(str(req["name"]), None if rate is None else float(rate),
+                                                                  bool(req.get("overwrite", False))))}
+                if action == "mark":
+                    name = req.get("name")
+                    return {"ok": True, **self.teach_mark(None if name is None else str(name))}
+                if action == "stop":
+                    return {"ok": True, **(await self.teach_stop())}
+                if action == "list":
+                    return {"ok": True, "program_dir": str(self.cfg.program_dir),
+                            "programs": await self._work("list_programs", str(self.cfg.program_dir))}
+                return {"ok": False, "error": f"teach: action: expected start, mark, stop or list, got {action!r}"}
+            if cmd == "replay":
+                cycles = req.get("cycles", 1)
+                return {"ok": True, **(await self.replay_start(
+                    str(req["program"]), interp=str(req.get("interp", "linear")), speed=float(req.get("speed", 1.0)),
+                    cycles=int(cycles), source=req.get("source")))}
+            if cmd in ("replay_pause", "replay_resume", "replay_stop", "replay_speed"):
+                if cmd == "replay_speed":
+                    speed = self.set_speed_override(float(req["speed"]))
+                    return {"ok": True, "speed_override": speed, "state": self.track_state}
+                if cmd == "replay_pause":
+                    state = self.track_pause()
+                    if req.get("wait", True):
+                        await self._wait_for(lambda: self.track_state != "pausing", self._rate_T + 0.5)
+                elif cmd == "replay_resume":
+                    state = self.track_resume()
+                else:
+                    state = self.track_stop()
+                    if req.get("wait", True):
+                        await self._wait_for(lambda: self.trajectory is None, self._rate_T + 1.0)
+                state = self.track_state if self.trajectory is not None else MODE_NAMES[self.mode]
+                return {"ok": True, "state": state, "mode": MODE_NAMES[self.mode], "replay": self._replay_status()}
             if cmd == "shutdown":
                 self.request_exit()
                 return {"ok": True}
             return {"ok": False, "error": f"unknown command '{cmd}'; expected status, start, stop, mode, track, record, "
-                                         "shutdown"}
+                                         "teach, replay, replay_pause, replay_resume, replay_stop, replay_speed, shutdown"}
         except KeyError as exc:
             return {"ok": False, "error": f"{cmd}: missing field {exc}"}
-        except (ValueError, DriveError, OSError) as exc:
+        except (ValueError, DriveError, OSError, RuntimeError) as exc:
             return {"ok": False, "error": str(exc)}
+
+    # ------------------------------------------------------------------------------------------ teach & replay
+
+    def _planner(self) -> tuple[Any, Any]:
+        """The helper thread (normal priority, off the cycle's CPUs) and the planner process it talks to."""
+        if self._helper is None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            from .teach.worker import Worker
+
+            avoid = set(self.cfg.loop.cpus or ())
+            self._helper = ThreadPoolExecutor(1, thread_name_prefix="dragd-planner",
+                                              initializer=demote_current_thread, initargs=(avoid or None,))
+            self._worker = Worker(avoid)
+        return self._helper, self._worker
+
+    async def _work(self, name: str, *args: Any, **kwargs: Any) -> Any:
+        helper, worker = self._planner()
+        return await asyncio.get_running_loop().run_in_executor(helper, functools.partial(worker.call, name, *args,
+                                                                                          **kwargs))
+
+    def _warm_planner(self) -> None:
+        task = asyncio.get_running_loop().create_task(self._work("warm_up"))
+        task.add_done_callback(lambda t: t.exception())  # a failure shows at the next real call
+
+    async def teach_start(self, name: str, rate_Hz: float | None = None, overwrite: bool = False) -> dict[str, Any]:
+        """Start teaching: the raw MCAP window, positions at ``rate_Hz`` and marks; the arm goes to drag."""
+        if self.teach is not None:
+            raise ValueError(f"teach start: already teaching '{self.teach.name}'; 'dragd teach stop' first")
+        if self.mode not in (Mode.HOLD, Mode.DRAG) or self.trajectory is not None or self._planning:
+            raise ValueError(f"teach start: expected the arm enabled in hold or drag, it is {MODE_NAMES[self.mode]}"
+                             + (" (a motion is running)" if self.trajectory is not None or self._planning else ""))
+        if self.recording is not None:
+            raise ValueError(f"teach start: a record window is open ({self.recording_path}); 'record stop' first")
+        rc = self.cfg.replay
+        rate = rc.record_rate_Hz if rate_Hz is None else float(rate_Hz)
+        if not 0.0 < rate <= self.cfg.loop.rate_Hz:
+            raise ValueError(f"teach start: rate: expected (0, {self.cfg.loop.rate_Hz:.0f}] Hz, got {rate}")
+        try:
+            path = resolve_program(name, self.cfg.program_dir)
+            check_name(path.stem)
+        except ProgramError as exc:
+            raise ValueError(f"teach start: {exc}") from None
+        if path.suffix not in (".yaml", ".yml"):
+            path = path.with_suffix(".yaml")
+        mcap = path.with_suffix(".mcap")
+        exists = [str(p) for p in (path, mcap) if p.exists()]
+        if exists and not overwrite:
+            raise ValueError(f"teach start: {' and '.join(exists)} exist(s); choose another name or overwrite")
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            for p in (path, mcap):
+                if overwrite and p.exists():
+                    p.unlink()
+        except OSError as exc:
+            raise ValueError(f"teach start: cannot write programs to {path.parent}: {exc.strerror} "
+                             "(replay.program_dir, or give a path)") from None
+        await self.start_recording(str(mcap), label=f"teach {path.stem}")
+        self.teach = TeachRecorder(path.stem, path, mcap, self.cfg.joint_names, rate, self.dt, rc.max_record_s, self.t)
+        self._warm_planner()
+        if self.mode == Mode.HOLD and not self.feedback_hold:
+            if self.mode_switch_pending or self.drive_mode != MODE_CST:
+                await self._wait_for(lambda: not self.mode_switch_pending and self.drive_mode == MODE_CST, 2.0)
+            if self.drive_mode == MODE_CST:
+                self.set_mode("drag")
+        return {**self.teach.status(), "mode": MODE_NAMES[self.mode]}
+
+    def teach_mark(self, name: str | None = None) -> dict[str, Any]:
+        """Mark the present pose (absolute encoders) as the next waypoint."""
+        if self.teach is None:
+            raise ValueError("teach mark: not teaching; 'dragd teach start NAME' first")
+        if name is not None:
+            try:
+                check_name(name)
+            except ProgramError as exc:
+                raise ValueError(f"teach mark: {exc}".replace("program name", "waypoint name")) from None
+        m = self.teach.mark(self.t, self.q, name)
+        ev = {"waypoint": m["name"], "t_s": m["t_s"], "q_rad": m["q_rad"]}
+        if self.recording is not None:
+            self.recording.event("mark", **ev)
+        if self.telemetry is not None:
+            self.telemetry.event("mark", program=self.teach.name, **ev)
+        return {"program": self.teach.name, "index": len(self.teach.marks), **m,
+                "q_deg": [round(math.degrees(x), 4) for x in m["q_rad"]]}
+
+    async def teach_stop(self) -> dict[str, Any]:
+        """Stop teaching: close the MCAP, write the program file (in the planner process)."""
+        if self.teach is None:
+            raise ValueError("teach stop: not teaching")
+        rec, self.teach = self.teach, None
+        snap = rec.snapshot()
+        stats = await self.stop_recording() if self.recording is not None else {}
+        args = (snap, str(self.cfg.robot.urdf), self.cfg.replay.frame, self.cfg.source)
+        try:
+            result = await self._work("write_program", *args)
+        except RuntimeError as exc:  # the worker died: write it here rather than lose what was taught
+            from .teach.recorder import write_program
+
+            self.log(f"teach: planner worker failed ({exc}); writing the program in the daemon")
+            result = await asyncio.get_running_loop().run_in_executor(None, write_program, *args)
+        return {**result, "mcap": stats.get("path"), "mcap_rows": stats.get("written")}
+
+    async def replay_start(self, program: str, interp: str = "linear", speed: float = 1.0, cycles: int = 1,
+                           source: str | None = None) -> dict[str, Any]:
+        """Plan (in the planner process, from the held pose) and run a taught program in CSP."""
+        from .teach.plan import INTERPS, SOURCES
+
+        if self.teach is not None:
+            raise ValueError(f"replay: teaching '{self.teach.name}' is in progress; 'dragd teach stop' first")
+        if self.mode not in (Mode.HOLD, Mode.DRAG):
+            raise ValueError(f"replay: expected the arm enabled in hold or drag, it is {MODE_NAMES[self.mode]}")
+        if self.trajectory is not None or self.mode_switch_pending or self._planning:
+            raise ValueError("replay: a motion is running (or being planned); 'dragd replay stop' first")
+        if interp not in INTERPS:
+            raise ValueError(f"replay: interp: expected one of {', '.join(INTERPS)}, got '{interp}'")
+        if source is not None and source not in SOURCES:
+            raise ValueError(f"replay: source: expected one of {', '.join(SOURCES)}, got '{source}'")
+        if not 0.0 < speed <= 1.0:
+            raise ValueError(f"replay: speed: expected a fraction in (0, 1], got {speed}")
+        if cycles < 0:
+            raise ValueError(f"replay: cycles: expected 0 (until stopped) or more, got {cycles}")
+        self._take_over_feedback_hold("replay")
+        try:
+            path = resolve_program(program, self.cfg.program_dir)
+        except ProgramError as exc:
+            raise ValueError(f"replay: {exc}") from None
+        if not path.is_file():
+            raise ValueError(f"replay: program {path} not found")
+        self._planning = True
+        try:
+            return await self._replay_start(path, interp, speed, cycles, source)
+        finally:
+            self._planning = False
+
+    async def _replay_start(self, path: Path, interp: str, speed: float, cycles: int,
+                            source: str | None) -> dict[str, Any]:
+        from .teach.plan import ReplayRequest, limits_from_config
+
+        was = self.mode
+        # hold where the arm is (not where an older hold wanted it), stiffly: the drives' own position loops (CSP)
+        # keep the pose while the plan is made, and the plan starts there
+        self.q_hold[:] = self.q
+        self._set_mode(Mode.HOLD)
+        try:
+            await self._switch_drive_mode(MODE_CSP)
+        except DriveError:
+            self._fault(None, "replay: the drives did not switch to CSP")
+            raise
+        if self.mode != Mode.HOLD:
+            raise ValueError(f"replay: the arm left hold ({MODE_NAMES[self.mode]})")
+        rc = self.cfg.replay
+        req = ReplayRequest(program=str(path), q_start=self.q_hold.tolist(), dt=self.dt, urdf=str(self.model.urdf_path),
+                            gravity_m_s2=tuple(self.cfg.robot.gravity_m_s2),
+                            limits=limits_from_config(self.cfg, self.model.model).as_dict(), interp=interp,
+                            source=source, frame=rc.frame, move_to_start_speed=rc.move_to_start_speed,
+                            settle_s=rc.settle_s, keyframe_tolerance_rad=rc.keyframe_tolerance_rad,
+                            feedforward=rc.inertia_feedforward)
+        try:
+            res = await self._work("plan_replay", req)
+            summary = res["summary"]
+            traj = Trajectory.from_table(res["q"], self.dt, f"replay {path.stem}", dq=res["dq"], ff_Nm=res["ff_Nm"],
+                                         body_row=res["body_row"], marks=res["marks"], info=summary)
+            replay = {"program": str(path), "name": path.stem, "interp": interp, "source": summary.get("source"),
+                      "speed": speed, "cycles": cycles, "started_t_s": round(self.t, 4), "outcome": None,
+                      "marks": [{k: v for k, v in m.items() if k != "q_rad"} for m in res["marks"]],
+                      "duration_s": summary["duration_s"], "cycle_s": summary["cycle_s"],
+                      "move_to_start_s": summary["move_to_start_s"]}
+            await self.track(traj, rate=speed, cycles=cycles)
+            self.replay = replay  # (no await since TRACK began: the cycle cannot have ended it yet)
+        except (ValueError, RuntimeError):
+            if self.mode == Mode.HOLD and self.trajectory is None:
+                await self._switch_drive_mode(MODE_CST)
+                if was == Mode.DRAG and self.mode == Mode.HOLD:
+                    self._set_mode(Mode.DRAG)  # back to the hand
+            raise
+        if self.telemetry is not None:
+            self.telemetry.event("replay", program=str(path), interp=interp, speed=speed, cycles=cycles)
+        return {"mode": MODE_NAMES[self.mode], "program": str(path), **summary}
+
+    def _replay_status(self) -> dict[str, Any] | None:
+        r = self.replay
+        if r is None:
+            return None
+        active = self.trajectory is not None and self.trajectory.label == f"replay {r['name']}" and r["outcome"] is None
+        out = {k: v for k, v in r.items() if k != "marks"}
+        out["state"] = self.track_state if active else (r["outcome"] or "ended")
+        if active:
+            tau = self.track_tau
+            out.update(t_s=round(tau, 4), cycle=self.track_cycle + 1, rate=round(self.track_rate, 4),
+                       speed_override=self.track_override,
+                       segment=next((s["label"] for s in self.trajectory.info.get("segments", [])
+                                     if s["t0_s"] <= tau < s["t1_s"]), None),
+                       next_waypoint=next((m["name"] for m in r["marks"] if m["t_s"] > tau), None))
+        return out
 
     async def _wait_for(self, cond, timeout_s: float) -> bool:  # noqa: ANN001
         end = time.monotonic() + timeout_s
@@ -823,6 +1442,11 @@ class Daemon:
 
     async def _shutdown_sequence(self) -> None:
         """SIGTERM: ramp to hold, disable (brakes), NMT pre-operational, then leave the loop."""
+        if self.teach is not None:  # keep what was taught
+            try:
+                await asyncio.wait_for(self.teach_stop(), 15.0)
+            except (ValueError, RuntimeError, OSError, asyncio.TimeoutError) as exc:
+                self.log(f"teach: the program could not be written at shutdown: {exc}")
         if self.mode not in (Mode.IDLE, Mode.FAULT):
             self.stop()
             await self._wait_for(lambda: self.mode in (Mode.IDLE, Mode.FAULT), self.cfg.safety.mode_ramp_s + 1.0)
@@ -846,7 +1470,7 @@ class Daemon:
         n = self.n
         return {"t_s": 1, "mode": Field(1, kind="int", labels={int(m): name for m, name in MODE_NAMES.items()}), "q_rad": n, "dq_rad_s": n, "current_measured_A": n, "current_command_A": n,
                 "gravity_A": n, "friction_A": n, "startup_A": n, "damping_A": n, "statusword": Field(n, kind="int"), "rx": Field(n, kind="bool"), "period_us": 1,
-                "compute_us": 1}
+                "compute_us": 1, "q_ref_rad": n, "track_t_s": 1, "residual_A": n}
 
     def _layout_columns(self) -> dict[str, Any]:
         """Column index (width 1) or slice of every telemetry field in a row."""
@@ -934,6 +1558,10 @@ class Daemon:
             watchdog.cancel()
             return 0
         finally:
+            if self._worker is not None:
+                self._worker.close()
+            if self._helper is not None:
+                self._helper.shutdown(wait=False)
             if server is not None:
                 await server.close()
             if self.master is not None:

@@ -2,6 +2,11 @@
 
 Scenario ``drag``: enable (hold) → drag mode → nobody touches the arm (it must not move) → the scripted
 operator's hand pulls joints 1–4 to a new pose and lets go → the arm stays where it was released.
+
+Scenario ``teach`` (seed 000 §5): ``teach start`` → the operator's hand drags the arm to three waypoints, each
+marked (absolute encoders) → ``teach stop`` writes the program → replayed linearly (point-to-point) and circularly
+(the Cartesian circle through p1, p2, p3) in CSP → how close every taught waypoint was passed, on every joint.
+
 All figures come from the daemon (its encoders and timing), as they would on a real robot.
 """
 
@@ -34,8 +39,10 @@ def _max_deg(a: list[float], b: list[float]) -> float:
 
 def run_demo(seconds: float = 20.0, config: Path | None = None, out: Path | None = None, scenario: str = "drag",
              progress: bool = True) -> dict[str, Any]:
+    if scenario == "teach":
+        return run_teach_demo(seconds, config, out, progress)
     if scenario != "drag":
-        raise DemoError(f"--scenario: expected 'drag', got '{scenario}'")
+        raise DemoError(f"--scenario: expected 'drag' or 'teach', got '{scenario}'")
     if not seconds >= 8.0:
         raise DemoError(f"--seconds: expected at least 8 s (hold, untouched drag, hand pull, release), got {seconds}")
     out = Path(out) if out is not None else REPO / "out"
@@ -85,6 +92,117 @@ def run_demo(seconds: float = 20.0, config: Path | None = None, out: Path | None
             "observed_after_release_s": round(observe_s, 1),
             "bus_load_pct": max(status["bus_load_pct"].values()),
             "faults": len(status["faults"]),
+            "mcap": str(mcap),
+        }
+    except ProcessError as exc:
+        raise DemoError(str(exc)) from None
+    finally:
+        rig.close()
+
+
+# relative joint-space pulls of the operator's hand to p1, p2, p3 (from the sim's start pose): three tool points
+# about 0.2 m apart, on a circle of ≈ 0.18 m radius the arm can follow without reconfiguring
+TEACH_STEPS_RAD = [[0.20, 0.10, -0.10, 0.10, 0.0, 0.0],
+                   [0.25, 0.20, -0.35, 0.15, 0.15, 0.25],
+                   [-0.35, 0.05, 0.25, -0.05, -0.20, -0.15]]
+
+
+def guide_and_settle(rig: Rig, step: list[float], hand_s: float, name: str = "hand", timeout_s: float = 30.0) -> None:
+    """The scripted operator's hand pulls the joints by ``step`` (relative) for ``hand_s``, lets go; returns when
+    the operator is done and the arm has come to rest (sim time may run slower than the wall clock under load)."""
+    rig.sim_call("operator", scenario={"name": name, "segments": [
+        {"kind": "hand", "q_rad": list(step), "relative": True, "stiffness": 60.0, "damping": 12.0,
+         "max_load": 25.0, "duration_s": hand_s},
+        {"kind": "release", "ramp_down_s": 0.1, "duration_s": 0.3}]})
+    end = time.monotonic() + timeout_s
+    time.sleep(hand_s)
+    while time.monotonic() < end:
+        if rig.sim_call("operator_events")["done"]:
+            dq = rig.must("status")["dq_rad_s"]
+            if max(abs(v) for v in dq) < 0.002:
+                return
+        time.sleep(0.05)
+    raise DemoError(f"the operator's hand did not finish within {timeout_s:.0f} s")
+
+
+def _wait_replay(rig: Rig, timeout_s: float) -> dict[str, Any]:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        st = rig.must("status")
+        r = st.get("replay") or {}
+        if r.get("outcome"):
+            return st
+        time.sleep(0.1)
+    raise DemoError(f"the replay did not end within {timeout_s:.0f} s:\n{rig.daemon.tail() if rig.daemon else ''}")
+
+
+def run_teach_demo(seconds: float = 20.0, config: Path | None = None, out: Path | None = None,
+                   progress: bool = True) -> dict[str, Any]:
+    """Teach p1, p2, p3 by hand, replay them linearly and circularly; waypoint and path errors [deg]."""
+    from .teach.analysis import read_rows, replay_errors
+
+    if not seconds >= 6.0:
+        raise DemoError(f"--seconds: expected at least 6 s of teaching (three hand-guided waypoints), got {seconds}")
+    out = Path(out) if out is not None else REPO / "out"
+    out.mkdir(parents=True, exist_ok=True)
+    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+    mcap = out / f"demo-teach-{stamp}.mcap"
+    program = out / "programs" / f"teach-{stamp}.yaml"
+    per_point = seconds / len(TEACH_STEPS_RAD)
+    hand_s = max(1.5, per_point - 0.5)
+    rig = Rig("demo-teach", config=config, telemetry=mcap)
+    try:
+        _say(progress, f"starting the simulated robot on {rig.bus} ...")
+        rig.start_sim()
+        _say(progress, "starting the daemon ...")
+        rig.start_daemon()
+        rig.must("start")
+        time.sleep(0.3)
+        rig.must("teach", action="start", name=str(program))
+        _say(progress, f"teaching {program.name}: the arm is in drag mode")
+        marks = []
+        for i, step in enumerate(TEACH_STEPS_RAD):
+            _say(progress, f"the operator's hand guides the arm to p{i + 1} and lets go ...")
+            guide_and_settle(rig, step, hand_s, f"teach_p{i + 1}")
+            marks.append(rig.must("teach", action="mark"))
+            _say(progress, f"marked {marks[-1]['name']}: {', '.join(f'{x:.2f}' for x in marks[-1]['q_deg'])} deg")
+        taught = rig.must("teach", action="stop")
+        _say(progress, f"program written: {taught['program']} ({taught['samples']} samples)")
+        waypoints = {m["name"]: m["q_rad"] for m in marks}
+        runs = {}
+        for interp in ("linear", "circular"):
+            t0 = rig.must("status")["t_s"]
+            resp = rig.must("replay", program=str(program), interp=interp, timeout_s=60.0)
+            _say(progress, f"replaying {interp}: move to start {resp['move_to_start_s']:.1f} s, cycle {resp['cycle_s']:.1f} s")
+            st = _wait_replay(rig, resp["duration_s"] / 0.5 + 30.0)
+            runs[interp] = {"t0": t0, "t1": st["t_s"], "marks": resp["marks"], "body_start_s": resp["move_to_start_s"],
+                            "outcome": st["replay"]["outcome"], "duration_s": resp["duration_s"]}
+            if st["replay"]["outcome"] != "done":
+                raise DemoError(f"the {interp} replay ended with: {st['replay']['outcome']}")
+            time.sleep(0.3)
+        rig.must("mode", mode="drag")  # back to the hand
+        time.sleep(0.5)
+        status = rig.must("status")
+        _say(progress, "stopping: ramp to hold, disable, SIGTERM ...")
+        rig.must("stop")
+        codes = rig.close()
+        if codes.get("dragd") != 0:
+            raise DemoError(f"the daemon exited with {codes.get('dragd')} on SIGTERM (expected 0):\n{rig.daemon.tail()}")
+        rows = read_rows(mcap)
+        results = {k: replay_errors(rows, r["t0"], r["t1"], r["marks"], waypoints, r["body_start_s"])
+                   for k, r in runs.items()}
+        wp = [p["error_deg"] for res in results.values() for p in res["waypoints"]]
+        return {
+            "waypoints": len(waypoints),
+            "waypoint_error_deg_max": max(wp),
+            "path_error_deg_max": max(res["path_error_deg_max"] for res in results.values()),
+            "tracking_error_deg_max": max(res["tracking_error_deg_max"] for res in results.values()),
+            "linear": {k: v for k, v in results["linear"].items() if k != "rows"},
+            "circular": {k: v for k, v in results["circular"].items() if k != "rows"},
+            "replay_s": {k: r["duration_s"] for k, r in runs.items()},
+            "missed_cycles": status["missed_cycles"],
+            "faults": len(status["faults"]),
+            "program": str(program),
             "mcap": str(mcap),
         }
     except ProcessError as exc:

@@ -42,6 +42,9 @@ def main(argv: list[str] | None = None) -> int:
     run_p.add_argument("--realtime-priority", type=int, metavar="N",
                        help="SCHED_FIFO priority for the physics and bus threads (needs CAP_SYS_NICE or RLIMIT_RTPRIO)")
     run_p.add_argument("--cpus", help="pin the physics and bus threads to these CPUs, e.g. 1 or 0,1")
+    run_p.add_argument("--physics-rate-Hz", type=int, metavar="HZ", dest="physics_rate_Hz",
+                       help="override the truth's physics_rate_Hz: a multiple of 1000 in [1000, 50000]; below the "
+                            "truth's 4000 Hz minimum only for machines too slow for it (the vcan test guest)")
     truth_p = sub.add_parser("truth", help="print the truth per joint in dragd's units (K_t, friction in A, noise)")
     truth_p.add_argument("--config", help="truth file (default: sim/config/seed_cobot.yaml)")
     truth_p.add_argument("--json", action="store_true", help="print one JSON object")
@@ -54,6 +57,8 @@ def main(argv: list[str] | None = None) -> int:
                                               "(default: config/default.yaml)")
     log_p.add_argument("--seconds", type=float, help="only the first SECONDS of the plan")
     log_p.add_argument("--seed", type=int, help="Hall-noise seed (default: the truth's noise_seed)")
+    log_p.add_argument("--csp-interpolate", action="store_true",
+                       help="interpolate CSP targets over each SYNC period (a drive with 60C2h; sim/drive.py does not)")
     log_p.add_argument("--json", action="store_true", help="print a JSON summary")
     args = parser.parse_args(argv)
     if args.command == "truth":
@@ -69,6 +74,12 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         print(f"sim: {exc}", file=sys.stderr)
         return 2
+    if args.physics_rate_Hz is not None:
+        if not 1000 <= args.physics_rate_Hz <= 50000 or args.physics_rate_Hz % 1000:
+            print(f"sim: --physics-rate-Hz: expected a multiple of 1000 in [1000, 50000], got {args.physics_rate_Hz}",
+                  file=sys.stderr)
+            return 2
+        truth = truth.model_copy(update={"physics_rate_Hz": args.physics_rate_Hz})  # the stability check still applies
     if args.seconds is not None and not args.seconds > 0:
         print(f"sim: --seconds: expected a positive number, got {args.seconds}", file=sys.stderr)
         return 2
@@ -140,7 +151,8 @@ def _cmd_log(args: argparse.Namespace) -> int:
     try:
         truth = load_truth(args.config)
         plan_t, plan_q = load_plan(args.plan)
-        data = generate(plan_t, plan_q, truth, config=args.dragd_config, seconds=args.seconds, seed=args.seed)
+        data = generate(plan_t, plan_q, truth, config=args.dragd_config, seconds=args.seconds, seed=args.seed,
+                        csp_interpolation=args.csp_interpolate)
         write_log(args.out, data, {"plan": str(args.plan), "truth": truth.source,
                                    "seed": str(args.seed if args.seed is not None else truth.noise_seed)})
     except (ConfigError, ValueError, OSError) as exc:

@@ -79,7 +79,8 @@ def resample(t_s: np.ndarray, q_rad: np.ndarray, dt_s: float) -> np.ndarray:
 class OfflineArm:
     """The sim's arm plus drive-like CSP loops and the daemon's TRACK feed-forward, stepped as fast as possible."""
 
-    def __init__(self, truth: Truth, config: str | Path | None = None, rate_Hz: float = 1000.0) -> None:
+    def __init__(self, truth: Truth, config: str | Path | None = None, rate_Hz: float = 1000.0,
+                 csp_interpolation: bool = False) -> None:
         from dragd.config import load_config
         from dragd.law import LawParams
 
@@ -94,6 +95,10 @@ class OfflineArm:
         self.axes = [AxisIO() for _ in range(n)]
         self.physics = ArmPhysics(truth, self.model, self.axes)
         self.dt = 1.0 / rate_Hz
+        # sim/drive.py applies each CSP target for a whole SYNC period (no interpolation): its position error is a
+        # sawtooth and the current sampled at SYNC sits at its low end. A drive that interpolates the target over
+        # the period (CiA 402 60C2h) has no sawtooth; off by default (the sim's drive does not).
+        self.csp_interpolation = csp_interpolation
         self.sub = int(round(self.dt / truth.dt_s))
         if abs(self.sub * truth.dt_s - self.dt) > 1e-12:
             raise ValueError(f"loop period {self.dt} s is not a whole number of physics steps ({truth.dt_s} s)")
@@ -169,11 +174,12 @@ class OfflineArm:
             cmd_offset = np.clip(np.rint(offset / a_per_permille), -32768, 32767) * a_per_permille
             cmd_offset = cmd_offset.tolist()
             # --- physics steps until the next SYNC, the drives' CSP loop each step
-            for _ in range(sub):
+            for step in range(sub):
                 pos = phys.q_rad.tolist()
                 v = phys.dq_rad_s.tolist()
+                back = (sub - 1 - step) * phys.dt_s if self.csp_interpolation else 0.0
                 for j in range(n):
-                    err = cmd_target[j] * rad_per_count[j] - pos[j]
+                    err = cmd_target[j] * rad_per_count[j] - back * v_ff[j] - pos[j]
                     if ki[j]:
                         integral[j] = max(-limit[j], min(limit[j], integral[j] + ki[j] * err * phys.dt_s))
                     d = kp[j] * err + kd[j] * (v_ff[j] - v[j]) + integral[j] + cmd_offset[j]
@@ -188,12 +194,12 @@ class OfflineArm:
 
 
 def generate(plan_t: np.ndarray, plan_q: np.ndarray, truth: Truth, *, config: str | Path | None = None,
-             seconds: float | None = None, seed: int | None = None,
+             seconds: float | None = None, seed: int | None = None, csp_interpolation: bool = False,
              progress: Callable[[float], None] | None = None) -> dict[str, np.ndarray]:
     """Run a plan (optionally only its first ``seconds``) on the offline arm; return telemetry arrays."""
     if seed is not None:
         truth = truth.with_updates(noise_seed=int(seed))
-    arm = OfflineArm(truth, config)
+    arm = OfflineArm(truth, config, csp_interpolation=csp_interpolation)
     if plan_q.shape[1] != arm.n:
         raise ValueError(f"plan: expected {arm.n} joints per sample ({', '.join(arm.model.joint_names)}), "
                          f"got {plan_q.shape[1]}")
@@ -212,7 +218,8 @@ def write_csv(path: str | Path, data: dict[str, np.ndarray]) -> None:
     np.savetxt(path, arr, delimiter=",", header=header, comments="", fmt=fmt)
 
 
-def write_mcap(path: str | Path, data: dict[str, np.ndarray], metadata: dict[str, str] | None = None) -> int:
+def write_mcap(path: str | Path, data: dict[str, np.ndarray], metadata: dict[str, str] | None = None,
+               mode: int = TRACK_MODE) -> int:
     """The daemon's telemetry format (``/dragd/cycle`` JSON rows); returns the number of rows."""
     from mcap.writer import CompressionType, Writer
 
@@ -223,7 +230,7 @@ def write_mcap(path: str | Path, data: dict[str, np.ndarray], metadata: dict[str
     rows = np.zeros((data["t_s"].shape[0], layout.width))
     sl = layout.slices
     rows[:, sl["t_s"]] = data["t_s"][:, None]
-    rows[:, sl["mode"]] = TRACK_MODE
+    rows[:, sl["mode"]] = mode
     for key in ("q_rad", "dq_rad_s", "current_measured_A", "current_command_A", "gravity_A", "friction_A"):
         rows[:, sl[key]] = data[key]
     rows[:, sl["statusword"]] = STATUSWORD_ENABLED

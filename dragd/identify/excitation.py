@@ -444,13 +444,18 @@ def optimise_fourier(model: Any, limits: Limits, q_center: np.ndarray, period_s:
         q, dq, ddq = _fourier_eval(coef, qc, w, t)
         return rm.excitation_cost(q, dq, ddq) + penalty(q, dq, ddq, qc)
 
-    # start: random small coefficients scaled into the limits
-    x0 = np.concatenate([rng.normal(0.0, 0.15, n * 2 * m), q0])
-    coef, qc = unpack(x0)
-    q, dq, ddq = _fourier_eval(coef, qc, w, t)
-    scale = min(1.0, float(np.min(vmax / (np.abs(dq).max(axis=0) + 1e-9))) * 0.8,
-                float(np.min(amax / (np.abs(ddq).max(axis=0) + 1e-9))) * 0.8)
-    x0[: n * 2 * m] *= scale
+    # start: the best of a few random coefficient sets scaled into the limits
+    best = None
+    for _ in range(8):
+        x0 = np.concatenate([rng.normal(0.0, 0.15, n * 2 * m), q0])
+        coef, qc = unpack(x0)
+        q, dq, ddq = _fourier_eval(coef, qc, w, t)
+        per_joint = np.minimum(vmax / (np.abs(dq).max(axis=0) + 1e-9), amax / (np.abs(ddq).max(axis=0) + 1e-9))
+        x0[: n * 2 * m] = (coef * np.minimum(1.0, 0.8 * per_joint)[:, None, None]).ravel()
+        c = cost(x0)
+        if best is None or c < best[0]:
+            best = (c, x0)
+    x0 = best[1]
     res = minimize(cost, x0, method="L-BFGS-B", options={"maxiter": maxiter, "maxfun": maxiter * (len(x0) + 1)})
     coef, qc = unpack(res.x)
     # enforce the limits exactly: shrink the excursion about the centre until everything is inside
@@ -511,7 +516,7 @@ def build_plan(kind: str, model: Any, q_start: np.ndarray, limits: Limits, joint
             sp = (0.1, 0.2, 0.3, 0.5) if scale >= 1 else (0.15, 0.4)
             add_synchronous(b, js, speeds=sp, cycles=2 if scale >= 1 else 1)
         elif k == "fourier":
-            info["fourier"] = add_fourier(b, model, periods=max(2, int(round(6 * scale))), maxiter=fourier_iterations,
+            info["fourier"] = add_fourier(b, model, periods=max(2, int(round(12 * scale))), maxiter=fourier_iterations,
                                           seed=seed)
     plan = b.build(kind, info)
     bad = plan.check(limits)

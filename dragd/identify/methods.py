@@ -152,9 +152,27 @@ def friction_value(v: np.ndarray, fr: dict[str, float | None]) -> np.ndarray:
     return np.where(v == 0, 0.0, out)
 
 
-def _set_friction_from_fit(jr: JointResult, fit: LinearFit, vmax: float, reason_prefix: str = "") -> None:
-    """Coulomb/viscous levels of a linear fit into the result (with resolution checks and reasons)."""
+def _set_friction_from_fit(jr: JointResult, fit: LinearFit, vmax: float, reason_prefix: str = "",
+                           v: np.ndarray | None = None) -> None:
+    """Coulomb/viscous levels of a linear fit into the result (with resolution checks and reasons).
+
+    When a direction's viscous slope is inseparable from its Coulomb level (one speed only), the level the fit
+    found is the friction *at that speed*: both terms are null then, the level goes to the diagnostics.
+    """
+    for d, sgn in (("pos", 1), ("neg", -1)):
+        vk, ck = f"viscous_{d}_A_s_per_rad", f"coulomb_{d}_A"
+        if vk in fit.dropped and "not separable" in fit.dropped[vk] and fit.value(ck) is not None:
+            speed = float(np.mean(np.abs(v[np.sign(v) == sgn]))) if v is not None and np.any(np.sign(v) == sgn) else None
+            level = fit.value(ck)
+            at = f" at |q̇| ≈ {speed:.3f} rad/s" if speed is not None else ""
+            jr.diagnostics[f"friction_level_{d}_A"] = level
+            why = (f"{reason_prefix}one speed only{at}: Coulomb and viscous are not separable (friction level there "
+                   f"{level:.4f} A); add passes at other speeds")
+            jr.set(ck, None, reason=why)
+            jr.set(vk, None, reason=why)
     for key in ("coulomb_pos_A", "coulomb_neg_A"):
+        if key in jr.reasons and "one speed only" in jr.reasons[key]:
+            continue
         v, s = fit.value(key), fit.std(key)
         if v is None:
             jr.set(key, None, reason=reason_prefix + fit.dropped.get(key, "not in the model"))
@@ -164,6 +182,8 @@ def _set_friction_from_fit(jr: JointResult, fit: LinearFit, vmax: float, reason_
             jr.set(key, v, s)
     vis = {}
     for key in ("viscous_pos_A_s_per_rad", "viscous_neg_A_s_per_rad"):
+        if key in jr.reasons and "one speed only" in jr.reasons[key]:
+            continue
         v, s = fit.value(key), fit.std(key)
         if v is None:
             jr.set(key, None, reason=reason_prefix + fit.dropped.get(key, "not in the model"))
@@ -213,6 +233,10 @@ def _kt_from_slope(jr: JointResult, a: float | None, sa: float | None, reason_nu
     if a is None:
         jr.set("torque_constant_Nm_per_A", None, reason=reason_null)
         return
+    if sa is not None and abs(a) > 0 and sa / abs(a) > KT_MAX_REL_STD:
+        jr.set("torque_constant_Nm_per_A", None, reason=f"not determined: slope {a:.3g} ± {sa:.2g} A/(N·m) "
+                                                        "(too little gravity-torque change along the motion)")
+        return
     if not a > 0:
         jr.set("torque_constant_Nm_per_A", None, reason=f"current falls as gravity torque rises (slope {a:.4g} A/N·m): "
                                                         "model mismatch")
@@ -224,6 +248,8 @@ def _kt_from_slope(jr: JointResult, a: float | None, sa: float | None, reason_nu
         return
     jr.set("torque_constant_Nm_per_A", kt, skt)
 
+
+PREFER_DROP = ("dstatic_pos_A", "dstatic_neg_A", "viscous_pos_A_s_per_rad", "viscous_neg_A_s_per_rad")
 
 NO_GRAVITY = ("no gravity torque change on this joint along the motion (range {rng:.3f} N·m): K_t is not "
               "identifiable from current (only the friction lines are, seed 002 §3.2)")
@@ -266,12 +292,13 @@ def fit_lowspeed(ctx: Context) -> FitResult:
             jr.null_all(f"no low-speed motion of {name} (mean speed 0.2·v_min..{o.lowspeed_max} rad/s held for "
                         f"{2 / fc:.0f} s) in this log: seed 000's method needs ≤ 2°/s reciprocation")
             continue
-        d = np.where(posm, 1.0, np.where(negm, -1.0, 0.0))
+        # the friction's direction everywhere (not only on the selected rows), then H like the current
+        d = np.where(np.abs(vbar[:, j]) > 0.2 * o.v_min, sgn, 0.0)
         F = p.regfilter(np.column_stack([(d > 0).astype(float), (d < 0).astype(float)]), fc)
         A = np.column_stack([gH[sel, j], F[sel]])
         gr = float(np.ptp(ctx.grav[sel, j]))
         explain = {"gravity": NO_GRAVITY.format(rng=gr)}
-        if gr < 0.5:
+        if gr < 1e-6:
             A[:, 0] = 0.0
         fit = linear_fit(A, iH[sel, j], ["gravity", "coulomb_pos_A", "coulomb_neg_A"], explain=explain)
         _kt_from_slope(jr, fit.value("gravity"), fit.std("gravity"), fit.dropped.get("gravity", "not determined"))
@@ -288,7 +315,7 @@ def fit_lowspeed(ctx: Context) -> FitResult:
                     "static_neg_A", "stribeck_velocity_rad_s", "stribeck_exponent"):
             jr.set(key, None, reason=model_note)
         lines = {}
-        for dname, m in (("pos", d[sel] > 0), ("neg", d[sel] < 0)):
+        for dname, m in (("pos", posm[sel]), ("neg", negm[sel])):
             if m.sum() >= MIN_ROWS and gr >= 0.5:
                 f1 = linear_fit(np.column_stack([gH[sel][m, j], np.ones(m.sum())]), iH[sel][m, j], ["a", "b"])
                 a, b = f1.value("a"), f1.value("b")
@@ -316,9 +343,9 @@ def _quasistatic_fit(ctx: Context, j: int, sel: np.ndarray, stribeck: tuple[floa
     rng = float(np.ptp(tau[sel]))
     A = np.column_stack([tau[sel], FH[sel]])
     explain = {"gravity": NO_GRAVITY.format(rng=rng)}
-    if rng < 0.5:
+    if rng < 1e-6:
         A[:, 0] = 0.0
-    return linear_fit(A, ctx.iH[sel, j], ["gravity"] + fnames, explain=explain), rng
+    return linear_fit(A, ctx.iH[sel, j], ["gravity"] + fnames, explain=explain, prefer_drop=PREFER_DROP), rng
 
 
 def fit_synchronous(ctx: Context) -> FitResult:
@@ -347,7 +374,7 @@ def fit_synchronous(ctx: Context) -> FitResult:
         fit, rng = _quasistatic_fit(ctx, j, sel, None)
         _kt_from_slope(jr, fit.value("gravity"), fit.std("gravity"), fit.dropped.get("gravity", "not determined"))
         vmax = float(np.abs(ctx.p.dq[sel, j]).max())
-        _set_friction_from_fit(jr, fit, vmax)
+        _set_friction_from_fit(jr, fit, vmax, v=ctx.p.dq[sel, j])
         for key in ("static_pos_A", "static_neg_A", "stribeck_velocity_rad_s", "stribeck_exponent"):
             jr.set(key, None, reason="seed 002's friction model is Coulomb + viscous per direction (no Stribeck "
                                      "term); use the symmetric or auto method for it")
@@ -423,7 +450,7 @@ def _row_gravity_columns(ctx: Context, j: int) -> np.ndarray:
     out = np.empty((ctx.p.q.shape[0], base.r))
     for s in range(0, ctx.p.q.shape[0], 20000):
         Y = rm.torque_regressor(ctx.p.q[s:s + 20000])
-        out[s:s + 20000] = Y[:, j, :] @ base.E.T
+        out[s:s + 20000] = Y[:, j, base.cols]
     return out
 
 
@@ -459,6 +486,28 @@ def stribeck_lm(v: np.ndarray, f: np.ndarray, delta: float | None, v_s0: float =
            "stribeck_velocity_rad_s": (math.exp(x[6]), math.exp(x[6]) * std[6]),
            "stribeck_exponent": (delta, 0.0) if delta is not None else (math.exp(x[7]), math.exp(x[7]) * std[7]),
            "residual_A": math.sqrt(s2), "samples": int(f.size), "success": bool(res.success)}
+    return out
+
+
+def friction_curve(v: np.ndarray, f: np.ndarray, delta: float | None, slow_rad_s: float = 0.1) -> dict[str, Any]:
+    """Friction samples (v, f) → the linear Coulomb + viscous fit, and the Stribeck LM fit when slow sliding exists.
+
+    The LM result is kept only when it determines the hump (finite covariance, v_s to better than 50 %);
+    otherwise ``why`` says what the data lacks.
+    """
+    F, names = friction_columns(v)
+    out: dict[str, Any] = {"linear": linear_fit(F, f, names, prefer_drop=PREFER_DROP)}
+    slow = np.abs(v) < slow_rad_s
+    if slow.sum() < MIN_ROWS or slow.mean() < 0.02:
+        out["why"] = (f"no steady sliding below {slow_rad_s:g} rad/s in the friction samples (slowest "
+                      f"{float(np.abs(v).min()):.3f} rad/s): the Stribeck hump is not observable")
+        return out
+    s = stribeck_lm(v, f, delta)
+    vs, svs = s["stribeck_velocity_rad_s"]
+    if not (np.isfinite(svs) and svs < 0.5 * vs and s["success"]):
+        out["why"] = f"the Stribeck hump is not determined by the friction samples (v_s ≈ {vs:.3g} ± {svs:.2g} rad/s)"
+        return out
+    out["stribeck"] = s
     return out
 
 
@@ -502,37 +551,44 @@ def _apply_stribeck(jr: JointResult, sfit: dict[str, Any], v: np.ndarray) -> Non
         jr.set("stribeck_exponent", None, reason=why)
 
 
-def breakaway_levels(ctx: Context, j: int, i_free: np.ndarray, min_stick_s: float = 0.03) -> dict[str, Any]:
+def breakaway_levels(ctx: Context, j: int, i_free: np.ndarray, min_stick_s: float = 0.08,
+                     hold_rad: float = 3e-5) -> dict[str, Any]:
     """Static (breakaway) friction from stick → slip events: the friction-free current just before each slip.
 
     A joint held by stiction while its command ramps (low-speed tracking, stick–slip) breaks away when the motor
-    torque beyond gravity reaches the static level; the last ~10 ms before each slip onset give that level.
+    current beyond gravity reaches the static level. Events: the (anti-aliased, not otherwise filtered) position
+    stays within ±``hold_rad`` for ≥ ``min_stick_s``, then leaves it; the level is the mean over the last 20 ms.
+    Only slow ramps count — a command step (e.g. a feed-forward switching on) breaks the joint away above its level.
     """
-    p, o = ctx.p, ctx.opts
-    v = p.dq[:, j]
-    stuck = np.abs(v) < 0.2 * o.v_rest
-    moving = np.abs(v) > 2 * o.v_min
-    nmin = max(2, int(min_stick_s * p.fs))
-    win = max(1, int(0.01 * p.fs))
+    p = ctx.p
+    q = p.q_raw[:, j] if p.q_raw is not None else p.q[:, j]
+    n20 = max(2, int(0.02 * p.fs))
+    nmin = max(3, int(min_stick_s * p.fs))
     levels: dict[str, list[float]] = {"pos": [], "neg": []}
-    k = 0
-    N = v.shape[0]
-    starts = np.nonzero(np.diff(stuck.astype(np.int8)) == -1)[0] + 1  # first non-stuck sample after a stuck run
-    for s in starts:
+    dq = np.abs(np.diff(q))
+    still = np.concatenate([[False], dq < hold_rad / 4])
+    ends = np.nonzero(np.diff(still.astype(np.int8)) == -1)[0] + 1  # first moving sample after a still run
+    for s in ends:
         run = 0
-        while s - 1 - run >= 0 and stuck[s - 1 - run]:
+        while s - 1 - run >= 0 and still[s - 1 - run]:
             run += 1
-        if run < nmin:
+        if run < nmin or s + 5 >= q.shape[0] or s - 3 * n20 < 0:
             continue
-        end = min(N, s + int(0.05 * p.fs))
-        nxt = np.nonzero(moving[s:end])[0]
-        if nxt.size == 0:
+        ref = q[s - 1]
+        seg = q[s - run:s]
+        if np.ptp(seg) > hold_rad:
             continue
-        d = "pos" if v[s + nxt[0]] > 0 else "neg"
-        lvl = float(np.mean(i_free[max(0, s - win):s]))
+        after = q[s:s + int(0.05 * p.fs)] - ref
+        k = np.nonzero(np.abs(after) > 2 * hold_rad)[0]
+        if k.size == 0:
+            continue
+        d = "pos" if after[k[0]] > 0 else "neg"
+        lvl = float(np.mean(i_free[s - n20:s]))
+        before = float(np.mean(i_free[s - 3 * n20:s - 2 * n20]))
+        if abs(lvl - before) > max(0.05 * abs(lvl), 0.02):
+            continue  # a step, not a ramp
         if (d == "pos") == (lvl > 0):
             levels[d].append(lvl)
-        k += 1
     out: dict[str, Any] = {}
     for d, xs in levels.items():
         if len(xs) >= 3:
@@ -581,7 +637,9 @@ def fit_symmetric(ctx: Context) -> FitResult:
         base = ctx.rm.row_gravity[j]
         A = np.column_stack([cols, np.ones(a.size)])
         names = [f"beta{k}" for k in range(base.r)] + ["asymmetry_A"]
-        fit = linear_fit(A, y, names, keep=("asymmetry_A",))
+        fit = linear_fit(A, y, names, priority=names[:-1] + ["asymmetry_A"],
+                         explain={"asymmetry_A": "the direction asymmetry (F₊ + F₋)/2 is not separable from the gravity "
+                                                 "terms along these passes (seed 001's odd-friction assumption applies)"})
         beta = np.array([fit.value(f"beta{k}") or 0.0 for k in range(base.r)])
         live = [k for k in range(base.r) if fit.value(f"beta{k}") is not None]
         ghat = Yg @ beta  # identified gravity current [A], unfiltered
@@ -611,8 +669,18 @@ def fit_symmetric(ctx: Context) -> FitResult:
         vv = p.dq[idx2, j]
         ff = ctx.iH[idx2, j] - ghatH[idx2]
         hd = 0.5 * (ctx.iH[a, j] - ctx.iH[b, j])
-        sfit = stribeck_lm(vv, ff, o.stribeck_exponent)
-        _apply_stribeck(jr, sfit, vv)
+        curve = friction_curve(vv, ff, o.stribeck_exponent)
+        if "stribeck" in curve:
+            sfit = curve["stribeck"]
+            _apply_stribeck(jr, sfit, vv)
+            jr.diagnostics["stribeck_fit_residual_A"] = sfit["residual_A"]
+        else:
+            lin = curve["linear"]
+            _set_friction_from_fit(jr, lin, float(np.abs(vv).max()), v=vv)
+            why = curve["why"]
+            for key in ("static_pos_A", "static_neg_A", "stribeck_velocity_rad_s", "stribeck_exponent"):
+                jr.set(key, None, reason=why)
+            jr.diagnostics["friction_fit_residual_A"] = lin.sigma
         if jr.friction["static_pos_A"] is None or jr.friction["static_neg_A"] is None:
             brk = breakaway_levels(ctx, j, p.i[:, j] - ghat)
             for d, (lvl, s, cnt) in brk.items():
@@ -621,7 +689,7 @@ def fit_symmetric(ctx: Context) -> FitResult:
                     jr.diagnostics[f"static_{d}_source"] = f"breakaway: {cnt} stick→slip events"
         jr.diagnostics.update({"pairs": int(a.size), "gravity_condition_number": fit.cond,
                                "gravity_residual_A": fit.sigma, "asymmetry_A": c,
-                               "asymmetry_std_A": fit.std("asymmetry_A"), "stribeck_fit_residual_A": sfit["residual_A"],
+                               "asymmetry_std_A": fit.std("asymmetry_A"),
                                "half_difference_mean_abs_A": float(np.mean(np.abs(hd))),
                                "friction_speed_range_rad_s": [float(np.abs(vv).min()), float(np.abs(vv).max())]})
         _physical(jr)
@@ -641,17 +709,18 @@ def _row_full_columns(ctx: Context, j: int) -> tuple[np.ndarray, np.ndarray]:
     for s in range(0, T, 10000):
         sl = slice(s, s + 10000)
         Y = rm.torque_regressor(ctx.p.q[sl], ctx.p.dq[sl], ctx.p.ddq[sl])
-        full[sl] = Y[:, j, :] @ base.E.T
+        full[sl] = Y[:, j, base.cols]
         Yg = rm.torque_regressor(ctx.p.q[sl])
-        grav[sl] = Yg[:, j, :] @ base.E.T
+        grav[sl] = Yg[:, j, base.cols]
     return full, grav
 
 
 def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
     """Full dynamics: base parameters of the rigid-body model + rotor inertia + friction, per joint, in amperes.
 
-    i_j = Y_j(q̃, q̇, q̈)·β_j + J_a,j·q̈_j + I_f,j(q̇_j), with Y_j joint j's row of Pinocchio's regressor reduced to
-    its base columns (numerical QR), all columns and the current through the same zero-phase filter H, rows where
+    i_j = Y_j(q̃, q̇, q̈)·β_j + I_f,j(q̇_j), with Y_j joint j's row of Pinocchio's regressor extended by the rotor
+    inertias (J_a·q̈) and reduced to its base columns (numerical QR; a rotor inertia that merges with a link inertia
+    stays merged), all columns and the current through the same zero-phase filter H, rows where
     the joint slides (stiction is not a function of q̇). Least squares weighted by the inverse residual variance of
     each motion regime (rows grouped by |q̈|: accelerating samples carry the model's derivative noise), parameter
     standard deviations from the residual covariance. K_t: the ratio of the URDF's gravity torque to the
@@ -668,25 +737,31 @@ def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
         if why:
             jr.null_all(why)
             continue
-        sel = ctx.rows[ctx.sliding(j)[ctx.rows]]
+        # rows where the joint slides throughout the regression filter's support (stiction is not a function of q̇);
+        # smooth reversals without sticking stay in (the sign columns are filtered like the current)
+        sel = ctx.rows[ctx.sliding(j, guard_s=0.6 / o.cutoff_Hz)[ctx.rows]]
         if sel.size < MIN_ROWS:
             jr.null_all(f"{name} hardly slides in this log ({sel.size} rows)")
             continue
         Yf, Yg = _row_full_columns(ctx, j)
         base = ctx.rm.row_full[j]
         YfH = p.regfilter(Yf)
-        arm = p.regfilter(p.ddq[:, j:j + 1])
         v = p.dq[:, j]
         acc_level = float(np.percentile(np.abs(ctx.ddqH[sel, j]), 90))
         names_rb = [f"beta{k}" for k in range(base.r)]
 
+        # priority for keeping columns when the data cannot separate them: friction, then the rigid-body base
+        # parameters (with rotor inertia) from the most to the least excited
+        rb_order = [names_rb[k] for k in np.argsort(-np.linalg.norm(YfH[sel], axis=0))]
+
         def solve(stb: tuple[float, float] | None) -> tuple[LinearFit, list[str]]:
             F, fnames = friction_columns(v, vs=None if stb is None else stb[0], delta=2.0 if stb is None else stb[1])
             FH = p.regfilter(F)
-            A = np.column_stack([YfH[sel], arm[sel], FH[sel]])
-            nm = names_rb + ["armature"] + fnames
+            A = np.column_stack([YfH[sel], FH[sel]])
+            nm = names_rb + fnames
+            prio = fnames + rb_order
             # WLS: weights from the residual variance of low/high-acceleration rows (two-step)
-            f0 = linear_fit(A, ctx.iH[sel, j], nm)
+            f0 = linear_fit(A, ctx.iH[sel, j], nm, prefer_drop=PREFER_DROP, priority=prio)
             hi = np.abs(ctx.ddqH[sel, j]) > max(acc_level * 0.5, 0.05)
             w = np.ones(sel.size)
             if hi.any() and (~hi).any():
@@ -695,24 +770,28 @@ def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
                 w[hi] = 1 / max(s_hi, 1e-9) ** 2
                 w[~hi] = 1 / max(s_lo, 1e-9) ** 2
                 w /= w.mean()
-            return linear_fit(A, ctx.iH[sel, j], nm, w=w), nm
+            return linear_fit(A, ctx.iH[sel, j], nm, w=w, prefer_drop=PREFER_DROP, priority=prio), nm
 
         fit, nm = solve(None)
         best = (fit.sigma, None, fit)
         vmin_sel = float(np.abs(v[sel]).min())
-        if stribeck_grid and vmin_sel < 0.1:
+        slow_share = float(np.mean(np.abs(v[sel]) < 0.1))
+        if stribeck_grid and slow_share > 0.05:
             deltas = [o.stribeck_exponent] if o.stribeck_exponent else [1.0, 1.5, 2.0]
             for dl in deltas:
-                for vs in (0.005, 0.008, 0.012, 0.018, 0.025, 0.035, 0.05, 0.07):
+                for vs in (0.005, 0.008, 0.012, 0.018, 0.025, 0.035, 0.05):
                     if vs < 0.5 * vmin_sel:
                         continue
                     f2, _ = solve((vs, dl))
-                    if f2.sigma < best[0] * 0.999:
+                    hump_ok = all(f2.value(f"dstatic_{d}_A") is not None and f2.std(f"dstatic_{d}_A") <= RESOLUTION_A
+                                  for d in ("pos", "neg"))
+                    # a hump enters only if it is determined and lowers the residual clearly (2 %)
+                    if hump_ok and f2.sigma < best[0] * 0.98 and f2.value("dstatic_pos_A") > 0 > f2.value("dstatic_neg_A"):
                         best = (f2.sigma, (vs, dl), f2)
         fit = best[2]
         stb = best[1]
         vmax = float(np.abs(v[sel]).max())
-        _set_friction_from_fit(jr, fit, vmax)
+        _set_friction_from_fit(jr, fit, vmax, v=v[sel])
         if stb is not None and fit.value("dstatic_pos_A") is not None and fit.value("dstatic_neg_A") is not None:
             for d in ("pos", "neg"):
                 c, dv = jr.friction[f"coulomb_{d}_A"], fit.value(f"dstatic_{d}_A")
@@ -724,8 +803,8 @@ def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
             jr.set("stribeck_exponent", stb[1], None)
             jr.diagnostics["stribeck"] = "variable projection over a v_s × δ grid (grid resolution, no std)"
         else:
-            why_s = ("no sliding slow enough to see a Stribeck hump" if vmin_sel >= 0.1 else
-                     "a Stribeck hump does not lower the residual")
+            why_s = ("too little sliding below 0.1 rad/s to see a Stribeck hump" if slow_share <= 0.05 else
+                     "a determined Stribeck hump does not lower the residual")
             for key in ("static_pos_A", "static_neg_A", "stribeck_velocity_rad_s", "stribeck_exponent"):
                 jr.set(key, None, reason=why_s)
         live = [k for k in range(base.r) if fit.value(f"beta{k}") is not None]
@@ -742,11 +821,15 @@ def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
         else:
             jr.set("torque_constant_Nm_per_A", None, reason=NO_GRAVITY.format(rng=rng))
         kt = jr.torque_constant_Nm_per_A
-        arm_A = fit.value("armature")
-        if arm_A is not None:
+        own = f"{name}.armature"
+        k_arm = next((k for k, nm_ in enumerate(base.names) if nm_.split(" ")[0] == own), None)  # separable
+        if k_arm is not None and fit.value(f"beta{k_arm}") is not None:
+            arm_A = fit.value(f"beta{k_arm}")
             notes["armature_kgm2"][name] = None if kt is None else arm_A * kt
             jr.diagnostics["armature_A_s2_per_rad"] = arm_A
-            jr.diagnostics["armature_std_A_s2_per_rad"] = fit.std("armature")
+            jr.diagnostics["armature_std_A_s2_per_rad"] = fit.std(f"beta{k_arm}")
+        elif any(own in nm_ for nm_ in base.names):
+            jr.diagnostics["armature"] = "rotor inertia merged with link inertia in a base parameter (not separable)"
         notes["base_parameters"][name] = {"names": base.names, "current_A": beta.tolist(),
                                           "std_A": [fit.std(f"beta{k}") for k in range(base.r)],
                                           "urdf_Nm": (base.E @ ctx.rm.pi_urdf).tolist(),
@@ -775,13 +858,15 @@ def fit_auto(ctx: Context) -> FitResult:
     """
     p, o = ctx.p, ctx.opts
     moving = np.abs(p.dq) > o.v_min
-    dyn = (np.abs(ctx.ddqH) > 0.3) & moving
-    dynamic_share = float(dyn.sum() / max(1, moving.sum()))
-    if dynamic_share > 0.3:
+    steady = np.column_stack([ctx.steady(j) for j in range(ctx.n)])
+    steady_share = float(steady.sum() / max(1, moving.sum()))
+    if steady_share < 0.15 and moving.any():
         res = fit_full(ctx)
         res.method = "auto"
-        res.notes["auto"] = f"full dynamics: {dynamic_share:.0%} of moving samples accelerate (> 0.3 rad/s²)"
+        res.notes["auto"] = (f"full dynamics: only {steady_share:.0%} of the moving samples are steady (constant speed); "
+                             "the log excites the rigid-body dynamics")
         return res
+    dynamic_share = 1.0 - steady_share
     out = []
     for j, name in enumerate(ctx.names):
         jr = JointResult(name)
@@ -819,14 +904,22 @@ def fit_auto(ctx: Context) -> FitResult:
                         sx = np.sqrt(np.maximum(np.diag(cx), 0))
                     except np.linalg.LinAlgError:
                         sx = np.full(2, np.inf)
-                    best, stb = f2, (math.exp(r.x[0]), dl, math.exp(r.x[0]) * sx[0],
-                                     0.0 if o.stribeck_exponent else dl * sx[1])
+                    cand = (math.exp(r.x[0]), dl, math.exp(r.x[0]) * sx[0], 0.0 if o.stribeck_exponent else dl * sx[1])
+                    if np.isfinite(cand[2]) and cand[2] < 0.5 * cand[0]:  # only a determined hump enters the model
+                        best, stb = f2, cand
             except (ValueError, np.linalg.LinAlgError):
                 pass
+        if stb is None:
+            # no hump in the model: rows slow enough to feel one (|q̇| < 0.08 rad/s, ~3 v_s) would bias
+            # Coulomb/viscous; leave them out when enough faster rows remain
+            fast = sel[np.abs(p.dq[sel, j]) >= 0.08]
+            if fast.size >= max(MIN_ROWS, sel.size // 2) and fast.size < sel.size:
+                best, _ = _quasistatic_fit(ctx, j, fast, None)
+                jr.diagnostics["rows_below_0.08_rad_s_excluded"] = int(sel.size - fast.size)
         fit = best
         _kt_from_slope(jr, fit.value("gravity"), fit.std("gravity"), fit.dropped.get("gravity", "not determined"))
         vmax = float(np.abs(vsel).max())
-        _set_friction_from_fit(jr, fit, vmax)
+        _set_friction_from_fit(jr, fit, vmax, v=vsel)
         if stb is not None and stb[2] < 0.5 * stb[0]:
             for d in ("pos", "neg"):
                 c, dv, ds = jr.friction[f"coulomb_{d}_A"], fit.value(f"dstatic_{d}_A"), fit.std(f"dstatic_{d}_A")
@@ -845,7 +938,7 @@ def fit_auto(ctx: Context) -> FitResult:
                 jr.set(f"static_{d}_A", None, reason="no breakaway events and no steady slow sliding")
         if jr.friction["static_pos_A"] is None or jr.friction["static_neg_A"] is None:
             a = fit.value("gravity") or 0.0
-            brk = breakaway_levels(ctx, j, p.i[:, j] - a * ctx.tau[:, j])
+            brk = breakaway_levels(ctx, j, p.i[:, j] - a * ctx.grav[:, j])  # at rest: gravity only
             for d, (lvl, s, cnt) in brk.items():
                 if jr.friction[f"static_{d}_A"] is None:
                     jr.set(f"static_{d}_A", lvl, s)
@@ -854,8 +947,8 @@ def fit_auto(ctx: Context) -> FitResult:
                                "gravity_range_Nm": rng, "speed_range_rad_s": [vmin, vmax]})
         _physical(jr)
     res = FitResult("auto", out, ctx.log.path, str(ctx.robot.urdf_path), list(ctx.warnings))
-    res.notes["auto"] = (f"quasi-static: {dynamic_share:.0%} of moving samples accelerate; synchronous model with "
-                         "Stribeck by variable projection and breakaway static levels")
+    res.notes["auto"] = (f"quasi-static: {steady_share:.0%} of the moving samples are steady; synchronous model on "
+                         "every steady row, Stribeck by variable projection, breakaway static levels")
     return res
 
 

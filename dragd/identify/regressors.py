@@ -69,9 +69,12 @@ class RegressorModel:
         self.model: pin.Model = getattr(robot, "model", robot)
         self.data = self.model.createData()
         self.n = self.model.nv
-        self.p = 10 * self.n
-        self.names = [f"{self.model.names[i + 1]}.{k}" for i in range(self.n) for k in PARAM_NAMES]
-        self.pi_urdf = np.concatenate([self.model.inertias[i + 1].toDynamicParameters() for i in range(self.n)])
+        # parameters: 10 per body (Pinocchio's order), then one rotor inertia ("armature", J_a·q̈_j) per joint
+        self.p = 11 * self.n
+        self.names = [f"{self.model.names[i + 1]}.{k}" for i in range(self.n) for k in PARAM_NAMES] + \
+                     [f"{self.model.names[i + 1]}.armature" for i in range(self.n)]
+        self.pi_urdf = np.concatenate([self.model.inertias[i + 1].toDynamicParameters() for i in range(self.n)]
+                                      + [np.asarray(self.model.armature, dtype=float)])
         rng = np.random.default_rng(seed)
         lo = np.maximum(self.model.lowerPositionLimit, -np.pi)
         hi = np.minimum(self.model.upperPositionLimit, np.pi)
@@ -88,18 +91,22 @@ class RegressorModel:
     # ------------------------------------------------------------------------------------ evaluation
 
     def torque_regressor(self, q: np.ndarray, dq: np.ndarray | None = None, ddq: np.ndarray | None = None) -> np.ndarray:
-        """Y (T × n × 10n) with τ_t = Y_t·π; q̇ = q̈ = 0 when not given (gravity regressor)."""
+        """Y (T × n × 11n) with τ_t = Y_t·π (bodies, then armature); q̇ = q̈ = 0 when not given (gravity)."""
         T = q.shape[0]
-        out = np.empty((T, self.n, self.p))
-        z = np.zeros(self.n)
+        n = self.n
+        out = np.zeros((T, n, self.p))
+        z = np.zeros(n)
         m, d = self.model, self.data
         f = pin.computeJointTorqueRegressor
         if dq is None:
             for k in range(T):
-                out[k] = f(m, d, q[k], z, z)
+                out[k, :, :10 * n] = f(m, d, q[k], z, z)
         else:
             for k in range(T):
-                out[k] = f(m, d, q[k], dq[k], ddq[k] if ddq is not None else z)
+                out[k, :, :10 * n] = f(m, d, q[k], dq[k], ddq[k] if ddq is not None else z)
+            if ddq is not None:
+                idx = np.arange(n)
+                out[:, idx, 10 * n + idx] = ddq
         return out
 
     def gravity(self, q: np.ndarray) -> np.ndarray:
@@ -124,9 +131,9 @@ class RegressorModel:
     # ------------------------------------------------------------------------------------ excitation
 
     def row_matrix(self, j: int, Y: np.ndarray, ddq: np.ndarray, dq: np.ndarray) -> np.ndarray:
-        """Joint j's identification columns: base rigid-body, armature (q̈_j), Coulomb (smoothed sign), viscous."""
+        """Joint j's identification columns: base rigid-body + rotor inertia, Coulomb (smoothed sign), viscous."""
         b = self.row_full[j]
-        cols = [Y[:, j, :] @ b.E.T, ddq[:, j:j + 1], np.tanh(dq[:, j:j + 1] / 0.02), dq[:, j:j + 1]]
+        cols = [Y[:, j, b.cols], np.tanh(dq[:, j:j + 1] / 0.02), dq[:, j:j + 1]]
         return np.hstack(cols)
 
     def condition_numbers(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> list[float]:

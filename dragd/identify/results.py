@@ -49,8 +49,12 @@ def condition_number(A: np.ndarray) -> float:
 
 def linear_fit(A: np.ndarray, y: np.ndarray, names: list[str], w: np.ndarray | None = None,
                keep: tuple[str, ...] = (), vif_limit: float = VIF_LIMIT,
-               explain: dict[str, str] | None = None) -> LinearFit:
-    """(Weighted) least squares y ≈ A·θ; drops unseen and inseparable columns (not those in ``keep``)."""
+               explain: dict[str, str] | None = None, prefer_drop: tuple[str, ...] = (),
+               priority: list[str] | None = None) -> LinearFit:
+    """(Weighted) least squares y ≈ A·θ; drops unseen and inseparable columns (not those in ``keep``).
+
+    Among inseparable columns, those in ``prefer_drop`` go first (e.g. a viscous slope before its Coulomb level).
+    """
     names = list(names)
     dropped: dict[str, str] = {}
     sw = None if w is None else np.sqrt(w)
@@ -62,6 +66,8 @@ def linear_fit(A: np.ndarray, y: np.ndarray, names: list[str], w: np.ndarray | N
     for k in range(len(names)):
         if k not in live:
             dropped[names[k]] = (explain or {}).get(names[k], "no data excites this term")
+    if priority is not None:
+        live = _greedy(Aw, norms, names, live, priority, vif_limit, dropped, explain)
     while True:
         if not live:
             return LinearFit([], np.zeros(0), np.zeros((0, 0)), float(np.std(yw)) if yw.size else float("nan"),
@@ -78,6 +84,9 @@ def linear_fit(A: np.ndarray, y: np.ndarray, names: list[str], w: np.ndarray | N
             vif = np.full(len(live), np.inf)
         cand = [(vif[i], i) for i in range(len(live)) if names[live[i]] not in keep]
         worst = max(cand) if cand else (0.0, -1)
+        pref = [c for c in cand if names[live[c[1]]] in prefer_drop and c[0] > vif_limit]
+        if worst[0] > vif_limit and pref:
+            worst = max(pref)
         if worst[0] <= vif_limit:
             break
         k = live.pop(worst[1])
@@ -95,6 +104,33 @@ def linear_fit(A: np.ndarray, y: np.ndarray, names: list[str], w: np.ndarray | N
     cov = cov_s / np.outer(norms[live], norms[live])
     resid = y - A[:, live] @ theta
     return LinearFit([names[k] for k in live], theta, cov, sigma, int(y.shape[0]), condition_number(B), dropped, resid)
+
+
+def _greedy(Aw: np.ndarray, norms: np.ndarray, names: list[str], live: list[int], priority: list[str],
+            vif_limit: float, dropped: dict[str, str], explain: dict[str, str] | None) -> list[int]:
+    """Keep columns in ``priority`` order while each adds a direction the kept ones do not span (Gram–Schmidt).
+
+    A column whose part orthogonal to the kept columns has squared norm below 1/vif_limit (normalised) would have
+    a variance inflation above the limit: it is dropped, naming the kept columns it is most aligned with.
+    """
+    order = sorted(live, key=lambda k: priority.index(names[k]) if names[k] in priority else len(priority) + k)
+    Q = np.zeros((Aw.shape[0], 0))
+    kept: list[int] = []
+    for k in order:
+        b = Aw[:, k] / norms[k]
+        r = b - Q @ (Q.T @ b) if Q.shape[1] else b
+        r = r - Q @ (Q.T @ r) if Q.shape[1] else r  # re-orthogonalise (numerical safety)
+        rn = float(r @ r)
+        if rn < 1.0 / vif_limit:
+            c = np.abs(np.array([Aw[:, i] @ b / norms[i] for i in kept])) if kept else np.zeros(0)
+            top = [names[kept[i]] for i in np.argsort(-c)[:2]]
+            dropped[names[k]] = (explain or {}).get(names[k]) or (
+                f"not separable from {', '.join(top) or 'the other terms'} in this data (variance inflation "
+                f"{1 / max(rn, 1e-300):.3g} > {vif_limit:g})")
+            continue
+        Q = np.column_stack([Q, r / np.sqrt(rn)])
+        kept.append(k)
+    return sorted(kept)
 
 
 def _corr_row(B: np.ndarray, i: int) -> np.ndarray:

@@ -1,0 +1,292 @@
+"""CLI of identification: ``dragd identify plan|run|fit|check`` (see docs/IDENTIFICATION.md).
+
+- ``plan``  write an excitation plan (.npz) within the joint limits
+- ``run``   drive a plan on the robot through the daemon (CSP) with a progress bar, recording MCAP
+- ``fit``   identify K_t and friction (and more) from an MCAP or CSV log → params file (+ JSON)
+- ``check`` predict the current of another log with a params file: RMSE/MAE/max per joint, plots
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+from .cli import CliError, _add_config, _emit, _floats, _table
+
+FIT_METHODS = ("lowspeed", "symmetric", "synchronous", "full", "auto")
+
+
+def _robot(args: argparse.Namespace):  # noqa: ANN202
+    """The robot model: ``--robot`` (bundled name or URDF), else the configuration's robot."""
+    from .config import load_config
+    from .model import RobotModel
+
+    try:
+        if getattr(args, "robot", None):
+            return RobotModel.from_urdf(args.robot), None
+        cfg = load_config(args.config)
+        return RobotModel.from_urdf(cfg.robot.urdf, cfg.base_dir, cfg.robot.gravity_m_s2), cfg
+    except (FileNotFoundError, ValueError) as exc:
+        if exc.__class__.__name__ == "ConfigError":
+            raise
+        raise CliError(str(exc)) from None
+
+
+def _load_log(path: str):  # noqa: ANN202
+    from .identify.data import LogError, load_log
+
+    try:
+        return load_log(path)
+    except LogError as exc:
+        raise CliError(str(exc)) from None
+
+
+# --------------------------------------------------------------------------------------------- plan
+
+
+def _build_plan(args: argparse.Namespace, q_start: list[float] | None = None):  # noqa: ANN202
+    import numpy as np
+
+    from .identify.excitation import Limits, PlanError, build_plan
+
+    model, cfg = _robot(args)
+    limits = Limits.from_model(model, cfg, margin_rad=args.margin, acceleration_rad_s2=args.acceleration)
+    if q_start is None:
+        if args.start:
+            q_start = _floats(args.start, "--start")
+        else:
+            raise CliError("--start: the plan's start pose is needed (the robot's current pose; "
+                           "'dragd identify run --plan KIND' takes it from the daemon)")
+    q0 = np.array(q_start, dtype=float)
+    if q0.shape[0] != model.nq:
+        raise CliError(f"--start: expected {model.nq} values ({', '.join(model.joint_names)}), got {q0.shape[0]}")
+    joints = [int(x) for x in _floats(args.joints, "--joints")] if args.joints else None
+    try:
+        return build_plan(args.kind, model, q0, limits, joints=joints, scale=args.scale, seed=args.seed)
+    except PlanError as exc:
+        raise CliError(str(exc)) from None
+
+
+def cmd_plan(args: argparse.Namespace) -> int:
+    plan = _build_plan(args)
+    out = Path(args.out)
+    if out.suffix != ".npz":
+        raise CliError(f"--out {out}: expected an .npz file name")
+    plan.save(out)
+    kinds: dict[str, int] = {}
+    for s in plan.segments:
+        kinds[s.kind] = kinds.get(s.kind, 0) + 1
+    data = {"out": str(out), "kind": args.kind, "duration_s": round(plan.duration_s, 3), "samples": int(plan.t_s.shape[0]),
+            "segments": kinds, "info": plan.info}
+    _emit(args, data, lambda d: f"{d['out']}: {d['kind']} plan, {d['duration_s']:.1f} s "
+                                f"({', '.join(f'{v} {k}' for k, v in d['segments'].items())})")
+    return 0
+
+
+# --------------------------------------------------------------------------------------------- run
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from .control import ControlClient, DaemonUnavailable
+    from .identify.excitation import PLAN_KINDS, Plan, PlanError
+    from .identify.runner import RunError, run_plan
+
+    client = ControlClient(args.socket, timeout_s=args.timeout)
+
+    def call(cmd: str, **kw: Any) -> dict[str, Any]:
+        try:
+            return client.call(cmd, **kw)
+        except DaemonUnavailable as exc:
+            raise CliError(str(exc), status=1) from None
+
+    if args.plan in PLAN_KINDS:
+        st = call("status")
+        if not st.get("ok", True) or "q_rad" not in st:
+            raise CliError(f"daemon at {args.socket}: {st.get('error', 'no status')}", status=1)
+        args.kind = args.plan
+        plan = _build_plan(args, st["q_rad"])
+    else:
+        try:
+            plan = Plan.load(args.plan)
+        except PlanError as exc:
+            raise CliError(str(exc)) from None
+    try:
+        res = run_plan(call, plan, args.out, progress=not args.no_progress and not args.json, chunk_s=args.chunk)
+    except RunError as exc:
+        raise CliError(str(exc), status=1) from None
+    _emit(args, res, lambda d: f"{d['log']}: {d['rows']} rows recorded ({d['plan']}, {d['plan_duration_s']:.1f} s plan, "
+                               f"{d['chunks']} motion(s), {d['wall_time_s']:.0f} s)"
+                               + (" — interrupted" if d.get("interrupted") else "")
+                               + (f"; faults: {d['faults']}" if d.get("faults") else ""))
+    return 1 if res.get("interrupted") or res.get("faults") else 0
+
+
+# --------------------------------------------------------------------------------------------- fit
+
+
+def _fit_text(d: dict[str, Any]) -> str:
+    def f(x: Any, s: Any = None, fmt: str = ".4f") -> str:
+        if x is None:
+            return "null"
+        return f"{x:{fmt}}" + (f"±{s:.1g}" if s is not None else "")
+
+    rows = []
+    for name, j in d["joints"].items():
+        fr, sd = j["friction"], j["std"]
+        rows.append((name, f(j["torque_constant_Nm_per_A"], sd.get("torque_constant_Nm_per_A")),
+                     f(fr["coulomb_pos_A"], sd.get("coulomb_pos_A")), f(fr["coulomb_neg_A"], sd.get("coulomb_neg_A")),
+                     f(fr["viscous_A_s_per_rad"], sd.get("viscous_A_s_per_rad")),
+                     f(fr["static_pos_A"]), f(fr["static_neg_A"]), f(fr["stribeck_velocity_rad_s"], fmt=".3f")))
+    lines = [f"method {d['method']} on {d['log']} ({d.get('elapsed_s', 0):.1f} s) → {d.get('out')}",
+             _table(["joint", "K_t N·m/A", "F_c+ A", "F_c- A", "F_v A·s/rad", "F_s+ A", "F_s- A", "v_s rad/s"], rows)]
+    for name, j in d["joints"].items():
+        seen = set()
+        for k, why in j["reasons"].items():
+            if why in seen:
+                continue
+            seen.add(why)
+            keys = [kk for kk, w in j["reasons"].items() if w == why]
+            lines.append(f"  {name}: {', '.join(keys)} null: {why}")
+    for w in d.get("warnings", []):
+        lines.append(f"warning: {w}")
+    return "\n".join(lines)
+
+
+def cmd_fit(args: argparse.Namespace) -> int:
+    from .config import save_params
+    from .identify.data import LogError
+    from .identify.methods import Options, identify
+
+    model, _ = _robot(args)
+    log = _load_log(args.log)
+    opts = Options()
+    if args.cutoff is not None:
+        opts.cutoff_Hz = args.cutoff
+    try:
+        res = identify(log, model, args.method, opts)
+    except LogError as exc:
+        raise CliError(str(exc)) from None
+    params = res.to_params()
+    out = Path(args.out)
+    save_params(params, out)
+    data = res.to_json()
+    data["out"] = str(out)
+    _emit(args, data, _fit_text)
+    return 0
+
+
+# --------------------------------------------------------------------------------------------- check
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    from .config import load_config, load_params
+    from .identify.check import check, plot
+    from .identify.data import LogError
+
+    model, _ = _robot(args)
+    params = load_params(args.params)
+    cfg = None
+    if args.config is not None:
+        cfg = load_config(args.config)
+        if cfg.joint_names != list(model.joint_names):
+            raise CliError(f"{cfg.source}: joints {', '.join(cfg.joint_names)} differ from the robot's "
+                           f"{', '.join(model.joint_names)}")
+    elif not args.robot:
+        cfg = load_config(None)
+    log = _load_log(args.log)
+    try:
+        res = check(log, model, params, cfg=cfg, terms=args.terms, mask=args.mask, keep_series=bool(args.plots))
+    except (LogError, ValueError) as exc:
+        raise CliError(str(exc)) from None
+    data = res.to_json()
+    if args.plots:
+        data["plots"] = plot(res, list(model.joint_names), args.plots)
+
+    def text(d: dict[str, Any]) -> str:
+        def ma(x: Any) -> str:
+            return "—" if x is None else f"{x * 1e3:.1f}"
+
+        rows = [(nm, ma(j.get("rmse_A")), ma(j.get("mae_A")), ma(j.get("max_A")), j.get("samples", 0),
+                 j.get("reason", "")) for nm, j in d["joints"].items()]
+        lines = [f"{args.log} predicted with {args.params} ({d['mask']} samples, {d['terms']} model): "
+                 f"RMSE {ma(d['rmse_A'])} mA overall",
+                 _table(["joint", "RMSE mA", "MAE mA", "max mA", "samples", "note"], rows)]
+        lines += [f"warning: {w}" for w in d.get("warnings", [])]
+        lines += [f"plot: {p}" for p in d.get("plots", [])]
+        return "\n".join(lines)
+
+    _emit(args, data, text)
+    return 0
+
+
+# --------------------------------------------------------------------------------------------- parser
+
+
+def register(sub: Any) -> None:
+    from .cli_daemon import DEFAULT_SOCKET
+    from .identify.excitation import PLAN_KINDS
+
+    p = sub.add_parser("identify", help="identification: excitation plans, runs, fits, checks (docs/IDENTIFICATION.md)")
+    isub = p.add_subparsers(dest="identify_command", metavar="WHAT")
+    isub.required = True
+
+    def plan_opts(q: argparse.ArgumentParser) -> None:
+        q.add_argument("--joints", help="joint numbers for single-joint kinds, e.g. 2,3 (default: all)")
+        q.add_argument("--scale", type=float, default=1.0, help="< 1 shortens the plan (fewer passes/speeds)")
+        q.add_argument("--margin", type=float, default=0.15, help="distance kept from the soft limits [rad]")
+        q.add_argument("--acceleration", type=float, default=1.5, help="joint acceleration limit [rad/s²]")
+        q.add_argument("--seed", type=int, default=5, help="random seed of pose choices and the Fourier optimisation")
+        q.add_argument("--robot", help="bundled robot name or URDF path (default: the configuration's robot)")
+        _add_config(q, params=False)
+
+    pl = isub.add_parser("plan", help="write an excitation plan (.npz: t_s, q_rad, segments)")
+    pl.add_argument("--kind", required=True, choices=PLAN_KINDS, help="lowspeed (seed 000), symmetric and friction "
+                    "(seed 001), synchronous (seed 002), fourier (full dynamics), standard, all")
+    pl.add_argument("--start", help="start pose Q1,...,QN [rad] (the robot's current pose)")
+    pl.add_argument("--out", required=True, help="plan file (.npz)")
+    plan_opts(pl)
+    pl.add_argument("--json", action="store_true", help="print JSON")
+    pl.set_defaults(func=cmd_plan)
+
+    rn = isub.add_parser("run", help="drive a plan on the robot through the daemon (CSP), recording MCAP")
+    rn.add_argument("--plan", required=True, help=f"plan file (.npz) or a kind ({', '.join(PLAN_KINDS)}) built from "
+                                                 "the current pose")
+    rn.add_argument("--out", required=True, help="MCAP file the daemon records the run to")
+    rn.add_argument("--socket", default=DEFAULT_SOCKET, help=f"daemon control socket (default {DEFAULT_SOCKET})")
+    rn.add_argument("--timeout", type=float, default=30.0, help="seconds to wait for each daemon answer")
+    rn.add_argument("--chunk", type=float, default=600.0, help="longest single motion [s]; longer plans are cut at rests")
+    rn.add_argument("--no-progress", action="store_true", help="no progress bar")
+    plan_opts(rn)
+    rn.add_argument("--json", action="store_true", help="print JSON")
+    rn.set_defaults(func=cmd_run)
+
+    ft = isub.add_parser("fit", help="identify K_t and friction from a log → params file")
+    ft.add_argument("--log", required=True, help="MCAP (dragd telemetry, TRACK rows) or CSV t,q1..qN,i1..iN[,dq1..dqN]")
+    ft.add_argument("--robot", help="bundled robot name or URDF path (default: the configuration's robot)")
+    ft.add_argument("--method", default="auto", choices=FIT_METHODS, help="lowspeed (seed 000), symmetric (seed 001), "
+                    "synchronous (seed 002), full (rigid-body base parameters + friction), auto (default)")
+    ft.add_argument("--out", required=True, help="params file to write (YAML; the model, daemon and sim load it)")
+    ft.add_argument("--cutoff", type=float, default=None, help="regression filter cutoff [Hz] (default 5)")
+    _add_config(ft, params=False)
+    ft.add_argument("--json", action="store_true", help="print JSON")
+    ft.set_defaults(func=cmd_fit)
+
+    ck = isub.add_parser("check", help="predict another log's current with a params file: RMSE, MAE, max per joint")
+    ck.add_argument("--params", required=True, help="params file (from 'dragd identify fit')")
+    ck.add_argument("--log", required=True, help="MCAP or CSV log to predict")
+    ck.add_argument("--robot", help="bundled robot name or URDF path (default: the configuration's robot)")
+    ck.add_argument("--mask", default="steady", choices=("steady", "moving", "all"),
+                    help="samples evaluated: steady motion (default, seed 001 Table VIII), any sliding, all")
+    ck.add_argument("--terms", default="rigid", choices=("rigid", "gravity"),
+                    help="rigid-body torque from the URDF (default) or gravity only (what drag compensates)")
+    ck.add_argument("--plots", help="directory for PNG plots of measured vs predicted current per joint")
+    _add_config(ck, params=False)
+    ck.add_argument("--json", action="store_true", help="print JSON")
+    ck.set_defaults(func=cmd_check)
+
+
+__all__ = ["register", "math", "json", "sys"]

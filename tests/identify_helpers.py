@@ -1,0 +1,76 @@
+"""Shared data for the identification tests: short plans run offline on the sim (generated once per session)."""
+
+from __future__ import annotations
+
+import functools
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from dragd.config import load_config
+from dragd.identify import excitation as E
+from dragd.model import RobotModel
+
+START = np.array([0.0, -0.6, 1.2, -0.6, 1.5708, 0.0])
+TMP = Path(tempfile.mkdtemp(prefix="dragd-identify-tests-"))
+
+
+@functools.lru_cache(maxsize=None)
+def robot() -> RobotModel:
+    return RobotModel.from_urdf("seed_cobot")
+
+
+@functools.lru_cache(maxsize=None)
+def limits() -> E.Limits:
+    return E.Limits.from_model(robot(), load_config())
+
+
+@functools.lru_cache(maxsize=None)
+def truth() -> dict:
+    from sim.offline import truth_summary
+    from sim.truth import load_truth
+
+    return truth_summary(load_truth())
+
+
+def _generate(plan: E.Plan, name: str, seed: int, fmt: str = "mcap") -> Path:
+    from sim.offline import generate, write_log
+    from sim.truth import load_truth
+
+    out = TMP / f"{name}-{seed}.{fmt}"
+    if not out.exists():
+        data = generate(plan.t_s, plan.q_rad, load_truth(), seed=seed)
+        write_log(out, data)
+    return out
+
+
+@functools.lru_cache(maxsize=None)
+def sync_plan() -> E.Plan:
+    """Seed 002 style: joints 2 and 4 reciprocate at two speeds, one pose (~40 s)."""
+    b = E.PlanBuilder(START, limits())
+    E.add_synchronous(b, [1, 3], speeds=(0.15, 0.45), cycles=1, half_range_deg=30.0)
+    return b.build("test-sync")
+
+
+@functools.lru_cache(maxsize=None)
+def sync_log(fmt: str = "mcap", seed: int = 3) -> Path:
+    return _generate(sync_plan(), "sync", seed, fmt)
+
+
+@functools.lru_cache(maxsize=None)
+def symmetric_log(seed: int = 4) -> Path:
+    b = E.PlanBuilder(START, limits())
+    E.add_symmetric(b, passes=4, speed=0.25, rng=np.random.default_rng(seed))
+    return _generate(b.build("test-symmetric"), "symmetric", seed)
+
+
+@functools.lru_cache(maxsize=None)
+def lowspeed_log() -> Path:
+    b = E.PlanBuilder(START, limits())
+    E.add_lowspeed(b, [1], seconds_per_joint=40.0, cycles=1)
+    return _generate(b.build("test-lowspeed"), "lowspeed", 5)
+
+
+def rel(a: float, b: float) -> float:
+    return abs(a - b) / abs(b)

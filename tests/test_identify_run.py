@@ -1,0 +1,49 @@
+"""End to end: ``dragd identify run`` drives a short plan through the daemon (CSP) on the simulated robot, records
+MCAP, and ``dragd identify fit`` finds joint 2's torque constant in it."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+
+from dragd.config import load_config
+from dragd.identify import excitation as E
+from dragd.model import RobotModel
+from dragd.procs import Rig
+
+from conftest import run_cli
+from identify_helpers import truth
+
+
+def test_identify_run_through_the_daemon_then_fit(tmp_path):
+    with Rig("identify-run", workdir=tmp_path) as rig:
+        rig.start_sim()
+        rig.start_daemon()
+        rig.must("start")
+        time.sleep(0.3)
+        q0 = np.array(rig.must("status")["q_rad"])
+        model = RobotModel.from_urdf("seed_cobot")
+        b = E.PlanBuilder(q0, E.Limits.from_model(model, load_config()))
+        E.add_synchronous(b, [1], speeds=(0.2, 0.45), cycles=1, half_range_deg=20.0)
+        plan = b.build("e2e")
+        assert 10.0 < plan.duration_s < 40.0
+        pf = tmp_path / "plan.npz"
+        plan.save(pf)
+        out = tmp_path / "run.mcap"
+        proc = rig.cli("identify", "run", "--plan", str(pf), "--out", str(out), "--no-progress", "--json",
+                       timeout_s=120.0)
+        assert proc.returncode == 0, proc.stderr + proc.stdout
+        res = json.loads(proc.stdout)
+        status = rig.must("status")
+        rig.must("stop")
+    assert res["log"] == str(out) and res["chunks"] == 1 and res["rows"] > 0.9 * plan.duration_s * 1000
+    assert "faults" not in res and status["faults"] == [] and status["mode"] == "hold"
+    fit = run_cli("identify", "fit", "--log", str(out), "--method", "synchronous", "--out", str(tmp_path / "p.yaml"),
+                  "--json")
+    d = json.loads(fit.stdout)
+    j2 = d["joints"]["joint2"]
+    kt = truth()["joints"]["joint2"]["torque_constant_Nm_per_A"]
+    assert abs(j2["torque_constant_Nm_per_A"] - kt) / kt < 0.02, j2
+    assert j2["friction"]["coulomb_pos_A"] > 0 > j2["friction"]["coulomb_neg_A"]

@@ -1,0 +1,257 @@
+"""Teach and replay against the simulated robot (sim + daemon as separate processes).
+
+One rig per test, several checks per rig: teaching by hand through the CLI (program file, raw MCAP, marks), the
+point-to-point replay's accuracy at the waypoints, bumpless drag → replay → drag; pause / resume / speed override /
+controlled stop; the monitors (tracking error, residual current) and the soft limits; the demo's JSON.
+
+The rigs' configurations give the drives' communication watchdogs more slack than the default (the shared test
+machine stalls processes for tens of milliseconds); the control behaviour under test is the default's.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from mcap.reader import make_reader
+
+from dragd.demo import TEACH_STEPS_RAD, guide_and_settle
+from dragd.procs import Rig
+from dragd.teach.analysis import read_rows, replay_errors
+from dragd.teach.program import Program, Waypoint, load_program, save_program
+
+from conftest import run_cli
+from daemon_helpers import derived_config, wait_for
+
+Q0 = np.array([0.0, -0.6, 1.2, -0.6, 1.5708, 0.0])  # the simulated arm's start pose
+
+
+def _config(tmp: Path, name: str, **replay) -> Path:
+    def edit(d):
+        d.setdefault("safety", {})["rpdo_timeout_ms"] = 500
+        d.setdefault("master", {})["heartbeat_consumer_ms"] = 2000
+        d.setdefault("loop", {}).update(stale_cycles_hold=400, stale_cycles_disable=2000, fresh_cycles_resume=20)
+        d["replay"] = {"program_dir": str(tmp / "programs"), **replay}
+
+    return derived_config(tmp, name, edit)
+
+
+def _wait_outcome(rig: Rig, timeout_s: float) -> dict:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        st = rig.must("status")
+        if (st.get("replay") or {}).get("outcome"):
+            return st
+        time.sleep(0.05)
+    raise AssertionError(f"the replay did not end within {timeout_s} s: {rig.must('status').get('replay')}")
+
+
+def _cli_json(rig: Rig, *args: str) -> dict:
+    proc = rig.cli(*args, "--json")
+    assert proc.returncode == 0, f"dragd {' '.join(args)}: {proc.stdout}\n{proc.stderr}"
+    return json.loads(proc.stdout)
+
+
+def _events(mcap: Path, name: str) -> list[dict]:
+    out = []
+    with open(mcap, "rb") as fh:
+        for _, _, m in make_reader(fh).iter_messages(topics=["/dragd/events"]):
+            ev = json.loads(m.data)
+            if ev.get("name") == name:
+                out.append(ev)
+    return out
+
+
+def test_teach_by_hand_replay_linear_and_bumpless_drag_replay_drag(tmp_path):
+    mcap = tmp_path / "daemon.mcap"
+    cfg = _config(tmp_path, "teach", residual_current_limit_A=4.0)  # (the monitors are the next test's subject)
+    with Rig("teach", workdir=tmp_path, config=cfg, telemetry=mcap) as rig:
+        rig.start_sim()
+        rig.start_daemon()
+        rig.must("start")
+        time.sleep(0.3)
+        # --- record: teach start puts the arm in drag; the hand guides it to three points, each marked
+        started = _cli_json(rig, "teach", "start", "hand", "--rate", "100")
+        assert started["mode"] == "drag" and started["rate_Hz"] == 100.0
+        assert started["program"] == str(tmp_path / "programs" / "hand.yaml")
+        again = rig.call("teach", action="start", name="other")
+        assert not again["ok"] and "already teaching 'hand'" in again["error"]
+        marks = []
+        for i, step in enumerate(TEACH_STEPS_RAD):
+            guide_and_settle(rig, step, 2.5, f"p{i + 1}")
+            marks.append(_cli_json(rig, "teach", "mark"))
+        assert [m["name"] for m in marks] == ["p1", "p2", "p3"]
+        assert np.abs(np.array(marks[1]["q_rad"]) - np.array(marks[0]["q_rad"])).max() > 0.1  # the hand moved it
+        sim_q = np.array(rig.sim_call("state")["q_rad"])
+        assert np.abs(sim_q - np.array(marks[2]["q_rad"])).max() < math.radians(0.05)  # encoders = the arm
+        taught = _cli_json(rig, "teach", "stop")
+        assert taught["waypoints"] == 3 and taught["program"].endswith("hand.yaml")
+        listed = _cli_json(rig, "teach", "list")
+        assert [p["name"] for p in listed["programs"]] == ["hand"]
+        # --- replay, point to point, from drag; then back to the hand
+        # (a feedback hold under machine load returns to drag by itself)
+        wait_for(lambda: rig.must("status")["mode"] == "drag", 5.0, "drag mode")
+        st = rig.must("status")
+        assert st["teach"] is None
+        t0 = st["t_s"]
+        resp = _cli_json(rig, "replay", "hand", "--interp", "linear", "--wait")
+        assert resp["outcome"] == "done" and resp["mode"] == "hold", resp
+        t1 = rig.must("status")["t_s"]
+        drag = rig.must("mode", mode="drag")  # waits for the drives to be back in CST
+        assert drag["mode"] == "drag"
+        time.sleep(0.6)
+        end = rig.must("status")
+        rig.must("stop")
+    assert end["faults"] == [] and end["drive_mode"] == "cst"
+    # the program file: versioned, readable, the marks and the continuous recording at the chosen rate
+    prog = load_program(tmp_path / "programs" / "hand.yaml")
+    assert prog.version == 1 and prog.joints == [f"joint{i + 1}" for i in range(6)]
+    assert [w.name for w in prog.waypoints] == ["p1", "p2", "p3"]
+    assert np.allclose(prog.waypoint_array(), [m["q_rad"] for m in marks], atol=1e-6)
+    t, q = prog.path_arrays()
+    # one sample per 10 ms of the daemon's clock (a stall of the loop loses the samples it spans)
+    assert prog.recording.rate_Hz == 100.0 and 0.9 < len(t) / (100 * prog.recording.duration_s) <= 1.001
+    assert np.median(np.diff(t)) == pytest.approx(0.01, abs=1.5e-3) and q.shape[1] == 6
+    assert np.abs(q[-1] - np.array(marks[2]["q_rad"])).max() < math.radians(0.5)
+    raw = tmp_path / "programs" / prog.recording.mcap
+    assert raw.is_file() and [e["waypoint"] for e in _events(raw, "mark")] == ["p1", "p2", "p3"]
+    # accuracy: every taught waypoint reached within 0.1° on every joint (the daemon's encoders)
+    rows = read_rows(mcap, ("t_s", "mode", "q_rad", "q_ref_rad", "track_t_s", "rx", "current_command_A",
+                            "current_measured_A", "dq_rad_s"))
+    res = replay_errors(rows, t0, t1, resp["marks"], {m["name"]: m["q_rad"] for m in marks}, resp["move_to_start_s"])
+    assert len(res["waypoints"]) == 3 and res["waypoint_error_deg_max"] < 0.1, res
+    assert res["path_error_deg_max"] < 0.5, res
+    # bumpless: drag → hold → (CSP) track → hold → (CST) drag
+    mode = rows["mode"]
+    cmd = rows["current_command_A"]
+    meas = rows["current_measured_A"]
+    target = rows["q_ref_rad"]
+    switches = np.flatnonzero(mode[1:] != mode[:-1]) + 1
+    around = [i for i in switches if t0 - 0.05 < rows["t_s"][i] < t1 + 1.5]
+    seq = [(mode[i - 1], mode[i]) for i in around]
+    assert seq[:4] == [("drag", "hold"), ("hold", "track"), ("track", "hold"), ("hold", "drag")], seq
+    for i in around[:4]:
+        w = slice(i - 50, i + 250)
+        # no step in the commanded current (the blends), no jerk of the arm at the switch
+        assert np.abs(np.diff(cmd[w], axis=0)).max() < 0.3, (mode[i - 1], mode[i], np.abs(np.diff(cmd[w], axis=0)).max(0))
+        if mode[i] != "track":
+            assert np.abs(rows["dq_rad_s"][w]).max() < 0.03, (mode[i - 1], mode[i])
+    # the position target never jumps, and the arm is where the target is when the drives enter CSP
+    tr = np.flatnonzero(mode == "track")
+    first = tr[0]
+    assert np.abs(rows["q_rad"][first] - target[first]).max() < math.radians(0.05)
+    seg = slice(first - 5, tr[-1] + 300)
+    assert np.abs(np.diff(target[seg], axis=0)).max() < math.radians(0.2)
+    # the drives' return to CST after the motion: no step in the measured current
+    last = tr[-1] + 1
+    assert np.abs(np.diff(meas[last:last + 300], axis=0)).max() < 0.3
+
+
+def _write_program(tmp: Path, name: str, steps, start=Q0) -> Path:
+    wps, q = [], np.array(start, dtype=float)
+    for s in steps:
+        q = q + np.array(s)
+        wps.append(q.copy())
+    prog = Program(name=name, joints=[f"joint{i + 1}" for i in range(6)],
+                   waypoints=[Waypoint(name=f"p{i + 1}", t_s=float(i), q_rad=w.tolist()) for i, w in enumerate(wps)])
+    (tmp / "programs").mkdir(exist_ok=True)
+    return save_program(prog, tmp / "programs" / f"{name}.yaml")
+
+
+def test_pause_resume_speed_override_stop_and_monitors(tmp_path):
+    mcap = tmp_path / "daemon.mcap"
+    # a tight tracking-error bound on joint 6 (0.6°; 2° elsewhere), the default residual bound (2 A): a push on the
+    # wrist trips the first, a collision on the shoulder the second
+    cfg = _config(tmp_path, "monitors", tracking_error_limit_rad=[0.035] * 5 + [0.0105])
+    steps = [[0.0, 0.0, 0.0, 0.0, 0.0, 0.0], [0.3, 0.15, -0.15, 0.2, 0.2, 0.3], [-0.1, 0.1, 0.1, -0.2, 0.2, -0.2]]
+    _write_program(tmp_path, "loop", steps)
+    far = _write_program(tmp_path, "far", [[0.0] * 6, [0.0, 3.7, 0.0, 0.0, 0.0, 0.0]])  # joint2 at 3.1 rad
+    with Rig("replay", workdir=tmp_path, config=cfg, telemetry=mcap) as rig:
+        rig.start_sim()
+        rig.start_daemon()
+        rig.must("start")
+        time.sleep(0.3)
+        # soft limits: a program beyond them is refused before anything moves; the arm stays held, CST
+        bad = rig.call("replay", program=str(far), interp="linear", timeout_s=60.0)
+        assert not bad["ok"] and "soft limits of joint2" in bad["error"]
+        st = rig.must("status")
+        assert st["mode"] == "hold" and st["drive_mode"] == "cst" and st["trajectory"] is None
+        # --- spline, until stopped, at half speed
+        resp = _cli_json(rig, "replay", "loop", "--interp", "spline", "--cycles", "0", "--speed", "0.5")
+        assert resp["mode"] == "track" and resp["interp"] == "spline"
+        body_s = resp["move_to_start_s"]
+        wait_for(lambda: rig.must("status")["replay"]["t_s"] > body_s + 0.3, 10.0, "the cycle under way")
+        r = rig.must("status")["replay"]
+        assert r["state"] == "running" and r["rate"] == 0.5 and r["speed_override"] == 0.5
+        sp = _cli_json(rig, "replay", "speed", "1.0")
+        assert sp["speed_override"] == 1.0
+        wait_for(lambda: rig.must("status")["replay"]["rate"] == 1.0, 3.0, "the override ramped to 1")
+        paused = _cli_json(rig, "replay", "pause")
+        assert paused["state"] == "paused"
+        a = rig.must("status")
+        time.sleep(0.4)
+        b = rig.must("status")
+        assert b["replay"]["state"] == "paused" and b["replay"]["t_s"] == a["replay"]["t_s"]
+        assert np.abs(np.array(b["q_rad"]) - np.array(a["q_rad"])).max() < math.radians(0.02)  # holds still
+        assert _cli_json(rig, "replay", "resume")["state"] == "running"
+        wait_for(lambda: rig.must("status")["replay"]["t_s"] > b["replay"]["t_s"] + 0.5, 5.0, "moving again")
+        stopped = _cli_json(rig, "replay", "stop")
+        assert stopped["mode"] == "hold" and stopped["replay"]["outcome"] == "stopped"
+        wait_for(lambda: rig.must("status")["drive_mode"] == "cst", 2.0, "the drives back in CST")
+        t_stop = rig.must("status")["t_s"]
+        # --- tracking-error monitor: a push on the wrist during the motion stops it, held where the arm is
+        rig.must("replay", program="loop", interp="linear", cycles=0, timeout_s=60.0)
+        wait_for(lambda: rig.must("status")["replay"]["t_s"] > resp["move_to_start_s"] + 0.2, 10.0, "moving")
+        rig.sim_call("operator", scenario={"name": "bump", "segments": [
+            {"kind": "push", "joint": "joint6", "torque_Nm": 7.0, "duration_s": 1.0}]})
+        st = _wait_outcome(rig, 5.0)
+        assert st["replay"]["outcome"].startswith("tracking_error"), st["replay"]
+        f = st["faults"][-1]
+        assert f["joint"] == "joint6" and f["kind"] == "tracking_error" and f["reaction"] == "hold"
+        assert st["mode"] == "hold"
+        time.sleep(1.2)  # the push is over; the arm stays where it stopped
+        # --- residual-current monitor: a collision on the shoulder
+        rig.must("replay", program="loop", interp="linear", cycles=0, timeout_s=60.0)
+        wait_for(lambda: rig.must("status")["replay"]["t_s"] > 1.5, 15.0, "moving")
+        rig.sim_call("operator", scenario={"name": "collision", "segments": [
+            {"kind": "push", "joint": "joint2", "torque_Nm": -40.0, "duration_s": 0.8}]})
+        st = _wait_outcome(rig, 5.0)
+        assert st["replay"]["outcome"].startswith("residual_current"), st["replay"]
+        assert st["faults"][-1]["joint"] == "joint2" and st["mode"] == "hold"
+        end = rig.must("status")
+        rig.must("stop")
+    assert end["drives"] and all(d["state"] == "operation_enabled" for d in end["drives"])
+    # the controlled stop and the pause decelerate along the path: the reference never jumps and stays smooth
+    rows = read_rows(mcap, ("t_s", "mode", "q_rad", "q_ref_rad", "track_t_s"))
+    m = (rows["mode"] == "track") & (rows["t_s"] < t_stop)
+    ref = rows["q_ref_rad"][m]
+    t = rows["t_s"][m]
+    dt = np.diff(t)
+    ok = (dt > 0.0005) & (dt < 0.0015)  # cycles without a stall
+    v = np.diff(ref, axis=0)[ok] / dt[ok, None]
+    assert np.abs(v).max() < 1.6, np.abs(v).max(axis=0)  # within the velocity limits (1.0 / 1.5 rad/s)
+    tt = rows["track_t_s"][m]
+    assert np.all(np.diff(tt) >= -1e-9)  # one cycle: the trajectory clock never goes back
+    # the hold after the stop is at the stop point: the last reference
+    last = np.flatnonzero(m)[-1]
+    assert np.abs(rows["q_ref_rad"][last + 5] - ref[-1]).max() < 1e-6
+
+
+def test_demo_teach_scenario_json(tmp_path):
+    cfg = _config(tmp_path, "demo", residual_current_limit_A=4.0)
+    proc = run_cli("demo", "--scenario", "teach", "--seconds", "9", "--config", str(cfg), "--out", str(tmp_path),
+                   "--json", timeout=300)
+    data = json.loads(proc.stdout)
+    assert data["waypoints"] == 3 and data["faults"] == 0
+    assert data["waypoint_error_deg_max"] < 0.1, data  # every taught waypoint passed within 0.1° on every joint
+    assert data["path_error_deg_max"] < 0.5, data
+    assert {w["name"] for w in data["linear"]["waypoints"]} == {"p1", "p2", "p3"}
+    assert {w["kind"] for w in data["circular"]["waypoints"]} == {"pass", "stop"}
+    prog = yaml.safe_load(Path(data["program"]).read_text())
+    assert prog["format"] == "dragd.teach.program" and len(prog["waypoints"]) == 3
+    assert Path(data["mcap"]).is_file()
