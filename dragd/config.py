@@ -232,6 +232,13 @@ class ReplayConfig(_Strict):
     settle_s: NonNegFloat = 0.4  # dwell at every stop (point-to-point waypoints, end of a cycle)
     keyframe_tolerance_rad: PosFloat = 0.0087  # keyframes of a continuous recording keep the path within this
     inertia_feedforward: bool = True  # M(q)q̈ + C(q,q̇)q̇ of the planned motion in the CSP torque offset
+    # the daemon's position loop around the drives' CSP loops during a replay (in the torque offset): stiffness
+    # and damping against what the feed-forward misses (friction and torque-constant beliefs); 0 = the drive's only
+    # (the defaults suit a light wrist joint; config/default.yaml tunes them per joint for the seed cobot)
+    position_kp_Nm_per_rad: NonNegFloat | list[NonNegFloat] = 300.0
+    position_kd_Nm_s_per_rad: NonNegFloat | list[NonNegFloat] = 3.0
+    position_ki_Nm_per_rad_s: NonNegFloat | list[NonNegFloat] = 600.0  # only while the joint's reference moves
+    position_integral_limit_A: NonNegFloat | list[NonNegFloat] = 1.0
     ramp_s: PosFloat = 0.4  # pause / resume / stop / speed-override changes (longer when the path is fast)
     tracking_error_limit_rad: PerJoint = 0.035  # |q - q_ref| beyond this stops the motion (hold)
     residual_current_limit_A: PerJoint = 2.0  # |measured - predicted current| beyond this stops the motion
@@ -273,7 +280,8 @@ class Config(_Strict):
             seen[key] = j.name
         r = self.replay
         for key in ("velocity_limits_rad_s", "acceleration_limits_rad_s2", "jerk_limits_rad_s3",
-                    "tracking_error_limit_rad", "residual_current_limit_A"):
+                    "tracking_error_limit_rad", "residual_current_limit_A", "position_kp_Nm_per_rad",
+                    "position_kd_Nm_s_per_rad", "position_ki_Nm_per_rad_s", "position_integral_limit_A"):
             v = getattr(r, key)
             if isinstance(v, list) and len(v) != len(self.joints):
                 raise ValueError(f"replay.{key}: expected one value or {len(self.joints)} (one per joint), got {len(v)}")

@@ -298,6 +298,13 @@ class Daemon:
         self.res_limit = np.array(cfg.per_joint(rc.residual_current_limit_A), dtype=float)
         self._res_alpha = 1.0 - math.exp(-2.0 * math.pi * rc.residual_filter_Hz * self.dt)
         self._acc_limit = np.array(cfg.per_joint(rc.acceleration_limits_rad_s2), dtype=float)
+        self.track_kp = np.array(cfg.per_joint(rc.position_kp_Nm_per_rad), dtype=float)
+        self.track_kd = np.array(cfg.per_joint(rc.position_kd_Nm_s_per_rad), dtype=float)
+        self.track_ki = np.array(cfg.per_joint(rc.position_ki_Nm_per_rad_s), dtype=float)
+        self.track_int_max = np.array(cfg.per_joint(rc.position_integral_limit_A), dtype=float) * self.kt
+        self.track_pid_Nm = np.zeros(n)
+        self.track_int_Nm = np.zeros(n)
+        self._moving = np.zeros(n, dtype=bool)
         self._err_count = 0
         self._res_count = 0
         self._grace_until = -1.0
@@ -531,6 +538,8 @@ class Daemon:
         self.residual_A.fill(0.0)
         self.ff_Nm.fill(0.0)
         self.pred_extra_Nm.fill(0.0)
+        self.track_pid_Nm.fill(0.0)
+        self.track_int_Nm.fill(0.0)
         traj.sample(0.0, self.q_ref)
         # a replay's move to start begins exactly where the arm is: the small difference to the planned start
         # fades out over the move (no step in the position target)
@@ -703,7 +712,32 @@ class Daemon:
         if finished:
             self._end_track("stopped" if self.track_state == "stopping" else "done")
             return
+        if self._full_friction:
+            self._position_loop(elapsed)
         self._monitor()
+
+    def _position_loop(self, elapsed: float) -> None:
+        """Replay: PD + integral on q_ref − q into the torque offset, around the drives' own CSP loops.
+
+        The feed-forward leaves the model's errors (a torque constant 1-2 % off under 60 N·m of gravity is
+        ≈ 1 N·m) to the drive's position loop, whose stiffness turns them into position error. The daemon's loop
+        adds stiffness and learns the bias with an integral that only runs while a joint's reference moves (kinetic
+        friction; at rest stiction would make it hunt) and is frozen at the stops.
+        """
+        e, v, pid = self.tmp3, self.tmp, self.track_pid_Nm
+        np.subtract(self.q_ref, self.q, out=e)
+        np.abs(self.dq_ref, out=v)
+        np.greater(v, 0.005, out=self._moving)
+        np.multiply(e, self.track_ki * elapsed, out=v)
+        v *= self._moving
+        self.track_int_Nm += v
+        np.minimum(self.track_int_Nm, self.track_int_max, out=self.track_int_Nm)
+        np.maximum(self.track_int_Nm, -self.track_int_max, out=self.track_int_Nm)
+        np.multiply(e, self.track_kp, out=pid)
+        np.subtract(self.dq_ref, self.dq, out=v)
+        v *= self.track_kd
+        pid += v
+        pid += self.track_int_Nm
 
     def _monitor(self) -> None:
         """Tracking error, residual current and position limits during TRACK: beyond a bound → stop, hold."""
@@ -886,6 +920,9 @@ class Daemon:
         if mode == Mode.TRACK:  # the model's current for the commanded motion (residual monitor)
             np.divide(self.pred_extra_Nm, self.kt, out=self.pred_A)
             self.pred_A += out
+            if self._full_friction:  # replay: the daemon's position loop around the drive's own
+                np.divide(self.track_pid_Nm, self.kt, out=self.tmp2)
+                out += self.tmp2
         out += self.extra_A
         np.minimum(out, self.params.current_limit_A, out=out)
         np.maximum(out, self.neg_limit_A, out=out)
@@ -1341,6 +1378,10 @@ class Daemon:
 
         if self.teach is not None:
             raise ValueError(f"replay: teaching '{self.teach.name}' is in progress; 'dragd teach stop' first")
+        compact = [name for name, lay in self.layouts.items() if lay.kind != "shared"]
+        if compact:
+            raise ValueError(f"replay: bus(es) {', '.join(compact)} use the 'compact' PDO layout, which carries no "
+                             "position targets; replay (CSP) needs the 'shared' layout")
         if self.mode not in (Mode.HOLD, Mode.DRAG):
             raise ValueError(f"replay: expected the arm enabled in hold or drag, it is {MODE_NAMES[self.mode]}")
         if self.trajectory is not None or self.mode_switch_pending or self._planning:

@@ -125,6 +125,15 @@ def guide_and_settle(rig: Rig, step: list[float], hand_s: float, name: str = "ha
     raise DemoError(f"the operator's hand did not finish within {timeout_s:.0f} s")
 
 
+def _wait_fresh(rig: Rig, timeout_s: float = 20.0) -> None:
+    """A feedback hold (late TPDOs under machine load) must be over before a replay is asked for."""
+    end = time.monotonic() + timeout_s
+    while rig.must("status")["feedback_hold"]:
+        if time.monotonic() > end:
+            raise DemoError(f"the arm stayed in a feedback hold (late TPDOs) for {timeout_s:.0f} s")
+        time.sleep(0.05)
+
+
 def _wait_replay(rig: Rig, timeout_s: float) -> dict[str, Any]:
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:
@@ -171,6 +180,7 @@ def run_teach_demo(seconds: float = 20.0, config: Path | None = None, out: Path 
         waypoints = {m["name"]: m["q_rad"] for m in marks}
         runs = {}
         for interp in ("linear", "circular"):
+            _wait_fresh(rig)
             t0 = rig.must("status")["t_s"]
             resp = rig.must("replay", program=str(program), interp=interp, timeout_s=60.0)
             _say(progress, f"replaying {interp}: move to start {resp['move_to_start_s']:.1f} s, cycle {resp['cycle_s']:.1f} s")

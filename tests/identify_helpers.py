@@ -34,13 +34,15 @@ def truth() -> dict:
     return truth_summary(load_truth())
 
 
-def _generate(plan: E.Plan, name: str, seed: int, fmt: str = "mcap") -> Path:
+def _generate(plan: E.Plan, name: str, seed: int, fmt: str = "mcap", interp: bool = True) -> Path:
+    """Offline log of a plan. ``interp``: drives that interpolate CSP targets over each SYNC period (60C2h) —
+    the estimators' accuracy without sim/drive.py's CSP sawtooth sampling bias (see test_identify_methods)."""
     from sim.offline import generate, write_log
     from sim.truth import load_truth
 
-    out = TMP / f"{name}-{seed}.{fmt}"
+    out = TMP / f"{name}-{seed}-{'i' if interp else 'n'}.{fmt}"
     if not out.exists():
-        data = generate(plan.t_s, plan.q_rad, load_truth(), seed=seed)
+        data = generate(plan.t_s, plan.q_rad, load_truth(), seed=seed, csp_interpolation=interp)
         write_log(out, data)
     return out
 
@@ -54,8 +56,8 @@ def sync_plan() -> E.Plan:
 
 
 @functools.lru_cache(maxsize=None)
-def sync_log(fmt: str = "mcap", seed: int = 3) -> Path:
-    return _generate(sync_plan(), "sync", seed, fmt)
+def sync_log(fmt: str = "mcap", seed: int = 3, interp: bool = True) -> Path:
+    return _generate(sync_plan(), "sync", seed, fmt, interp)
 
 
 @functools.lru_cache(maxsize=None)
@@ -74,3 +76,10 @@ def lowspeed_log() -> Path:
 
 def rel(a: float, b: float) -> float:
     return abs(a - b) / abs(b)
+
+
+@functools.lru_cache(maxsize=None)
+def fourier_log() -> Path:
+    b = E.PlanBuilder(START, limits())
+    E.add_fourier(b, robot(), periods=5, maxiter=20, seed=3)
+    return _generate(b.build("test-fourier"), "fourier", 6)

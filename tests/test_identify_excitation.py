@@ -44,7 +44,7 @@ def test_symmetric_passes_retrace_at_equal_speed():
         mf = (plan.t_s >= fwd.t0_s) & (plan.t_s <= fwd.t1_s)
         mb = (plan.t_s >= back.t0_s) & (plan.t_s <= back.t1_s)
         qf, qb = plan.q_rad[mf], plan.q_rad[mb]
-        assert np.allclose(qf[0], qb[-1]) and np.allclose(qf[-1], qb[0])  # A→B then B→A
+        assert np.allclose(qf[0], qb[-1], atol=2e-3) and np.allclose(qf[-1], qb[0], atol=2e-3)  # A→B then B→A
         assert fwd.t1_s - fwd.t0_s == pytest.approx(back.t1_s - back.t0_s, rel=1e-3)  # same speeds
     assert plan.check(limits()) == []
 

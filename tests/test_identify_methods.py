@@ -34,6 +34,18 @@ def test_synchronous_kt_and_friction_lines(sync_fit):
         assert j.friction["static_pos_A"] is None and "Stribeck" in j.reasons["static_pos_A"]
 
 
+def test_sim_drive_csp_sawtooth_biases_viscous_low():
+    """sim/drive.py holds each CSP target for the whole SYNC period: the position error is a sawtooth of
+    kp·q̇·T and the current sampled at SYNC sits at its low end — an apparent viscous slope too low by
+    kp·q̇·~0.4 ms. K_t and Coulomb are unaffected. (Drives that interpolate the target do not have it.)"""
+    res = identify(load_log(sync_log("mcap", interp=False)), robot(), "synchronous")
+    t = truth()["joints"]["joint4"]
+    j = res.joint("joint4")
+    assert rel(j.torque_constant_Nm_per_A, t["torque_constant_Nm_per_A"]) < 0.01
+    assert rel(j.friction["coulomb_pos_A"], t["friction"]["coulomb_pos_A"]) < 0.03
+    assert j.friction["viscous_pos_A_s_per_rad"] < t["friction"]["viscous_pos_A_s_per_rad"]
+
+
 def test_csv_with_velocity_column_gives_the_same_answer(sync_fit):
     c = identify(load_log(sync_log("csv")), robot(), "synchronous")
     for name in ("joint2", "joint4"):
@@ -64,7 +76,8 @@ def test_symmetric_seed001_gravity_in_amperes_and_friction():
     assert g["count"] == 10  # 2(n − 1) for the UR-like arm (seed 001 Table I), found numerically
     for name in ("joint3", "joint4"):
         j = res.joint(name)
-        assert rel(j.torque_constant_Nm_per_A, t[name]["torque_constant_Nm_per_A"]) < 0.01
+        # K_t here is derived (URDF gravity / identified gravity current) from only 4 passes: a few per cent
+        assert rel(j.torque_constant_Nm_per_A, t[name]["torque_constant_Nm_per_A"]) < 0.03
         assert rel(j.friction["coulomb_pos_A"], t[name]["friction"]["coulomb_pos_A"]) < 0.05
         mg = res.notes["minimal_gravity_parameters"][name]
         assert len(mg["names"]) == len(mg["current_A"]) == len(mg["urdf_Nm"])
@@ -93,10 +106,19 @@ def test_params_file_round_trip_and_check_on_held_out_log(tmp_path, sync_fit):
     assert "null_reasons" in params.joints["joint1"].std
     from dragd.config import load_config
 
-    res = check(load_log(sync_log("csv")), robot(), params, cfg=load_config())
+    cfg = load_config()
+    held_out = load_log(sync_log("csv", seed=8))
+    res = check(held_out, robot(), params, cfg=cfg)
+    # the floor: the same prediction with the true parameters (Hall noise, quantisation, the drives' ripple)
+    from dragd.config import ParamsFile
+
+    tp = ParamsFile.model_validate({"joints": {nm: {"torque_constant_Nm_per_A": j["torque_constant_Nm_per_A"],
+                                                    "friction": {k: v for k, v in j["friction"].items()}}
+                                               for nm, j in truth()["joints"].items()}})
+    floor = check(held_out, robot(), tp, cfg=cfg)
     for name in ("joint2", "joint4"):
         j = res.joints[name]
-        assert 0.015 < j["rmse_A"] < 0.03  # Hall noise 20 mA dominates
+        assert 0.015 < j["rmse_A"] <= 1.1 * floor.joints[name]["rmse_A"]
         assert j["mae_A"] < j["rmse_A"] <= j["max_A"]
         assert abs(j["bias_A"]) < 0.003
     assert res.joints["joint1"]["rmse_A"] is None and "no steady motion" in res.joints["joint1"]["reason"]
@@ -137,3 +159,23 @@ def test_options_change_the_filter():
     res = identify(load_log(sync_log("mcap")), robot(), "synchronous", Options(cutoff_Hz=2.0))
     assert res.notes["processing"]["regression_filter_Hz"] == 2.0
     assert rel(res.joint("joint2").torque_constant_Nm_per_A, truth()["joints"]["joint2"]["torque_constant_Nm_per_A"]) < 0.01
+
+
+def test_full_dynamics_on_a_fourier_log():
+    from identify_helpers import fourier_log
+
+    res = identify(load_log(fourier_log()), robot(), "full")
+    t = truth()["joints"]
+    j2 = res.joint("joint2")
+    assert rel(j2.torque_constant_Nm_per_A, t["joint2"]["torque_constant_Nm_per_A"]) < 0.03
+    for name in ("joint1", "joint2", "joint5", "joint6"):
+        j = res.joint(name)
+        for k in ("coulomb_pos_A", "coulomb_neg_A"):
+            assert rel(j.friction[k], t[name]["friction"][k]) < 0.06, (name, k, j.friction[k])
+    bp = res.notes["base_parameters"]["joint4"]
+    assert len(bp["names"]) == len(bp["current_A"]) == len(bp["std_A"]) == 22
+    # rotor inertia of joint 4 is separable in its row: identified near the truth (armature = J_rotor·gear²)
+    assert abs(res.notes["armature_kgm2"]["joint4"] - t["joint4"]["armature_kgm2"]) < 0.3 * t["joint4"]["armature_kgm2"]
+    # auto recognises the dynamic log
+    auto = identify(load_log(fourier_log()), robot(), "auto")
+    assert "full dynamics" in auto.notes["auto"]

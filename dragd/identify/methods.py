@@ -22,9 +22,12 @@ from scipy.spatial import cKDTree
 
 from .data import Log, LogError, Prepared, lowpass, motion_summary, prepare, sliding
 from .regressors import RegressorModel
-from .results import FRICTION_KEYS, FitResult, JointResult, LinearFit, linear_fit
+from .results import FRICTION_KEYS, FitResult, JointResult, LinearFit, linear_fit, prior_fit
 
 METHODS = ("lowspeed", "symmetric", "synchronous", "full", "auto")
+PRIOR_REL = 0.05  # full dynamics: prior std of a base parameter relative to its URDF value (CAD masses)
+ARMATURE_PRIOR_KGM2 = 1.0  # ... and of a rotor inertia (not in a URDF), reflected to the joint
+PRIOR_GRAVITY_REL = 0.01  # ... and of a gravity parameter (the K_t reference; see fit_full)
 RESOLUTION_A = 0.05  # a friction term whose uncertainty moves the current by more than this over the data is null
 KT_MAX_REL_STD = 0.05  # a torque constant not determined to 5 % is null
 MIN_ROWS = 20
@@ -316,7 +319,7 @@ def fit_lowspeed(ctx: Context) -> FitResult:
             jr.set(key, None, reason=model_note)
         lines = {}
         for dname, m in (("pos", posm[sel]), ("neg", negm[sel])):
-            if m.sum() >= MIN_ROWS and gr >= 0.5:
+            if m.sum() >= 8 and gr >= 0.5:
                 f1 = linear_fit(np.column_stack([gH[sel][m, j], np.ones(m.sum())]), iH[sel][m, j], ["a", "b"])
                 a, b = f1.value("a"), f1.value("b")
                 if a and b is not None and a > 0:
@@ -718,14 +721,23 @@ def _row_full_columns(ctx: Context, j: int) -> tuple[np.ndarray, np.ndarray]:
 def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
     """Full dynamics: base parameters of the rigid-body model + rotor inertia + friction, per joint, in amperes.
 
-    i_j = Y_j(q̃, q̇, q̈)·β_j + I_f,j(q̇_j), with Y_j joint j's row of Pinocchio's regressor extended by the rotor
-    inertias (J_a·q̈) and reduced to its base columns (numerical QR; a rotor inertia that merges with a link inertia
-    stays merged), all columns and the current through the same zero-phase filter H, rows where
-    the joint slides (stiction is not a function of q̇). Least squares weighted by the inverse residual variance of
-    each motion regime (rows grouped by |q̈|: accelerating samples carry the model's derivative noise), parameter
-    standard deviations from the residual covariance. K_t: the ratio of the URDF's gravity torque to the
-    identified model's gravity part (linear in β, so its std follows from cov β). The Stribeck velocity is chosen
-    by variable projection over a grid when low-speed sliding is present.
+    Joint j's row of Pinocchio's joint-torque regressor, extended by the rotor inertias (J_a·q̈) and reduced to its
+    base columns (numerical QR; a rotor inertia that merges with a link inertia stays merged), Y_j·β_j. The
+    parameters are written as the URDF's scaled by c_j = 1/K_t plus corrections,
+
+        i_j = c_j·Y_j(q̃, q̇, q̈)·β_URDF + Y_j·δβ_j + I_f,j(q̇_j)
+
+    and solved by least squares with a Gaussian prior on the corrections (Bayesian linear regression): 5 % of the
+    URDF value for inertial parameters, ~1 kg·m² for rotor inertias (not in a URDF), at least what moves the current
+    by 20 mA for parameters the URDF has at zero, and 1 % for gravity parameters — they are the K_t reference and,
+    with the excitation a 6-joint Fourier plan reaches (regressor condition ~10⁴), they trade off against the
+    friction levels; a log that determines them moves them anyway. Directions the data determines move freely,
+    the others stay near the URDF instead of absorbing noise. All columns and the current go through the same
+    zero-phase filter H; rows where the joint slides (stiction is not a function of q̇); weighted least squares
+    (the accelerating and the steady rows each by the inverse of their residual variance, two-step); standard
+    deviations from the posterior covariance. K_t: the ratio of the URDF's gravity torque to the identified gravity
+    part (linear in the parameters, so its std follows). A Stribeck hump is chosen by variable projection over a
+    (v_s, δ) grid when enough slow sliding is present and it lowers the residual by 5 %.
     """
     p, o = ctx.p, ctx.opts
     out = []
@@ -745,34 +757,46 @@ def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
             continue
         Yf, Yg = _row_full_columns(ctx, j)
         base = ctx.rm.row_full[j]
+        beta_urdf = base.E @ ctx.rm.pi_urdf
         YfH = p.regfilter(Yf)
+        tauH = YfH @ beta_urdf
         v = p.dq[:, j]
         acc_level = float(np.percentile(np.abs(ctx.ddqH[sel, j]), 90))
-        names_rb = [f"beta{k}" for k in range(base.r)]
+        names_rb = [f"dbeta{k}" for k in range(base.r)]
 
-        # priority for keeping columns when the data cannot separate them: friction, then the rigid-body base
-        # parameters (with rotor inertia) from the most to the least excited
-        rb_order = [names_rb[k] for k in np.argsort(-np.linalg.norm(YfH[sel], axis=0))]
+        # stage 1: the URDF's torque scaled, friction, and the joint's own q̈ (rotor inertia): the scale c₀ ≈ 1/K_t
+        F0, f0names = friction_columns(v)
+        F0H = p.regfilter(F0)
+        arm0 = p.regfilter(p.ddq[:, j:j + 1])
+        s1 = linear_fit(np.column_stack([tauH[sel], arm0[sel], F0H[sel]]), ctx.iH[sel, j], ["urdf", "arm"] + f0names,
+                        prefer_drop=PREFER_DROP)
+        c0 = abs(s1.value("urdf") or 0.0) or 0.1
+        # prior on the corrections: 30 % of the URDF's value (in current, via c₀), at least what moves the current
+        # by ~20 mA over this data — CAD values are that uncertain; the data moves what it determines
+        colmax = np.maximum(np.abs(YfH[sel]).max(axis=0), 1e-12)
+        prior = {names_rb[k]: max(PRIOR_REL * c0 * abs(beta_urdf[k]), 0.02 / colmax[k]) for k in range(base.r)}
+        gcol = np.abs(Yg[sel]).max(axis=0)
+        for k, nm_ in enumerate(base.names):
+            if ".armature" in nm_:  # rotor inertias are not in the URDF: up to ~1 kg·m² reflected
+                prior[names_rb[k]] = max(prior[names_rb[k]], c0 * ARMATURE_PRIOR_KGM2)
+            elif gcol[k] > 1e-9:  # gravity parameters: tied to the URDF (the K_t reference), see the docstring
+                prior[names_rb[k]] = max(PRIOR_GRAVITY_REL * c0 * abs(beta_urdf[k]), 0.002 / colmax[k])
 
-        def solve(stb: tuple[float, float] | None) -> tuple[LinearFit, list[str]]:
+        def solve(stb: tuple[float, float] | None) -> LinearFit:
             F, fnames = friction_columns(v, vs=None if stb is None else stb[0], delta=2.0 if stb is None else stb[1])
             FH = p.regfilter(F)
-            A = np.column_stack([YfH[sel], FH[sel]])
-            nm = names_rb + fnames
-            prio = fnames + rb_order
-            # WLS: weights from the residual variance of low/high-acceleration rows (two-step)
-            f0 = linear_fit(A, ctx.iH[sel, j], nm, prefer_drop=PREFER_DROP, priority=prio)
+            A = np.column_stack([tauH[sel], YfH[sel], FH[sel]])
+            nm = ["urdf"] + names_rb + fnames
+            f0 = prior_fit(A, ctx.iH[sel, j], nm, prior)
             hi = np.abs(ctx.ddqH[sel, j]) > max(acc_level * 0.5, 0.05)
             w = np.ones(sel.size)
-            if hi.any() and (~hi).any():
-                s_hi = np.std(f0.residual[hi])
-                s_lo = np.std(f0.residual[~hi])
-                w[hi] = 1 / max(s_hi, 1e-9) ** 2
-                w[~hi] = 1 / max(s_lo, 1e-9) ** 2
+            if hi.sum() > MIN_ROWS and (~hi).sum() > MIN_ROWS:  # WLS: each regime weighted by its residual variance
+                w[hi] = 1 / max(float(np.std(f0.residual[hi])), 1e-9) ** 2
+                w[~hi] = 1 / max(float(np.std(f0.residual[~hi])), 1e-9) ** 2
                 w /= w.mean()
-            return linear_fit(A, ctx.iH[sel, j], nm, w=w, prefer_drop=PREFER_DROP, priority=prio), nm
+            return prior_fit(A, ctx.iH[sel, j], nm, prior, w=w)
 
-        fit, nm = solve(None)
+        fit = solve(None)
         best = (fit.sigma, None, fit)
         vmin_sel = float(np.abs(v[sel]).min())
         slow_share = float(np.mean(np.abs(v[sel]) < 0.1))
@@ -782,21 +806,20 @@ def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
                 for vs in (0.005, 0.008, 0.012, 0.018, 0.025, 0.035, 0.05):
                     if vs < 0.5 * vmin_sel:
                         continue
-                    f2, _ = solve((vs, dl))
+                    f2 = solve((vs, dl))
                     hump_ok = all(f2.value(f"dstatic_{d}_A") is not None and f2.std(f"dstatic_{d}_A") <= RESOLUTION_A
                                   for d in ("pos", "neg"))
-                    # a hump enters only if it is determined and lowers the residual clearly (2 %)
-                    if hump_ok and f2.sigma < best[0] * 0.98 and f2.value("dstatic_pos_A") > 0 > f2.value("dstatic_neg_A"):
+                    # a hump enters only if it is determined and lowers the residual clearly (5 %)
+                    if hump_ok and f2.sigma < best[0] * 0.95 and f2.value("dstatic_pos_A") > 0 > f2.value("dstatic_neg_A"):
                         best = (f2.sigma, (vs, dl), f2)
-        fit = best[2]
-        stb = best[1]
+        fit, stb = best[2], best[1]
         vmax = float(np.abs(v[sel]).max())
         _set_friction_from_fit(jr, fit, vmax, v=v[sel])
-        if stb is not None and fit.value("dstatic_pos_A") is not None and fit.value("dstatic_neg_A") is not None:
+        if stb is not None:
             for d in ("pos", "neg"):
                 c, dv = jr.friction[f"coulomb_{d}_A"], fit.value(f"dstatic_{d}_A")
-                if c is not None and fit.std(f"dstatic_{d}_A") <= RESOLUTION_A:
-                    jr.set(f"static_{d}_A", c + dv, fit.std(f"dstatic_{d}_A"))
+                if c is not None and dv is not None:
+                    jr.set(f"static_{d}_A", c + dv, math.hypot(fit.std(f"dstatic_{d}_A"), jr.std.get(f"coulomb_{d}_A", 0)))
                 else:
                     jr.set(f"static_{d}_A", None, reason="Stribeck hump not determined")
             jr.set("stribeck_velocity_rad_s", stb[0], None)
@@ -807,39 +830,51 @@ def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
                      "a determined Stribeck hump does not lower the residual")
             for key in ("static_pos_A", "static_neg_A", "stribeck_velocity_rad_s", "stribeck_exponent"):
                 jr.set(key, None, reason=why_s)
-        live = [k for k in range(base.r) if fit.value(f"beta{k}") is not None]
-        beta = np.array([fit.value(f"beta{k}") or 0.0 for k in range(base.r)])
+        # identified base parameters β̂ = c·β_URDF + δβ and their covariance (J·cov·Jᵀ)
+        names = fit.names
+        Jm = np.zeros((base.r, len(names)))
+        if "urdf" in names:
+            Jm[:, names.index("urdf")] = beta_urdf
+        kept = []
+        for k in range(base.r):
+            if f"dbeta{k}" in names:
+                Jm[k, names.index(f"dbeta{k}")] = 1.0
+                kept.append(k)
+        beta = Jm @ fit.theta
+        cov_b = Jm @ fit.cov @ Jm.T
         gu = ctx.grav[sel, j]
         rng = float(np.ptp(gu))
-        if rng >= 0.5 and live:
-            idx = [fit.names.index(f"beta{k}") for k in live]
-            wvec = (gu @ Yg[sel][:, live]) / (gu @ gu)
-            slope = float(wvec @ beta[live])
-            sslope = float(np.sqrt(wvec @ fit.cov[np.ix_(idx, idx)] @ wvec))
+        if rng >= 0.5 and "urdf" in names:
+            wvec = (gu @ Yg[sel]) / (gu @ gu)
+            slope = float(wvec @ beta)
+            sslope = float(np.sqrt(max(wvec @ cov_b @ wvec, 0.0)))
             _kt_from_slope(jr, slope, sslope, "")
             jr.diagnostics["kt_source"] = "URDF gravity torque / identified gravity part (reference: the URDF's masses)"
         else:
-            jr.set("torque_constant_Nm_per_A", None, reason=NO_GRAVITY.format(rng=rng))
+            jr.set("torque_constant_Nm_per_A", None, reason=NO_GRAVITY.format(rng=rng) if rng < 0.5 else
+                   "the URDF's rigid-body torque is not separable from the other terms in this data")
         kt = jr.torque_constant_Nm_per_A
         own = f"{name}.armature"
         k_arm = next((k for k, nm_ in enumerate(base.names) if nm_.split(" ")[0] == own), None)  # separable
-        if k_arm is not None and fit.value(f"beta{k_arm}") is not None:
-            arm_A = fit.value(f"beta{k_arm}")
+        if k_arm is not None and k_arm in kept:
+            arm_A = float(beta[k_arm])
             notes["armature_kgm2"][name] = None if kt is None else arm_A * kt
             jr.diagnostics["armature_A_s2_per_rad"] = arm_A
-            jr.diagnostics["armature_std_A_s2_per_rad"] = fit.std(f"beta{k_arm}")
+            jr.diagnostics["armature_std_A_s2_per_rad"] = float(np.sqrt(cov_b[k_arm, k_arm]))
         elif any(own in nm_ for nm_ in base.names):
-            jr.diagnostics["armature"] = "rotor inertia merged with link inertia in a base parameter (not separable)"
-        notes["base_parameters"][name] = {"names": base.names, "current_A": beta.tolist(),
-                                          "std_A": [fit.std(f"beta{k}") for k in range(base.r)],
-                                          "urdf_Nm": (base.E @ ctx.rm.pi_urdf).tolist(),
-                                          "dropped": {k: v for k, v in fit.dropped.items() if k.startswith("beta")}}
+            jr.diagnostics["armature"] = ("rotor inertia merged with link inertia in a base parameter (not separable)"
+                                          if k_arm is None else "rotor inertia not determined by this data")
+        sd = np.sqrt(np.maximum(np.diag(cov_b), 0.0))
+        notes["base_parameters"][name] = {
+            "names": base.names, "current_A": beta.tolist(), "std_A": sd.tolist(), "urdf_Nm": beta_urdf.tolist(),
+            "from_data": [k in kept for k in range(base.r)],
+            "kept_at_urdf": {base.names[k]: fit.dropped.get(f"dbeta{k}", "") for k in range(base.r) if k not in kept}}
         jr.diagnostics.update({"rows": int(sel.size), "condition_number": fit.cond, "residual_A": fit.sigma,
-                               "base_parameters": base.r, "base_parameters_dropped": len(base.names) - len(live),
+                               "base_parameters": base.r, "base_parameters_from_data": len(kept),
                                "gravity_range_Nm": rng, "acceleration_p90_rad_s2": acc_level})
-        if fit.cond > 1e4:
-            ctx.warnings.append(f"{name}: full-dynamics regressor condition number {fit.cond:.3g}: too little "
-                                "excitation for the rigid-body parameters (use the fourier plan)")
+        if len(kept) < base.r:
+            ctx.warnings.append(f"{name}: {base.r - len(kept)} of {base.r} base parameters not determined by this log "
+                                f"(kept at the URDF's values); excite more (fourier plan)")
         _physical(jr)
     return FitResult("full", out, ctx.log.path, str(ctx.robot.urdf_path), list(ctx.warnings), notes)
 

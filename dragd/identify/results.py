@@ -87,6 +87,11 @@ def linear_fit(A: np.ndarray, y: np.ndarray, names: list[str], w: np.ndarray | N
         pref = [c for c in cand if names[live[c[1]]] in prefer_drop and c[0] > vif_limit]
         if worst[0] > vif_limit and pref:
             worst = max(pref)
+        elif worst[0] > vif_limit and priority is not None:
+            # among the inseparable columns drop the least important one (last in ``priority``)
+            over = [c for c in cand if c[0] > vif_limit]
+            rank = {nm: k for k, nm in enumerate(priority)}
+            worst = max(over, key=lambda c: rank.get(names[live[c[1]]], len(priority)))
         if worst[0] <= vif_limit:
             break
         k = live.pop(worst[1])
@@ -231,3 +236,32 @@ def _jsonable(x: Any) -> Any:
     if isinstance(x, np.bool_):
         return bool(x)
     return x
+
+
+def prior_fit(A: np.ndarray, y: np.ndarray, names: list[str], prior_std: dict[str, float],
+              w: np.ndarray | None = None) -> LinearFit:
+    """Least squares with a zero-mean Gaussian prior on some parameters (Bayesian linear regression).
+
+    Minimises Σ wᵢ(yᵢ − Aᵢθ)²/σ² + Σ_k θ_k²/s_k² over the parameters named in ``prior_std`` (std s_k); σ is the
+    residual standard deviation, estimated from a first unregularised pass. The covariance is the posterior one,
+    σ²·(AᵀWA + σ²·diag(1/s²))⁻¹: a parameter the data does not determine keeps a std close to its prior.
+    """
+    names = list(names)
+    sw = np.ones(y.shape[0]) if w is None else np.sqrt(w)
+    Aw, yw = A * sw[:, None], y * sw
+    norms = np.linalg.norm(Aw, axis=0)
+    live = [k for k in range(len(names)) if norms[k] > 1e-12 * max(norms.max(initial=0.0), 1e-300)]
+    dropped = {names[k]: "no data excites this term" for k in range(len(names)) if k not in live}
+    Al = Aw[:, live]
+    th0, *_ = np.linalg.lstsq(Al, yw, rcond=None)
+    r0 = yw - Al @ th0
+    sigma = float(np.sqrt(r0 @ r0 / max(1, Al.shape[0] - Al.shape[1])))
+    P = np.diag([(sigma / prior_std[names[k]]) ** 2 if names[k] in prior_std else 0.0 for k in live])
+    G = Al.T @ Al + P
+    theta_l = np.linalg.solve(G, Al.T @ yw)
+    res_w = yw - Al @ theta_l
+    sigma = float(np.sqrt(res_w @ res_w / max(1, Al.shape[0] - Al.shape[1])))
+    cov = sigma**2 * np.linalg.inv(G)
+    resid = y - A[:, live] @ theta_l
+    return LinearFit([names[k] for k in live], theta_l, cov, sigma, int(y.shape[0]),
+                     condition_number(Al), dropped, resid)

@@ -114,7 +114,10 @@ def _track(call: Callable[..., dict[str, Any]], t: np.ndarray, q: np.ndarray, pa
     np.savez(path, t_s=t, q_rad=q)
     resp = call("track", file=str(path), label=label)
     if not resp.get("ok"):
-        raise RunError(f"daemon refused the motion '{label}': {resp.get('error')}")
+        st = call("status")
+        faults = "; ".join(f["text"] for f in st.get("faults", [])[-3:])
+        raise RunError(f"daemon refused the motion '{label}': {resp.get('error')}"
+                       + (f" (faults: {faults})" if faults else ""))
     duration = float(resp.get("duration_s", t[-1]))
     total = total_s or duration
     bar = _Bar(total, label) if progress else None
