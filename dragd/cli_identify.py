@@ -9,9 +9,6 @@
 from __future__ import annotations
 
 import argparse
-import json
-import math
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -141,7 +138,8 @@ def _fit_text(d: dict[str, Any]) -> str:
                      f(fr["coulomb_pos_A"], sd.get("coulomb_pos_A")), f(fr["coulomb_neg_A"], sd.get("coulomb_neg_A")),
                      f(fr["viscous_A_s_per_rad"], sd.get("viscous_A_s_per_rad")),
                      f(fr["static_pos_A"]), f(fr["static_neg_A"]), f(fr["stribeck_velocity_rad_s"], fmt=".3f")))
-    lines = [f"method {d['method']} on {d['log']} ({d.get('elapsed_s', 0):.1f} s) → {d.get('out')}",
+    lines = [f"method {d['method']} on {d['log']} (load {d.get('load_s', 0):.1f} s, fit {d.get('elapsed_s', 0):.1f} s) "
+             f"→ {d.get('out')}",
              _table(["joint", "K_t N·m/A", "F_c+ A", "F_c- A", "F_v A·s/rad", "F_s+ A", "F_s- A", "v_s rad/s"], rows)]
     for name, j in d["joints"].items():
         seen = set()
@@ -161,8 +159,12 @@ def cmd_fit(args: argparse.Namespace) -> int:
     from .identify.data import LogError
     from .identify.methods import Options, identify
 
+    import time
+
     model, _ = _robot(args)
+    t0 = time.perf_counter()
     log = _load_log(args.log)
+    load_s = time.perf_counter() - t0
     opts = Options()
     if args.cutoff is not None:
         opts.cutoff_Hz = args.cutoff
@@ -175,6 +177,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     save_params(params, out)
     data = res.to_json()
     data["out"] = str(out)
+    data["load_s"] = round(load_s, 3)
     _emit(args, data, _fit_text)
     return 0
 
@@ -288,5 +291,3 @@ def register(sub: Any) -> None:
     ck.add_argument("--json", action="store_true", help="print JSON")
     ck.set_defaults(func=cmd_check)
 
-
-__all__ = ["register", "math", "json", "sys"]

@@ -238,7 +238,8 @@ class ReplayConfig(_Strict):
     position_kp_Nm_per_rad: NonNegFloat | list[NonNegFloat] = 300.0
     position_kd_Nm_s_per_rad: NonNegFloat | list[NonNegFloat] = 3.0
     position_ki_Nm_per_rad_s: NonNegFloat | list[NonNegFloat] = 600.0  # only while the joint's reference moves
-    position_integral_limit_A: NonNegFloat | list[NonNegFloat] = 1.0
+    position_integral_limit_A: NonNegFloat | list[NonNegFloat] = 0.3
+    position_output_limit_A: NonNegFloat | list[NonNegFloat] = 0.6  # the loop's authority (P + D + I)
     ramp_s: PosFloat = 0.4  # pause / resume / stop / speed-override changes (longer when the path is fast)
     tracking_error_limit_rad: PerJoint = 0.035  # |q - q_ref| beyond this stops the motion (hold)
     residual_current_limit_A: PerJoint = 2.0  # |measured - predicted current| beyond this stops the motion
@@ -281,7 +282,8 @@ class Config(_Strict):
         r = self.replay
         for key in ("velocity_limits_rad_s", "acceleration_limits_rad_s2", "jerk_limits_rad_s3",
                     "tracking_error_limit_rad", "residual_current_limit_A", "position_kp_Nm_per_rad",
-                    "position_kd_Nm_s_per_rad", "position_ki_Nm_per_rad_s", "position_integral_limit_A"):
+                    "position_kd_Nm_s_per_rad", "position_ki_Nm_per_rad_s", "position_integral_limit_A",
+                    "position_output_limit_A"):
             v = getattr(r, key)
             if isinstance(v, list) and len(v) != len(self.joints):
                 raise ValueError(f"replay.{key}: expected one value or {len(self.joints)} (one per joint), got {len(v)}")

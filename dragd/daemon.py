@@ -302,13 +302,15 @@ class Daemon:
         self.track_kd = np.array(cfg.per_joint(rc.position_kd_Nm_s_per_rad), dtype=float)
         self.track_ki = np.array(cfg.per_joint(rc.position_ki_Nm_per_rad_s), dtype=float)
         self.track_int_max = np.array(cfg.per_joint(rc.position_integral_limit_A), dtype=float) * self.kt
+        self.track_out_max = np.array(cfg.per_joint(rc.position_output_limit_A), dtype=float) * self.kt
+        self._small = np.zeros(n, dtype=bool)
         self.track_pid_Nm = np.zeros(n)
         self.track_int_Nm = np.zeros(n)
         self._moving = np.zeros(n, dtype=bool)
         self._err_count = 0
         self._res_count = 0
         self._grace_until = -1.0
-        self._grace_s = 0.1
+        self._grace_s = 0.05
         self._lim_count = 0
         self._over = np.zeros(n, dtype=bool)
         self.tmp3 = np.zeros(n)
@@ -317,6 +319,7 @@ class Daemon:
         self._start_blend_s = 0.0
         self._full_friction = False
         self._planning = False  # a replay is being planned (the arm held in CSP meanwhile)
+        self._cst_task: asyncio.Task | None = None  # the drives' return to CST after a motion
         self.protective_stops = 0
         # teach
         self.teach: TeachRecorder | None = None
@@ -391,7 +394,13 @@ class Daemon:
         return _Rx()
 
     def _on_frame(self, msg: can.Message, table: dict[int, tuple[int, struct.Struct, tuple[str, ...]]]) -> None:
-        """Runs in the loop thread (Notifier with add_reader): decode TPDOs into the cycle's arrays."""
+        """Runs in the loop thread (Notifier with add_reader): decode TPDOs into the cycle's arrays.
+
+        Error frames are counted, never decoded: their class bits can equal a COB-ID (0x081 = a node 1 EMCY).
+        """
+        if msg.is_error_frame:
+            self.error_frames += 1
+            return
         entry = table.get(msg.arbitration_id)
         if entry is not None:
             j, codec, fields = entry
@@ -509,7 +518,7 @@ class Daemon:
         """
         if self.mode not in (Mode.HOLD, Mode.DRAG):
             raise ValueError(f"track: expected the arm enabled in hold or drag, it is {MODE_NAMES[self.mode]}")
-        if self.trajectory is not None or self.mode_switch_pending:
+        if self.trajectory is not None:
             raise ValueError("track: a motion is running; stop it first")
         if traj.table.shape[1] != self.n:
             raise ValueError(f"track: expected {self.n} joints per sample, got {traj.table.shape[1]}")
@@ -523,6 +532,7 @@ class Daemon:
         if self.mode != Mode.HOLD:
             self.q_hold[:] = self.q
         self._set_mode(Mode.HOLD)
+        await self._settle_drive_mode()
         if self.drive_mode != MODE_CSP:
             await self._switch_drive_mode(MODE_CSP)
         if self.mode != Mode.HOLD:  # a fault or stop while the drives switched
@@ -638,7 +648,16 @@ class Daemon:
             self.replay["cycles_done"] = self.track_cycle + (1 if outcome == "done" else 0)
         if self.telemetry is not None:
             self.telemetry.event("track_end", label=tr.label if tr else None, outcome=outcome)
-        asyncio.get_running_loop().create_task(self._switch_drive_mode(MODE_CST))
+        self._cst_task = asyncio.get_running_loop().create_task(self._switch_drive_mode(MODE_CST))
+
+    async def _settle_drive_mode(self) -> None:
+        """Let a pending return of the drives to CST finish before switching them again."""
+        task = self._cst_task
+        if task is not None and not task.done():
+            try:
+                await task
+            except DriveError:
+                pass
 
     def _protective_stop(self, j: int | None, kind: str, text: str) -> None:
         """A monitor tripped during TRACK: stop now and hold where the arm is (not a drive fault)."""
@@ -664,9 +683,10 @@ class Daemon:
         self._track_t_prev = self.t
         if elapsed > 2.5 * self.dt:
             # the loop stalled (missed cycles): the reference waits instead of jumping ahead along the path, and
-            # the monitors give the drives' catch-up transient a moment
+            # after a long stall the monitors give the drives' catch-up transient a moment
+            if elapsed > 5.5 * self.dt:
+                self._grace_until = self.t + self._grace_s
             elapsed = self.dt
-            self._grace_until = self.t + self._grace_s
         if self._rate_t0 >= 0.0:
             x = (self.t - self._rate_t0) / self._rate_T
             if x >= 1.0:
@@ -728,6 +748,9 @@ class Daemon:
         np.subtract(self.q_ref, self.q, out=e)
         np.abs(self.dq_ref, out=v)
         np.greater(v, 0.005, out=self._moving)
+        np.abs(e, out=v)  # a large error is a disturbance (or a stall), not a bias to learn
+        np.less(v, 0.0035, out=self._small)
+        self._moving &= self._small
         np.multiply(e, self.track_ki * elapsed, out=v)
         v *= self._moving
         self.track_int_Nm += v
@@ -738,18 +761,21 @@ class Daemon:
         v *= self.track_kd
         pid += v
         pid += self.track_int_Nm
+        np.minimum(pid, self.track_out_max, out=pid)  # bounded authority: the drive's loop stays in charge
+        np.maximum(pid, -self.track_out_max, out=pid)
 
     def _monitor(self) -> None:
         """Tracking error, residual current and position limits during TRACK: beyond a bound → stop, hold."""
         k = self.cfg.replay.monitor_cycles
-        if self.stale.max() >= 3:  # positions a few cycles old (late TPDOs): count again once they are fresh
-            self._grace_until = max(self._grace_until, self.t + 0.05)
-        if self.t < self._grace_until:  # after a loop stall or late feedback: keep filtering, do not count
-            self._err_count = self._res_count = self._lim_count = -1
+        if self.stale.max() >= 5:  # positions several cycles old (late TPDOs): count again once they are fresh
+            self._grace_until = max(self._grace_until, self.t + 0.03)
+        # after a loop stall or late feedback: a bound exceeded counts only at twice the bound (a real collision
+        # or blockage still stops the motion; the drives' catch-up transient does not)
+        m = 2.0 if self.t < self._grace_until else 1.0
         np.subtract(self.q, self.q_ref, out=self.track_err)
         np.abs(self.track_err, out=self.tmp3)
         self.tmp3 /= self.err_limit
-        if self.tmp3.max() > 1.0 and self._err_count >= 0:
+        if self.tmp3.max() > m:
             self._err_count += 1
             if self._err_count >= k:
                 j = int(self.tmp3.argmax())
@@ -767,7 +793,7 @@ class Daemon:
         self.residual_A += self.tmp3
         np.abs(self.residual_A, out=self.tmp3)
         self.tmp3 /= self.res_limit
-        if self.tmp3.max() > 1.0 and self._res_count >= 0 and self.trajectory.residual_monitor:
+        if self.tmp3.max() > m and self.trajectory.residual_monitor:
             self._res_count += 1
             if self._res_count >= k:
                 j = int(self.tmp3.argmax())
@@ -780,7 +806,7 @@ class Daemon:
         np.less(self.q, self.lim_lo, out=self._over)
         over = self._over.any()
         np.greater(self.q, self.lim_hi, out=self._over)
-        if (over or self._over.any()) and self._lim_count >= 0:
+        if over or self._over.any():
             self._lim_count += 1
             if self._lim_count >= k:
                 np.subtract(self.lim_lo, self.q, out=self.tmp3)
@@ -1006,6 +1032,7 @@ class Daemon:
                 self.tx_errors += 1
 
     tx_errors = 0
+    error_frames = 0
 
     def _log_row(self, period_us: float, compute_us: float) -> None:
         for tw in self._writers:
@@ -1160,6 +1187,7 @@ class Daemon:
                             "cycles": self.track_cycles}),
             "bus_load_pct": {k: round(v["load_pct"], 2) for k, v in self.budget.items()},
             "tx_errors": self.tx_errors,
+            "error_frames": self.error_frames,
             "clamp_cycles": self.clamp_cycles,
             "telemetry": self.telemetry.stats() if self.telemetry is not None else None,
             "recording": self.recording_path,
@@ -1384,7 +1412,7 @@ class Daemon:
                              "position targets; replay (CSP) needs the 'shared' layout")
         if self.mode not in (Mode.HOLD, Mode.DRAG):
             raise ValueError(f"replay: expected the arm enabled in hold or drag, it is {MODE_NAMES[self.mode]}")
-        if self.trajectory is not None or self.mode_switch_pending or self._planning:
+        if self.trajectory is not None or self._planning:
             raise ValueError("replay: a motion is running (or being planned); 'dragd replay stop' first")
         if interp not in INTERPS:
             raise ValueError(f"replay: interp: expected one of {', '.join(INTERPS)}, got '{interp}'")
@@ -1417,6 +1445,7 @@ class Daemon:
         self.q_hold[:] = self.q
         self._set_mode(Mode.HOLD)
         try:
+            await self._settle_drive_mode()
             await self._switch_drive_mode(MODE_CSP)
         except DriveError:
             self._fault(None, "replay: the drives did not switch to CSP")

@@ -210,6 +210,7 @@ def run_teach_demo(seconds: float = 20.0, config: Path | None = None, out: Path 
             "linear": {k: v for k, v in results["linear"].items() if k != "rows"},
             "circular": {k: v for k, v in results["circular"].items() if k != "rows"},
             "replay_s": {k: r["duration_s"] for k, r in runs.items()},
+            "cycles": status["cycles"],
             "missed_cycles": status["missed_cycles"],
             "faults": len(status["faults"]),
             "program": str(program),

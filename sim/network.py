@@ -36,6 +36,7 @@ class NetworkCounters:
     late_responses: int = 0  # SYNCs whose TPDOs all left later than late_threshold_s after reception
     max_sync_latency_s: float = 0.0
     handler_errors: int = 0
+    error_frames: int = 0  # CAN error frames received (dropped)
 
 
 class SimNetwork:
@@ -102,8 +103,11 @@ class SimNetwork:
                 self.dispatch(msg)
 
     def dispatch(self, msg: can.Message) -> None:
-        """Hand one frame to the drives that consume it (also usable without the thread)."""
+        """Hand one frame to the drives that consume it (also usable without the thread); error frames are dropped."""
         counters = self.counters
+        if msg.is_error_frame:  # class bits 0x080 would otherwise act as a SYNC
+            counters.error_frames += 1
+            return
         counters.frames += 1
         epoch = sum(d.route_epoch for d in self.drives)
         if epoch != self._epoch:

@@ -42,9 +42,14 @@ def _generate(plan: E.Plan, name: str, seed: int, fmt: str = "mcap", interp: boo
 
     out = TMP / f"{name}-{seed}-{'i' if interp else 'n'}.{fmt}"
     if not out.exists():
-        data = generate(plan.t_s, plan.q_rad, load_truth(), seed=seed, csp_interpolation=interp)
-        write_log(out, data)
+        key = (name, seed, interp)
+        if key not in _DATA:  # one run serves both formats
+            _DATA[key] = generate(plan.t_s, plan.q_rad, load_truth(), seed=seed, csp_interpolation=interp)
+        write_log(out, _DATA[key])
     return out
+
+
+_DATA: dict = {}
 
 
 @functools.lru_cache(maxsize=None)

@@ -128,7 +128,11 @@ def test_gaps_split_the_log_into_stretches(tmp_path):
     log = load_log(_csv(tmp_path / "g.csv", t[keep], q[keep], i[keep]))
     p = prepare(log)
     assert len(p.segments) == 2
-    assert any("1 gaps longer than" in w for w in p.warnings)
+    assert any("1 gaps longer than 50 ms" in w for w in p.warnings)
+    keep = np.ones(t.size, dtype=bool)
+    keep[1000:1010] = False  # 20 ms of missed samples: interpolated over
+    p = prepare(load_log(_csv(tmp_path / "h.csv", t[keep], q[keep], i[keep])))
+    assert len(p.segments) == 1 and any("1 short gaps" in w for w in p.warnings)
 
 
 def test_mcap_without_track_rows_is_an_error(tmp_path):

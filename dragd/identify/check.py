@@ -94,7 +94,7 @@ def law_from_params(params: Any, names: list[str], cfg: Any | None = None) -> tu
 
 
 def check(log: Log, robot: Any, params: Any, cfg: Any | None = None, terms: str = "rigid", mask: str = "steady",
-          v_min: float = 0.01, a_max: float = 0.05, guard_s: float = 0.3, deriv_cutoff_Hz: float = 20.0,
+          v_min: float = 0.01, a_max: float = 0.3, guard_s: float = 0.3, deriv_cutoff_Hz: float = 20.0,
           keep_series: bool = False) -> CheckResult:
     """Per-joint RMSE/MAE/max error of the predicted against the measured current (see the module docstring)."""
     from dragd.law import Workspace, friction_current

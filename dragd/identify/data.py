@@ -280,14 +280,19 @@ def _segments(t: np.ndarray, max_gap_s: float) -> list[Segment]:
 
 
 def prepare(log: Log, cutoff_Hz: float = 5.0, deriv_cutoff_Hz: float = 20.0, work_rate_Hz: float = 200.0,
-            min_segment_s: float = 2.0) -> Prepared:
+            min_segment_s: float = 2.0, max_gap_s: float = 0.05) -> Prepared:
     """Uniform, anti-aliased, zero-phase filtered data at ≤ ``work_rate_Hz`` (see the module docstring)."""
     fs_in = log.rate_Hz
     dt = 1.0 / fs_in
     warnings = list(log.warnings)
-    segs = _segments(log.t, 5.5 * dt)
+    # short gaps (missed cycles of a loaded controller) are interpolated over; long ones split the log
+    max_gap = max(5.5 * dt, max_gap_s)
+    short_gaps = int(np.sum((np.diff(log.t) > 1.5 * dt) & (np.diff(log.t) <= max_gap)))
+    if short_gaps:
+        warnings.append(f"{short_gaps} short gaps (missed samples, ≤ {max_gap * 1e3:.0f} ms) interpolated over")
+    segs = _segments(log.t, max_gap)
     if len(segs) > 1:
-        warnings.append(f"{len(segs) - 1} gaps longer than {5.5 * dt * 1e3:.1f} ms: the log is processed as "
+        warnings.append(f"{len(segs) - 1} gaps longer than {max_gap * 1e3:.0f} ms: the log is processed as "
                         f"{len(segs)} separate stretches")
     k = max(1, int(round(fs_in / work_rate_Hz)))
     fs = fs_in / k
@@ -347,29 +352,6 @@ def sliding(dq: np.ndarray, v_rest: float, guard: int) -> np.ndarray:
     if guard > 0:
         m = minimum_filter1d(m.astype(np.uint8), size=2 * guard + 1, axis=0, mode="constant").astype(bool)
     return m
-
-
-def steady(p: Prepared, v_min: float = 0.01, a_max: float = 0.05, guard_s: float | None = None) -> np.ndarray:
-    """Quasi-static samples per joint: sliding (±guard), low acceleration of every joint (inertia negligible)."""
-    guard = int(round((guard_s if guard_s is not None else 1.5 / p.cutoff_Hz) * p.fs))
-    m = sliding(p.dq, v_min, guard)
-    calm = np.abs(p.ddq) < a_max
-    calm = minimum_filter1d(calm.astype(np.uint8), size=2 * guard + 1, axis=0, mode="constant").astype(bool)
-    return m & calm.all(axis=1, keepdims=True)
-
-
-def reversals(dq: np.ndarray, v_rest: float) -> list[np.ndarray]:
-    """Sample indices where each joint's velocity changes sign (ignoring rests inside ±v_rest)."""
-    out = []
-    for j in range(dq.shape[1]):
-        s = np.sign(np.where(np.abs(dq[:, j]) > v_rest, dq[:, j], 0.0))
-        nz = np.nonzero(s)[0]
-        if nz.size < 2:
-            out.append(np.zeros(0, dtype=int))
-            continue
-        flips = nz[1:][s[nz[1:]] != s[nz[:-1]]]
-        out.append(flips)
-    return out
 
 
 def motion_summary(p: Prepared) -> list[dict[str, float]]:

@@ -489,9 +489,6 @@ def add_fourier(b: PlanBuilder, model: Any, periods: int = 6, period_s: float = 
     return info
 
 
-DEFAULT_START = None  # plans default to the robot's configured/sim start pose given by the caller
-
-
 def build_plan(kind: str, model: Any, q_start: np.ndarray, limits: Limits, joints: list[int] | None = None,
                scale: float = 1.0, seed: int = 5, fourier_iterations: int = 60) -> Plan:
     """Build a plan of ``kind`` from ``q_start``; ``scale`` < 1 shortens it (fewer passes/speeds) for quick runs."""

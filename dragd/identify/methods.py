@@ -13,14 +13,14 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
-from .data import Log, LogError, Prepared, lowpass, motion_summary, prepare, sliding
+from .data import Log, LogError, Prepared, motion_summary, prepare, sliding
 from .regressors import RegressorModel
 from .results import FRICTION_KEYS, FitResult, JointResult, LinearFit, linear_fit, prior_fit
 
@@ -39,7 +39,7 @@ class Options:
     deriv_cutoff_Hz: float = 20.0  # positions before differentiation
     v_rest: float = 0.005  # |q̇| below this: at rest / stuck [rad/s]
     v_min: float = 0.01  # steady sliding above this [rad/s]
-    a_max: float = 0.05  # quasi-static: every joint's |H(q̈)| below this [rad/s²]
+    a_max: float = 0.3  # quasi-static: every joint's |H(q̈)| below this [rad/s²] (inertia is in the model)
     lowspeed_max: float = 0.06  # seed 000: "low speed" up to this [rad/s] (≈ 3.4°/s)
     lowspeed_cutoff_Hz: float = 0.5  # seed 000 samples at 10 ms and fits straight lines: a slow H
     stribeck_exponent: float | None = None  # δ; None: fitted when the data has low-speed sliding
@@ -225,6 +225,10 @@ def _physical(jr: JointResult) -> None:
         v = jr.friction.get(key)
         if v is not None and not v > 0:
             jr.set(key, None, reason=f"estimate {v:.4g} is not positive")
+    d = jr.friction.get("stribeck_exponent")
+    if d is not None and not 0.3 <= d <= 4.0:  # the law's schema: δ in (0, 4]
+        jr.set("stribeck_exponent", None, reason=f"estimate {d:.3g} outside the plausible 0.3…4 (hump not determined)")
+        jr.std.pop("stribeck_exponent", None)
     kt = jr.torque_constant_Nm_per_A
     if kt is not None and not kt > 0:
         jr.set("torque_constant_Nm_per_A", None, reason=f"estimate {kt:.4g} N·m/A is not positive (model mismatch)")
@@ -344,11 +348,14 @@ def _quasistatic_fit(ctx: Context, j: int, sel: np.ndarray, stribeck: tuple[floa
     FH = p.regfilter(F)
     tau = ctx.tauH[:, j] if use_tau else ctx.gravH[:, j]
     rng = float(np.ptp(tau[sel]))
-    A = np.column_stack([tau[sel], FH[sel]])
-    explain = {"gravity": NO_GRAVITY.format(rng=rng)}
+    # the joint's own q̈ with a free coefficient: the rotor inertia J_a/K_t (not in a URDF) of the residual
+    # accelerations that quasi-static rows still have; dropped first when the data cannot separate it
+    A = np.column_stack([tau[sel], FH[sel], ctx.ddqH[sel, j]])
+    explain = {"gravity": NO_GRAVITY.format(rng=rng), "armature": "too little acceleration in these rows"}
     if rng < 1e-6:
         A[:, 0] = 0.0
-    return linear_fit(A, ctx.iH[sel, j], ["gravity"] + fnames, explain=explain, prefer_drop=PREFER_DROP), rng
+    return linear_fit(A, ctx.iH[sel, j], ["gravity"] + fnames + ["armature"], explain=explain,
+                      prefer_drop=("armature",) + PREFER_DROP), rng
 
 
 def fit_synchronous(ctx: Context) -> FitResult:
@@ -1015,4 +1022,4 @@ def identify(log: Log, robot: Any, method: str = "auto", opts: Options | None = 
 
 
 __all__ = ["METHODS", "Options", "Context", "identify", "find_pairs", "stribeck_lm", "friction_columns",
-           "friction_value", "LogError", "replace", "field", "lowpass"]
+           "friction_value", "friction_curve", "breakaway_levels", "LogError"]

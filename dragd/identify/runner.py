@@ -10,7 +10,6 @@ Ctrl-C stops the motion along its path (``replay_stop``) and closes the recordin
 
 from __future__ import annotations
 
-import math
 import sys
 import tempfile
 import time
@@ -183,6 +182,3 @@ class _Bar:
         if self._rich is not None:
             self._rich.stop()
 
-
-def _deg(x: float) -> float:
-    return math.degrees(x)

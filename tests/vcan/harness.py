@@ -138,7 +138,8 @@ def ensure_local_vcan(channel: str) -> None:
         if not root:
             raise HarnessError(f"no interface {channel!r} and not root: run `sudo modprobe vcan; sudo ip link add "
                                f"dev {channel} type vcan; sudo ip link set {channel} mtu 72 up` first")
-        subprocess.run(["modprobe", "vcan"], capture_output=True)  # may be built in; `ip` says if it is missing
+        if shutil.which("modprobe"):
+            subprocess.run(["modprobe", "vcan"], capture_output=True)  # may be built in; `ip` says if it is missing
         run(["ip", "link", "add", "dev", channel, "type", "vcan"], f"creating {channel}")
     if channel.startswith("vcan") and (net / "mtu").read_text().strip() != "72":
         if not root:
@@ -153,6 +154,9 @@ def ensure_local_vcan(channel: str) -> None:
 
 
 def run_local(extra: list[str]) -> int:
+    if not kernel_has_can():
+        raise HarnessError("DRAGD_VCAN_MODE=local, but this kernel refuses AF_CAN sockets (no CAN support); "
+                           "use the guest (DRAGD_VCAN_MODE=auto or guest)")
     env = suite_env()
     for channel in bus_channels(env):
         ensure_local_vcan(channel)
@@ -522,6 +526,12 @@ def main(argv: list[str]) -> int:
     except HarnessError as exc:
         say(f"FAILED: {exc}")
         say("the vcan suite did not run: this is a failure, not a skip")
+        return EXIT_HARNESS
+    except Exception:  # noqa: BLE001 - a harness bug: still a loud failure with exit status 3
+        import traceback
+
+        traceback.print_exc()
+        say("FAILED: the harness itself failed (traceback above); the vcan suite did not run")
         return EXIT_HARNESS
     say(f"total {time.monotonic() - t0:.0f} s, exit status {rc}")
     return rc

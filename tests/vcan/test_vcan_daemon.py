@@ -235,8 +235,6 @@ def holding(rig: Rig, flow: dict) -> Rig:
 
 
 @vcan_only
-@pytest.mark.xfail(strict=True, reason="dragd/daemon.py Daemon._on_frame decodes SocketCAN error frames "
-                   "(CAN_ERR_FLAG) as TPDOs/EMCY when their error class bits equal a COB-ID; reported to the lead")
 def test_error_frames_are_not_taken_for_tpdos_or_emcy(holding: Rig) -> None:
     rig = holding
     q0 = np.array(rig.must("status")["q_rad"])
