@@ -126,8 +126,11 @@ def cmd_teach_keyframes(args: argparse.Namespace) -> int:
         raise CliError(f"{args.program}: no continuous recording (path) to reduce")
     if not args.tolerance_deg > 0:
         raise CliError(f"--tolerance-deg: expected a positive angle, got {args.tolerance_deg}")
-    kf = extract_keyframes(t, q, math.radians(args.tolerance_deg), marks_t=[w.t_s for w in prog.waypoints],
-                           pause_min_s=args.pause_s)
+    try:
+        kf = extract_keyframes(t, q, math.radians(args.tolerance_deg), marks_t=[w.t_s for w in prog.waypoints],
+                               pause_min_s=args.pause_s)
+    except ValueError as exc:
+        raise CliError(f"{args.program}: keyframes: {exc}", status=1) from None
     data = {"program": str(args.program), "samples": len(t), "keyframes": len(kf.index),
             "kinds": {k: kf.kind.count(k) for k in sorted(set(kf.kind))},
             "max_deviation_deg": round(math.degrees(kf.max_deviation_rad), 4), "tolerance_deg": args.tolerance_deg,

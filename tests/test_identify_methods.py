@@ -74,11 +74,15 @@ def test_symmetric_seed001_gravity_in_amperes_and_friction():
     assert res.notes["pairs"] > 100
     g = res.notes["global_minimal_gravity_set"]
     assert g["count"] == 10  # 2(n − 1) for the UR-like arm (seed 001 Table I), found numerically
-    for name in ("joint3", "joint4"):
+    for name in ("joint2", "joint3", "joint4"):
         j = res.joint(name)
         # K_t here is derived (URDF gravity / identified gravity current) from only 4 passes: a few per cent
         assert rel(j.torque_constant_Nm_per_A, t[name]["torque_constant_Nm_per_A"]) < 0.03
         assert rel(j.friction["coulomb_pos_A"], t[name]["friction"]["coulomb_pos_A"]) < 0.05
+        assert rel(j.friction["coulomb_neg_A"], t[name]["friction"]["coulomb_neg_A"]) < 0.05
+        mean_visc = 0.5 * (t[name]["friction"]["viscous_pos_A_s_per_rad"] + t[name]["friction"]["viscous_neg_A_s_per_rad"])
+        assert rel(j.friction["viscous_A_s_per_rad"], mean_visc) < 0.10
+        assert j.friction["viscous_pos_A_s_per_rad"] is None and "half-differences" in j.reasons["viscous_pos_A_s_per_rad"]
         mg = res.notes["minimal_gravity_parameters"][name]
         assert len(mg["names"]) == len(mg["current_A"]) == len(mg["urdf_Nm"])
     assert res.joint("joint1").torque_constant_Nm_per_A is None  # vertical axis: no gravity, K_t not needed

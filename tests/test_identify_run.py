@@ -10,6 +10,7 @@ import numpy as np
 
 from dragd.config import load_config
 from dragd.identify import excitation as E
+from dragd.identify.data import load_log
 from dragd.model import RobotModel
 from dragd.procs import Rig
 
@@ -27,12 +28,12 @@ def test_identify_run_through_the_daemon_then_fit(tmp_path):
         model = RobotModel.from_urdf("seed_cobot")
         b = E.PlanBuilder(q0, E.Limits.from_model(model, load_config()))
         lo = q0.copy()
-        lo[1] -= 0.5  # joint 2 lifts the arm by ~29° and back, at two speeds (seed 002's passes, one pose)
+        lo[1] -= 0.8  # joint 2 lifts the arm by ~46° and back, at two speeds (seed 002's passes, one pose)
         for v in (0.2, 0.4):
             b.move(lo, speed=v, acceleration=0.8, kind="synchronous", joint=1)
             b.move(q0, speed=v, acceleration=0.8, kind="synchronous", joint=1)
         plan = b.build("e2e")
-        assert 8.0 < plan.duration_s < 20.0
+        assert 8.0 < plan.duration_s < 25.0
         pf = tmp_path / "plan.npz"
         plan.save(pf)
         for _ in range(3):  # a machine loaded by other jobs can fault the daemon at rest (missed cycles) before
@@ -47,12 +48,15 @@ def test_identify_run_through_the_daemon_then_fit(tmp_path):
         res = json.loads(proc.stdout)
         status = rig.must("status")
         rig.must("stop")
-    assert res["log"] == str(out) and res["chunks"] == 1 and res["rows"] > 0.9 * plan.duration_s * 1000
+    assert res["log"] == str(out) and res["chunks"] == 1
     assert "faults" not in res and status["faults"] == [] and status["mode"] == "hold"
+    log = load_log(out)  # the daemon's recording: TRACK rows of the whole plan (missed cycles aside)
+    assert log.t[-1] - log.t[0] > 0.95 * plan.duration_s and log.modes.get("track", 0) > 0.8 * plan.duration_s * 1000
     fit = run_cli("identify", "fit", "--log", str(out), "--method", "synchronous", "--out", str(tmp_path / "p.yaml"),
                   "--json")
     d = json.loads(fit.stdout)
     j2 = d["joints"]["joint2"]
     kt = truth()["joints"]["joint2"]["torque_constant_Nm_per_A"]
-    assert abs(j2["torque_constant_Nm_per_A"] - kt) / kt < 0.02, j2
+    err, std = j2["torque_constant_Nm_per_A"] - kt, j2["std"]["torque_constant_Nm_per_A"]
+    assert abs(err) / kt < 0.03 and abs(err) < 3 * std + 0.005 * kt, j2  # a short live run: determined to ~1-3 %
     assert j2["friction"]["coulomb_pos_A"] > 0 > j2["friction"]["coulomb_neg_A"]

@@ -295,3 +295,60 @@ def test_bad_truth_is_reported(tmp_path: Path) -> None:
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert f"{bad}: joints[0].gear_ratio: expected a positive number, got 'abc'" in proc.stderr
+
+
+def test_released_joint_swings_with_urdf_period_over_the_bus(tmp_path: Path) -> None:
+    """The sim process on udp_multicast: only the elbow's drive enabled over SDO with zero torque (brake off, no
+    friction on that joint in this truth), the others braked: it swings with the small-angle period of its URDF."""
+    import math
+
+    import pinocchio as pin
+    import yaml
+
+    from test_sim_physics import _stable_equilibrium
+
+    j = 2  # joint3
+    truth_data = yaml.safe_load((Path(REPO) / "sim/config/seed_cobot.yaml").read_text())
+    truth_data["joints"][j]["friction"] = {"coulomb_pos_Nm": 0.0, "coulomb_neg_Nm": 0.0, "static_pos_Nm": 0.0,
+                                           "static_neg_Nm": 0.0, "viscous_pos_Nm_s_per_rad": 0.0,
+                                           "viscous_neg_Nm_s_per_rad": 0.0}
+    cfg = tmp_path / "frictionless_elbow.yaml"
+    cfg.write_text(yaml.safe_dump(truth_data, sort_keys=False))
+    truth = load_truth(cfg)
+    robot = RobotModel.from_urdf("seed_cobot")
+    q_eq, k = _stable_equilibrium(robot, np.array([0.0, 0.0, 1.5, 0.0, 1.5708, 0.0]), j)
+    inertia = pin.crba(robot.model, robot.model.createData(), q_eq)[j, j] + truth.joints[j].armature_kgm2
+    expected = 2 * math.pi * math.sqrt(inertia / k)
+
+    group = unique_group()
+    sim = SimProc(tmp_path, group, "--config", str(cfg))
+    bus = open_bus(parse_bus(f"udp_multicast:{group}", fd=True))
+    net = canopen.Network(bus)
+    net.connect()
+    try:
+        q0 = q_eq.copy()
+        q0[j] += 0.01
+        sim.call("set_q", q_rad=q0.tolist())
+        node = net.add_node(j + 1, str(DEFAULT_EDS_PATH))
+        node.sdo.download(0x6060, 0, struct.pack("<b", CST))
+        node.sdo.download(0x6071, 0, struct.pack("<h", 0))
+        for cw in (0x06, 0x07, 0x0F):  # shutdown, switch on, enable operation: brake off, zero torque
+            node.sdo.download(0x6040, 0, struct.pack("<H", cw))
+        t, q = [], []
+        end = time.monotonic() + 3.5 * expected + 0.3
+        while time.monotonic() < end:
+            st = sim.call("state")
+            t.append(st["t"])
+            q.append(st["q_rad"][j] - q_eq[j])
+            time.sleep(0.004)
+        others = [i for i in range(6) if i != j]
+        assert np.allclose(np.array(sim.call("state")["q_rad"])[others], q0[others]), "braked joints moved"
+    finally:
+        net.disconnect()
+        sim.finish()
+    t_arr, q_arr = np.array(t), np.array(q)
+    idx = np.flatnonzero((q_arr[:-1] > 0) & (q_arr[1:] <= 0))
+    crossings = t_arr[idx] + q_arr[idx] / (q_arr[idx] - q_arr[idx + 1]) * (t_arr[idx + 1] - t_arr[idx])
+    assert len(crossings) >= 3, q_arr
+    period = float(np.mean(np.diff(crossings)))
+    assert abs(period - expected) / expected < 0.02, (period, expected)

@@ -140,8 +140,9 @@ def test_teach_by_hand_replay_linear_and_bumpless_drag_replay_drag(tmp_path):
     rows = read_rows(mcap, ("t_s", "mode", "q_rad", "q_ref_rad", "track_t_s", "rx", "current_command_A",
                             "current_measured_A", "dq_rad_s"))
     res = replay_errors(rows, t0, t1, resp["marks"], {m["name"]: m["q_rad"] for m in marks}, resp["move_to_start_s"])
-    # (tests/test_teach_accuracy.py checks the same without timing noise)
-    bound = 0.1 if strict else 0.6
+    # (tests/test_teach_accuracy.py checks the design without timing noise: < 0.06°; here the processes' timing
+    # adds a few hundredths at the stops)
+    bound = 0.12 if strict else 0.6
     assert len(res["waypoints"]) == 3 and res["waypoint_error_deg_max"] < bound, (strict, res)
     assert res["path_error_deg_max"] < 5 * bound, res
     # bumpless: drag → hold → (CSP) track → hold → (CST) drag

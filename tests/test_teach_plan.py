@@ -283,3 +283,23 @@ def test_keyframes_and_retimed_path_replay(tmp_path, cfg):
     assert res["summary"]["cycle_s"] < 8.0
     dry = json.loads(run_cli("replay", str(path), "--dry-run", "--interp", "spline", "--json").stdout)
     assert dry["source"] == "path" and dry["cycle_s"] == pytest.approx(res["summary"]["cycle_s"], abs=0.01)
+
+
+def test_keyframes_of_a_hand_recording_with_still_periods_and_marks(tmp_path, cfg):
+    # as a hand teaches: still at the start, a pull, still while p1 is marked, a pull, still at the end (marked)
+    t = np.arange(0.0, 9.0, 0.02)
+    s1 = np.clip((t - 1.0) / 2.0, 0, 1)
+    s2 = np.clip((t - 5.0) / 2.0, 0, 1)
+    q = Q0 + np.outer(0.5 - 0.5 * np.cos(np.pi * s1), STEPS[0]) + np.outer(0.5 - 0.5 * np.cos(np.pi * s2), STEPS[1])
+    kf = extract_keyframes(t, q, math.radians(0.5), marks_t=[4.0, 8.5])
+    kq = q[kf.index]
+    assert np.linalg.norm(np.diff(kq, axis=0), axis=1).min() > 1e-4  # no two keyframes at one place
+    assert kf.kind[0] == "start" and kf.kind[-1] == "end" and kf.kind.count("pause") + kf.kind.count("mark") >= 1
+    rows = [[float(a)] + list(map(float, b)) for a, b in zip(t, q)]
+    path = _program(tmp_path, [], name="hand", path_rows=rows)
+    res = plan_replay(request_from_config(cfg, path, q[0], interp="spline"))
+    labels = [g["label"] for g in res["summary"]["segments"]]
+    assert labels.count("path") == 2  # one stop where the hand held still in the middle
+    still = _program(tmp_path, [], name="still", path_rows=[[0.02 * k] + list(Q0) for k in range(50)])
+    with pytest.raises(PlanError, match="no motion"):
+        plan_replay(request_from_config(cfg, still, Q0, interp="spline"))

@@ -84,43 +84,62 @@ def _load_mcap(path: Path, modes: tuple[str, ...]) -> Log:
     from mcap.exceptions import McapError
     from mcap.reader import make_reader
 
+    # decode in batches while reading (a 10 min log is 600 k rows of ~1 kB: all at once would take > 1 GB)
+    T: list[np.ndarray] = []
+    Q: list[np.ndarray] = []
+    I: list[np.ndarray] = []
+    M: list[np.ndarray] = []
+
+    def decode(part: list[bytes]) -> None:
+        try:
+            rows = json.loads(b"[" + b",".join(_trim_rows(part)) + b"]")
+        except json.JSONDecodeError as exc:
+            raise LogError(f"{path}: /dragd/cycle: messages are not JSON: {exc}") from None
+        if not T:
+            missing = [k for k in ("t_s", "q_rad", "current_measured_A") if k not in rows[0]]
+            if missing:
+                raise LogError(f"{path}: /dragd/cycle: missing fields {', '.join(missing)} (expected t_s, q_rad, "
+                               "current_measured_A)")
+        try:
+            M.append(np.array([r.get("mode", "track") for r in rows]))
+            T.append(np.array([r["t_s"] for r in rows], dtype=float))
+            Q.append(np.array([r["q_rad"] for r in rows], dtype=float))
+            I.append(np.array([r["current_measured_A"] for r in rows], dtype=float))
+        except (ValueError, TypeError, KeyError) as exc:
+            raise LogError(f"{path}: /dragd/cycle: rows of unequal shape or non-numeric values: {exc}") from None
+
     chunks: list[bytes] = []
     try:
         with path.open("rb") as fh:
             # file order is time order for the daemon's writer; t is checked for monotonicity afterwards
             for _, _, message in make_reader(fh).iter_messages(topics=["/dragd/cycle"], log_time_order=False):
                 chunks.append(message.data)
+                if len(chunks) >= 50_000:
+                    decode(chunks)
+                    chunks = []
+    except LogError:
+        raise
     except (McapError, EOFError, ValueError, OSError, KeyError) as exc:
         raise LogError(f"{path}: not a readable MCAP file: {exc}") from None
-    if not chunks:
+    if chunks:
+        decode(chunks)
+    if not T:
         raise LogError(f"{path}: no /dragd/cycle messages (expected dragd telemetry)")
-    try:
-        rows = json.loads(b"[" + b",".join(_trim_rows(chunks)) + b"]")
-    except json.JSONDecodeError as exc:
-        raise LogError(f"{path}: /dragd/cycle: messages are not JSON: {exc}") from None
-    first = rows[0]
-    missing = [k for k in ("t_s", "q_rad", "current_measured_A") if k not in first]
-    if missing:
-        raise LogError(f"{path}: /dragd/cycle: missing fields {', '.join(missing)} (expected t_s, q_rad, "
-                       "current_measured_A)")
-    mode = np.array([r.get("mode", "track") for r in rows])
+    mode = np.concatenate(M)
     counts = {str(m): int(c) for m, c in zip(*np.unique(mode, return_counts=True))}
     keep = np.isin(mode, modes)
     if not keep.any():
         raise LogError(f"{path}: no rows in mode {'/'.join(modes)} (rows per mode: "
                        f"{', '.join(f'{k} {v}' for k, v in counts.items())}); identification uses tracked excitation")
-    sel = [r for r, k in zip(rows, keep.tolist()) if k]
     try:
-        t = np.array([r["t_s"] for r in sel], dtype=float)
-        q = np.array([r["q_rad"] for r in sel], dtype=float)
-        i = np.array([r["current_measured_A"] for r in sel], dtype=float)
-    except (ValueError, TypeError, KeyError) as exc:
-        raise LogError(f"{path}: /dragd/cycle: rows of unequal shape or non-numeric values: {exc}") from None
+        t, q, i = np.concatenate(T)[keep], np.concatenate(Q)[keep], np.concatenate(I)[keep]
+    except ValueError as exc:
+        raise LogError(f"{path}: /dragd/cycle: rows of unequal shape: {exc}") from None
     if q.ndim != 2 or i.shape != q.shape:
         raise LogError(f"{path}: /dragd/cycle: q_rad and current_measured_A must have one value per joint, got "
                        f"shapes {q.shape} and {i.shape}")
     log = Log(str(path), t, q, i, None, [], counts)
-    dropped = len(rows) - len(sel)
+    dropped = int(mode.shape[0] - t.shape[0])
     if dropped:
         log.warnings.append(f"{dropped} rows not in mode {'/'.join(modes)} ignored (rows per mode: "
                             f"{', '.join(f'{k} {v}' for k, v in counts.items())})")

@@ -672,13 +672,15 @@ def fit_symmetric(ctx: Context) -> FitResult:
             "std_A": [fit.std(f"beta{k}") for k in range(base.r)],
             "urdf_Nm": (base.E @ ctx.rm.pi_urdf).tolist(),
             "dropped": fit.dropped}
-        # friction samples: both members of each pair, current minus the identified gravity current
-        c = fit.value("asymmetry_A") or 0.0
-        ghatH = YgH @ beta
-        idx2 = np.concatenate([a, b])
-        vv = p.dq[idx2, j]
-        ff = ctx.iH[idx2, j] - ghatH[idx2]
+        # friction = half-difference (eq. 21): gravity cancels exactly, whatever the gravity fit; it is the
+        # symmetric part (F₊(|v|) − F₋(|v|))/2 at speed |v|; the asymmetry constant c of the half-sum fit gives
+        # the direction levels F_±,c = ±F_c,sym + c (viscous and Stribeck stay symmetric: one slope, one hump)
+        c = fit.value("asymmetry_A")
+        cs = fit.std("asymmetry_A") or 0.0
         hd = 0.5 * (ctx.iH[a, j] - ctx.iH[b, j])
+        sp = np.abs(p.dq[a, j])
+        vv = np.concatenate([sp, -sp])  # mirrored: the per-direction model fitted to symmetric data is symmetric
+        ff = np.concatenate([hd * np.sign(p.dq[a, j]), -hd * np.sign(p.dq[a, j])])
         curve = friction_curve(vv, ff, o.stribeck_exponent)
         if "stribeck" in curve:
             sfit = curve["stribeck"]
@@ -686,11 +688,29 @@ def fit_symmetric(ctx: Context) -> FitResult:
             jr.diagnostics["stribeck_fit_residual_A"] = sfit["residual_A"]
         else:
             lin = curve["linear"]
-            _set_friction_from_fit(jr, lin, float(np.abs(vv).max()), v=vv)
+            _set_friction_from_fit(jr, lin, float(sp.max()), v=vv)
             why = curve["why"]
             for key in ("static_pos_A", "static_neg_A", "stribeck_velocity_rad_s", "stribeck_exponent"):
                 jr.set(key, None, reason=why)
             jr.diagnostics["friction_fit_residual_A"] = lin.sigma
+        # the mirrored samples count twice: the stds of the symmetric curve are √2 too small
+        for key in list(jr.std):
+            if key != "torque_constant_Nm_per_A":
+                jr.std[key] *= math.sqrt(2.0)
+        shift = c if c is not None else 0.0
+        for key in ("coulomb_pos_A", "coulomb_neg_A", "static_pos_A", "static_neg_A"):
+            if jr.friction[key] is not None:
+                jr.friction[key] += shift
+                jr.std[key] = math.hypot(jr.std.get(key, 0.0), cs)
+        why_v = ("symmetric extraction (half-differences) gives the mean slope of both directions only; see "
+                 "viscous_A_s_per_rad")
+        for key in ("viscous_pos_A_s_per_rad", "viscous_neg_A_s_per_rad"):
+            jr.friction[key] = None
+            jr.std.pop(key, None)
+            jr.reasons[key] = why_v
+        if c is None:
+            jr.diagnostics["asymmetry"] = ("not determined: levels reported symmetric (seed 001's odd-friction "
+                                           "assumption)")
         if jr.friction["static_pos_A"] is None or jr.friction["static_neg_A"] is None:
             brk = breakaway_levels(ctx, j, p.i[:, j] - ghat)
             for d, (lvl, s, cnt) in brk.items():
@@ -701,7 +721,7 @@ def fit_symmetric(ctx: Context) -> FitResult:
                                "gravity_residual_A": fit.sigma, "asymmetry_A": c,
                                "asymmetry_std_A": fit.std("asymmetry_A"),
                                "half_difference_mean_abs_A": float(np.mean(np.abs(hd))),
-                               "friction_speed_range_rad_s": [float(np.abs(vv).min()), float(np.abs(vv).max())]})
+                               "friction_speed_range_rad_s": [float(sp.min()), float(sp.max())]})
         _physical(jr)
     return FitResult("symmetric", out, ctx.log.path, str(ctx.robot.urdf_path), list(ctx.warnings), notes)
 

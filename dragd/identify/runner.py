@@ -100,6 +100,8 @@ def run_plan(call: Callable[..., dict[str, Any]], plan: Plan, out: str | Path, *
         result["interrupted"] = True
     finally:
         stats = call("record", action="stop")
+        if not stats.get("ok", True):
+            result["record_error"] = stats.get("error")
         result.update({"rows": stats.get("written"), "dropped_rows": stats.get("dropped"),
                        "wall_time_s": round(time.monotonic() - t0, 2)})
     end = call("status")

@@ -110,6 +110,27 @@ def spline_deviation(q: np.ndarray, idx: np.ndarray, stops: set[int]) -> np.ndar
     return dev
 
 
+_RANK = {"start": 4, "end": 4, "pause": 3, "mark": 2, "shape": 1}
+
+
+def _dedupe(q: np.ndarray, idx: list[int], kinds: dict[int, str], min_chord: float) -> np.ndarray:
+    """Merge keyframes closer than ``min_chord`` (a still hand gives several at one place): the most important kind
+    stays (start/end, then pause, mark, shape); the recording's first and last sample always do."""
+    out = [idx[0]]
+    for k in idx[1:]:
+        if np.linalg.norm(q[k] - q[out[-1]]) >= min_chord:
+            out.append(k)
+            continue
+        prev = out[-1]
+        if kinds.get(prev) == "start":
+            if kinds.get(k) == "end" and len(out) > 1:
+                out[-1] = k
+            continue
+        if kinds.get(k) == "end" or _RANK[kinds.get(k, "shape")] > _RANK[kinds.get(prev, "shape")]:
+            out[-1] = k
+    return np.array(out)
+
+
 def extract_keyframes(t: np.ndarray, q: np.ndarray, tol_rad: float = np.radians(0.5),
                       marks_t: list[float] | None = None, pause_speed_rad_s: float = 0.01,
                       pause_min_s: float = 0.3, min_chord_rad: float = 1e-4, max_keyframes: int = 2000) -> KeyframeResult:
@@ -135,22 +156,12 @@ def extract_keyframes(t: np.ndarray, q: np.ndarray, tol_rad: float = np.radians(
     keep = set(fixed)
     for a, b in zip(fixed[:-1], fixed[1:]):
         keep.update(_rdp(q, a, b, tol_rad))
-    idx = np.array(sorted(keep))
-    # drop shape keyframes closer than min_chord to their predecessor (a zero chord breaks the parameter)
-    out = [int(idx[0])]
-    for k in idx[1:]:
-        k = int(k)
-        if np.linalg.norm(q[k] - q[out[-1]]) < min_chord_rad and kinds.get(k, "shape") == "shape":
-            continue
-        if np.linalg.norm(q[k] - q[out[-1]]) < min_chord_rad and kinds.get(out[-1], "shape") == "shape" and len(out) > 1:
-            out[-1] = k
-            continue
-        out.append(k)
-    idx = np.array(out)
+    idx = _dedupe(q, sorted(keep), kinds, min_chord_rad)
+    stops = {k for k in stops if k in set(idx.tolist())}
     dev = spline_deviation(q, idx, stops)
     while dev.max() > tol_rad and len(idx) < max_keyframes:
         worst = int(np.argmax(dev))
-        if worst in set(idx.tolist()):
+        if np.linalg.norm(q[idx] - q[worst], axis=1).min() < min_chord_rad:
             break
         idx = np.array(sorted(set(idx.tolist()) | {worst}))
         dev = spline_deviation(q, idx, stops)

@@ -526,6 +526,8 @@ def plan_program(program: Program, req: ReplayRequest, model: pin.Model) -> Plan
             kq, kinds = q[kf.index], kf.kind
             info["keyframes"] = len(kf.index)
             info["keyframe_deviation_deg"] = round(math.degrees(kf.max_deviation_rad), 4)
+        if len(kq) < 2:
+            raise PlanError(f"program '{program.name}': the recording holds no motion (the arm never moved)")
         start = kq[0]
         stops = [0] + [i for i, k in enumerate(kinds) if k == "pause" and 0 < i < len(kq) - 1] + [len(kq) - 1]
         for a, b in zip(stops[:-1], stops[1:]):
