@@ -171,7 +171,7 @@ class LoopConfig(_Strict):
     tpdo_deadline_us: PosInt = 600  # collect TPDOs until SYNC + this
     stale_cycles_hold: PosInt = 10  # an axis missing this many TPDOs in a row -> hold (feedback hold)
     stale_cycles_disable: PosInt = 50  # ... and this many -> disable all (fault)
-    fresh_cycles_resume: PosInt = 100  # all axes fresh this long after a feedback hold -> back to the requested mode
+    fresh_cycles_resume: PosInt = 100  # no axis stale > 1 cycle for this long after a feedback hold -> requested mode
     realtime_priority: Annotated[int, Field(ge=1, le=99), Expect("a SCHED_FIFO priority 1..99")] | None = None
     cpus: list[Annotated[int, Field(ge=0)]] | None = None
 

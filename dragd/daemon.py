@@ -1128,7 +1128,7 @@ class Daemon:
     def _feedback_watch(self, hold_after: int, disable_after: int) -> None:
         """Stale TPDOs: hold after ``hold_after`` cycles, fault (disable) after ``disable_after``; resume when fresh."""
         worst = int(self.stale.max())
-        if worst == 0:
+        if worst <= 1:  # a single late TPDO is jitter, not lost feedback: it does not restart the count
             self.fresh_cycles += 1
         else:
             self.fresh_cycles = 0
