@@ -129,7 +129,9 @@ def test_mode_switches_have_no_current_jump(session):
     steps = np.abs(np.diff(cmd, axis=0)) / elapsed[:, None]
     for k in switches:
         window = steps[k - 5:k + 250]  # the switch and the blend after it
-        assert window.max() < 0.15, (k, mode[k - 1], mode[k], window.max(axis=0))
+        # the start-up sine alone changes joint 2's command by up to 2π·16 Hz·0.9 A·1 ms ≈ 0.09 A per cycle; an
+        # un-blended hold↔drag switch steps by the friction + sine level (0.5-1 A)
+        assert window.max() < 0.25, (k, mode[k - 1], mode[k], window.max(axis=0))
 
 
 def test_cli_without_daemon_says_so(tmp_path):
