@@ -23,6 +23,8 @@ daemon adds gravity and friction itself).
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
+
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -80,17 +82,19 @@ class Limits:
 # ------------------------------------------------------------------------------------------------ pieces
 
 
-class Piece:
+class Piece(ABC):
     """A rest-to-rest part of the motion: ``evaluate(t)`` → q, q̇, q̈, q⃛ (rows per time)."""
 
     duration: float
     label: str = ""
 
+    @abstractmethod
     def evaluate(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        raise NotImplementedError
+        """Position, velocity, acceleration, jerk at local times ``t``."""
 
+    @abstractmethod
     def stretched(self, k: float) -> Piece:
-        raise NotImplementedError
+        """The same piece slowed down by ``k`` ≥ 1."""
 
     def marks(self) -> list[tuple[float, str, str]]:
         """(local time, waypoint name, kind) of the waypoints this piece stops at or passes."""
