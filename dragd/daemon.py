@@ -981,7 +981,8 @@ class Daemon:
                 lam = x * x * (3.0 - 2.0 * x)
                 # blend from the command at the switch instant to the new law's command
                 self.cmd_A *= lam
-                self.cmd_A += (1.0 - lam) * self.blend_from_A
+                np.multiply(self.blend_from_A, 1.0 - lam, out=self.tmp)  # no temporary array in the cycle
+                self.cmd_A += self.tmp
         if self.stop_after_hold_at is not None and self.t >= self.stop_after_hold_at:
             self.stop_after_hold_at = None
             self._set_mode(Mode.IDLE, blend=False)

@@ -189,18 +189,6 @@ def layout_for(bus: str, joints: list[int], node_ids: list[int], *, fd: bool, ki
     return BusLayout(bus, kind, fd, fd, tuple(joints), tuple(node_ids), pdos, frames)  # type: ignore[arg-type]
 
 
-class TpdoDecoder:
-    """COB-ID → (joint, precompiled struct, field targets): decodes a TPDO into the cycle's arrays."""
-
-    def __init__(self, frames: list[FrameLayout]) -> None:
-        self.by_cob: dict[int, tuple[int, struct.Struct, tuple[Field, ...], int]] = {}
-        for fr in frames:
-            if fr.direction != "tpdo":
-                continue
-            (slot,) = fr.slots
-            self.by_cob[fr.cob_id] = (slot.joint, struct.Struct(slot.fmt), slot.fields, fr.data_bytes)
-
-
 class RpdoEncoder:
     """One outgoing frame: a preallocated buffer and per-slot precompiled structs."""
 

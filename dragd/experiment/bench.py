@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -158,7 +157,3 @@ def handover_step_A(rows: dict[str, np.ndarray], joint: int, rest_threshold_rad_
     for k in onsets:
         worst = max(worst, float(steps[max(0, k - 5):k + 100].max(initial=0.0)))
     return worst
-
-
-def deg(x: float) -> float:
-    return math.degrees(x)
