@@ -1056,7 +1056,9 @@ class Daemon:
         row[c["rx"]] = self.rx
         row[c["period_us"]] = period_us
         row[c["compute_us"]] = compute_us
-        row[c["q_ref_rad"]] = self._ref  # the position target (TRACK: the reference; HOLD: the hold pose)
+        # the position reference (TRACK: the path; HOLD: the hold pose, whether the drives' CSP loop or the PD
+        # of CST holds it; otherwise where the arm is)
+        row[c["q_ref_rad"]] = self.q_hold if self.mode == Mode.HOLD else self._ref
         track = self.mode == Mode.TRACK
         row[c["track_t_s"]] = self.track_tau if track else -1.0
         row[c["residual_A"]] = self.residual_A if track else 0.0

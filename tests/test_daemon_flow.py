@@ -128,7 +128,8 @@ def test_mode_switches_have_no_current_jump(session):
     elapsed = np.maximum(1.0, np.round(np.asarray(rows["period_us"], dtype=float)[1:] / 1000.0))
     steps = np.abs(np.diff(cmd, axis=0)) / elapsed[:, None]
     for k in switches:
-        window = steps[k - 5:k + 250]  # the switch and the blend after it
+        nxt = next((j for j in range(k + 1, len(mode)) if mode[j] != mode[k]), len(mode))
+        window = steps[k - 5:min(k + 250, nxt - 1)]  # the switch and the blend after it (not the stop's disable)
         # the start-up sine alone changes joint 2's command by up to 2π·16 Hz·0.9 A·1 ms ≈ 0.09 A per cycle; an
         # un-blended hold↔drag switch steps by the friction + sine level (0.5-1 A)
         assert window.max() < 0.25, (k, mode[k - 1], mode[k], window.max(axis=0))

@@ -259,7 +259,10 @@ def test_pause_resume_speed_override_stop_and_monitors(tmp_path):
     assert np.all(np.diff(tt) >= -1e-9)  # one cycle: the trajectory clock never goes back
     # the hold after the stop is at the stop point: the last reference
     last = np.flatnonzero(m)[-1]
-    assert np.abs(rows["q_ref_rad"][last + 5] - ref[-1]).max() < 1e-6
+    # until the drives were back in CST (the status that said so and the next replay can fall in one cycle)
+    held = rows["q_ref_rad"][last + 1:][rows["t_s"][last + 1:] < t_stop - 0.0015]
+    assert rows["mode"][last + 1] == "hold" and len(held) > 5
+    assert np.abs(held - ref[-1]).max() < 1e-6
 
 
 def test_demo_teach_scenario_json(tmp_path):
