@@ -101,6 +101,48 @@ class BackEmfConfig(_Strict):
     resistance_ohm: PosFloat = 1.0
 
 
+class PeriodicTerm(_Strict):
+    """One harmonic of a position-periodic current (cogging, gear ripple): sin_A·sin(c·q) + cos_A·cos(c·q)."""
+
+    cycles_per_rev: PosFloat  # per joint revolution
+    sin_A: Finite = 0.0
+    cos_A: Finite = 0.0
+
+
+class TemperatureDrift(_Strict):
+    """Friction warm-up: every friction current × (1 + friction_change·(1 − e^(−t/τ))), t since start."""
+
+    friction_change: Annotated[float, Field(gt=-0.95, lt=5), Expect("a relative change in (-0.95, 5)")]
+    time_constant_s: PosFloat
+
+
+class BackEmfEffect(_Strict):
+    """Current-loop voltage headroom: the delivered current falls short of the reported one above a knee speed,
+    by A_s_per_rad·(|q̇| − knee)·sign q̇ (the law adds it; knee 0 = seed 000 eq. 26's linear term)."""
+
+    A_s_per_rad: NonNegFloat
+    knee_rad_s: NonNegFloat = 0.0
+
+
+class JointEffects(_Strict):
+    """Model-gap effects of one joint (``dragd gap``, docs/GAP.md); every default is "not in the model"."""
+
+    position_periodic: list[PeriodicTerm] = Field(default_factory=list)
+    load_friction_per_Nm: NonNegFloat = 0.0  # Coulomb/static levels grow by this × |gravity torque| (N·m per N·m)
+    current_offset_A: Finite = 0.0  # reported − delivered current, constant (Hall offset)
+    temperature_drift: TemperatureDrift | None = None
+    back_emf: BackEmfEffect | None = None
+    armature_kgm2: NonNegFloat | None = None  # inertia: rotor inertia at the joint (with the URDF's dynamics)
+    backlash_rad: NonNegFloat | None = None  # lost motion between rotor and output (simulation/prediction only)
+
+
+class Payload(_Strict):
+    """A point mass on the flange (the last joint's frame) that the URDF does not have."""
+
+    mass_kg: NonNegFloat
+    com_m: tuple[Finite, Finite, Finite] = (0.0, 0.0, 0.0)
+
+
 class JointConfig(_Strict):
     name: str
     node_id: NodeId
@@ -121,6 +163,7 @@ class JointConfig(_Strict):
     friction: FrictionConfig = FrictionConfig()
     startup: StartupConfig = StartupConfig()
     back_emf: BackEmfConfig = BackEmfConfig()
+    effects: JointEffects = JointEffects()  # model-gap effects (docs/GAP.md)
 
     @model_validator(mode="after")
     def _kt(self) -> JointConfig:
@@ -259,6 +302,7 @@ class Config(_Strict):
     telemetry: TelemetryConfig = TelemetryConfig()
     control: ControlConfig = ControlConfig()
     replay: ReplayConfig = ReplayConfig()
+    payload: Payload | None = None  # flange payload not in the URDF (docs/GAP.md)
     source: str = Field("<memory>", exclude=True)  # file it came from (not a YAML key)
 
     @model_validator(mode="after")
@@ -338,7 +382,7 @@ class JointParams(_Strict):
     friction: FrictionParams = FrictionParams()
     startup: StartupParams = StartupParams()
     std: dict[str, Any] = Field(default_factory=dict)  # standard deviations, reasons for nulls
-    effects: dict[str, Any] = Field(default_factory=dict)  # model-gap effects added (issue 6)
+    effects: JointEffects = JointEffects()  # model-gap effects added by `dragd gap` (docs/GAP.md)
 
 
 class ParamsFile(_Strict):
@@ -346,6 +390,7 @@ class ParamsFile(_Strict):
     method: str | None = None
     robot: str | None = None
     joints: dict[str, JointParams] = Field(default_factory=dict)
+    payload: Payload | None = None  # added by `dragd gap` (payload_mass)
     notes: dict[str, Any] = Field(default_factory=dict)
 
 
@@ -550,10 +595,14 @@ def apply_params(cfg: Config, params: ParamsFile, source: str = "params") -> Con
         st = {k: v for k, v in p.startup.model_dump().items() if v is not None}
         if st:
             update["startup"] = j.startup.model_copy(update=st)
+        if p.effects != JointEffects():
+            update["effects"] = p.effects
         joints.append(j.model_copy(update=update))
     # revalidate the result so the overlay can't produce an invalid joint
     data = cfg.model_dump(mode="python")
     data["joints"] = [jj.model_dump(mode="python") for jj in joints]
+    if params.payload is not None:
+        data["payload"] = params.payload.model_dump(mode="python")
     try:
         out = Config.model_validate(data)
     except ValidationError as exc:

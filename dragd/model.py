@@ -41,6 +41,23 @@ class RobotModel:
             model.gravity.linear = np.asarray(gravity_m_s2, dtype=float)
         return cls(model, path)
 
+    @classmethod
+    def from_config(cls, cfg: object) -> RobotModel:
+        """The configuration's robot (URDF, gravity) with its ``payload`` (``dragd gap``'s payload_mass) on the flange."""
+        model = cls.from_urdf(cfg.robot.urdf, cfg.base_dir, cfg.robot.gravity_m_s2)  # type: ignore[attr-defined]
+        payload = getattr(cfg, "payload", None)
+        if payload is not None:
+            model.add_payload(payload.mass_kg, payload.com_m)
+        return model
+
+    def add_payload(self, mass_kg: float, com_m: tuple[float, float, float] | np.ndarray) -> None:
+        """Add a point mass in the last joint's frame (a tool or load the URDF does not have)."""
+        if mass_kg > 0:
+            body = self.model.njoints - 1
+            self.model.inertias[body] = self.model.inertias[body] + pin.Inertia(
+                float(mass_kg), np.asarray(com_m, dtype=float), np.zeros((3, 3)))
+            self.data = self.model.createData()
+
     @property
     def position_limits_rad(self) -> tuple[np.ndarray, np.ndarray]:
         return self.model.lowerPositionLimit.copy(), self.model.upperPositionLimit.copy()

@@ -34,6 +34,8 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     run_p = sub.add_parser("run", help="run the simulated robot until SIGTERM/SIGINT, a 'stop' command or --seconds")
     run_p.add_argument("--config", help="truth file (default: sim/config/seed_cobot.yaml)")
+    run_p.add_argument("--model", help="dragd params file (identify fit / gap --out): simulate that model (K_t, "
+                                       "friction, model-gap effects) on top of the truth file")
     run_p.add_argument("--bus", help="INTERFACE:CHANNEL, e.g. udp_multicast:239.74.163.2 (default: the truth's bus.channel)")
     run_p.add_argument("--scenario", help="operator scenario file (or a name in sim/scenarios) started at t = 0")
     run_p.add_argument("--control", help="Unix socket path for the JSON-lines control protocol")
@@ -53,6 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     log_p.add_argument("--plan", required=True, help="plan file (.npz with t_s, q_rad; from 'dragd identify plan')")
     log_p.add_argument("--out", required=True, help="log file: .mcap (daemon telemetry) or .csv (t,q1..,i1..,dq1..)")
     log_p.add_argument("--config", help="truth file (default: sim/config/seed_cobot.yaml)")
+    log_p.add_argument("--model", help="dragd params file: simulate that model on top of the truth file")
     log_p.add_argument("--dragd-config", help="dragd configuration whose beliefs feed the TRACK feed-forward "
                                               "(default: config/default.yaml)")
     log_p.add_argument("--seconds", type=float, help="only the first SECONDS of the plan")
@@ -70,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     from sim.truth import load_truth
 
     try:
-        truth = load_truth(args.config)
+        truth = _truth_with_model(load_truth(args.config), args.model)
     except ConfigError as exc:
         print(f"sim: {exc}", file=sys.stderr)
         return 2
@@ -114,6 +117,16 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def _truth_with_model(truth: Any, model: str | None) -> Any:
+    """``--model params.yaml``: the truth that params file describes (sim.truth.truth_from_params)."""
+    if not model:
+        return truth
+    from dragd.config import load_params
+    from sim.truth import truth_from_params
+
+    return truth_from_params(load_params(model), truth)
+
+
 def _cmd_truth(args: argparse.Namespace) -> int:
     from sim.offline import truth_summary
     from sim.truth import load_truth
@@ -149,7 +162,7 @@ def _cmd_log(args: argparse.Namespace) -> int:
         return 2
     t0 = time.monotonic()
     try:
-        truth = load_truth(args.config)
+        truth = _truth_with_model(load_truth(args.config), args.model)
         plan_t, plan_q = load_plan(args.plan)
         data = generate(plan_t, plan_q, truth, config=args.dragd_config, seconds=args.seconds, seed=args.seed,
                         csp_interpolation=args.csp_interpolate)

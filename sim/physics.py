@@ -12,7 +12,9 @@ Per fixed step (``truth.physics_rate_Hz``, >= 4 kHz), reading each joint's :clas
   joint and slips above the holding torque);
 * hard stops: spring–damper beyond each limit, never pulling;
 * hidden effects (off by default): torque ripple, load-dependent friction, thermal friction drift, Hall offset,
-  backlash (a separate rotor inertia coupled to the output through a dead zone and the gear stiffness);
+  backlash (a separate rotor inertia coupled to the output through a dead zone and the gear stiffness), a flange
+  payload (``truth.payload``, in the Pinocchio model), back-EMF voltage headroom (the winding current falls short
+  of the regulated reading above a knee speed), a time-based friction warm-up drift;
 * semi-implicit Euler: v += a·dt, then q += v·dt.
 
 Rotor inertia × gear² enters the Pinocchio model as armature (joints without backlash), so ABA includes it.
@@ -93,6 +95,10 @@ class ArmPhysics:
         # private model copy with the truth's gravity and armature (the caller's model stays constant)
         self.model = pin.Model(src)
         self.model.gravity.linear = np.asarray(truth.gravity_m_s2, dtype=float)
+        if truth.payload is not None and truth.payload.mass_kg > 0:  # hidden: a flange load the URDF lacks
+            body = self.model.njoints - 1
+            self.model.inertias[body] = self.model.inertias[body] + pin.Inertia(
+                truth.payload.mass_kg, np.asarray(truth.payload.com_m, dtype=float), np.zeros((3, 3)))
         self._bj = [i for i, j in enumerate(joints) if j.hidden.backlash_rad > 0]  # joints with a separate rotor
         self.nb = nb = len(self._bj)
         self.nf = nf = n + nb
@@ -162,6 +168,11 @@ class ArmPhysics:
             if (t := j.hidden.thermal) is not None:
                 self._temp[i] = t.initial_C if t.initial_C is not None else t.ambient_C
         self._scale = [1.0] * n
+        # friction warm-up drift rows (joint, change, time constant) and back-EMF headroom rows (joint, A·s/rad, knee)
+        self._drift = [(i, d.change, d.time_constant_s) for i, j in enumerate(joints)
+                       if (d := j.hidden.friction_drift) is not None]
+        self._thermal_coef = {row[0]: (row[2], row[6]) for row in self._thermal}
+        self._emf = [(i, b.A_s_per_rad, b.knee_rad_s) for i, j in enumerate(joints) if (b := j.hidden.back_emf) is not None]
 
         # per-step signals
         self._demand = [0.0] * n
@@ -308,6 +319,11 @@ class ArmPhysics:
                 c = 0.0
             cur[j] = c
             tau_m[j] = kt[j] * c
+        for j, k_emf, knee in self._emf:  # voltage headroom: the winding gets less than the loop regulates
+            v = self._vs[self._fdof[j]]
+            over = (v if v >= 0.0 else -v) - knee
+            if over > 0.0:
+                tau_m[j] -= kt[j] * k_emf * math.copysign(over, v)
 
         if self.operator is not None:
             self.operator.apply(self.t_s, self.q_rad, self.dq_rad_s, self.tau_ext_Nm)
@@ -384,6 +400,10 @@ class ArmPhysics:
         brakes, hold, scale = self._brakes, self._hold, self._scale
         for j, _amb, ref, _cap, _res, _rw, coef in self._thermal:
             scale[j] = 1.0 + coef * (self._temp[j] - ref)
+        for j, change, tau in self._drift:
+            th = self._thermal_coef.get(j)
+            base = 1.0 + th[1] * (self._temp[j] - th[0]) if th is not None else 1.0
+            scale[j] = base * (1.0 + change * (1.0 - math.exp(-self.t_s / tau)))
         load = self._load_on
         for j, k in enumerate(self._fdof):
             extra = self._load_coef[j] * abs(self._gravity[j]) if load else 0.0

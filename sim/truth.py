@@ -14,6 +14,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from dragd.config import ConfigError, Expect, _read_yaml, format_validation_error
@@ -132,6 +133,28 @@ class Thermal(_Strict):
     friction_coefficient_per_K: Annotated[float, Field(gt=-0.05, lt=0.05), Expect("a fraction per kelvin in (-0.05, 0.05)")] = -0.005
 
 
+class BackEmfHeadroom(_Strict):
+    """Current-loop voltage headroom: above ``knee_rad_s`` the back-EMF leaves the loop short of voltage and the
+    winding current falls short of the reported (regulated) current by A_s_per_rad·(|q̇| − knee)·sign q̇."""
+
+    A_s_per_rad: NonNegFloat
+    knee_rad_s: NonNegFloat = 0.0
+
+
+class FrictionDrift(_Strict):
+    """Friction warm-up over time: every friction level × (1 + change·(1 − e^(−t/τ))) (t: simulated time)."""
+
+    change: Annotated[float, Field(gt=-0.95, lt=5), Expect("a relative change in (-0.95, 5)")]
+    time_constant_s: PosFloat
+
+
+class Payload(_Strict):
+    """A point mass on the flange (the last joint's frame) that the URDF does not have."""
+
+    mass_kg: NonNegFloat
+    com_m: tuple[Finite, Finite, Finite] = (0.0, 0.0, 0.0)
+
+
 class Hidden(_Strict):
     """Effects the compensation model does not have (all off by default), for model-gap work."""
 
@@ -142,6 +165,8 @@ class Hidden(_Strict):
     backlash_rad: NonNegFloat = 0.0  # lost motion between rotor (friction, brake, motor) and output
     gear_stiffness_Nm_per_rad: PosFloat = 20000.0  # output-side contact stiffness when backlash > 0
     gear_damping_ratio: Annotated[float, Field(ge=0, le=2), Expect("a fraction of critical damping in [0, 2]")] = 0.5
+    back_emf: BackEmfHeadroom | None = None
+    friction_drift: FrictionDrift | None = None
 
 
 class JointTruth(_Strict):
@@ -184,6 +209,7 @@ class Truth(_Strict):
     bus: BusTruth = BusTruth()
     physics_rate_Hz: Annotated[int, Field(ge=4000, le=50000), Expect("an integer rate in [4000, 50000] Hz")] = 4000
     noise_seed: int = 0
+    payload: Payload | None = None  # hidden: a flange load the URDF (and dragd's model) does not have
     joints: list[JointTruth] = Field(min_length=1)
     source: str = Field("<memory>", exclude=True)  # file it came from (not a YAML key)
 
@@ -291,3 +317,90 @@ def drive_params(joint: JointTruth, fd: bool) -> DriveParams:
         brake_release_delay_s=hw.brake_release_delay_s,
         fd=fd,
     )
+
+
+# ------------------------------------------------------------------------------------------ dragd params <-> truth
+
+
+def truth_from_params(params: Any, base: Truth | None = None) -> Truth:
+    """The truth that a dragd params file describes (``dragd identify fit``/``dragd gap --out``), on top of ``base``
+    (default: the bundled truth) for everything a params file does not hold (drives, noise, stops, inertias).
+
+    K_t, friction (amperes × K_t → N·m) and the model-gap effects (docs/GAP.md) become the truth's; effects the
+    params do not name are switched off, so the simulated robot is exactly the extended model.
+    """
+    base = base or load_truth()
+    changes: dict[str, Any] = {"joints": {}, "payload": None if params.payload is None else params.payload.model_dump()}
+    for jt in base.joints:
+        jp = params.joints.get(jt.name)
+        if jp is None:
+            continue
+        kt = jp.torque_constant_Nm_per_A or jt.torque_constant_Nm_per_A
+        f, tf = jp.friction, jt.friction
+        fr: dict[str, Any] = {}
+        for key, tkey in (("coulomb_pos_A", "coulomb_pos_Nm"), ("coulomb_neg_A", "coulomb_neg_Nm"),
+                          ("static_pos_A", "static_pos_Nm"), ("static_neg_A", "static_neg_Nm")):
+            v = getattr(f, key)
+            fr[tkey] = v * kt if v is not None else getattr(tf, tkey)
+        for d in ("pos", "neg"):
+            v = getattr(f, f"viscous_{d}_A_s_per_rad")
+            v = f.viscous_A_s_per_rad if v is None else v
+            fr[f"viscous_{d}_Nm_s_per_rad"] = v * kt if v is not None else getattr(tf, f"viscous_{d}_Nm_s_per_rad")
+        if f.stribeck_velocity_rad_s is not None:
+            fr["stribeck_velocity_rad_s"] = f.stribeck_velocity_rad_s
+        if f.stribeck_exponent is not None:
+            fr["stribeck_exponent"] = min(f.stribeck_exponent, 4.0)
+        if fr["static_pos_Nm"] is not None and fr["static_pos_Nm"] < fr["coulomb_pos_Nm"]:
+            fr["static_pos_Nm"] = fr["coulomb_pos_Nm"]
+        if fr["static_neg_Nm"] is not None and fr["static_neg_Nm"] > fr["coulomb_neg_Nm"]:
+            fr["static_neg_Nm"] = fr["coulomb_neg_Nm"]
+        e = jp.effects
+        # the params' current residual s·sin(c·q) + k·cos(c·q) is the current the motion needs; the sim's ripple is a
+        # torque that drives the joint: amplitude·sin(c·q + φ) = −K_t·(s·sin + k·cos)
+        ripple = [{"amplitude_Nm": kt * float(np.hypot(h.sin_A, h.cos_A)), "cycles_per_rev": h.cycles_per_rev,
+                   "reference": "joint", "phase_rad": float(np.arctan2(-h.cos_A, -h.sin_A))}
+                  for h in e.position_periodic]
+        hidden = {"ripple": ripple, "load_friction_per_Nm": e.load_friction_per_Nm, "current_offset_A": e.current_offset_A,
+                  "backlash_rad": e.backlash_rad or 0.0, "thermal": None,
+                  "back_emf": None if e.back_emf is None else e.back_emf.model_dump(),
+                  "friction_drift": None if e.temperature_drift is None else
+                  {"change": e.temperature_drift.friction_change, "time_constant_s": e.temperature_drift.time_constant_s}}
+        jc: dict[str, Any] = {"torque_constant_Nm_per_A": kt, "friction": fr, "hidden": hidden}
+        if e.armature_kgm2 is not None:
+            jc["rotor_inertia_kgm2"] = e.armature_kgm2 / jt.gear_ratio ** 2
+        changes["joints"][jt.name] = jc
+    return base.with_updates(**changes)
+
+
+def params_from_truth(truth: Truth) -> dict[str, Any]:
+    """A dragd params mapping (``dragd.config.ParamsFile``) holding the truth's K_t, friction (A), rotor inertia and
+    the hidden effects a params file can express — the model that "knows everything" about this robot."""
+    joints: dict[str, Any] = {}
+    for j in truth.joints:
+        kt = j.torque_constant_Nm_per_A
+        f, h = j.friction, j.hidden
+        eff: dict[str, Any] = {"armature_kgm2": j.armature_kgm2,
+                               "load_friction_per_Nm": h.load_friction_per_Nm, "current_offset_A": h.current_offset_A}
+        eff["position_periodic"] = [
+            {"cycles_per_rev": r.cycles_per_rev, "sin_A": -r.amplitude_Nm * float(np.cos(r.phase_rad)) / kt,
+             "cos_A": -r.amplitude_Nm * float(np.sin(r.phase_rad)) / kt}
+            for r in h.ripple if r.reference == "joint"]
+        if h.back_emf is not None:
+            eff["back_emf"] = h.back_emf.model_dump()
+        if h.friction_drift is not None:
+            eff["temperature_drift"] = {"friction_change": h.friction_drift.change,
+                                        "time_constant_s": h.friction_drift.time_constant_s}
+        if h.backlash_rad:
+            eff["backlash_rad"] = h.backlash_rad
+        joints[j.name] = {
+            "torque_constant_Nm_per_A": kt,
+            "friction": {"coulomb_pos_A": f.coulomb_pos_Nm / kt, "coulomb_neg_A": f.coulomb_neg_Nm / kt,
+                         "static_pos_A": f.static_pos / kt, "static_neg_A": f.static_neg / kt,
+                         "stribeck_velocity_rad_s": f.stribeck_velocity_rad_s, "stribeck_exponent": f.stribeck_exponent,
+                         "viscous_pos_A_s_per_rad": f.viscous_pos_Nm_s_per_rad / kt,
+                         "viscous_neg_A_s_per_rad": f.viscous_neg_Nm_s_per_rad / kt},
+            "effects": eff}
+    out: dict[str, Any] = {"version": 1, "method": "truth", "robot": truth.robot, "joints": joints}
+    if truth.payload is not None:
+        out["payload"] = truth.payload.model_dump()
+    return out
