@@ -34,9 +34,9 @@ def benchmark(name: str, unit: str) -> Callable[[Callable[[dict], float]], Calla
 
 @benchmark("compensation_us", "us")
 def compensation_us(opts: dict) -> float:
-    """Median wall time of one full 6-joint evaluation of the law including G(q) (Pinocchio)."""
+    """Median wall time of one full 6-joint evaluation of the law including G(q) (Pinocchio) and the latch."""
     from .config import load_config
-    from .law import LawOutput, LawParams, Workspace, compensate
+    from .law import BreakoutState, LawOutput, LawParams, Workspace, breakout_update, compensate
     from .model import RobotModel
 
     cfg = load_config(opts.get("config"))
@@ -46,13 +46,14 @@ def compensation_us(opts: dict) -> float:
     rng = np.random.default_rng(1)
     qs = rng.uniform(-np.pi, np.pi, (1000, n))
     dqs = rng.normal(0.0, 0.2, (1000, n))
-    out, ws, g = LawOutput.zeros(n), Workspace(n), np.zeros(n)
+    out, ws, g, bo = LawOutput.zeros(n), Workspace(n), np.zeros(n), BreakoutState(n).configure(p)
     samples = np.empty(int(opts.get("iterations", 20000)))
     for k in range(samples.shape[0]):
         q, dq = qs[k % 1000], dqs[k % 1000]
         t0 = time.perf_counter_ns()
         model.gravity(q, g)
-        compensate(g, dq, k * 1e-3, p, out, ws)
+        breakout_update(q, dq, k * 1e-3, p, bo)
+        compensate(g, dq, k * 1e-3, p, out, ws, None, bo)
         samples[k] = time.perf_counter_ns() - t0
     return float(np.median(samples) / 1e3)
 

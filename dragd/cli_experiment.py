@@ -27,7 +27,10 @@ def _bench(args: argparse.Namespace):  # noqa: ANN202
     from .experiment.bench import Bench
 
     work = Path(args.work_dir) if args.work_dir else Path(tempfile.mkdtemp(prefix="dragd-experiment-"))
-    return Bench(work, config=args.config, params=args.params, progress=not args.json)
+    bench = Bench(work, config=args.config, params=args.params, progress=not args.json)
+    if args.params is None:  # the compensation runs on identified parameters only (never the sim's truth)
+        bench.identify_on_sim()
+    return bench
 
 
 def cmd_startup(args: argparse.Namespace) -> int:

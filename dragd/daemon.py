@@ -37,7 +37,7 @@ from .cia402 import (CMD_DISABLE_VOLTAGE, CMD_ENABLE_OPERATION, CMD_QUICK_STOP, 
                      decode_statusword, next_controlword)
 from .config import Config
 from .control import ControlServer
-from .law import LawOutput, LawParams, Workspace, compensate, friction_current
+from .law import BreakoutState, LawOutput, LawParams, Workspace, breakout_update, compensate, friction_current
 from .master import MODE_CSP, MODE_CST, DriveError, Master
 from .model import RobotModel
 from .pdo import SYNC_COB_ID, BusLayout, RpdoEncoder, layout_for
@@ -206,7 +206,7 @@ class Daemon:
         self.bus_specs = self._bus_specs(bus_override)
         self.layouts = bus_layouts(cfg)
         self.budget = check_bus_budget(cfg, self.layouts)
-        self.model = RobotModel.from_urdf(cfg.robot.urdf, cfg.base_dir, cfg.robot.gravity_m_s2)
+        self.model = RobotModel.from_config(cfg)  # URDF + the params' payload (docs/GAP.md)
         if list(self.model.joint_names) != cfg.joint_names:
             raise ValueError(f"{cfg.source}: joints: expected the robot's joints {', '.join(self.model.joint_names)}, "
                              f"got {', '.join(cfg.joint_names)}")
@@ -244,6 +244,7 @@ class Daemon:
         self.current_meas_A = np.zeros(n)
         self.tau_g = np.zeros(n)
         self.extra_A = np.zeros(n)
+        self.breakout = BreakoutState(n).configure(self.params)  # the start-up term's break-out latch (drag)
         self.hold_A = np.zeros(n)
         self.cmd_A = np.zeros(n)
         self.prev_cmd_A = np.zeros(n)
@@ -511,6 +512,8 @@ class Daemon:
         self.blend_from_A[:] = self.prev_cmd_A
         self.blend_t0 = self.t if blend else -1.0
         self.prev_mode, self.mode = self.mode, mode
+        if mode == Mode.DRAG:
+            self.breakout.reset(self.t)
         if self.telemetry is not None:
             self.telemetry.event("mode", mode=MODE_NAMES[mode], previous=MODE_NAMES[self.prev_mode])
 
@@ -930,7 +933,8 @@ class Daemon:
             out.fill(0.0)
             return
         if mode == Mode.DRAG:
-            compensate(self.tau_g, self.dq, self.t, self.params, self.law_out, self.ws, self.extra_A)
+            compensate(self.tau_g, self.dq, self.t, self.params, self.law_out, self.ws, self.extra_A, self.breakout,
+                       self.q)
             out[:] = self.law_out.current_A
             return
         if mode == Mode.TRACK:  # CSP: the drive's position loop tracks; the offset feeds gravity + friction forward
@@ -965,6 +969,8 @@ class Daemon:
         self.vel.update(self.counts, self.dt)
         np.multiply(self.current_raw, self.A_per_permille, out=self.current_meas_A)
         self.model.gravity(self.q, self.tau_g)
+        if self.mode == Mode.DRAG:
+            breakout_update(self.q, self.dq, self.t, self.params, self.breakout)
         if self.trajectory is not None and self.mode == Mode.TRACK:
             self._track_step()
         if self.teach is not None:

@@ -18,6 +18,13 @@ Terms
   Seed 001 switches abruptly between I_s and friction at |q̇| = Φ; here r fades from 1 at Φ to 0 at
   Φ + width (smoothstep) and the friction level is weighted by (1 − r)·w, so it fades in as the start-up
   term fades out: the hand-over never steps the current.
+  Break-out latch (ours, beyond seed 001): a joint pushed just hard enough that the sine's peaks break it loose
+  only micro-slips (a count or two per period at ~0.003 rad/s, far below Φ), so the velocity hand-over never
+  fires and the joint merely ratchets. The latch watches the *position*: once the joint has crept
+  ``breakout_slip_rad`` from where it settled, the sine is held at its peak in that direction (blended over
+  ``BREAKOUT_RAMP_S``) for at most ``breakout_hold_s`` — enough to carry the joint past Φ, where friction
+  compensation takes over. It re-arms only after the joint has been still for ``settle_s``, so a joint coasting
+  to rest never latches, and a latch that did not lead to motion moves the joint at most Φ·hold.
   Options for comparison: ``startup_square`` (a square wave of the same amplitude, the peers' dither) and
   ``startup_abrupt`` (seed 001's switch at Φ).
 - back-EMF headroom (seed 000 eq. 26, I = I_s − K_b·ω/R_m): the command adds K_b·n·q̇/R_m so that a drive
@@ -25,6 +32,11 @@ Terms
 - damping: I_d = −b·q̇/K_t, a virtual viscous damper that sets the arm's "feel": with friction compensated the
   arm is a free mass that coasts when let go; b makes it come to rest (the drag effort it adds is b·q̇).
 - clamp: |I| ≤ the joint's current limit; clamped joints are flagged.
+- model-gap effects (``joints[].effects``, added by ``dragd gap``, docs/GAP.md; :class:`EffectArrays`):
+  position-periodic harmonics Σ s·sin(c·q) + k·cos(c·q), load-dependent friction w·d·k_L·|G|/K_t, the current
+  offset, the friction warm-up drift I_f·Δ·(1 − e^(−t/τ)), and a knee on the back-EMF term. Inertia (rotor
+  inertia) and backlash are prediction/simulation-only: drag compensates no q̈ term (the hand feels the arm's
+  inertia on purpose, and a q̈ estimate at 1 kHz is noise) and the output encoder cannot see the lost motion.
 """
 
 from __future__ import annotations
@@ -59,6 +71,9 @@ class LawParams:
     fade_width_rad_s: np.ndarray
     back_emf_A_s_per_rad: np.ndarray
     damping_A_s_per_rad: np.ndarray
+    breakout_slip_rad: np.ndarray  # 0: no break-out latch on that joint
+    breakout_hold_s: np.ndarray
+    settle_s: np.ndarray
     friction_scale: float = 0.9  # < 1: under-compensate so that belief errors never make a released joint run away
     smoothing_rad_s: float = 0.005
     deadband_rad_s: float = 0.0
@@ -70,6 +85,8 @@ class LawParams:
     use_damping: bool = True
     startup_square: bool = False  # square wave of the same amplitude (the peers' dither) instead of the sine
     startup_abrupt: bool = False  # seed 001 eq. 28: switch at |q̇| = Φ instead of fading over [Φ, Φ + width]
+    use_breakout: bool = True  # the break-out latch (needs a BreakoutState fed by breakout_update)
+    effects: EffectArrays | None = None  # model-gap effects (docs/GAP.md); None: none in the model
 
     @property
     def n(self) -> int:
@@ -113,6 +130,9 @@ class LawParams:
             fade_width_rad_s=arr(lambda j: j.startup.fade_width_rad_s),
             back_emf_A_s_per_rad=arr(lambda j: j.back_emf.constant_V_s_per_rad * j.gear_ratio / j.back_emf.resistance_ohm),
             damping_A_s_per_rad=arr(lambda j: j.drag_damping_Nm_s_per_rad / j.kt_Nm_per_A),
+            breakout_slip_rad=arr(lambda j: j.startup.breakout_slip_rad),
+            breakout_hold_s=arr(lambda j: j.startup.breakout_hold_s),
+            settle_s=arr(lambda j: j.startup.settle_s),
             friction_scale=cfg.law.friction_scale,
             smoothing_rad_s=cfg.law.friction_smoothing_rad_s,
             deadband_rad_s=cfg.law.friction_deadband_rad_s,
@@ -124,7 +144,56 @@ class LawParams:
             use_damping=cfg.law.damping,
             startup_square=cfg.law.startup_waveform == "square",
             startup_abrupt=cfg.law.startup_handover == "abrupt",
-        )
+            use_breakout=cfg.law.startup_breakout,
+            effects=EffectArrays.from_config(cfg),
+        ).replace(**_back_emf_from_effects(cfg))
+
+
+def _back_emf_from_effects(cfg: Config) -> dict[str, object]:
+    """An identified back-EMF effect (``joints[].effects.back_emf``) sets that joint's term and switches it on."""
+    js = cfg.joints
+    if not any(j.effects.back_emf is not None for j in js):
+        return {}
+    base = [j.back_emf.constant_V_s_per_rad * j.gear_ratio / j.back_emf.resistance_ohm for j in js]
+    return {"back_emf_A_s_per_rad": [j.effects.back_emf.A_s_per_rad if j.effects.back_emf is not None else b
+                                     for j, b in zip(js, base)], "use_back_emf": True}
+
+
+@dataclass(frozen=True)
+class EffectArrays:
+    """The model-gap effects of every joint as arrays (shape (n,) or (n, K) for K periodic harmonics) + scratch."""
+
+    periodic_cycles: np.ndarray  # (n, K) cycles per joint revolution (0: unused slot)
+    periodic_sin_A: np.ndarray  # (n, K)
+    periodic_cos_A: np.ndarray  # (n, K)
+    load_friction_A_per_Nm: np.ndarray  # k_L/K_t
+    offset_A: np.ndarray
+    drift_change: np.ndarray  # relative friction change at t → ∞
+    drift_time_constant_s: np.ndarray  # inf: no drift
+    back_emf_knee_rad_s: np.ndarray
+    scratch: np.ndarray  # (2, n, K)
+
+    @classmethod
+    def from_config(cls, cfg: Config) -> EffectArrays | None:
+        from .config import JointEffects
+
+        js = cfg.joints
+        effs = [j.effects for j in js]
+        if all(e == JointEffects() for e in effs):
+            return None
+        n, k = len(js), max([len(e.position_periodic) for e in effs] + [1])
+        cyc, sa, ca = np.zeros((n, k)), np.zeros((n, k)), np.zeros((n, k))
+        for i, e in enumerate(effs):
+            for h, term in enumerate(e.position_periodic):
+                cyc[i, h], sa[i, h], ca[i, h] = term.cycles_per_rev, term.sin_A, term.cos_A
+        td = [e.temperature_drift for e in effs]
+        return cls(periodic_cycles=cyc, periodic_sin_A=sa, periodic_cos_A=ca,
+                   load_friction_A_per_Nm=np.array([e.load_friction_per_Nm / j.kt_Nm_per_A for e, j in zip(effs, js)]),
+                   offset_A=np.array([e.current_offset_A for e in effs], dtype=float),
+                   drift_change=np.array([0.0 if d is None else d.friction_change for d in td]),
+                   drift_time_constant_s=np.array([np.inf if d is None else d.time_constant_s for d in td]),
+                   back_emf_knee_rad_s=np.array([0.0 if e.back_emf is None else e.back_emf.knee_rad_s for e in effs]),
+                   scratch=np.zeros((2, n, k)))
 
 
 class Workspace:
@@ -151,9 +220,11 @@ class LawOutput:
     damping_A: np.ndarray
     clamped: np.ndarray  # bool
 
+    effects_A: np.ndarray | None = None  # model-gap effects (docs/GAP.md)
+
     @classmethod
     def zeros(cls, n: int) -> LawOutput:
-        return cls(*(np.zeros(n) for _ in range(6)), clamped=np.zeros(n, dtype=bool))
+        return cls(*(np.zeros(n) for _ in range(6)), clamped=np.zeros(n, dtype=bool), effects_A=np.zeros(n))
 
 
 def _out(out: np.ndarray | None, n: int) -> np.ndarray:
@@ -234,9 +305,111 @@ def startup_weight(dq_rad_s: np.ndarray, p: LawParams, out: np.ndarray | None = 
     return out
 
 
+BREAKOUT_RAMP_S = 0.005  # the sine blends into (and back out of) the held peak over this time
+STILL_FRACTION = 0.25  # "still" (for re-arming the latch) is |q̇| below this fraction of Φ
+
+
+class BreakoutState:
+    """Per-joint state of the break-out latch (allocate once; ``breakout_update`` advances it each cycle)."""
+
+    def __init__(self, n: int) -> None:
+        self.anchor_rad = np.zeros(n)  # where the joint settled (valid while armed)
+        self.armed = np.zeros(n, dtype=bool)
+        self.still_since_s = np.zeros(n)
+        self.latch = np.zeros(n)  # −1, 0, +1: the direction held
+        self.latch_t0_s = np.zeros(n)
+        self.held = np.zeros(n)  # direction of the blend (kept while the blend fades out)
+        self.weight = np.zeros(n)  # blend sine → held peak, in [0, 1]
+        self.latches = np.zeros(n, dtype=np.int64)  # count of latches fired, per joint
+        self.t_prev_s = 0.0
+        self._m = np.zeros(n, dtype=bool)
+        self._k = np.zeros(n, dtype=bool)
+        self._x = np.zeros(n)
+        self.speed = np.zeros(n)
+        self.active = False  # a latch or its blend is under way somewhere
+        self.fade_end_rad_s = np.zeros(n)  # Φ + width; thresholds filled by ``configure``
+        self.still_rad_s = np.zeros(n)
+        self.slip_rad = np.full(n, np.inf)
+
+    def configure(self, p: LawParams) -> BreakoutState:
+        """Precompute the thresholds of ``p`` (once, outside the cycle)."""
+        np.add(p.rest_threshold_rad_s, p.fade_width_rad_s, out=self.fade_end_rad_s)
+        np.multiply(p.rest_threshold_rad_s, STILL_FRACTION, out=self.still_rad_s)
+        self.slip_rad[:] = np.where(p.breakout_slip_rad > 0.0, p.breakout_slip_rad, np.inf)
+        return self
+
+    def reset(self, t_s: float) -> None:
+        """Disarm everything (entering drag): the latch arms once each joint has been still for ``settle_s``."""
+        self.armed.fill(False)
+        self.still_since_s.fill(t_s)
+        self.latch.fill(0.0)
+        self.held.fill(0.0)
+        self.weight.fill(0.0)
+        self.active = False
+        self.t_prev_s = t_s
+
+
+def breakout_update(q_rad: np.ndarray, dq_rad_s: np.ndarray, t_s: float, p: LawParams, st: BreakoutState) -> None:
+    """Advance the break-out latch by one cycle (allocation-free; a dozen ufuncs while nothing is latched)."""
+    m, k, x, speed = st._m, st._k, st._x, st.speed
+    dt = max(t_s - st.t_prev_s, 0.0)
+    st.t_prev_s = t_s
+    np.abs(dq_rad_s, out=speed)
+    if st.active:
+        # a latch ends after its hold time, or once the joint is past the fade (friction compensation has it)
+        np.subtract(t_s, st.latch_t0_s, out=x)
+        np.greater_equal(x, p.breakout_hold_s, out=m)
+        np.greater(speed, st.fade_end_rad_s, out=k)
+        m |= k
+        np.not_equal(st.latch, 0.0, out=k)
+        m &= k
+        np.copyto(st.latch, 0.0, where=m)
+        np.copyto(st.still_since_s, t_s, where=m)
+    # clear motion (|q̇| > Φ) disarms; any motion above the still level restarts the settle time
+    np.less_equal(speed, p.rest_threshold_rad_s, out=k)
+    st.armed &= k
+    np.greater(speed, st.still_rad_s, out=k)
+    np.copyto(st.still_since_s, t_s, where=k)
+    # arm where still for settle_s and not latched: the anchor is where the joint settled
+    if not st.armed.all():
+        np.subtract(t_s, st.still_since_s, out=x)
+        np.greater_equal(x, p.settle_s, out=m)
+        np.equal(st.latch, 0.0, out=k)
+        m &= k
+        np.greater(m, st.armed, out=m)  # m and not armed
+        np.copyto(st.anchor_rad, q_rad, where=m)
+        st.armed |= m
+    # fire where an armed joint crept beyond the slip distance (slip 0: latch off)
+    np.subtract(q_rad, st.anchor_rad, out=x)
+    np.abs(x, out=speed)
+    np.greater(speed, st.slip_rad, out=m)
+    m &= st.armed
+    if m.any():
+        np.sign(x, out=x)
+        np.copyto(st.latch, x, where=m)
+        np.copyto(st.held, x, where=m)
+        np.copyto(st.latch_t0_s, t_s, where=m)
+        np.greater(st.armed, m, out=st.armed)  # armed and not fired
+        st.latches += m
+        st.active = True
+    if st.active:  # the blend weight moves toward 1 while latched, toward 0 after
+        step = dt / BREAKOUT_RAMP_S
+        np.not_equal(st.latch, 0.0, out=m)
+        np.add(st.weight, step, out=x)
+        np.subtract(st.weight, step, out=speed)
+        np.logical_not(m, out=k)
+        np.copyto(x, speed, where=k)
+        np.clip(x, 0.0, 1.0, out=st.weight)
+        st.active = bool(m.any() or st.weight.any())
+
+
 def startup_current(t_s: float, dq_rad_s: np.ndarray, p: LawParams, out: np.ndarray | None = None,
-                    ws: Workspace | None = None, rest_weight: np.ndarray | None = None) -> np.ndarray:
-    """Seed 001's start-up term A_d·sin(2πft) for joints at rest, faded out over [Φ, Φ + width]."""
+                    ws: Workspace | None = None, rest_weight: np.ndarray | None = None,
+                    breakout: BreakoutState | None = None) -> np.ndarray:
+    """Seed 001's start-up term A_d·sin(2πft) for joints at rest, faded out over [Φ, Φ + width].
+
+    With ``breakout`` (and ``use_breakout``) the waveform blends into the held peak of a latched joint.
+    """
     n = dq_rad_s.shape[0]
     out = _out(out, n)
     ws = ws or Workspace(n)
@@ -246,6 +419,10 @@ def startup_current(t_s: float, dq_rad_s: np.ndarray, p: LawParams, out: np.ndar
     np.sin(s, out=s)
     if p.startup_square:
         np.sign(s, out=s)
+    if breakout is not None and p.use_breakout:  # s += w·(held − s)
+        np.subtract(breakout.held, s, out=a)
+        a *= breakout.weight
+        s += a
     np.greater_equal(s, 0.0, out=pos)
     np.copyto(a, p.startup_amp_neg_A)
     np.copyto(a, p.startup_amp_pos_A, where=pos)
@@ -255,9 +432,67 @@ def startup_current(t_s: float, dq_rad_s: np.ndarray, p: LawParams, out: np.ndar
 
 
 def back_emf_current(dq_rad_s: np.ndarray, p: LawParams, out: np.ndarray | None = None) -> np.ndarray:
-    """Back-EMF headroom K_b·n·q̇/R_m (inverse of seed 000 eq. 26)."""
+    """Back-EMF headroom K_b·n·q̇/R_m (inverse of seed 000 eq. 26); with a knee (an identified effect, docs/GAP.md)
+    K_b·n/R_m·(|q̇| − knee)⁺·sign q̇."""
     out = _out(out, dq_rad_s.shape[0])
+    if p.effects is not None:
+        np.abs(dq_rad_s, out=out)
+        out -= p.effects.back_emf_knee_rad_s
+        np.maximum(out, 0.0, out=out)
+        np.copysign(out, dq_rad_s, out=out)
+        out *= p.back_emf_A_s_per_rad
+        return out
     np.multiply(p.back_emf_A_s_per_rad, dq_rad_s, out=out)
+    return out
+
+
+def effects_current(q_rad: np.ndarray, dq_rad_s: np.ndarray, tau_g_Nm: np.ndarray, t_s: float, p: LawParams,
+                    friction_A: np.ndarray, out: np.ndarray | None = None, ws: Workspace | None = None,
+                    rest_weight: np.ndarray | None = None) -> np.ndarray:
+    """The model-gap effects' current (docs/GAP.md): position-periodic + load-dependent friction + offset + the
+    warm-up drift of ``friction_A`` (the friction term already evaluated). Friction-like terms carry the friction
+    term's smooth zero crossing, start-up fade and ``friction_scale``."""
+    n = dq_rad_s.shape[0]
+    out = _out(out, n)
+    e = p.effects
+    if e is None:
+        out.fill(0.0)
+        return out
+    ws = ws or Workspace(n)
+    a, b = ws.a, ws.b
+    ph, tmp = e.scratch[0], e.scratch[1]
+    np.multiply(e.periodic_cycles, q_rad[:, None], out=ph)
+    np.sin(ph, out=tmp)
+    tmp *= e.periodic_sin_A
+    np.sum(tmp, axis=1, out=out)
+    np.cos(ph, out=tmp)
+    tmp *= e.periodic_cos_A
+    np.sum(tmp, axis=1, out=a)
+    out += a
+    out += e.offset_A
+    if p.use_friction:
+        # load-dependent friction: w·(1 − r)·sign(q̇)·k_L·|G|/K_t·scale, w as in friction_current
+        np.abs(dq_rad_s, out=b)
+        b -= p.deadband_rad_s
+        np.maximum(b, 0.0, out=b)
+        b /= p.smoothing_rad_s
+        np.tanh(b, out=b)
+        if rest_weight is not None:
+            np.subtract(1.0, rest_weight, out=a)
+            b *= a
+        np.abs(tau_g_Nm, out=a)
+        a *= e.load_friction_A_per_Nm
+        a *= b
+        np.copysign(a, dq_rad_s, out=a)
+        a *= p.friction_scale
+        out += a
+        # warm-up drift of the friction term: I_f·Δ·(1 − e^(−t/τ))
+        np.divide(-t_s, e.drift_time_constant_s, out=a)
+        np.exp(a, out=a)
+        np.subtract(1.0, a, out=a)
+        a *= e.drift_change
+        a *= friction_A
+        out += a
     return out
 
 
@@ -286,8 +521,13 @@ def clamp_current(current_A: np.ndarray, limit_A: np.ndarray, out: np.ndarray | 
 
 def compensate(tau_g_Nm: np.ndarray, dq_rad_s: np.ndarray, t_s: float, p: LawParams,
                out: LawOutput | None = None, ws: Workspace | None = None,
-               extra_A: np.ndarray | None = None) -> LawOutput:
-    """Evaluate every enabled term and the clamped total. ``extra_A`` (e.g. safety walls) adds before the clamp."""
+               extra_A: np.ndarray | None = None, breakout: BreakoutState | None = None,
+               q_rad: np.ndarray | None = None) -> LawOutput:
+    """Evaluate every enabled term and the clamped total. ``extra_A`` (e.g. safety walls) adds before the clamp.
+
+    ``breakout``: the latch state, advanced by the caller with :func:`breakout_update` in its estimate step.
+    ``q_rad``: joint positions, for the model-gap effects (``p.effects``; position-periodic terms need q).
+    """
     n = dq_rad_s.shape[0]
     out = out or LawOutput.zeros(n)
     ws = ws or Workspace(n)
@@ -298,13 +538,16 @@ def compensate(tau_g_Nm: np.ndarray, dq_rad_s: np.ndarray, t_s: float, p: LawPar
     rest = None
     if p.use_startup:
         rest = startup_weight(dq_rad_s, p, ws.rest, ws)
-        startup_current(t_s, dq_rad_s, p, out.startup_A, ws, rest)
+        startup_current(t_s, dq_rad_s, p, out.startup_A, ws, rest, breakout)
     else:
         out.startup_A.fill(0.0)
     if p.use_friction:
         friction_current(dq_rad_s, p, out.friction_A, ws, rest)
     else:
         out.friction_A.fill(0.0)
+    if p.effects is not None and out.effects_A is not None:
+        effects_current(q_rad if q_rad is not None else ws.c * 0.0, dq_rad_s, tau_g_Nm, t_s, p, out.friction_A,
+                        out.effects_A, ws, rest)
     if p.use_back_emf:
         back_emf_current(dq_rad_s, p, out.back_emf_A)
     else:
@@ -318,6 +561,8 @@ def compensate(tau_g_Nm: np.ndarray, dq_rad_s: np.ndarray, t_s: float, p: LawPar
     total += out.startup_A
     total += out.back_emf_A
     total += out.damping_A
+    if p.effects is not None and out.effects_A is not None:
+        total += out.effects_A
     if extra_A is not None:
         total += extra_A
     clamp_current(total, p.current_limit_A, out.current_A, out.clamped)

@@ -199,3 +199,80 @@ def test_square_wave_and_abrupt_switch_options(params):
     step_fade = compensate(g, np.full(6, 1.01 * phi), 0.0, params).current_A - compensate(
         g, np.full(6, 0.99 * phi), 0.0, params).current_A
     assert np.abs(step_abrupt).max() > 0.3 and np.abs(step_fade).max() < 0.01
+
+
+def _latch_run(params, q_of_t, seconds: float, dq_of_t=None):
+    """Drive the break-out latch and the start-up term along q(t) at 1 kHz; the per-cycle start-up current."""
+    from dragd.law import BreakoutState, breakout_update
+
+    st = BreakoutState(6).configure(params)
+    st.reset(0.0)
+    out = []
+    for k in range(int(seconds * 1000)):
+        t = k * 1e-3
+        q = q_of_t(t)
+        dq = dq_of_t(t) if dq_of_t else np.zeros(6)
+        breakout_update(q, dq, t, params, st)
+        out.append(startup_current(t, dq, params, None, None, None, st).copy())
+    return np.array(out), st
+
+
+def _sine_term(params, j, t):
+    sine = np.sin(2 * np.pi * params.startup_freq_Hz[j] * t)
+    return np.where(sine >= 0, params.startup_amp_pos_A[j], params.startup_amp_neg_A[j]) * sine
+
+
+def test_breakout_latch_holds_the_peak_of_a_creeping_joint(params):
+    from dragd.law import BREAKOUT_RAMP_S
+
+    slip = params.breakout_slip_rad[0]
+    amp = params.startup_amp_pos_A[0]
+
+    def q(t):  # joint 1 creeps forward by micro-slips from t = 0.5 s; the others stay put
+        x = np.zeros(6)
+        x[0] = 0.0 if t < 0.5 else 0.4 * slip * np.floor((t - 0.5) / 0.0625 + 1)
+        return x
+
+    s, st = _latch_run(params, q, 1.0)
+    t = np.arange(1000) * 1e-3
+    assert st.latches[0] == 1 and st.latches[1:].sum() == 0
+    k = int(np.flatnonzero(np.array([q(x)[0] for x in t]) > slip)[0])  # the cycle it crept past the slip distance
+    assert np.allclose(s[:k, 0], _sine_term(params, 0, t[:k]))  # the plain sine before
+    hold = int(round(params.breakout_hold_s[0] * 1000))
+    ramp = int(round(BREAKOUT_RAMP_S * 1000))
+    # the sine blends into the held peak in the creep's direction and stays there for the hold time ...
+    assert np.allclose(s[k + ramp:k + hold, 0], amp)
+    # ... then blends back (no further creep: the arm did not follow) and stays the sine
+    assert np.allclose(s[k + hold + ramp + 1:, 0], _sine_term(params, 0, t[k + hold + ramp + 1:]))
+    # never a step: at most the sine's own slope plus the blend's 2·A per ramp time
+    assert np.abs(np.diff(s[:, 0])).max() <= 2 * np.pi * 16 * amp * 1e-3 + 2 * amp * 1e-3 / BREAKOUT_RAMP_S + 1e-9
+    for j in range(1, 6):  # the other joints never left the sine
+        assert np.allclose(s[:, j], _sine_term(params, j, t))
+
+
+def test_breakout_latch_ignores_a_joint_coasting_to_rest_and_can_be_switched_off(params):
+    slip = params.breakout_slip_rad[0]
+
+    def q(t):  # decelerating from 0.05 rad/s to rest over 0.2 s (well beyond the slip distance), then still
+        x = np.zeros(6)
+        x[0] = 0.05 * min(t, 0.2) - 0.125 * min(t, 0.2) ** 2
+        return x
+
+    def dq(t):
+        v = np.zeros(6)
+        v[0] = max(0.05 - 0.25 * t, 0.0)
+        return v
+
+    assert q(1.0)[0] > 100 * slip
+    _, st = _latch_run(params, q, 1.0, dq)
+    assert st.latches.sum() == 0  # it moved while disarmed, then settled: armed at the new place
+    assert st.armed.all() and st.anchor_rad[0] == pytest.approx(q(1.0)[0])
+    off = params.replace(use_breakout=False)
+
+    def creep(t):
+        x = np.zeros(6)
+        x[0] = 10 * slip * t
+        return x
+
+    s, _ = _latch_run(off, creep, 0.6)
+    assert np.allclose(s[:, 0], _sine_term(params, 0, np.arange(600) * 1e-3))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -13,7 +15,7 @@ import numpy as np
 import yaml
 
 from ..config import Config, default_config_path, load_config
-from ..procs import Rig, wait_until
+from ..procs import REPO, Rig, wait_until
 from ..telemetry import read_rows
 
 BREAKAWAY_THRESHOLD_RAD = 0.002  # a joint that moved this far has started (0.11°)
@@ -80,6 +82,32 @@ class Bench:
                     rig.call("stop")
             finally:
                 rig.close()
+
+    def identify_on_sim(self, scale: float = 0.3) -> Path:
+        """Identify K_t and friction the way a user would (issue 5), and use only that from now on.
+
+        The excitation is seed 001's friction plan from the arm's pose; the log comes from ``python -m sim log``
+        (the simulated arm driven through the same CSP path as ``dragd identify run``, faster than real time);
+        ``dragd identify fit`` turns it into the params file. Nothing here reads the simulator's truth.
+        """
+        out = self.workdir / "identified.yaml"
+        with self.rig("pose") as rig:
+            q = rig.must("status")["q_rad"]
+        plan, log = self.workdir / "ident_plan.npz", self.workdir / "ident.mcap"
+        cfg = ["--config", str(self.config)]
+        start = "--start=" + ",".join(f"{x:.6f}" for x in q)
+        self.say("identification: friction plan, log, fit ...")
+        for argv in ([sys.executable, "-m", "dragd", "identify", "plan", "--kind", "friction", "--scale", str(scale),
+                      start, "--out", str(plan), *cfg],
+                     [sys.executable, "-m", "sim", "log", "--plan", str(plan), "--out", str(log),
+                      "--dragd-config", str(self.config)],
+                     [sys.executable, "-m", "dragd", "identify", "fit", "--log", str(log), "--out", str(out), *cfg]):
+            p = subprocess.run(argv, capture_output=True, text=True, cwd=str(REPO))
+            if p.returncode != 0:
+                raise RuntimeError(f"identification step failed ({' '.join(argv[2:5])}): {p.stderr.strip()[-2000:]}")
+        self.params = out
+        self.cfg = load_config(self.config, out)
+        return out
 
     def static_Nm(self, joint: int) -> float:
         """The believed static friction of a joint [N·m] (from config/params), to scale the ramps."""

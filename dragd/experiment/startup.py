@@ -20,6 +20,7 @@ from ..config import ParamsFile, load_params, save_params
 from .bench import Bench, handover_step_A, oscillation_deg, ramp_breakaway, record, wait_rest
 
 OSCILLATION_LIMIT_DEG = 0.06  # seed 001: the oscillation range at the chosen frequency stays below it
+RAMP_S = 10.0  # seconds the load ramp takes to reach the believed static friction
 DEFAULT_FREQUENCIES_HZ = (2.0, 4.0, 8.0, 12.0, 16.0, 20.0, 25.0, 30.0, 40.0)
 
 
@@ -32,11 +33,11 @@ def _starting_torques(bench: Bench, rig: Any, joints: list[int], reps: int, rows
     for j in joints:
         name = bench.cfg.joints[j].name
         fs = bench.static_Nm(j)
-        rate = fs / 4.0  # about 4 s to the believed static level
+        rate = fs / RAMP_S  # a slow ramp (the seed adds weights one by one): RAMP_S to the believed static level
         loads = []
         for r in range(reps):
             sign = 1 if r % 2 == 0 else -1
-            ev = ramp_breakaway(rig, name, sign, rate, timeout_s=12.0)
+            ev = ramp_breakaway(rig, name, sign, rate, timeout_s=1.5 * RAMP_S)
             if ev["kind"] != "breakaway":
                 raise RuntimeError(f"{name}: no breakaway within the ramp ({ev['kind']}: {ev})")
             loads.append(abs(float(ev["torque_Nm"])))
