@@ -134,6 +134,10 @@ class JointEffects(_Strict):
     back_emf: BackEmfEffect | None = None
     armature_kgm2: NonNegFloat | None = None  # inertia: rotor inertia at the joint (with the URDF's dynamics)
     backlash_rad: NonNegFloat | None = None  # lost motion between rotor and output (simulation/prediction only)
+    backlash_inertia_kgm2: NonNegFloat | None = None  # ... the rotor inertia it decouples from fast output motion
+    backlash_cutoff_Hz: PosFloat | None = None  # ... above which the output moves without the rotor
+    # ... and the drive's position loop answering the output's excursions in the play [A/rad, A·s/rad]
+    backlash_loop_A_per_rad: tuple[Finite, Finite] | None = None
 
 
 class Payload(_Strict):
@@ -203,7 +207,7 @@ class LawConfig(_Strict):
     friction_smoothing_rad_s: PosFloat = 0.005  # tanh width of the zero crossing
     friction_deadband_rad_s: NonNegFloat = 0.0  # seed 000's v_lim: no friction compensation inside ±v_lim
     friction_scale: Annotated[float, Field(ge=0, le=1.2), Expect("a factor in [0, 1.2]")] = 0.9  # < 1: no run-away
-    startup_scale: NonNegFloat = 0.8  # default start-up amplitude = scale × believed static friction level
+    startup_scale: NonNegFloat = 0.9  # default start-up amplitude = scale × believed static friction level
     startup_waveform: Literal["sine", "square"] = "sine"  # square: the peers' dither, for comparison
     startup_handover: Literal["fade", "abrupt"] = "fade"  # abrupt: seed 001 eq. 28's switch at Φ, for comparison
     velocity_filter_Hz: Annotated[float, Field(gt=0, le=500), Expect("a cutoff in (0, 500] Hz")] = 40.0

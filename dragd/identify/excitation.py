@@ -18,6 +18,8 @@ Kinds (each after its seed paper):
 * ``fourier`` (Swevers et al.): a periodic band-limited trajectory q(t) = q₀ + Σₗ aₗ/(lω) sin(lωt) − bₗ/(lω) cos(lωt)
   whose coefficients are optimised for the condition number of the per-joint base regressors (rigid body +
   armature + friction), starting and ending each period at rest; for the full-dynamics method.
+* ``gap`` (``dragd gap``, docs/GAP.md): all joints together over the same span, A→B→A at several speeds in several
+  gravity poses — every joint slides at each speed through the same positions in both directions.
 * ``standard``: synchronous + symmetric + friction (what ``auto`` identification wants), ``all``: every kind.
 """
 
@@ -31,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-PLAN_KINDS = ("lowspeed", "symmetric", "friction", "synchronous", "fourier", "standard", "all")
+PLAN_KINDS = ("lowspeed", "symmetric", "friction", "synchronous", "fourier", "gap", "standard", "all")
 DEG = math.pi / 180.0
 
 
@@ -387,6 +389,28 @@ def add_synchronous(b: PlanBuilder, joints: list[int], speeds: tuple[float, ...]
         b.transition(home)
 
 
+def add_gap(b: PlanBuilder, speeds: tuple[float, ...] = (0.2, 0.35, 0.5), half_range: float = 0.5, poses: int = 2,
+            rng: np.random.Generator | None = None) -> None:
+    """Model-gap passes: every joint spans ±``half_range`` about a pose at the same speed (all start and stop together),
+    A→B→A at each speed; ``poses`` centre poses (the first: the start) so that gravity loads differ between passes."""
+    rng = rng or np.random.default_rng(5)
+    home = b.q.copy()
+    L = b.limits
+    for k in range(poses):
+        centre = home if k == 0 else L.clip(home + rng.uniform(-0.6, 0.6, L.n))
+        a, z = np.empty(L.n), np.empty(L.n)
+        for j in range(L.n):
+            lo, hi = _range(L, j, centre[j], half_range)
+            a[j], z[j] = (lo, hi) if rng.random() < 0.5 else (hi, lo)
+        b.transition(a)
+        for v in speeds:
+            b.move(z, speed=v, kind="gap", note=f"pose {k}, {v:g} rad/s forward")
+            b.hold(0.3)
+            b.move(a, speed=v, kind="gap", note=f"pose {k}, {v:g} rad/s backward")
+            b.hold(0.3)
+    b.transition(home)
+
+
 # ------------------------------------------------------------------------------------------ Fourier
 
 
@@ -509,6 +533,8 @@ def build_plan(kind: str, model: Any, q_start: np.ndarray, limits: Limits, joint
         elif k == "friction":
             speeds = FRICTION_SPEEDS if scale >= 1 else FRICTION_SPEEDS[:: max(1, int(round(1 / scale)))]
             add_friction(b, js, speeds=speeds, cruise_s=3.0 if scale >= 1 else 2.0)
+        elif k == "gap":
+            add_gap(b, poses=max(1, int(round(3 * scale))), rng=rng)
         elif k == "synchronous":
             sp = (0.1, 0.2, 0.3, 0.5) if scale >= 1 else (0.15, 0.4)
             add_synchronous(b, js, speeds=sp, cycles=2 if scale >= 1 else 1)

@@ -1,0 +1,94 @@
+"""CLI of the model-gap workflow: ``dragd gap --measured FILE [--robot R] [--model params.yaml] [--out params.yaml]
+[--report DIR] [--json]`` (docs/GAP.md)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from .cli import CliError, _add_config, _emit, _table
+
+
+def cmd_gap(args: argparse.Namespace) -> int:
+    from .config import load_config, load_params, save_params
+    from .gap.effects import NAMES
+    from .gap.run import analyse
+    from .identify.data import LogError, load_log
+    from .model import RobotModel
+
+    cfg = load_config(args.config)
+    try:
+        model = RobotModel.from_urdf(args.robot) if args.robot else RobotModel.from_urdf(cfg.robot.urdf, cfg.base_dir,
+                                                                                        cfg.robot.gravity_m_s2)
+    except (FileNotFoundError, ValueError) as exc:
+        raise CliError(f"--robot: {exc}") from None
+    if list(model.joint_names) != cfg.joint_names:
+        raise CliError(f"{cfg.source}: joints {', '.join(cfg.joint_names)} differ from the robot's "
+                       f"{', '.join(model.joint_names)}; give --config for this robot")
+    params = load_params(args.model) if args.model else None
+    effects = None
+    if args.effects:
+        effects = tuple(e.strip() for e in args.effects.split(",") if e.strip())
+        bad = [e for e in effects if e not in NAMES]
+        if bad:
+            raise CliError(f"--effects: unknown {', '.join(bad)}; expected some of {', '.join(NAMES)}")
+    try:
+        log = load_log(args.measured)
+        res = analyse(log, model, cfg, params, effects)
+    except LogError as exc:
+        raise CliError(str(exc)) from None
+    data = res.to_json()
+    if args.out:
+        save_params(res.params, Path(args.out))
+        data["out"] = str(args.out)
+    if args.report:
+        from .gap.report import write
+
+        data.update(write(res, args.report, str(args.measured), str(args.model) if args.model else None,
+                          str(args.out) if args.out else None))
+
+    def text(d: dict[str, Any]) -> str:
+        def ma(x: Any) -> str:
+            return "—" if x is None else f"{x * 1e3:.1f}"
+
+        lines = [f"{args.measured}: baseline ({d['baseline']['kind']}) RMSE {ma(d['baseline']['rmse_A'])} mA → "
+                 f"{ma(d['final']['rmse_A'])} mA (noise {ma(d['final']['noise_A'])} mA)"]
+        if d["effects"]:
+            lines.append(_table(["effect", "joints", "RMSE after mA"],
+                                [(e["effect"], ",".join(e["joints"]), ma(e["rmse_A"])) for e in d["effects"]]))
+        else:
+            lines.append("nothing missing: no effect improves the held-out error")
+        rows = [(nm, ma(v["rmse_A"]), ma(d["final"]["joints"][nm]["rmse_A"]), ma(v["noise_A"]))
+                for nm, v in d["baseline"]["joints"].items()]
+        lines.append(_table(["joint", "before mA", "after mA", "noise mA"], rows))
+        if d.get("out"):
+            lines.append(f"extended model: {d['out']}")
+        if d.get("report"):
+            lines.append(f"report: {d['report']}")
+        lines += [f"warning: {w}" for w in d.get("warnings", [])]
+        return "\n".join(lines)
+
+    if args.json:  # exactly the issue's keys at the top, the rest under them
+        data = {"baseline": data["baseline"], "effects": data["effects"], "final": data["final"],
+                **{k: v for k, v in data.items() if k not in ("baseline", "effects", "final")}}
+    _emit(args, data, text)
+    return 0
+
+
+def register(sub: Any) -> None:
+    from .gap.effects import NAMES
+
+    p = sub.add_parser("gap", help="model gap: where model and measurement disagree, the missing effect named, added, "
+                                   "the gap shown shrinking (docs/GAP.md)")
+    p.add_argument("--measured", required=True, help="measured log: MCAP (dragd telemetry, TRACK rows) or CSV "
+                                                     "t,q1..qN,i1..iN[,dq1..dqN]")
+    p.add_argument("--robot", help="bundled robot name or URDF path (default: the configuration's robot)")
+    p.add_argument("--model", help="params file of the model to check (default: seed 000's G/K_t + Coulomb levels "
+                                   "fitted on the log)")
+    p.add_argument("--out", help="write the extended model (params YAML: the daemon, `dragd model` and the sim load it)")
+    p.add_argument("--report", help="directory for the report (report.md, PNG residual plots before/after)")
+    p.add_argument("--effects", help=f"candidates to consider (default all): {','.join(NAMES)}")
+    _add_config(p, params=False)
+    p.add_argument("--json", action="store_true", help="print JSON: baseline, effects, final (+ details)")
+    p.set_defaults(func=cmd_gap)

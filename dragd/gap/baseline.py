@@ -1,0 +1,107 @@
+"""The baseline: the model as given (a params file over the configuration) or seed 000's structure fitted on the data.
+
+Given model, per joint j (amperes, work rate):
+
+    î_j = G_j(q; payload)/K_t + I_f(q̇) [+ (M(q)q̈ + C q̇)_j/K_t + J_a·q̈_j/K_t when it has ``effects.armature_kgm2``]
+          + the params' effects (position-periodic, load friction, offset, drift × I_f, back-EMF knee term)
+
+with I_f dragd's friction law (dragd/law.py, ``friction_scale`` 1: the friction *model*, not the drag setting).
+Seed 000 (no ``--model``): î_j = a_j·G_j(q) + F_+·[q̇ > 0] + F_−·[q̇ < 0] with a_j = 1/K_t and the two levels
+fitted on the data (nothing else) — they stay free while effects are added.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .context import GapData
+from .effects import CATALOGUE, ModelInfo, PayloadMass, weight
+
+
+@dataclass
+class Baseline:
+    """The fixed part of the model, and (seed 000) the free base columns per joint."""
+
+    kind: str  # "given" or "seed000"
+    fixed: np.ndarray  # (T, n) A
+    free: list[np.ndarray | None]  # per joint (T, k) unfiltered free columns, or None
+    free_names: list[list[str]]
+    kt: np.ndarray  # (n,) N·m/A used to turn currents into torques
+    kt_known: np.ndarray  # (n,) bool: from the params file / determined by the data
+    friction_A: np.ndarray  # (T, n) friction current of the model
+    has_inertia: np.ndarray  # (n,) bool
+    coulomb_A: list[tuple[float, float]]
+    params: dict[str, Any]  # the params file (mapping) the extended model is written into
+
+    def info(self) -> ModelInfo:
+        return ModelInfo(self.kt, self.friction_A, self.has_inertia, self.coulomb_A)
+
+
+def given(d: GapData, params: Any, cfg: Any) -> Baseline:
+    """The model of a params file overlaid on the configuration ``cfg`` (K_t/friction the file leaves null)."""
+    from dragd.config import apply_params
+    from dragd.identify.check import law_from_params
+    from dragd.law import Workspace, friction_current
+
+    law, _ = law_from_params(params, d.names, cfg)
+    cfg2 = apply_params(cfg, params, "params")
+    kt = np.array([j.kt_Nm_per_A for j in cfg2.joints])
+    fr = np.empty_like(d.p.dq)
+    friction_current(d.p.dq, law, fr, Workspace(d.p.dq.shape))
+    pf = params.model_dump(mode="json")
+    pred = d.G / kt + fr
+    has_inertia = np.zeros(d.n, dtype=bool)
+    for j, nm in enumerate(d.names):
+        jp = pf["joints"].get(nm, {})
+        for name, eff in CATALOGUE.items():
+            if name == "temperature_drift":
+                x = eff.predict(d, j, jp, kt[j])
+                if x is not None:
+                    pred[:, j] += x * fr[:, j]
+                continue
+            x = eff.predict(d, j, jp, kt[j])
+            if x is not None:
+                pred[:, j] += x
+                has_inertia[j] |= name == "inertia"
+    pl = PayloadMass.predict_all(d, pf.get("payload"), kt)
+    if pl is not None:
+        pred += pl
+    coul = [(float(law.coulomb_pos_A[j]), float(law.coulomb_neg_A[j])) for j in range(d.n)]
+    return Baseline("given", pred, [None] * d.n, [[] for _ in range(d.n)], kt, np.ones(d.n, dtype=bool), fr,
+                    has_inertia, coul, pf)
+
+
+def seed000(d: GapData, cfg: Any) -> Baseline:
+    """Seed 000's structure: a·G + direction levels per joint, free (fitted with the effects on the data)."""
+    free, names = [], []
+    for j in range(d.n):
+        w = weight(d.p.dq[:, j])
+        cols = [w * (d.p.dq[:, j] > 0), w * (d.p.dq[:, j] < 0)]
+        nm = ["coulomb_pos_A", "coulomb_neg_A"]
+        if np.ptp(d.G[:, j]) > 1.0:  # N·m of gravity change: a/K_t determinable
+            cols.insert(0, d.G[:, j])
+            nm.insert(0, "inv_kt")
+        free.append(np.column_stack(cols))
+        names.append(nm)
+    kt = np.array([jc.kt_Nm_per_A for jc in cfg.joints])
+    pf = {"version": 1, "method": "gap", "robot": None, "joints": {nm: {} for nm in d.names}}
+    return Baseline("seed000", np.zeros((d.T, d.n)), free, names, kt, np.zeros(d.n, dtype=bool),
+                    np.zeros((d.T, d.n)), np.zeros(d.n, dtype=bool), [(0.0, 0.0)] * d.n, pf)
+
+
+def update_seed000(b: Baseline, d: GapData, j: int, theta: np.ndarray) -> None:
+    """After a fit: the free base coefficients of joint j → K_t (when determined), levels, friction current."""
+    names = b.free_names[j]
+    th = dict(zip(names, theta[:len(names)]))
+    a = th.get("inv_kt")
+    if a is not None and a > 0:
+        b.kt[j] = 1.0 / a
+        b.kt_known[j] = True
+    cp, cn = float(th["coulomb_pos_A"]), float(th["coulomb_neg_A"])
+    b.coulomb_A[j] = (cp, cn)
+    X = b.free[j]
+    k = len(names)
+    b.friction_A[:, j] = X[:, k - 2] * cp + X[:, k - 1] * cn

@@ -1,0 +1,139 @@
+"""The measured log prepared for the gap workflow: dragd/identify's loading and filtering, plus the rigid-body terms,
+the evaluation mask, the passes (cross-validation groups) and the noise level of each joint's current.
+
+Rates: the log is brought to the work rate (≤ 200 Hz, anti-aliased, dragd.identify.data.prepare); fits use the
+regression filter H (zero-phase, 5 Hz) on both sides and decimated rows, as identification does; RMSE figures
+are against the **raw** current at the log's own rate (the prediction interpolated onto its samples).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+
+from dragd.identify.data import Log, Prepared, prepare, sliding
+from dragd.identify.regressors import RegressorModel
+
+V_SLIDE = 0.01  # rad/s: a joint slides above this (evaluation mask)
+GUARD_S = 0.1  # ... for ± this long (stiction, reversal instants and rests are not evaluated)
+V_REST = 0.01  # rad/s: the arm rests when every joint is below this (pass boundaries)
+FOLDS = 5
+
+
+@dataclass
+class GapData:
+    """A log at the work rate with everything the catalogue's regressors are built from."""
+
+    log: Log
+    p: Prepared
+    names: list[str]
+    robot: Any
+    G: np.ndarray  # (T, n) gravity torque of the URDF [N·m]
+    tau_dyn: np.ndarray  # (T, n) URDF rigid-body torque minus gravity: M(q)q̈ + C(q, q̇)q̇ [N·m]
+    t_rel: np.ndarray  # (T,) s since the log's first sample
+    slide: np.ndarray  # (T, n) bool: the joint slides (evaluation and fit mask)
+    rows: np.ndarray  # decimated row indices for regressions (away from stretch edges)
+    pass_id: np.ndarray  # (T,) pass number (a move between two rests of the arm)
+    fold: np.ndarray  # (T,) cross-validation fold of each sample (whole passes)
+    noise_A: np.ndarray  # (n,) white-noise level of the raw current (robust first-difference estimate)
+    iH: np.ndarray  # (T, n) H(current)
+    warnings: list[str] = field(default_factory=list)
+    _payload: np.ndarray | None = None
+
+    @property
+    def n(self) -> int:
+        return len(self.names)
+
+    @property
+    def T(self) -> int:
+        return int(self.p.t.shape[0])
+
+    def H(self, x: np.ndarray) -> np.ndarray:
+        """The regression filter (zero-phase, per stretch) applied along time."""
+        return self.p.regfilter(x)
+
+    def fit_rows(self, j: int) -> np.ndarray:
+        """Decimated rows where joint j slides."""
+        return self.rows[self.slide[self.rows, j]]
+
+    def payload_regressor(self) -> np.ndarray:
+        """(T, n, 4): joint torques per unit of the flange body's [m, m·cx, m·cy, m·cz] (gravity and dynamics)."""
+        if self._payload is None:
+            m = self.robot.model
+            d = m.createData()
+            n = self.n
+            out = np.empty((self.T, n, 4))
+            lo = 10 * (n - 1)
+            q, dq, ddq = self.p.q, self.p.dq, self.p.ddq
+            f = pin.computeJointTorqueRegressor
+            for k in range(self.T):
+                out[k] = f(m, d, q[k], dq[k], ddq[k])[:, lo:lo + 4]
+            self._payload = out
+        return self._payload
+
+    def raw_rmse(self, pred: np.ndarray) -> tuple[np.ndarray, float]:
+        """Per-joint and overall RMSE of the raw current against a work-rate prediction, on the sliding mask."""
+        t_raw, i_raw = self.log.t, self.log.i
+        sq = np.zeros(self.n)
+        cnt = np.zeros(self.n)
+        for s in self.p.segments:
+            t = self.p.t[s.start:s.stop]
+            inside = (t_raw >= t[0]) & (t_raw <= t[-1])
+            tr = t_raw[inside]
+            for j in range(self.n):
+                m = np.interp(tr, t, self.slide[s.start:s.stop, j].astype(float)) > 0.999
+                e = i_raw[inside, j][m] - np.interp(tr[m], t, pred[s.start:s.stop, j])
+                sq[j] += float(e @ e)
+                cnt[j] += e.size
+        per = np.sqrt(sq / np.maximum(cnt, 1))
+        per[cnt == 0] = np.nan
+        return per, float(math.sqrt(sq.sum() / max(cnt.sum(), 1)))
+
+
+def _noise(i_raw: np.ndarray) -> np.ndarray:
+    """Robust white-noise level per column: 1.4826·MAD of the first difference / √2."""
+    d = np.diff(i_raw, axis=0)
+    mad = np.median(np.abs(d - np.median(d, axis=0)), axis=0)
+    return 1.4826 * mad / math.sqrt(2.0)
+
+
+def _passes(p: Prepared, rest_s: float = 0.1, block_s: float = 10.0) -> tuple[np.ndarray, list[str]]:
+    """A pass = a move of the arm between two rests (every joint below V_REST for ≥ rest_s); without rests, blocks."""
+    moving = np.any(np.abs(p.dq) > V_REST, axis=1)
+    guard = max(1, int(round(rest_s * p.fs / 2)))
+    rest = sliding((~moving).astype(float)[:, None], 0.5, guard)[:, 0]
+    starts = np.zeros(p.t.shape[0], dtype=bool)
+    starts[1:] = rest[:-1] & ~rest[1:]
+    for s in p.segments:
+        starts[s.start] = True
+    pid = np.cumsum(starts) - 1
+    notes = []
+    if np.unique(pid[~rest]).size < 2 * FOLDS:
+        pid = np.floor((p.t - p.t[0]) / block_s).astype(int)
+        notes.append(f"fewer than {2 * FOLDS} moves between rests: cross-validation leaves out {block_s:g} s blocks")
+    return pid, notes
+
+
+def load_gap_data(log: Log, robot: Any, cutoff_Hz: float = 5.0) -> GapData:
+    """Prepare a log for the gap workflow (see the module docstring)."""
+    names = list(robot.joint_names)
+    log.check_robot(names, str(robot.urdf_path or "robot"))
+    p = prepare(log, cutoff_Hz=cutoff_Hz, deriv_cutoff_Hz=20.0)
+    rm = RegressorModel(robot, samples=20)
+    G = rm.gravity(p.q)
+    tau_dyn = rm.rnea(p.q, p.dq, p.ddq) - G
+    guard = int(round(GUARD_S * p.fs))
+    slide = np.column_stack([sliding(p.dq[:, j:j + 1], V_SLIDE, guard)[:, 0] for j in range(len(names))])
+    pid, notes = _passes(p)
+    # folds: passes round-robin, so a pass and its return (the same positions, the other direction) differ
+    uniq = np.unique(pid)
+    fold = np.empty_like(pid)
+    for k, u in enumerate(uniq):
+        fold[pid == u] = k % FOLDS
+    return GapData(log=log, p=p, names=names, robot=robot, G=G, tau_dyn=tau_dyn, t_rel=p.t - p.t[0], slide=slide,
+                   rows=p.rows(), pass_id=pid, fold=fold, noise_A=_noise(log.i), iH=p.regfilter(p.i),
+                   warnings=list(p.warnings) + notes)

@@ -1,0 +1,446 @@
+"""The catalogue of candidate effects: each a group of regressor columns with a documented signature.
+
+Every effect is a current in amperes that the model lacks, linear in its parameters once its hyperparameters
+(an order, a knee, a time constant, a Stribeck shape) are fixed; hyperparameters are chosen by the selection
+(held-out error). Columns are built at the work rate from the prepared log (q̃, q̇, q̈, G, the URDF's dynamics)
+and filtered by H like the current. ``params`` turns fitted coefficients into the params file's fields
+(``joints[].friction``, ``joints[].effects``, ``payload``); ``predict`` evaluates an effect of a params file — the
+same current the daemon's law adds (dragd/law.py ``effects_current``) and the simulator produces.
+
+Signatures (what tells each effect from the others; docs/GAP.md has the full table):
+
+- ``viscous_friction``  odd in q̇, grows linearly from zero speed, per direction.
+- ``stribeck``          odd in q̇, a hump that decays with |q̇| (largest just after breakaway), independent of q.
+- ``position_periodic`` a function of q alone (the same at every speed and direction), periodic: a peak in the
+                        residual's angle-domain spectrum; its order c (cycles per joint revolution) from that peak.
+- ``load_dependent_friction``  odd in q̇, even in load: ∝ sign(q̇)·|G(q)| (friction grows with gravity torque).
+- ``inertia``           ∝ q̈ (and the URDF's M(q)q̈ + C q̇ when the model had no dynamics): zero at constant speed.
+- ``temperature_drift`` the friction level drifting with time (warm-up), the same at the same position/speed:
+                        passes through the same states disagree by when they happened.
+- ``backlash``          transients after each reversal of the joint's torque (lost motion: the gear's play is
+                        crossed), absent in steady motion; unlike Stribeck it follows torque, not velocity, reversals.
+- ``back_emf``          odd in q̇ but zero below a knee speed, linear above (voltage headroom); viscous starts at 0.
+- ``payload_mass``      even in q̇: the gravity (and dynamics) of a flange mass, in the URDF's kinematic pattern
+                        over joints 2..n at once (one shared mass and centre of mass); load friction is odd in q̇.
+- ``current_offset``    a constant, the same in both directions and at rest (a Coulomb asymmetry changes only the
+                        sliding levels); not separable from a fitted baseline's Coulomb levels while sliding.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from dragd.identify.methods import friction_columns
+
+from .context import GapData
+
+SMOOTH_RAD_S = 0.005  # the law's zero-crossing width (law.friction_smoothing_rad_s default)
+
+
+@dataclass
+class ModelInfo:
+    """What effects need to know of the current model."""
+
+    kt: np.ndarray  # (n,) N·m/A
+    friction_A: np.ndarray  # (T, n) the model's friction current
+    has_inertia: np.ndarray  # (n,) bool: the model has the URDF's dynamics (and a rotor inertia)
+    coulomb_A: list[tuple[float, float]]  # per joint (pos, neg) sliding levels
+
+
+@dataclass
+class Cols:
+    """Free columns (work rate, unfiltered) and an optional fixed part that comes with the effect."""
+
+    X: np.ndarray  # (T, k)
+    names: list[str]
+    offset: np.ndarray | None = None  # (T,)
+
+
+def weight(v: np.ndarray) -> np.ndarray:
+    """The law's smooth zero crossing tanh(|q̇|/ε)."""
+    return np.tanh(np.abs(v) / SMOOTH_RAD_S)
+
+
+def _sgn(v: np.ndarray) -> np.ndarray:
+    return np.sign(v) * weight(v)
+
+
+class Effect:
+    name = ""
+    signature = ""
+    shared = False  # one parameter vector for all joints (payload)
+    extra_params = 0  # hyperparameters counted in the information criterion
+
+    def hypers(self, d: GapData, j: int, resid: np.ndarray, info: ModelInfo) -> list[Any]:
+        return [None]
+
+    def columns(self, d: GapData, j: int, hyper: Any, info: ModelInfo) -> Cols | None:
+        raise NotImplementedError
+
+    def params(self, theta: np.ndarray, hyper: Any, d: GapData, j: int, info: ModelInfo) -> dict[str, Any]:
+        raise NotImplementedError
+
+    def write(self, pf: dict[str, Any], joint: str, prm: dict[str, Any]) -> None:
+        raise NotImplementedError
+
+    def predict(self, d: GapData, j: int, jp: dict[str, Any], kt: float) -> np.ndarray | None:
+        """This effect's current on joint j from a params file's joint entry (None: not in it)."""
+        return None
+
+    def physical(self, theta: np.ndarray, info: ModelInfo, j: int) -> bool:
+        """Whether fitted coefficients are physically possible (a wrong-signed fit explains something else)."""
+        return True
+
+
+def _friction(pf: dict[str, Any], joint: str) -> dict[str, Any]:
+    return pf["joints"].setdefault(joint, {}).setdefault("friction", {})
+
+
+def _effects(pf: dict[str, Any], joint: str) -> dict[str, Any]:
+    return pf["joints"].setdefault(joint, {}).setdefault("effects", {})
+
+
+class Viscous(Effect):
+    name = "viscous_friction"
+    signature = "odd in q̇, linear from zero speed, per direction"
+
+    def columns(self, d, j, hyper, info):
+        F, names = friction_columns(d.p.dq[:, j])
+        return Cols(F[:, 2:4], ["viscous_pos_A_s_per_rad", "viscous_neg_A_s_per_rad"])
+
+    def params(self, theta, hyper, d, j, info):
+        return {"viscous_pos_A_s_per_rad": float(theta[0]), "viscous_neg_A_s_per_rad": float(theta[1])}
+
+    def write(self, pf, joint, prm):
+        f = _friction(pf, joint)
+        for k in ("viscous_pos_A_s_per_rad", "viscous_neg_A_s_per_rad"):
+            base = f.get(k)
+            base = f.get("viscous_A_s_per_rad") if base is None else base
+            f[k] = max(0.0, (base or 0.0) + prm[k])
+        f["viscous_A_s_per_rad"] = None
+
+
+class Stribeck(Effect):
+    name = "stribeck"
+    signature = "odd in q̇, a hump decaying with |q̇| (largest after breakaway), independent of q"
+    extra_params = 2
+    GRID = [(vs, de) for vs in (0.01, 0.02, 0.03, 0.05, 0.08, 0.12, 0.2) for de in (1.0, 1.5, 2.0)]
+
+    def hypers(self, d, j, resid, info):
+        return self.GRID
+
+    def refine(self, sse: Any, hyper: tuple[float, float]) -> tuple[float, float]:
+        """v_s, δ by Nelder–Mead on the fit's residual (variable projection: the levels are solved inside)."""
+        from scipy.optimize import minimize
+
+        def f(x: np.ndarray) -> float:
+            vs, de = math.exp(x[0]), math.exp(x[1])
+            return sse((vs, de)) if 0.003 < vs < 1.0 and 0.5 <= de <= 4.0 else float("inf")
+
+        r = minimize(f, np.log(hyper), method="Nelder-Mead", options={"xatol": 0.01, "fatol": 1e-9, "maxfev": 60})
+        return (float(math.exp(r.x[0])), float(math.exp(r.x[1]))) if np.isfinite(r.fun) else hyper
+
+    def columns(self, d, j, hyper, info):
+        v = d.p.dq[:, j]
+        e = np.exp(-(np.abs(v) / hyper[0]) ** hyper[1]) * weight(v)
+        return Cols(np.column_stack([e * (v > 0), e * (v < 0)]), ["dstatic_pos_A", "dstatic_neg_A"])
+
+    def physical(self, theta, info, j):
+        return bool(theta[0] > 0 and theta[1] < 0)
+
+    def params(self, theta, hyper, d, j, info):
+        cp, cn = info.coulomb_A[j]
+        return {"static_pos_A": float(cp + theta[0]), "static_neg_A": float(cn + theta[1]),
+                "stribeck_velocity_rad_s": float(hyper[0]), "stribeck_exponent": float(hyper[1])}
+
+    def write(self, pf, joint, prm):
+        f = _friction(pf, joint)
+        cp = f.get("coulomb_pos_A") or 0.0
+        cn = f.get("coulomb_neg_A") or 0.0
+        f["static_pos_A"] = max(prm["static_pos_A"], cp)
+        f["static_neg_A"] = min(prm["static_neg_A"], cn)
+        f["stribeck_velocity_rad_s"] = prm["stribeck_velocity_rad_s"]
+        f["stribeck_exponent"] = prm["stribeck_exponent"]
+
+
+class PositionPeriodic(Effect):
+    name = "position_periodic"
+    signature = "a function of q alone, periodic: a peak in the residual's angle-domain spectrum"
+    extra_params = 1
+
+    def hypers(self, d, j, resid, info):
+        return spectrum_peaks(d, j, resid)[:3]
+
+    def columns(self, d, j, hyper, info):
+        if hyper is None:
+            return None
+        q = d.p.q[:, j]
+        return Cols(np.column_stack([np.sin(hyper * q), np.cos(hyper * q)]), ["sin_A", "cos_A"])
+
+    def params(self, theta, hyper, d, j, info):
+        return {"cycles_per_rev": float(hyper), "sin_A": float(theta[0]), "cos_A": float(theta[1])}
+
+    def write(self, pf, joint, prm):
+        _effects(pf, joint).setdefault("position_periodic", []).append(dict(prm))
+
+    def predict(self, d, j, jp, kt):
+        terms = (jp.get("effects") or {}).get("position_periodic") or []
+        if not terms:
+            return None
+        q = d.p.q[:, j]
+        return sum(h["sin_A"] * np.sin(h["cycles_per_rev"] * q) + h["cos_A"] * np.cos(h["cycles_per_rev"] * q)
+                   for h in terms)
+
+
+class LoadFriction(Effect):
+    name = "load_dependent_friction"
+    signature = "odd in q̇, ∝ |gravity torque|: sign(q̇)·|G(q)|"
+
+    def columns(self, d, j, hyper, info):
+        g = np.abs(d.G[:, j])
+        if np.ptp(g) < 1.0:  # N·m: no load change on this joint
+            return None
+        return Cols((_sgn(d.p.dq[:, j]) * g)[:, None], ["load_A_per_Nm"])
+
+    def physical(self, theta, info, j):
+        return bool(theta[0] > 0)
+
+    def params(self, theta, hyper, d, j, info):
+        return {"load_friction_per_Nm": float(theta[0] * info.kt[j])}
+
+    def write(self, pf, joint, prm):
+        e = _effects(pf, joint)
+        e["load_friction_per_Nm"] = max(0.0, (e.get("load_friction_per_Nm") or 0.0) + prm["load_friction_per_Nm"])
+
+    def predict(self, d, j, jp, kt):
+        k = (jp.get("effects") or {}).get("load_friction_per_Nm") or 0.0
+        return None if not k else _sgn(d.p.dq[:, j]) * np.abs(d.G[:, j]) * k / kt
+
+
+class Inertia(Effect):
+    name = "inertia"
+    signature = "∝ q̈ (rotor inertia; with the URDF's M(q)q̈ + C q̇ when the model had no dynamics): zero at constant speed"
+
+    def columns(self, d, j, hyper, info):
+        off = None if info.has_inertia[j] else d.tau_dyn[:, j] / info.kt[j]
+        return Cols(d.p.ddq[:, j:j + 1], ["armature_A_s2_per_rad"], off)
+
+    def physical(self, theta, info, j):
+        return bool(theta[0] > 0 or info.has_inertia[j])  # a correction may lower a known rotor inertia
+
+    def params(self, theta, hyper, d, j, info):
+        return {"armature_kgm2": float(theta[0] * info.kt[j])}
+
+    def write(self, pf, joint, prm):
+        e = _effects(pf, joint)
+        e["armature_kgm2"] = max(0.0, (e.get("armature_kgm2") or 0.0) + prm["armature_kgm2"])
+
+    def predict(self, d, j, jp, kt):
+        ja = (jp.get("effects") or {}).get("armature_kgm2")
+        return None if ja is None else (d.tau_dyn[:, j] + ja * d.p.ddq[:, j]) / kt
+
+
+class TemperatureDrift(Effect):
+    name = "temperature_drift"
+    signature = "the friction level drifting with time: I_f·(1 − e^(−t/τ)); passes through the same states disagree"
+    extra_params = 1
+
+    def hypers(self, d, j, resid, info):
+        T = float(d.t_rel[-1])
+        return [T * f for f in (0.125, 0.25, 0.5, 1.0, 2.0, 4.0)]
+
+    def columns(self, d, j, hyper, info):
+        f = info.friction_A[:, j]
+        if not np.any(f):
+            return None
+        return Cols((f * (1.0 - np.exp(-d.t_rel / hyper)))[:, None], ["friction_change"])
+
+    def params(self, theta, hyper, d, j, info):
+        return {"friction_change": float(theta[0]), "time_constant_s": float(hyper)}
+
+    def write(self, pf, joint, prm):
+        _effects(pf, joint)["temperature_drift"] = dict(prm)
+
+    def predict(self, d, j, jp, kt):
+        td = (jp.get("effects") or {}).get("temperature_drift")
+        return None if not td else td["friction_change"] * (1.0 - np.exp(-d.t_rel / td["time_constant_s"]))
+
+
+class Backlash(Effect):
+    name = "backlash"
+    signature = ("the current does not carry the rotor inertia for the output's fast accelerations (the play decouples "
+                 "them: impacts, hammering): ∝ −(q̈ − LP(q̈)); inertia is ∝ q̈ at every frequency")
+    extra_params = 1
+
+    def hypers(self, d, j, resid, info):
+        return [0.5, 1.0, 2.0, 4.0]
+
+    def columns(self, d, j, hyper, info):
+        return Cols(fast_motion(d, j, hyper), ["fast_position_A_per_rad", "fast_velocity_A_s_per_rad",
+                                               "fast_inertia_A_s2_per_rad"])
+
+    def physical(self, theta, info, j):
+        return bool(theta[2] < 0)  # the current misses (not adds) the rotor inertia for the output's fast motion
+
+    def params(self, theta, hyper, d, j, info):
+        # the play itself: the output's excursions about its smooth (rotor-driven) path, on sliding samples
+        m = d.slide[:, j]
+        hp = d.p.q_raw[:, j] - d.p.regfilter(d.p.q_raw[:, j:j + 1], hyper)[:, 0]
+        play = float(2.0 * np.quantile(np.abs(hp[m]), 0.99)) if m.any() else 0.0
+        return {"backlash_inertia_kgm2": float(-theta[2] * info.kt[j]), "backlash_cutoff_Hz": float(hyper),
+                "backlash_rad": play, "loop_stiffness_A_per_rad": float(-theta[0]),
+                "loop_damping_A_s_per_rad": float(-theta[1])}
+
+    def write(self, pf, joint, prm):
+        e = _effects(pf, joint)
+        e["backlash_inertia_kgm2"] = max(0.0, prm["backlash_inertia_kgm2"])
+        e["backlash_cutoff_Hz"] = prm["backlash_cutoff_Hz"]
+        e["backlash_rad"] = prm["backlash_rad"]
+        e["backlash_loop_A_per_rad"] = [prm["loop_stiffness_A_per_rad"], prm["loop_damping_A_s_per_rad"]]
+
+    def predict(self, d, j, jp, kt):
+        e = jp.get("effects") or {}
+        if not e.get("backlash_inertia_kgm2") or not e.get("backlash_cutoff_Hz"):
+            return None
+        kp, kd = e.get("backlash_loop_A_per_rad") or (0.0, 0.0)
+        X = fast_motion(d, j, e["backlash_cutoff_Hz"])
+        return X @ np.array([-kp, -kd, -e["backlash_inertia_kgm2"] / kt])
+
+
+class BackEmf(Effect):
+    name = "back_emf"
+    signature = "odd in q̇, zero below a knee speed and linear above (voltage headroom); viscous starts at zero"
+    extra_params = 1
+
+    def hypers(self, d, j, resid, info):
+        v = np.abs(d.p.dq[d.fit_rows(j), j])
+        if v.size < 20:
+            return []
+        return sorted({round(float(x), 3) for x in np.quantile(v, [0.15, 0.3, 0.45, 0.6, 0.75])})
+
+    def columns(self, d, j, hyper, info):
+        v = d.p.dq[:, j]
+        return Cols((np.sign(v) * np.maximum(np.abs(v) - hyper, 0.0))[:, None], ["A_s_per_rad"])
+
+    def physical(self, theta, info, j):
+        return bool(theta[0] > 0)
+
+    def params(self, theta, hyper, d, j, info):
+        return {"A_s_per_rad": float(theta[0]), "knee_rad_s": float(hyper)}
+
+    def write(self, pf, joint, prm):
+        _effects(pf, joint)["back_emf"] = {"A_s_per_rad": max(0.0, prm["A_s_per_rad"]), "knee_rad_s": prm["knee_rad_s"]}
+
+    def predict(self, d, j, jp, kt):
+        b = (jp.get("effects") or {}).get("back_emf")
+        if not b:
+            return None
+        v = d.p.dq[:, j]
+        return b["A_s_per_rad"] * np.sign(v) * np.maximum(np.abs(v) - b["knee_rad_s"], 0.0)
+
+
+class PayloadMass(Effect):
+    name = "payload_mass"
+    signature = "even in q̇: a flange mass's gravity/dynamics over joints 2..n at once (shared mass and centre)"
+    shared = True
+
+    def columns(self, d, j, hyper, info):
+        Y = d.payload_regressor()[:, j, :] / info.kt[j]
+        if np.abs(Y).max() < 1e-6:
+            return None
+        return Cols(Y, ["m_kg", "mcx_kgm", "mcy_kgm", "mcz_kgm"])
+
+    def physical(self, theta, info, j):
+        return bool(theta[0] > 0)
+
+    def params(self, theta, hyper, d, j, info):
+        m = float(theta[0])
+        com = [float(x / m) if abs(m) > 1e-6 else 0.0 for x in theta[1:4]]
+        return {"mass_kg": m, "com_m": com}
+
+    def write(self, pf, joint, prm):
+        if prm["mass_kg"] > 0:
+            pf["payload"] = {"mass_kg": prm["mass_kg"], "com_m": list(prm["com_m"])}
+
+    @staticmethod
+    def predict_all(d: GapData, payload: dict[str, Any] | None, kt: np.ndarray) -> np.ndarray | None:
+        if not payload or not payload.get("mass_kg"):
+            return None
+        m = payload["mass_kg"]
+        th = np.array([m] + [m * c for c in payload.get("com_m", (0.0, 0.0, 0.0))])
+        return d.payload_regressor() @ th / kt
+
+
+class CurrentOffset(Effect):
+    name = "current_offset"
+    signature = "a constant: the same in both directions and at rest"
+
+    def columns(self, d, j, hyper, info):
+        return Cols(np.ones((d.T, 1)), ["current_offset_A"])
+
+    def params(self, theta, hyper, d, j, info):
+        return {"current_offset_A": float(theta[0])}
+
+    def write(self, pf, joint, prm):
+        e = _effects(pf, joint)
+        e["current_offset_A"] = (e.get("current_offset_A") or 0.0) + prm["current_offset_A"]
+
+    def predict(self, d, j, jp, kt):
+        c = (jp.get("effects") or {}).get("current_offset_A") or 0.0
+        return None if not c else np.full(d.T, c)
+
+
+CATALOGUE: dict[str, Effect] = {e.name: e for e in (Viscous(), Stribeck(), PositionPeriodic(), LoadFriction(),
+                                                      Inertia(), TemperatureDrift(), Backlash(), BackEmf(),
+                                                      PayloadMass(), CurrentOffset())}
+NAMES = tuple(CATALOGUE)
+
+
+# ------------------------------------------------------------------------------------------ helpers
+
+
+def spectrum_peaks(d: GapData, j: int, resid: np.ndarray, max_peaks: int = 3) -> list[float]:
+    """Orders c (cycles per joint revolution) of the largest peaks of the residual's angle-domain spectrum.
+
+    Lomb–Scargle periodogram of the residual against q over the sliding samples (q is not uniformly sampled), for c
+    from two periods over the travelled range up to what the regression filter passes at the typical speed.
+    """
+    from scipy.signal import lombscargle
+
+    m = d.slide[:, j]
+    if m.sum() < 200:
+        return []
+    q, r = d.p.q[m, j], resid[m]
+    rng = float(np.ptp(q))
+    if rng < 0.05:
+        return []
+    v = float(np.median(np.abs(d.p.dq[m, j])))
+    c_min = 2.0 * 2.0 * math.pi / rng
+    c_max = min(400.0, 2.0 * math.pi * 0.8 * d.p.cutoff_Hz / max(v, 1e-3))
+    if c_max <= c_min:
+        return []
+    step = 2.0 * math.pi / rng / 8.0
+    cs = np.arange(c_min, c_max, step)
+    step_k = max(1, r.size // 20000)  # a subsample is plenty for locating a peak
+    pw = lombscargle(q[::step_k], r[::step_k] - r[::step_k].mean(), cs)
+    peaks = [k for k in range(1, cs.size - 1) if pw[k] >= pw[k - 1] and pw[k] >= pw[k + 1]]
+    peaks.sort(key=lambda k: -pw[k])
+    out = []
+    for k in peaks[:max_peaks]:
+        # parabolic refinement of the peak
+        a, b, c = pw[k - 1], pw[k], pw[k + 1]
+        den = a - 2 * b + c
+        off = 0.5 * (a - c) / den if den != 0 else 0.0
+        out.append(float(cs[k] + off * step))
+    return out
+
+
+def fast_motion(d: GapData, j: int, cutoff_Hz: float) -> np.ndarray:
+    """(T, 3): q, q̇, q̈ minus their low-pass at ``cutoff_Hz`` — the output's motion the rotor does not follow
+    (zero-phase, per stretch)."""
+    x = np.column_stack([d.p.q[:, j], d.p.dq[:, j], d.p.ddq[:, j]])
+    return x - d.p.regfilter(x, cutoff_Hz)

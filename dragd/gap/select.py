@@ -1,0 +1,406 @@
+"""Forward selection of effects with pass-wise cross-validation and an information criterion.
+
+Per joint j the model is y = H(i_j − fixed_j) ≈ H(X_j)·θ_j on decimated rows where the joint slides (H the
+regression filter on both sides). A candidate effect adds its columns (and, for some, a fixed part); it is scored by
+
+- the **held-out** error: K-fold cross-validation whose folds are whole passes (moves between rests of the arm,
+  assigned round-robin, so a pass and its return through the same positions are in different folds) — never single
+  samples, whose neighbours would leak through the filter;
+- **BIC** on all rows: N·ln(SSE'/SSE) + (k + hyperparameters)·ln N < 0.
+
+An effect is *real* on a joint when the held-out MSE falls by at least ``REL_MIN`` **and** the held-out error it
+explains, √(ΔSSE/N), is at least ``ABS_MIN`` × that joint's current noise (the raw Hall noise estimate), and BIC
+agrees. Each round adds the effect with the largest held-out gain (summed over the joints where it is real) on those
+joints, with each joint's best hyperparameter; the rounds stop when no effect is real anywhere. The payload is one
+shared parameter vector across joints (fitted jointly, the joints' other columns eliminated).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .baseline import Baseline, update_seed000
+from .context import FOLDS, GapData
+from .effects import CATALOGUE, Cols, Effect
+
+REL_MIN = 0.05  # held-out MSE must fall by 5 %
+ABS_MIN = 0.3  # ... and the explained held-out RMS must reach 0.3 × the joint's noise
+MAX_ROUNDS = 8
+RIDGE = 1e-9
+
+
+@dataclass
+class Term:
+    effect: str
+    hyper: Any
+    cols: Cols
+    XH: np.ndarray  # (R, k) filtered free columns on the joint's fit rows
+    offH: np.ndarray | None  # (R,) filtered fixed part on the fit rows
+
+
+@dataclass
+class JointModel:
+    j: int
+    rows: np.ndarray
+    y: np.ndarray  # filtered target on rows (current − fixed)
+    base: np.ndarray  # (R, k0) filtered free base columns (seed 000) or (R, 0)
+    terms: list[Term] = field(default_factory=list)
+    theta: np.ndarray | None = None
+
+    def design(self, extra: Term | None = None) -> tuple[np.ndarray, np.ndarray]:
+        ts = self.terms + ([extra] if extra is not None else [])
+        X = np.hstack([self.base] + [t.XH for t in ts]) if ts or self.base.shape[1] else np.zeros((self.y.size, 0))
+        y = self.y.copy()
+        for t in ts:
+            if t.offH is not None:
+                y -= t.offH
+        return X, y
+
+
+@dataclass
+class Step:
+    effect: str
+    joints: list[str]
+    hypers: dict[str, Any]
+    gain: dict[str, dict[str, float]]  # per joint: held-out RMS before/after, BIC change
+
+
+def _cv_sse(X: np.ndarray, y: np.ndarray, fold: np.ndarray) -> float:
+    """Sum of held-out squared errors over the folds (least squares on the others)."""
+    if X.shape[1] == 0:
+        return float(y @ y)
+    sse = 0.0
+    G = X.T @ X
+    b = X.T @ y
+    lam = RIDGE * max(1.0, float(np.trace(G)) / X.shape[1])
+    for f in range(FOLDS):
+        m = fold == f
+        if not m.any():
+            continue
+        Xf, yf = X[m], y[m]
+        Gf, bf = Xf.T @ Xf, Xf.T @ yf
+        try:
+            th = np.linalg.solve(G - Gf + lam * np.eye(G.shape[0]), b - bf)
+        except np.linalg.LinAlgError:
+            return float("inf")
+        e = yf - Xf @ th
+        sse += float(e @ e)
+    return sse
+
+
+def _fit(X: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, float]:
+    if X.shape[1] == 0:
+        return np.zeros(0), float(y @ y)
+    th, *_ = np.linalg.lstsq(X, y, rcond=None)
+    e = y - X @ th
+    return th, float(e @ e)
+
+
+def _independent(X: np.ndarray, C: np.ndarray, tol: float = 1e-3) -> bool:
+    """C's columns are not (nearly) in X's span (else the effect is absorbed by what the model already has)."""
+    if C.shape[1] == 0 or np.linalg.norm(C) == 0:
+        return False
+    if X.shape[1] == 0:
+        return True
+    Q, _ = np.linalg.qr(X)
+    R = C - Q @ (Q.T @ C)
+    return bool(np.all(np.linalg.norm(R, axis=0) > tol * np.maximum(np.linalg.norm(C, axis=0), 1e-300)))
+
+
+class Selector:
+    """The forward selection over the catalogue on one prepared log and baseline."""
+
+    def __init__(self, d: GapData, base: Baseline, effects: tuple[str, ...] | None = None) -> None:
+        self.d = d
+        self.base = base
+        self.effects = [CATALOGUE[e] for e in (effects or CATALOGUE)]
+        self.joints: list[JointModel] = []
+        for j in range(d.n):
+            r = d.fit_rows(j)
+            y = (d.iH[:, j] - d.H(base.fixed[:, j:j + 1])[:, 0])[r]
+            fb = base.free[j]
+            B = d.H(fb)[r] if fb is not None else np.zeros((r.size, 0))
+            self.joints.append(JointModel(j, r, y, B))
+        self.payload: Term | None = None  # shared: columns per joint in a dict
+        self.payload_cols: dict[int, Term] = {}
+        self.payload_theta: np.ndarray | None = None
+        self.steps: list[Step] = []
+        self.snapshots: list[np.ndarray] = []  # work-rate prediction after the baseline and after each step
+        self._refit()
+        self.snapshots.append(self.predict())
+
+    # ------------------------------------------------------------------------------------ fitting
+
+    def _payload_y(self, jm: JointModel) -> np.ndarray:
+        """Joint target with the shared payload's current removed."""
+        X, y = jm.design()
+        if self.payload_theta is not None and jm.j in self.payload_cols:
+            y = y - self.payload_cols[jm.j].XH @ self.payload_theta
+        return y
+
+    def _refit(self) -> None:
+        """Fit every joint (and the shared payload) on all rows; update the seed-000 baseline's K_t/levels."""
+        if self.payload_cols:
+            self.payload_theta = self._shared_fit(self.payload_cols, None)[0]
+        for jm in self.joints:
+            X, _ = jm.design()
+            jm.theta, _ = _fit(X, self._payload_y(jm))
+            if self.base.kind == "seed000" and jm.theta.size:
+                update_seed000(self.base, self.d, jm.j, jm.theta)
+
+    def _shared_fit(self, terms: dict[int, Term], fold: int | None) -> tuple[np.ndarray, dict[int, float]]:
+        """Shared θ_p over joints (their own columns eliminated); returns θ_p and per-joint held-out SSE for ``fold``."""
+        A = np.zeros((4, 4))
+        b = np.zeros(4)
+        parts = []
+        for j, t in terms.items():
+            jm = self.joints[j]
+            X, y = jm.design()
+            f = self.d.fold[jm.rows]
+            tr = np.ones(y.size, bool) if fold is None else f != fold
+            C = t.XH
+            if X.shape[1]:
+                Q, _ = np.linalg.qr(X[tr])
+                Ct = C[tr] - Q @ (Q.T @ C[tr])
+                yt = y[tr] - Q @ (Q.T @ y[tr])
+            else:
+                Ct, yt = C[tr], y[tr]
+            A += Ct.T @ Ct
+            b += Ct.T @ yt
+            parts.append((jm, X, y, C, tr))
+        th = np.linalg.solve(A + RIDGE * max(1.0, np.trace(A)) * np.eye(4), b)
+        sse = {}
+        if fold is not None:
+            for jm, X, y, C, tr in parts:
+                r = y - C @ th
+                beta, _ = _fit(X[tr], r[tr])
+                e = r[~tr] - X[~tr] @ beta if X.shape[1] else r[~tr]
+                sse[jm.j] = float(e @ e)
+        return th, sse
+
+    # ------------------------------------------------------------------------------------ candidates
+
+    def _term(self, eff: Effect, jm: JointModel, hyper: Any) -> Term | None:
+        cols = eff.columns(self.d, jm.j, hyper, self.base.info())
+        if cols is None:
+            return None
+        XH = self.d.H(cols.X)[jm.rows]
+        offH = None if cols.offset is None else self.d.H(cols.offset[:, None])[jm.rows, 0]
+        return Term(eff.name, hyper, cols, XH, offH)
+
+    def _residual(self, jm: JointModel) -> np.ndarray:
+        """Work-rate residual of joint j under the current model (for spectra)."""
+        return self.d.p.i[:, jm.j] - self.predict()[:, jm.j]
+
+    def _score_joint(self, eff: Effect, jm: JointModel, resid: np.ndarray | None) -> tuple[float, dict, Term] | None:
+        X, y = jm.design()
+        y = self._payload_y(jm) if self.payload_theta is not None else y
+        fold = self.d.fold[jm.rows]
+        n = y.size
+        if n < 30:
+            return None
+        cv0 = _cv_sse(X, y, fold)
+        _, sse0 = _fit(X, y)
+        best = None
+        for h in eff.hypers(self.d, jm.j, resid if resid is not None else np.zeros(self.d.T), self.base.info()):
+            t = self._term(eff, jm, h)
+            if t is None or not _independent(X, t.XH):
+                continue
+            X1 = np.hstack([X, t.XH])
+            y1 = y - t.offH if t.offH is not None else y
+            cv1 = _cv_sse(X1, y1, fold)
+            if best is None or cv1 < best[0]:
+                best = (cv1, t, X1, y1)
+        if best is None:
+            return None
+        if hasattr(eff, "refine"):
+            def sse(h: Any) -> float:
+                tt = self._term(eff, jm, h)
+                if tt is None:
+                    return float("inf")
+                return _fit(np.hstack([X, tt.XH]), y - tt.offH if tt.offH is not None else y)[1]
+
+            h2 = eff.refine(sse, best[1].hyper)
+            t2 = self._term(eff, jm, h2)
+            if t2 is not None and _independent(X, t2.XH):
+                X2 = np.hstack([X, t2.XH])
+                y2 = y - t2.offH if t2.offH is not None else y
+                cv2 = _cv_sse(X2, y2, fold)
+                if cv2 < best[0]:
+                    best = (cv2, t2, X2, y2)
+        cv1, t, X1, y1 = best
+        th1, sse1 = _fit(X1, y1)
+        k = t.XH.shape[1] + eff.extra_params
+        dbic = n * math.log(max(sse1, 1e-300) / max(sse0, 1e-300)) + k * math.log(n)
+        gain = cv0 - cv1
+        sigma = float(self.d.noise_A[jm.j])
+        physical = eff.physical(th1[-t.XH.shape[1]:], self.base.info(), jm.j)
+        real = gain > 0 and gain >= REL_MIN * cv0 and math.sqrt(gain / n) >= ABS_MIN * sigma and dbic < 0 and physical
+        info = {"physical": physical, "cv_rmse_before_A": math.sqrt(cv0 / n), "cv_rmse_after_A": math.sqrt(max(cv1, 0.0) / n),
+                "explained_rms_A": math.sqrt(max(gain, 0.0) / n), "delta_bic": dbic, "real": real}
+        return (gain / n if real else 0.0), info, t
+
+    def _score_payload(self, eff: Effect) -> tuple[float, dict, dict[int, Term]] | None:
+        terms: dict[int, Term] = {}
+        for jm in self.joints:
+            t = self._term(eff, jm, None)
+            if t is not None and jm.rows.size >= 30:
+                terms[jm.j] = t
+        if len(terms) < 2:
+            return None
+        per_cv1 = {j: 0.0 for j in terms}
+        for f in range(FOLDS):
+            _, sse = self._shared_fit(terms, f)
+            for j, v in sse.items():
+                per_cv1[j] += v
+        th, _ = self._shared_fit(terms, None)
+        per_cv0, n_tot, sse0, sse1 = {}, 0, 0.0, 0.0
+        for j, t in terms.items():
+            jm = self.joints[j]
+            X, y = jm.design()
+            per_cv0[j] = _cv_sse(X, y, self.d.fold[jm.rows])
+            _, s0 = _fit(X, y)
+            _, s1 = _fit(X, y - t.XH @ th)
+            sse0 += s0
+            sse1 += s1
+            n_tot += y.size
+        cv0, cv1 = sum(per_cv0.values()), sum(per_cv1.values())
+        gain = cv0 - cv1
+        dbic = n_tot * math.log(max(sse1, 1e-300) / max(sse0, 1e-300)) + 4 * math.log(n_tot)
+        sigma = float(np.mean(self.d.noise_A[list(terms)]))
+        real = (gain > 0 and gain >= REL_MIN * cv0 and math.sqrt(gain / n_tot) >= ABS_MIN * sigma and dbic < 0
+                and eff.physical(th, self.base.info(), 0))
+        info = {"cv_rmse_before_A": math.sqrt(cv0 / n_tot), "cv_rmse_after_A": math.sqrt(max(cv1, 0) / n_tot),
+                "explained_rms_A": math.sqrt(max(gain, 0) / n_tot), "delta_bic": dbic, "real": real,
+                "per_joint_explained_rms_A": {self.d.names[j]: math.sqrt(max(per_cv0[j] - per_cv1[j], 0) /
+                                                                         self.joints[j].rows.size) for j in terms}}
+        score = sum(max(per_cv0[j] - per_cv1[j], 0.0) / self.joints[j].rows.size for j in terms)
+        return (score if real else 0.0), info, terms
+
+    # ------------------------------------------------------------------------------------ the loop
+
+    def run(self) -> list[Step]:
+        used: dict[str, set[int]] = {e.name: set() for e in self.effects}
+        for _ in range(MAX_ROUNDS):
+            resid = {jm.j: self._residual(jm) for jm in self.joints}
+            best: tuple[float, Effect, dict, Any] | None = None
+            for eff in self.effects:
+                if eff.shared:
+                    if self.payload_cols:
+                        continue
+                    sc = self._score_payload(eff)
+                    if sc is not None and sc[0] > 0 and (best is None or sc[0] > best[0]):
+                        best = (sc[0], eff, {"_shared": sc[1]}, sc[2])
+                    continue
+                found: dict[int, tuple[float, dict, Term]] = {}
+                total = 0.0
+                for jm in self.joints:
+                    if jm.j in used[eff.name]:
+                        continue
+                    sc = self._score_joint(eff, jm, resid[jm.j])
+                    if sc is not None and sc[0] > 0:
+                        found[jm.j] = sc
+                        total += sc[0]
+                if found and (best is None or total > best[0]):
+                    best = (total, eff, {j: v[1] for j, v in found.items()}, {j: v[2] for j, v in found.items()})
+            if best is None:
+                break
+            _, eff, infos, terms = best
+            if eff.shared:
+                self.payload_cols = terms
+                joints = [nm for nm, v in infos["_shared"]["per_joint_explained_rms_A"].items()
+                          if v >= ABS_MIN * self.d.noise_A[self.d.names.index(nm)]]
+                self.steps.append(Step(eff.name, joints, {}, {"all": infos["_shared"]}))
+            else:
+                for j, t in terms.items():
+                    self.joints[j].terms.append(t)
+                    used[eff.name].add(j)
+                self.steps.append(Step(eff.name, [self.d.names[j] for j in sorted(terms)],
+                                       {self.d.names[j]: t.hyper for j, t in terms.items()},
+                                       {self.d.names[j]: infos[j] for j in sorted(terms)}))
+            self._refit()
+            self.snapshots.append(self.predict())
+        self._prune()
+        return self.steps
+
+    def _prune(self) -> None:
+        """Backward check: drop an added effect (from a joint) that is no longer real given the later ones."""
+        changed = False
+        for st in list(self.steps):
+            if CATALOGUE[st.effect].shared:
+                continue
+            keep = []
+            for nm in st.joints:
+                jm = self.joints[self.d.names.index(nm)]
+                t = next(tt for tt in jm.terms if tt.effect == st.effect and tt.hyper == st.hypers.get(nm))
+                fold = self.d.fold[jm.rows]
+                X1, _ = jm.design()
+                y1 = self._payload_y(jm)
+                jm.terms.remove(t)
+                X0, _ = jm.design()
+                y0 = self._payload_y(jm)
+                cv0, cv1, n = _cv_sse(X0, y0, fold), _cv_sse(X1, y1, fold), y1.size
+                gain = cv0 - cv1
+                if gain >= REL_MIN * cv0 and math.sqrt(max(gain, 0.0) / n) >= ABS_MIN * self.d.noise_A[jm.j]:
+                    jm.terms.append(t)
+                    keep.append(nm)
+                else:
+                    changed = True
+            if keep:
+                st.joints = keep
+            else:
+                self.steps.remove(st)
+        if changed:
+            self._refit()
+            self.snapshots = self.snapshots[:1] + [self.predict()] * len(self.steps)
+
+    # ------------------------------------------------------------------------------------ results
+
+    def predict(self) -> np.ndarray:
+        """The current model's current at the work rate (T, n)."""
+        d = self.d
+        out = self.base.fixed.copy()
+        for jm in self.joints:
+            th = jm.theta if jm.theta is not None else np.zeros(0)
+            k = 0
+            fb = self.base.free[jm.j]
+            if fb is not None:
+                out[:, jm.j] += fb @ th[:fb.shape[1]]
+                k = fb.shape[1]
+            for t in jm.terms:
+                kk = t.cols.X.shape[1]
+                out[:, jm.j] += t.cols.X @ th[k:k + kk]
+                if t.cols.offset is not None:
+                    out[:, jm.j] += t.cols.offset
+                k += kk
+        if self.payload_theta is not None:
+            for j, t in self.payload_cols.items():
+                out[:, j] += t.cols.X @ self.payload_theta
+        del d
+        return out
+
+    def effect_params(self) -> list[tuple[str, list[str], dict[str, Any]]]:
+        """(effect, joints, params per joint or shared) in the order added, from the final fit."""
+        out = []
+        info = self.base.info()
+        for st in self.steps:
+            eff = CATALOGUE[st.effect]
+            if eff.shared:
+                j0 = next(iter(self.payload_cols))
+                out.append((st.effect, st.joints, eff.params(self.payload_theta, None, self.d, j0, info)))
+                continue
+            prm = {}
+            for nm in st.joints:
+                jm = self.joints[self.d.names.index(nm)]
+                k = self.base.free[jm.j].shape[1] if self.base.free[jm.j] is not None else 0
+                for t in jm.terms:
+                    kk = t.cols.X.shape[1]
+                    if t.effect == st.effect and t.hyper == st.hypers.get(nm):
+                        prm[nm] = eff.params(jm.theta[k:k + kk], t.hyper, self.d, jm.j, info)
+                    k += kk
+            out.append((st.effect, st.joints, prm))
+        return out
