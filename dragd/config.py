@@ -92,6 +92,10 @@ class StartupConfig(_Strict):
     frequency_Hz: Annotated[float, Field(gt=0, le=250), Expect("a frequency in (0, 250] Hz")] = 16.0
     rest_threshold_rad_s: PosFloat = 0.01  # Φ: |q̇| below it counts as rest
     fade_width_rad_s: PosFloat = 0.02  # the term fades to zero over [Φ, Φ + width]
+    # break-out latch: crept this far from where it settled -> the sine is held at its peak that way (0: off)
+    breakout_slip_rad: NonNegFloat = 1.5e-5
+    breakout_hold_s: PosFloat = 0.1  # ... for at most this long (past Φ friction compensation takes over)
+    settle_s: PosFloat = 0.1  # the latch re-arms after the joint has been still this long
 
 
 class BackEmfConfig(_Strict):
@@ -210,6 +214,7 @@ class LawConfig(_Strict):
     startup_scale: NonNegFloat = 0.9  # default start-up amplitude = scale × believed static friction level
     startup_waveform: Literal["sine", "square"] = "sine"  # square: the peers' dither, for comparison
     startup_handover: Literal["fade", "abrupt"] = "fade"  # abrupt: seed 001 eq. 28's switch at Φ, for comparison
+    startup_breakout: bool = True  # the break-out latch (false: seed 001's velocity hand-over only)
     velocity_filter_Hz: Annotated[float, Field(gt=0, le=500), Expect("a cutoff in (0, 500] Hz")] = 40.0
 
 

@@ -244,6 +244,7 @@ class Daemon:
         self.current_meas_A = np.zeros(n)
         self.tau_g = np.zeros(n)
         self.extra_A = np.zeros(n)
+        self.sample_dt_s = self.dt  # interval between this cycle's SYNC and the previous one
         self.breakout = BreakoutState(n).configure(self.params)  # the start-up term's break-out latch (drag)
         self.hold_A = np.zeros(n)
         self.cmd_A = np.zeros(n)
@@ -966,7 +967,7 @@ class Daemon:
         # estimate
         np.subtract(self.counts, self.offset_counts, out=self.tmp, casting="unsafe")
         np.multiply(self.tmp, self.rad_per_count, out=self.q)
-        self.vel.update(self.counts, self.dt)
+        self.vel.update(self.counts, self.sample_dt_s, self.rx)
         np.multiply(self.current_raw, self.A_per_permille, out=self.current_meas_A)
         self.model.gravity(self.q, self.tau_g)
         if self.mode == Mode.DRAG:
@@ -1086,6 +1087,7 @@ class Daemon:
                 if expirations > 1:
                     self.missed += expirations - 1
                 period_us = (t_tick - last_tick) * 1e6 if last_tick is not None else self.dt * 1e6
+                self.sample_dt_s = period_us * 1e-6  # SYNC goes out right after the tick: the sampling interval
                 last_tick = t_tick
                 self.t += self.dt * expirations
                 # read

@@ -4,7 +4,7 @@ q̇_raw[k] = Δcounts·(2π/cpr)/Δt, then a first-order low-pass y += α(q̇_ra
 α = 1 − exp(−2π f_c Δt). For signals well below f_c the estimate lags by ≈ 1/(2π f_c) + Δt/2
 (the filter's group delay plus half a sample of the backward difference): 4.5 ms at f_c = 40 Hz, 1 kHz.
 One encoder count per sample is (2π/cpr)/Δt: 0.012 rad/s for 2^19 counts/rev at 1 kHz, which the filter
-averages down. A missed sample is handled by passing the real Δt.
+averages down. A late or missed sample is handled by passing the real Δt (and the joints whose sample is fresh).
 """
 
 from __future__ import annotations
@@ -29,6 +29,9 @@ class VelocityEstimator:
         self._last = np.zeros(n, dtype=np.int64)
         self._delta = np.zeros(n, dtype=np.int64)
         self._raw = np.zeros(n)
+        self._alpha = np.zeros(n)
+        self._age = np.zeros(n)  # seconds since each joint's last fresh sample
+        self._k = np.full(n, -2.0 * math.pi * self.cutoff_Hz)
         self._primed = False
 
     def delay_s(self, dt_s: float) -> float:
@@ -38,24 +41,40 @@ class VelocityEstimator:
     def reset(self, counts: np.ndarray) -> None:
         self._last[:] = counts
         self.velocity_rad_s.fill(0.0)
+        self._age.fill(0.0)
         self._primed = True
 
-    def update(self, counts: np.ndarray, dt_s: float) -> np.ndarray:
-        """Feed the latest counts (int array) taken ``dt_s`` after the previous ones; return q̇ [rad/s]."""
+    def update(self, counts: np.ndarray, dt_s: float, fresh: np.ndarray | None = None) -> np.ndarray:
+        """Feed the latest counts (int array) sampled ``dt_s`` after the previous sampling instant; return q̇ [rad/s].
+
+        ``dt_s`` is the real interval (a late SYNC samples later: dividing by the nominal period would turn
+        timing jitter into velocity noise). ``fresh`` marks the joints whose counts are new this cycle; the
+        others keep their estimate and their next fresh sample spans the whole gap.
+        """
         if not self._primed or dt_s <= 0.0:
             self.reset(counts)
             return self.velocity_rad_s
+        age = self._age
+        age += dt_s
         d = self._delta
         np.subtract(counts, self._last, out=d)
         # int32 wrap-around of 6064h: map the difference into [-2^31, 2^31)
         d += INT32_SPAN // 2
         np.remainder(d, INT32_SPAN, out=d)
         d -= INT32_SPAN // 2
-        self._last[:] = counts
         np.multiply(d, self.rad_per_count, out=self._raw)
-        self._raw /= dt_s
-        alpha = 1.0 - math.exp(-2.0 * math.pi * self.cutoff_Hz * dt_s)
+        self._raw /= age
+        np.multiply(age, self._k, out=self._alpha)  # α = 1 − exp(−2π f_c·age)
+        np.exp(self._alpha, out=self._alpha)
+        np.subtract(1.0, self._alpha, out=self._alpha)
         self._raw -= self.velocity_rad_s
-        self._raw *= alpha
-        self.velocity_rad_s += self._raw
+        self._raw *= self._alpha
+        if fresh is None:
+            self.velocity_rad_s += self._raw
+            self._last[:] = counts
+            age.fill(0.0)
+        else:
+            np.add(self.velocity_rad_s, self._raw, out=self.velocity_rad_s, where=fresh)
+            np.copyto(self._last, counts, where=fresh)
+            np.copyto(age, 0.0, where=fresh)
         return self.velocity_rad_s

@@ -173,6 +173,25 @@ def test_velocity_estimator_tracks_ramp_with_documented_delay():
     assert est.delay_s(dt) == pytest.approx(1 / (2 * np.pi * 40) + 0.5e-3)
 
 
+def test_velocity_estimator_ignores_sampling_jitter_and_stale_samples():
+    """A late SYNC samples later and a lost TPDO brings no new counts: neither may show up as velocity."""
+    cpr = np.full(2, 2**19)
+    v = np.array([0.02, -0.5])  # rad/s: a joint starting to move (Φ ≈ 0.01) and a fast one
+    rng = np.random.default_rng(3)
+    est = VelocityEstimator(cpr, cutoff_Hz=40.0)
+    t, out = 0.0, []
+    est.update(np.zeros(2, dtype=np.int64), 1e-3)
+    for k in range(1500):
+        dt = 1e-3 * (2.0 if k % 97 == 0 else rng.uniform(0.6, 1.4))  # jitter and the odd missed tick
+        t += dt
+        fresh = np.array([k % 50 != 7, k % 31 != 3])  # lost TPDOs
+        counts = np.floor(v * t * cpr / (2 * np.pi)).astype(np.int64)
+        out.append(est.update(counts, dt, fresh).copy())
+    out = np.array(out)[500:]
+    # one count per sample is 0.012 rad/s of raw noise, which the 40 Hz filter averages down; jitter adds nothing
+    assert np.abs(out - v).max(axis=0)[0] < 0.006 and np.abs(out - v).max(axis=0)[1] < 0.01
+
+
 def test_velocity_estimator_int32_wrap():
     est = VelocityEstimator(np.array([1000]), cutoff_Hz=400.0)
     est.update(np.array([2**31 - 5]), 1e-3)

@@ -175,7 +175,9 @@ def move_effort(rig: Rig, joint: str, velocity_rad_s: float, seconds: float) -> 
 
 
 def handover_step_A(rows: dict[str, np.ndarray], joint: int, rest_threshold_rad_s: float) -> float:
-    """Largest cycle-to-cycle change of a joint's command within 100 ms after it starts moving (|q̇| > Φ)."""
+    """Largest cycle-to-cycle change of a joint's command while it starts: from 5 cycles before |q̇| first exceeds
+    Φ (after rest) for 100 ms, cut where the ramp's load lets go (the joint BREAKAWAY_THRESHOLD_RAD from its rest)."""
+    q = np.asarray(rows["q_rad"], dtype=float)[:, joint]
     dq = np.abs(np.asarray(rows["dq_rad_s"], dtype=float)[:, joint])
     cmd = np.asarray(rows["current_command_A"], dtype=float)[:, joint]
     steps = np.abs(np.diff(cmd))
@@ -183,5 +185,8 @@ def handover_step_A(rows: dict[str, np.ndarray], joint: int, rest_threshold_rad_
     moving = dq > rest_threshold_rad_s
     onsets = np.flatnonzero(moving[1:] & ~moving[:-1]) + 1
     for k in onsets:
-        worst = max(worst, float(steps[max(0, k - 5):k + 100].max(initial=0.0)))
+        a = max(0, k - 5)
+        gone = np.flatnonzero(np.abs(q[a:k + 100] - q[a]) > BREAKAWAY_THRESHOLD_RAD)
+        b = a + int(gone[0]) - 1 if gone.size else k + 100
+        worst = max(worst, float(steps[a:b].max(initial=0.0)))
     return worst
