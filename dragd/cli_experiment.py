@@ -23,14 +23,17 @@ def _joints(text: str | None, n: int) -> list[int]:
     return idx
 
 
-def _bench(args: argparse.Namespace):  # noqa: ANN202
+def _bench(args: argparse.Namespace, joints_arg: str | None):  # noqa: ANN202
     from .experiment.bench import Bench
 
+    if args.ramp_s is not None and not 1.0 <= args.ramp_s <= 120.0:
+        raise CliError(f"--ramp-s: expected seconds in [1, 120], got {args.ramp_s}")
     work = Path(args.work_dir) if args.work_dir else Path(tempfile.mkdtemp(prefix="dragd-experiment-"))
     bench = Bench(work, config=args.config, params=args.params, progress=not args.json)
+    joints = _joints(joints_arg, len(bench.cfg.joints))
     if args.params is None:  # the compensation runs on identified parameters only (never the sim's truth)
-        bench.identify_on_sim()
-    return bench
+        bench.identify_on_sim(joints)
+    return bench, joints
 
 
 def cmd_startup(args: argparse.Namespace) -> int:
@@ -38,9 +41,8 @@ def cmd_startup(args: argparse.Namespace) -> int:
     from .experiment.startup import run_startup
     from .telemetry import read_rows
 
-    bench = _bench(args)
-    joints = _joints(args.joints, len(bench.cfg.joints))
-    result = run_startup(bench, joints, reps=args.reps)
+    bench, joints = _bench(args, args.joints)
+    result = run_startup(bench, joints, reps=args.reps, ramp_s=args.ramp_s)
     if args.plots:
         out = Path(args.plots)
         out.mkdir(parents=True, exist_ok=True)
@@ -63,15 +65,16 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     from .experiment import plots
     from .experiment.startup import run_sweep, write_frequency
 
-    bench = _bench(args)
-    (joint,) = _joints(args.joint, len(bench.cfg.joints))
+    if args.joint is not None and "," in args.joint:
+        raise CliError(f"--joint: expected one joint, got '{args.joint}'")
+    bench, (joint,) = _bench(args, args.joint)
     freqs = None
     if args.frequencies:
         try:
             freqs = [float(x) for x in args.frequencies.split(",")]
         except ValueError:
             raise CliError(f"--frequencies: expected comma-separated numbers, got '{args.frequencies}'") from None
-    result = run_sweep(bench, joint, freqs, reps=args.reps)
+    result = run_sweep(bench, joint, freqs, reps=args.reps, ramp_s=args.ramp_s)
     if args.out and result["best_frequency_Hz"] is not None:
         write_frequency(args.params, Path(args.out), result["joint"], result["best_frequency_Hz"])
         result["params"] = str(args.out)
@@ -96,8 +99,8 @@ def cmd_quality(args: argparse.Namespace) -> int:
     from .experiment import plots
     from .experiment.quality import run_quality
 
-    bench = _bench(args)
-    result = run_quality(bench, _joints(args.joints, len(bench.cfg.joints)))
+    bench, joints = _bench(args, args.joints)
+    result = run_quality(bench, joints)
     if args.plots:
         out = Path(args.plots)
         out.mkdir(parents=True, exist_ok=True)
@@ -113,7 +116,10 @@ def cmd_quality(args: argparse.Namespace) -> int:
 
 
 def register(sub: Any) -> None:
-    e = sub.add_parser("experiment", help="seed 001's start-up experiments and drag quality on the simulated robot")
+    e = sub.add_parser("experiment", help="seed 001's start-up experiments and drag quality on the simulated robot",
+                       description="Seed 001's experiments on the simulated robot. The compensation uses identified "
+                                   "parameters only: --params FILE, or (without it) a friction identification run "
+                                   "on the simulated arm first (plan, log, fit: about a minute).")
     esub = e.add_subparsers(dest="experiment_command", metavar="WHAT")
     esub.required = True
 
@@ -122,6 +128,8 @@ def register(sub: Any) -> None:
         p.add_argument("--reps", type=int, default=2, help="repetitions per joint (alternating direction; default 2)")
         p.add_argument("--plots", help="write PNG figures to this folder")
         p.add_argument("--work-dir", help="keep the rigs' logs and MCAP recordings here (default: a temp folder)")
+        p.add_argument("--ramp-s", type=float, default=None,
+                       help="seconds the load ramp takes to the believed static friction (default 10)")
         p.add_argument("--json", action="store_true", help="print JSON")
 
     s = esub.add_parser("startup", help="starting torque without/with start-up compensation (seed 001 Table XI)")

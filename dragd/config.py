@@ -210,7 +210,7 @@ class LawConfig(_Strict):
     damping: bool = True
     friction_smoothing_rad_s: PosFloat = 0.005  # tanh width of the zero crossing
     friction_deadband_rad_s: NonNegFloat = 0.0  # seed 000's v_lim: no friction compensation inside ±v_lim
-    friction_scale: Annotated[float, Field(ge=0, le=1.2), Expect("a factor in [0, 1.2]")] = 0.9  # < 1: no run-away
+    friction_scale: Annotated[float, Field(ge=0, le=1.2), Expect("a factor in [0, 1.2]")] = 0.95  # < 1: no run-away
     startup_scale: NonNegFloat = 0.9  # default start-up amplitude = scale × believed static friction level
     startup_waveform: Literal["sine", "square"] = "sine"  # square: the peers' dither, for comparison
     startup_handover: Literal["fade", "abrupt"] = "fade"  # abrupt: seed 001 eq. 28's switch at Φ, for comparison

@@ -12,7 +12,7 @@ Terms
   with the smooth zero crossing w = tanh(max(|q̇| − v_lim, 0)/ε): w = 0 at rest and inside seed 000's
   velocity band ±v_lim, → 1 once |q̇| ≫ v_lim + ε. The level of the side the joint moves to is used, so
   asymmetric levels (e.g. +0.89 A / −1.27 A) never bias a joint at rest. The whole term is scaled by
-  ``friction_scale`` (default 0.9): a believed level above the true one would otherwise push a released joint
+  ``friction_scale`` (default 0.95): a believed level above the true one would otherwise push a released joint
   along for ever (measured: 0.05 rad/s on joint 1 with a 7 % over-estimate); under-compensation stops it.
 - start-up (seed 001 eq. 25/28): I_s = r(|q̇|)·A_d·sin(2πft), A_d = amplitude of the half-wave's direction.
   Seed 001 switches abruptly between I_s and friction at |q̇| = Φ; here r fades from 1 at Φ to 0 at
@@ -23,8 +23,9 @@ Terms
   fires and the joint merely ratchets. The latch watches the *position*: once the joint has crept
   ``breakout_slip_rad`` from where it settled, the sine is held at its peak in that direction (blended over
   ``BREAKOUT_RAMP_S``) for at most ``breakout_hold_s`` — enough to carry the joint past Φ, where friction
-  compensation takes over. It re-arms only after the joint has been still for ``settle_s``, so a joint coasting
-  to rest never latches, and a latch that did not lead to motion moves the joint at most Φ·hold.
+  compensation takes over. It re-arms only after the joint has been still — no velocity and not one slip
+  distance of creep — for ``settle_s``, so a joint coasting or creeping to rest never latches, and a latch that
+  did not lead to motion moves the joint at most Φ·hold.
   Options for comparison: ``startup_square`` (a square wave of the same amplitude, the peers' dither) and
   ``startup_abrupt`` (seed 001's switch at Φ).
 - back-EMF headroom (seed 000 eq. 26, I = I_s − K_b·ω/R_m): the command adds K_b·n·q̇/R_m so that a drive
@@ -74,7 +75,7 @@ class LawParams:
     breakout_slip_rad: np.ndarray  # 0: no break-out latch on that joint
     breakout_hold_s: np.ndarray
     settle_s: np.ndarray
-    friction_scale: float = 0.9  # < 1: under-compensate so that belief errors never make a released joint run away
+    friction_scale: float = 0.95  # < 1: under-compensate so that belief errors never make a released joint run away
     smoothing_rad_s: float = 0.005
     deadband_rad_s: float = 0.0
     use_gravity: bool = True
@@ -314,6 +315,7 @@ class BreakoutState:
 
     def __init__(self, n: int) -> None:
         self.anchor_rad = np.zeros(n)  # where the joint settled (valid while armed)
+        self.still_ref_rad = np.full(n, np.nan)  # where the current stillness began (NaN: not yet seen)
         self.armed = np.zeros(n, dtype=bool)
         self.still_since_s = np.zeros(n)
         self.latch = np.zeros(n)  # −1, 0, +1: the direction held
@@ -342,6 +344,7 @@ class BreakoutState:
         """Disarm everything (entering drag): the latch arms once each joint has been still for ``settle_s``."""
         self.armed.fill(False)
         self.still_since_s.fill(t_s)
+        self.still_ref_rad.fill(np.nan)
         self.latch.fill(0.0)
         self.held.fill(0.0)
         self.weight.fill(0.0)
@@ -369,7 +372,13 @@ def breakout_update(q_rad: np.ndarray, dq_rad_s: np.ndarray, t_s: float, p: LawP
     np.less_equal(speed, p.rest_threshold_rad_s, out=k)
     st.armed &= k
     np.greater(speed, st.still_rad_s, out=k)
+    np.subtract(q_rad, st.still_ref_rad, out=x)
+    np.abs(x, out=x)
+    np.less_equal(x, st.slip_rad, out=m)  # a creep of counts (too slow for the velocity estimate) is not still;
+    np.logical_not(m, out=m)  # (nor is the first cycle after a reset: NaN reference)
+    k |= m
     np.copyto(st.still_since_s, t_s, where=k)
+    np.copyto(st.still_ref_rad, q_rad, where=k)
     # arm where still for settle_s and not latched: the anchor is where the joint settled
     if not st.armed.all():
         np.subtract(t_s, st.still_since_s, out=x)

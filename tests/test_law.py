@@ -27,9 +27,9 @@ def params(cfg):
 
 def test_friction_scale_under_compensates(cfg):
     p = LawParams.from_config(cfg)
-    assert p.friction_scale == 0.9
+    assert p.friction_scale == 0.95
     v = np.full(6, 0.3)
-    assert np.allclose(friction_current(v, p), 0.9 * friction_current(v, p.replace(friction_scale=1.0)))
+    assert np.allclose(friction_current(v, p), 0.95 * friction_current(v, p.replace(friction_scale=1.0)))
 
 
 def test_gravity_current_is_g_over_kt(cfg, params):

@@ -83,7 +83,7 @@ class Bench:
             finally:
                 rig.close()
 
-    def identify_on_sim(self, scale: float = 0.3) -> Path:
+    def identify_on_sim(self, joints: list[int] | None = None, scale: float = 0.3) -> Path:
         """Identify K_t and friction the way a user would (issue 5), and use only that from now on.
 
         The excitation is seed 001's friction plan from the arm's pose; the log comes from ``python -m sim log``
@@ -97,8 +97,9 @@ class Bench:
         cfg = ["--config", str(self.config)]
         start = "--start=" + ",".join(f"{x:.6f}" for x in q)
         self.say("identification: friction plan, log, fit ...")
+        which = ["--joints", ",".join(str(j + 1) for j in joints)] if joints else []
         for argv in ([sys.executable, "-m", "dragd", "identify", "plan", "--kind", "friction", "--scale", str(scale),
-                      start, "--out", str(plan), *cfg],
+                      start, "--out", str(plan), *which, *cfg],
                      [sys.executable, "-m", "sim", "log", "--plan", str(plan), "--out", str(log),
                       "--dragd-config", str(self.config)],
                      [sys.executable, "-m", "dragd", "identify", "fit", "--log", str(log), "--out", str(out), *cfg]):

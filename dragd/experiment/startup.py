@@ -5,8 +5,9 @@ joint moves 0.11°; the load at that moment is the starting torque. Without the 
 and with it, repetitions in both directions averaged; plus the oscillation range at rest with the term on.
 ``sine_sweep``: one joint, the start-up frequency swept (seed 001 Fig. 13): oscillation range and starting
 torque per frequency; picks the frequency with the lowest starting torque whose oscillation stays ≤ 0.06°;
-compares a square wave of the same amplitude (the peers' dither) and the abrupt switch (seed 001 eq. 28)
-against the faded hand-over, including the current step at the hand-over.
+compares a square wave of the same amplitude (the peers' dither), the faded hand-over without the break-out
+latch, and seed 001 as published (abrupt switch at Φ, eq. 28, no latch) against ours (faded hand-over + latch),
+including the current step at the hand-over.
 """
 
 from __future__ import annotations
@@ -24,8 +25,8 @@ RAMP_S = 10.0  # seconds the load ramp takes to reach the believed static fricti
 DEFAULT_FREQUENCIES_HZ = (2.0, 4.0, 8.0, 12.0, 16.0, 20.0, 25.0, 30.0, 40.0)
 
 
-def _starting_torques(bench: Bench, rig: Any, joints: list[int], reps: int, rows_path: Path | None = None
-                      ) -> tuple[dict[int, list[float]], dict[str, np.ndarray] | None]:
+def _starting_torques(bench: Bench, rig: Any, joints: list[int], reps: int, rows_path: Path | None = None,
+                      ramp_s: float | None = None) -> tuple[dict[int, list[float]], dict[str, np.ndarray] | None]:
     """Ramp each joint ``reps`` times (alternating direction); the breakaway loads [N·m] per joint."""
     out: dict[int, list[float]] = {}
     if rows_path is not None:
@@ -33,11 +34,12 @@ def _starting_torques(bench: Bench, rig: Any, joints: list[int], reps: int, rows
     for j in joints:
         name = bench.cfg.joints[j].name
         fs = bench.static_Nm(j)
-        rate = fs / RAMP_S  # a slow ramp (the seed adds weights one by one): RAMP_S to the believed static level
+        ramp = ramp_s or RAMP_S
+        rate = fs / ramp  # a slow ramp (the seed adds weights one by one): ``ramp`` s to the believed static level
         loads = []
         for r in range(reps):
             sign = 1 if r % 2 == 0 else -1
-            ev = ramp_breakaway(rig, name, sign, rate, timeout_s=1.5 * RAMP_S)
+            ev = ramp_breakaway(rig, name, sign, rate, timeout_s=1.5 * ramp)
             if ev["kind"] != "breakaway":
                 raise RuntimeError(f"{name}: no breakaway within the ramp ({ev['kind']}: {ev})")
             loads.append(abs(float(ev["torque_Nm"])))
@@ -52,16 +54,17 @@ def _starting_torques(bench: Bench, rig: Any, joints: list[int], reps: int, rows
     return out, rows
 
 
-def run_startup(bench: Bench, joints: list[int], reps: int = 2, rest_s: float = 2.0) -> dict[str, Any]:
+def run_startup(bench: Bench, joints: list[int], reps: int = 2, rest_s: float = 2.0,
+                ramp_s: float | None = None) -> dict[str, Any]:
     """Table XI of seed 001: starting torque without/with the start-up term, reduction, oscillation at rest."""
     bench.say(f"without start-up compensation: ramping joints {', '.join(str(j + 1) for j in joints)} ...")
     with bench.rig("startup-off", {("law", "startup"): False}) as rig:
-        without, _ = _starting_torques(bench, rig, joints, reps)
+        without, _ = _starting_torques(bench, rig, joints, reps, ramp_s=ramp_s)
     bench.say("with start-up compensation: oscillation at rest, then the same ramps ...")
     with bench.rig("startup-on", {("law", "startup"): True}) as rig:
         rest = record(rig, bench.workdir / "rest.mcap", rest_s)
         osc = oscillation_deg(rest)
-        with_, rows = _starting_torques(bench, rig, joints, reps, bench.workdir / "ramps_on.mcap")
+        with_, rows = _starting_torques(bench, rig, joints, reps, bench.workdir / "ramps_on.mcap", ramp_s)
     result: dict[str, Any] = {"joints": {}}
     reductions = []
     for j in joints:
@@ -83,7 +86,7 @@ def run_startup(bench: Bench, joints: list[int], reps: int = 2, rest_s: float = 
 
 
 def run_sweep(bench: Bench, joint: int, frequencies: list[float] | None = None, reps: int = 2,
-              rest_s: float = 1.5) -> dict[str, Any]:
+              rest_s: float = 1.5, ramp_s: float | None = None) -> dict[str, Any]:
     """Seed 001 Fig. 13: oscillation and starting torque per start-up frequency; the best; square/abrupt compared."""
     freqs = list(frequencies or DEFAULT_FREQUENCIES_HZ)
     name = bench.cfg.joints[joint].name
@@ -93,20 +96,23 @@ def run_sweep(bench: Bench, joint: int, frequencies: list[float] | None = None, 
         bench.say(f"{name}: start-up sine at {f:g} Hz ...")
         with bench.rig(f"sweep-{f:g}", {("joints", joint, "startup", "frequency_Hz"): float(f)}) as rig:
             osc = oscillation_deg(record(rig, bench.workdir / f"rest-{f:g}.mcap", rest_s))[joint]
-            loads, _ = _starting_torques(bench, rig, [joint], reps)
+            loads, _ = _starting_torques(bench, rig, [joint], reps, ramp_s=ramp_s)
         points.append({"frequency_Hz": f, "oscillation_deg": round(float(osc), 5),
                        "starting_torque_Nm": round(float(np.mean(loads[joint])), 4)})
     ok = [p for p in points if p["oscillation_deg"] <= OSCILLATION_LIMIT_DEG]
     best = min(ok, key=lambda p: p["starting_torque_Nm"]) if ok else None
     f_best = best["frequency_Hz"] if best else max(freqs)
     comparisons = {}
-    for label, edits in (("sine_fade", {}), ("square_fade", {("law", "startup_waveform"): "square"}),
-                         ("sine_abrupt", {("law", "startup_handover"): "abrupt"})):
+    for label, edits in (("sine_fade", {}),  # ours: faded hand-over + break-out latch
+                         ("square_fade", {("law", "startup_waveform"): "square"}),  # the peers' dither
+                         ("sine_fade_no_breakout", {("law", "startup_breakout"): False}),
+                         ("sine_abrupt", {("law", "startup_handover"): "abrupt",  # seed 001 as published
+                                          ("law", "startup_breakout"): False})):
         bench.say(f"{name}: {label.replace('_', ' + ')} at {f_best:g} Hz ...")
         e = {("joints", joint, "startup", "frequency_Hz"): float(f_best), **edits}
         with bench.rig(f"compare-{label}", e) as rig:
             osc = oscillation_deg(record(rig, bench.workdir / f"rest-{label}.mcap", rest_s))[joint]
-            loads, rows = _starting_torques(bench, rig, [joint], reps, bench.workdir / f"ramps-{label}.mcap")
+            loads, rows = _starting_torques(bench, rig, [joint], reps, bench.workdir / f"ramps-{label}.mcap", ramp_s)
         comparisons[label] = {"oscillation_deg": round(float(osc), 5),
                               "starting_torque_Nm": round(float(np.mean(loads[joint])), 4),
                               "handover_step_A": round(handover_step_A(rows, joint, phi), 4)}
