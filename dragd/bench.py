@@ -62,7 +62,7 @@ def _load_plugins() -> None:
     """Import modules that register further benchmarks (kept lazy: some pull in heavy dependencies)."""
     import importlib
 
-    for mod in ("dragd.bench_loop", "dragd.bench_identify"):
+    for mod in ("dragd.bench_loop", "dragd.bench_identify", "dragd.bench_gap"):
         try:
             importlib.import_module(mod)
         except ModuleNotFoundError as exc:

@@ -39,40 +39,39 @@ def cmd_gap(args: argparse.Namespace) -> int:
     except LogError as exc:
         raise CliError(str(exc)) from None
     data = res.to_json()
+    extra: dict[str, Any] = {}
     if args.out:
         save_params(res.params, Path(args.out))
-        data["out"] = str(args.out)
+        extra["out"] = str(args.out)
     if args.report:
         from .gap.report import write
 
-        data.update(write(res, args.report, str(args.measured), str(args.model) if args.model else None,
-                          str(args.out) if args.out else None))
+        extra.update(write(res, args.report, str(args.measured), str(args.model) if args.model else None,
+                           str(args.out) if args.out else None))
+
+    def ma(x: Any) -> str:
+        return "—" if x is None else f"{x * 1e3:.1f}"
 
     def text(d: dict[str, Any]) -> str:
-        def ma(x: Any) -> str:
-            return "—" if x is None else f"{x * 1e3:.1f}"
-
-        lines = [f"{args.measured}: baseline ({d['baseline']['kind']}) RMSE {ma(d['baseline']['rmse_A'])} mA → "
-                 f"{ma(d['final']['rmse_A'])} mA (noise {ma(d['final']['noise_A'])} mA)"]
+        det = res.details()
+        lines = [f"{args.measured}: baseline ({det['baseline_kind']}) RMSE {ma(d['baseline']['rmse_A'])} mA → "
+                 f"{ma(d['final']['rmse_A'])} mA (noise {ma(det['noise_A'])} mA)"]
         if d["effects"]:
             lines.append(_table(["effect", "joints", "RMSE after mA"],
                                 [(e["effect"], ",".join(e["joints"]), ma(e["rmse_A"])) for e in d["effects"]]))
         else:
             lines.append("nothing missing: no effect improves the held-out error")
-        rows = [(nm, ma(v["rmse_A"]), ma(d["final"]["joints"][nm]["rmse_A"]), ma(v["noise_A"]))
+        rows = [(nm, ma(v["rmse_A"]), ma(det["final_joints"][nm]["rmse_A"]), ma(v["noise_A"]))
                 for nm, v in d["baseline"]["joints"].items()]
         lines.append(_table(["joint", "before mA", "after mA", "noise mA"], rows))
-        if d.get("out"):
-            lines.append(f"extended model: {d['out']}")
-        if d.get("report"):
-            lines.append(f"report: {d['report']}")
-        lines += [f"warning: {w}" for w in d.get("warnings", [])]
+        if extra.get("out"):
+            lines.append(f"extended model: {extra['out']}")
+        if extra.get("report"):
+            lines.append(f"report: {extra['report']}")
+        lines += [f"warning: {w}" for w in det["warnings"]]
         return "\n".join(lines)
 
-    if args.json:  # exactly the keys at the top, the rest under them
-        data = {"baseline": data["baseline"], "effects": data["effects"], "final": data["final"],
-                **{k: v for k, v in data.items() if k not in ("baseline", "effects", "final")}}
-    _emit(args, data, text)
+    _emit(args, data, text)  # --json: exactly baseline, effects, final (details: the report's gap.json)
     return 0
 
 

@@ -141,7 +141,7 @@ class Stribeck(Effect):
             vs, de = math.exp(x[0]), math.exp(x[1])
             return sse((vs, de)) if 0.003 < vs < 1.0 and 0.5 <= de <= 4.0 else float("inf")
 
-        r = minimize(f, np.log(hyper), method="Nelder-Mead", options={"xatol": 0.01, "fatol": 1e-9, "maxfev": 60})
+        r = minimize(f, np.log(hyper), method="Nelder-Mead", options={"xatol": 0.02, "fatol": 1e-9, "maxfev": 40})
         return (float(math.exp(r.x[0])), float(math.exp(r.x[1]))) if np.isfinite(r.fun) else hyper
 
     def columns(self, d, j, hyper, info):
@@ -425,7 +425,7 @@ def spectrum_peaks(d: GapData, j: int, resid: np.ndarray, max_peaks: int = 3) ->
         return []
     step = 2.0 * math.pi / rng / 8.0
     cs = np.arange(c_min, c_max, step)
-    step_k = max(1, r.size // 20000)  # a subsample is plenty for locating a peak
+    step_k = max(1, r.size // 4000)  # a subsample is plenty for locating a peak
     pw = lombscargle(q[::step_k], r[::step_k] - r[::step_k].mean(), cs)
     peaks = [k for k in range(1, cs.size - 1) if pw[k] >= pw[k - 1] and pw[k] >= pw[k + 1]]
     peaks.sort(key=lambda k: -pw[k])

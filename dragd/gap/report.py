@@ -76,6 +76,7 @@ def markdown(res: GapResult, files: list[str], out_dir: Path, log_path: str, mod
              params_out: str | None) -> str:
     d = res.data
     j = res.to_json()
+    j["final"]["noise_A"] = res.details()["noise_A"]
     lines = [f"# Model gap: {Path(log_path).name}", "",
              f"- log: `{log_path}` ({d.log.t.shape[0]} samples at {d.p.source_rate_Hz:.0f} Hz, "
              f"{d.t_rel[-1]:.1f} s; work rate {d.p.fs:.0f} Hz, regression filter {d.p.cutoff_Hz:g} Hz)",
@@ -121,7 +122,7 @@ def markdown(res: GapResult, files: list[str], out_dir: Path, log_path: str, mod
     lines += ["", "Method: docs/GAP.md (catalogue, signatures, pass-wise cross-validation, stopping rule).", ""]
     text = "\n".join(lines)
     (out_dir / "report.md").write_text(text)
-    (out_dir / "localisation.json").write_text(json.dumps({"before": res.localisation, "after": res.localisation_after}))
+    (out_dir / "gap.json").write_text(json.dumps({**res.to_json(), "details": res.details()}))
     return str(out_dir / "report.md")
 
 

@@ -35,22 +35,33 @@ class GapResult:
     warnings: list[str] = field(default_factory=list)
 
     def to_json(self) -> dict[str, Any]:
-        def f(x: float) -> float | None:
-            return None if x is None or not math.isfinite(x) else float(f"{x:.6g}")
-
+        """The issue's exact keys: baseline {rmse_A, joints}, effects [{effect, joints, params, rmse_A}], final {rmse_A}."""
         names = self.data.names
         per0, all0 = self.baseline_rmse
-        per1, all1 = self.final_rmse
-        noise = self.data.noise_A
         return {
-            "baseline": {"rmse_A": f(all0), "kind": self.baseline_kind,
-                         "joints": {nm: {"rmse_A": f(per0[j]), "noise_A": f(noise[j])} for j, nm in enumerate(names)}},
-            "effects": self.effects,
-            "final": {"rmse_A": f(all1), "noise_A": f(float(np.sqrt(np.mean(noise ** 2)))),
-                      "joints": {nm: {"rmse_A": f(per1[j])} for j, nm in enumerate(names)}},
-            "elapsed_s": round(self.elapsed_s, 3),
-            "warnings": list(self.warnings),
+            "baseline": {"rmse_A": _f(all0), "joints": {nm: {"rmse_A": _f(per0[j]), "noise_A": _f(self.data.noise_A[j])}
+                                                        for j, nm in enumerate(names)}},
+            "effects": [{k: e[k] for k in ("effect", "joints", "params", "rmse_A")} for e in self.effects],
+            "final": {"rmse_A": _f(self.final_rmse[1])},
         }
+
+    def details(self) -> dict[str, Any]:
+        """Everything else: baseline kind, noise, per-joint final RMSE, the selection's evidence, localisation."""
+        names = self.data.names
+        return {"baseline_kind": self.baseline_kind, "noise_A": _f(float(np.sqrt(np.mean(self.data.noise_A ** 2)))),
+                "final_joints": {nm: {"rmse_A": _f(self.final_rmse[0][j])} for j, nm in enumerate(names)},
+                "evidence": [{"effect": e["effect"], "evidence": e["evidence"]} for e in self.effects],
+                "localisation_before": self.localisation, "localisation_after": self.localisation_after,
+                "elapsed_s": round(self.elapsed_s, 3), "warnings": list(self.warnings)}
+
+    @property
+    def rmse_ratio(self) -> float:
+        """Final RMSE / the current noise (all joints)."""
+        return float(self.final_rmse[1] / np.sqrt(np.mean(self.data.noise_A ** 2)))
+
+
+def _f(x: float | None) -> float | None:
+    return None if x is None or not math.isfinite(x) else float(f"{x:.6g}")
 
 
 def _round(x: Any) -> Any:

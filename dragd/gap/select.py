@@ -217,7 +217,7 @@ class Selector:
                 best = (cv1, t, X1, y1)
         if best is None:
             return None
-        if hasattr(eff, "refine"):
+        if hasattr(eff, "refine") and cv0 - best[0] >= REL_MIN * cv0:  # refine a promising shape only
             def sse(h: Any) -> float:
                 tt = self._term(eff, jm, h)
                 if tt is None:

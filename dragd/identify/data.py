@@ -20,6 +20,7 @@ Signal processing (applied the same way to both sides of every regression):
 
 from __future__ import annotations
 
+import functools
 import json
 import re
 from dataclasses import dataclass, field
@@ -237,11 +238,16 @@ def _validate(log: Log) -> Log:
 # ------------------------------------------------------------------------------------------ processing
 
 
+@functools.lru_cache(maxsize=64)
+def _butter_sos(order: int, cutoff_Hz: float, fs_Hz: float) -> np.ndarray:
+    return butter(order, cutoff_Hz, fs=fs_Hz, output="sos")
+
+
 def lowpass(x: np.ndarray, cutoff_Hz: float, fs_Hz: float, order: int = 4) -> np.ndarray:
     """Zero-phase Butterworth low-pass along axis 0 (no-op when the cutoff is at/above Nyquist)."""
     if cutoff_Hz >= 0.45 * fs_Hz:
         return x.copy()
-    sos = butter(order, cutoff_Hz, fs=fs_Hz, output="sos")
+    sos = _butter_sos(order, float(cutoff_Hz), float(fs_Hz))
     padlen = min(x.shape[0] - 1, 3 * (2 * sos.shape[0] + 1) * 10)
     return sosfiltfilt(sos, x, axis=0, padlen=padlen)
 
