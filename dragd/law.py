@@ -239,6 +239,20 @@ def gravity_current(tau_g_Nm: np.ndarray, kt_Nm_per_A: np.ndarray, out: np.ndarr
     return out
 
 
+def _sliding_weight(abs_v: np.ndarray, p: LawParams, out: np.ndarray, tmp: np.ndarray,
+                    rest_weight: np.ndarray | None) -> np.ndarray:
+    """w·(1 − r): the smooth zero crossing / seed 000 dead band w = tanh(max(|v| − v_lim, 0)/ε), faded in by the
+    start-up weight r when given (``tmp`` is scratch; ``out`` may be ``abs_v``)."""
+    np.subtract(abs_v, p.deadband_rad_s, out=out)
+    np.maximum(out, 0.0, out=out)
+    out /= p.smoothing_rad_s
+    np.tanh(out, out=out)
+    if rest_weight is not None:
+        np.subtract(1.0, rest_weight, out=tmp)
+        out *= tmp
+    return out
+
+
 def friction_current(dq_rad_s: np.ndarray, p: LawParams, out: np.ndarray | None = None,
                      ws: Workspace | None = None, rest_weight: np.ndarray | None = None) -> np.ndarray:
     """Direction-dependent Coulomb/Stribeck/viscous friction current with a smooth zero crossing.
@@ -265,14 +279,7 @@ def friction_current(dq_rad_s: np.ndarray, p: LawParams, out: np.ndarray | None 
         np.exp(out, out=out)
         b *= out
         c += b
-    # smooth zero crossing / seed 000 dead band: w = tanh(max(|v| - v_lim, 0)/eps)
-    np.subtract(a, p.deadband_rad_s, out=b)
-    np.maximum(b, 0.0, out=b)
-    b /= p.smoothing_rad_s
-    np.tanh(b, out=b)
-    if rest_weight is not None:
-        np.subtract(1.0, rest_weight, out=a)
-        b *= a
+    _sliding_weight(a, p, b, a, rest_weight)
     np.multiply(b, c, out=out)
     # viscous, direction-dependent slope
     np.copyto(c, p.viscous_neg_A_s_per_rad)
@@ -482,13 +489,7 @@ def effects_current(q_rad: np.ndarray, dq_rad_s: np.ndarray, tau_g_Nm: np.ndarra
     if p.use_friction:
         # load-dependent friction: w·(1 − r)·sign(q̇)·k_L·|G|/K_t·scale, w as in friction_current
         np.abs(dq_rad_s, out=b)
-        b -= p.deadband_rad_s
-        np.maximum(b, 0.0, out=b)
-        b /= p.smoothing_rad_s
-        np.tanh(b, out=b)
-        if rest_weight is not None:
-            np.subtract(1.0, rest_weight, out=a)
-            b *= a
+        _sliding_weight(b, p, b, a, rest_weight)
         np.abs(tau_g_Nm, out=a)
         a *= e.load_friction_A_per_Nm
         a *= b

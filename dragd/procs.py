@@ -155,6 +155,14 @@ class Rig:
         return subprocess.run([sys.executable, "-m", "dragd", *args, "--socket", self.socket], capture_output=True,
                               text=True, timeout=timeout_s, cwd=str(REPO))
 
+    def ensure_hold(self, tries: int = 3) -> None:
+        """Restart a daemon that faulted at rest (a loaded machine's missed cycles) until it holds."""
+        for _ in range(tries):
+            if self.must("status")["mode"] == "hold":
+                return
+            self.must("start")
+            time.sleep(0.5)
+
     def must(self, cmd: str, **args: Any) -> dict[str, Any]:
         resp = self.call(cmd, **args)
         if not resp.get("ok"):

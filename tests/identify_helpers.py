@@ -88,3 +88,16 @@ def fourier_log() -> Path:
     b = E.PlanBuilder(START, limits())
     E.add_fourier(b, robot(), periods=5, maxiter=20, seed=3)
     return _generate(b.build("test-fourier"), "fourier", 6)
+
+
+def run_plan(rig, plan: E.Plan, tmp_path: Path) -> tuple[dict, Path]:  # noqa: ANN001
+    """``dragd identify run`` of a plan through a rig's daemon (real time, CSP); returns its JSON and the MCAP path."""
+    import json
+
+    pf = tmp_path / "plan.npz"
+    plan.save(pf)
+    rig.ensure_hold()  # a machine loaded by other jobs can fault the daemon at rest before the run
+    out = tmp_path / "run.mcap"
+    proc = rig.cli("identify", "run", "--plan", str(pf), "--out", str(out), "--no-progress", "--json", timeout_s=120.0)
+    assert proc.returncode == 0, proc.stderr + proc.stdout
+    return json.loads(proc.stdout), out

@@ -15,7 +15,7 @@ from dragd.model import RobotModel
 from dragd.procs import Rig
 
 from conftest import run_cli
-from identify_helpers import truth
+from identify_helpers import run_plan, truth
 
 
 def test_identify_run_through_the_daemon_then_fit(tmp_path):
@@ -34,18 +34,7 @@ def test_identify_run_through_the_daemon_then_fit(tmp_path):
             b.move(q0, speed=v, acceleration=0.8, kind="synchronous", joint=1)
         plan = b.build("e2e")
         assert 8.0 < plan.duration_s < 25.0
-        pf = tmp_path / "plan.npz"
-        plan.save(pf)
-        for _ in range(3):  # a machine loaded by other jobs can fault the daemon at rest (missed cycles) before
-            if rig.must("status")["mode"] == "hold":  # the run starts; that is not what this test is about
-                break
-            rig.must("start")
-            time.sleep(0.5)
-        out = tmp_path / "run.mcap"
-        proc = rig.cli("identify", "run", "--plan", str(pf), "--out", str(out), "--no-progress", "--json",
-                       timeout_s=120.0)
-        assert proc.returncode == 0, proc.stderr + proc.stdout
-        res = json.loads(proc.stdout)
+        res, out = run_plan(rig, plan, tmp_path)
         status = rig.must("status")
         rig.must("stop")
     assert res["log"] == str(out) and res["chunks"] == 1
