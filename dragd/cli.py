@@ -83,7 +83,7 @@ def cmd_model_current(args: argparse.Namespace) -> int:
     from .model import RobotModel
 
     cfg = load_config(args.config, args.params)
-    model = RobotModel.from_urdf(cfg.robot.urdf, cfg.base_dir, cfg.robot.gravity_m_s2)
+    model = RobotModel.from_config(cfg)  # with the params' payload (docs/GAP.md)
     if model.nq != len(cfg.joints):
         raise CliError(f"{cfg.source}: joints: the robot has {model.nq} joints, the configuration {len(cfg.joints)}")
     try:
@@ -91,7 +91,7 @@ def cmd_model_current(args: argparse.Namespace) -> int:
         dq = model.check_q(np.array(_floats(args.dq, "--dq")), "--dq")
     except ValueError as exc:
         raise CliError(str(exc)) from None
-    out = compensate(model.gravity(q), dq, float(args.t), LawParams.from_config(cfg))
+    out = compensate(model.gravity(q), dq, float(args.t), LawParams.from_config(cfg), q_rad=q)
     data = {
         "joints": list(model.joint_names),
         "current_A": out.current_A.tolist(),
@@ -100,6 +100,7 @@ def cmd_model_current(args: argparse.Namespace) -> int:
         "startup_A": out.startup_A.tolist(),
         "back_emf_A": out.back_emf_A.tolist(),
         "damping_A": out.damping_A.tolist(),
+        "effects_A": out.effects_A.tolist(),
         "clamped": out.clamped.tolist(),
     }
     _emit(args, data, lambda d: _table(
