@@ -35,7 +35,7 @@ def test_gap_on_daemon_telemetry(tmp_path):
         time.sleep(0.3)
         q0 = np.array(rig.must("status")["q_rad"])
         b = E.PlanBuilder(q0, E.Limits.from_model(RobotModel.from_urdf("seed_cobot"), load_config()))
-        E.add_gap(b, speeds=(0.25, 0.5), half_range=0.4, poses=1, rng=np.random.default_rng(2))
+        E.add_gap(b, speeds=(0.25, 0.35, 0.5), half_range=0.3, poses=2, rng=np.random.default_rng(2))
         plan = b.build("gap-e2e")
         assert plan.duration_s < 40.0
         _, out = run_plan(rig, plan, tmp_path)

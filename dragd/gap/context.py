@@ -21,6 +21,7 @@ from dragd.identify.regressors import RegressorModel
 V_SLIDE = 0.01  # rad/s: a joint slides above this (evaluation mask)
 GUARD_S = 0.1  # ... for ± this long (stiction, reversal instants and rests are not evaluated)
 V_REST = 0.01  # rad/s: the arm rests when every joint is below this (pass boundaries)
+MISSED_GUARD_S = 0.1  # samples this close to a missed cycle of the log are not evaluated (the drive saw a jerky target)
 FOLDS = 5
 
 
@@ -101,6 +102,20 @@ def _noise(i_raw: np.ndarray) -> np.ndarray:
     return 1.4826 * mad / math.sqrt(2.0)
 
 
+def _near_missed(log: Log, t: np.ndarray, guard_s: float = MISSED_GUARD_S) -> np.ndarray:
+    """Work-rate samples within ``guard_s`` of a missed cycle of the log (a gap of 1.5–5.5 periods, interpolated)."""
+    d = np.diff(log.t)
+    med = float(np.median(d))
+    k = np.nonzero((d > 1.5 * med) & (d <= 5.5 * med))[0]
+    if k.size == 0:
+        return np.zeros(t.shape[0], dtype=bool)
+    centres = 0.5 * (log.t[k] + log.t[k + 1])
+    idx = np.searchsorted(centres, t)
+    left = np.abs(t - centres[np.clip(idx - 1, 0, centres.size - 1)])
+    right = np.abs(centres[np.clip(idx, 0, centres.size - 1)] - t)
+    return np.minimum(left, right) <= guard_s
+
+
 def _passes(p: Prepared, rest_s: float = 0.1, block_s: float = 10.0) -> tuple[np.ndarray, list[str]]:
     """A pass = a move of the arm between two rests (every joint below V_REST for ≥ rest_s); without rests, blocks."""
     moving = np.any(np.abs(p.dq) > V_REST, axis=1)
@@ -113,8 +128,9 @@ def _passes(p: Prepared, rest_s: float = 0.1, block_s: float = 10.0) -> tuple[np
     pid = np.cumsum(starts) - 1
     notes = []
     if np.unique(pid[~rest]).size < 2 * FOLDS:
+        block_s = min(block_s, float(p.t[-1] - p.t[0]) / (2 * FOLDS))
         pid = np.floor((p.t - p.t[0]) / block_s).astype(int)
-        notes.append(f"fewer than {2 * FOLDS} moves between rests: cross-validation leaves out {block_s:g} s blocks")
+        notes.append(f"fewer than {2 * FOLDS} moves between rests: cross-validation leaves out {block_s:.3g} s blocks")
     return pid, notes
 
 
@@ -128,7 +144,14 @@ def load_gap_data(log: Log, robot: Any, cutoff_Hz: float = 5.0) -> GapData:
     tau_dyn = rm.rnea(p.q, p.dq, p.ddq) - G
     guard = int(round(GUARD_S * p.fs))
     slide = np.column_stack([sliding(p.dq[:, j:j + 1], V_SLIDE, guard)[:, 0] for j in range(len(names))])
-    pid, notes = _passes(p)
+    missed = _near_missed(log, p.t)
+    notes = []
+    if missed.any():
+        slide &= ~missed[:, None]
+        notes.append(f"{int(missed.sum())} work-rate samples within {MISSED_GUARD_S:g} s of missed cycles not evaluated "
+                     "(the drive followed a jerky target there)")
+    pid, pass_notes = _passes(p)
+    notes += pass_notes
     # folds: passes round-robin, so a pass and its return (the same positions, the other direction) differ
     uniq = np.unique(pid)
     fold = np.empty_like(pid)
