@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import functools
+import gc
 import math
 import os
 import signal
@@ -1620,6 +1621,10 @@ class Daemon:
             rt_info = set_realtime(self.cfg.loop.realtime_priority, set(self.cfg.loop.cpus) if self.cfg.loop.cpus else None)
             for sig in (signal.SIGTERM, signal.SIGINT):
                 loop.add_signal_handler(sig, self.request_exit)
+            # everything built so far lives for the whole run: out of the cyclic collector's way, so its
+            # occasional full collections (a heap of Pinocchio/scipy/numpy objects) cannot stall a cycle for ms
+            gc.collect()
+            gc.freeze()
             cycle = loop.create_task(self._cycle_loop())
             server = ControlServer(self.socket_path, self._handle)
             await server.start()

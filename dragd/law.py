@@ -315,6 +315,8 @@ def startup_weight(dq_rad_s: np.ndarray, p: LawParams, out: np.ndarray | None = 
 
 BREAKOUT_RAMP_S = 0.005  # the sine blends into (and back out of) the held peak over this time
 STILL_FRACTION = 0.25  # "still" (for re-arming the latch) is |q̇| below this fraction of Φ
+REST_WEIGHT_STEP = 0.1  # with a BreakoutState the start-up weight r changes by at most this per cycle (≥ 10 ms
+# for a full hand-over): the steep fade over [Φ, Φ + width] would turn velocity-estimate noise into current steps
 
 
 class BreakoutState:
@@ -329,6 +331,7 @@ class BreakoutState:
         self.latch_t0_s = np.zeros(n)
         self.held = np.zeros(n)  # direction of the blend (kept while the blend fades out)
         self.weight = np.zeros(n)  # blend sine → held peak, in [0, 1]
+        self.rest = np.ones(n)  # the slew-limited start-up weight r of the last cycle
         self.latches = np.zeros(n, dtype=np.int64)  # count of latches fired, per joint
         self.t_prev_s = 0.0
         self._m = np.zeros(n, dtype=bool)
@@ -355,6 +358,7 @@ class BreakoutState:
         self.latch.fill(0.0)
         self.held.fill(0.0)
         self.weight.fill(0.0)
+        self.rest.fill(1.0)
         self.active = False
         self.t_prev_s = t_s
 
@@ -409,7 +413,7 @@ def breakout_update(q_rad: np.ndarray, dq_rad_s: np.ndarray, t_s: float, p: LawP
         st.latches += m
         st.active = True
     if st.active:  # the blend weight moves toward 1 while latched, toward 0 after
-        step = dt / BREAKOUT_RAMP_S
+        step = min(dt, 2e-3) / BREAKOUT_RAMP_S  # a late tick does not jump the blend
         np.not_equal(st.latch, 0.0, out=m)
         np.add(st.weight, step, out=x)
         np.subtract(st.weight, step, out=speed)
@@ -548,6 +552,12 @@ def compensate(tau_g_Nm: np.ndarray, dq_rad_s: np.ndarray, t_s: float, p: LawPar
     rest = None
     if p.use_startup:
         rest = startup_weight(dq_rad_s, p, ws.rest, ws)
+        if breakout is not None:  # slew-limit the hand-over: velocity noise must not step the current
+            np.subtract(breakout.rest, REST_WEIGHT_STEP, out=ws.a)
+            np.maximum(rest, ws.a, out=rest)
+            np.add(breakout.rest, REST_WEIGHT_STEP, out=ws.a)
+            np.minimum(rest, ws.a, out=rest)
+            breakout.rest[:] = rest
         startup_current(t_s, dq_rad_s, p, out.startup_A, ws, rest, breakout)
     else:
         out.startup_A.fill(0.0)

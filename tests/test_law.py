@@ -295,3 +295,27 @@ def test_breakout_latch_ignores_a_joint_coasting_to_rest_and_can_be_switched_off
 
     s, _ = _latch_run(off, creep, 0.6)
     assert np.allclose(s[:, 0], _sine_term(params, 0, np.arange(600) * 1e-3))
+
+
+def test_hand_over_is_slew_limited_against_velocity_noise(params):
+    """A velocity estimate that jumps across the fade band (a late TPDO, a stalled loop) must not step the current."""
+    from dragd.law import REST_WEIGHT_STEP, BreakoutState, breakout_update
+
+    st = BreakoutState(6).configure(params)
+    st.reset(0.0)
+    g, q = np.zeros(6), np.zeros(6)
+    phi, w = params.rest_threshold_rad_s, params.fade_width_rad_s
+    fast, slow = phi + 2 * w, 0.5 * phi
+    outs = []
+    for k in range(60):
+        dq = np.where((k // 15) % 2 == 0, fast, slow)  # jumps across the whole band every 15 cycles
+        breakout_update(q, dq, k * 1e-3, params, st)
+        o = compensate(g, dq, k * 1e-3, params, breakout=st)
+        outs.append((st.rest.copy(), o.friction_A + o.startup_A))
+    r = np.array([x[0] for x in outs])
+    assert np.abs(np.diff(r, axis=0)).max() <= REST_WEIGHT_STEP + 1e-12
+    assert r[14].max() == 0.0 and r[29].min() == 1.0  # it still hands over fully, within 10 cycles
+    unslewed = np.abs(compensate(g, np.full(6, fast), 0.0, params).friction_A
+                      - compensate(g, np.full(6, slow), 0.0, params).friction_A)
+    steps = np.abs(np.diff([x[1] for x in outs], axis=0)).max(axis=0)
+    assert np.all(steps < 0.5 * unslewed + 2 * np.pi * params.startup_freq_Hz * params.startup_amp_pos_A * 1e-3)
