@@ -87,7 +87,8 @@ def law_from_params(params: Any, names: list[str], cfg: Any | None = None) -> tu
                     stribeck_velocity_rad_s=arr["vs"], stribeck_exponent=arr["de"], viscous_pos_A_s_per_rad=arr["vp"],
                     viscous_neg_A_s_per_rad=arr["vn"], startup_amp_pos_A=z, startup_amp_neg_A=z,
                     startup_freq_Hz=np.ones(n), rest_threshold_rad_s=np.full(n, 0.01),
-                    fade_width_rad_s=np.full(n, 0.02), back_emf_A_s_per_rad=z, damping_A_s_per_rad=z)
+                    fade_width_rad_s=np.full(n, 0.02), back_emf_A_s_per_rad=z, damping_A_s_per_rad=z,
+                    breakout_slip_rad=z, breakout_hold_s=np.full(n, 0.1), settle_s=np.full(n, 0.1))
     if hasattr(law, "friction_scale"):
         law = law.replace(friction_scale=1.0)
     return law, warnings
