@@ -124,8 +124,9 @@ def test_mode_switches_have_no_current_jump(session):
     cmd = np.array(rows["current_command_A"])
     switches = [k for k in range(1, len(mode)) if mode[k] != mode[k - 1] and {mode[k], mode[k - 1]} <= {"hold", "drag"}]
     assert len(switches) >= 3  # hold→drag, drag→hold, hold→drag
-    # change per elapsed cycle: after a late tick (machine load) the time-based sine legitimately moves further
-    elapsed = np.maximum(1.0, np.round(np.asarray(rows["period_us"], dtype=float)[1:] / 1000.0))
+    # change per elapsed cycle of the law's clock (which advances by the timer's expirations): after a late
+    # tick (machine load) the time-based sine legitimately moves further
+    elapsed = np.maximum(1.0, np.round(np.diff(np.asarray(rows["t_s"], dtype=float)) / 1e-3))
     steps = np.abs(np.diff(cmd, axis=0)) / elapsed[:, None]
     for k in switches:
         nxt = next((j for j in range(k + 1, len(mode)) if mode[j] != mode[k]), len(mode))
