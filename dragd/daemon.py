@@ -889,36 +889,46 @@ class Daemon:
                     break
 
     def _safety_terms(self, out: np.ndarray) -> None:
-        """Soft-limit walls (spring/damper before the hard stops) and, in drag, the speed cap: as current [A]."""
+        """Soft-limit walls (spring/damper before the hard stops) and, in drag, the speed cap: as current [A].
+
+        Allocation-free; the usual cycle (no joint near a wall, none above its speed cap) costs five ufuncs."""
         s = self.cfg.safety
-        q, dq, p, v = self.q, self.dq, self.tmp, self.tmp2
+        q, dq, p, v, m = self.q, self.dq, self.tmp, self.tmp2, self._near
         out.fill(0.0)
-        np.greater(q, self.wall_hi, out=self._near)
-        near = self._near.any()
-        np.less(q, self.wall_lo, out=self._near)
-        near = near or self._near.any()
-        if not near and self.mode != Mode.DRAG:
+        np.greater(q, self.wall_hi, out=m)
+        near = m.any()
+        np.less(q, self.wall_lo, out=m)
+        near = near or m.any()
+        fast = False
+        if self.mode == Mode.DRAG:
+            np.abs(dq, out=p)
+            np.greater(p, self.vcap, out=m)
+            fast = m.any()
+        if not (near or fast):
             return
-        # upper wall: penetration p = q - (hi - margin) > 0 pushes back, damping only while moving further in
-        np.subtract(q, self.lim_hi, out=p)
-        p += s.soft_limit_margin_rad
-        np.maximum(p, 0.0, out=p)
-        np.maximum(dq, 0.0, out=v)
-        v *= p > 0.0
-        p *= s.wall_stiffness_Nm_per_rad
-        v *= s.wall_damping_Nm_s_per_rad
-        out -= p
-        out -= v
-        np.subtract(self.lim_lo, q, out=p)
-        p += s.soft_limit_margin_rad
-        np.maximum(p, 0.0, out=p)
-        np.minimum(dq, 0.0, out=v)
-        v *= p > 0.0
-        p *= s.wall_stiffness_Nm_per_rad
-        v *= s.wall_damping_Nm_s_per_rad
-        out += p
-        out -= v
-        if self.mode == Mode.DRAG:  # speed cap: viscous brake on the excess speed
+        if near:
+            # upper wall: penetration p = q - (hi - margin) > 0 pushes back, damping only while moving further in
+            np.subtract(q, self.lim_hi, out=p)
+            p += s.soft_limit_margin_rad
+            np.maximum(p, 0.0, out=p)
+            np.maximum(dq, 0.0, out=v)
+            np.greater(p, 0.0, out=m)
+            v *= m
+            p *= s.wall_stiffness_Nm_per_rad
+            v *= s.wall_damping_Nm_s_per_rad
+            out -= p
+            out -= v
+            np.subtract(self.lim_lo, q, out=p)
+            p += s.soft_limit_margin_rad
+            np.maximum(p, 0.0, out=p)
+            np.minimum(dq, 0.0, out=v)
+            np.greater(p, 0.0, out=m)
+            v *= m
+            p *= s.wall_stiffness_Nm_per_rad
+            v *= s.wall_damping_Nm_s_per_rad
+            out += p
+            out -= v
+        if fast:  # drag speed cap: viscous brake on the excess speed
             np.abs(dq, out=p)
             p -= self.vcap
             np.maximum(p, 0.0, out=p)

@@ -31,6 +31,7 @@ class VelocityEstimator:
         self._raw = np.zeros(n)
         self._alpha = np.zeros(n)
         self._age = np.zeros(n)  # seconds since each joint's last fresh sample
+        self._uniform = True  # every joint's last sample was fresh: ages all zero
         self._k = np.full(n, -2.0 * math.pi * self.cutoff_Hz)
         self._primed = False
 
@@ -42,6 +43,7 @@ class VelocityEstimator:
         self._last[:] = counts
         self.velocity_rad_s.fill(0.0)
         self._age.fill(0.0)
+        self._uniform = True
         self._primed = True
 
     def update(self, counts: np.ndarray, dt_s: float, fresh: np.ndarray | None = None) -> np.ndarray:
@@ -54,27 +56,40 @@ class VelocityEstimator:
         if not self._primed or dt_s <= 0.0:
             self.reset(counts)
             return self.velocity_rad_s
+        all_fresh = fresh is None or fresh.all()
+        self._counts_to_rad(counts)
+        if all_fresh and self._uniform:  # the usual cycle: one interval for every joint, a scalar filter gain
+            self._raw /= dt_s
+            self._raw -= self.velocity_rad_s
+            self._raw *= 1.0 - math.exp(-2.0 * math.pi * self.cutoff_Hz * dt_s)
+            self.velocity_rad_s += self._raw
+            self._last[:] = counts
+            return self.velocity_rad_s
         age = self._age
         age += dt_s
-        d = self._delta
-        np.subtract(counts, self._last, out=d)
-        # int32 wrap-around of 6064h: map the difference into [-2^31, 2^31)
-        d += INT32_SPAN // 2
-        np.remainder(d, INT32_SPAN, out=d)
-        d -= INT32_SPAN // 2
-        np.multiply(d, self.rad_per_count, out=self._raw)
         self._raw /= age
         np.multiply(age, self._k, out=self._alpha)  # α = 1 − exp(−2π f_c·age)
         np.exp(self._alpha, out=self._alpha)
         np.subtract(1.0, self._alpha, out=self._alpha)
         self._raw -= self.velocity_rad_s
         self._raw *= self._alpha
-        if fresh is None:
+        if all_fresh:
             self.velocity_rad_s += self._raw
             self._last[:] = counts
             age.fill(0.0)
+            self._uniform = True
         else:
+            self._uniform = False
             np.add(self.velocity_rad_s, self._raw, out=self.velocity_rad_s, where=fresh)
             np.copyto(self._last, counts, where=fresh)
             np.copyto(age, 0.0, where=fresh)
         return self.velocity_rad_s
+
+    def _counts_to_rad(self, counts: np.ndarray) -> None:
+        """``_raw`` ← counts − last sample's, wrap-safe (int32 wrap-around of 6064h), in rad."""
+        d = self._delta
+        np.subtract(counts, self._last, out=d)
+        d += INT32_SPAN // 2  # map the difference into [-2^31, 2^31)
+        np.remainder(d, INT32_SPAN, out=d)
+        d -= INT32_SPAN // 2
+        np.multiply(d, self.rad_per_count, out=self._raw)
