@@ -76,7 +76,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             raise CliError(f"--frequencies: expected comma-separated numbers, got '{args.frequencies}'") from None
     result = run_sweep(bench, joint, freqs, reps=args.reps, ramp_s=args.ramp_s)
     if args.out and result["best_frequency_Hz"] is not None:
-        write_frequency(args.params, Path(args.out), result["joint"], result["best_frequency_Hz"])
+        write_frequency(bench.params, Path(args.out), result["joint"], result["best_frequency_Hz"])  # identified kept
         result["params"] = str(args.out)
     if args.plots:
         out = Path(args.plots)

@@ -95,7 +95,8 @@ class StartupConfig(_Strict):
     # break-out latch: crept this far from where it settled -> the sine is held at its peak that way (0: off)
     breakout_slip_rad: NonNegFloat = 1.5e-5
     breakout_hold_s: PosFloat = 0.1  # ... for at most this long (past Φ friction compensation takes over)
-    settle_s: PosFloat = 0.1  # the latch re-arms after the joint has been still this long
+    settle_s: Annotated[float, Field(ge=0.005, le=10.0), Expect("seconds in [0.005, 10] (at least the 5 ms blend)")] = 0.1
+    # ... the latch re-arms after the joint has been still this long
 
 
 class BackEmfConfig(_Strict):
@@ -215,6 +216,8 @@ class LawConfig(_Strict):
     startup_waveform: Literal["sine", "square"] = "sine"  # square: the peers' dither, for comparison
     startup_handover: Literal["fade", "abrupt"] = "fade"  # abrupt: seed 001 eq. 28's switch at Φ, for comparison
     startup_breakout: bool = True  # the break-out latch (false: seed 001's velocity hand-over only)
+    # the latch fires only where the sine's margin below static friction exceeds this fraction of |G|/K_t
+    gravity_uncertainty: Annotated[float, Field(ge=0, le=1), Expect("a fraction in [0, 1]")] = 0.02
     velocity_filter_Hz: Annotated[float, Field(gt=0, le=500), Expect("a cutoff in (0, 500] Hz")] = 40.0
 
 

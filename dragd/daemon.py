@@ -981,8 +981,8 @@ class Daemon:
         self.vel.update(self.counts, self.sample_dt_s, self.rx)
         np.multiply(self.current_raw, self.A_per_permille, out=self.current_meas_A)
         self.model.gravity(self.q, self.tau_g)
-        if self.mode == Mode.DRAG:
-            breakout_update(self.q, self.dq, self.t, self.params, self.breakout)
+        if self.mode == Mode.DRAG and self.params.use_breakout and self.params.use_startup:
+            breakout_update(self.q, self.dq, self.t, self.params, self.breakout, self.tau_g)
         if self.trajectory is not None and self.mode == Mode.TRACK:
             self._track_step()
         if self.teach is not None:

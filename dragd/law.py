@@ -25,7 +25,7 @@ Terms
   ``BREAKOUT_RAMP_S``) for at most ``breakout_hold_s`` — enough to carry the joint past Φ, where friction
   compensation takes over. It re-arms only after the joint has been still — no velocity and not one slip
   distance of creep — for ``settle_s``, so a joint coasting or creeping to rest never latches, and a latch that
-  did not lead to motion moves the joint at most Φ·hold.
+  did not lead to motion moves the joint at most (Φ + width)·hold ≈ 3 mrad.
   Options for comparison: ``startup_square`` (a square wave of the same amplitude, the peers' dither) and
   ``startup_abrupt`` (seed 001's switch at Φ).
 - back-EMF headroom (seed 000 eq. 26, I = I_s − K_b·ω/R_m): the command adds K_b·n·q̇/R_m so that a drive
@@ -87,6 +87,7 @@ class LawParams:
     startup_square: bool = False  # square wave of the same amplitude (the peers' dither) instead of the sine
     startup_abrupt: bool = False  # seed 001 eq. 28: switch at |q̇| = Φ instead of fading over [Φ, Φ + width]
     use_breakout: bool = True  # the break-out latch (needs a BreakoutState fed by breakout_update)
+    gravity_uncertainty: float = 0.02  # fraction of |G| the latch assumes the gravity model can be off
     effects: EffectArrays | None = None  # model-gap effects (docs/GAP.md); None: none in the model
 
     @property
@@ -146,6 +147,7 @@ class LawParams:
             startup_square=cfg.law.startup_waveform == "square",
             startup_abrupt=cfg.law.startup_handover == "abrupt",
             use_breakout=cfg.law.startup_breakout,
+            gravity_uncertainty=cfg.law.gravity_uncertainty,
             effects=EffectArrays.from_config(cfg),
         ).replace(**_back_emf_from_effects(cfg))
 
@@ -173,6 +175,11 @@ class EffectArrays:
     drift_time_constant_s: np.ndarray  # inf: no drift
     back_emf_knee_rad_s: np.ndarray
     scratch: np.ndarray  # (2, n, K)
+    drift_warm_now: np.ndarray | None = None  # 1 where Δ < 0 (apply the warm level at once), else 0
+
+    def __post_init__(self) -> None:
+        if self.drift_warm_now is None:  # frozen: set once here
+            object.__setattr__(self, "drift_warm_now", (self.drift_change < 0.0).astype(float))
 
     @classmethod
     def from_config(cls, cfg: Config) -> EffectArrays | None:
@@ -333,6 +340,7 @@ class BreakoutState:
         self.weight = np.zeros(n)  # blend sine → held peak, in [0, 1]
         self.rest = np.ones(n)  # the slew-limited start-up weight r of the last cycle
         self.latches = np.zeros(n, dtype=np.int64)  # count of latches fired, per joint
+        self.suppressed = np.zeros(n, dtype=np.int64)  # ... and of creeps the gravity uncertainty could explain
         self.t_prev_s = 0.0
         self._m = np.zeros(n, dtype=bool)
         self._k = np.zeros(n, dtype=bool)
@@ -363,8 +371,14 @@ class BreakoutState:
         self.t_prev_s = t_s
 
 
-def breakout_update(q_rad: np.ndarray, dq_rad_s: np.ndarray, t_s: float, p: LawParams, st: BreakoutState) -> None:
-    """Advance the break-out latch by one cycle (allocation-free; a dozen ufuncs while nothing is latched)."""
+def breakout_update(q_rad: np.ndarray, dq_rad_s: np.ndarray, t_s: float, p: LawParams, st: BreakoutState,
+                    tau_g_Nm: np.ndarray | None = None) -> None:
+    """Advance the break-out latch by one cycle (allocation-free; a dozen ufuncs while nothing is latched).
+
+    With ``tau_g_Nm`` a joint latches only where the sine's margin below the believed static level covers the
+    gravity model's uncertainty (``gravity_uncertainty``·|G|/K_t): there a creep is the hand's; where gravity
+    errors alone could make the joint creep, a latch could start it by itself, so it stays on seed 001's hand-over.
+    """
     m, k, x, speed = st._m, st._k, st._x, st.speed
     dt = max(t_s - st.t_prev_s, 0.0)
     st.t_prev_s = t_s
@@ -405,6 +419,14 @@ def breakout_update(q_rad: np.ndarray, dq_rad_s: np.ndarray, t_s: float, p: LawP
     np.greater(speed, st.slip_rad, out=m)
     m &= st.armed
     if m.any():
+        if tau_g_Nm is not None and p.gravity_uncertainty > 0.0:  # rare branch: a joint crept
+            for j in np.flatnonzero(m):
+                pos = x[j] > 0.0
+                static = p.static_pos_A[j] if pos else -p.static_neg_A[j]
+                amp = p.startup_amp_pos_A[j] if pos else p.startup_amp_neg_A[j]
+                if p.gravity_uncertainty * abs(tau_g_Nm[j]) / p.kt_Nm_per_A[j] >= static - amp:
+                    m[j] = False
+                    st.suppressed[j] += 1
         np.sign(x, out=x)
         np.copyto(st.latch, x, where=m)
         np.copyto(st.held, x, where=m)
@@ -500,10 +522,13 @@ def effects_current(q_rad: np.ndarray, dq_rad_s: np.ndarray, tau_g_Nm: np.ndarra
         np.copysign(a, dq_rad_s, out=a)
         a *= p.friction_scale
         out += a
-        # warm-up drift of the friction term: I_f·Δ·(1 − e^(−t/τ))
+        # warm-up drift of the friction term: I_f·Δ·(1 − e^(−t/τ)), t the daemon's time since start. Only where
+        # friction grows as the joint warms (Δ > 0: a restart on a warm arm under-compensates, safe); where it
+        # falls (Δ < 0) the warm level from the start — the cold level on a warm arm would over-compensate
         np.divide(-t_s, e.drift_time_constant_s, out=a)
         np.exp(a, out=a)
         np.subtract(1.0, a, out=a)
+        np.maximum(a, e.drift_warm_now, out=a)
         a *= e.drift_change
         a *= friction_A
         out += a
@@ -552,11 +577,11 @@ def compensate(tau_g_Nm: np.ndarray, dq_rad_s: np.ndarray, t_s: float, p: LawPar
     rest = None
     if p.use_startup:
         rest = startup_weight(dq_rad_s, p, ws.rest, ws)
-        if breakout is not None:  # slew-limit the hand-over: velocity noise must not step the current
-            np.subtract(breakout.rest, REST_WEIGHT_STEP, out=ws.a)
-            np.maximum(rest, ws.a, out=rest)
+        if breakout is not None and not p.startup_abrupt:  # slew-limit the faded hand-over: velocity noise must
+            np.subtract(breakout.rest, REST_WEIGHT_STEP, out=ws.a)  # not step the current (seed 001's abrupt
+            np.fmax(rest, ws.a, out=rest)  # switch stays as published); fmax/fmin: a NaN never sticks
             np.add(breakout.rest, REST_WEIGHT_STEP, out=ws.a)
-            np.minimum(rest, ws.a, out=rest)
+            np.fmin(rest, ws.a, out=rest)
             breakout.rest[:] = rest
         startup_current(t_s, dq_rad_s, p, out.startup_A, ws, rest, breakout)
     else:
@@ -566,7 +591,9 @@ def compensate(tau_g_Nm: np.ndarray, dq_rad_s: np.ndarray, t_s: float, p: LawPar
     else:
         out.friction_A.fill(0.0)
     if p.effects is not None and out.effects_A is not None:
-        effects_current(q_rad if q_rad is not None else ws.c * 0.0, dq_rad_s, tau_g_Nm, t_s, p, out.friction_A,
+        if q_rad is None:
+            raise ValueError("compensate: the params' effects need q_rad")
+        effects_current(q_rad, dq_rad_s, tau_g_Nm, t_s, p, out.friction_A,
                         out.effects_A, ws, rest)
     if p.use_back_emf:
         back_emf_current(dq_rad_s, p, out.back_emf_A)

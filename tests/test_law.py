@@ -319,3 +319,24 @@ def test_hand_over_is_slew_limited_against_velocity_noise(params):
                       - compensate(g, np.full(6, slow), 0.0, params).friction_A)
     steps = np.abs(np.diff([x[1] for x in outs], axis=0)).max(axis=0)
     assert np.all(steps < 0.5 * unslewed + 2 * np.pi * params.startup_freq_Hz * params.startup_amp_pos_A * 1e-3)
+
+
+def test_breakout_latch_stays_off_where_gravity_errors_could_explain_the_creep(params):
+    """Where 2 % of the gravity current exceeds the sine's margin below static friction, a creep may be the model's
+    error rather than a hand: the latch must not fire there (seed 001's hand-over stays)."""
+    from dragd.law import BreakoutState, breakout_update
+
+    slip = params.breakout_slip_rad[0]
+    margin = params.static_pos_A - params.startup_amp_pos_A
+    tau_g = np.zeros(6)
+    tau_g[0] = 1.5 * margin[0] / params.gravity_uncertainty * params.kt_Nm_per_A[0]  # joint 1: gravity-loaded
+    tau_g[1] = 0.5 * margin[1] / params.gravity_uncertainty * params.kt_Nm_per_A[1]  # joint 2: lightly loaded
+    st = BreakoutState(6).configure(params)
+    st.reset(0.0)
+    for k in range(600):
+        t = k * 1e-3
+        q = np.zeros(6)
+        q[:2] = 0.0 if t < 0.3 else 3 * slip  # both creep past the slip distance after settling
+        breakout_update(q, np.zeros(6), t, params, st, tau_g)
+    assert st.latches[0] == 0 and st.suppressed[0] > 0
+    assert st.latches[1] == 1 and st.suppressed[1] == 0
