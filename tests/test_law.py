@@ -247,9 +247,9 @@ def test_breakout_latch_holds_the_peak_of_a_creeping_joint(params):
     slip = params.breakout_slip_rad[0]
     amp = params.startup_amp_pos_A[0]
 
-    def q(t):  # joint 1 creeps forward by micro-slips from t = 0.5 s; the others stay put
+    def q(t):  # joint 1 creeps forward by micro-slips from t = 0.5 s until past the slip distance; the others stay
         x = np.zeros(6)
-        x[0] = 0.0 if t < 0.5 else 0.4 * slip * np.floor((t - 0.5) / 0.0625 + 1)
+        x[0] = 0.0 if t < 0.5 else min(0.4 * slip * np.floor((t - 0.5) / 0.0625 + 1), 1.2 * slip)
         return x
 
     s, st = _latch_run(params, q, 1.0)
