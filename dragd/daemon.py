@@ -1070,6 +1070,9 @@ class Daemon:
         row[c["friction_A"]] = self.law_out.friction_A if self.mode == Mode.DRAG else 0.0
         row[c["startup_A"]] = self.law_out.startup_A if self.mode == Mode.DRAG else 0.0
         row[c["damping_A"]] = self.law_out.damping_A if self.mode == Mode.DRAG else 0.0
+        row[c["back_emf_A"]] = self.law_out.back_emf_A if self.mode == Mode.DRAG else 0.0
+        row[c["effects_A"]] = (self.law_out.effects_A if self.mode == Mode.DRAG and self.params.effects is not None
+                               else 0.0)  # with the terms above (+ safety walls) the command before the clamp
         row[c["statusword"]] = self.statusword
         row[c["rx"]] = self.rx
         row[c["period_us"]] = period_us
@@ -1560,7 +1563,7 @@ class Daemon:
         n = self.n
         return {"t_s": 1, "mode": Field(1, kind="int", labels={int(m): name for m, name in MODE_NAMES.items()}), "q_rad": n, "dq_rad_s": n, "current_measured_A": n, "current_command_A": n,
                 "gravity_A": n, "friction_A": n, "startup_A": n, "damping_A": n, "statusword": Field(n, kind="int"), "rx": Field(n, kind="bool"), "period_us": 1,
-                "compute_us": 1, "q_ref_rad": n, "track_t_s": 1, "residual_A": n}
+                "compute_us": 1, "q_ref_rad": n, "track_t_s": 1, "residual_A": n, "back_emf_A": n, "effects_A": n}
 
     def _layout_columns(self) -> dict[str, Any]:
         """Column index (width 1) or slice of every telemetry field in a row."""
