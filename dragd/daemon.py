@@ -909,25 +909,11 @@ class Daemon:
         if near:
             # upper wall: penetration p = q - (hi - margin) > 0 pushes back, damping only while moving further in
             np.subtract(q, self.lim_hi, out=p)
-            p += s.soft_limit_margin_rad
-            np.maximum(p, 0.0, out=p)
             np.maximum(dq, 0.0, out=v)
-            np.greater(p, 0.0, out=m)
-            v *= m
-            p *= s.wall_stiffness_Nm_per_rad
-            v *= s.wall_damping_Nm_s_per_rad
-            out -= p
-            out -= v
-            np.subtract(self.lim_lo, q, out=p)
-            p += s.soft_limit_margin_rad
-            np.maximum(p, 0.0, out=p)
+            self._wall(out, p, v, 1.0)
+            np.subtract(self.lim_lo, q, out=p)  # lower wall, mirrored
             np.minimum(dq, 0.0, out=v)
-            np.greater(p, 0.0, out=m)
-            v *= m
-            p *= s.wall_stiffness_Nm_per_rad
-            v *= s.wall_damping_Nm_s_per_rad
-            out += p
-            out -= v
+            self._wall(out, p, v, -1.0)
         if fast:  # drag speed cap: viscous brake on the excess speed
             np.abs(dq, out=p)
             p -= self.vcap
@@ -937,6 +923,18 @@ class Daemon:
             p *= s.speed_cap_damping_Nm_s_per_rad
             out -= p
         out /= self.kt
+
+    def _wall(self, out: np.ndarray, p: np.ndarray, v: np.ndarray, side: float) -> None:
+        """out −= side·k·max(p + margin, 0) + c·v where penetrating (``v``: the speed component into the wall)."""
+        s, m = self.cfg.safety, self._near
+        p += s.soft_limit_margin_rad
+        np.maximum(p, 0.0, out=p)
+        np.greater(p, 0.0, out=m)
+        v *= m
+        p *= side * s.wall_stiffness_Nm_per_rad
+        v *= s.wall_damping_Nm_s_per_rad
+        out -= p
+        out -= v
 
     def _mode_command(self, mode: Mode, out: np.ndarray) -> None:
         """The command current [A] of one mode (before the blend)."""
