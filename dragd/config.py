@@ -8,6 +8,7 @@ per-joint torque constants and friction of the configuration it is loaded with.
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -92,8 +93,9 @@ class StartupConfig(_Strict):
     frequency_Hz: Annotated[float, Field(gt=0, le=250), Expect("a frequency in (0, 250] Hz")] = 16.0
     rest_threshold_rad_s: PosFloat = 0.01  # Φ: |q̇| below it counts as rest
     fade_width_rad_s: PosFloat = 0.02  # the term fades to zero over [Φ, Φ + width]
-    # break-out latch: crept this far from where it settled -> the sine is held at its peak that way (0: off)
-    breakout_slip_rad: NonNegFloat = 1.5e-5
+    # break-out latch: crept this far from where it settled -> the sine is held at its peak that way (0: off;
+    # None: 1.25 counts of the joint's encoder — one count of jitter never fires it, the second count of creep does)
+    breakout_slip_rad: NonNegFloat | None = None
     breakout_hold_s: PosFloat = 0.1  # ... for at most this long (past Φ friction compensation takes over)
     settle_s: Annotated[float, Field(ge=0.005, le=10.0), Expect("seconds in [0.005, 10] (at least the 5 ms blend)")] = 0.1
     # ... the latch re-arms after the joint has been still this long
@@ -181,7 +183,17 @@ class JointConfig(_Strict):
                              "or motor_torque_constant_Nm_per_A (motor side, with gear_ratio)")
         if self.position_limits_rad is not None and self.position_limits_rad[0] >= self.position_limits_rad[1]:
             raise ValueError(f"position_limits_rad: expected [lower, upper] with lower < upper, got {list(self.position_limits_rad)}")
+        slip, count = self.startup.breakout_slip_rad, 2.0 * math.pi / self.encoder_counts_per_rev
+        if slip is not None and 0.0 < slip < count:
+            raise ValueError(f"startup.breakout_slip_rad: expected 0 (off) or at least one encoder count "
+                             f"({count:.3g} rad), got {slip}")
         return self
+
+    @property
+    def breakout_slip_rad(self) -> float:
+        """The break-out latch's slip distance [rad] (default 1.25 encoder counts; 0: off)."""
+        slip = self.startup.breakout_slip_rad
+        return 1.25 * 2.0 * math.pi / self.encoder_counts_per_rev if slip is None else slip
 
     @property
     def kt_Nm_per_A(self) -> float:

@@ -132,7 +132,7 @@ class LawParams:
             fade_width_rad_s=arr(lambda j: j.startup.fade_width_rad_s),
             back_emf_A_s_per_rad=arr(lambda j: j.back_emf.constant_V_s_per_rad * j.gear_ratio / j.back_emf.resistance_ohm),
             damping_A_s_per_rad=arr(lambda j: j.drag_damping_Nm_s_per_rad / j.kt_Nm_per_A),
-            breakout_slip_rad=arr(lambda j: j.startup.breakout_slip_rad),
+            breakout_slip_rad=arr(lambda j: j.breakout_slip_rad),
             breakout_hold_s=arr(lambda j: j.startup.breakout_hold_s),
             settle_s=arr(lambda j: j.startup.settle_s),
             friction_scale=cfg.law.friction_scale,

@@ -37,6 +37,21 @@ def test_bad_value_names_file_key_and_expectation(tmp_path, base):
     assert str(e.value) == f"{p}: joints[2].gear_ratio: expected a positive number, got 'abc'"
 
 
+def test_breakout_slip_is_at_least_one_encoder_count(tmp_path, base):
+    """Below one count, encoder jitter alone would fire the start-up latch; the default is 1.25 counts."""
+    base["joints"][2]["startup"]["breakout_slip_rad"] = 1e-6
+    p = _write(tmp_path, base)
+    with pytest.raises(ConfigError) as e:
+        load_config(p)
+    assert str(e.value) == (f"{p}: joints[2]: startup.breakout_slip_rad: expected 0 (off) or at least one encoder "
+                            f"count (1.2e-05 rad), got 1e-06")
+    base["joints"][2]["startup"]["breakout_slip_rad"] = 0.0  # off
+    base["joints"][3]["encoder_counts_per_rev"] = 2**17
+    cfg = load_config(_write(tmp_path, base, "ok.yaml"))
+    assert cfg.joints[2].breakout_slip_rad == 0.0
+    assert cfg.joints[3].breakout_slip_rad == pytest.approx(1.25 * 2 * 3.141592653589793 / 2**17)
+
+
 def test_negative_and_out_of_range(tmp_path, base):
     base["joints"][0]["current_limit_A"] = -1
     base["joints"][1]["node_id"] = 300
