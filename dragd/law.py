@@ -25,7 +25,10 @@ Terms
   ``BREAKOUT_RAMP_S``) for at most ``breakout_hold_s`` — enough to carry the joint past Φ, where friction
   compensation takes over. It re-arms only after the joint has been still — no velocity and not one slip
   distance of creep — for ``settle_s``, so a joint coasting or creeping to rest never latches, and a latch that
-  did not lead to motion moves the joint at most (Φ + width)·hold ≈ 3 mrad.
+  did not lead to motion moves the joint at most (Φ + width)·hold ≈ 3 mrad. It fires only where the sine's margin
+  below the believed static level exceeds ``gravity_uncertainty``·|G|/K_t (a gravity-model error could otherwise
+  creep the joint and the latch would start it by itself). The fade weight r is slew-limited (``REST_WEIGHT_STEP``
+  per cycle) so velocity-estimate noise never steps the current.
   Options for comparison: ``startup_square`` (a square wave of the same amplitude, the peers' dither) and
   ``startup_abrupt`` (seed 001's switch at Φ).
 - back-EMF headroom (seed 000 eq. 26, I = I_s − K_b·ω/R_m): the command adds K_b·n·q̇/R_m so that a drive
