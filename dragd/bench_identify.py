@@ -172,6 +172,12 @@ def details() -> dict[str, Any]:
             "train_log": r["train_log"], "valid_log": r["valid_log"]}
 
 
+def _worst(kind: str) -> float:
+    """Largest |error| [%] of one parameter kind against the sim truth (NaN: none determined)."""
+    e = _errors(kind)
+    return max(abs(x) for _, x in e) if e else float("nan")
+
+
 @benchmark("identify_10min_s", "s")
 def identify_10min_s(opts: dict) -> float:
     """Wall time to load and fit (auto) a 10 min, 6-joint, 1 kHz MCAP log (generated once, cached)."""
@@ -181,22 +187,19 @@ def identify_10min_s(opts: dict) -> float:
 @benchmark("identify_kt_error_pct", "%")
 def identify_kt_error_pct(opts: dict) -> float:
     """Largest |K_t error| against the sim truth over the joints whose K_t the data determines (target ≤ 1 %)."""
-    e = _errors("kt")
-    return max(abs(x) for _, x in e) if e else float("nan")
+    return _worst("kt")
 
 
 @benchmark("identify_coulomb_error_pct", "%")
 def identify_coulomb_error_pct(opts: dict) -> float:
     """Largest |Coulomb level error| (both directions, all joints) against the sim truth (target ≤ 3 %)."""
-    e = _errors("coulomb")
-    return max(abs(x) for _, x in e) if e else float("nan")
+    return _worst("coulomb")
 
 
 @benchmark("identify_viscous_error_pct", "%")
 def identify_viscous_error_pct(opts: dict) -> float:
     """Largest |viscous slope error| (both directions, all joints) against the sim truth (target ≤ 10 %)."""
-    e = _errors("viscous")
-    return max(abs(x) for _, x in e) if e else float("nan")
+    return _worst("viscous")
 
 
 @benchmark("identify_rmse_ratio", "x")

@@ -423,7 +423,9 @@ def breakout_update(q_rad: np.ndarray, dq_rad_s: np.ndarray, t_s: float, p: LawP
     m &= st.armed
     if m.any():
         if tau_g_Nm is not None and p.gravity_uncertainty > 0.0:  # rare branch: a joint crept
-            for j in np.flatnonzero(m):
+            for j in range(m.shape[0]):  # (no index array: nothing allocates in the cycle)
+                if not m[j]:
+                    continue
                 pos = x[j] > 0.0
                 static = p.static_pos_A[j] if pos else -p.static_neg_A[j]
                 amp = p.startup_amp_pos_A[j] if pos else p.startup_amp_neg_A[j]

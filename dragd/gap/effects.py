@@ -28,6 +28,8 @@ Signatures (what tells each effect from the others; docs/GAP.md has the full tab
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
+
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -69,7 +71,9 @@ def _sgn(v: np.ndarray) -> np.ndarray:
     return np.sign(v) * weight(v)
 
 
-class Effect:
+class Effect(ABC):
+    """A catalogue entry: a group of regressor columns with a documented signature (subclasses below)."""
+
     name = ""
     signature = ""
     shared = False  # one parameter vector for all joints (payload)
@@ -78,14 +82,17 @@ class Effect:
     def hypers(self, d: GapData, j: int, resid: np.ndarray, info: ModelInfo) -> list[Any]:
         return [None]
 
+    @abstractmethod
     def columns(self, d: GapData, j: int, hyper: Any, info: ModelInfo) -> Cols | None:
-        raise NotImplementedError
+        """The effect's regressor columns on joint j for one hyperparameter (None: not applicable)."""
 
+    @abstractmethod
     def params(self, theta: np.ndarray, hyper: Any, d: GapData, j: int, info: ModelInfo) -> dict[str, Any]:
-        raise NotImplementedError
+        """Fitted coefficients → the params-file entry (SI + A units in the keys)."""
 
+    @abstractmethod
     def write(self, pf: dict[str, Any], joint: str, prm: dict[str, Any]) -> None:
-        raise NotImplementedError
+        """Write ``prm`` into a params-file dict for ``joint``."""
 
     def predict(self, d: GapData, j: int, jp: dict[str, Any], kt: float) -> np.ndarray | None:
         """This effect's current on joint j from a params file's joint entry (None: not in it)."""
