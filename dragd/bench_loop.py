@@ -3,10 +3,15 @@
 One session (default 60 s of drag, `--seconds`) yields ``loop_period_p99_us``, ``loop_missed_ratio``,
 ``loop_compute_us`` and ``sim_rtf``; running several of them in one ``dragd bench`` call shares the session.
 ``bus_load`` is the worst-case load of the configured PDO layout (no session needed).
+
+The session runs as deployed (docs/SYSTEMD.md): the daemon's cycle thread SCHED_FIFO 70 and the simulator's
+threads 60, where the system permits it (`--realtime-priority 0`: both SCHED_OTHER). The policy in force is
+printed on stderr (``dragd status`` → ``scheduler``).
 """
 
 from __future__ import annotations
 
+import sys
 import time
 from functools import lru_cache
 from pathlib import Path
@@ -14,11 +19,16 @@ from pathlib import Path
 from .bench import benchmark
 
 
+REALTIME_PRIORITY = 70  # the cycle thread's SCHED_FIFO priority as deployed (docs/SYSTEMD.md); the sim's is 10 below
+
+
 @lru_cache(maxsize=4)
-def _session(seconds: float, config: str | None) -> dict:
+def _session(seconds: float, config: str | None, priority: int) -> dict:
     from .procs import Rig
 
-    with Rig("bench", config=Path(config) if config else None) as rig:
+    rt = ["--realtime-priority", str(priority)] if priority else []
+    sim_rt = ["--realtime-priority", str(max(1, priority - 10))] if priority else []
+    with Rig("bench", config=Path(config) if config else None, daemon_args=rt, sim_args=sim_rt) as rig:
         rig.start_sim()
         rig.start_daemon()
         rig.must("start")
@@ -31,6 +41,7 @@ def _session(seconds: float, config: str | None) -> dict:
         sim1, w1 = rig.sim_call("state"), time.monotonic()
         after = rig.must("status")
         rig.must("stop")
+    print(f"bench: loop session {seconds:.0f} s, daemon cycle thread {after.get('scheduler')}", file=sys.stderr)
     cycles = after["cycles"] - before["cycles"]
     missed = after["missed_cycles"] - before["missed_cycles"]
     return {
@@ -38,11 +49,14 @@ def _session(seconds: float, config: str | None) -> dict:
         "missed_ratio": missed / max(1, cycles + missed),
         "compute_p50_us": after["compute_p50_us"],
         "rtf": (sim1["t"] - sim0["t"]) / (w1 - w0),  # sim time over wall time, this session only
+        "scheduler": after.get("scheduler"),
     }
 
 
-def _opts(opts: dict) -> tuple[float, str | None]:
-    return float(opts.get("seconds", 60.0)), str(opts["config"]) if opts.get("config") else None
+def _opts(opts: dict) -> tuple[float, str | None, int]:
+    prio = opts.get("realtime_priority")
+    return (float(opts.get("seconds", 60.0)), str(opts["config"]) if opts.get("config") else None,
+            REALTIME_PRIORITY if prio is None else int(prio))
 
 
 @benchmark("loop_period_p99_us", "us")

@@ -179,6 +179,10 @@ class UdpMulticastCanBus(can.BusABC):
         self._can_protocol = can.CanProtocol.CAN_FD if fd else can.CanProtocol.CAN_20
         self._token = secrets.randbits(32) or 1
         self._seq = 0
+        self._packer = msgpack.Packer(use_bin_type=True)  # reused: packb would build one per frame
+        # how our own frames' stamp starts on the wire (msgpack key "channel", uint64 with our token on top):
+        # the echo of a frame we sent is recognised without unpacking it
+        self._own_stamp = b"\xa7channel\xcf" + self._token.to_bytes(4, "big")
         self._tx_lock = threading.Lock()
         self._rx_lock = threading.Lock()
         self._senders: dict[int, list[int]] = {}
@@ -224,7 +228,7 @@ class UdpMulticastCanBus(can.BusABC):
             raise can.CanOperationError(f"{self.channel_info}: cannot send a CAN FD frame on a classic-CAN bus")
         with self._tx_lock:
             self._seq = (self._seq + 1) & 0xFFFFFFFF
-            data = msgpack.packb({
+            data = self._packer.pack({
                 "timestamp": msg.timestamp,
                 "arbitration_id": msg.arbitration_id,
                 "is_extended_id": msg.is_extended_id,
@@ -236,7 +240,7 @@ class UdpMulticastCanBus(can.BusABC):
                 "is_fd": msg.is_fd,
                 "bitrate_switch": msg.bitrate_switch,
                 "error_state_indicator": msg.error_state_indicator,
-            }, use_bin_type=True)
+            })
             try:
                 self._sock.sendto(data, self._dest)
             except OSError as exc:
@@ -245,16 +249,24 @@ class UdpMulticastCanBus(can.BusABC):
 
     # --- receive -----------------------------------------------------------------------------------------
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        try:
-            ready, _, _ = select.select([self._sock], [], [], timeout)
-        except (OSError, ValueError) as exc:
-            raise can.CanOperationError(f"{self.channel_info}: wait for data failed: {exc}") from exc
-        if not ready:
-            return None, False
+        # a datagram already queued is taken without a select() first (one syscall per frame, not two)
         try:
             raw, ancillary, _, _ = self._sock.recvmsg(4096, self._ancillary_size, socket.MSG_DONTWAIT)
         except BlockingIOError:
-            return None, False  # another reader took it
+            if timeout == 0:
+                return None, False
+            try:
+                ready, _, _ = select.select([self._sock], [], [], timeout)
+            except (OSError, ValueError) as exc:
+                raise can.CanOperationError(f"{self.channel_info}: wait for data failed: {exc}") from exc
+            if not ready:
+                return None, False
+            try:
+                raw, ancillary, _, _ = self._sock.recvmsg(4096, self._ancillary_size, socket.MSG_DONTWAIT)
+            except BlockingIOError:
+                return None, False  # another reader took it
+            except OSError as exc:
+                raise can.CanOperationError(f"{self.channel_info}: receive failed: {exc}") from exc
         except OSError as exc:
             raise can.CanOperationError(f"{self.channel_info}: receive failed: {exc}") from exc
         with self._rx_lock:
@@ -269,6 +281,9 @@ class UdpMulticastCanBus(can.BusABC):
                 timestamp = sec + nsec * 1e-9
             elif level == socket.SOL_SOCKET and kind == _SO_RXQ_OVFL and len(payload) >= _U32.size:
                 c["kernel_drops"] = _U32.unpack_from(payload)[0]
+        if not self.receive_own_messages and self._own_stamp in raw:
+            c["own_echoes_dropped"] += 1  # our own frame, looped back: dropped before decoding
+            return None
         try:
             fields = msgpack.unpackb(raw, raw=False)
             stamp = fields.get("channel")

@@ -37,6 +37,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     from .master import DriveError
 
     cfg = load_config(args.config, args.params)
+    if args.realtime_priority is not None:
+        if not 0 <= args.realtime_priority <= 99:
+            raise CliError(f"--realtime-priority: expected 1..99 (SCHED_FIFO priority of the cycle thread) or 0 "
+                           f"(none), got {args.realtime_priority}")
+        cfg = cfg.model_copy(update={"loop": cfg.loop.model_copy(
+            update={"realtime_priority": args.realtime_priority or None})})
     try:
         daemon = Daemon(cfg, bus_override=args.bus, socket_path=args.socket, telemetry_path=args.telemetry,
                         rerun=args.rerun)
@@ -124,6 +130,8 @@ def register(sub: Any) -> None:
                    "e.g. socketcan:can0, udp_multicast:239.74.163.2, virtual:arm")
     r.add_argument("--socket", default=None, help=f"control socket path (default: config control.socket, {DEFAULT_SOCKET})")
     r.add_argument("--telemetry", default=None, help="write every cycle to this MCAP file")
+    r.add_argument("--realtime-priority", type=int, default=None, metavar="N",
+                   help="SCHED_FIFO priority 1..99 of the cycle thread, when permitted (0: none); overrides loop.realtime_priority")
     r.add_argument("--rerun", action="store_true", help="live view in rerun (needs the optional extra dragd[rerun])")
     r.set_defaults(func=cmd_run)
 

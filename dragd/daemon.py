@@ -223,6 +223,7 @@ class Daemon:
         self.offset_counts = np.array([j.encoder_offset_counts for j in js], dtype=np.int64)
         # unit conversions folded into one factor each (fewer numpy calls per cycle)
         self.rad_per_count = self.direction * 2.0 * math.pi / self.cpr
+        self.counts_per_rad = self.cpr / (2.0 * math.pi) * self.direction  # (direction is ±1)
         self.A_per_permille = self.rated_A * self.direction / 1000.0
         self.permille_per_A = self.direction * 1000.0 / self.rated_A
         lo, hi = self.model.position_limits_rad
@@ -347,11 +348,12 @@ class Daemon:
         self._writers: list[Any] = []
         self._cols = self._layout_columns()
         self._waiter: asyncio.Future | None = None
-        self._expect_mask = np.ones(n, dtype=bool)
+        self._rx_count = 0  # joints whose position TPDO arrived this cycle (the read step ends at n)
         self._tpdo: dict[str, dict[int, tuple[int, struct.Struct, tuple[str, ...]]]] = {}
         self.enabled = np.zeros(n, dtype=bool)
         self._cw_mode: Mode | None = None
         self._cw_statusword = np.full(n, -1, dtype=np.int64)
+        self._cw_changed = np.zeros(n, dtype=bool)
         self._near = np.zeros(n, dtype=bool)
         self.tmp2 = np.zeros(n)
         self._sync_msgs: list[tuple[can.BusABC, can.Message]] = []
@@ -421,9 +423,10 @@ class Daemon:
                     self.current_raw[j] = v
                 else:
                     self.statusword[j] = v
-            if "position" in fields:
+            if "position" in fields and not self.rx[j]:
                 self.rx[j] = True
-                if self._waiter is not None and not self._waiter.done() and np.all(self.rx[self._expect_mask]):
+                self._rx_count += 1
+                if self._rx_count >= self.n and self._waiter is not None and not self._waiter.done():
                     self._waiter.set_result(True)
             return
         j = self._emcy.get(msg.arbitration_id)
@@ -813,9 +816,9 @@ class Daemon:
         else:
             self._res_count = 0
         np.less(self.q, self.lim_lo, out=self._over)
-        over = self._over.any()
+        over = np.count_nonzero(self._over) > 0
         np.greater(self.q, self.lim_hi, out=self._over)
-        if over or self._over.any():
+        if over or np.count_nonzero(self._over):
             self._lim_count += 1
             if self._lim_count >= k:
                 np.subtract(self.lim_lo, self.q, out=self.tmp3)
@@ -846,7 +849,7 @@ class Daemon:
         """
         want_enabled = self.mode in (Mode.HOLD, Mode.DRAG, Mode.TRACK)
         if (self.fault_reset_phase == 0 and self.enable_t0 is None and self.mode == self._cw_mode
-                and np.array_equal(self.statusword, self._cw_statusword)):
+                and np.count_nonzero(np.not_equal(self.statusword, self._cw_statusword, out=self._cw_changed)) == 0):
             return
         self._cw_mode = self.mode
         self._cw_statusword[:] = self.statusword
@@ -896,14 +899,14 @@ class Daemon:
         q, dq, p, v, m = self.q, self.dq, self.tmp, self.tmp2, self._near
         out.fill(0.0)
         np.greater(q, self.wall_hi, out=m)
-        near = m.any()
+        near = np.count_nonzero(m) > 0  # (count_nonzero: 6× cheaper than .any() on a few joints)
         np.less(q, self.wall_lo, out=m)
-        near = near or m.any()
+        near = near or np.count_nonzero(m) > 0
         fast = False
         if self.mode == Mode.DRAG:
             np.abs(dq, out=p)
             np.greater(p, self.vcap, out=m)
-            fast = m.any()
+            fast = np.count_nonzero(m) > 0
         if not (near or fast):
             return
         if near:
@@ -1004,7 +1007,7 @@ class Daemon:
             self._set_mode(Mode.IDLE, blend=False)
         self.cmd_A *= self.enabled  # nothing is commanded to a drive that is not enabled
         self.prev_cmd_A[:] = self.cmd_A
-        if self.law_out.clamped.any():
+        if np.count_nonzero(self.law_out.clamped):
             self.clamp_cycles += 1
         # drive units
         np.multiply(self.cmd_A, self.permille_per_A, out=self.tmp)
@@ -1021,9 +1024,7 @@ class Daemon:
         else:
             ref = self.q
         self._ref = ref
-        np.multiply(ref, self.cpr, out=self.tmp)
-        self.tmp /= 2.0 * math.pi
-        self.tmp *= self.direction
+        np.multiply(ref, self.counts_per_rad, out=self.tmp)
         np.rint(self.tmp, out=self.tmp)
         self.target_counts[:] = self.tmp
         self.target_counts += self.offset_counts
@@ -1048,6 +1049,7 @@ class Daemon:
 
     tx_errors = 0
     error_frames = 0
+    scheduler = "not started"
 
     def _log_row(self, period_us: float, compute_us: float) -> None:
         for tw in self._writers:
@@ -1104,6 +1106,7 @@ class Daemon:
                 self.t += self.dt * expirations
                 # read
                 self.rx.fill(False)
+                self._rx_count = 0
                 self._waiter = loop.create_future()
                 for bus, msg in self._sync_msgs:
                     try:
@@ -1116,12 +1119,13 @@ class Daemon:
                 self._waiter = None
                 t_rx = time.perf_counter()
                 self.rx_hist.add((t_rx - t_tick) * 1e6)
-                if not self.rx.all():
+                complete = self._rx_count >= self.n
+                if not complete:
                     self.late_tpdo += 1
                 np.add(self.stale, 1, out=self.stale)
                 self.stale[self.rx] = 0
                 if not primed:
-                    if not self.rx.all():
+                    if not complete:
                         continue  # wait for a first full set of positions before computing anything
                     self.vel.reset(self.counts)
                     primed = True
@@ -1148,7 +1152,7 @@ class Daemon:
 
     def _feedback_watch(self, hold_after: int, disable_after: int) -> None:
         """Stale TPDOs: hold after ``hold_after`` cycles, fault (disable) after ``disable_after``; resume when fresh."""
-        worst = int(self.stale.max())
+        worst = 0 if self._rx_count >= self.n else int(self.stale.max())  # every TPDO in: all fresh
         if worst <= 1:  # a single late TPDO is jitter, not lost feedback: it does not restart the count
             self.fresh_cycles += 1
         else:
@@ -1193,6 +1197,7 @@ class Daemon:
             "tpdo_latency_p99_us": self.rx_hist.percentile(99) if self.rx_hist.count else None,
             "feedback_hold": self.feedback_hold,
             "feedback_holds": self.feedback_holds,
+            "scheduler": self.scheduler,  # the cycle thread's policy (SCHED_FIFO when configured and permitted)
             "requested_mode": MODE_NAMES[self.resume_mode if self.feedback_hold else self.mode],
             "q_rad": self.q.tolist(),
             "dq_rad_s": self.dq.tolist(),
@@ -1630,6 +1635,9 @@ class Daemon:
             self._open_telemetry()
             # real-time scheduling for the loop thread only: threads started before this stay normal
             rt_info = set_realtime(self.cfg.loop.realtime_priority, set(self.cfg.loop.cpus) if self.cfg.loop.cpus else None)
+            sched = rt_info.get("scheduler") or {}
+            self.scheduler = (f"{sched.get('policy')} {self.cfg.loop.realtime_priority}" if sched.get("applied")
+                              else str(sched.get("policy", "SCHED_OTHER")))
             for sig in (signal.SIGTERM, signal.SIGINT):
                 loop.add_signal_handler(sig, self.request_exit)
             # everything built so far lives for the whole run: out of the cyclic collector's way, so its

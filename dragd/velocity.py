@@ -13,7 +13,6 @@ import math
 
 import numpy as np
 
-INT32_SPAN = 1 << 32
 
 
 class VelocityEstimator:
@@ -27,7 +26,7 @@ class VelocityEstimator:
         n = self.rad_per_count.shape[0]
         self.velocity_rad_s = np.zeros(n)
         self._last = np.zeros(n, dtype=np.int64)
-        self._delta = np.zeros(n, dtype=np.int64)
+        self._delta = np.zeros(n, dtype=np.int32)  # int32: a difference of 6064h values wraps by itself
         self._raw = np.zeros(n)
         self._alpha = np.zeros(n)
         self._age = np.zeros(n)  # seconds since each joint's last fresh sample
@@ -56,7 +55,7 @@ class VelocityEstimator:
         if not self._primed or dt_s <= 0.0:
             self.reset(counts)
             return self.velocity_rad_s
-        all_fresh = fresh is None or fresh.all()
+        all_fresh = fresh is None or np.count_nonzero(fresh) == fresh.shape[0]
         self._counts_to_rad(counts)
         if all_fresh and self._uniform:  # the usual cycle: one interval for every joint, a scalar filter gain
             self._raw /= dt_s
@@ -88,8 +87,5 @@ class VelocityEstimator:
     def _counts_to_rad(self, counts: np.ndarray) -> None:
         """``_raw`` ← counts − last sample's, wrap-safe (int32 wrap-around of 6064h), in rad."""
         d = self._delta
-        np.subtract(counts, self._last, out=d)
-        d += INT32_SPAN // 2  # map the difference into [-2^31, 2^31)
-        np.remainder(d, INT32_SPAN, out=d)
-        d -= INT32_SPAN // 2
+        np.subtract(counts, self._last, out=d, casting="unsafe")  # modulo 2^32 into [-2^31, 2^31)
         np.multiply(d, self.rad_per_count, out=self._raw)
