@@ -248,6 +248,26 @@ def test_udp_multicast_works_under_canopen_network_and_notifier(request: pytest.
         peer.shutdown()
 
 
+def test_udp_multicast_receive_own_messages_returns_the_echo(request: pytest.FixtureRequest) -> None:
+    """With receive_own_messages the echo comes back (marked not rx) instead of being dropped before decoding."""
+    group = unique_group(request.node.name)
+    spec = parse_bus(f"udp_multicast:{group}")
+    own, plain = open_bus(spec, receive_own_messages=True), open_bus(spec)
+    try:
+        own.send(can.Message(arbitration_id=0x222, data=b"\x05\x06", is_extended_id=False))
+        echo = own.recv(1.0)
+        assert echo is not None and echo.arbitration_id == 0x222 and bytes(echo.data) == b"\x05\x06"
+        assert echo.is_rx is False
+        got = plain.recv(1.0)
+        assert got is not None and got.arbitration_id == 0x222 and got.is_rx
+        plain.send(can.Message(arbitration_id=0x333, data=b"\x07", is_extended_id=False))
+        assert plain.recv(0.2) is None, "own frame echoed on the bus without receive_own_messages"
+        assert plain.counters().own_echoes_dropped == 1
+    finally:
+        own.shutdown()
+        plain.shutdown()
+
+
 # --- virtual and SocketCAN ---------------------------------------------------------------------------------
 def test_virtual_bus_in_process(request: pytest.FixtureRequest) -> None:
     spec = parse_bus(f"virtual:{request.node.name}")

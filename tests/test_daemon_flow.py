@@ -88,6 +88,7 @@ def test_start_holds_and_status_has_promised_keys(session):
     assert STATUS_KEYS <= st.keys()
     assert st["drives_enabled"] is True and st["mode"] == "hold" and st["faults"] == []
     assert len(st["q_rad"]) == 6 and len(st["current_A"]) == 6
+    assert st["scheduler"] == "SCHED_OTHER"  # the default config asks for no real-time priority
     # holding the arm against gravity: joint 2 carries tens of N·m, i.e. several amperes
     assert abs(st["current_A"][1]) > 2.0
 
@@ -134,6 +135,14 @@ def test_mode_switches_have_no_current_jump(session):
         # the start-up sine alone changes joint 2's command by up to 2π·16 Hz·0.9 A·1 ms ≈ 0.09 A per cycle; an
         # un-blended hold↔drag switch steps by the friction + sine level (0.5-1 A)
         assert window.max() < 0.25, (k, mode[k - 1], mode[k], window.max(axis=0))
+
+
+def test_run_refuses_a_bad_realtime_priority(tmp_path):
+    from conftest import run_cli
+
+    p = run_cli("run", "--realtime-priority", "120", "--socket", str(tmp_path / "d.sock"), check=False)
+    assert p.returncode == 2
+    assert "--realtime-priority" in p.stderr and "1..99" in p.stderr and "120" in p.stderr
 
 
 def test_cli_without_daemon_says_so(tmp_path):
