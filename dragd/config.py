@@ -140,11 +140,13 @@ class JointEffects(_Strict):
     temperature_drift: TemperatureDrift | None = None
     back_emf: BackEmfEffect | None = None
     armature_kgm2: NonNegFloat | None = None  # inertia: rotor inertia at the joint (with the URDF's dynamics)
-    backlash_rad: NonNegFloat | None = None  # lost motion between rotor and output (simulation/prediction only)
-    backlash_inertia_kgm2: NonNegFloat | None = None  # ... the rotor inertia it decouples from fast output motion
-    backlash_cutoff_Hz: PosFloat | None = None  # ... above which the output moves without the rotor
-    # ... and the drive's position loop answering the output's excursions in the play [A/rad, A·s/rad]
-    backlash_loop_A_per_rad: tuple[Finite, Finite] | None = None
+    backlash_rad: NonNegFloat | None = None  # play between rotor and output (simulation/prediction only)
+    backlash_inertia_kgm2: NonNegFloat | None = None  # ... the rotor inertia on the motor side of it (joint side)
+    # ... share of the joint's friction on the output side of the play (output bearing, seals)
+    backlash_output_friction_fraction: Annotated[float, Field(ge=0, le=1), Expect("a fraction in [0, 1]")] | None = None
+    # ... the drive's position loop on the output encoder [A/rad, A·s/rad] that moves the rotor through the play
+    backlash_loop_A_per_rad: tuple[NonNegFloat, NonNegFloat] | None = None
+    backlash_cutoff_Hz: PosFloat | None = None  # ... bandwidth of the loop-input estimate bridging the play's crossings
 
 
 class Payload(_Strict):
