@@ -58,7 +58,7 @@ def test_service_type_watchdog_restart(unit):
 
 def test_exec_start(unit):
     assert one(unit["Service"], "ExecStart") == (
-        "/opt/dragd/.venv/bin/dragd run --config /etc/dragd/dragd.yaml "
+        "/opt/dragd/.venv/bin/dragd run --config /etc/dragd/dragd.yaml --realtime-priority 70 "
         "--telemetry /var/lib/dragd/telemetry.mcap"
     )
 
@@ -79,6 +79,8 @@ def test_realtime_limits(unit):
     assert one(s, "RestrictRealtime") == "no"
     # the cycle thread gets FIFO from set_realtime(); not the whole process
     assert "CPUSchedulingPolicy" not in s
+    prio = int(one(s, "ExecStart").split("--realtime-priority ")[1].split()[0])
+    assert 1 <= prio <= int(one(s, "LimitRTPRIO"))  # what the daemon asks for is within what the unit allows
 
 
 def test_hardening(unit):
