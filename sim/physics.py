@@ -12,7 +12,8 @@ Per fixed step (``truth.physics_rate_Hz``, >= 4 kHz), reading each joint's :clas
   joint and slips above the holding torque);
 * hard stops: spring–damper beyond each limit, never pulling;
 * hidden effects (off by default): torque ripple, load-dependent friction, thermal friction drift, Hall offset,
-  backlash (a separate rotor inertia coupled to the output through a dead zone and the gear stiffness), a flange
+  backlash (a separate rotor inertia coupled to the output through a dead zone and the gear stiffness; the joint's
+  friction split between rotor and output by ``output_friction_fraction``, the brake on the rotor), a flange
   payload (``truth.payload``, in the Pinocchio model), back-EMF voltage headroom (the winding current falls short
   of the regulated reading above a knee speed), a time-based friction warm-up drift;
 * semi-implicit Euler: v += a·dt, then q += v·dt.
@@ -110,8 +111,16 @@ class ArmPhysics:
         self._fdof = list(range(n))  # the DOF carrying each joint's motor torque, friction and brake
         for r, i in enumerate(self._bj):
             self._fdof[i] = n + r
-        self._dof_joint = [-1] * nf  # joint of each friction DOF (-1: output of a backlash joint, frictionless)
+        # friction rows (joint, DOF, share): a backlash joint's friction is split between its rotor and its output
+        # (gear input and motor bearings vs output bearing and seals, ``hidden.output_friction_fraction``)
+        self._frows: list[tuple[int, int, float]] = []
         for i, k in enumerate(self._fdof):
+            share = joints[i].hidden.output_friction_fraction if k != i else 0.0
+            self._frows.append((i, k, 1.0 - share))
+            if share > 0.0:
+                self._frows.append((i, i, share))
+        self._dof_joint = [-1] * nf  # joint of each friction DOF (-1: a frictionless backlash output)
+        for i, k, _share in self._frows:
             self._dof_joint[k] = i
         self._rotor_inertia = [armature[i] for i in self._bj]
         self._x = np.zeros(nf)
@@ -226,8 +235,11 @@ class ArmPhysics:
 
     @property
     def tau_friction_Nm(self) -> np.ndarray:
-        """Torque friction and brakes exert on each joint's friction DOF (the rotor for backlash joints)."""
-        return np.array([self._fric[k] for k in self._fdof])
+        """Torque friction and brakes exert on each joint (rotor and output together for backlash joints)."""
+        out = [0.0] * self.n
+        for j, k, _share in self._frows:
+            out[j] += self._fric[k]
+        return np.array(out)
 
     @property
     def tau_stop_Nm(self) -> np.ndarray:
@@ -297,8 +309,8 @@ class ArmPhysics:
         """Breakaway level of one joint in a direction (+1/−1): friction with the present load term and thermal
         scale, plus the holding torque if the brake was engaged at the last step."""
         self._limits()
-        k = self._fdof[joint]
-        return self._lim_pos[k] if direction > 0 else self._lim_neg[k]
+        lim = self._lim_pos if direction > 0 else self._lim_neg
+        return sum(lim[k] for j, k, _share in self._frows if j == joint)
 
     # ------------------------------------------------------------------------------------------- step
 
@@ -405,11 +417,12 @@ class ArmPhysics:
             base = 1.0 + th[1] * (self._temp[j] - th[0]) if th is not None else 1.0
             scale[j] = base * (1.0 + change * (1.0 - math.exp(-self.t_s / tau)))
         load = self._load_on
-        for j, k in enumerate(self._fdof):
-            extra = self._load_coef[j] * abs(self._gravity[j]) if load else 0.0
-            if brakes[j]:
+        fdof = self._fdof
+        for j, k, share in self._frows:
+            extra = self._load_coef[j] * abs(self._gravity[j]) * share if load else 0.0
+            if brakes[j] and k == fdof[j]:  # the brake holds the motor shaft
                 extra += hold[j]
-            s = scale[j]
+            s = scale[j] * share
             p = self._fs_pos[j] * s + extra
             m = self._fs_neg[j] * s + extra
             lp[k] = p
@@ -420,16 +433,17 @@ class ArmPhysics:
         """Add kinetic friction (Stribeck, viscous, slipping brake) of sliding DOFs to F; return the stuck count."""
         stuck, dirs, vs, fric = self._stuck, self._dir, self._vs, self._fric
         n_stuck = 0
-        for j, k in enumerate(self._fdof):
+        fdof = self._fdof
+        for j, k, share in self._frows:
             if stuck[k]:
                 fric[k] = 0.0
                 n_stuck += 1
                 continue
             d = dirs[k]
             v = vs[k]
-            s = self._scale[j]
-            extra = self._load_coef[j] * abs(self._gravity[j]) if self._load_on else 0.0
-            if self._brakes[j]:
+            s = self._scale[j] * share
+            extra = self._load_coef[j] * abs(self._gravity[j]) * share if self._load_on else 0.0
+            if self._brakes[j] and k == fdof[j]:
                 extra += self._hold[j]
             if d > 0.0:
                 fc = self._fc_pos[j] * s + extra
@@ -480,7 +494,7 @@ class ArmPhysics:
         nf = self.nf
         if n_stuck == nf:
             # everything at rest: the holding torque is G(q) − F without any inertia, unless something breaks away
-            g = pin.computeGeneralizedGravity(self.model, self.data, self.q_rad).tolist()
+            g = pin.computeGeneralizedGravity(self.model, self.data, self.q_rad).tolist() + [0.0] * self.nb
             lam = [g[k] - F[k] for k in range(nf)]
             for k in range(nf):
                 lk = lam[k]
@@ -524,8 +538,10 @@ class ArmPhysics:
     def _heat(self) -> None:
         """First-order joint temperature from friction power and copper loss."""
         for j, amb, _ref, cap, res, rw, _coef in self._thermal:
-            k = self._fdof[j]
-            p = abs(self._fric[k] * self._vs[k]) + rw * self._cur[j] ** 2
+            p = rw * self._cur[j] ** 2
+            for jj, k, _share in self._frows:
+                if jj == j:
+                    p += abs(self._fric[k] * self._vs[k])
             self._temp[j] += (p - (self._temp[j] - amb) / res) / cap * self.dt_s
 
     def _write_outputs(self) -> None:

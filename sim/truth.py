@@ -165,6 +165,9 @@ class Hidden(_Strict):
     backlash_rad: NonNegFloat = 0.0  # lost motion between rotor (friction, brake, motor) and output
     gear_stiffness_Nm_per_rad: PosFloat = 20000.0  # output-side contact stiffness when backlash > 0
     gear_damping_ratio: Annotated[float, Field(ge=0, le=2), Expect("a fraction of critical damping in [0, 2]")] = 0.5
+    # share of the joint's friction on the output side of the play (output bearing, seals) when backlash > 0; the
+    # rest acts on the rotor (motor bearings, gear input). 0 would leave the output floating inside the play.
+    output_friction_fraction: Annotated[float, Field(ge=0, le=1), Expect("a fraction in [0, 1]")] = 0.3
     back_emf: BackEmfHeadroom | None = None
     friction_drift: FrictionDrift | None = None
 
@@ -362,12 +365,16 @@ def truth_from_params(params: Any, base: Truth | None = None) -> Truth:
                   for h in e.position_periodic]
         hidden = {"ripple": ripple, "load_friction_per_Nm": e.load_friction_per_Nm, "current_offset_A": e.current_offset_A,
                   "backlash_rad": e.backlash_rad or 0.0, "thermal": None,
+                  "output_friction_fraction": (e.backlash_output_friction_fraction
+                                               if e.backlash_output_friction_fraction is not None
+                                               else jt.hidden.output_friction_fraction),
                   "back_emf": None if e.back_emf is None else e.back_emf.model_dump(),
                   "friction_drift": None if e.temperature_drift is None else
                   {"change": e.temperature_drift.friction_change, "time_constant_s": e.temperature_drift.time_constant_s}}
         jc: dict[str, Any] = {"torque_constant_Nm_per_A": kt, "friction": fr, "hidden": hidden}
-        if e.armature_kgm2 is not None:
-            jc["rotor_inertia_kgm2"] = e.armature_kgm2 / jt.gear_ratio ** 2
+        rotor = e.armature_kgm2 if e.armature_kgm2 is not None else e.backlash_inertia_kgm2
+        if rotor is not None:
+            jc["rotor_inertia_kgm2"] = rotor / jt.gear_ratio ** 2
         changes["joints"][jt.name] = jc
     return base.with_updates(**changes)
 
@@ -392,6 +399,7 @@ def params_from_truth(truth: Truth) -> dict[str, Any]:
                                         "time_constant_s": h.friction_drift.time_constant_s}
         if h.backlash_rad:
             eff["backlash_rad"] = h.backlash_rad
+            eff["backlash_output_friction_fraction"] = h.output_friction_fraction
         joints[j.name] = {
             "torque_constant_Nm_per_A": kt,
             "friction": {"coulomb_pos_A": f.coulomb_pos_Nm / kt, "coulomb_neg_A": f.coulomb_neg_Nm / kt,

@@ -12,7 +12,7 @@ import numpy as np
 
 START = np.array([0.0, -0.6, 1.2, -0.6, 1.5708, 0.0])
 
-# the effect, where it is hidden (truth changes), and the joints it must be named on
+# the effect (the case's name unless "effect" says), where it is hidden (truth changes), the joints it must be named on
 RIPPLE = {"amplitude_Nm": 0.4, "cycles_per_rev": 24.0, "reference": "joint", "phase_rad": 0.7}
 CASES: dict[str, dict[str, Any]] = {
     "clean": {"joints": {}, "expect": []},
@@ -26,6 +26,11 @@ CASES: dict[str, dict[str, Any]] = {
                                                                       "thermal_resistance_K_per_W": 3.0}}}},
                           "expect": ["joint2"]},
     "backlash": {"joints": {"joint1": {"hidden": {"backlash_rad": 0.02}}}, "expect": ["joint1"]},
+    # a realistic play (17 arcmin), and one on the shoulder, whose gravity load never reverses in this plan: the teeth
+    # stay on one flank, the play is never crossed and changes nothing in the current
+    "backlash_small": {"joints": {"joint1": {"hidden": {"backlash_rad": 0.005}}}, "effect": "backlash",
+                       "expect": ["joint1"]},
+    "backlash_loaded": {"joints": {"joint2": {"hidden": {"backlash_rad": 0.02}}}, "effect": "backlash", "expect": []},
     "back_emf": {"joints": {"joint2": {"hidden": {"back_emf": {"A_s_per_rad": 0.4, "knee_rad_s": 0.2}}}},
                  "expect": ["joint2"]},
     "payload_mass": {"joints": {}, "payload": {"mass_kg": 1.5, "com_m": [0.0, 0.0, 0.05]},

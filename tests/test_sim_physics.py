@@ -395,6 +395,25 @@ def test_backlash_lets_the_output_move_against_a_braked_rotor(truth: Truth, robo
     assert phys.q_rad[0] == q0
 
 
+def test_backlash_splits_the_friction_between_rotor_and_output(truth: Truth, robot: RobotModel) -> None:
+    gap, share = 0.004, 0.3
+    t_b = truth.with_updates(joints={0: {"hidden": {"backlash_rad": gap, "output_friction_fraction": share}}})
+    phys, axes = make(t_b, robot)
+    static = truth.joints[0].friction.static_pos
+    axes[0].brake_engaged = False
+    run(phys, 0.01)
+    assert phys.static_friction_Nm(0, +1) == pytest.approx(static)  # rotor's and output's shares add up
+    q0 = phys.q_rad[0]
+    phys.tau_ext_Nm[0] = 0.8 * share * static  # below the output's own breakaway: it stays inside the play
+    run(phys, 0.5)
+    assert phys.q_rad[0] == q0 and phys.rotor_rad[0] == q0
+    phys.tau_ext_Nm[0] = 1.2 * share * static  # above it: the output crosses half the play to the rotor's tooth;
+    run(phys, 0.5)  # the rotor (the larger share) takes the impact with a nudge and holds it there
+    assert phys.dq_rad_s[0] == 0.0
+    assert phys.q_rad[0] - phys.rotor_rad[0] == pytest.approx(gap / 2, abs=3e-4)  # + the tooth's compliance
+    assert 0.0 <= phys.rotor_rad[0] - q0 < 0.1 * gap
+
+
 # ----------------------------------------------------------------------------------------------- operator
 
 

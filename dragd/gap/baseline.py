@@ -4,6 +4,7 @@ Given model, per joint j (amperes, work rate):
 
     î_j = G_j(q; payload)/K_t + I_f(q̇) [+ (M(q)q̈ + C q̇)_j/K_t + J_a·q̈_j/K_t when it has ``effects.armature_kgm2``]
           + the params' effects (position-periodic, load friction, offset, drift × I_f, back-EMF knee term)
+          + a play's current (``effects.backlash_*``: the rotor simulated along the output, on the rest of the model)
 
 with I_f dragd's friction law (dragd/law.py, ``friction_scale`` 1: the friction *model*, not the drag setting).
 Seed 000 (no ``--model``): î_j = a_j·G_j(q) + F_+·[q̇ > 0] + F_−·[q̇ < 0] with a_j = 1/K_t and the two levels
@@ -18,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from .context import GapData
-from .effects import CATALOGUE, ModelInfo, PayloadMass, weight
+from .effects import CATALOGUE, Backlash, ModelInfo, PayloadMass, weight
 
 
 @dataclass
@@ -35,9 +36,12 @@ class Baseline:
     has_inertia: np.ndarray  # (n,) bool
     coulomb_A: list[tuple[float, float]]
     params: dict[str, Any]  # the params file (mapping) the extended model is written into
+    armature_kgm2: np.ndarray | None = None  # (n,) the model's rotor inertia at each joint (0: not known)
+    has_backlash: np.ndarray | None = None  # (n,) bool: the model predicts a play on the joint
 
     def info(self) -> ModelInfo:
-        return ModelInfo(self.kt, self.friction_A, self.has_inertia, self.coulomb_A)
+        return ModelInfo(self.kt, self.friction_A, self.has_inertia, self.coulomb_A, self.armature_kgm2,
+                         self.has_backlash)
 
 
 def given(d: GapData, params: Any, cfg: Any) -> Baseline:
@@ -70,8 +74,19 @@ def given(d: GapData, params: Any, cfg: Any) -> Baseline:
     if pl is not None:
         pred += pl
     coul = [(float(law.coulomb_pos_A[j]), float(law.coulomb_neg_A[j])) for j in range(d.n)]
-    return Baseline("given", pred, [None] * d.n, [[] for _ in range(d.n)], kt, np.ones(d.n, dtype=bool), fr,
-                    has_inertia, coul, pf)
+    armature = np.array([float((pf["joints"].get(nm, {}).get("effects") or {}).get("armature_kgm2") or 0.0)
+                         for nm in d.names])
+    base = Baseline("given", pred, [None] * d.n, [[] for _ in range(d.n)], kt, np.ones(d.n, dtype=bool), fr,
+                    has_inertia, coul, pf, armature)
+    backlash = CATALOGUE["backlash"]
+    assert isinstance(backlash, Backlash)
+    base.has_backlash = np.zeros(d.n, dtype=bool)
+    for j, nm in enumerate(d.names):  # a play acts on the rest of the model's current: added last
+        x = backlash.predict_on(d, j, pf["joints"].get(nm, {}), float(kt[j]), pred[:, j], base.info())
+        if x is not None:
+            pred[:, j] += x
+            base.has_backlash[j] = True
+    return base
 
 
 def seed000(d: GapData, cfg: Any) -> Baseline:

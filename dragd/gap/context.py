@@ -43,7 +43,9 @@ class GapData:
     noise_A: np.ndarray  # (n,) white-noise level of the raw current (robust first-difference estimate)
     iH: np.ndarray  # (T, n) H(current)
     warnings: list[str] = field(default_factory=list)
+    cache: dict[Any, Any] = field(default_factory=dict)  # per-log results of expensive candidate fits
     _payload: np.ndarray | None = None
+    _inertia_diag: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -75,6 +77,18 @@ class GapData:
                 out[k] = f(m, d, q[k], dq[k], ddq[k])[:, lo:lo + 4]
             self._payload = out
         return self._payload
+
+    def inertia_diag(self, every: int = 8) -> np.ndarray:
+        """(T, n): the URDF's joint-space inertia diagonal M_jj(q) [kg·m²] (computed every ``every`` samples and
+        interpolated: it changes with the pose, slowly)."""
+        if self._inertia_diag is None:
+            m = self.robot.model
+            data = m.createData()
+            rows = np.unique(np.r_[np.arange(0, self.T, every), self.T - 1])
+            diag = np.array([np.diag(pin.crba(m, data, self.p.q[k])) for k in rows])
+            idx = np.arange(self.T)
+            self._inertia_diag = np.column_stack([np.interp(idx, rows, diag[:, j]) for j in range(self.n)])
+        return self._inertia_diag
 
     def raw_rmse(self, pred: np.ndarray) -> tuple[np.ndarray, float]:
         """Per-joint and overall RMSE of the raw current against a work-rate prediction, on the sliding mask."""

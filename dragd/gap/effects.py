@@ -17,8 +17,11 @@ Signatures (what tells each effect from the others; docs/GAP.md has the full tab
 - ``inertia``           ∝ q̈ (and the URDF's M(q)q̈ + C q̇ when the model had no dynamics): zero at constant speed.
 - ``temperature_drift`` the friction level drifting with time (warm-up), the same at the same position/speed:
                         passes through the same states disagree by when they happened.
-- ``backlash``          transients after each reversal of the joint's torque (lost motion: the gear's play is
-                        crossed), absent in steady motion; unlike Stribeck it follows torque, not velocity, reversals.
+- ``backlash``          where the tooth force of rotor and output changes sign (decelerations, reversals, load
+                        reversals) the rotor crosses the play: the current is then the drive loop's, not what the
+                        output's motion needs, and the impacts jump the output's velocity without a current impulse.
+                        A physical predictor (``backlash.py``: the rotor simulated along the measured output), not
+                        regressor columns: its fixed current is scored like any effect's.
 - ``back_emf``          odd in q̇ but zero below a knee speed, linear above (voltage headroom); viscous starts at 0.
 - ``payload_mass``      even in q̇: the gravity (and dynamics) of a flange mass, in the URDF's kinematic pattern
                         over joints 2..n at once (one shared mass and centre of mass); load friction is odd in q̇.
@@ -28,16 +31,18 @@ Signatures (what tells each effect from the others; docs/GAP.md has the full tab
 
 from __future__ import annotations
 
-from abc import ABC, abstractmethod
-
+import hashlib
 import math
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy.ndimage import binary_dilation
 
 from dragd.identify.methods import friction_columns
 
+from . import backlash as BL
 from .context import GapData
 
 SMOOTH_RAD_S = 0.005  # the law's zero-crossing width (law.friction_smoothing_rad_s default)
@@ -51,15 +56,19 @@ class ModelInfo:
     friction_A: np.ndarray  # (T, n) the model's friction current
     has_inertia: np.ndarray  # (n,) bool: the model has the URDF's dynamics (and a rotor inertia)
     coulomb_A: list[tuple[float, float]]  # per joint (pos, neg) sliding levels
+    armature_kgm2: np.ndarray | None = None  # (n,) the model's rotor inertia at the joint (0: not known)
+    has_backlash: np.ndarray | None = None  # (n,) bool: the model already predicts a play on the joint
 
 
 @dataclass
 class Cols:
-    """Free columns (work rate, unfiltered) and an optional fixed part that comes with the effect."""
+    """Free columns (work rate, unfiltered), an optional fixed part that comes with the effect, and the samples the
+    effect's prediction leaves too uncertain to fit or score other effects on (the play's crossings)."""
 
     X: np.ndarray  # (T, k)
     names: list[str]
     offset: np.ndarray | None = None  # (T,)
+    exclude: np.ndarray | None = None  # (T,) bool
 
 
 def weight(v: np.ndarray) -> np.ndarray:
@@ -279,43 +288,53 @@ class TemperatureDrift(Effect):
 
 class Backlash(Effect):
     name = "backlash"
-    signature = ("the current does not carry the rotor inertia for the output's fast accelerations (the play decouples "
-                 "them: impacts, hammering): ∝ −(q̈ − LP(q̈)); inertia is ∝ q̈ at every frequency")
-    extra_params = 1
+    signature = ("where the rotor-output tooth force changes sign the rotor crosses the play: the current is the drive "
+                 "loop's (ŝ − k_p·q − k_d·q̇), the impacts jump the output's velocity without a current impulse")
+    extra_params = 5  # play, output friction share, two loop gains, the loop-input bandwidth
+    MIN_GAIN = 0.02  # a play that explains less than 2 % of the residual energy is not fitted further
 
     def hypers(self, d, j, resid, info):
-        return [0.5, 1.0, 2.0, 4.0]
+        if info.has_backlash is not None and info.has_backlash[j]:
+            return []  # one play per joint: a given play is refitted from the model without it, not stacked
+        model_A = d.p.i[:, j] - resid
+        key = ("backlash", j, hashlib.blake2b(model_A.tobytes(), digest_size=16).hexdigest())
+        if key not in d.cache:
+            path = joint_path(d, j, model_A, info)
+            ja = 0.0 if info.armature_kgm2 is None else float(info.armature_kgm2[j])
+            inertias = [ja / info.kt[j]] if ja > 0 else [f * float(np.median(path.output_inertia_A_s2_per_rad))
+                                                          for f in (0.1, 0.3)]
+            fits = [f for J in inertias if (f := BL.fit(path, resid, J, self.MIN_GAIN)) is not None]
+            d.cache[key] = min(fits, key=lambda f: f.sse_after) if fits else None
+        fit = d.cache[key]
+        return [fit] if fit is not None else []
 
     def columns(self, d, j, hyper, info):
-        return Cols(fast_motion(d, j, hyper), ["fast_position_A_per_rad", "fast_velocity_A_s_per_rad",
-                                               "fast_inertia_A_s2_per_rad"])
-
-    def physical(self, theta, info, j):
-        return bool(theta[2] < 0)  # the current misses (not adds) the rotor inertia for the output's fast motion
+        if hyper is None or not np.any(hyper.column):
+            return None
+        # inside the crossings the current follows the drive's unobserved reference: no rigid-body effect is to be
+        # fitted to what is left there (± the regression filter's reach)
+        reach = max(1, int(round(d.p.fs / d.p.cutoff_Hz)))
+        exclude = binary_dilation(hyper.loop, iterations=reach)
+        return Cols(np.zeros((d.T, 0)), [], hyper.column, exclude)
 
     def params(self, theta, hyper, d, j, info):
-        # the play itself: the output's excursions about its smooth (rotor-driven) path, on sliding samples
-        m = d.slide[:, j]
-        hp = d.p.q_raw[:, j] - d.p.regfilter(d.p.q_raw[:, j:j + 1], hyper)[:, 0]
-        play = float(2.0 * np.quantile(np.abs(hp[m]), 0.99)) if m.any() else 0.0
-        return {"backlash_inertia_kgm2": float(-theta[2] * info.kt[j]), "backlash_cutoff_Hz": float(hyper),
-                "backlash_rad": play, "loop_stiffness_A_per_rad": float(-theta[0]),
-                "loop_damping_A_s_per_rad": float(-theta[1])}
+        return BL.params_dict(hyper.params, float(info.kt[j]))
 
     def write(self, pf, joint, prm):
-        e = _effects(pf, joint)
-        e["backlash_inertia_kgm2"] = max(0.0, prm["backlash_inertia_kgm2"])
-        e["backlash_cutoff_Hz"] = prm["backlash_cutoff_Hz"]
-        e["backlash_rad"] = prm["backlash_rad"]
-        e["backlash_loop_A_per_rad"] = [prm["loop_stiffness_A_per_rad"], prm["loop_damping_A_s_per_rad"]]
+        _effects(pf, joint).update({k: (list(v) if isinstance(v, (list, tuple)) else v) for k, v in prm.items()})
 
-    def predict(self, d, j, jp, kt):
+    def predict_on(self, d: GapData, j: int, jp: dict[str, Any], kt: float, model_A: np.ndarray,
+                   info: ModelInfo) -> np.ndarray | None:
+        """The current a params file's play adds to ``model_A`` (the rest of the model) on joint j (None: no play)."""
         e = jp.get("effects") or {}
-        if not e.get("backlash_inertia_kgm2") or not e.get("backlash_cutoff_Hz"):
+        if not e.get("backlash_rad") or not e.get("backlash_loop_A_per_rad"):
             return None
-        kp, kd = e.get("backlash_loop_A_per_rad") or (0.0, 0.0)
-        X = fast_motion(d, j, e["backlash_cutoff_Hz"])
-        return X @ np.array([-kp, -kd, -e["backlash_inertia_kgm2"] / kt])
+        J = e.get("backlash_inertia_kgm2") or e.get("armature_kgm2") or 0.0
+        kp, kd = e["backlash_loop_A_per_rad"]
+        prm = BL.BacklashParams(float(e["backlash_rad"]), float(J) / kt, float(kp), float(kd),
+                                float(e.get("backlash_output_friction_fraction") or 0.0),
+                                float(e.get("backlash_cutoff_Hz") or BL.LOOP_CUTOFF_HZ))
+        return BL.predict(joint_path(d, j, model_A, info), prm)[0]
 
 
 class BackEmf(Effect):
@@ -446,8 +465,26 @@ def spectrum_peaks(d: GapData, j: int, resid: np.ndarray, max_peaks: int = 3) ->
     return out
 
 
-def fast_motion(d: GapData, j: int, cutoff_Hz: float) -> np.ndarray:
-    """(T, 3): q, q̇, q̈ minus their low-pass at ``cutoff_Hz`` — the output's motion the rotor does not follow
-    (zero-phase, per stretch)."""
-    x = np.column_stack([d.p.q[:, j], d.p.dq[:, j], d.p.ddq[:, j]])
-    return x - d.p.regfilter(x, cutoff_Hz)
+def joint_path(d: GapData, j: int, model_A: np.ndarray, info: ModelInfo) -> BL.JointPath:
+    """The backlash predictor's inputs for joint j: the output path (q, and q̇, q̈ as its derivatives), the model's
+    current ``model_A`` along it, the model's friction law (Coulomb and viscous per direction, fitted to its friction
+    current), the URDF's M_jj/K_t, stretches and the fit mask."""
+    p = d.p
+    q = p.q[:, j]
+    v = np.empty_like(q)
+    a = np.empty_like(q)
+    for s in p.segments:
+        if s.stop - s.start > 2:
+            v[s.start:s.stop] = np.gradient(q[s.start:s.stop], 1.0 / p.fs)
+            a[s.start:s.stop] = np.gradient(v[s.start:s.stop], 1.0 / p.fs)
+        else:
+            v[s.start:s.stop] = a[s.start:s.stop] = 0.0
+    f = info.friction_A[:, j]
+    m = np.abs(v) > 0.02
+    X = np.column_stack([v > 0, v < 0, v * (v > 0), v * (v < 0)]).astype(float)[m]
+    fr = (0.0, 0.0, 0.0, 0.0)
+    if m.sum() > 10 and np.any(f[m]):
+        th, *_ = np.linalg.lstsq(X, f[m], rcond=None)
+        fr = (max(float(th[0]), 0.0), min(float(th[1]), 0.0), max(float(th[2]), 0.0), max(float(th[3]), 0.0))
+    return BL.JointPath(q, v, a, np.asarray(model_A, dtype=float), fr, d.inertia_diag()[:, j] / float(info.kt[j]),
+                        p.fs, [(s.start, s.stop) for s in p.segments], d.slide[:, j], 1.0 / p.deriv_cutoff_Hz)

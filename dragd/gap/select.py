@@ -1,7 +1,8 @@
 """Forward selection of effects with pass-wise cross-validation and an information criterion.
 
 Per joint j the model is y = H(i_j − fixed_j) ≈ H(X_j)·θ_j on decimated rows where the joint slides (H the
-regression filter on both sides). A candidate effect adds its columns (and, for some, a fixed part); it is scored by
+regression filter on both sides). A candidate effect adds its columns (and, for some, a fixed part; backlash is only a
+fixed part: a physical predictor whose parameters are its hyperparameters); it is scored by
 
 - the **held-out** error: K-fold cross-validation whose folds are whole passes (moves between rests of the arm,
   assigned round-robin, so a pass and its return through the same positions are in different folds) — never single
@@ -12,7 +13,9 @@ An effect is *real* on a joint when the held-out MSE falls by at least ``REL_MIN
 explains, √(ΔSSE/N), is at least ``ABS_MIN`` × that joint's current noise (the raw Hall noise estimate), and BIC
 agrees. Each round adds the effect with the largest held-out gain (summed over the joints where it is real) on those
 joints, with each joint's best hyperparameter; the rounds stop when no effect is real anywhere. The payload is one
-shared parameter vector across joints (fitted jointly, the joints' other columns eliminated).
+shared parameter vector across joints (fitted jointly, the joints' other columns eliminated). An effect may mark
+samples where its prediction stays uncertain beyond the noise (a play's crossings, where the current follows the
+drive's unobserved reference): they leave that joint's rows for every later fit and score.
 """
 
 from __future__ import annotations
@@ -188,7 +191,7 @@ class Selector:
         cols = eff.columns(self.d, jm.j, hyper, self.base.info())
         if cols is None:
             return None
-        XH = self.d.H(cols.X)[jm.rows]
+        XH = self.d.H(cols.X)[jm.rows] if cols.X.shape[1] else np.zeros((jm.rows.size, 0))
         offH = None if cols.offset is None else self.d.H(cols.offset[:, None])[jm.rows, 0]
         return Term(eff.name, hyper, cols, XH, offH)
 
@@ -208,7 +211,7 @@ class Selector:
         best = None
         for h in eff.hypers(self.d, jm.j, resid if resid is not None else np.zeros(self.d.T), self.base.info()):
             t = self._term(eff, jm, h)
-            if t is None or not _independent(X, t.XH):
+            if t is None or not (_independent(X, t.XH) if t.XH.shape[1] else t.offH is not None and np.any(t.offH)):
                 continue
             X1 = np.hstack([X, t.XH])
             y1 = y - t.offH if t.offH is not None else y
@@ -226,7 +229,7 @@ class Selector:
 
             h2 = eff.refine(sse, best[1].hyper)
             t2 = self._term(eff, jm, h2)
-            if t2 is not None and _independent(X, t2.XH):
+            if t2 is not None and t2.XH.shape[1] and _independent(X, t2.XH):
                 X2 = np.hstack([X, t2.XH])
                 y2 = y - t2.offH if t2.offH is not None else y
                 cv2 = _cv_sse(X2, y2, fold)
@@ -238,7 +241,7 @@ class Selector:
         dbic = n * math.log(max(sse1, 1e-300) / max(sse0, 1e-300)) + k * math.log(n)
         gain = cv0 - cv1
         sigma = float(self.d.noise_A[jm.j])
-        physical = eff.physical(th1[-t.XH.shape[1]:], self.base.info(), jm.j)
+        physical = eff.physical(th1[th1.size - t.XH.shape[1]:], self.base.info(), jm.j)
         real = gain > 0 and gain >= REL_MIN * cv0 and math.sqrt(gain / n) >= ABS_MIN * sigma and dbic < 0 and physical
         info = {"physical": physical, "cv_rmse_before_A": math.sqrt(cv0 / n), "cv_rmse_after_A": math.sqrt(max(cv1, 0.0) / n),
                 "explained_rms_A": math.sqrt(max(gain, 0.0) / n), "delta_bic": dbic, "real": real}
@@ -319,6 +322,8 @@ class Selector:
                 for j, t in terms.items():
                     self.joints[j].terms.append(t)
                     used[eff.name].add(j)
+                    if t.cols.exclude is not None:
+                        self._restrict(self.joints[j], t.cols.exclude)
                 self.steps.append(Step(eff.name, [self.d.names[j] for j in sorted(terms)],
                                        {self.d.names[j]: t.hyper for j, t in terms.items()},
                                        {self.d.names[j]: infos[j] for j in sorted(terms)}))
@@ -327,8 +332,21 @@ class Selector:
         self._prune()
         return self.steps
 
+    @staticmethod
+    def _restrict(jm: JointModel, exclude: np.ndarray) -> None:
+        """Drop the joint's fit rows inside ``exclude`` (an effect's uncertain samples) from every later fit and score."""
+        keep = ~exclude[jm.rows]
+        jm.rows = jm.rows[keep]
+        jm.y = jm.y[keep]
+        jm.base = jm.base[keep]
+        for t in jm.terms:
+            t.XH = t.XH[keep]
+            if t.offH is not None:
+                t.offH = t.offH[keep]
+
     def _prune(self) -> None:
-        """Backward check: drop an added effect (from a joint) that is no longer real given the later ones."""
+        """Backward check: drop an added effect (from a joint) that is no longer real given the later ones (an effect
+        that took its uncertain samples out of the joint's rows cannot be re-scored on them and stays)."""
         changed = False
         for st in list(self.steps):
             if CATALOGUE[st.effect].shared:
@@ -337,6 +355,9 @@ class Selector:
             for nm in st.joints:
                 jm = self.joints[self.d.names.index(nm)]
                 t = next(tt for tt in jm.terms if tt.effect == st.effect and tt.hyper == st.hypers.get(nm))
+                if t.cols.exclude is not None:
+                    keep.append(nm)
+                    continue
                 fold = self.d.fold[jm.rows]
                 X1, _ = jm.design()
                 y1 = self._payload_y(jm)
