@@ -24,6 +24,10 @@ class Benchmark:
 REGISTRY: dict[str, Benchmark] = {}
 
 
+class BenchError(RuntimeError):
+    """A benchmark cannot measure what it promises here (the message says why and what to do)."""
+
+
 def benchmark(name: str, unit: str) -> Callable[[Callable[[dict], float]], Callable[[dict], float]]:
     def wrap(fn: Callable[[dict], float]) -> Callable[[dict], float]:
         REGISTRY[name] = Benchmark(name, unit, (fn.__doc__ or "").strip().splitlines()[0], fn)

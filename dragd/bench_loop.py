@@ -16,10 +16,11 @@ import time
 from functools import lru_cache
 from pathlib import Path
 
-from .bench import benchmark
+from .bench import BenchError, benchmark
 
 
 REALTIME_PRIORITY = 70  # the cycle thread's SCHED_FIFO priority as deployed (docs/SYSTEMD.md); the sim's is 10 below
+# (at least 1: with --realtime-priority 1..10 both run at the same priority)
 
 
 @lru_cache(maxsize=4)
@@ -31,6 +32,14 @@ def _session(seconds: float, config: str | None, priority: int) -> dict:
     with Rig("bench", config=Path(config) if config else None, daemon_args=rt, sim_args=sim_rt) as rig:
         rig.start_sim()
         rig.start_daemon()
+        if priority:  # measure what was asked for, or say why not (never SCHED_OTHER figures labelled FIFO)
+            got = {"daemon": rig.must("status").get("scheduler"), "simulator": rig.sim_call("state").get("scheduler")}
+            bad = {k: v for k, v in got.items() if not str(v).startswith("SCHED_FIFO")}
+            if bad:
+                raise BenchError(f"loop benchmark: SCHED_FIFO {priority} was asked for but not applied ("
+                                 + "; ".join(f"{k}: {v}" for k, v in bad.items()) + "): run as root or with "
+                                 f"RLIMIT_RTPRIO >= {priority} (ulimit -r), or pass --realtime-priority 0 to measure "
+                                 "SCHED_OTHER")
         rig.must("start")
         time.sleep(0.5)
         rig.must("mode", mode="drag")

@@ -13,7 +13,8 @@ groups sharing a port stay apart), and a large receive buffer. On top of that th
 - drops duplicated datagrams,
 - counts frames lost between sender and receiver.
 
-For this each sender stamps the msgpack ``channel`` field with a 64-bit integer: a random 32-bit sender
+For this each sender stamps the msgpack ``channel`` field (the map's first key, so a receiver recognises
+its own echoes by their first bytes) with a 64-bit integer: a random 32-bit sender
 token (per bus instance) in the high half and a 32-bit sequence number in the low half (the receiver
 replaces the field with its own channel name). Python-can's ``channel`` field accepts any msgpack value,
 so the frames stay readable by python-can. A receiver tracks, per sender token, the highest sequence
@@ -180,9 +181,9 @@ class UdpMulticastCanBus(can.BusABC):
         self._token = secrets.randbits(32) or 1
         self._seq = 0
         self._packer = msgpack.Packer(use_bin_type=True)  # reused: packb would build one per frame
-        # how our own frames' stamp starts on the wire (msgpack key "channel", uint64 with our token on top):
-        # the echo of a frame we sent is recognised without unpacking it
-        self._own_stamp = b"\xa7channel\xcf" + self._token.to_bytes(4, "big")
+        # how our own datagrams start (an 11-entry map whose first key is "channel", a uint64 with our token on
+        # top): the echo of a frame we sent is recognised by its first 14 bytes, without unpacking it
+        self._own_prefix = b"\x8b\xa7channel\xcf" + self._token.to_bytes(4, "big")
         self._tx_lock = threading.Lock()
         self._rx_lock = threading.Lock()
         self._senders: dict[int, list[int]] = {}
@@ -229,12 +230,12 @@ class UdpMulticastCanBus(can.BusABC):
         with self._tx_lock:
             self._seq = (self._seq + 1) & 0xFFFFFFFF
             data = self._packer.pack({
+                "channel": self._token << 32 | self._seq,  # first: the datagram starts with the sender's stamp
                 "timestamp": msg.timestamp,
                 "arbitration_id": msg.arbitration_id,
                 "is_extended_id": msg.is_extended_id,
                 "is_remote_frame": msg.is_remote_frame,
                 "is_error_frame": msg.is_error_frame,
-                "channel": self._token << 32 | self._seq,
                 "dlc": msg.dlc,
                 "data": bytes(msg.data),
                 "is_fd": msg.is_fd,
@@ -281,7 +282,7 @@ class UdpMulticastCanBus(can.BusABC):
                 timestamp = sec + nsec * 1e-9
             elif level == socket.SOL_SOCKET and kind == _SO_RXQ_OVFL and len(payload) >= _U32.size:
                 c["kernel_drops"] = _U32.unpack_from(payload)[0]
-        if not self.receive_own_messages and self._own_stamp in raw:
+        if not self.receive_own_messages and raw.startswith(self._own_prefix):
             c["own_echoes_dropped"] += 1  # our own frame, looped back: dropped before decoding
             return None
         try:

@@ -143,6 +143,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
         result = bench.run(args.names, {k: v for k, v in opts.items() if v is not None})
     except KeyError as exc:
         raise CliError(str(exc.args[0])) from None
+    except bench.BenchError as exc:
+        raise CliError(str(exc), status=1) from None
     _emit(args, result, lambda d: _table(["benchmark", "value", "unit"], [(k, v["value"], v["unit"]) for k, v in d.items()]))
     return 0
 

@@ -6,9 +6,12 @@ import argparse
 import asyncio
 import json
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .cli import CliError, _add_config, _emit, _table
+
+if TYPE_CHECKING:
+    from .config import Config
 
 DEFAULT_SOCKET = "/run/dragd/dragd.sock"
 
@@ -31,6 +34,15 @@ def _call(args: argparse.Namespace, cmd: str, **kw: Any) -> dict[str, Any]:
     return resp
 
 
+def with_realtime_priority(cfg: Config, priority: int) -> Config:
+    """``cfg`` with ``loop.realtime_priority`` = ``priority`` (0: none), validated by the config schema."""
+    if not 0 <= priority <= 99:
+        raise CliError(f"--realtime-priority: expected 1..99 (SCHED_FIFO priority of the cycle thread) or 0 (none), "
+                       f"got {priority}")
+    loop = type(cfg.loop).model_validate({**cfg.loop.model_dump(), "realtime_priority": priority or None})
+    return cfg.model_copy(update={"loop": loop})
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from .config import load_config
     from .daemon import BusBudgetError, Daemon
@@ -38,11 +50,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config, args.params)
     if args.realtime_priority is not None:
-        if not 0 <= args.realtime_priority <= 99:
-            raise CliError(f"--realtime-priority: expected 1..99 (SCHED_FIFO priority of the cycle thread) or 0 "
-                           f"(none), got {args.realtime_priority}")
-        cfg = cfg.model_copy(update={"loop": cfg.loop.model_copy(
-            update={"realtime_priority": args.realtime_priority or None})})
+        cfg = with_realtime_priority(cfg, args.realtime_priority)
     try:
         daemon = Daemon(cfg, bus_override=args.bus, socket_path=args.socket, telemetry_path=args.telemetry,
                         rerun=args.rerun)

@@ -65,6 +65,26 @@ class BusBudgetError(RuntimeError):
     """The configured PDO layout would load a bus beyond its limit."""
 
 
+def go_realtime(loop: asyncio.AbstractEventLoop, priority: int | None, cpus: list[int] | None) -> str:
+    """Make the calling (cycle) thread SCHED_FIFO ``priority`` on ``cpus`` where permitted; return what applies.
+
+    Threads started afterwards inherit policy and CPU set, so first the loop's default executor (``run_in_executor
+    (None, ...)``, ``asyncio.to_thread``: trajectory resampling, program writes, telemetry open/close) gets threads
+    that return to SCHED_OTHER off the cycle's CPUs: a FIFO helper doing seconds of Python would starve the cycle.
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    avoid = set(cpus) if cpus else None
+    loop.set_default_executor(ThreadPoolExecutor(thread_name_prefix="dragd-exec", initializer=demote_current_thread,
+                                                 initargs=(avoid,)))
+    info = set_realtime(priority, avoid)
+    sched = info.get("scheduler") or {}
+    if sched.get("applied"):
+        return f"{sched.get('policy')} {priority}"
+    policy = str(sched.get("policy") or "SCHED_OTHER")
+    return policy if priority is None else f"{policy} (SCHED_FIFO {priority} refused: {sched.get('reason')})"
+
+
 def bus_layouts(cfg: Config) -> dict[str, BusLayout]:
     """The PDO layout of every configured bus."""
     out = {}
@@ -1633,11 +1653,7 @@ class Daemon:
         try:
             await self.master.boot()
             self._open_telemetry()
-            # real-time scheduling for the loop thread only: threads started before this stay normal
-            rt_info = set_realtime(self.cfg.loop.realtime_priority, set(self.cfg.loop.cpus) if self.cfg.loop.cpus else None)
-            sched = rt_info.get("scheduler") or {}
-            self.scheduler = (f"{sched.get('policy')} {self.cfg.loop.realtime_priority}" if sched.get("applied")
-                              else str(sched.get("policy", "SCHED_OTHER")))
+            self.scheduler = go_realtime(loop, self.cfg.loop.realtime_priority, self.cfg.loop.cpus)
             for sig in (signal.SIGTERM, signal.SIGINT):
                 loop.add_signal_handler(sig, self.request_exit)
             # everything built so far lives for the whole run: out of the cyclic collector's way, so its

@@ -30,6 +30,7 @@ from .cia402 import (OD_ABORT_CONNECTION_OPTION, OD_MAX_TORQUE, OD_MODES_OF_OPER
                      OD_TORQUE_OFFSET)
 from .config import Config, JointConfig
 from .pdo import BusLayout, PdoSpec
+from .ticker import demote_current_thread
 
 EDS_DIR = Path(__file__).resolve().parents[1] / "canopen_eds"
 DEVICE_TYPE_402 = 0x0192
@@ -75,7 +76,9 @@ class Master:
         self.cfg = cfg
         self.loop = loop
         self.log = log
-        self.sdo_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dragd-sdo")
+        # started during boot, before the cycle thread turns SCHED_FIFO; demoted anyway should it start later
+        self.sdo_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dragd-sdo",
+                                             initializer=demote_current_thread, initargs=(set(cfg.loop.cpus or ()) or None,))
         self.runtimes: dict[str, BusRuntime] = {}
         for name, bus in buses.items():
             net = canopen.Network(bus)

@@ -39,6 +39,8 @@ class VelocityEstimator:
         return 1.0 / (2.0 * math.pi * self.cutoff_Hz) + dt_s / 2.0
 
     def reset(self, counts: np.ndarray) -> None:
+        if np.asarray(counts).dtype.kind not in "iu":  # update() wraps differences with an unsafe integer cast
+            raise TypeError(f"VelocityEstimator: encoder counts must be an integer array, got {np.asarray(counts).dtype}")
         self._last[:] = counts
         self.velocity_rad_s.fill(0.0)
         self._age.fill(0.0)

@@ -250,8 +250,17 @@ class SimProcess:
             "current_measured_A": snap["current_measured_A"], "current_demand_A": snap["current_demand_A"],
             "tau_motor_Nm": snap["tau_motor_Nm"], "tau_friction_Nm": snap["tau_friction_Nm"],
             "power_on": snap["power_on"], "stuck": snap["stuck"], "temperature_C": snap["temperature_C"],
-            "dropped_steps": self.dropped_steps, "operator": op_info,
+            "dropped_steps": self.dropped_steps, "operator": op_info, "scheduler": self._scheduler(),
         }
+
+    def _scheduler(self) -> str:
+        """The physics thread's scheduling policy as applied (``--realtime-priority``), e.g. "SCHED_FIFO 60"."""
+        sched = (self.realtime or {}).get("scheduler") or {}
+        if sched.get("applied"):
+            return f"{sched.get('policy')} {self.realtime_priority}"
+        reason = sched.get("reason")
+        policy = str(sched.get("policy") or "SCHED_OTHER")
+        return policy if self.realtime_priority is None else f"{policy} (SCHED_FIFO {self.realtime_priority} refused: {reason})"
 
     def drive_report(self) -> dict[str, Any]:
         out = {}

@@ -248,6 +248,26 @@ def test_udp_multicast_works_under_canopen_network_and_notifier(request: pytest.
         peer.shutdown()
 
 
+def test_udp_multicast_own_echo_dropped_before_decoding(request: pytest.FixtureRequest,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The echo of our own frame is recognised by its first bytes (sender stamp): it is never unpacked."""
+    import dragd.bus as dbus
+
+    bus = open_bus(parse_bus(f"udp_multicast:{unique_group(request.node.name)}"))
+    try:
+        def no_unpack(*a: object, **k: object) -> None:
+            raise AssertionError("an own echo was msgpack-decoded")
+
+        monkeypatch.setattr(dbus.msgpack, "unpackb", no_unpack)
+        for i in range(3):
+            bus.send(can.Message(arbitration_id=0x444, data=bytes([i]), is_extended_id=False))
+        assert bus.recv(0.2) is None
+        c = bus.counters()
+        assert c.own_echoes_dropped == 3 and c.undecodable == 0
+    finally:
+        bus.shutdown()
+
+
 def test_udp_multicast_receive_own_messages_returns_the_echo(request: pytest.FixtureRequest) -> None:
     """With receive_own_messages the echo comes back (marked not rx) instead of being dropped before decoding."""
     group = unique_group(request.node.name)

@@ -201,6 +201,17 @@ def test_velocity_estimator_int32_wrap():
     assert out[0] == pytest.approx(10 * 2 * np.pi / 1000 / 1e-3, rel=1e-3)
 
 
+def test_velocity_estimator_int32_wrap_downwards_and_integer_counts_only():
+    est = VelocityEstimator(np.array([1000]), cutoff_Hz=400.0)
+    est.update(np.array([-2**31 + 5]), 1e-3)
+    for k in range(1, 50):
+        val = ((-2**31 + 5 - 10 * k + 2**31) % 2**32) - 2**31  # int32 wrap from −2^31 to +2^31 − 1
+        out = est.update(np.array([val]), 1e-3)
+    assert out[0] == pytest.approx(-10 * 2 * np.pi / 1000 / 1e-3, rel=1e-3)
+    with pytest.raises(TypeError, match="integer"):
+        VelocityEstimator(np.array([1000]), cutoff_Hz=400.0).update(np.array([1.5]), 1e-3)
+
+
 def test_square_wave_and_abrupt_switch_options(params):
     t = 1.0 / (8 * 16.0)  # sin(2π·16·t) = 0.707 on joint 1
     sq = startup_current(t, np.zeros(6), params.replace(startup_square=True))
