@@ -1664,7 +1664,7 @@ class Daemon:
             server = ControlServer(self.socket_path, self._handle)
             await server.start()
             self.log(f"running at {self.cfg.loop.rate_Hz:.0f} Hz; control socket {self.socket_path}; "
-                     f"realtime: {rt_info}")
+                     f"cycle thread: {self.scheduler}")
             sdnotify.ready(f"running, {self.n} drives")
             watchdog = loop.create_task(self._watchdog())
             while not self.stop_requested and not cycle.done():
