@@ -58,7 +58,6 @@ def _session(seconds: float, config: str | None, priority: int) -> dict:
         "missed_ratio": missed / max(1, cycles + missed),
         "compute_p50_us": after["compute_p50_us"],
         "rtf": (sim1["t"] - sim0["t"]) / (w1 - w0),  # sim time over wall time, this session only
-        "scheduler": after.get("scheduler"),
     }
 
 

@@ -18,12 +18,10 @@ import asyncio
 import functools
 import gc
 import math
-import os
 import signal
 import sys
 import struct
 import time
-from dataclasses import dataclass
 from enum import IntEnum
 from pathlib import Path
 from typing import Any
@@ -34,7 +32,7 @@ from scipy.interpolate import CubicSpline  # imported at start-up: an import in 
 
 from . import sdnotify
 from .bus import open_bus, parse_bus
-from .cia402 import (CMD_DISABLE_VOLTAGE, CMD_ENABLE_OPERATION, CMD_QUICK_STOP, CMD_SHUTDOWN, CW_FAULT_RESET, State,
+from .cia402 import (CMD_DISABLE_VOLTAGE, CMD_QUICK_STOP, CMD_SHUTDOWN, CW_FAULT_RESET, State,
                      decode_statusword, next_controlword)
 from .config import Config
 from .control import ControlServer
@@ -45,7 +43,7 @@ from .pdo import SYNC_COB_ID, BusLayout, RpdoEncoder, layout_for
 from .stats import Histogram
 from .teach.program import ProgramError, check_name, resolve_program
 from .teach.recorder import TeachRecorder
-from .ticker import Ticker, demote_current_thread, set_realtime
+from .ticker import Ticker, demote_current_thread, scheduler_label, set_realtime
 from .velocity import VelocityEstimator
 
 
@@ -77,12 +75,7 @@ def go_realtime(loop: asyncio.AbstractEventLoop, priority: int | None, cpus: lis
     avoid = set(cpus) if cpus else None
     loop.set_default_executor(ThreadPoolExecutor(thread_name_prefix="dragd-exec", initializer=demote_current_thread,
                                                  initargs=(avoid,)))
-    info = set_realtime(priority, avoid)
-    sched = info.get("scheduler") or {}
-    if sched.get("applied"):
-        return f"{sched.get('policy')} {priority}"
-    policy = str(sched.get("policy") or "SCHED_OTHER")
-    return policy if priority is None else f"{policy} (SCHED_FIFO {priority} refused: {sched.get('reason')})"
+    return scheduler_label(set_realtime(priority, avoid), priority)
 
 
 def bus_layouts(cfg: Config) -> dict[str, BusLayout]:
@@ -1086,7 +1079,10 @@ class Daemon:
         row[c["dq_rad_s"]] = self.dq
         row[c["current_measured_A"]] = self.current_meas_A
         row[c["current_command_A"]] = self.cmd_A
-        row[c["gravity_A"]] = self.law_out.gravity_A if self.mode == Mode.DRAG else self.tau_g / self.kt
+        if self.mode == Mode.DRAG:
+            row[c["gravity_A"]] = self.law_out.gravity_A
+        else:
+            np.divide(self.tau_g, self.kt, out=row[c["gravity_A"]])  # into the row: no temporary array
         row[c["friction_A"]] = self.law_out.friction_A if self.mode == Mode.DRAG else 0.0
         row[c["startup_A"]] = self.law_out.startup_A if self.mode == Mode.DRAG else 0.0
         row[c["damping_A"]] = self.law_out.damping_A if self.mode == Mode.DRAG else 0.0
@@ -1143,7 +1139,7 @@ class Daemon:
                 if not complete:
                     self.late_tpdo += 1
                 np.add(self.stale, 1, out=self.stale)
-                self.stale[self.rx] = 0
+                np.copyto(self.stale, 0, where=self.rx)  # (a boolean-mask assignment would allocate)
                 if not primed:
                     if not complete:
                         continue  # wait for a first full set of positions before computing anything

@@ -25,7 +25,7 @@ import sys
 import time
 from typing import Any
 
-__all__ = ["Ticker", "set_realtime", "demote_current_thread"]
+__all__ = ["Ticker", "set_realtime", "scheduler_label", "demote_current_thread"]
 
 _CLOCK_MONOTONIC = 1
 _TFD_NONBLOCK = os.O_NONBLOCK
@@ -325,6 +325,16 @@ def set_realtime(
             f"(RLIMIT_MEMLOCK {limit}; under systemd set LimitMEMLOCK=infinity)",
         }
     return result
+
+
+def scheduler_label(info: dict[str, Any], priority: int | None) -> str:
+    """One line for status reports from `set_realtime`'s result: "SCHED_FIFO 70", "SCHED_OTHER", or
+    "SCHED_OTHER (SCHED_FIFO 70 refused: <reason>)" when a priority was asked for and not granted."""
+    sched = info.get("scheduler") or {}
+    if sched.get("applied"):
+        return f"{sched.get('policy')} {priority}"
+    policy = str(sched.get("policy") or "SCHED_OTHER")
+    return policy if priority is None else f"{policy} (SCHED_FIFO {priority} refused: {sched.get('reason')})"
 
 
 def demote_current_thread(avoid_cpus: set[int] | None = None) -> dict[str, Any]:

@@ -32,7 +32,7 @@ import numpy as np
 
 from dragd.bus import BusSpec, UdpMulticastCanBus, open_bus, parse_bus
 from dragd.control import CommandTable, ControlError, ControlServer
-from dragd.ticker import demote_current_thread, set_realtime
+from dragd.ticker import demote_current_thread, scheduler_label, set_realtime
 from sim.axis import AxisIO
 from sim.drive import SimDrive
 from sim.network import SimNetwork
@@ -255,12 +255,7 @@ class SimProcess:
 
     def _scheduler(self) -> str:
         """The physics thread's scheduling policy as applied (``--realtime-priority``), e.g. "SCHED_FIFO 60"."""
-        sched = (self.realtime or {}).get("scheduler") or {}
-        if sched.get("applied"):
-            return f"{sched.get('policy')} {self.realtime_priority}"
-        reason = sched.get("reason")
-        policy = str(sched.get("policy") or "SCHED_OTHER")
-        return policy if self.realtime_priority is None else f"{policy} (SCHED_FIFO {self.realtime_priority} refused: {reason})"
+        return scheduler_label(self.realtime or {}, self.realtime_priority)
 
     def drive_report(self) -> dict[str, Any]:
         out = {}
