@@ -185,17 +185,22 @@ class JointConfig(_Strict):
                              "or motor_torque_constant_Nm_per_A (motor side, with gear_ratio)")
         if self.position_limits_rad is not None and self.position_limits_rad[0] >= self.position_limits_rad[1]:
             raise ValueError(f"position_limits_rad: expected [lower, upper] with lower < upper, got {list(self.position_limits_rad)}")
-        slip, count = self.startup.breakout_slip_rad, 2.0 * math.pi / self.encoder_counts_per_rev
+        slip, count = self.startup.breakout_slip_rad, self.rad_per_count
         if slip is not None and 0.0 < slip < count:
             raise ValueError(f"startup.breakout_slip_rad: expected 0 (off) or at least one encoder count "
                              f"({count:.3g} rad), got {slip}")
         return self
 
     @property
+    def rad_per_count(self) -> float:
+        """One encoder count (6064h) in joint radians."""
+        return 2.0 * math.pi / self.encoder_counts_per_rev
+
+    @property
     def breakout_slip_rad(self) -> float:
         """The break-out latch's slip distance [rad] (default 1.25 encoder counts; 0: off)."""
         slip = self.startup.breakout_slip_rad
-        return 1.25 * 2.0 * math.pi / self.encoder_counts_per_rev if slip is None else slip
+        return 1.25 * self.rad_per_count if slip is None else slip
 
     @property
     def kt_Nm_per_A(self) -> float:

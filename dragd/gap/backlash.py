@@ -30,14 +30,13 @@ Nothing here depends on the proof's plan: the inputs are t, q, i of any log and 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 from scipy.linalg import solve_banded
+from scipy.optimize import minimize
 
-IMPACT_WINDOW_S = 0.05  # ± this around a simulated impact the loop's current replaces the rigid model's (1/20 Hz:
-#                         the width of the zero-phase q̈ filter's response to the output's velocity jump)
 LOOP_CUTOFF_HZ = 5.0  # bandwidth of the loop-input estimate ŝ (Whittaker smoother, half power)
 REFERENCE_CUTOFF_HZ = 3.0  # bandwidth of the output's slow part (the reference's shape), taken out before smoothing
 V_CONTACT_RAD_S = 0.01  # contact samples used for ŝ: the joint moves (the rigid model is meaningful)
@@ -74,7 +73,7 @@ class JointPath:
     fs: float  # work rate [Hz]
     segments: list[tuple[int, int]]  # contiguous stretches (start, stop)
     fit_mask: np.ndarray  # (T,) bool: samples the fit scores (the joint slides)
-    impact_window_s: float = IMPACT_WINDOW_S
+    impact_window_s: float  # ± this around a simulated impact the loop's current replaces the rigid model's
     fast_q: np.ndarray = field(init=False)  # (T,) q minus its slow part (the reference's shape)
     fast_v: np.ndarray = field(init=False)
     moving: np.ndarray = field(init=False)  # (T,) bool: |q̇| above V_CONTACT_RAD_S
@@ -96,20 +95,14 @@ class JointPath:
         return np.where(v > 0, cp + vp * v, np.where(v < 0, cn + vn * v, 0.0))
 
 
-@dataclass
+@dataclass(eq=False)  # compared by identity (the selection matches a candidate's hyperparameter with ==)
 class BacklashFit:
     """A fitted predictor: parameters, the current it adds to the model (T,), and the evidence."""
 
     params: BacklashParams
     column: np.ndarray  # (T,) A: predicted current − the model's
-    sse_before: float  # Σ r² on the fit samples (work rate)
-    sse_after: float
+    sse_after: float  # Σ r² on the fit samples (work rate)
     loop: np.ndarray  # (T,) bool: where the predicted current is the drive loop's (crossings, impacts)
-
-    def __eq__(self, other: object) -> bool:
-        return self is other
-
-    __hash__ = object.__hash__
 
 
 # ------------------------------------------------------------------------------------------ smoothing
@@ -166,10 +159,10 @@ def rotor_modes(path: JointPath, loop_A: np.ndarray, prm: BacklashParams) -> np.
     f = path.friction_A(path.v)
     load = path.model_A - f - (M + J) * path.a  # the output's loads besides its own inertia and friction
     tooth = (M * (loop_A - (1.0 - phi) * f) + J * (phi * f + load)) / (M + J)
-    cp, cn, vp, vn = (x * (1.0 - phi) for x in path.friction)
+    fr = tuple(x * (1.0 - phi) for x in path.friction)  # the rotor's share of the friction law
     for a, b in path.segments:
-        _simulate(path.q[a:b], path.v[a:b], loop_A[a:b], tooth[a:b], modes[a:b], 0.5 * prm.play_rad, J,
-                  (cp, cn, vp, vn), 1.0 / path.fs)
+        _simulate(path.q[a:b], path.v[a:b], loop_A[a:b], tooth[a:b], modes[a:b], 0.5 * prm.play_rad, J, fr,
+                  1.0 / path.fs)
     return modes
 
 
@@ -265,16 +258,15 @@ def _simulate(q: np.ndarray, v: np.ndarray, loop_A: np.ndarray, tooth: np.ndarra
 # ------------------------------------------------------------------------------------------ the predictor
 
 
-def _windows(modes: np.ndarray, fs: float, window_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """(loop, trust) masks: where the loop's current is used (flights, ± ``window_s`` around impacts) and where the
-    rigid model is trusted for ŝ (contact, away from impacts)."""
+def _loop_window(modes: np.ndarray, fs: float, window_s: float) -> np.ndarray:
+    """Where the loop's current is used (flights, ± ``window_s`` around impacts); elsewhere the rigid model is
+    trusted for ŝ (contact, away from impacts)."""
     flight = modes == 0
     imp = np.zeros(modes.size, dtype=bool)
     imp[1:] = (modes[1:] != 0) & flight[:-1]
     n = int(round(window_s * fs))
     near = np.convolve(imp.astype(float), np.ones(2 * n + 1), mode="same") > 0.5
-    loop = flight | near
-    return loop, ~loop
+    return flight | near
 
 
 def _parts(path: JointPath, weight: np.ndarray, cutoff_Hz: float) -> np.ndarray:
@@ -291,19 +283,19 @@ def predict(path: JointPath, prm: BacklashParams) -> tuple[np.ndarray, np.ndarra
     return np.where(path.moving, col, 0.0), loop
 
 
-def _iterate(path: JointPath, prm: BacklashParams, resid: np.ndarray | None,
-             iterations: int = ITERATIONS) -> tuple[np.ndarray, np.ndarray, BacklashParams]:
-    """Simulation ↔ loop-input estimate, ``iterations`` times from the moving samples as contact; with ``resid`` the
+def _iterate(path: JointPath, prm: BacklashParams,
+             resid: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, BacklashParams]:
+    """Simulation ↔ loop-input estimate, ``ITERATIONS`` times from the moving samples as contact; with ``resid`` the
     gains are refitted each time (least squares on the fit samples in the loop's windows, non-negative)."""
     gains = np.array([prm.kp_A_per_rad, prm.kd_A_s_per_rad])
     weight = path.moving.copy()
     P = _parts(path, weight, prm.cutoff_Hz)
     loop = np.zeros(path.q.size, dtype=bool)
-    for _ in range(iterations):
+    for _ in range(ITERATIONS):
         loop_A = path.model_A + P @ np.array([1.0, gains[0], gains[1]])
         modes = rotor_modes(path, loop_A, prm)
-        loop, trust = _windows(modes, path.fs, path.impact_window_s)
-        P = _parts(path, trust & path.moving, prm.cutoff_Hz)
+        loop = _loop_window(modes, path.fs, path.impact_window_s)
+        P = _parts(path, ~loop & path.moving, prm.cutoff_Hz)
         if resid is not None:
             m = path.fit_mask & loop
             if m.sum() >= 10:
@@ -311,8 +303,7 @@ def _iterate(path: JointPath, prm: BacklashParams, resid: np.ndarray | None,
                 y = resid[m] - P[m, 0]
                 g, *_ = np.linalg.lstsq(A, y, rcond=None)
                 gains = np.maximum(g, 0.0)
-        prm = BacklashParams(prm.play_rad, prm.rotor_inertia_A_s2_per_rad, float(gains[0]), float(gains[1]),
-                             prm.output_friction_fraction, prm.cutoff_Hz)
+        prm = replace(prm, kp_A_per_rad=float(gains[0]), kd_A_s_per_rad=float(gains[1]))
     col = np.where(loop, P @ np.array([1.0, gains[0], gains[1]]), 0.0)
     return col, loop, prm
 
@@ -323,8 +314,6 @@ def fit(path: JointPath, resid: np.ndarray, rotor_inertia_A_s2_per_rad: float,
     work rate) on the fit samples: a grid over play and share (gains by least squares inside), then Nelder–Mead on
     both. Returns None when the grid's first (screening) points lower the error by less than ``min_gain``
     (relative): nothing there to search for."""
-    from scipy.optimize import minimize
-
     m = path.fit_mask
     if m.sum() < 50:
         return None
@@ -364,7 +353,7 @@ def fit(path: JointPath, resid: np.ndarray, rotor_inertia_A_s2_per_rad: float,
         if r[0] < best[0]:
             best = r
     sse, col, loop, prm = best
-    return BacklashFit(prm, col, sse0, sse, loop)
+    return BacklashFit(prm, col, sse, loop)
 
 
 def params_dict(prm: BacklashParams, kt: float) -> dict[str, Any]:

@@ -481,10 +481,11 @@ def joint_path(d: GapData, j: int, model_A: np.ndarray, info: ModelInfo) -> BL.J
             v[s.start:s.stop] = a[s.start:s.stop] = 0.0
     f = info.friction_A[:, j]
     m = np.abs(v) > 0.02
-    X = np.column_stack([v > 0, v < 0, v * (v > 0), v * (v < 0)]).astype(float)[m]
+    X = friction_columns(v)[0][m]
     fr = (0.0, 0.0, 0.0, 0.0)
     if m.sum() > 10 and np.any(f[m]):
         th, *_ = np.linalg.lstsq(X, f[m], rcond=None)
         fr = (max(float(th[0]), 0.0), min(float(th[1]), 0.0), max(float(th[2]), 0.0), max(float(th[3]), 0.0))
     return BL.JointPath(q, v, a, np.asarray(model_A, dtype=float), fr, d.inertia_diag()[:, j] / float(info.kt[j]),
-                        p.fs, [(s.start, s.stop) for s in p.segments], d.slide[:, j], 1.0 / p.deriv_cutoff_Hz)
+                        p.fs, [(s.start, s.stop) for s in p.segments], d.slide[:, j],
+                        1.0 / p.deriv_cutoff_Hz)  # impacts: the width of the zero-phase q̈ filter's response

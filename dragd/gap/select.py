@@ -103,6 +103,14 @@ def _fit(X: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, float]:
     return th, float(e @ e)
 
 
+def _adds(X: np.ndarray, t: Term) -> bool:
+    """The candidate brings something the model lacks: regressors outside X's span, or (a fixed-current effect
+    without columns, e.g. the backlash predictor) a current that is not zero."""
+    if t.XH.shape[1]:
+        return _independent(X, t.XH)
+    return t.offH is not None and bool(np.any(t.offH))
+
+
 def _independent(X: np.ndarray, C: np.ndarray, tol: float = 1e-3) -> bool:
     """C's columns are not (nearly) in X's span (else the effect is absorbed by what the model already has)."""
     if C.shape[1] == 0 or np.linalg.norm(C) == 0:
@@ -211,7 +219,7 @@ class Selector:
         best = None
         for h in eff.hypers(self.d, jm.j, resid if resid is not None else np.zeros(self.d.T), self.base.info()):
             t = self._term(eff, jm, h)
-            if t is None or not (_independent(X, t.XH) if t.XH.shape[1] else t.offH is not None and np.any(t.offH)):
+            if t is None or not _adds(X, t):
                 continue
             X1 = np.hstack([X, t.XH])
             y1 = y - t.offH if t.offH is not None else y
@@ -229,7 +237,7 @@ class Selector:
 
             h2 = eff.refine(sse, best[1].hyper)
             t2 = self._term(eff, jm, h2)
-            if t2 is not None and t2.XH.shape[1] and _independent(X, t2.XH):
+            if t2 is not None and _independent(X, t2.XH):
                 X2 = np.hstack([X, t2.XH])
                 y2 = y - t2.offH if t2.offH is not None else y
                 cv2 = _cv_sse(X2, y2, fold)
