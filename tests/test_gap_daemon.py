@@ -15,6 +15,7 @@ from dragd.model import RobotModel
 from dragd.procs import Rig
 
 from conftest import run_cli
+from daemon_helpers import AS_DEPLOYED
 from identify_helpers import run_plan
 
 
@@ -28,7 +29,7 @@ def test_gap_on_daemon_telemetry(tmp_path):
     tf.write_text(yaml.safe_dump(hidden))
     model = tmp_path / "model.yaml"
     model.write_text(yaml.safe_dump(params_from_truth(truth)))
-    with Rig("gap-daemon", workdir=tmp_path, sim_config=tf) as rig:
+    with Rig("gap-daemon", workdir=tmp_path, sim_config=tf, **AS_DEPLOYED) as rig:
         rig.start_sim()
         rig.start_daemon()
         rig.must("start")

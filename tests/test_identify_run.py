@@ -15,11 +15,12 @@ from dragd.model import RobotModel
 from dragd.procs import Rig
 
 from conftest import run_cli
+from daemon_helpers import AS_DEPLOYED
 from identify_helpers import run_plan, truth
 
 
 def test_identify_run_through_the_daemon_then_fit(tmp_path):
-    with Rig("identify-run", workdir=tmp_path) as rig:
+    with Rig("identify-run", workdir=tmp_path, **AS_DEPLOYED) as rig:
         rig.start_sim()
         rig.start_daemon()
         rig.must("start")
