@@ -1,0 +1,1 @@
+"""Golden traces of the daemon's cycle (see trace.py)."""
