@@ -1,3 +1,3 @@
-from .cli import main
+from dragd.cli.app import main
 import sys
 sys.exit(main())

@@ -16,7 +16,6 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-REPO_CONFIG_DIR = Path(__file__).resolve().parents[1] / "config"
 SYSTEM_CONFIG = Path("/etc/dragd/dragd.yaml")
 
 
@@ -580,7 +579,9 @@ def default_config_path() -> Path:
         return Path(env)
     if SYSTEM_CONFIG.is_file():
         return SYSTEM_CONFIG
-    return REPO_CONFIG_DIR / "default.yaml"
+    from dragd.resources import config_path
+
+    return config_path("default.yaml")
 
 
 def load_params(path: str | Path) -> ParamsFile:

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from .robots import resolve_urdf
+from dragd.robots import resolve_urdf
 
 
 class RobotModel:

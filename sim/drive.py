@@ -32,7 +32,7 @@ from typing import Any
 
 import can
 
-from dragd.cia402 import (
+from dragd.hardware.cia402 import (
     EMCY_COMMUNICATION,
     EMCY_HEARTBEAT,
     EMCY_NO_ERROR,
@@ -59,6 +59,7 @@ from dragd.cia402 import (
     is_fault_reset_edge,
     modes_from_supported_bits,
 )
+from dragd.resources import eds_path
 from sim.axis import AxisIO
 from sim.od import (
     ABORT_DEVICE_STATE,
@@ -80,7 +81,7 @@ from sim.pdo import (
 )
 from sim.sdo_server import SdoServer
 
-DEFAULT_EDS_PATH = Path(__file__).resolve().parent.parent / "canopen_eds" / "joint_drive.eds"
+DEFAULT_EDS_PATH = eds_path()
 COMM_TICK_S = 0.001  # period of the communication watchdog / heartbeat / event-TPDO checks
 _EMCY = struct.Struct("<HB5s")
 _INT32_MIN, _INT32_MAX = -(1 << 31), (1 << 31) - 1

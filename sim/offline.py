@@ -39,7 +39,7 @@ STATUSWORD_ENABLED = 0x1237  # operation enabled, voltage, remote, target reache
 
 def telemetry_layout(n: int) -> dict[str, Any]:
     """The daemon's /dragd/cycle layout (dragd/daemon.py ``Daemon._telemetry_layout``)."""
-    from dragd.telemetry import Field
+    from dragd.telemetry.writer import Field
 
     return {"t_s": 1, "mode": Field(1, kind="int", labels={k: v.lower() for k, v in MODE_LABELS.items()}),
             "q_rad": n, "dq_rad_s": n, "current_measured_A": n, "current_command_A": n, "gravity_A": n,
@@ -82,7 +82,7 @@ class OfflineArm:
     def __init__(self, truth: Truth, config: str | Path | None = None, rate_Hz: float = 1000.0,
                  csp_interpolation: bool = False) -> None:
         from dragd.config import load_config
-        from dragd.law import LawParams
+        from dragd.control.law import LawParams
 
         self.truth = truth
         self.model = truth.load_model()
@@ -113,8 +113,8 @@ class OfflineArm:
 
     def run(self, table: np.ndarray, progress: Callable[[float], None] | None = None) -> dict[str, np.ndarray]:
         """Follow ``table`` (rows every loop period, the daemon's TRACK table); return the telemetry arrays."""
-        from dragd.law import Workspace, friction_current
-        from dragd.velocity import VelocityEstimator
+        from dragd.control.law import Workspace, friction_current
+        from dragd.control.estimate import VelocityEstimator
 
         n, sub, dt = self.n, self.sub, self.dt
         phys, axes, law = self.physics, self.axes, self.law
@@ -223,7 +223,7 @@ def write_mcap(path: str | Path, data: dict[str, np.ndarray], metadata: dict[str
     """The daemon's telemetry format (``/dragd/cycle`` JSON rows); returns the number of rows."""
     from mcap.writer import CompressionType, Writer
 
-    from dragd.telemetry import CYCLE_TOPIC, RowLayout
+    from dragd.telemetry.writer import CYCLE_TOPIC, RowLayout
 
     n = data["q_rad"].shape[1]
     layout = RowLayout(telemetry_layout(n))

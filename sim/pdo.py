@@ -14,7 +14,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from dragd.busload import fd_length
+from dragd.hardware.busload import fd_length
 from sim.od import (
     ABORT_CANNOT_MAP,
     ABORT_NO_OBJECT,

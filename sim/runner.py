@@ -30,9 +30,9 @@ from typing import Any
 
 import numpy as np
 
-from dragd.bus import BusSpec, UdpMulticastCanBus, open_bus, parse_bus
-from dragd.control import CommandTable, ControlError, ControlServer
-from dragd.ticker import demote_current_thread, scheduler_label, set_realtime
+from dragd.hardware.bus import BusSpec, UdpMulticastCanBus, open_bus, parse_bus
+from dragd.protocol import CommandTable, ControlError, ControlServer
+from dragd.realtime import demote_current_thread, scheduler_label, set_realtime
 from sim.axis import AxisIO
 from sim.drive import SimDrive
 from sim.network import SimNetwork

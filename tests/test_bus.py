@@ -15,7 +15,7 @@ import canopen
 import msgpack
 import pytest
 
-from dragd.bus import (
+from dragd.hardware.bus import (
     DEFAULT_UDP_PORT,
     BusSpec,
     UdpMulticastCanBus,
@@ -93,7 +93,7 @@ def test_data_bitrate_needs_fd() -> None:
 # --- udp_multicast across processes ------------------------------------------------------------------------------
 _PEER = r"""
 import json, sys, can
-from dragd.bus import open_bus, parse_bus
+from dragd.hardware.bus import open_bus, parse_bus
 group, n = sys.argv[1], int(sys.argv[2])
 bus = open_bus(parse_bus("udp_multicast:" + group))
 bus.send(can.Message(arbitration_id=0x7E0, data=b"ready", is_extended_id=False))
@@ -251,7 +251,7 @@ def test_udp_multicast_works_under_canopen_network_and_notifier(request: pytest.
 def test_udp_multicast_own_echo_dropped_before_decoding(request: pytest.FixtureRequest,
                                                         monkeypatch: pytest.MonkeyPatch) -> None:
     """The echo of our own frame is recognised by its first bytes (sender stamp): it is never unpacked."""
-    import dragd.bus as dbus
+    import dragd.hardware.bus as dbus
 
     bus = open_bus(parse_bus(f"udp_multicast:{unique_group(request.node.name)}"))
     try:

@@ -1,6 +1,6 @@
 import pytest
 
-from dragd.busload import FrameSpec, bus_load, fd_length, frame_bits
+from dragd.hardware.busload import FrameSpec, bus_load, fd_length, frame_bits
 
 
 def test_classic_worst_case_numbers():

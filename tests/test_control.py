@@ -8,7 +8,7 @@ import threading
 import numpy as np
 import pytest
 
-from dragd.control import (
+from dragd.protocol import (
     DEFAULT_SOCKET_PATH,
     CommandTable,
     ControlClient,

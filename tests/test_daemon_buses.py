@@ -8,7 +8,7 @@ import time
 import numpy as np
 import yaml
 
-from dragd.procs import Rig, multicast_group
+from dragd.lab.rig import Rig, multicast_group
 
 from conftest import REPO, run_cli
 

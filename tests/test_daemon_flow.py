@@ -13,7 +13,7 @@ import time
 import numpy as np
 import pytest
 
-from dragd.procs import Rig
+from dragd.lab.rig import Rig
 
 from daemon_helpers import cycle_rows, wait_for
 

@@ -15,8 +15,8 @@ import can
 import numpy as np
 import pytest
 
-from dragd.bus import open_bus, parse_bus
-from dragd.procs import Rig
+from dragd.hardware.bus import open_bus, parse_bus
+from dragd.lab.rig import Rig
 
 from conftest import run_cli
 from daemon_helpers import cycle_rows, derived_config, wait_for

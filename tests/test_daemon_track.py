@@ -6,7 +6,7 @@ import time
 
 import numpy as np
 
-from dragd.procs import Rig
+from dragd.lab.rig import Rig
 
 from daemon_helpers import cycle_rows, wait_for
 

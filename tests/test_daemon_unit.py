@@ -6,7 +6,7 @@ import can
 import pytest
 
 from dragd.config import load_config
-from dragd.daemon import Daemon
+from dragd.daemon.core import Daemon
 
 from conftest import DEFAULT_CONFIG
 
@@ -68,8 +68,8 @@ def test_tpdo_wait_ends_when_every_joint_has_reported_once(daemon: Daemon) -> No
 
 
 def test_run_realtime_priority_override_goes_through_the_schema() -> None:
-    from dragd.cli import CliError
-    from dragd.cli_daemon import with_realtime_priority
+    from dragd.cli.app import CliError
+    from dragd.cli.daemon import with_realtime_priority
 
     cfg = load_config(DEFAULT_CONFIG)
     assert cfg.loop.realtime_priority is None
@@ -82,7 +82,7 @@ def test_run_realtime_priority_override_goes_through_the_schema() -> None:
 
 _REALTIME_PROBE = """
 import asyncio, json, os, threading
-from dragd.daemon import go_realtime
+from dragd.daemon.core import go_realtime
 
 async def main():
     loop = asyncio.get_running_loop()

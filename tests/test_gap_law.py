@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from dragd.config import ParamsFile, apply_params, load_config
-from dragd.law import LawOutput, LawParams, Workspace, compensate, effects_current, friction_current
+from dragd.control.law import LawOutput, LawParams, Workspace, compensate, effects_current, friction_current
 from dragd.model import RobotModel
 
 PARAMS = {

@@ -12,7 +12,7 @@ from dragd.config import load_config
 from dragd.identify import excitation as E
 from dragd.identify.data import load_log
 from dragd.model import RobotModel
-from dragd.procs import Rig
+from dragd.lab.rig import Rig
 
 from conftest import run_cli
 from daemon_helpers import AS_DEPLOYED

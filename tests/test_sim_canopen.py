@@ -27,8 +27,8 @@ import canopen
 import pytest
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
-from dragd.bus import UdpMulticastCanBus, open_bus, parse_bus
-from dragd.cia402 import (
+from dragd.hardware.bus import UdpMulticastCanBus, open_bus, parse_bus
+from dragd.hardware.cia402 import (
     CMD_DISABLE_VOLTAGE,
     CMD_ENABLE_OPERATION,
     CMD_FAULT_RESET,

@@ -18,8 +18,8 @@ import canopen
 import numpy as np
 import pytest
 
-from dragd.bus import open_bus, parse_bus
-from dragd.control import ControlClient
+from dragd.hardware.bus import open_bus, parse_bus
+from dragd.protocol import ControlClient
 from dragd.model import RobotModel
 from sim.drive import DEFAULT_EDS_PATH
 from sim.truth import load_truth

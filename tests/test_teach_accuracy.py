@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from dragd.config import load_config
-from dragd.daemon import MODE_CSP, MODE_CST, Daemon, Mode
-from dragd.demo import TEACH_STEPS_RAD
+from dragd.daemon.core import MODE_CSP, MODE_CST, Daemon, Mode
+from dragd.lab.demo import TEACH_STEPS_RAD
 from dragd.teach.analysis import replay_errors
 from dragd.teach.plan import plan_replay
 from dragd.teach.program import Program, Waypoint, save_program

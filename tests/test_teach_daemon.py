@@ -20,8 +20,8 @@ import pytest
 import yaml
 from mcap.reader import make_reader
 
-from dragd.demo import TEACH_STEPS_RAD, guide_and_settle
-from dragd.procs import Rig
+from dragd.lab.demo import TEACH_STEPS_RAD, guide_and_settle
+from dragd.lab.rig import Rig
 from dragd.teach.analysis import read_rows, replay_errors
 from dragd.teach.program import Program, Waypoint, load_program, save_program
 

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from dragd.config import load_config
-from dragd.daemon import MODE_CSP, MODE_CST, Daemon, Mode, Trajectory
+from dragd.daemon.core import MODE_CSP, MODE_CST, Daemon, Mode, Trajectory
 from dragd.teach.plan import plan_replay, request_from_config
 from dragd.teach.program import Program, Waypoint, save_program
 

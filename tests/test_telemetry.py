@@ -14,7 +14,7 @@ import pytest
 from mcap.reader import make_reader
 
 from dragd import telemetry
-from dragd.telemetry import (
+from dragd.telemetry.writer import (
     Field,
     RerunSink,
     RerunUnavailable,
@@ -519,8 +519,8 @@ def test_summarize_good_file(tmp_path):
     assert f["statusword"]["max"] == [0x0637] * 6
     assert [e["name"] for e in s["events"]] == ["mode_change", "fault"]
     assert s["events"][1]["fields"] == {"joint": 3, "code": "0x8611"}
-    assert "dragd.telemetry" in s["metadata"]
-    assert s["metadata"]["dragd.telemetry"]["written"] == "1000"
+    assert "dragd.telemetry.writer" in s["metadata"]
+    assert s["metadata"]["dragd.telemetry.writer"]["written"] == "1000"
     assert s["chunks"].keys() == {"zstd"}
     json.dumps(s)  # JSON-ready for `dragd log summary --json`
 

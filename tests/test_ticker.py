@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from dragd.ticker import Ticker, demote_current_thread, set_realtime
+from dragd.realtime import Ticker, demote_current_thread, set_realtime
 
 
 def run(coro):
@@ -119,7 +119,7 @@ def test_invalid_period():
 
 _SCRIPT = """
 import json, os
-from dragd.ticker import set_realtime
+from dragd.realtime import set_realtime
 res = set_realtime(10, {0}, lock_memory=True)
 res["policy_now"] = os.sched_getscheduler(0) == os.SCHED_FIFO
 print(json.dumps(res))

@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from .context import GapData
-from .effects import CATALOGUE, Backlash, ModelInfo, PayloadMass, weight
+from dragd.gap.context import GapData
+from dragd.gap.effects import CATALOGUE, Backlash, ModelInfo, PayloadMass, weight
 
 
 @dataclass
@@ -48,7 +48,7 @@ def given(d: GapData, params: Any, cfg: Any) -> Baseline:
     """The model of a params file overlaid on the configuration ``cfg`` (K_t/friction the file leaves null)."""
     from dragd.config import apply_params
     from dragd.identify.check import law_from_params
-    from dragd.law import Workspace, friction_current
+    from dragd.control.law import Workspace, friction_current
 
     law, _ = law_from_params(params, d.names, cfg)
     cfg2 = apply_params(cfg, params, "params")

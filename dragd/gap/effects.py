@@ -42,8 +42,8 @@ from scipy.ndimage import binary_dilation
 
 from dragd.identify.methods import friction_columns
 
-from . import backlash as BL
-from .context import GapData
+from dragd.gap import backlash as BL
+from dragd.gap.context import GapData
 
 SMOOTH_RAD_S = 0.005  # the law's zero-crossing width (law.friction_smoothing_rad_s default)
 

@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from .context import GapData
-from .effects import spectrum_peaks
+from dragd.gap.context import GapData
+from dragd.gap.effects import spectrum_peaks
 
 
 def _binned(x: np.ndarray, r: np.ndarray, bins: int) -> dict[str, list[float]]:

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from .run import GapResult
+from dragd.gap.run import GapResult
 
 
 def _mA(x: float | None) -> str:

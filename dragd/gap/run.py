@@ -11,11 +11,11 @@ import numpy as np
 
 from dragd.identify.data import Log
 
-from . import baseline as B
-from .context import GapData, load_gap_data
-from .effects import CATALOGUE
-from .localise import localise
-from .select import Selector
+from dragd.gap import baseline as B
+from dragd.gap.context import GapData, load_gap_data
+from dragd.gap.effects import CATALOGUE
+from dragd.gap.localise import localise
+from dragd.gap.select import Selector
 
 
 @dataclass

@@ -26,9 +26,9 @@ from typing import Any
 
 import numpy as np
 
-from .baseline import Baseline, update_seed000
-from .context import FOLDS, GapData
-from .effects import CATALOGUE, Cols, Effect
+from dragd.gap.baseline import Baseline, update_seed000
+from dragd.gap.context import FOLDS, GapData
+from dragd.gap.effects import CATALOGUE, Cols, Effect
 
 REL_MIN = 0.05  # held-out MSE must fall by 5 %
 ABS_MIN = 0.3  # ... and the explained held-out RMS must reach 0.3 × the joint's noise

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from .data import Log, lowpass, prepare, sliding
+from dragd.identify.data import Log, lowpass, prepare, sliding
 
 MASKS = ("steady", "moving", "all")
 
@@ -49,7 +49,7 @@ class CheckResult:
 def law_from_params(params: Any, names: list[str], cfg: Any | None = None) -> tuple[Any, list[str]]:
     """dragd's LawParams from a params file: overlaid on ``cfg`` when given, else from the file alone."""
     from dragd.config import apply_params
-    from dragd.law import LawParams
+    from dragd.control.law import LawParams
 
     warnings: list[str] = []
     if cfg is not None:  # the friction *model* (the daemon under-compensates in drag by friction_scale)
@@ -98,9 +98,9 @@ def check(log: Log, robot: Any, params: Any, cfg: Any | None = None, terms: str 
           v_min: float = 0.01, a_max: float = 0.3, guard_s: float = 0.3, deriv_cutoff_Hz: float = 20.0,
           keep_series: bool = False) -> CheckResult:
     """Per-joint RMSE/MAE/max error of the predicted against the measured current (see the module docstring)."""
-    from dragd.law import Workspace, friction_current
+    from dragd.control.law import Workspace, friction_current
 
-    from .regressors import RegressorModel
+    from dragd.identify.regressors import RegressorModel
 
     if mask not in MASKS:
         raise ValueError(f"--mask: expected one of {', '.join(MASKS)}, got '{mask}'")

@@ -441,7 +441,7 @@ def optimise_fourier(model: Any, limits: Limits, q_center: np.ndarray, period_s:
     """Coefficients minimising Σ_joints log cond of the column-scaled per-joint base regressors, within limits."""
     from scipy.optimize import minimize
 
-    from .regressors import RegressorModel
+    from dragd.identify.regressors import RegressorModel
 
     rm = RegressorModel(model)
     n = limits.n

@@ -20,9 +20,9 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
-from .data import Log, LogError, Prepared, motion_summary, prepare, sliding
-from .regressors import RegressorModel
-from .results import FRICTION_KEYS, FitResult, JointResult, LinearFit, linear_fit, prior_fit
+from dragd.identify.data import Log, LogError, Prepared, motion_summary, prepare, sliding
+from dragd.identify.regressors import RegressorModel
+from dragd.identify.results import FRICTION_KEYS, FitResult, JointResult, LinearFit, linear_fit, prior_fit
 
 METHODS = ("lowspeed", "symmetric", "synchronous", "full", "auto")
 PRIOR_REL = 0.05  # full dynamics: prior std of a base parameter relative to its URDF value (CAD masses)

@@ -18,7 +18,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .excitation import Plan
+from dragd.identify.excitation import Plan
 
 
 class RunError(RuntimeError):

@@ -34,10 +34,10 @@ import numpy as np
 import pinocchio as pin
 from scipy.interpolate import CubicSpline
 
-from .kinematics import Circle, Kinematics, KinematicsError
-from .keyframes import chord_parameter, extract_keyframes, path_spline
-from .profile import SCurve
-from .program import Program, load_program
+from dragd.teach.kinematics import Circle, Kinematics, KinematicsError
+from dragd.teach.keyframes import chord_parameter, extract_keyframes, path_spline
+from dragd.teach.profile import SCurve
+from dragd.teach.program import Program, load_program
 
 INTERPS = ("linear", "circular", "spline")
 SOURCES = ("waypoints", "path")
@@ -627,7 +627,7 @@ def limits_from_config(cfg: Any, model: pin.Model) -> Limits:
 
 def request_from_config(cfg: Any, program: str | Path, q_start: Any, *, interp: str = "linear",
                         source: str | None = None) -> ReplayRequest:
-    from ..robots import resolve_urdf
+    from dragd.robots import resolve_urdf
 
     urdf = str(resolve_urdf(cfg.robot.urdf, cfg.base_dir))
     model = _model(urdf, tuple(cfg.robot.gravity_m_s2))

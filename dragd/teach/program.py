@@ -30,7 +30,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from ..config import ConfigError, Expect, format_validation_error
+from dragd.config import ConfigError, Expect, format_validation_error
 
 FORMAT = "dragd.teach.program"
 VERSION = 1

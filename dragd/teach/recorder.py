@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from .program import Program, Recording, Waypoint, now_iso, save_program
+from dragd.teach.program import Program, Recording, Waypoint, now_iso, save_program
 
 
 class TeachRecorder:

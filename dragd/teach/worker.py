@@ -22,10 +22,10 @@ class WorkerError(RuntimeError):
 
 
 def _functions() -> dict[str, Any]:
-    from .keyframes import extract_keyframes
-    from .plan import plan_replay, rigid_body_effort, warm_up
-    from .program import list_programs
-    from .recorder import write_program
+    from dragd.teach.keyframes import extract_keyframes
+    from dragd.teach.plan import plan_replay, rigid_body_effort, warm_up
+    from dragd.teach.program import list_programs
+    from dragd.teach.recorder import write_program
 
     return {"plan_replay": plan_replay, "write_program": write_program, "warm_up": warm_up,
             "extract_keyframes": extract_keyframes, "list_programs": list_programs,
@@ -33,7 +33,7 @@ def _functions() -> dict[str, Any]:
 
 
 def main() -> int:
-    from ..ticker import demote_current_thread
+    from dragd.realtime import demote_current_thread
 
     avoid = {int(c) for c in os.environ.get("DRAGD_WORKER_AVOID_CPUS", "").split(",") if c.strip()}
     demote_current_thread(avoid or None)

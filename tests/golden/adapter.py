@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 
 from dragd.config import Config
-from dragd.daemon import Daemon, Trajectory
-from dragd.master import MODE_CSP, MODE_CST
+from dragd.daemon.core import Daemon, Trajectory
+from dragd.hardware.master import MODE_CSP, MODE_CST
 
 TELEMETRY_SKIP = ("compute_us",)  # wall time, not behaviour
 

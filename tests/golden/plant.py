@@ -14,9 +14,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from dragd.cia402 import (CW_FAULT_RESET, STATE_STATUSWORD_BITS, SW_REMOTE, SW_VOLTAGE_ENABLED,
+from dragd.hardware.cia402 import (CW_FAULT_RESET, STATE_STATUSWORD_BITS, SW_REMOTE, SW_VOLTAGE_ENABLED,
                                    VOLTAGE_ENABLED_STATES, Command, State, decode_command)
-from dragd.pdo import BusLayout
+from dragd.hardware.pdo import BusLayout
 from sim.axis import AxisIO
 from sim.physics import ArmPhysics
 from sim.truth import load_truth

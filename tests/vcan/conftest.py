@@ -19,8 +19,8 @@ from pathlib import Path
 
 import pytest
 
-from dragd.bus import parse_bus, socketcan_available
-from dragd.procs import Rig
+from dragd.hardware.bus import parse_bus, socketcan_available
+from dragd.lab.rig import Rig
 
 HERE = Path(__file__).resolve().parent
 BUS = os.environ.get("DRAGD_VCAN_BUS", "socketcan:vcan0")

@@ -22,8 +22,8 @@ import pytest
 from can.interfaces.socketcan import SocketcanBus
 
 import test_sim_canopen as base
-from dragd.bus import open_bus, parse_bus
-from dragd.procs import Rig as Processes
+from dragd.hardware.bus import open_bus, parse_bus
+from dragd.lab.rig import Rig as Processes
 from test_sim_canopen import (  # noqa: F401  (pytest collects the imported tests here, with this module's rig)
     r,
     test_402_walk_and_quick_stop,

@@ -25,8 +25,8 @@ import pytest
 from can.interfaces.socketcan import SocketcanBus
 
 from daemon_helpers import cycle_rows, wait_for
-from dragd.bus import open_bus, parse_bus
-from dragd.procs import Rig
+from dragd.hardware.bus import open_bus, parse_bus
+from dragd.lab.rig import Rig
 
 from conftest import run_cli
 

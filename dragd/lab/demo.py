@@ -18,7 +18,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from .procs import REPO, ProcessError, Rig
+from dragd.lab.rig import ProcessError, Rig
 
 
 class DemoError(RuntimeError):
@@ -45,7 +45,7 @@ def run_demo(seconds: float = 20.0, config: Path | None = None, out: Path | None
         raise DemoError(f"--scenario: expected 'drag' or 'teach', got '{scenario}'")
     if not seconds >= 8.0:
         raise DemoError(f"--seconds: expected at least 8 s (hold, untouched drag, hand pull, release), got {seconds}")
-    out = Path(out) if out is not None else REPO / "out"
+    out = Path(out) if out is not None else Path.cwd() / "out"
     out.mkdir(parents=True, exist_ok=True)
     mcap = out / f"demo-{datetime.now().strftime('%Y%m%d-%H%M%S')}.mcap"
     rig = Rig("demo", config=config, telemetry=mcap)
@@ -148,11 +148,11 @@ def _wait_replay(rig: Rig, timeout_s: float) -> dict[str, Any]:
 def run_teach_demo(seconds: float = 20.0, config: Path | None = None, out: Path | None = None,
                    progress: bool = True) -> dict[str, Any]:
     """Teach p1, p2, p3 by hand, replay them linearly and circularly; waypoint and path errors [deg]."""
-    from .teach.analysis import read_rows, replay_errors
+    from dragd.teach.analysis import read_rows, replay_errors
 
     if not seconds >= 6.0:
         raise DemoError(f"--seconds: expected at least 6 s of teaching (three hand-guided waypoints), got {seconds}")
-    out = Path(out) if out is not None else REPO / "out"
+    out = Path(out) if out is not None else Path.cwd() / "out"
     out.mkdir(parents=True, exist_ok=True)
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
     mcap = out / f"demo-teach-{stamp}.mcap"

@@ -25,14 +25,14 @@ import can
 import canopen
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
-from .cia402 import (OD_ABORT_CONNECTION_OPTION, OD_MAX_TORQUE, OD_MODES_OF_OPERATION, OD_MODES_OF_OPERATION_DISPLAY,
+from dragd.hardware.cia402 import (OD_ABORT_CONNECTION_OPTION, OD_MAX_TORQUE, OD_MODES_OF_OPERATION, OD_MODES_OF_OPERATION_DISPLAY,
                      OD_MOTOR_RATED_CURRENT, OD_QUICK_STOP_OPTION, OD_SUPPORTED_DRIVE_MODES, OD_TARGET_TORQUE,
                      OD_TORQUE_OFFSET)
-from .config import Config, JointConfig
-from .pdo import BusLayout, PdoSpec
-from .ticker import demote_current_thread
+from dragd.config import Config, JointConfig
+from dragd.hardware.pdo import BusLayout, PdoSpec
+from dragd.realtime import demote_current_thread
+from dragd.resources import eds_path
 
-EDS_DIR = Path(__file__).resolve().parents[1] / "canopen_eds"
 DEVICE_TYPE_402 = 0x0192
 MODE_CSP, MODE_CST = 8, 10
 NMT_START, NMT_STOP, NMT_PRE_OP, NMT_RESET_NODE, NMT_RESET_COMM = 0x01, 0x02, 0x80, 0x81, 0x82
@@ -86,7 +86,7 @@ class Master:
             for j in cfg.joints:
                 if j.bus == name:
                     rt.nodes[j.node_id] = NodeInfo(j.node_id, j, name)
-                    node = canopen.RemoteNode(j.node_id, str(EDS_DIR / "joint_drive.eds"))
+                    node = canopen.RemoteNode(j.node_id, str(eds_path()))
                     node.sdo.RESPONSE_TIMEOUT = cfg.master.sdo_timeout_s
                     node.sdo.MAX_RETRIES = 2
                     net.add_node(node)

@@ -22,8 +22,8 @@ import struct
 from dataclasses import dataclass, field
 from typing import Literal
 
-from .busload import BusLoadReport, FrameSpec, bus_load
-from .cia402 import OD_CONTROLWORD, OD_CURRENT_ACTUAL, OD_POSITION_ACTUAL, OD_STATUSWORD, OD_TARGET_POSITION, OD_TORQUE_OFFSET
+from dragd.hardware.busload import BusLoadReport, FrameSpec, bus_load
+from dragd.hardware.cia402 import OD_CONTROLWORD, OD_CURRENT_ACTUAL, OD_POSITION_ACTUAL, OD_STATUSWORD, OD_TARGET_POSITION, OD_TORQUE_OFFSET
 
 SYNC_COB_ID = 0x080
 SHARED_RPDO_BASE = 0x200  # 0x200 (+0x80·k): "RPDO of node 0", unused by any node; not a restricted COB-ID

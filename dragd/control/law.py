@@ -49,7 +49,7 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-from .config import Config
+from dragd.config import Config
 
 TWO_PI = 2.0 * np.pi
 
@@ -186,7 +186,7 @@ class EffectArrays:
 
     @classmethod
     def from_config(cls, cfg: Config) -> EffectArrays | None:
-        from .config import JointEffects
+        from dragd.config import JointEffects
 
         js = cfg.joints
         effs = [j.effects for j in js]

@@ -7,7 +7,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from .cli import CliError, _add_config, _emit, _table
+from dragd.cli.app import CliError, _add_config, _emit, _table
 
 
 def _joints(text: str | None, n: int) -> list[int]:
@@ -24,7 +24,7 @@ def _joints(text: str | None, n: int) -> list[int]:
 
 
 def _bench(args: argparse.Namespace, joints_arg: str | None):  # noqa: ANN202
-    from .experiment.bench import Bench
+    from dragd.lab.experiment.bench import Bench
 
     if args.ramp_s is not None and not 1.0 <= args.ramp_s <= 120.0:
         raise CliError(f"--ramp-s: expected seconds in [1, 120], got {args.ramp_s}")
@@ -37,9 +37,9 @@ def _bench(args: argparse.Namespace, joints_arg: str | None):  # noqa: ANN202
 
 
 def cmd_startup(args: argparse.Namespace) -> int:
-    from .experiment import plots
-    from .experiment.startup import run_startup
-    from .telemetry import read_rows
+    from dragd.lab.experiment import plots
+    from dragd.lab.experiment.startup import run_startup
+    from dragd.telemetry.writer import read_rows
 
     bench, joints = _bench(args, args.joints)
     result = run_startup(bench, joints, reps=args.reps, ramp_s=args.ramp_s)
@@ -62,8 +62,8 @@ def cmd_startup(args: argparse.Namespace) -> int:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from .experiment import plots
-    from .experiment.startup import run_sweep, write_frequency
+    from dragd.lab.experiment import plots
+    from dragd.lab.experiment.startup import run_sweep, write_frequency
 
     if args.joint is not None and "," in args.joint:
         raise CliError(f"--joint: expected one joint, got '{args.joint}'")
@@ -96,8 +96,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 
 def cmd_quality(args: argparse.Namespace) -> int:
-    from .experiment import plots
-    from .experiment.quality import run_quality
+    from dragd.lab.experiment import plots
+    from dragd.lab.experiment.quality import run_quality
 
     bench, joints = _bench(args, args.joints)
     result = run_quality(bench, joints)

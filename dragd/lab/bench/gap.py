@@ -15,8 +15,9 @@ from typing import Any
 import numpy as np
 import yaml
 
-from .bench import benchmark
-from .bench_identify import REPO, START, _cache_dir, _sim, _source_key, _truth
+from dragd.lab.bench import benchmark
+from dragd.resources import config_path
+from dragd.lab.bench.identify import SIM_DIR, START, _cache_dir, _sim, _source_key, _truth
 
 RIPPLE = {"amplitude_Nm": 0.4, "cycles_per_rev": 24.0, "reference": "joint", "phase_rad": 0.7}
 _CACHE: dict[str, Any] = {}
@@ -24,12 +25,12 @@ _CACHE: dict[str, Any] = {}
 
 def _inputs() -> tuple[Path, Path]:
     """(10 min MCAP with the hidden ripple, params of the truth without it), generated once and cached."""
-    from .config import load_config
-    from .identify import excitation as E
-    from .model import RobotModel
+    from dragd.config import load_config
+    from dragd.identify import excitation as E
+    from dragd.model import RobotModel
 
     model = RobotModel.from_urdf("seed_cobot")
-    lim = E.Limits.from_model(model, load_config(REPO / "config" / "default.yaml"))
+    lim = E.Limits.from_model(model, load_config(config_path()))
     b = E.PlanBuilder(np.array(START), lim)
     E.add_gap(b, poses=24, rng=np.random.default_rng(11))
     plan = b.build("bench-gap")
@@ -38,7 +39,7 @@ def _inputs() -> tuple[Path, Path]:
     log = d / f"gap-{key}.mcap"
     params = d / f"gap-{key}.params.yaml"
     if not log.exists():
-        truth = yaml.safe_load((REPO / "sim" / "config" / "seed_cobot.yaml").read_text())
+        truth = yaml.safe_load((SIM_DIR / "config" / "seed_cobot.yaml").read_text())
         truth["joints"][2]["hidden"] = {"ripple": [RIPPLE]}
         tf = d / f"gap-{key}.truth.yaml"
         tf.write_text(yaml.safe_dump(truth))
@@ -64,14 +65,14 @@ def run_gap() -> dict[str, Any]:
     """Load + analyse (timed); memoised per process."""
     if "run" in _CACHE:
         return _CACHE["run"]
-    from .config import load_config, load_params
-    from .gap.run import analyse
-    from .identify.data import load_log
-    from .model import RobotModel
+    from dragd.config import load_config, load_params
+    from dragd.gap.run import analyse
+    from dragd.identify.data import load_log
+    from dragd.model import RobotModel
 
     log_path, params_path = _inputs()
     robot = RobotModel.from_urdf("seed_cobot")
-    cfg = load_config(REPO / "config" / "default.yaml")
+    cfg = load_config(config_path())
     params = load_params(params_path)
     t0 = time.perf_counter()
     log = load_log(log_path)

@@ -12,8 +12,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .cli import CliError, _add_config, _emit, _table
-from .cli_daemon import DEFAULT_SOCKET, _call
+from dragd.cli.app import CliError, _add_config, _emit, _table
+from dragd.cli.daemon import DEFAULT_SOCKET, _call
 
 REPLAY_ACTIONS = ("pause", "resume", "stop", "speed", "status")
 
@@ -81,7 +81,7 @@ def _programs_text(d: dict[str, Any]) -> str:
 
 def cmd_teach_list(args: argparse.Namespace) -> int:
     if args.dir is not None:
-        from .teach.program import list_programs
+        from dragd.teach.program import list_programs
 
         data = {"program_dir": str(args.dir), "programs": list_programs(args.dir)}
     else:
@@ -92,7 +92,7 @@ def cmd_teach_list(args: argparse.Namespace) -> int:
 
 
 def _load(path: Path):  # noqa: ANN202
-    from .teach.program import ProgramError, load_program
+    from dragd.teach.program import ProgramError, load_program
 
     try:
         return load_program(path)
@@ -117,8 +117,8 @@ def cmd_teach_show(args: argparse.Namespace) -> int:
 
 
 def cmd_teach_keyframes(args: argparse.Namespace) -> int:
-    from .teach.keyframes import extract_keyframes
-    from .teach.program import Keyframe, save_program
+    from dragd.teach.keyframes import extract_keyframes
+    from dragd.teach.program import Keyframe, save_program
 
     prog = _load(args.program)
     t, q = prog.path_arrays()
@@ -232,11 +232,11 @@ def _dry_run(args: argparse.Namespace) -> int:
     """Plan offline with the configuration, from the first waypoint (or the path's start)."""
     import numpy as np
 
-    from .config import load_config
-    from .teach.plan import PlanError, plan_replay, request_from_config
+    from dragd.config import load_config
+    from dragd.teach.plan import PlanError, plan_replay, request_from_config
 
     cfg = load_config(args.config)
-    from .teach.program import ProgramError, resolve_program
+    from dragd.teach.program import ProgramError, resolve_program
 
     try:
         path = resolve_program(args.target, cfg.program_dir)

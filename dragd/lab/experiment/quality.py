@@ -8,8 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from ..procs import wait_until
-from .bench import Bench, move_effort, wait_rest
+from dragd.lab.rig import wait_until
+from dragd.lab.experiment.bench import Bench, move_effort, wait_rest
 
 SPEED_RAD_S = math.radians(10.0)
 

@@ -54,7 +54,7 @@ from mcap.records import Channel, Chunk, Footer, Header, Message, Metadata, Sche
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
-from dragd.ticker import demote_current_thread
+from dragd.realtime import demote_current_thread
 
 __all__ = [
     "Field",
@@ -786,7 +786,7 @@ class TelemetryWriter:
             st["written"] += self._unflushed_rows  # finish() below writes them
             st["events_written"] += self._unflushed_events
             mcap.add_metadata(
-                "dragd.telemetry",
+                "dragd.telemetry.writer",
                 {
                     k: str(st[k])
                     for k in ("written", "dropped", "dropped_ring_full", "dropped_io", "errors",

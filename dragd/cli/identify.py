@@ -12,15 +12,15 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from .cli import CliError, _add_config, _emit, _floats, _table
+from dragd.cli.app import CliError, _add_config, _emit, _floats, _table
 
 FIT_METHODS = ("lowspeed", "symmetric", "synchronous", "full", "auto")
 
 
 def _robot(args: argparse.Namespace):  # noqa: ANN202
     """The robot model: ``--robot`` (bundled name or URDF), else the configuration's robot."""
-    from .config import load_config
-    from .model import RobotModel
+    from dragd.config import load_config
+    from dragd.model import RobotModel
 
     try:
         if getattr(args, "robot", None):
@@ -34,7 +34,7 @@ def _robot(args: argparse.Namespace):  # noqa: ANN202
 
 
 def _load_log(path: str):  # noqa: ANN202
-    from .identify.data import LogError, load_log
+    from dragd.identify.data import LogError, load_log
 
     try:
         return load_log(path)
@@ -48,7 +48,7 @@ def _load_log(path: str):  # noqa: ANN202
 def _build_plan(args: argparse.Namespace, q_start: list[float] | None = None):  # noqa: ANN202
     import numpy as np
 
-    from .identify.excitation import Limits, PlanError, build_plan
+    from dragd.identify.excitation import Limits, PlanError, build_plan
 
     model, cfg = _robot(args)
     limits = Limits.from_model(model, cfg, margin_rad=args.margin, acceleration_rad_s2=args.acceleration)
@@ -88,9 +88,9 @@ def cmd_plan(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from .control import ControlClient, DaemonUnavailable
-    from .identify.excitation import PLAN_KINDS, Plan, PlanError
-    from .identify.runner import RunError, run_plan
+    from dragd.protocol import ControlClient, DaemonUnavailable
+    from dragd.identify.excitation import PLAN_KINDS, Plan, PlanError
+    from dragd.identify.runner import RunError, run_plan
 
     client = ControlClient(args.socket, timeout_s=args.timeout)
 
@@ -155,9 +155,9 @@ def _fit_text(d: dict[str, Any]) -> str:
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
-    from .config import save_params
-    from .identify.data import LogError
-    from .identify.methods import Options, identify
+    from dragd.config import save_params
+    from dragd.identify.data import LogError
+    from dragd.identify.methods import Options, identify
 
     import time
 
@@ -186,9 +186,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    from .config import load_config, load_params
-    from .identify.check import check, plot
-    from .identify.data import LogError
+    from dragd.config import load_config, load_params
+    from dragd.identify.check import check, plot
+    from dragd.identify.data import LogError
 
     model, _ = _robot(args)
     params = load_params(args.params)
@@ -230,8 +230,8 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 
 def register(sub: Any) -> None:
-    from .cli_daemon import DEFAULT_SOCKET
-    from .identify.excitation import PLAN_KINDS
+    from dragd.cli.daemon import DEFAULT_SOCKET
+    from dragd.identify.excitation import PLAN_KINDS
 
     p = sub.add_parser("identify", help="identification: excitation plans, runs, fits, checks (docs/IDENTIFICATION.md)")
     isub = p.add_subparsers(dest="identify_command", metavar="WHAT")

@@ -7,15 +7,15 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from .cli import CliError, _add_config, _emit, _table
+from dragd.cli.app import CliError, _add_config, _emit, _table
 
 
 def cmd_gap(args: argparse.Namespace) -> int:
-    from .config import load_config, load_params, save_params
-    from .gap.effects import NAMES
-    from .gap.run import analyse
-    from .identify.data import LogError, load_log
-    from .model import RobotModel
+    from dragd.config import load_config, load_params, save_params
+    from dragd.gap.effects import NAMES
+    from dragd.gap.run import analyse
+    from dragd.identify.data import LogError, load_log
+    from dragd.model import RobotModel
 
     cfg = load_config(args.config)
     try:
@@ -44,7 +44,7 @@ def cmd_gap(args: argparse.Namespace) -> int:
         save_params(res.params, Path(args.out))
         extra["out"] = str(args.out)
     if args.report:
-        from .gap.report import write
+        from dragd.gap.report import write
 
         extra.update(write(res, args.report, str(args.measured), str(args.model) if args.model else None,
                            str(args.out) if args.out else None))
@@ -76,7 +76,7 @@ def cmd_gap(args: argparse.Namespace) -> int:
 
 
 def register(sub: Any) -> None:
-    from .gap.effects import NAMES
+    from dragd.gap.effects import NAMES
 
     p = sub.add_parser("gap", help="model gap: where model and measurement disagree, the missing effect named, added, "
                                    "the gap shown shrinking (docs/GAP.md)")

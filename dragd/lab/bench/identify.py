@@ -15,6 +15,7 @@ them (~3 min), later runs only fit.
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import json
 import os
 import subprocess
@@ -25,9 +26,10 @@ from typing import Any
 
 import numpy as np
 
-from .bench import benchmark
+from dragd.lab.bench import benchmark
+from dragd.resources import config_path
 
-REPO = Path(__file__).resolve().parents[1]
+SIM_DIR = Path(importlib.util.find_spec("sim").origin).parent  # the installed simulator (a lab tool)
 _CACHE: dict[str, Any] = {}
 START = (0.0, -0.6, 1.2, -0.6, 1.5708, 0.0)  # the sim's initial pose
 
@@ -39,8 +41,7 @@ def _cache_dir() -> Path:
 
 
 def _sim(*args: str, timeout: float = 1800.0) -> str:
-    proc = subprocess.run([sys.executable, "-m", "sim", *args], capture_output=True, text=True, timeout=timeout,
-                          cwd=str(REPO))
+    proc = subprocess.run([sys.executable, "-m", "sim", *args], capture_output=True, text=True, timeout=timeout)
     if proc.returncode != 0:
         raise RuntimeError(f"python -m sim {' '.join(args)} failed ({proc.returncode}):\n{proc.stderr[-2000:]}")
     return proc.stdout
@@ -48,19 +49,18 @@ def _sim(*args: str, timeout: float = 1800.0) -> str:
 
 def _source_key() -> str:
     h = hashlib.sha256()
-    for f in sorted((REPO / "sim").glob("*.py")) + sorted((REPO / "sim" / "config").glob("*.yaml")) + \
-            [REPO / "config" / "default.yaml"]:
+    for f in sorted(SIM_DIR.glob("*.py")) + sorted((SIM_DIR / "config").glob("*.yaml")) + [config_path()]:
         h.update(f.read_bytes())
     return h.hexdigest()[:12]
 
 
 def _plans() -> tuple[Any, Any]:
-    from .config import load_config
-    from .identify import excitation as E
-    from .model import RobotModel
+    from dragd.config import load_config
+    from dragd.identify import excitation as E
+    from dragd.model import RobotModel
 
     model = RobotModel.from_urdf("seed_cobot")
-    lim = E.Limits.from_model(model, load_config(REPO / "config" / "default.yaml"))
+    lim = E.Limits.from_model(model, load_config(config_path()))
     q0 = np.array(START)
     b = E.PlanBuilder(q0, lim)
     E.add_synchronous(b, list(range(6)), speeds=(0.15, 0.45), cycles=1)
@@ -111,11 +111,11 @@ def _run() -> dict[str, Any]:
     """Generate/cached logs, fit the training log (timed), check the held-out log; memoised per process."""
     if "run" in _CACHE:
         return _CACHE["run"]
-    from .config import ParamsFile, load_config
-    from .identify.check import check
-    from .identify.data import load_log
-    from .identify.methods import identify
-    from .model import RobotModel
+    from dragd.config import ParamsFile, load_config
+    from dragd.identify.check import check
+    from dragd.identify.data import load_log
+    from dragd.identify.methods import identify
+    from dragd.model import RobotModel
 
     train, valid = _plans()
     train_log = _log(train, seed=101, seconds=600.0)
@@ -127,7 +127,7 @@ def _run() -> dict[str, Any]:
     params = res.to_params()
     truth = _truth()
     vlog = load_log(valid_log)
-    cfg = load_config(REPO / "config" / "default.yaml")  # what the daemon overlays the params on
+    cfg = load_config(config_path())  # what the daemon overlays the params on
     chk = check(vlog, robot, params, cfg=cfg)
     # the floor: the same prediction with the true parameters (Hall noise + quantisation + the drives' own
     # high-frequency current ripple — what no K_t/friction model can predict)

@@ -51,8 +51,8 @@ def _table(headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
 
 
 def _robot_model(args: argparse.Namespace):  # noqa: ANN202
-    from .config import load_config
-    from .model import RobotModel
+    from dragd.config import load_config
+    from dragd.model import RobotModel
 
     if getattr(args, "robot", None):
         return RobotModel.from_urdf(args.robot), None
@@ -78,9 +78,9 @@ def cmd_model_gravity(args: argparse.Namespace) -> int:
 def cmd_model_current(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .config import load_config
-    from .law import LawParams, compensate
-    from .model import RobotModel
+    from dragd.config import load_config
+    from dragd.control.law import LawParams, compensate
+    from dragd.model import RobotModel
 
     cfg = load_config(args.config, args.params)
     model = RobotModel.from_config(cfg)  # with the params' payload (docs/GAP.md)
@@ -111,8 +111,8 @@ def cmd_model_current(args: argparse.Namespace) -> int:
 
 
 def cmd_config_check(args: argparse.Namespace) -> int:
-    from .config import load_config
-    from .model import RobotModel
+    from dragd.config import load_config
+    from dragd.model import RobotModel
 
     cfg = load_config(args.config, args.params)
     model = RobotModel.from_urdf(cfg.robot.urdf, cfg.base_dir, cfg.robot.gravity_m_s2)
@@ -129,7 +129,7 @@ def cmd_config_check(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from . import bench
+    from dragd.lab import bench
 
     if args.list:
         for name in bench.names():
@@ -227,7 +227,7 @@ _EXTRA_COMMANDS: list[Callable[[Any], None]] = []
 def _load_extra_commands() -> None:
     import importlib
 
-    for mod in ("dragd.cli_daemon", "dragd.cli_identify", "dragd.cli_teach", "dragd.cli_gap", "dragd.cli_experiment"):
+    for mod in ("dragd.cli.daemon", "dragd.cli.identify", "dragd.cli.teach", "dragd.cli.gap", "dragd.cli.experiment"):
         try:
             m = importlib.import_module(mod)
         except ModuleNotFoundError as exc:
@@ -238,7 +238,7 @@ def _load_extra_commands() -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from .config import ConfigError
+    from dragd.config import ConfigError
 
     _load_extra_commands()
     parser = build_parser()

@@ -39,9 +39,9 @@ def benchmark(name: str, unit: str) -> Callable[[Callable[[dict], float]], Calla
 @benchmark("compensation_us", "us")
 def compensation_us(opts: dict) -> float:
     """Median wall time of one full 6-joint evaluation of the law including G(q) (Pinocchio) and the latch."""
-    from .config import load_config
-    from .law import BreakoutState, LawOutput, LawParams, Workspace, breakout_update, compensate
-    from .model import RobotModel
+    from dragd.config import load_config
+    from dragd.control.law import BreakoutState, LawOutput, LawParams, Workspace, breakout_update, compensate
+    from dragd.model import RobotModel
 
     cfg = load_config(opts.get("config"))
     model = RobotModel.from_urdf(cfg.robot.urdf, cfg.base_dir, cfg.robot.gravity_m_s2)
@@ -66,7 +66,7 @@ def _load_plugins() -> None:
     """Import modules that register further benchmarks (kept lazy: some pull in heavy dependencies)."""
     import importlib
 
-    for mod in ("dragd.bench_loop", "dragd.bench_identify", "dragd.bench_gap"):
+    for mod in ("dragd.lab.bench.loop", "dragd.lab.bench.identify", "dragd.lab.bench.gap"):
         try:
             importlib.import_module(mod)
         except ModuleNotFoundError as exc:

@@ -16,7 +16,7 @@ import time
 from functools import lru_cache
 from pathlib import Path
 
-from .bench import BenchError, benchmark
+from dragd.lab.bench import BenchError, benchmark
 
 
 REALTIME_PRIORITY = 70  # the cycle thread's SCHED_FIFO priority as deployed (docs/SYSTEMD.md); the sim's is 10 below
@@ -25,7 +25,7 @@ REALTIME_PRIORITY = 70  # the cycle thread's SCHED_FIFO priority as deployed (do
 
 @lru_cache(maxsize=4)
 def _session(seconds: float, config: str | None, priority: int) -> dict:
-    from .procs import Rig
+    from dragd.lab.rig import Rig
 
     rt = ["--realtime-priority", str(priority)] if priority else []
     sim_rt = ["--realtime-priority", str(max(1, priority - 10))] if priority else []
@@ -94,8 +94,8 @@ def sim_rtf(opts: dict) -> float:
 @benchmark("bus_load", "%")
 def bus_load(opts: dict) -> float:
     """Worst-case bus load (bit stuffing included) of the configured PDO layout, highest over the buses."""
-    from .config import load_config
-    from .daemon import bus_layouts
+    from dragd.config import load_config
+    from dragd.daemon.core import bus_layouts
 
     cfg = load_config(opts.get("config"))
     layouts = bus_layouts(cfg)

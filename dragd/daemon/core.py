@@ -30,21 +30,21 @@ import can
 import numpy as np
 from scipy.interpolate import CubicSpline  # imported at start-up: an import in the loop's process stalls it
 
-from . import sdnotify
-from .bus import open_bus, parse_bus
-from .cia402 import (CMD_DISABLE_VOLTAGE, CMD_QUICK_STOP, CMD_SHUTDOWN, CW_FAULT_RESET, State,
+from dragd.daemon import sdnotify
+from dragd.hardware.bus import open_bus, parse_bus
+from dragd.hardware.cia402 import (CMD_DISABLE_VOLTAGE, CMD_QUICK_STOP, CMD_SHUTDOWN, CW_FAULT_RESET, State,
                      decode_statusword, next_controlword)
-from .config import Config
-from .control import ControlServer
-from .law import BreakoutState, LawOutput, LawParams, Workspace, breakout_update, compensate, friction_current
-from .master import MODE_CSP, MODE_CST, DriveError, Master
-from .model import RobotModel
-from .pdo import SYNC_COB_ID, BusLayout, RpdoEncoder, layout_for
-from .stats import Histogram
-from .teach.program import ProgramError, check_name, resolve_program
-from .teach.recorder import TeachRecorder
-from .ticker import Ticker, demote_current_thread, scheduler_label, set_realtime
-from .velocity import VelocityEstimator
+from dragd.config import Config
+from dragd.protocol import ControlServer
+from dragd.control.law import BreakoutState, LawOutput, LawParams, Workspace, breakout_update, compensate, friction_current
+from dragd.hardware.master import MODE_CSP, MODE_CST, DriveError, Master
+from dragd.model import RobotModel
+from dragd.hardware.pdo import SYNC_COB_ID, BusLayout, RpdoEncoder, layout_for
+from dragd.stats import Histogram
+from dragd.teach.program import ProgramError, check_name, resolve_program
+from dragd.teach.recorder import TeachRecorder
+from dragd.realtime import Ticker, demote_current_thread, scheduler_label, set_realtime
+from dragd.control.estimate import VelocityEstimator
 
 
 class Mode(IntEnum):
@@ -1347,7 +1347,7 @@ class Daemon:
         if self._helper is None:
             from concurrent.futures import ThreadPoolExecutor
 
-            from .teach.worker import Worker
+            from dragd.teach.worker import Worker
 
             avoid = set(self.cfg.loop.cpus or ())
             self._helper = ThreadPoolExecutor(1, thread_name_prefix="dragd-planner",
@@ -1435,7 +1435,7 @@ class Daemon:
         try:
             result = await self._work("write_program", *args)
         except RuntimeError as exc:  # the worker died: write it here rather than lose what was taught
-            from .teach.recorder import write_program
+            from dragd.teach.recorder import write_program
 
             self.log(f"teach: planner worker failed ({exc}); writing the program in the daemon")
             result = await asyncio.get_running_loop().run_in_executor(None, write_program, *args)
@@ -1444,7 +1444,7 @@ class Daemon:
     async def replay_start(self, program: str, interp: str = "linear", speed: float = 1.0, cycles: int = 1,
                            source: str | None = None) -> dict[str, Any]:
         """Plan (in the planner process, from the held pose) and run a taught program in CSP."""
-        from .teach.plan import INTERPS, SOURCES
+        from dragd.teach.plan import INTERPS, SOURCES
 
         if self.teach is not None:
             raise ValueError(f"replay: teaching '{self.teach.name}' is in progress; 'dragd teach stop' first")
@@ -1479,7 +1479,7 @@ class Daemon:
 
     async def _replay_start(self, path: Path, interp: str, speed: float, cycles: int,
                             source: str | None) -> dict[str, Any]:
-        from .teach.plan import ReplayRequest, limits_from_config
+        from dragd.teach.plan import ReplayRequest, limits_from_config
 
         was = self.mode
         # hold where the arm is (not where an older hold wanted it), stiffly: the drives' own position loops (CSP)
@@ -1577,7 +1577,7 @@ class Daemon:
                 last = self.cycles
 
     def _telemetry_layout(self) -> dict[str, Any]:
-        from .telemetry import Field
+        from dragd.telemetry.writer import Field
 
         n = self.n
         return {"t_s": 1, "mode": Field(1, kind="int", labels={int(m): name for m, name in MODE_NAMES.items()}), "q_rad": n, "dq_rad_s": n, "current_measured_A": n, "current_command_A": n,
@@ -1595,7 +1595,7 @@ class Daemon:
 
     async def start_recording(self, path: str, label: str = "") -> str:
         """Record every cycle to a separate MCAP file until ``stop_recording`` (identification runs, teach)."""
-        from .telemetry import TelemetryWriter
+        from dragd.telemetry.writer import TelemetryWriter
 
         if self.recording is not None:
             raise ValueError(f"record: already recording to {self.recording_path}; stop it first")
@@ -1621,7 +1621,7 @@ class Daemon:
     def _open_telemetry(self) -> None:
         if not self.telemetry_path:
             return
-        from .telemetry import TelemetryWriter
+        from dragd.telemetry.writer import TelemetryWriter
 
         tc = self.cfg.telemetry
         self.telemetry = TelemetryWriter(self.telemetry_path, self._telemetry_layout(), capacity=tc.capacity_rows,
@@ -1635,7 +1635,7 @@ class Daemon:
         # a busy helper thread (SDO worker, telemetry encoder) would hold the GIL for the default 5 ms
         sys.setswitchinterval(5e-4)
         if self.rerun:
-            from .telemetry import rerun_unavailable
+            from dragd.telemetry.writer import rerun_unavailable
 
             reason = rerun_unavailable()
             if reason:

@@ -14,9 +14,9 @@ from typing import Any
 import numpy as np
 import yaml
 
-from ..config import Config, default_config_path, load_config
-from ..procs import REPO, Rig, wait_until
-from ..telemetry import read_rows
+from dragd.config import Config, default_config_path, load_config
+from dragd.lab.rig import Rig, wait_until
+from dragd.telemetry.writer import read_rows
 
 BREAKAWAY_THRESHOLD_RAD = 0.002  # a joint that moved this far has started (0.11°)
 
@@ -103,7 +103,7 @@ class Bench:
                      [sys.executable, "-m", "sim", "log", "--plan", str(plan), "--out", str(log),
                       "--dragd-config", str(self.config)],
                      [sys.executable, "-m", "dragd", "identify", "fit", "--log", str(log), "--out", str(out), *cfg]):
-            p = subprocess.run(argv, capture_output=True, text=True, cwd=str(REPO))
+            p = subprocess.run(argv, capture_output=True, text=True, cwd=str(self.workdir))
             if p.returncode != 0:
                 raise RuntimeError(f"identification step failed ({' '.join(argv[2:5])}): {p.stderr.strip()[-2000:]}")
         self.params = out

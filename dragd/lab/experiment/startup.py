@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from ..config import ParamsFile, load_params, save_params
-from .bench import Bench, handover_step_A, oscillation_deg, ramp_breakaway, record, wait_rest
+from dragd.config import ParamsFile, load_params, save_params
+from dragd.lab.experiment.bench import Bench, handover_step_A, oscillation_deg, ramp_breakaway, record, wait_rest
 
 OSCILLATION_LIMIT_DEG = 0.06  # seed 001: the oscillation range at the chosen frequency stays below it
 RAMP_S = 10.0  # seconds the load ramp takes to reach the believed static friction
@@ -48,7 +48,7 @@ def _starting_torques(bench: Bench, rig: Any, joints: list[int], reps: int, rows
     rows = None
     if rows_path is not None:
         rig.must("record", action="stop")
-        from ..telemetry import read_rows
+        from dragd.telemetry.writer import read_rows
 
         rows = read_rows(rows_path)
     return out, rows

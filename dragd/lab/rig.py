@@ -17,10 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from .control import ControlClient, DaemonUnavailable
-
-REPO = Path(__file__).resolve().parents[1]
-
+from dragd.protocol import ControlClient, DaemonUnavailable
 
 class ProcessError(RuntimeError):
     """A child process that failed to start or answer; the message carries its output's tail."""
@@ -41,7 +38,7 @@ class Child:
         self.log_path = workdir / f"{name}.log"
         self._log = self.log_path.open("wb")
         self.proc = subprocess.Popen(argv, stdout=self._log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                     env={**os.environ, **(env or {})}, cwd=str(REPO))
+                                     env={**os.environ, **(env or {})}, cwd=str(workdir))
 
     def alive(self) -> bool:
         return self.proc.poll() is None
@@ -153,7 +150,7 @@ class Rig:
     def cli(self, *args: str, timeout_s: float = 60.0) -> subprocess.CompletedProcess:
         """Run ``dragd ARGS --socket <this rig's daemon>`` as a real process."""
         return subprocess.run([sys.executable, "-m", "dragd", *args, "--socket", self.socket], capture_output=True,
-                              text=True, timeout=timeout_s, cwd=str(REPO))
+                              text=True, timeout=timeout_s, cwd=str(self.workdir))
 
     def ensure_hold(self, tries: int = 3) -> None:
         """Restart a daemon that faulted at rest (a loaded machine's missed cycles) until it holds."""

@@ -8,22 +8,22 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from .cli import CliError, _add_config, _emit, _table
+from dragd.cli.app import CliError, _add_config, _emit, _table
 
 if TYPE_CHECKING:
-    from .config import Config
+    from dragd.config import Config
 
 DEFAULT_SOCKET = "/run/dragd/dragd.sock"
 
 
 def _client(args: argparse.Namespace):  # noqa: ANN202
-    from .control import ControlClient
+    from dragd.protocol import ControlClient
 
     return ControlClient(args.socket, timeout_s=args.timeout)
 
 
 def _call(args: argparse.Namespace, cmd: str, **kw: Any) -> dict[str, Any]:
-    from .control import DaemonUnavailable
+    from dragd.protocol import DaemonUnavailable
 
     try:
         resp = _client(args).call(cmd, **kw)
@@ -44,9 +44,9 @@ def with_realtime_priority(cfg: Config, priority: int) -> Config:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from .config import load_config
-    from .daemon import BusBudgetError, Daemon
-    from .master import DriveError
+    from dragd.config import load_config
+    from dragd.daemon.core import BusBudgetError, Daemon
+    from dragd.hardware.master import DriveError
 
     cfg = load_config(args.config, args.params)
     if args.realtime_priority is not None:
@@ -101,7 +101,7 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from .demo import DemoError, run_demo
+    from dragd.lab.demo import DemoError, run_demo
 
     try:
         result = run_demo(seconds=args.seconds, config=args.config, out=args.out, scenario=args.scenario,
@@ -113,7 +113,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_log_summary(args: argparse.Namespace) -> int:
-    from .telemetry import TelemetryFileError, summarize
+    from dragd.telemetry.writer import TelemetryFileError, summarize
 
     try:
         data = summarize(args.file)

@@ -1,0 +1,1 @@
+"""Running the simulated rig: benchmarks, the demo, experiments (not part of the runtime)."""
