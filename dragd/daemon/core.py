@@ -35,6 +35,7 @@ from dragd.hardware.bus import open_bus, parse_bus
 from dragd.hardware.cia402 import (CMD_DISABLE_VOLTAGE, CMD_QUICK_STOP, CMD_SHUTDOWN, CW_FAULT_RESET, State,
                      decode_statusword, next_controlword)
 from dragd.config import Config
+from dragd.control.modes import MODE_NAMES, Mode
 from dragd.protocol import ControlServer
 from dragd.control.law import BreakoutState, LawOutput, LawParams, Workspace, breakout_update, compensate, friction_current
 from dragd.hardware.master import MODE_CSP, MODE_CST, DriveError, Master
@@ -47,15 +48,6 @@ from dragd.realtime import Ticker, demote_current_thread, scheduler_label, set_r
 from dragd.control.estimate import VelocityEstimator
 
 
-class Mode(IntEnum):
-    IDLE = 0  # drives disabled, brakes on
-    HOLD = 1  # gravity + joint PD around the pose
-    DRAG = 2  # gravity + friction + start-up: zero force
-    TRACK = 3  # CSP: follow a joint trajectory (identification runs, replay)
-    FAULT = 4  # a safety reaction disabled the drives; `start` clears it
-
-
-MODE_NAMES = {m: m.name.lower() for m in Mode}
 DRIVE_STATE_NAMES = {s: s.name.lower() for s in State}
 
 
