@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from dragd.config import load_config
-from dragd.control.law import (LawOutput, LawParams, Workspace, back_emf_current, clamp_current, compensate,
-                       friction_current, gravity_current, startup_current, startup_weight)
+from dragd.control.params import LawParams
+from dragd.control.law import LawOutput, Workspace, back_emf_current, clamp_current, compensate, friction_current, gravity_current, startup_current, startup_weight
 from dragd.model import RobotModel
 from dragd.control.estimate import VelocityEstimator
 
@@ -233,7 +233,7 @@ def test_square_wave_and_abrupt_switch_options(params):
 
 def _latch_run(params, q_of_t, seconds: float, dq_of_t=None):
     """Drive the break-out latch and the start-up term along q(t) at 1 kHz; the per-cycle start-up current."""
-    from dragd.control.law import BreakoutState, breakout_update
+    from dragd.control.breakout import BreakoutState, breakout_update
 
     st = BreakoutState(6).configure(params)
     st.reset(0.0)
@@ -253,7 +253,7 @@ def _sine_term(params, j, t):
 
 
 def test_breakout_latch_holds_the_peak_of_a_creeping_joint(params):
-    from dragd.control.law import BREAKOUT_RAMP_S
+    from dragd.control.breakout import BREAKOUT_RAMP_S
 
     slip = params.breakout_slip_rad[0]
     amp = params.startup_amp_pos_A[0]
@@ -310,7 +310,7 @@ def test_breakout_latch_ignores_a_joint_coasting_to_rest_and_can_be_switched_off
 
 def test_hand_over_is_slew_limited_against_velocity_noise(params):
     """A velocity estimate that jumps across the fade band (a late TPDO, a stalled loop) must not step the current."""
-    from dragd.control.law import REST_WEIGHT_STEP, BreakoutState, breakout_update
+    from dragd.control.breakout import REST_WEIGHT_STEP, BreakoutState, breakout_update
 
     st = BreakoutState(6).configure(params)
     st.reset(0.0)
@@ -335,7 +335,7 @@ def test_hand_over_is_slew_limited_against_velocity_noise(params):
 def test_breakout_latch_stays_off_where_gravity_errors_could_explain_the_creep(params):
     """Where 2 % of the gravity current exceeds the sine's margin below static friction, a creep may be the model's
     error rather than a hand: the latch must not fire there (seed 001's hand-over stays)."""
-    from dragd.control.law import BreakoutState, breakout_update
+    from dragd.control.breakout import BreakoutState, breakout_update
 
     slip = params.breakout_slip_rad[0]
     margin = params.static_pos_A - params.startup_amp_pos_A

@@ -37,7 +37,9 @@ from dragd.hardware.cia402 import (CMD_DISABLE_VOLTAGE, CMD_QUICK_STOP, CMD_SHUT
 from dragd.config import Config
 from dragd.control.modes import MODE_NAMES, Mode
 from dragd.protocol import ControlServer
-from dragd.control.law import BreakoutState, LawOutput, LawParams, Workspace, breakout_update, compensate, friction_current
+from dragd.control.params import LawParams
+from dragd.control.breakout import BreakoutState, breakout_update
+from dragd.control.law import LawOutput, Workspace, compensate, friction_current
 from dragd.hardware.master import MODE_CSP, MODE_CST, DriveError, Master
 from dragd.model import RobotModel
 from dragd.hardware.pdo import SYNC_COB_ID, BusLayout, RpdoEncoder, layout_for

@@ -40,7 +40,9 @@ def benchmark(name: str, unit: str) -> Callable[[Callable[[dict], float]], Calla
 def compensation_us(opts: dict) -> float:
     """Median wall time of one full 6-joint evaluation of the law including G(q) (Pinocchio) and the latch."""
     from dragd.config import load_config
-    from dragd.control.law import BreakoutState, LawOutput, LawParams, Workspace, breakout_update, compensate
+    from dragd.control.params import LawParams
+    from dragd.control.breakout import BreakoutState, breakout_update
+    from dragd.control.law import LawOutput, Workspace, compensate
     from dragd.model import RobotModel
 
     cfg = load_config(opts.get("config"))
