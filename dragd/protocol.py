@@ -6,25 +6,17 @@ Response: one line, ``{"ok": true, ...}`` or ``{"ok": false, "error": "..."}``; 
 crash; the connection stays open for further requests (except after an over-long
 line, which closes it).
 
-`CommandTable` maps command names to functions and rejects unknown or missing
-fields by checking each function's signature, so a handler gets validated keyword
-arguments. `ControlServer` serves any ``handler(request) -> dict`` (sync or async);
-`ControlClient` is the synchronous client for the CLI.
+The server (command table, socket server) is dragd/daemon/server.py; `ControlClient`
+here is the synchronous client for the CLI.
 """
 
 from __future__ import annotations
 
-import asyncio
-import errno
-import inspect
 import json
-import logging
 import math
 import os
 import socket
-import stat
-from pathlib import Path
-from typing import Any, Awaitable, Callable, Mapping
+from typing import Any, Mapping
 
 __all__ = [
     "DEFAULT_SOCKET_PATH",
@@ -32,18 +24,12 @@ __all__ = [
     "ControlSocketBusy",
     "DaemonUnavailable",
     "DaemonTimeout",
-    "CommandTable",
-    "ControlServer",
     "ControlClient",
 ]
 
 DEFAULT_SOCKET_PATH = "/run/dragd/dragd.sock"
 MAX_LINE_BYTES = 1 << 20
 _ENVELOPE = ("cmd", "id")
-
-log = logging.getLogger(__name__)
-
-Handler = Callable[[dict[str, Any]], "dict[str, Any] | Awaitable[dict[str, Any]]"]
 
 
 class ControlError(Exception):
@@ -96,268 +82,6 @@ def encode_line(obj: Mapping[str, Any]) -> bytes:
             _sanitize(json.loads(json.dumps(obj, default=_json_default))), allow_nan=False
         )
     return text.encode() + b"\n"
-
-
-# -- command table -------------------------------------------------------------------------
-
-
-class CommandTable:
-    """``handler`` that dispatches ``cmd`` to registered functions with checked fields.
-
-    >>> table = CommandTable()
-    >>> @table.command("status")
-    ... def status() -> dict: ...
-    ``{"cmd": "status", "verbose": 1}`` -> error naming the unknown field ``verbose``.
-    """
-
-    def __init__(self) -> None:
-        self._commands: dict[str, tuple[Callable[..., Any], inspect.Signature]] = {}
-
-    def command(self, name: str | None = None) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
-        def register(fn: Callable[..., Any]) -> Callable[..., Any]:
-            self.add(name or fn.__name__, fn)
-            return fn
-
-        return register
-
-    def add(self, name: str, fn: Callable[..., Any]) -> None:
-        sig = inspect.signature(fn)
-        for p in sig.parameters.values():
-            if p.kind in (p.POSITIONAL_ONLY, p.VAR_POSITIONAL):
-                raise TypeError(f"command {name!r}: parameters must be keyword-compatible")
-            if p.name in _ENVELOPE:
-                raise TypeError(f"command {name!r}: parameter name {p.name!r} is reserved")
-        self._commands[name] = (fn, sig)
-
-    @property
-    def names(self) -> list[str]:
-        return sorted(self._commands)
-
-    def describe(self) -> dict[str, list[str]]:
-        """Command name -> accepted field names (for a ``help`` command)."""
-        return {n: list(sig.parameters) for n, (_fn, sig) in sorted(self._commands.items())}
-
-    async def __call__(self, request: dict[str, Any]) -> dict[str, Any]:
-        cmd = request["cmd"]
-        entry = self._commands.get(cmd)
-        if entry is None:
-            raise ControlError(f"unknown cmd {cmd!r}; expected one of: {', '.join(self.names)}")
-        fn, sig = entry
-        args = {k: v for k, v in request.items() if k not in _ENVELOPE}
-        params = sig.parameters
-        takes_kwargs = any(p.kind is p.VAR_KEYWORD for p in params.values())
-        if not takes_kwargs:
-            unknown = sorted(set(args) - set(params))
-            if unknown:
-                accepted = ", ".join(params) or "no fields"
-                raise ControlError(
-                    f"unknown field(s) {', '.join(map(repr, unknown))} for cmd {cmd!r}; "
-                    f"accepted: {accepted}"
-                )
-        missing = [
-            n
-            for n, p in params.items()
-            if p.default is p.empty and p.kind is not p.VAR_KEYWORD and n not in args
-        ]
-        if missing:
-            raise ControlError(f"cmd {cmd!r} needs field(s): {', '.join(missing)}")
-        result = fn(**args)
-        if inspect.isawaitable(result):
-            result = await result
-        return {} if result is None else result
-
-
-# -- server --------------------------------------------------------------------------------
-
-
-def _probe(path: str, timeout_s: float = 0.5) -> str:
-    """'live' when something accepts connections at ``path``, else 'stale'."""
-    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    s.settimeout(timeout_s)
-    try:
-        s.connect(path)
-        return "live"
-    except (ConnectionRefusedError, FileNotFoundError):
-        return "stale"
-    except socket.timeout:
-        return "live"  # backlog full: someone is bound and listening
-    except PermissionError:
-        return "denied"
-    finally:
-        s.close()
-
-
-class ControlServer:
-    """asyncio Unix-socket JSON-lines server calling ``handler(request) -> dict``.
-
-    `start` creates the parent directory if needed, removes a stale socket file,
-    refuses (ControlSocketBusy) when another live server answers at ``path``, binds
-    and sets the socket mode to ``mode`` (0660: owner and group may connect).
-    """
-
-    def __init__(self, path: str | os.PathLike[str], handler: Handler, *, mode: int = 0o660) -> None:
-        self.path = os.fspath(path)
-        self._handler = handler
-        self._mode = mode
-        self._server: asyncio.AbstractServer | None = None
-        self._inode: tuple[int, int] | None = None
-        self._clients: set[asyncio.Task[None]] = set()
-        self.requests = 0
-        self.errors = 0
-
-    async def start(self) -> "ControlServer":
-        parent = Path(self.path).parent
-        try:
-            parent.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise OSError(
-                e.errno, f"cannot create control socket directory {parent}: {e.strerror}"
-            ) from e
-        if os.path.lexists(self.path):
-            st = os.lstat(self.path)
-            if not stat.S_ISSOCK(st.st_mode):
-                raise FileExistsError(
-                    errno.EEXIST,
-                    f"{self.path} exists and is not a socket; refusing to replace it "
-                    "(remove it or choose another control socket path)",
-                )
-            probe = await asyncio.to_thread(_probe, self.path)
-            if probe == "denied":
-                raise PermissionError(
-                    errno.EACCES,
-                    f"cannot check whether a server answers at {self.path}: permission denied "
-                    "(socket owned by another user?)",
-                )
-            if probe == "live":
-                raise ControlSocketBusy(
-                    f"another server already answers at {self.path} (is dragd already running? "
-                    "check 'systemctl status dragd'); refusing to start a second one"
-                )
-            os.unlink(self.path)
-        self._server = await asyncio.start_unix_server(
-            self._serve_client, path=self.path, limit=MAX_LINE_BYTES
-        )
-        os.chmod(self.path, self._mode)
-        st = os.stat(self.path)
-        self._inode = (st.st_dev, st.st_ino)
-        return self
-
-    async def close(self) -> None:
-        """Stop accepting, drop open connections and remove our socket file."""
-        if self._server is None:
-            return
-        self._server.close()
-        for task in list(self._clients):
-            task.cancel()
-        if self._clients:
-            await asyncio.gather(*self._clients, return_exceptions=True)
-        await self._server.wait_closed()
-        self._server = None
-        try:
-            st = os.stat(self.path)
-            if (st.st_dev, st.st_ino) == self._inode:  # do not remove a successor's socket
-                os.unlink(self.path)
-        except FileNotFoundError:
-            pass
-
-    async def __aenter__(self) -> "ControlServer":
-        return await self.start()
-
-    async def __aexit__(self, *exc: object) -> None:
-        await self.close()
-
-    async def _serve_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        task = asyncio.current_task()
-        assert task is not None
-        self._clients.add(task)
-        try:
-            while True:
-                try:
-                    line = await reader.readuntil(b"\n")
-                except asyncio.IncompleteReadError as e:
-                    if not e.partial.strip():
-                        break
-                    line = e.partial  # last request without trailing newline
-                except asyncio.LimitOverrunError:
-                    self.errors += 1
-                    writer.write(
-                        encode_line(
-                            {"ok": False, "error": f"request line longer than {MAX_LINE_BYTES} bytes"}
-                        )
-                    )
-                    await writer.drain()
-                    break
-                if not line.strip():
-                    continue
-                response = await self._respond(line)
-                writer.write(encode_line(response))
-                await writer.drain()
-                if reader.at_eof():
-                    break
-        except (ConnectionResetError, BrokenPipeError):
-            pass
-        except asyncio.CancelledError:
-            pass
-        finally:
-            self._clients.discard(task)
-            writer.close()
-            try:
-                await writer.wait_closed()
-            except (ConnectionError, asyncio.CancelledError):
-                pass
-
-    async def _respond(self, line: bytes) -> dict[str, Any]:
-        self.requests += 1
-        try:
-            request = json.loads(line)
-        except (UnicodeDecodeError, json.JSONDecodeError) as e:
-            self.errors += 1
-            return {"ok": False, "error": f"malformed JSON request: {e}; expected one JSON object per line"}
-        if not isinstance(request, dict):
-            self.errors += 1
-            return {
-                "ok": False,
-                "error": f"request must be a JSON object like {{\"cmd\": \"status\"}}; got {type(request).__name__}",
-            }
-        rid = request.get("id")
-        cmd = request.get("cmd")
-        if not isinstance(cmd, str) or not cmd:
-            self.errors += 1
-            return self._with_id(
-                {"ok": False, "error": "request needs a non-empty string field 'cmd'"}, rid
-            )
-        try:
-            result = self._handler(request)
-            if inspect.isawaitable(result):
-                result = await result
-        except ControlError as e:
-            self.errors += 1
-            return self._with_id({"ok": False, "error": str(e)}, rid)
-        except Exception as e:  # a handler bug must not kill the server
-            self.errors += 1
-            log.exception("control command %r failed", cmd)
-            return self._with_id(
-                {"ok": False, "error": f"cmd {cmd!r} failed: {type(e).__name__}: {e}"}, rid
-            )
-        if not isinstance(result, dict):
-            self.errors += 1
-            return self._with_id(
-                {"ok": False, "error": f"cmd {cmd!r} returned {type(result).__name__}, expected a dict"},
-                rid,
-            )
-        response = {"ok": True, **result}
-        try:
-            encode_line(response)
-        except (TypeError, ValueError) as e:
-            self.errors += 1
-            return self._with_id({"ok": False, "error": f"cmd {cmd!r} result is not JSON: {e}"}, rid)
-        return self._with_id(response, rid)
-
-    @staticmethod
-    def _with_id(response: dict[str, Any], rid: Any) -> dict[str, Any]:
-        if rid is not None:
-            response["id"] = rid
-        return response
 
 
 # -- client --------------------------------------------------------------------------------

@@ -59,6 +59,7 @@ from dragd.hardware.cia402 import (
     is_fault_reset_edge,
     modes_from_supported_bits,
 )
+from dragd.hardware.cia301 import HEARTBEAT_BASE, NmtCommand, NmtState
 from dragd.resources import eds_path
 from sim.axis import AxisIO
 from sim.od import (
@@ -91,16 +92,6 @@ _SWITCHED_ON_STATES = frozenset(
 )
 
 
-class NmtState(IntEnum):
-    """NMT states with their heartbeat codes."""
-
-    INITIALISING = 0x00
-    STOPPED = 0x04
-    OPERATIONAL = 0x05
-    PRE_OPERATIONAL = 0x7F
-
-
-NMT_START, NMT_STOP, NMT_PRE_OPERATIONAL, NMT_RESET_NODE, NMT_RESET_COMMUNICATION = 0x01, 0x02, 0x80, 0x81, 0x82
 
 
 @dataclass(frozen=True)
@@ -371,9 +362,9 @@ class SimDrive:
                     for ch in channels:
                         self._receive_rpdo(ch, msg.data, now)
                 return
-            consumer = self._consumers.get(cob - 0x700)
+            consumer = self._consumers.get(cob - HEARTBEAT_BASE)
             if consumer is not None and 0x701 <= cob <= 0x77F:
-                self._heartbeat_received(cob - 0x700, consumer, now)
+                self._heartbeat_received(cob - HEARTBEAT_BASE, consumer, now)
 
     def on_sync(self, t: float | None = None) -> None:
         """SYNC: send the synchronous TPDOs with the latest sampled values, then apply latched RPDOs.
@@ -798,16 +789,16 @@ class SimDrive:
             return
         self.counters.nmt_commands += 1
         command = data[0]
-        if command == NMT_START:
+        if command == NmtCommand.START:
             self._set_nmt(NmtState.OPERATIONAL)
-        elif command == NMT_STOP:
+        elif command == NmtCommand.STOP:
             self._set_nmt(NmtState.STOPPED)
             self._abort_connection(EMCY_COMMUNICATION)
-        elif command == NMT_PRE_OPERATIONAL:
+        elif command == NmtCommand.PRE_OPERATIONAL:
             self._set_nmt(NmtState.PRE_OPERATIONAL)
-        elif command == NMT_RESET_NODE:
+        elif command == NmtCommand.RESET_NODE:
             self.reset_node()
-        elif command == NMT_RESET_COMMUNICATION:
+        elif command == NmtCommand.RESET_COMMUNICATION:
             self.reset_communication()
 
     def _set_nmt(self, state: NmtState) -> None:
@@ -849,7 +840,7 @@ class SimDrive:
 
     def _send_bootup(self) -> None:
         self.nmt_state = NmtState.PRE_OPERATIONAL
-        self._tx(can.Message(arbitration_id=0x700 + self.node_id, data=b"\x00", is_extended_id=False, check=False))
+        self._tx(can.Message(arbitration_id=HEARTBEAT_BASE + self.node_id, data=b"\x00", is_extended_id=False, check=False))
         self._schedule_heartbeat(time.monotonic())
 
     # ==================================================================================================
@@ -1025,7 +1016,7 @@ class SimDrive:
     def _send_heartbeat(self, now: float) -> None:
         self._next_hb_s = max(self._next_hb_s + self._hb_period_s, now)
         self.counters.heartbeats_sent += 1
-        self._tx(can.Message(arbitration_id=0x700 + self.node_id, data=bytes((int(self.nmt_state),)),
+        self._tx(can.Message(arbitration_id=HEARTBEAT_BASE + self.node_id, data=bytes((int(self.nmt_state),)),
                              is_extended_id=False, check=False))
 
     def _heartbeat_received(self, node: int, consumer: _Consumer, now: float) -> None:
@@ -1118,7 +1109,7 @@ class SimDrive:
         self._sdo_tx_cob = st.get(0x1200, 2) & 0x7FF
         ids = {0x000, self._sync_cob, self._sdo_rx_cob}
         ids.update(ch.cob_id for ch in self.rpdos if ch.valid)
-        ids.update(0x700 + node for node in self._consumers)
+        ids.update(HEARTBEAT_BASE + node for node in self._consumers)
         self._rx_ids = frozenset(ids)
         self.route_epoch += 1
 

@@ -8,12 +8,11 @@ import threading
 import numpy as np
 import pytest
 
+from dragd.daemon.server import CommandTable, ControlServer
 from dragd.protocol import (
     DEFAULT_SOCKET_PATH,
-    CommandTable,
     ControlClient,
     ControlError,
-    ControlServer,
     ControlSocketBusy,
     DaemonTimeout,
     DaemonUnavailable,

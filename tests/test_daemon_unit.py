@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import can
+import numpy as np
 import pytest
 
 from dragd.config import load_config
@@ -13,19 +14,22 @@ from conftest import DEFAULT_CONFIG
 
 @pytest.fixture
 def daemon() -> Daemon:
-    d = Daemon(load_config(DEFAULT_CONFIG), bus_override="udp_multicast:239.74.200.1")
-    d._tpdo["arm"] = {0x181: (0, __import__("struct").Struct("<HiH"), ("statusword", "position", "current"))}
-    d._emcy = {0x80 + j.node_id: i for i, j in enumerate(d.cfg.joints)}
+    d = Daemon(load_config(DEFAULT_CONFIG), bus_override="udp_multicast:239.74.200.1", log=lambda msg: None)
+    d.attach({"arm": can.Bus(interface="virtual", channel="unit-daemon")})
     return d
 
 
+def _listener(d: Daemon) -> can.Listener:
+    return d.io.listener("arm")
+
+
 def test_error_frames_are_never_decoded(daemon: Daemon) -> None:
-    table = daemon._tpdo["arm"]
+    rx = _listener(daemon)
     for cob in (0x081, 0x181):  # error class bits that equal node 1's EMCY and TPDO1 COB-IDs
-        daemon._on_frame(can.Message(arbitration_id=cob, is_error_frame=True, data=bytes(8), is_extended_id=False), table)
-    assert daemon.error_frames == 2 and daemon.faults == [] and daemon.counts[0] == 0
-    daemon._on_frame(can.Message(arbitration_id=0x081, data=bytes([0x10, 0x23, 0x01, 0, 0, 0, 0, 0]),
-                                 is_extended_id=False), table)
+        rx.on_message_received(can.Message(arbitration_id=cob, is_error_frame=True, data=bytes(8), is_extended_id=False))
+    assert daemon.io.error_frames == 2 and daemon.faults == [] and daemon.io.feedback.counts[0] == 0
+    rx.on_message_received(can.Message(arbitration_id=0x081, data=bytes([0x10, 0x23, 0x01, 0, 0, 0, 0, 0]),
+                                       is_extended_id=False))
     assert daemon.faults and "EMCY 0x2310" in daemon.faults[0]["text"]
 
 
@@ -41,30 +45,33 @@ def test_tpdo_wait_ends_when_every_joint_has_reported_once(daemon: Daemon) -> No
     import struct
 
     codec = struct.Struct("<HiH")
-    table = {0x180 + j.node_id: (i, codec, ("statusword", "position", "current")) for i, j in enumerate(daemon.cfg.joints)}
+    rx, fb = _listener(daemon), daemon.io.feedback
 
     def tpdo(node: int, pos: int) -> can.Message:
         return can.Message(arbitration_id=0x180 + node, data=codec.pack(0x0637, pos, 0), is_extended_id=False)
 
     async def main() -> None:
-        daemon._waiter = asyncio.get_running_loop().create_future()
+        loop = asyncio.get_running_loop()
+        read = loop.create_task(daemon.io.read(loop, 1.0))
+        await asyncio.sleep(0)
         for k in range(6):  # node 1 six times (a late frame and repeats): still one joint
-            daemon._on_frame(tpdo(1, 100 + k), table)
-        assert daemon._rx_count == 1 and not daemon._waiter.done() and daemon.counts[0] == 105
+            rx.on_message_received(tpdo(1, 100 + k))
+        await asyncio.sleep(0)
+        assert fb.rx_count == 1 and not read.done() and fb.counts[0] == 105
         for node in range(2, 7):
-            daemon._on_frame(tpdo(node, node), table)
-        assert daemon._rx_count == 6 and daemon._waiter.done() and daemon._waiter.result() is True
-        assert daemon.rx.all() and list(daemon.counts[1:]) == [2, 3, 4, 5, 6]
+            rx.on_message_received(tpdo(node, node))
+        assert await asyncio.wait_for(read, 0.5) is True
+        assert fb.rx_count == 6 and fb.rx.all() and list(fb.counts[1:]) == [2, 3, 4, 5, 6]
 
     asyncio.run(main())
     # a complete set: nothing stale, whatever the counters held before
-    daemon.stale[:] = 0
-    daemon._feedback_watch(10, 50)
-    assert daemon.fresh_cycles == 1
+    assert fb.worst_stale() == (0, 0)
     # joint 3 missing for 12 cycles: the watch sees it although five joints reported this cycle
-    daemon._rx_count, daemon.stale[2] = 5, 12
-    daemon._feedback_watch(10, 50)
-    assert daemon.fresh_cycles == 0
+    fb.rx_count, fb.stale[2] = 5, 12
+    assert fb.worst_stale() == (12, 2)
+    c = daemon.controller
+    c.feedback(12, 2, 3, np.zeros(6), 10, 50)
+    assert c.fresh_cycles == 0
 
 
 def test_run_realtime_priority_override_goes_through_the_schema() -> None:

@@ -87,7 +87,7 @@ def test_fourier_is_periodic_rest_to_rest_and_well_conditioned(tmp_path):
 
 
 def test_plan_file_round_trip_is_what_the_daemon_loads(tmp_path):
-    from dragd.daemon.core import Trajectory
+    from dragd.control.trajectory import Trajectory
 
     plan = E.build_plan("symmetric", robot(), START, limits(), scale=0.25)
     f = tmp_path / "p.npz"

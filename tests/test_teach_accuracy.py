@@ -17,23 +17,28 @@ import numpy as np
 import pytest
 
 from dragd.config import load_config
-from dragd.daemon.core import MODE_CSP, MODE_CST, Daemon, Mode
+from dragd.control.modes import Mode
+from dragd.hardware.cia402 import MODE_CSP, MODE_CST
 from dragd.lab.demo import TEACH_STEPS_RAD
 from dragd.teach.analysis import replay_errors
 from dragd.teach.plan import plan_replay
 from dragd.teach.program import Program, Waypoint, save_program
 
 from conftest import DEFAULT_CONFIG
+from inproc import InProcess
 
 Q0 = np.array([0.0, -0.6, 1.2, -0.6, 1.5708, 0.0])
 
 
-class ClosedLoop:
+class ClosedLoop(InProcess):
+    """The daemon in this process and the simulated arm's physics driven by CSP/CST drive loops."""
+
     def __init__(self, cfg) -> None:
         from sim.axis import AxisIO
         from sim.physics import ArmPhysics
         from sim.truth import load_truth
 
+        super().__init__(cfg)
         truth = load_truth()
         self.model = truth.load_model()
         n = self.n = self.model.nq
@@ -44,20 +49,13 @@ class ClosedLoop:
         self.kd = np.array([h.csp_kd_A_s_per_rad for h in hw])
         self.limit = np.array([min(h.max_torque_permille * h.rated_current_A / 1000.0, h.max_current_A) for h in hw])
         self.rated = np.array([h.rated_current_A for h in hw])
-        self.cpr = np.array([h.encoder_counts_per_rev for h in hw], dtype=float)
         self.sub = int(round(1e-3 / truth.dt_s))
-        d = self.d = Daemon(cfg, socket_path="/nonexistent/dragd.sock")
 
-        async def switch(mode: int) -> None:
-            d.drive_mode = mode
-
-        async def work(name, *args, **kwargs):
+        async def plan(name, *args, **kwargs):
             assert name == "plan_replay"
             return plan_replay(*args, **kwargs)
 
-        d._switch_drive_mode = switch
-        d._work = work
-        d.statusword[:] = 0x0027  # operation enabled
+        self.m.planner.call = plan  # type: ignore[method-assign]  # the planner process, in this one
         self.v_ff = np.zeros(n)
         self.prev_target: np.ndarray | None = None
         self.rows: dict[str, list] = {k: [] for k in ("t_s", "mode", "q_rad", "q_ref_rad", "track_t_s", "rx",
@@ -68,36 +66,29 @@ class ClosedLoop:
         for ax in self.axes:
             ax.power_stage_on = True
             ax.brake_engaged = False
-        d = self.d
-        self.read()
-        d.vel.reset(d.counts)
-        d.q_hold[:] = q
-        d.mode = Mode.HOLD
+        self.feed(self.phys.q_rad, self.meas())
+        self.cycle()
+        self.d.start()
 
-    def read(self) -> None:
-        d = self.d
-        d.counts[:] = np.rint(self.phys.q_rad * self.cpr / (2 * math.pi)).astype(np.int64)
-        d.current_raw[:] = np.rint(self.phys.current_measured_A / self.rated * 1000.0)
-        d.rx[:] = True
+    def meas(self) -> np.ndarray:
+        return np.rint(self.phys.current_measured_A / self.rated * 1000.0) * self.rated / 1000.0
 
-    def cycle(self) -> None:
-        d = self.d
-        self.read()
-        d.t += d.dt
-        d.cycle_compute()
-        d.cycles += 1
-        for k, v in (("t_s", d.t), ("mode", d.mode.name.lower()), ("q_rad", d.q.copy()),
-                     ("q_ref_rad", d._ref.copy()), ("track_t_s", d.track_tau if d.mode == Mode.TRACK else -1.0),
-                     ("rx", [True] * self.n), ("current_command_A", d.cmd_A.copy()),
-                     ("current_measured_A", d.current_meas_A.copy()), ("dq_rad_s", d.dq.copy())):
+    def step(self) -> None:
+        c, cy = self.c, self.cy
+        self.feed(self.phys.q_rad, self.meas())
+        self.cycle()
+        for k, v in (("t_s", cy.t), ("mode", c.mode.name.lower()), ("q_rad", cy.est.q_rad.copy()),
+                     ("q_ref_rad", c.ref_rad.copy()), ("track_t_s", c.track.tau if c.mode == Mode.TRACK else -1.0),
+                     ("rx", [True] * self.n), ("current_command_A", c.cmd_A.copy()),
+                     ("current_measured_A", cy.est.current_A.copy()), ("dq_rad_s", cy.est.dq_rad_s.copy())):
             self.rows[k].append(v)
-        target = d.target_counts * 2 * math.pi / self.cpr
+        target = self.target_rad()
         if self.prev_target is not None:
-            self.v_ff = (target - self.prev_target) / d.dt
+            self.v_ff = (target - self.prev_target) / cy.dt
         self.prev_target = target
-        offset = d.offset_permille * self.rated / 1000.0
+        offset = self.torque_offset_A()
         for _ in range(self.sub):
-            if d.drive_mode == MODE_CSP:
+            if self.m.drive_mode == MODE_CSP:
                 demand = self.kp * (target - self.phys.q_rad) + self.kd * (self.v_ff - self.phys.dq_rad_s) + offset
             else:
                 demand = offset
@@ -107,10 +98,10 @@ class ClosedLoop:
             self.phys.step()
 
     async def run_until(self, cond, max_s: float) -> None:
-        for _ in range(int(max_s / self.d.dt)):
+        for _ in range(int(max_s / self.cy.dt)):
             if cond():
                 return
-            self.cycle()
+            self.step()
             await asyncio.sleep(0)  # tasks the daemon schedules (the drives' mode switch)
         raise AssertionError(f"not reached within {max_s} s")
 
@@ -135,31 +126,31 @@ def taught(tmp_path_factory):
 def test_drag_replay_linear_and_circular_within_0p1_deg_and_back_to_drag(taught):
     cfg, path, wps = taught
     loop = ClosedLoop(cfg)
-    d = loop.d
+    d, c, m = loop.d, loop.c, loop.m
     waypoints = {f"p{i + 1}": w.tolist() for i, w in enumerate(wps)}
 
     async def main():
         loop.start(wps[-1])  # the hand left the arm at p3
         for _ in range(300):
-            loop.cycle()
+            loop.step()
         d.set_mode("drag")
         for _ in range(500):
-            loop.cycle()
-        assert np.abs(d.q - wps[-1]).max() < math.radians(0.5)  # the arm rests in drag
+            loop.step()
+        assert np.abs(loop.cy.est.q_rad - wps[-1]).max() < math.radians(0.5)  # the arm rests in drag
         out = {}
         for interp in ("linear", "circular"):
-            t0 = d.t
-            resp = await d.replay_start(str(path), interp=interp)
-            assert d.mode == Mode.TRACK and d.drive_mode == MODE_CSP
-            await loop.run_until(lambda: d.trajectory is None, resp["duration_s"] + 2.0)
-            assert d.replay["outcome"] == "done", d.replay
-            await loop.run_until(lambda: d.drive_mode == MODE_CST, 0.1)
+            t0 = loop.cy.t
+            resp = await m.replay_start(str(path), interp=interp)
+            assert c.mode == Mode.TRACK and m.drive_mode == MODE_CSP
+            await loop.run_until(lambda: not c.track.active, resp["duration_s"] + 2.0)
+            assert m.replay["outcome"] == "done", m.replay
+            await loop.run_until(lambda: m.drive_mode == MODE_CST, 0.1)
             for _ in range(300):
-                loop.cycle()
-            out[interp] = (t0, d.t, resp)
+                loop.step()
+            out[interp] = (t0, loop.cy.t, resp)
         d.set_mode("drag")
         for _ in range(500):
-            loop.cycle()
+            loop.step()
         return out
 
     runs = asyncio.run(main())

@@ -1,6 +1,6 @@
 """The daemon's TRACK clock, monitors and teach recorder, cycle by cycle, without a bus or real time.
 
-A ``Daemon`` object (no I/O started) runs ``cycle_compute`` against an ideal arm that is wherever the CSP target
+The daemon in this process (tests/inproc.py) runs its cycle against an ideal arm that is wherever the CSP target
 of the previous cycle put it (plus what a test injects): deterministic checks of pause / resume / speed override /
 controlled stop / cycles, the protective stops, the stall behaviour and the bumpless start, independent of the
 machine's load. The rig tests (test_teach_daemon.py) run the same against the simulated robot.
@@ -15,55 +15,34 @@ import numpy as np
 import pytest
 
 from dragd.config import load_config
-from dragd.daemon.core import MODE_CSP, MODE_CST, Daemon, Mode, Trajectory
+from dragd.control.modes import Mode
+from dragd.control.trajectory import Trajectory
+from dragd.hardware.cia402 import MODE_CSP, MODE_CST
 from dragd.teach.plan import plan_replay, request_from_config
 from dragd.teach.program import Program, Waypoint, save_program
 
 from conftest import DEFAULT_CONFIG
+from inproc import InProcess
 
 Q0 = np.array([0.0, -0.6, 1.2, -0.6, 1.5708, 0.0])
 STEPS = [[0.0] * 6, [0.3, 0.15, -0.15, 0.2, 0.2, 0.3], [-0.1, 0.1, 0.1, -0.2, 0.2, -0.2]]
-ENABLED = 0x0027  # statusword: operation enabled
 
 
-class Arm:
-    """A daemon and an ideal arm: each cycle the arm is at the previous cycle's CSP target (+ ``offset``)."""
+class Arm(InProcess):
+    """The daemon and an ideal arm: each cycle the arm is at the previous cycle's CSP target (+ ``offset``)."""
 
     def __init__(self, cfg=None) -> None:
-        self.d = Daemon(cfg or load_config(DEFAULT_CONFIG), socket_path="/nonexistent/dragd.sock")
-        d = self.d
-        self.offset = np.zeros(d.n)
-        self.extra_current_A = np.zeros(d.n)
-        self.switches: list[int] = []
+        super().__init__(cfg or load_config(DEFAULT_CONFIG))
+        self.offset = np.zeros(self.d.n)
+        self.extra_current_A = np.zeros(self.d.n)
+        self.hold(Q0)
 
-        async def switch(mode: int) -> None:
-            self.switches.append(mode)
-            d.drive_mode = mode
-
-        d._switch_drive_mode = switch
-        d.statusword[:] = ENABLED
-        d.counts[:] = self.counts(Q0)
-        d.rx[:] = True
-        d.vel.reset(d.counts)
-        d.mode = Mode.HOLD
-        d.q_hold[:] = Q0
-        self.step()
-
-    def counts(self, q: np.ndarray) -> np.ndarray:
-        d = self.d
-        return np.rint(np.asarray(q) * d.cpr / (2 * math.pi) * d.direction).astype(np.int64) + d.offset_counts
-
-    def step(self, n: int = 1, dt_extra: float = 0.0) -> None:
-        d = self.d
+    def step(self, n: int = 1, ticks: int = 1) -> None:
         for _ in range(n):
-            d.t += d.dt + dt_extra
-            if d.drive_mode == MODE_CSP:
-                q = (d.target_counts - d.offset_counts) * d.direction * 2 * math.pi / d.cpr + self.offset
-                d.counts[:] = self.counts(q)
+            q = self.target_rad() + self.offset if self.m.drive_mode == MODE_CSP else self.c.q_hold + self.offset
             # the drive's current: what the daemon commands (+ an injected effort)
-            d.current_raw[:] = (d.cmd_A + self.extra_current_A) * d.direction * 1000.0 / d.rated_A
-            d.cycle_compute()
-            d.cycles += 1
+            self.feed(q, self.c.cmd_A + self.extra_current_A)
+            self.cycle(ticks)
 
     def until(self, cond, max_cycles: int = 60000) -> int:
         for k in range(max_cycles):
@@ -96,54 +75,54 @@ def test_track_pause_resume_override_cycles_and_stop(tmp_path):
 
     async def main():
         arm = Arm()
-        d = arm.d
-        await d.track(traj, rate=0.5, cycles=2)
-        assert d.mode == Mode.TRACK and d.drive_mode == MODE_CSP and d.track_rate == 0.5
+        c, tr = arm.c, arm.c.track
+        await arm.m.track(traj, rate=0.5, cycles=2)
+        assert c.mode == Mode.TRACK and arm.m.drive_mode == MODE_CSP and tr.rate == 0.5
         arm.step(200)
-        assert d.track_tau == pytest.approx(0.5 * 0.201, abs=2e-3)  # the clock runs at the override
-        d.set_speed_override(1.0)
-        arm.until(lambda: d.track_rate == 1.0)
-        arm.until(lambda: d.track_tau > traj.body_start_s + 0.8)
+        assert tr.tau == pytest.approx(0.5 * 0.201, abs=2e-3)  # the clock runs at the override
+        arm.m.set_speed(1.0)
+        arm.until(lambda: tr.rate == 1.0)
+        arm.until(lambda: tr.tau > traj.body_start_s + 0.8)
         # pause: decelerate along the path, then hold still in CSP
         refs = []
-        d.track_pause()
+        arm.m.pause()
         for _ in range(3000):
             arm.step()
-            refs.append(d.q_ref.copy())
-            if d.track_state == "paused":
+            refs.append(tr.q_ref.copy())
+            if tr.state == "paused":
                 break
-        assert d.track_state == "paused" and d.track_rate == 0.0
+        assert tr.state == "paused" and tr.rate == 0.0
         refs = np.array(refs)
-        v = np.diff(refs, axis=0) / d.dt
-        a = np.diff(v, axis=0) / d.dt
+        v = np.diff(refs, axis=0) / arm.cy.dt
+        a = np.diff(v, axis=0) / arm.cy.dt
         assert np.abs(a).max() < 2.0 * 1.6  # within the acceleration budget (limit 2 rad/s², ramp ≤ half extra)
-        tau = d.track_tau
-        held = d.q_ref.copy()
+        tau = tr.tau
+        held = tr.q_ref.copy()
         arm.step(300)
-        assert d.track_tau == tau and np.array_equal(d.q_ref, held) and d.mode == Mode.TRACK
+        assert tr.tau == tau and np.array_equal(tr.q_ref, held) and c.mode == Mode.TRACK
         # the reference stayed on the planned path: it is the table at the paused time
-        assert np.abs(held - traj.table[int(round(tau / d.dt))]).max() < 1e-3
-        assert d.track_resume() == "running"
-        arm.until(lambda: d.track_tau > tau + 0.2)
+        assert np.abs(held - traj.table[int(round(tau / arm.cy.dt))]).max() < 1e-3
+        assert arm.m.resume() == "running"
+        arm.until(lambda: tr.tau > tau + 0.2)
         # two cycles of the body, then done: hold at the end (= p1), drives back to CST
-        arm.until(lambda: d.trajectory is None)
-        assert d.track_cycle == 1 and d.mode == Mode.HOLD
-        assert np.abs(d.q_hold - traj.table[-1]).max() < 1e-9
-        await asyncio.sleep(0)  # the CST switch task
+        arm.until(lambda: tr.trajectory is None)
+        assert tr.cycle == 1 and c.mode == Mode.HOLD
+        assert np.abs(c.q_hold - traj.table[-1]).max() < 1e-9
+        await arm.settle_tasks()  # the CST switch task
         assert arm.switches[-1] == MODE_CST
 
         # controlled stop: ramp down, hold at the point reached
-        await d.track(traj, rate=1.0, cycles=0)
-        arm.until(lambda: d.track_tau > traj.body_start_s + 0.5)
-        d.track_stop()
-        prev = d.q_ref.copy()
+        await arm.m.track(traj, rate=1.0, cycles=0)
+        arm.until(lambda: tr.tau > traj.body_start_s + 0.5)
+        arm.m.stop()
+        prev = tr.q_ref.copy()
         steps = []
-        while d.trajectory is not None:
+        while tr.trajectory is not None:
             arm.step()
-            steps.append(np.abs(d.q_ref - prev).max())
-            prev = d.q_ref.copy()
-        assert steps[-2] < 1e-5 and max(steps) < 1.6 * d.dt  # no jump; slowed to rest
-        assert d.mode == Mode.HOLD and np.abs(d.q_hold - prev).max() < 1e-9
+            steps.append(np.abs(tr.q_ref - prev).max())
+            prev = tr.q_ref.copy()
+        assert steps[-2] < 1e-5 and max(steps) < 1.6 * arm.cy.dt  # no jump; slowed to rest
+        assert c.mode == Mode.HOLD and np.abs(c.q_hold - prev).max() < 1e-9
 
     run(main())
 
@@ -153,20 +132,20 @@ def test_stall_waits_and_start_is_bumpless(tmp_path):
 
     async def main():
         arm = Arm()
-        d = arm.d
-        await d.track(traj)
+        c, tr = arm.c, arm.c.track
+        await arm.m.track(traj)
         # the target starts exactly where the arm is, and reaches the plan by the end of the move to start
-        assert np.abs(d.q_ref - d.q).max() < 1e-12
+        assert np.abs(tr.q_ref - arm.cy.est.q_rad).max() < 1e-12
         arm.step()
-        assert np.abs(d.q_ref - Q0).max() < 2e-5
-        arm.until(lambda: d.track_tau >= traj.body_start_s)
-        assert np.abs(d.q_ref - traj.table[traj.body_row]).max() < 1e-6
-        arm.until(lambda: d.track_tau > traj.body_start_s + 0.3)
-        tau = d.track_tau
-        arm.step(dt_extra=0.05)  # the loop stalled for 50 ms
-        assert d.track_tau == pytest.approx(tau + d.dt, abs=1e-9)  # the reference waits, no jump along the path
-        arm.until(lambda: d.trajectory is None)
-        assert d.replay is None  # (a bare track, not a replay)
+        assert np.abs(tr.q_ref - Q0).max() < 2e-5
+        arm.until(lambda: tr.tau >= traj.body_start_s)
+        assert np.abs(tr.q_ref - traj.table[traj.body_row]).max() < 1e-6
+        arm.until(lambda: tr.tau > traj.body_start_s + 0.3)
+        tau = tr.tau
+        arm.step(ticks=51)  # the loop stalled for 50 ms
+        assert tr.tau == pytest.approx(tau + arm.cy.dt, abs=1e-9)  # the reference waits, no jump along the path
+        arm.until(lambda: tr.trajectory is None)
+        assert arm.m.replay is None  # (a bare track, not a replay)
 
     run(main())
 
@@ -178,24 +157,24 @@ def test_monitors_stop_the_motion_and_hold_where_the_arm_is(tmp_path, kind):
 
     async def main():
         arm = Arm(cfg)
-        d = arm.d
-        await d.track(traj)
-        arm.until(lambda: d.track_tau > traj.body_start_s + 0.3)
-        assert d.faults == []
+        c, tr = arm.c, arm.c.track
+        await arm.m.track(traj)
+        arm.until(lambda: tr.tau > traj.body_start_s + 0.3)
+        assert arm.d.faults == []
         if kind == "tracking_error":
             arm.offset[2] = 0.04  # joint3 pushed 2.3° off (limit 2°)
         elif kind == "residual_current":
             arm.extra_current_A[1] = -3.0  # the shoulder's drive works 3 A harder than the model expects
         else:
-            d.lim_hi[4] = d.q[4] - 0.01  # joint5 beyond its limit
-        k = arm.until(lambda: d.trajectory is None, 500)
+            arm.c.track.lim.position_hi_rad[4] = arm.cy.est.q_rad[4] - 0.01  # joint5 beyond its limit
+        k = arm.until(lambda: tr.trajectory is None, 500)
         assert k >= cfg.replay.monitor_cycles - 1  # debounced
-        f = d.faults[-1]
-        assert f["kind"] == kind and f["reaction"] == "hold" and d.mode == Mode.HOLD
+        f = arm.d.faults[-1]
+        assert f["kind"] == kind and f["reaction"] == "hold" and c.mode == Mode.HOLD
         assert f["joint"] == {"tracking_error": "joint3", "residual_current": "joint2", "soft_limit": "joint5"}[kind]
-        assert np.abs(d.q_hold - d.q).max() < 1e-3  # holds where the arm is, not where the path wanted it
-        await asyncio.sleep(0)
-        assert d.drive_mode == MODE_CST
+        assert np.abs(c.q_hold - arm.cy.est.q_rad).max() < 1e-3  # holds where the arm is, not where the path wanted it
+        await arm.settle_tasks()
+        assert arm.m.drive_mode == MODE_CST
 
     run(main())
 

@@ -19,13 +19,13 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import can
 import canopen
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
-from dragd.hardware.cia402 import (OD_ABORT_CONNECTION_OPTION, OD_MAX_TORQUE, OD_MODES_OF_OPERATION, OD_MODES_OF_OPERATION_DISPLAY,
+from dragd.hardware.cia301 import HEARTBEAT_BASE, NMT_COB_ID, NmtCommand
+from dragd.hardware.cia402 import (MODE_CSP, MODE_CST, OD_ABORT_CONNECTION_OPTION, OD_MAX_TORQUE, OD_MODES_OF_OPERATION, OD_MODES_OF_OPERATION_DISPLAY,
                      OD_MOTOR_RATED_CURRENT, OD_QUICK_STOP_OPTION, OD_SUPPORTED_DRIVE_MODES, OD_TARGET_TORQUE,
                      OD_TORQUE_OFFSET)
 from dragd.config import Config, JointConfig
@@ -34,8 +34,6 @@ from dragd.realtime import demote_current_thread
 from dragd.resources import eds_path
 
 DEVICE_TYPE_402 = 0x0192
-MODE_CSP, MODE_CST = 8, 10
-NMT_START, NMT_STOP, NMT_PRE_OP, NMT_RESET_NODE, NMT_RESET_COMM = 0x01, 0x02, 0x80, 0x81, 0x82
 
 
 class DriveError(RuntimeError):
@@ -90,7 +88,7 @@ class Master:
                     node.sdo.RESPONSE_TIMEOUT = cfg.master.sdo_timeout_s
                     node.sdo.MAX_RETRIES = 2
                     net.add_node(node)
-                    net.subscribe(0x700 + j.node_id, self._heartbeat_cb(rt, j.node_id))
+                    net.subscribe(HEARTBEAT_BASE + j.node_id, self._heartbeat_cb(rt, j.node_id))
             rt.notifier = can.Notifier(bus, [*net.listeners, *listeners.get(name, [])], timeout=0.5, loop=loop)
             net.notifier = rt.notifier
             self.runtimes[name] = rt
@@ -108,7 +106,7 @@ class Master:
         """Send an NMT command (node 0 = all nodes) on one bus or all."""
         for rt in self.runtimes.values():
             if bus is None or rt.name == bus:
-                rt.bus.send(can.Message(arbitration_id=0x000, data=bytes([command, node_id]), is_extended_id=False))
+                rt.bus.send(can.Message(arbitration_id=NMT_COB_ID, data=bytes([command, node_id]), is_extended_id=False))
 
     async def boot(self) -> None:
         """Reset, check, configure and start every drive; raise DriveError naming what failed."""
@@ -116,7 +114,7 @@ class Master:
             for info in rt.nodes.values():
                 info.booted_at = None
         t0 = time.monotonic()
-        self.nmt(NMT_RESET_NODE)
+        self.nmt(NmtCommand.RESET_NODE)
         deadline = t0 + self.cfg.master.boot_timeout_s
         while time.monotonic() < deadline:
             if all(i.booted_at is not None for rt in self.runtimes.values() for i in rt.nodes.values()):
@@ -132,7 +130,7 @@ class Master:
         for rt in self.runtimes.values():
             for node_id in rt.nodes:
                 await self.run_sdo(self.configure_node, rt, node_id)
-        self.nmt(NMT_START)
+        self.nmt(NmtCommand.START)
 
     async def run_sdo(self, fn: Callable[..., object], *args: object) -> object:
         """Run a blocking SDO sequence on the worker thread (never on the loop or in the cycle)."""
@@ -244,7 +242,7 @@ class Master:
 
     async def shutdown(self) -> None:
         """NMT pre-operational (PDOs and their watchdogs stop), stop the notifiers and the worker."""
-        self.nmt(NMT_PRE_OP)
+        self.nmt(NmtCommand.PRE_OPERATIONAL)
         for rt in self.runtimes.values():
             if rt.notifier is not None:
                 rt.notifier.stop(timeout=0.5)

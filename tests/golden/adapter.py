@@ -1,9 +1,9 @@
 """The daemon as the golden trace sees it: feedback frames and operator requests in, command frames out.
 
 This is the one place that knows the daemon's internal API; a restructure changes this file only. One cycle is
-exactly what the running daemon does between two ticks (read → estimate → compute → write → log), with the bus
-replaced by lists of frames and the drive-mode switch (an SDO exchange in the daemon) completed right after the
-cycle that asked for it.
+exactly what the running daemon does between two ticks (dragd/daemon/cycle.py: tick → read → step → log), with
+the bus replaced by lists of frames and the drive-mode switch (an SDO exchange in the daemon) completed right after
+the cycle (or request) that asked for it.
 """
 
 from __future__ import annotations
@@ -11,23 +11,27 @@ from __future__ import annotations
 import asyncio
 from typing import Any
 
+import can
 import numpy as np
 
 from dragd.config import Config
-from dragd.daemon.core import Daemon, Trajectory
-from dragd.hardware.master import MODE_CSP, MODE_CST
+from dragd.control.trajectory import Trajectory
+from dragd.daemon.core import Daemon
+from dragd.hardware.cia301 import HEARTBEAT_BASE, SYNC_COB_ID
+from dragd.hardware.cia402 import MODE_CSP, MODE_CST
 
 TELEMETRY_SKIP = ("compute_us",)  # wall time, not behaviour
 
 
 class _FrameSink:
-    """Stands in for a bus: collects what the daemon sends."""
+    """Stands in for a bus: collects the command frames the daemon sends (SYNC and heartbeat left out)."""
 
-    def __init__(self, name: str, out: list[tuple[str, int, bytes]]) -> None:
-        self.name, self.out = name, out
+    def __init__(self, name: str, out: list[tuple[str, int, bytes]], skip: set[int]) -> None:
+        self.name, self.out, self.skip = name, out, skip
 
     def send(self, msg: Any, timeout: float | None = None) -> None:
-        self.out.append((self.name, int(msg.arbitration_id), bytes(msg.data)))
+        if msg.arbitration_id not in self.skip:
+            self.out.append((self.name, int(msg.arbitration_id), bytes(msg.data)))
 
 
 class DaemonAdapter:
@@ -36,24 +40,22 @@ class DaemonAdapter:
         self.log: list[str] = []
         d = self.d = Daemon(cfg, bus_override=",".join(f"virtual:golden{i}" for i in range(len(cfg.buses))),
                             log=self.log.append)
-        d.buses = {name: _FrameSink(name, self.sent) for name in d.layouts}  # type: ignore[misc]
-        d._build_io()
-        self.tables = {name: d._tpdo.setdefault(name, {}) for name in d.layouts}
-        self.primed = False
+        skip = {SYNC_COB_ID, HEARTBEAT_BASE + cfg.master.node_id}
+        d.attach({name: _FrameSink(name, self.sent, skip) for name in d.layouts})  # type: ignore[misc]
+        self.listeners = {name: d.io.listener(name) for name in d.layouts}
         self.drive_mode_events: list[int] = []
+        m = d.motions
 
         async def switch(mode: int) -> None:  # the SDO exchange: done at once, in order
-            d.mode_switch_pending = True
+            m.switch_pending = True
             await asyncio.sleep(0)
-            d.drive_mode = mode
-            d.mode_switch_pending = False
+            m._set_drive_mode(mode)
+            m.switch_pending = False
             self.drive_mode_events.append(int(mode))
 
-        d._switch_drive_mode = switch  # type: ignore[method-assign]
-        layout = d._telemetry_layout()
-        self.fields = [k for k in layout if k not in TELEMETRY_SKIP]
-        width = sum(v if isinstance(v, int) else v.width for v in layout.values())
-        self.row = np.zeros(width)
+        m.switch_drive_mode = switch  # type: ignore[method-assign]
+        self.fields = [k for k in d.recorder.layout if k not in TELEMETRY_SKIP]
+        self.row = np.zeros(d.recorder.width)
 
     @property
     def n(self) -> int:
@@ -61,80 +63,72 @@ class DaemonAdapter:
 
     @property
     def q(self) -> np.ndarray:
-        return self.d.q
+        return self.d.cycle.est.q_rad
 
     @property
     def drive_mode(self) -> int:
-        return int(self.d.drive_mode)
+        return int(self.d.motions.drive_mode)
 
     @property
     def mode(self) -> int:
-        return int(self.d.mode)
+        return int(self.d.controller.mode)
 
     async def request(self, name: str, args: dict[str, Any]) -> Any:
         """An operator request, as the control socket's handlers make it (without their waits)."""
-        d = self.d
-        if name == "start":
-            return d.start()
-        if name == "stop":
-            return d.stop()
-        if name == "mode":
-            return d.set_mode(args["mode"])
-        if name == "track":
-            traj = Trajectory(np.array(args["t_s"]), np.array(args["q_rad"]), d.dt, "track")
-            return await d.track(traj)
-        if name == "replay":
-            traj = Trajectory.from_table(np.array(args["q"]), d.dt, "replay golden", dq=np.array(args["dq"]),
-                                         ff_Nm=np.array(args["ff_Nm"]), body_row=args["body_row"])
-            return await d.track(traj, rate=args["speed"], cycles=args["cycles"])
-        if name == "pause":
-            return d.track_pause()
-        if name == "resume":
-            return d.track_resume()
-        if name == "track_stop":
-            return d.track_stop()
-        if name == "speed":
-            return d.set_speed_override(args["speed"])
-        raise ValueError(f"golden adapter: unknown request {name!r}")
+        d, m = self.d, self.d.motions
+        try:
+            if name == "start":
+                return d.start()
+            if name == "stop":
+                return d.stop()
+            if name == "mode":
+                return d.set_mode(args["mode"])
+            if name == "track":
+                traj = Trajectory(np.array(args["t_s"]), np.array(args["q_rad"]), d.cycle.dt, "track")
+                return await m.track(traj)
+            if name == "replay":
+                traj = Trajectory.from_table(np.array(args["q"]), d.cycle.dt, "replay golden", dq=np.array(args["dq"]),
+                                             ff_Nm=np.array(args["ff_Nm"]), body_row=args["body_row"])
+                return await m.track(traj, rate=args["speed"], cycles=args["cycles"])
+            if name == "pause":
+                return m.pause()
+            if name == "resume":
+                return m.resume()
+            if name == "track_stop":
+                return m.stop()
+            if name == "speed":
+                return m.set_speed(args["speed"])
+            raise ValueError(f"golden adapter: unknown request {name!r}")
+        finally:
+            d.record_events()  # (a drive-mode switch the request asked for runs after the next cycle, as it would)
 
     async def cycle(self, frames: list[tuple[str, int, bytes]], period_us: float, expirations: int) -> dict[str, Any]:
         """One cycle: the frames that arrived after SYNC in, the command frames and the telemetry row out."""
-        import can
-
-        d = self.d
+        d, cy = self.d, self.d.cycle
         self.sent.clear()
-        if expirations > 1:
-            d.missed += expirations - 1
-        d.sample_dt_s = period_us * 1e-6
-        d.t += d.dt * expirations
-        d.rx.fill(False)
-        d._rx_count = 0
+        cy.tick(period_us, expirations)
+        d.io.begin_cycle()
         for bus, cob, data in frames:
-            d._on_frame(can.Message(arbitration_id=cob, data=data, is_extended_id=False), self.tables[bus])
-        complete = d._rx_count >= d.n
-        if not complete:
-            d.late_tpdo += 1
-        np.add(d.stale, 1, out=d.stale)
-        np.copyto(d.stale, 0, where=d.rx)
+            self.listeners[bus].on_message_received(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
+        complete = d.io.end_read()
         out: dict[str, Any] = {"computed": False}
-        if not self.primed:
-            if not complete:
-                return out
-            d.vel.reset(d.counts)
-            self.primed = True
-        cfg = d.cfg
-        d._feedback_watch(cfg.loop.stale_cycles_hold, cfg.loop.stale_cycles_disable)
-        d.cycle_compute()
-        d._write()
-        d.cycles += 1
-        d._fill_row(self.row, period_us, 0.0)
+        if not cy.step(complete):
+            return out
+        cy.cycles += 1
+        d.recorder.fill_row(self.row, period_us, 0.0)
+        for fn in cy.after_cycle:
+            fn()  # type: ignore[operator]
         await asyncio.sleep(0)  # a drive-mode switch asked for in this cycle completes before the next
         await asyncio.sleep(0)
-        cols = d._cols
-        out.update(computed=True, frames=list(self.sent), mode=int(d.mode), drive_mode=int(d.drive_mode),
+        cols = d.recorder.cols
+        out.update(computed=True, frames=list(self.sent), mode=self.mode, drive_mode=self.drive_mode,
                    telemetry={k: np.atleast_1d(self.row[cols[k]]).copy() for k in self.fields},
                    faults=len(d.faults))
         return out
+
+    @property
+    def faults(self) -> list[dict[str, Any]]:
+        return self.d.faults
 
 
 __all__ = ["DaemonAdapter", "MODE_CSP", "MODE_CST"]

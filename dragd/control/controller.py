@@ -1,0 +1,309 @@
+"""The compute step: the mode state machine and the command current of every mode, from the cycle's estimate.
+
+    IDLE, FAULT   0
+    HOLD          [G(q) + k_p·(q_hold − q) − k_d·q̇] / K_t
+    DRAG          the zero-force law (dragd/control/law.py): G/K_t + friction + start-up + damping (+ effects)
+    TRACK         the CSP torque offset (dragd/control/track.py): G/K_t + friction(q̇_ref) + feed-forward
+    every mode    + soft-limit walls (and in DRAG the speed cap), clamped to the current limits
+
+A mode switch blends from the command at the switch instant to the new mode's over ``mode_ramp_s`` (smoothstep):
+no jump in current. Stale feedback in DRAG holds the arm and resumes drag when it is fresh again; feedback lost
+for longer faults. Faults and mode changes are recorded in ``events`` (drained by the daemon after the cycle:
+nothing is logged or written from here). Pure: numpy arrays in, numpy arrays out; no I/O, no allocation per
+cycle on the usual paths.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from dragd.control.breakout import BreakoutState, breakout_update
+from dragd.control.law import LawOutput, Workspace, compensate
+from dragd.control.modes import MODE_NAMES, Mode
+from dragd.control.params import LawParams
+from dragd.control.safety import SafetyTerms
+from dragd.control.track import Track, TrackLimits, Trip
+from dragd.control.trajectory import Trajectory
+
+if TYPE_CHECKING:
+    from dragd.config import Config
+
+
+@dataclass(frozen=True)
+class Event:
+    """Something the cycle decided that the daemon must record: a mode change, a fault, a motion's end."""
+
+    kind: str  # mode | fault | protective_stop | track_end
+    t_s: float
+    joint: int | None = None
+    text: str = ""
+    code: int = 0
+    fields: dict[str, Any] | None = None
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """The estimate step's arrays (SI units), filled in place every cycle."""
+
+    q_rad: np.ndarray
+    dq_rad_s: np.ndarray
+    current_A: np.ndarray
+    tau_g_Nm: np.ndarray
+
+    @classmethod
+    def zeros(cls, n: int) -> Estimate:
+        return cls(np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n))
+
+
+class Controller:
+    """Modes, their laws, the blend between them and the safety terms for one arm."""
+
+    def __init__(self, params: LawParams, safety: SafetyTerms, track_limits: TrackLimits, joint_names: list[str],
+                 dt_s: float, hold_kp_Nm_per_rad: float, hold_kd_Nm_s_per_rad: float, mode_ramp_s: float,
+                 fresh_cycles_resume: int) -> None:
+        n = self.n = params.n
+        self.params = params
+        self.safety = safety
+        self.names = joint_names
+        self.dt = dt_s
+        self.hold_kp = hold_kp_Nm_per_rad
+        self.hold_kd = hold_kd_Nm_s_per_rad
+        self.mode_ramp_s = mode_ramp_s
+        self.fresh_cycles_resume = fresh_cycles_resume
+        self.kt = params.kt_Nm_per_A
+        self.neg_limit_A = -params.current_limit_A
+        self.mode = Mode.IDLE
+        self.prev_mode = Mode.IDLE
+        self.t = 0.0
+        self.q_hold = np.zeros(n)
+        self.blend_t0 = -1.0
+        self.blend_from_A = np.zeros(n)
+        self.stop_after_hold_at: float | None = None
+        self.feedback_hold = False  # HOLD forced by stale feedback; the requested mode returns when it is fresh
+        self.resume_mode = Mode.IDLE
+        self.fresh_cycles = 0
+        self.feedback_holds = 0
+        self.drive_csp = False  # the drives run CSP (their position loops hold q_ref / q_hold), else CST
+        self.breakout = BreakoutState(n).configure(params)
+        self.law_out = LawOutput.zeros(n)
+        self.ws = Workspace(n)
+        self.track = Track(n, dt_s, track_limits, joint_names)
+        self.extra_A = np.zeros(n)  # safety terms this cycle
+        self.cmd_A = np.zeros(n)
+        self.prev_cmd_A = np.zeros(n)
+        self.ref_rad = np.zeros(n)  # the position reference (CSP target; where the arm is otherwise)
+        self.clamp_cycles = 0
+        self.events: list[Event] = []
+        self._tmp = np.zeros(n)
+        self._tmp2 = np.zeros(n)
+
+    @classmethod
+    def from_config(cls, cfg: Config, position_limits_rad: tuple[np.ndarray, np.ndarray]) -> Controller:
+        """The configuration's controller; ``position_limits_rad``: the robot's (URDF) limits, per joint."""
+        js, s, rc = cfg.joints, cfg.safety, cfg.replay
+        params = LawParams.from_config(cfg)
+        lo, hi = position_limits_rad
+        lim_lo = np.array([j.position_limits_rad[0] if j.position_limits_rad else lo[i] for i, j in enumerate(js)])
+        lim_hi = np.array([j.position_limits_rad[1] if j.position_limits_rad else hi[i] for i, j in enumerate(js)])
+        dt = 1.0 / cfg.loop.rate_Hz
+        kt = params.kt_Nm_per_A
+        safety = SafetyTerms(lim_lo, lim_hi, s.soft_limit_margin_rad, s.wall_stiffness_Nm_per_rad,
+                             s.wall_damping_Nm_s_per_rad, np.array([j.velocity_limit_rad_s for j in js]),
+                             s.speed_cap_damping_Nm_s_per_rad, kt)
+
+        def per_joint(v: Any) -> np.ndarray:
+            return np.array(cfg.per_joint(v), dtype=float)
+
+        limits = TrackLimits(
+            tracking_error_rad=per_joint(rc.tracking_error_limit_rad),
+            residual_current_A=per_joint(rc.residual_current_limit_A),
+            residual_filter_alpha=1.0 - math.exp(-2.0 * math.pi * rc.residual_filter_Hz * dt),
+            acceleration_rad_s2=per_joint(rc.acceleration_limits_rad_s2),
+            kp_Nm_per_rad=per_joint(rc.position_kp_Nm_per_rad), kd_Nm_s_per_rad=per_joint(rc.position_kd_Nm_s_per_rad),
+            ki_Nm_per_rad_s=per_joint(rc.position_ki_Nm_per_rad_s),
+            integral_max_Nm=per_joint(rc.position_integral_limit_A) * kt,
+            output_max_Nm=per_joint(rc.position_output_limit_A) * kt,
+            ramp_s=rc.ramp_s, monitor_cycles=rc.monitor_cycles, position_lo_rad=lim_lo, position_hi_rad=lim_hi)
+        return cls(params, safety, limits, cfg.joint_names, dt, s.hold_kp_Nm_per_rad, s.hold_kd_Nm_s_per_rad,
+                   s.mode_ramp_s, cfg.loop.fresh_cycles_resume)
+
+    # ------------------------------------------------------------------------------------------ transitions
+
+    def set_mode(self, mode: Mode, blend: bool = True) -> None:
+        """Switch the law; with ``blend`` the command fades from its value at this instant over ``mode_ramp_s``."""
+        if mode == self.mode:
+            return
+        self.blend_from_A[:] = self.prev_cmd_A
+        self.blend_t0 = self.t if blend else -1.0
+        self.prev_mode, self.mode = self.mode, mode
+        if mode == Mode.DRAG:
+            self.breakout.reset(self.t)
+        self.events.append(Event("mode", self.t, fields={"mode": MODE_NAMES[mode], "previous": MODE_NAMES[self.prev_mode]}))
+
+    def start(self, q: np.ndarray) -> None:
+        """Hold the pose ``q`` (the drives are being enabled)."""
+        self.q_hold[:] = q
+        self.stop_after_hold_at = None
+        self.feedback_hold = False
+        self.set_mode(Mode.HOLD, blend=False)
+
+    def stop(self, q: np.ndarray) -> None:
+        """Ramp to hold where the arm is, then IDLE (the drives disable)."""
+        if self.mode in (Mode.IDLE, Mode.FAULT):
+            return
+        self.feedback_hold = False
+        if self.track.active:  # a motion: hold where the arm is, drives back to CST, then disable
+            self.end_track("stopped (drives disabled)", q, hold_at_ref=False)
+        if self.mode != Mode.HOLD:
+            self.q_hold[:] = q
+            self.set_mode(Mode.HOLD)
+        self.stop_after_hold_at = self.t + self.mode_ramp_s + 0.05
+
+    def request(self, target: Mode, q: np.ndarray) -> None:
+        """An operator's ``hold`` or ``drag`` (IDLE: ``stop``); ValueError when the arm cannot take it now."""
+        name = MODE_NAMES[target]
+        if target == Mode.IDLE:
+            self.stop(q)
+            return
+        if self.mode in (Mode.IDLE, Mode.FAULT):
+            raise ValueError(f"mode {name}: the drives are disabled ({MODE_NAMES[self.mode]}); run 'dragd start' first")
+        if self.mode == Mode.TRACK:
+            label = self.track.trajectory.label if self.track.trajectory else "track"
+            raise ValueError(f"mode {name}: a {label} motion is running; stop it first")
+        if target == Mode.HOLD:
+            self.q_hold[:] = q
+        self.stop_after_hold_at = None
+        if self.feedback_hold:  # the feedback hold stays; the new request is what it resumes
+            self.resume_mode = target
+            return
+        self.set_mode(target)
+
+    def fault(self, joint: int | None, text: str, code: int = 0) -> None:
+        """A safety reaction: mode FAULT (the drives quick-stop, brakes on); recorded as an event."""
+        self.feedback_hold = False
+        self.events.append(Event("fault", self.t, joint, text, code,
+                                 {"motion": self.track.active, "new": self.mode != Mode.FAULT}))
+        if self.mode != Mode.FAULT:
+            self.prev_mode = self.mode
+            self.mode = Mode.FAULT
+            self.track.end()
+
+    def take_over_feedback_hold(self, what: str) -> None:
+        """A motion request supersedes a feedback hold's return to drag, once the feedback is fresh again."""
+        if not self.feedback_hold:
+            return
+        if self.fresh_cycles < 10:
+            raise ValueError(f"{what}: the arm is held because feedback was late (stale TPDOs); try again when "
+                             "'dragd status' shows feedback_hold false")
+        self.feedback_hold = False
+        self.resume_mode = Mode.HOLD
+
+    def begin_track(self, traj: Trajectory, q: np.ndarray, rate: float, cycles: int) -> None:
+        """Enter TRACK along ``traj`` (the drives are in CSP, the arm held at its start)."""
+        self.track.begin(traj, self.t, q, rate, cycles)
+        self.set_mode(Mode.TRACK)
+
+    def end_track(self, outcome: str, q: np.ndarray, hold_at_ref: bool = True) -> None:
+        """Leave TRACK for HOLD (at the reference, or where the arm is); the daemon returns the drives to CST."""
+        self.q_hold[:] = self.track.q_ref if hold_at_ref else q
+        cycle = self.track.cycle
+        tr = self.track.end()
+        self.set_mode(Mode.HOLD)
+        self.events.append(Event("track_end", self.t, text=outcome,
+                                 fields={"label": tr.label if tr else None, "cycle": cycle}))
+
+    def feedback(self, worst_stale: int, worst_joint: int, node_id: int, q: np.ndarray, hold_after: int,
+                 disable_after: int) -> None:
+        """Stale TPDOs: hold after ``hold_after`` cycles, fault after ``disable_after``; resume when fresh."""
+        if worst_stale <= 1:  # a single late TPDO is jitter, not lost feedback: it does not restart the count
+            self.fresh_cycles += 1
+        else:
+            self.fresh_cycles = 0
+        if worst_stale >= disable_after and self.mode not in (Mode.IDLE, Mode.FAULT):
+            self.fault(worst_joint, f"feedback lost: no TPDO from node {node_id} for {worst_stale} cycles")
+            self.feedback_hold = False
+        elif worst_stale >= hold_after and self.mode == Mode.DRAG:
+            self.feedback_hold = True
+            self.feedback_holds += 1
+            self.resume_mode = self.mode
+            self.q_hold[:] = q
+            self.set_mode(Mode.HOLD)
+        elif self.feedback_hold and self.mode == Mode.HOLD and self.fresh_cycles >= self.fresh_cycles_resume:
+            self.feedback_hold = False
+            self.set_mode(self.resume_mode)
+
+    # ------------------------------------------------------------------------------------------ the cycle
+
+    def advance(self, est: Estimate, stale_max: int) -> None:
+        """The mode's state for this cycle (before the drives are supervised): the latch, the motion's clock.
+
+        ``t`` (the cycle's time) is set by the cycle's tick."""
+        t = self.t
+        if self.mode == Mode.DRAG and self.params.use_breakout and self.params.use_startup:
+            breakout_update(est.q_rad, est.dq_rad_s, t, self.params, self.breakout, est.tau_g_Nm)
+        if self.track.active and self.mode == Mode.TRACK:
+            res = self.track.step(t, est.q_rad, est.dq_rad_s, est.current_A, stale_max)
+            if isinstance(res, Trip):
+                self.events.append(Event("protective_stop", t, res.joint, res.text, fields={"kind": res.kind}))
+                self.end_track(f"{res.kind}: {res.text}", est.q_rad, hold_at_ref=False)
+            elif res is not None:
+                self.end_track(res, est.q_rad)
+
+    def compute(self, est: Estimate, enabled: np.ndarray) -> None:
+        """``cmd_A`` ← the mode's command (+ safety terms), blended, zero where a drive is not enabled;
+        ``ref_rad`` ← the position reference."""
+        cmd = self.cmd_A
+        self.safety.compute(est.q_rad, est.dq_rad_s, self.mode == Mode.DRAG, self.extra_A)
+        self._mode_command(est, cmd)
+        if self.blend_t0 >= 0.0:
+            x = (self.t - self.blend_t0) / self.mode_ramp_s
+            if x >= 1.0:
+                self.blend_t0 = -1.0
+            else:
+                lam = x * x * (3.0 - 2.0 * x)
+                # blend from the command at the switch instant to the new law's command
+                cmd *= lam
+                np.multiply(self.blend_from_A, 1.0 - lam, out=self._tmp)  # no temporary array in the cycle
+                cmd += self._tmp
+        if self.stop_after_hold_at is not None and self.t >= self.stop_after_hold_at:
+            self.stop_after_hold_at = None
+            self.set_mode(Mode.IDLE, blend=False)
+        cmd *= enabled  # nothing is commanded to a drive that is not enabled
+        self.prev_cmd_A[:] = cmd
+        if np.count_nonzero(self.law_out.clamped):
+            self.clamp_cycles += 1
+        # the position reference: TRACK the path; HOLD with the drives still in CSP (after a motion) the hold pose,
+        # so the drive's own loop keeps pulling to the same point until it is back in CST; otherwise where it is
+        if self.mode == Mode.TRACK:
+            self.ref_rad[:] = self.track.q_ref
+        elif self.mode == Mode.HOLD and self.drive_csp:
+            self.ref_rad[:] = self.q_hold
+        else:
+            self.ref_rad[:] = est.q_rad
+
+    def _mode_command(self, est: Estimate, out: np.ndarray) -> None:
+        mode = self.mode
+        if mode in (Mode.IDLE, Mode.FAULT):
+            out.fill(0.0)
+            return
+        if mode == Mode.DRAG:
+            compensate(est.tau_g_Nm, est.dq_rad_s, self.t, self.params, self.law_out, self.ws, self.extra_A,
+                       self.breakout, est.q_rad)
+            out[:] = self.law_out.current_A
+            return
+        if mode == Mode.TRACK:
+            self.track.command(est.tau_g_Nm, self.params, out, self._tmp2)
+        else:  # HOLD: gravity + joint PD around the pose
+            np.subtract(self.q_hold, est.q_rad, out=out)
+            out *= self.hold_kp
+            np.multiply(est.dq_rad_s, self.hold_kd, out=self._tmp2)
+            out -= self._tmp2
+            out += est.tau_g_Nm
+            out /= self.kt
+        out += self.extra_A
+        np.minimum(out, self.params.current_limit_A, out=out)
+        np.maximum(out, self.neg_limit_A, out=out)

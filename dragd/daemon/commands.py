@@ -1,0 +1,140 @@
+"""The control socket's commands: one table, one function per command with its fields as keyword arguments.
+
+Unknown or missing fields are refused by the table (dragd/daemon/server.py); a handler's ValueError (bad value,
+wrong state), DriveError, OSError or RuntimeError becomes ``{"ok": false, "error": ...}``. Every command records
+the controller's events before it answers (a fault or mode change it caused is in the next ``status``).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Awaitable, Callable
+from typing import TYPE_CHECKING, Any
+
+from dragd.control.modes import MODE_NAMES, Mode
+from dragd.hardware.cia402 import MODE_CST
+from dragd.hardware.master import DriveError
+from dragd.daemon.server import CommandTable
+from dragd.protocol import ControlError
+
+if TYPE_CHECKING:
+    from dragd.daemon.core import Daemon
+
+Handler = Callable[..., Awaitable[dict[str, Any]]]
+
+
+def command_table(d: Daemon) -> CommandTable:
+    table = CommandTable()
+    c, motions, teaching, recorder = d.controller, d.motions, d.teaching, d.recorder
+
+    def command(name: str) -> Callable[[Handler], Handler]:
+        def register(fn: Handler) -> Handler:
+            @functools.wraps(fn)
+            async def run(**kw: Any) -> dict[str, Any]:
+                try:
+                    return await fn(**kw)
+                except (ValueError, DriveError, OSError, RuntimeError) as exc:
+                    raise ControlError(str(exc)) from None
+                finally:
+                    d.record_events()
+
+            table.add(name, run)
+            return fn
+
+        return register
+
+    @command("status")
+    async def status() -> dict[str, Any]:
+        return d.status()
+
+    @command("start")
+    async def start() -> dict[str, Any]:
+        d.start()
+        ok = await d.wait_for(lambda: c.mode == Mode.FAULT or d.supervisor.all_enabled,
+                              d.cfg.master.enable_timeout_s + 0.5)
+        if c.mode == Mode.FAULT or not ok:
+            raise ValueError("enable failed: " + (d.faults[-1]["text"] if d.faults else "timeout"))
+        if motions.drive_mode != MODE_CST and not c.track.active and not motions.switch_pending:
+            await motions.switch_drive_mode(MODE_CST)  # e.g. a fault during a motion left them in CSP
+        return {"mode": MODE_NAMES[c.mode]}
+
+    @command("stop")
+    async def stop() -> dict[str, Any]:
+        d.stop()
+        await d.wait_for(lambda: c.mode in (Mode.IDLE, Mode.FAULT), 5.0)
+        return {"mode": MODE_NAMES[c.mode]}
+
+    @command("mode")
+    async def mode(mode: str) -> dict[str, Any]:
+        if mode in ("hold", "drag") and not c.track.active and c.mode not in (Mode.IDLE, Mode.FAULT):
+            await motions.wait_cst(f"mode {mode}")  # after a motion the drives return to CST first (bumpless)
+        d.set_mode(str(mode))
+        return {"mode": MODE_NAMES[c.mode]}
+
+    @command("track")
+    async def track(file: str | None = None, t_s: list[float] | None = None, q_rad: list[list[float]] | None = None,
+                    label: str = "track") -> dict[str, Any]:
+        return await motions.track_request(str(label), file, t_s, q_rad)
+
+    @command("record")
+    async def record(action: str, path: str | None = None, label: str = "") -> dict[str, Any]:
+        if action == "start":
+            if path is None:
+                raise ValueError("record start: missing field 'path'")
+            return {"recording": await recorder.start_recording(str(path), str(label))}
+        if action == "stop":
+            return await recorder.stop_recording()
+        raise ValueError(f"record: action: expected 'start' or 'stop', got {action!r}")
+
+    @command("teach")
+    async def teach(action: str, name: str | None = None, rate_Hz: float | None = None,
+                    overwrite: bool = False) -> dict[str, Any]:
+        if action == "start":
+            if name is None:
+                raise ValueError("teach start: missing field 'name'")
+            return await teaching.start(str(name), None if rate_Hz is None else float(rate_Hz), bool(overwrite))
+        if action == "mark":
+            return teaching.mark(None if name is None else str(name))
+        if action == "stop":
+            return await teaching.stop()
+        if action == "list":
+            return await teaching.list()
+        raise ValueError(f"teach: action: expected start, mark, stop or list, got {action!r}")
+
+    @command("replay")
+    async def replay(program: str, interp: str = "linear", speed: float = 1.0, cycles: int = 1,
+                     source: str | None = None) -> dict[str, Any]:
+        return await motions.replay_start(str(program), interp=str(interp), speed=float(speed), cycles=int(cycles),
+                                          source=source)
+
+    async def _motion_state(wait_until: Callable[[], bool] | None, extra_s: float) -> dict[str, Any]:
+        if wait_until is not None:
+            await d.wait_for(wait_until, c.track.rate_T + extra_s)
+        state = c.track.state if c.track.active else MODE_NAMES[c.mode]
+        return {"state": state, "mode": MODE_NAMES[c.mode], "replay": motions.replay_status()}
+
+    @command("replay_pause")
+    async def replay_pause(wait: bool = True) -> dict[str, Any]:
+        motions.pause()
+        return await _motion_state((lambda: c.track.state != "pausing") if wait else None, 0.5)
+
+    @command("replay_resume")
+    async def replay_resume(wait: bool = True) -> dict[str, Any]:
+        motions.resume()
+        return await _motion_state(None, 0.0)
+
+    @command("replay_stop")
+    async def replay_stop(wait: bool = True) -> dict[str, Any]:
+        motions.stop()
+        return await _motion_state((lambda: not c.track.active) if wait else None, 1.0)
+
+    @command("replay_speed")
+    async def replay_speed(speed: float) -> dict[str, Any]:
+        return {"speed_override": motions.set_speed(float(speed)), "state": c.track.state}
+
+    @command("shutdown")
+    async def shutdown() -> dict[str, Any]:
+        d.request_exit()
+        return {}
+
+    return table

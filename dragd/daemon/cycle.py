@@ -1,0 +1,136 @@
+"""The 1 kHz cycle, ticked by a timerfd at absolute deadlines:
+
+    read      SYNC → every drive's TPDO until all arrived or SYNC + tpdo_deadline_us   (hardware/io.py)
+    estimate  q from counts, q̇ by filtered differentiation, measured current, G(q)     (here; control/estimate.py)
+    compute   the mode's state and law + safety terms, blended; the CiA 402 walk        (control/controller.py,
+                                                                                         hardware/drives.py)
+    write     controlwords, torque offsets, CSP targets in the command RPDOs           (hardware/io.py)
+    log       one telemetry row to the MCAP writer's ring; timing into histograms      (daemon/recording.py)
+
+``step`` is the synchronous part after the read (what the golden traces replay); ``run`` is the loop. Nothing in
+a cycle allocates per cycle on the usual paths, logs, blocks or calls SDO: decisions the cycle makes (faults, mode
+changes, the end of a motion) are queued as events and recorded by the daemon after the cycle.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from dragd.control.controller import Controller, Estimate
+from dragd.control.estimate import VelocityEstimator
+from dragd.control.modes import Mode
+from dragd.hardware.drives import DriveSupervisor, Target
+from dragd.hardware.io import BusIO
+from dragd.hardware.scaling import Scaling
+from dragd.model import RobotModel
+from dragd.realtime import Ticker
+from dragd.stats import Histogram
+
+if TYPE_CHECKING:
+    from dragd.daemon.recording import Recorder
+
+_TARGETS = {Mode.IDLE: Target.DISABLED, Mode.FAULT: Target.QUICK_STOP}
+
+
+class Cycle:
+    """One arm's cycle: the estimate, the controller, the drives' supervision and the process data."""
+
+    def __init__(self, io: BusIO, scaling: Scaling, model: RobotModel, controller: Controller,
+                 supervisor: DriveSupervisor, velocity: VelocityEstimator, recorder: Recorder, *, rate_Hz: float,
+                 tpdo_deadline_us: float, heartbeat_ms: float, stale_cycles_hold: int, stale_cycles_disable: int,
+                 node_ids: list[int]) -> None:
+        n = controller.n
+        self.io, self.scaling, self.model = io, scaling, model
+        self.controller, self.supervisor, self.velocity, self.recorder = controller, supervisor, velocity, recorder
+        self.dt = 1.0 / rate_Hz
+        self.deadline_s = tpdo_deadline_us * 1e-6
+        self.heartbeat_every = max(1, round(heartbeat_ms * 1e-3 / self.dt))
+        self.hold_after, self.disable_after = stale_cycles_hold, stale_cycles_disable
+        self.node_ids = node_ids
+        self.est = Estimate(np.zeros(n), velocity.velocity_rad_s, np.zeros(n), np.zeros(n))
+        self.target_counts = np.zeros(n, dtype=np.int64)
+        self.torque_permille = np.zeros(n, dtype=np.int64)
+        self._tmp = np.zeros(n)
+        self.t = 0.0
+        self.sample_dt_s = self.dt  # interval between this cycle's SYNC and the previous one
+        self.cycles = 0
+        self.missed = 0
+        self.late_tpdo = 0
+        self.primed = False  # a first full set of positions arrived
+        self.exit_requested = False
+        self.period_hist = Histogram(0.0, 20_000.0, 10.0)
+        self.compute_hist = Histogram(0.0, 5_000.0, 2.0)
+        self.rx_hist = Histogram(0.0, 5_000.0, 5.0)
+        self.after_cycle: list[object] = []  # callables run after each cycle (the daemon records events)
+
+    def tick(self, period_us: float, expirations: int) -> None:
+        """A tick: the cycle's time advances (a late tick samples later and counts the ticks it missed)."""
+        if expirations > 1:
+            self.missed += expirations - 1
+        self.sample_dt_s = period_us * 1e-6  # SYNC goes out right after the tick: the sampling interval
+        self.t += self.dt * expirations
+        self.controller.t = self.t  # (commands during the read see the cycle's time)
+
+    def step(self, complete: bool) -> bool:
+        """Everything after the read step; False while no full set of positions has arrived yet."""
+        io, fb, c, est = self.io, self.io.feedback, self.controller, self.est
+        if not complete:
+            self.late_tpdo += 1
+        if not self.primed:
+            if not complete:
+                return False  # wait for a first full set of positions before computing anything
+            self.velocity.reset(fb.counts)
+            self.primed = True
+        worst, j = fb.worst_stale()
+        c.feedback(worst, j, self.node_ids[j], est.q_rad, self.hold_after, self.disable_after)
+        # estimate
+        self.scaling.position_rad(fb.counts, est.q_rad, self._tmp)
+        self.velocity.update(fb.counts, self.sample_dt_s, fb.rx)
+        self.scaling.current_A(fb.current_permille, est.current_A)
+        self.model.gravity(est.q_rad, est.tau_g_Nm)
+        # compute
+        c.advance(est, int(fb.stale.max()))
+        fault = self.supervisor.update(fb.statusword, _TARGETS.get(c.mode, Target.ENABLED), self.t)
+        if fault is not None:
+            c.fault(*fault)
+        c.compute(est, self.supervisor.enabled)
+        self.scaling.torque_permille(c.cmd_A, self.torque_permille, self._tmp)
+        self.scaling.target_counts(c.ref_rad, self.target_counts, self._tmp)
+        # write
+        io.write(self.supervisor.cw, self.target_counts, self.torque_permille, self.t)
+        if self.cycles % self.heartbeat_every == 0:
+            io.heartbeat()
+        return True
+
+    async def run(self) -> None:
+        """The loop: tick → read → step → log, until ``exit_requested``."""
+        loop = asyncio.get_running_loop()
+        ticker = Ticker(self.dt, loop)
+        ticker.start()
+        last_tick = None
+        try:
+            while not self.exit_requested:
+                expirations = await ticker.wait()
+                t_tick = time.perf_counter()
+                period_us = (t_tick - last_tick) * 1e6 if last_tick is not None else self.dt * 1e6
+                last_tick = t_tick
+                self.tick(period_us, expirations)
+                complete = await self.io.read(loop, self.deadline_s)
+                t_rx = time.perf_counter()
+                self.rx_hist.add((t_rx - t_tick) * 1e6)
+                if not self.step(complete):
+                    continue
+                compute_us = (time.perf_counter() - t_rx) * 1e6
+                self.compute_hist.add(compute_us)
+                if self.cycles > 0:
+                    self.period_hist.add(period_us)
+                self.cycles += 1
+                self.recorder.log_row(period_us, compute_us)
+                for fn in self.after_cycle:
+                    fn()  # type: ignore[operator]
+        finally:
+            ticker.close()

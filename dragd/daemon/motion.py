@@ -1,0 +1,314 @@
+"""Motions in TRACK: identification tracks and replays of taught programs, and the drives' CST ↔ CSP switch.
+
+A motion starts from hold: the drives switch to CSP (an SDO write of 6060h per drive, confirmed on 6061h, in the
+master's worker thread), the controller enters TRACK along a trajectory table built off the loop; at its end the
+arm holds where the path ended and the drives return to CST. Planning a replay and the rigid-body prediction of a
+track run in the planner process (dragd/teach/worker.py): seconds of Python there would hold the GIL here.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from dragd.control.modes import MODE_NAMES, Mode
+from dragd.control.trajectory import Trajectory
+from dragd.hardware.cia402 import MODE_CSP, MODE_CST
+from dragd.hardware.master import DriveError
+from dragd.realtime import demote_current_thread
+from dragd.teach.program import ProgramError, resolve_program
+
+if TYPE_CHECKING:
+    from dragd.daemon.core import Daemon
+
+START_TOLERANCE_RAD = 0.02  # a track must start this close to where the arm is
+
+
+class Planner:
+    """The planner process (started on first use) and the normal-priority thread that talks to it."""
+
+    def __init__(self, avoid_cpus: set[int]) -> None:
+        self.avoid_cpus = avoid_cpus
+        self._helper: ThreadPoolExecutor | None = None
+        self._worker: Any = None
+
+    async def call(self, name: str, *args: Any, **kwargs: Any) -> Any:
+        if self._helper is None:
+            from dragd.teach.worker import Worker
+
+            self._helper = ThreadPoolExecutor(1, thread_name_prefix="dragd-planner", initializer=demote_current_thread,
+                                              initargs=(self.avoid_cpus or None,))
+            self._worker = Worker(self.avoid_cpus)
+        call = functools.partial(self._worker.call, name, *args, **kwargs)
+        return await asyncio.get_running_loop().run_in_executor(self._helper, call)
+
+    def warm(self) -> None:
+        task = asyncio.get_running_loop().create_task(self.call("warm_up"))
+        task.add_done_callback(lambda t: t.exception())  # a failure shows at the next real call
+
+    def close(self) -> None:
+        if self._worker is not None:
+            self._worker.close()
+        if self._helper is not None:
+            self._helper.shutdown(wait=False)
+
+
+class Motions:
+    """Starting, steering and ending motions; the drives' operating mode (CST or CSP)."""
+
+    def __init__(self, daemon: Daemon) -> None:
+        self.d = daemon
+        self.planner = Planner(set(daemon.cfg.loop.cpus or ()))
+        self.drive_mode = MODE_CST
+        self.switch_pending = False
+        self.planning = False  # a replay is being planned (the arm held in CSP meanwhile)
+        self.replay: dict[str, Any] | None = None  # the running (or last) replay: program, options, outcome
+        self._cst_task: asyncio.Task[None] | None = None
+
+    @property
+    def controller(self) -> Any:
+        return self.d.controller
+
+    # ------------------------------------------------------------------------------------------ drive mode
+
+    async def switch_drive_mode(self, mode: int) -> None:
+        """6060h on every drive (confirmed on 6061h), in the master's SDO worker."""
+        master = self.d.master
+        assert master is not None
+        self.switch_pending = True
+        try:
+            for rt in master.runtimes.values():
+                for node_id in rt.nodes:
+                    await master.run_sdo(master.set_mode, rt, node_id, mode)
+            self._set_drive_mode(mode)
+        finally:
+            self.switch_pending = False
+
+    def _set_drive_mode(self, mode: int) -> None:
+        self.drive_mode = mode
+        self.controller.drive_csp = mode == MODE_CSP
+
+    def return_to_cst(self) -> None:
+        """After a motion: the drives back to CST (a task; the arm holds meanwhile)."""
+        self._cst_task = asyncio.get_running_loop().create_task(self.switch_drive_mode(MODE_CST))
+
+    async def settle(self) -> None:
+        """Let a pending return of the drives to CST finish before switching them again."""
+        task = self._cst_task
+        if task is not None and not task.done():
+            try:
+                await task
+            except DriveError:
+                pass
+
+    async def wait_cst(self, what: str) -> None:
+        """A law in torque mode waits for the drives' return to CST after a motion (bumpless)."""
+        if self.switch_pending or self.drive_mode != MODE_CST:
+            await self.d.wait_for(lambda: not self.switch_pending and self.drive_mode == MODE_CST, 2.0)
+            if self.drive_mode != MODE_CST:
+                raise ValueError(f"{what}: the drives did not return to CST after the motion")
+
+    # ------------------------------------------------------------------------------------------ tracks
+
+    async def track(self, traj: Trajectory, *, rate: float = 1.0, cycles: int = 1) -> None:
+        """Switch the drives to CSP and follow ``traj`` (identification runs and replay).
+
+        ``rate`` is the speed override (the trajectory clock's rate), ``cycles`` the repetitions of its body
+        (rows ``body_row`` to the end; 0: until stopped).
+        """
+        c, q = self.controller, self.d.cycle.est.q_rad
+        if c.mode not in (Mode.HOLD, Mode.DRAG):
+            raise ValueError(f"track: expected the arm enabled in hold or drag, it is {MODE_NAMES[c.mode]}")
+        if c.track.active:
+            raise ValueError("track: a motion is running; stop it first")
+        if traj.table.shape[1] != c.n:
+            raise ValueError(f"track: expected {c.n} joints per sample, got {traj.table.shape[1]}")
+        if not 0.0 < rate <= 1.0:
+            raise ValueError(f"track: speed: expected a fraction in (0, 1], got {rate}")
+        c.take_over_feedback_hold("track")
+        start_err = np.abs(traj.start_q - q)
+        if np.any(start_err > START_TOLERANCE_RAD):
+            raise ValueError(f"track: the trajectory starts {np.degrees(start_err.max()):.2f}° from the current pose "
+                             f"(max {np.degrees(START_TOLERANCE_RAD):.1f}°); move there first")
+        if c.mode != Mode.HOLD:
+            c.q_hold[:] = q
+        c.set_mode(Mode.HOLD)
+        await self.settle()
+        if self.drive_mode != MODE_CSP:
+            await self.switch_drive_mode(MODE_CSP)
+        if c.mode != Mode.HOLD:  # a fault or stop while the drives switched
+            raise ValueError(f"track: the arm left hold while the drives switched to CSP ({MODE_NAMES[c.mode]})")
+        c.begin_track(traj, self.d.cycle.est.q_rad, rate, cycles)
+
+    async def track_request(self, label: str, file: str | None, t_s: list[float] | None,
+                            q_rad: list[list[float]] | None) -> dict[str, Any]:
+        """The ``track`` command: a trajectory file or samples, built off the loop, then followed."""
+        loop = asyncio.get_running_loop()
+        dt = self.d.cycle.dt
+        if file is not None:
+            traj = await loop.run_in_executor(None, Trajectory.load, file, dt, label)
+        elif t_s is not None and q_rad is not None:
+            traj = await loop.run_in_executor(None, Trajectory, t_s, q_rad, dt, label)
+        else:
+            raise ValueError("track: expected 'file' or both 't_s' and 'q_rad'")
+        # the residual monitor's rigid-body effort of the motion (in the planner process: seconds of Pinocchio
+        # calls for a long run would hold the GIL against the cycle)
+        try:
+            traj.pred_table = await self.planner.call("rigid_body_effort", str(self.d.model.urdf_path),
+                                                      tuple(self.d.cfg.robot.gravity_m_s2), traj.table, dt)
+        except RuntimeError as exc:
+            self.d.log(f"track: no rigid-body prediction ({exc}); the residual-current monitor is off for it")
+            traj.residual_monitor = False
+        await self.track(traj)
+        return {"mode": MODE_NAMES[self.controller.mode], "duration_s": traj.duration_s}
+
+    def _running(self, what: str) -> Any:
+        c = self.controller
+        if not c.track.active or c.mode != Mode.TRACK:
+            raise ValueError(f"{what}: no motion is running")
+        return c.track
+
+    def pause(self) -> str:
+        return str(self._running("pause").pause(self.controller.t))
+
+    def resume(self) -> str:
+        return str(self._running("resume").resume(self.controller.t))
+
+    def stop(self) -> str:
+        return str(self._running("stop").stop(self.controller.t))
+
+    def set_speed(self, speed: float) -> float:
+        if not 0.0 < speed <= 1.0:
+            raise ValueError(f"speed: expected a fraction in (0, 1], got {speed}")
+        c = self.controller
+        c.track.set_override(speed, c.t)
+        return float(c.track.override)
+
+    # ------------------------------------------------------------------------------------------ replays
+
+    async def replay_start(self, program: str, interp: str = "linear", speed: float = 1.0, cycles: int = 1,
+                           source: str | None = None) -> dict[str, Any]:
+        """Plan (in the planner process, from the held pose) and run a taught program in CSP."""
+        from dragd.teach.plan import INTERPS, SOURCES
+
+        d, c = self.d, self.controller
+        if d.teaching.recorder is not None:
+            raise ValueError(f"replay: teaching '{d.teaching.recorder.name}' is in progress; 'dragd teach stop' first")
+        compact = d.io.compact_buses if d.io is not None else []
+        if compact:
+            raise ValueError(f"replay: bus(es) {', '.join(compact)} use the 'compact' PDO layout, which carries no "
+                             "position targets; replay (CSP) needs the 'shared' layout")
+        if c.mode not in (Mode.HOLD, Mode.DRAG):
+            raise ValueError(f"replay: expected the arm enabled in hold or drag, it is {MODE_NAMES[c.mode]}")
+        if c.track.active or self.planning:
+            raise ValueError("replay: a motion is running (or being planned); 'dragd replay stop' first")
+        if interp not in INTERPS:
+            raise ValueError(f"replay: interp: expected one of {', '.join(INTERPS)}, got '{interp}'")
+        if source is not None and source not in SOURCES:
+            raise ValueError(f"replay: source: expected one of {', '.join(SOURCES)}, got '{source}'")
+        if not 0.0 < speed <= 1.0:
+            raise ValueError(f"replay: speed: expected a fraction in (0, 1], got {speed}")
+        if cycles < 0:
+            raise ValueError(f"replay: cycles: expected 0 (until stopped) or more, got {cycles}")
+        c.take_over_feedback_hold("replay")
+        try:
+            path = resolve_program(program, d.cfg.program_dir)
+        except ProgramError as exc:
+            raise ValueError(f"replay: {exc}") from None
+        if not path.is_file():
+            raise ValueError(f"replay: program {path} not found")
+        self.planning = True
+        try:
+            return await self._replay_start(path, interp, speed, cycles, source)
+        finally:
+            self.planning = False
+
+    async def _replay_start(self, path: Path, interp: str, speed: float, cycles: int,
+                            source: str | None) -> dict[str, Any]:
+        from dragd.teach.plan import ReplayRequest, limits_from_config
+
+        d, c = self.d, self.controller
+        was = c.mode
+        # hold where the arm is (not where an older hold wanted it), stiffly: the drives' own position loops (CSP)
+        # keep the pose while the plan is made, and the plan starts there
+        c.q_hold[:] = d.cycle.est.q_rad
+        c.set_mode(Mode.HOLD)
+        try:
+            await self.settle()
+            await self.switch_drive_mode(MODE_CSP)
+        except DriveError:
+            d.fault(None, "replay: the drives did not switch to CSP")
+            raise
+        if c.mode != Mode.HOLD:
+            raise ValueError(f"replay: the arm left hold ({MODE_NAMES[c.mode]})")
+        rc = d.cfg.replay
+        req = ReplayRequest(program=str(path), q_start=c.q_hold.tolist(), dt=d.cycle.dt, urdf=str(d.model.urdf_path),
+                            gravity_m_s2=tuple(d.cfg.robot.gravity_m_s2),
+                            limits=limits_from_config(d.cfg, d.model.model).as_dict(), interp=interp,
+                            source=source, frame=rc.frame, move_to_start_speed=rc.move_to_start_speed,
+                            settle_s=rc.settle_s, keyframe_tolerance_rad=rc.keyframe_tolerance_rad,
+                            feedforward=rc.inertia_feedforward)
+        try:
+            res = await self.planner.call("plan_replay", req)
+            summary = res["summary"]
+            traj = Trajectory.from_table(res["q"], d.cycle.dt, f"replay {path.stem}", dq=res["dq"], ff_Nm=res["ff_Nm"],
+                                         body_row=res["body_row"], marks=res["marks"], info=summary)
+            replay = {"program": str(path), "name": path.stem, "interp": interp, "source": summary.get("source"),
+                      "speed": speed, "cycles": cycles, "started_t_s": round(c.t, 4), "outcome": None,
+                      "marks": [{k: v for k, v in m.items() if k != "q_rad"} for m in res["marks"]],
+                      "duration_s": summary["duration_s"], "cycle_s": summary["cycle_s"],
+                      "move_to_start_s": summary["move_to_start_s"]}
+            await self.track(traj, rate=speed, cycles=cycles)
+            self.replay = replay  # (no await since TRACK began: the cycle cannot have ended it yet)
+        except (ValueError, RuntimeError):
+            if c.mode == Mode.HOLD and not c.track.active:
+                await self.switch_drive_mode(MODE_CST)
+                if was == Mode.DRAG and c.mode == Mode.HOLD:
+                    c.set_mode(Mode.DRAG)  # back to the hand
+            raise
+        d.recorder.event("replay", program=str(path), interp=interp, speed=speed, cycles=cycles)
+        return {"mode": MODE_NAMES[c.mode], "program": str(path), **summary}
+
+    def on_end(self, outcome: str, t_s: float, cycle: int) -> None:
+        """A motion ended (the controller's track_end event): the replay's outcome; the drives back to CST."""
+        r = self.replay
+        if r is not None and r.get("outcome") is None:
+            r["outcome"] = outcome
+            r["ended_t_s"] = round(t_s, 4)
+            r["cycles_done"] = cycle + (1 if outcome == "done" else 0)
+        self.return_to_cst()
+
+    def on_fault(self, text: str, t_s: float, had_motion: bool) -> None:
+        r = self.replay
+        if r is not None and r.get("outcome") is None and had_motion:
+            r["outcome"] = f"fault: {text}"
+            r["ended_t_s"] = round(t_s, 4)
+
+    def replay_status(self) -> dict[str, Any] | None:
+        r = self.replay
+        if r is None:
+            return None
+        tr = self.controller.track
+        active = tr.trajectory is not None and tr.trajectory.label == f"replay {r['name']}" and r["outcome"] is None
+        out = {k: v for k, v in r.items() if k != "marks"}
+        out["state"] = tr.state if active else (r["outcome"] or "ended")
+        if active:
+            tau = tr.tau
+            out.update(t_s=round(tau, 4), cycle=tr.cycle + 1, rate=round(tr.rate, 4), speed_override=tr.override,
+                       segment=next((s["label"] for s in tr.trajectory.info.get("segments", [])
+                                     if s["t0_s"] <= tau < s["t1_s"]), None),
+                       next_waypoint=next((m["name"] for m in r["marks"] if m["t_s"] > tau), None))
+        return out
+
+    def status(self) -> dict[str, Any]:
+        tr = self.controller.track
+        return {"drive_mode": {MODE_CSP: "csp", MODE_CST: "cst"}.get(self.drive_mode, str(self.drive_mode)),
+                "trajectory": (None if tr.trajectory is None else
+                               {"label": tr.trajectory.label, "t_s": tr.tau, "duration_s": tr.trajectory.duration_s,
+                                "state": tr.state, "rate": tr.rate, "cycle": tr.cycle + 1, "cycles": tr.cycles}),
+                "replay": self.replay_status(), "speed_override": tr.override}

@@ -1,0 +1,31 @@
+"""CiA 301 communication constants: COB-ID bases, NMT commands and states (one owner for dragd and the sim)."""
+
+from __future__ import annotations
+
+from enum import IntEnum
+
+NMT_COB_ID = 0x000
+SYNC_COB_ID = 0x080
+EMCY_BASE = 0x080  # + node id
+TPDO1_BASE, RPDO1_BASE = 0x180, 0x200  # + node id (TPDOn/RPDOn: + 0x100·(n − 1))
+SDO_TX_BASE, SDO_RX_BASE = 0x580, 0x600  # + node id (server → client, client → server)
+HEARTBEAT_BASE = 0x700  # + node id
+
+
+class NmtCommand(IntEnum):
+    """NMT node control command specifiers (first byte of COB-ID 0x000)."""
+
+    START = 0x01
+    STOP = 0x02
+    PRE_OPERATIONAL = 0x80
+    RESET_NODE = 0x81
+    RESET_COMMUNICATION = 0x82
+
+
+class NmtState(IntEnum):
+    """NMT states with their heartbeat codes."""
+
+    INITIALISING = 0x00  # the boot-up message
+    STOPPED = 0x04
+    OPERATIONAL = 0x05
+    PRE_OPERATIONAL = 0x7F

@@ -1,0 +1,183 @@
+"""The cycle's process data on the buses: SYNC out, TPDOs in (decoded into arrays), command RPDOs out, heartbeat.
+
+Frames are read by each bus's ``can.Notifier`` in the asyncio loop's thread (``listener``): TPDOs are decoded with
+precompiled ``struct`` codecs straight into the feedback arrays, EMCYs go to ``on_emcy``; the read step of a
+cycle ends when every joint's position TPDO arrived after the SYNC, or at the deadline. ``write`` packs the
+controlwords, target positions and torque offsets into each command frame's preallocated buffer.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import struct
+from collections.abc import Callable
+
+import can
+import numpy as np
+
+from dragd.hardware.cia301 import EMCY_BASE, HEARTBEAT_BASE, SYNC_COB_ID
+from dragd.hardware.pdo import BusLayout, RpdoEncoder
+
+Decoder = tuple[int, struct.Struct, tuple[str, ...]]  # joint, codec, fields
+
+
+class Feedback:
+    """What the drives reported, in drive units (filled by the read step)."""
+
+    def __init__(self, n: int) -> None:
+        self.counts = np.zeros(n, dtype=np.int64)  # 6064h
+        self.statusword = np.zeros(n, dtype=np.int64)  # 6041h
+        self.current_permille = np.zeros(n)  # 6078h, per mille of rated current, the drive's sign
+        self.rx = np.zeros(n, dtype=bool)  # the position TPDO arrived this cycle
+        self.stale = np.zeros(n, dtype=np.int64)  # cycles since each joint's last position TPDO
+        self.rx_count = 0  # joints whose position TPDO arrived this cycle
+
+    def worst_stale(self) -> tuple[int, int]:
+        """(cycles, joint) of the stalest joint; (0, 0) when every TPDO arrived this cycle."""
+        if self.rx_count >= self.rx.shape[0]:
+            return 0, 0
+        return int(self.stale.max()), int(self.stale.argmax())
+
+
+class BusIO:
+    """SYNC, TPDO decoding, command RPDOs and the master heartbeat of every bus of one arm."""
+
+    def __init__(self, layouts: dict[str, BusLayout], buses: dict[str, can.BusABC], node_ids: list[int],
+                 master_node_id: int, on_emcy: Callable[[int, int, int], None]) -> None:
+        n = self.n = len(node_ids)
+        self.feedback = Feedback(n)
+        self.layouts = layouts
+        self.on_emcy = on_emcy
+        self.tx_errors = 0
+        self.error_frames = 0
+        self._waiter: asyncio.Future[bool] | None = None
+        self._decoders: dict[str, dict[int, Decoder]] = {}
+        self._commands: list[tuple[can.BusABC, can.Message, RpdoEncoder]] = []
+        self._sync: list[tuple[can.BusABC, can.Message]] = []
+        self._heartbeat: list[tuple[can.BusABC, can.Message]] = []
+        for name, layout in layouts.items():
+            bus = buses[name]
+            fd = layout.fd
+            table = self._decoders.setdefault(name, {})
+            for fr in layout.frames:
+                if fr.direction == "tpdo":
+                    (slot,) = fr.slots
+                    table[fr.cob_id] = (slot.joint, struct.Struct(slot.fmt), slot.fields)
+                else:
+                    enc = RpdoEncoder(fr, fd, min_interval_s=1.0 / fr.max_rate_Hz)
+                    msg = can.Message(arbitration_id=fr.cob_id, data=enc.buffer, is_extended_id=False,
+                                      is_fd=fd, bitrate_switch=fd, dlc=len(enc.buffer))
+                    self._commands.append((bus, msg, enc))
+            self._sync.append((bus, can.Message(arbitration_id=SYNC_COB_ID, data=b"", is_extended_id=False)))
+            self._heartbeat.append((bus, can.Message(arbitration_id=HEARTBEAT_BASE + master_node_id, data=b"\x05",
+                                                     is_extended_id=False)))
+        self._emcy = {EMCY_BASE + node: i for i, node in enumerate(node_ids)}
+
+    # ------------------------------------------------------------------------------------------ read
+
+    def listener(self, bus_name: str) -> can.Listener:
+        """The Notifier listener of one bus (runs in the loop's thread)."""
+        on_frame, table = self.on_frame, self._decoders.setdefault(bus_name, {})
+
+        class _Rx(can.Listener):
+            def on_message_received(self, msg: can.Message) -> None:
+                on_frame(msg, table)
+
+        return _Rx()
+
+    def on_frame(self, msg: can.Message, table: dict[int, Decoder]) -> None:
+        """Decode a TPDO into the feedback arrays, or report an EMCY.
+
+        Error frames are counted, never decoded: their class bits can equal a COB-ID (0x081 = a node 1 EMCY).
+        """
+        if msg.is_error_frame:
+            self.error_frames += 1
+            return
+        fb = self.feedback
+        entry = table.get(msg.arbitration_id)
+        if entry is not None:
+            j, codec, fields = entry
+            if len(msg.data) < codec.size:
+                return
+            values = codec.unpack_from(msg.data)
+            for f, v in zip(fields, values):
+                if f == "position":
+                    fb.counts[j] = v
+                elif f == "current":
+                    fb.current_permille[j] = v
+                else:
+                    fb.statusword[j] = v
+            if "position" in fields and not fb.rx[j]:
+                fb.rx[j] = True
+                fb.rx_count += 1
+                if fb.rx_count >= self.n and self._waiter is not None and not self._waiter.done():
+                    self._waiter.set_result(True)
+            return
+        j = self._emcy.get(msg.arbitration_id)
+        if j is not None and len(msg.data) >= 3:
+            code = msg.data[0] | (msg.data[1] << 8)
+            if code != 0:
+                self.on_emcy(j, code, msg.data[2])
+
+    def begin_cycle(self) -> None:
+        """Before the SYNC: nothing has arrived for this cycle yet."""
+        self.feedback.rx.fill(False)
+        self.feedback.rx_count = 0
+
+    def end_read(self) -> bool:
+        """After the read step: age the joints that did not report; True when every joint reported."""
+        fb = self.feedback
+        np.add(fb.stale, 1, out=fb.stale)
+        np.copyto(fb.stale, 0, where=fb.rx)  # (a boolean-mask assignment would allocate)
+        return fb.rx_count >= self.n
+
+    async def read(self, loop: asyncio.AbstractEventLoop, deadline_s: float) -> bool:
+        """Send SYNC and wait until every joint's position TPDO arrived (True) or ``deadline_s`` passed (False)."""
+        self.begin_cycle()
+        self._waiter = waiter = loop.create_future()
+        self._send(self._sync)
+        handle = loop.call_at(loop.time() + deadline_s, self._deadline)
+        await waiter
+        handle.cancel()
+        self._waiter = None
+        return self.end_read()
+
+    def _deadline(self) -> None:
+        if self._waiter is not None and not self._waiter.done():
+            self._waiter.set_result(False)
+
+    # ------------------------------------------------------------------------------------------ write
+
+    def write(self, cw: np.ndarray, target_counts: np.ndarray, torque_permille: np.ndarray, t: float) -> None:
+        """Pack every command frame and send the ones due (cyclic frames always; event frames on change)."""
+        for bus, msg, enc in self._commands:
+            buf = enc.buffer
+            for j, off, codec, fields in enc.slots:
+                if len(fields) == 3:
+                    codec.pack_into(buf, off, int(cw[j]), int(target_counts[j]), int(torque_permille[j]))
+                elif fields[0] == "torque_offset":
+                    codec.pack_into(buf, off, int(torque_permille[j]))
+                else:
+                    codec.pack_into(buf, off, int(cw[j]))
+            if not enc.due(t):
+                continue
+            try:
+                bus.send(msg, timeout=0)
+                enc.sent(t)
+            except can.CanError:
+                self.tx_errors += 1
+
+    def heartbeat(self) -> None:
+        self._send(self._heartbeat)
+
+    def _send(self, frames: list[tuple[can.BusABC, can.Message]]) -> None:
+        for bus, msg in frames:
+            try:
+                bus.send(msg, timeout=0)
+            except can.CanError:
+                self.tx_errors += 1
+
+    @property
+    def compact_buses(self) -> list[str]:
+        """Buses whose layout carries no position targets (no CSP: drag, hold and idle only)."""
+        return [name for name, lay in self.layouts.items() if lay.kind != "shared"]
