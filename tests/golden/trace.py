@@ -302,7 +302,7 @@ async def _record(sc: Scenario, workdir: Path) -> dict[str, Any]:
     tele = {f"tele_{k}": np.stack([r[k] for r in rows]) for k in rows[0]}
     return {"config": text, "buses": json.dumps(buses), "events": json.dumps(events), "period_us": period,
             "expirations": exp, "mode": mode, "drive_mode": drive_mode, "computed": computed,
-            "faults": json.dumps([f["text"] for f in ad.d.faults]), "log": json.dumps(ad.log),
+            "faults": json.dumps([f["text"] for f in ad.faults]), "log": json.dumps(ad.log),
             **{f"in_{k}": v for k, v in _pack_frames(frames_in, buses).items()},
             **{f"out_{k}": v for k, v in _pack_frames(frames_out, buses).items()}, **tele}
 
@@ -377,7 +377,7 @@ async def _replay(z: Any, workdir: Path) -> Replay:
             tele[name] = (z[key], now)
     return Replay(str(z["config"])[:0] or "trace", cycles, computed, (z["mode"], mode), (z["drive_mode"], drive_mode),
                   (frames_rec, frames_out), tele, (errors_rec, errors_now),
-                  (json.loads(str(z["faults"])), [f["text"] for f in ad.d.faults]))
+                  (json.loads(str(z["faults"])), [f["text"] for f in ad.faults]))
 
 
 def replay(name: str, workdir: Path) -> Replay:
