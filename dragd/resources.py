@@ -1,7 +1,8 @@
-"""Files dragd ships with: the drives' EDS and the example configurations (``dragd/data``), the bundled URDFs.
+"""Files dragd ships with: the drives' EDS, the example configurations, the systemd files (``dragd/data``).
 
-``dragd/data`` holds links to the repository's top-level ``canopen_eds/`` and ``config/`` (the sources); a built
-wheel carries their content, so an installed daemon finds them without a checkout beside it.
+``dragd/data`` holds links to the repository's top-level ``canopen_eds/``, ``config/``, ``systemd/`` and
+``docs/SYSTEMD.md`` (the sources); a built wheel carries their content, so an installed daemon finds them without
+a checkout beside it. ``python -m dragd.resources`` prints where they are (docs/SYSTEMD.md installs from there).
 """
 
 from __future__ import annotations
@@ -24,3 +25,20 @@ def config_path(name: str = "default.yaml") -> Path:
 
 def shipped_configs() -> list[Path]:
     return sorted((DATA_DIR / "config").glob("*.yaml"))
+
+
+def systemd_path(name: str) -> Path:
+    """A systemd file shipped with dragd: ``dragd.service``, ``dragd.sysusers.conf``, ``dragd.tmpfiles.conf``."""
+    return DATA_DIR / "systemd" / name
+
+
+def main() -> int:
+    """Print the data directory and every shipped file (one per line) for install scripts."""
+    print(DATA_DIR)
+    for path in sorted(p for p in DATA_DIR.rglob("*") if p.is_file()):
+        print(path)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,8 +1,19 @@
-"""Shared fixtures: paths, the default config, a CLI runner that runs the real `dragd` entry point."""
+"""Shared fixtures: paths, the default config, a CLI runner that runs the real `dragd` entry point; the test tiers.
+
+Tiers (markers registered in pyproject.toml; ``./dev test`` selects them):
+
+- ``unit``: no processes, no real time: runs in parallel (pytest-xdist);
+- ``rig``: the simulator and/or daemon as processes, or wall-clock timing: runs serially;
+- ``slow``: more than ~30 s: only with ``./dev test --all`` (CI).
+
+A test marked neither ``unit`` nor ``rig`` counts as ``rig`` (the safe choice: serial), and rig tests refuse to
+run on more than one xdist worker.
+"""
 
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -13,9 +24,11 @@ REPO = Path(__file__).resolve().parents[1]
 DEFAULT_CONFIG = REPO / "config" / "default.yaml"
 
 
-def run_cli(*args: str, check: bool = True, timeout: float = 120.0, env: dict | None = None) -> subprocess.CompletedProcess:
+def run_cli(*args: str, check: bool = True, timeout: float = 120.0,
+            env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
     """Run ``python -m dragd ARGS`` as a real process."""
-    proc = subprocess.run([sys.executable, "-m", "dragd", *args], capture_output=True, text=True, timeout=timeout, env=env)
+    proc = subprocess.run([sys.executable, "-m", "dragd", *args], capture_output=True, text=True, timeout=timeout,
+                          env=env)
     if check and proc.returncode != 0:
         raise AssertionError(f"dragd {' '.join(args)} failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}")
     return proc
@@ -28,3 +41,22 @@ def cli_json(*args: str) -> dict:
 @pytest.fixture
 def default_config_path() -> Path:
     return DEFAULT_CONFIG
+
+
+# --------------------------------------------------------------------------------------------- tiers
+
+
+@pytest.hookimpl(tryfirst=True)  # before -m deselects: an unmarked test is selected by -m rig, never by -m unit
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        if item.get_closest_marker("unit") is None and item.get_closest_marker("rig") is None:
+            item.add_marker(pytest.mark.rig)
+
+
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    """A rig test fails at once when pytest-xdist runs more than one worker (DRAGD_PARALLEL_RIG=1 overrides)."""
+    workers = int(getattr(item.config, "workerinput", {}).get("workercount", 1))
+    if workers > 1 and item.get_closest_marker("rig") is not None and os.environ.get("DRAGD_PARALLEL_RIG") != "1":
+        pytest.fail(f"a rig test (or one without a unit/rig marker) on {workers} xdist workers: rig tests start "
+                    "processes and depend on timing, so they run serially (./dev test runs unit tests with -n, rig "
+                    "tests without; select -m unit for -n)", pytrace=False)
