@@ -120,3 +120,22 @@ def test_realtime_cycle_thread_leaves_helper_threads_normal() -> None:
     assert r["label"] == "SCHED_FIFO 10"
     assert r["pool"][0] == r["other"] and r["pool"][1].startswith("dragd-exec")
     assert r["to_thread"][0] == r["other"]
+
+
+def test_gravity_beyond_a_current_limit_is_refused_not_clamped(tmp_path) -> None:
+    """A pose whose gravity current exceeds a joint's limit: start (and drag) are refused naming the joint and the
+    numbers, instead of a silently clamped command that lets the arm sag."""
+    import yaml
+
+    from inproc import InProcess
+
+    data = yaml.safe_load(DEFAULT_CONFIG.read_text())
+    data["joints"][1]["current_limit_A"] = 1.0  # the shoulder needs ~5 A at the sim's start pose
+    path = tmp_path / "weak.yaml"
+    path.write_text(yaml.safe_dump(data))
+    arm = InProcess(load_config(path))
+    arm.feed(np.array([0.0, -0.6, 1.2, -0.6, 1.5708, 0.0]))
+    arm.cycle()
+    with pytest.raises(ValueError, match=r"start: joint2 needs \d+\.\d+ A to hold .* above its current_limit_A 1\.00 A"):
+        arm.d.start()
+    assert arm.c.mode.name == "IDLE" and not arm.d.faults

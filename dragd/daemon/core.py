@@ -202,9 +202,22 @@ class Daemon:
 
     # ------------------------------------------------------------------------------------------ operator actions
 
+    def check_gravity_current(self, what: str) -> None:
+        """Refuse (ValueError) where holding the present pose needs more than a joint's current limit: the arm
+        would sag under a clamped command instead of being held."""
+        c, est = self.controller, self.cycle.est
+        for j in range(self.n):
+            need = abs(est.tau_g_Nm[j]) / c.kt[j]
+            if need > c.params.current_limit_A[j]:
+                raise ValueError(
+                    f"{what}: {self.cfg.joints[j].name} needs {need:.2f} A to hold its gravity load of "
+                    f"{est.tau_g_Nm[j]:+.1f} N·m at {est.q_rad[j]:+.3f} rad, above its current_limit_A "
+                    f"{c.params.current_limit_A[j]:.2f} A (check the URDF's masses, the payload, torque_constant)")
+
     def start(self) -> None:
         """Enable the drives (fault reset first) and hold the pose."""
         c = self.controller
+        self.check_gravity_current("start")
         if c.mode == Mode.FAULT:
             self.faults.clear()
         c.start(self.cycle.est.q_rad)
@@ -220,6 +233,8 @@ class Daemon:
         modes = {"idle": Mode.IDLE, "hold": Mode.HOLD, "drag": Mode.DRAG}
         if name not in modes:
             raise ValueError(f"mode: expected one of {', '.join(modes)}, got '{name}'")
+        if modes[name] == Mode.DRAG:
+            self.check_gravity_current("mode drag")
         self.controller.request(modes[name], self.cycle.est.q_rad)
         self.record_events()
 
@@ -316,7 +331,7 @@ class Daemon:
         # a busy helper thread (SDO worker, telemetry encoder) would hold the GIL for the default 5 ms
         sys.setswitchinterval(5e-4)
         if self.recorder.rerun:
-            from dragd.telemetry.writer import rerun_unavailable
+            from dragd.telemetry.sinks import rerun_unavailable
 
             reason = rerun_unavailable()
             if reason:
