@@ -2,8 +2,9 @@
 
 Tiers (markers registered in pyproject.toml; ``./dev test`` selects them):
 
-- ``unit``: no processes, no real time: runs in parallel (pytest-xdist);
-- ``rig``: the simulator and/or daemon as processes, or wall-clock timing: runs serially;
+- ``unit``: no simulator/daemon processes, no wall-clock timing (a ``dragd`` CLI subprocess that only computes is
+  fine): runs in parallel (pytest-xdist);
+- ``rig``: the simulator and/or daemon as processes, or wall-clock timing, or fixed sockets/groups: runs serially;
 - ``slow``: more than ~30 s: only with ``./dev test --all`` (CI).
 
 A test marked neither ``unit`` nor ``rig`` counts as ``rig`` (the safe choice: serial), and rig tests refuse to
