@@ -2,8 +2,9 @@
 
 Every error names the file, the key path and what was expected, e.g.
 ``config/default.yaml: joints[2].gear_ratio: expected a positive number, got 'abc'``.
-Unknown keys are errors. An identified-parameters file (written by ``dragd identify fit``) overrides
-per-joint torque constants and friction of the configuration it is loaded with.
+Unknown keys are errors. ``joints[].name`` are the robot's URDF joint names, in the URDF's order (``load_config``
+checks them against the robot). An identified-parameters file (written by ``dragd identify fit``), keyed by the
+same names, overrides per-joint torque constants and friction of the configuration it is loaded with.
 """
 
 from __future__ import annotations
@@ -338,9 +339,9 @@ class Config(_Strict):
     @model_validator(mode="after")
     def _cross(self) -> Config:
         names = [j.name for j in self.joints]
-        expected = [f"joint{i + 1}" for i in range(len(names))]
-        if names != expected:
-            raise ValueError(f"joints: expected joints named {', '.join(expected)} in order, got {', '.join(names)}")
+        twice = sorted({n for n in names if names.count(n) > 1})
+        if twice:
+            raise ValueError(f"joints: expected each of the URDF's joint names once, got {', '.join(twice)} twice")
         bus_names = [b.name for b in self.buses]
         if len(set(bus_names)) != len(bus_names):
             raise ValueError(f"buses: expected unique bus names, got {bus_names}")
@@ -557,6 +558,38 @@ def format_validation_error(path: str, model: type[BaseModel], exc: ValidationEr
     return "\n".join(lines)
 
 
+# ----------------------------------------------------------------------------------------------- the robot
+
+
+def robot_joint_names(cfg: Config) -> tuple[tuple[str, ...], Path]:
+    """The joint names of the configuration's robot (URDF order) and its URDF file; ConfigError if unloadable."""
+    from dragd.model import RobotModel
+
+    try:
+        model = RobotModel.from_urdf(cfg.robot.urdf, cfg.base_dir)
+    except (FileNotFoundError, ValueError) as exc:
+        raise ConfigError(f"{cfg.source}: robot.urdf: {exc}") from None
+    return model.joint_names, model.urdf_path or Path(cfg.robot.urdf)
+
+
+def check_joint_names(cfg: Config, robot: tuple[tuple[str, ...] | list[str], Path | str]) -> None:
+    """Raise ConfigError unless ``joints[].name`` are the robot's joint names in the URDF's order.
+
+    ``robot``: (the URDF's joint names, the URDF file), as :func:`robot_joint_names` returns them.
+    """
+    names, urdf = list(robot[0]), robot[1]
+    got = cfg.joint_names
+    if got == names:
+        return
+    unknown = [n for n in got if n not in names]
+    missing = [n for n in names if n not in got]
+    what = "; ".join(x for x in (f"unknown {', '.join(unknown)}" if unknown else "",
+                                 f"missing {', '.join(missing)}" if missing else "",
+                                 "out of order" if not unknown and not missing else "") if x)
+    raise ConfigError(f"{cfg.source}: joints[].name: expected the robot's joints {', '.join(names)} in this order "
+                      f"(from {urdf}), got {', '.join(got)} ({what})")
+
+
 # ----------------------------------------------------------------------------------------------- loading
 
 
@@ -642,8 +675,11 @@ def apply_params(cfg: Config, params: ParamsFile, source: str = "params") -> Con
     return out.model_copy(update={"source": cfg.source})
 
 
-def load_config(path: str | Path | None = None, params: str | Path | None = None) -> Config:
-    """Load and validate a configuration file; overlay its ``params`` file, or ``params`` when given."""
+def load_config(path: str | Path | None = None, params: str | Path | None = None, robot: bool = True) -> Config:
+    """Load and validate a configuration file; overlay its ``params`` file, or ``params`` when given.
+
+    ``robot``: check ``joints[].name`` against the robot's URDF (:func:`check_joint_names`).
+    """
     path = Path(path) if path is not None else default_config_path()
     data = _read_yaml(path)
     if not isinstance(data, dict):
@@ -654,6 +690,8 @@ def load_config(path: str | Path | None = None, params: str | Path | None = None
         cfg = Config.model_validate({**data, "source": str(path)})
     except ValidationError as exc:
         raise ConfigError(format_validation_error(str(path), Config, exc)) from None
+    if robot:
+        check_joint_names(cfg, robot_joint_names(cfg))
     params_path = Path(params) if params is not None else (cfg.base_dir / cfg.params if cfg.params else None)
     if params_path is not None:
         cfg = apply_params(cfg, load_params(params_path), str(params_path))

@@ -3,6 +3,10 @@
 A YAML file (default ``sim/config/seed_cobot.yaml``) validated by a pydantic schema. Every error names the
 file, the key path and the expectation, e.g.
 ``sim/config/seed_cobot.yaml: joints[2].gear_ratio: expected a positive number, got 'abc'``.
+Any other robot: :func:`truth_for_robot` makes a truth from its URDF alone (joint names from the URDF, drives
+sized to hold its gravity, modest friction and Hall noise); ``load_truth`` does so for a ``.urdf`` path or a bundled
+robot without a truth file, so ``python -m sim run --config path/to/robot.urdf`` simulates it, and
+``python -m sim.truth --robot path/to/robot.urdf`` prints that truth as YAML to tune.
 
 Conventions (joint side unless a name says otherwise): rad, rad/s, N·m, A of motor current.
 Negative-direction friction levels are negative numbers (as in dragd's config); viscous slopes are >= 0.
@@ -23,7 +27,8 @@ if TYPE_CHECKING:
     from dragd.model import RobotModel
     from sim.drive import DriveParams
 
-DEFAULT_TRUTH = Path(__file__).resolve().parent / "config" / "seed_cobot.yaml"
+CONFIG_DIR = Path(__file__).resolve().parent / "config"
+DEFAULT_TRUTH = CONFIG_DIR / "seed_cobot.yaml"
 
 PosFloat = Annotated[float, Field(gt=0, allow_inf_nan=False), Expect("a positive number")]
 NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False), Expect("a number >= 0")]
@@ -289,7 +294,13 @@ def validate_truth(data: Any, source: str = "<memory>") -> Truth:
 
 
 def load_truth(path: str | Path | None = None) -> Truth:
-    """Load the truth file (default: the bundled seed cobot's)."""
+    """Load the truth file (default: the bundled seed cobot's); a ``.urdf`` file or a bundled robot name: its
+    curated truth under sim/config/ if there is one, else :func:`truth_for_robot`."""
+    from dragd.robots import BUNDLED
+
+    if path is not None and (str(path) in BUNDLED or str(path).endswith(".urdf")):
+        curated = CONFIG_DIR / f"{path}.yaml"
+        return load_truth(curated) if str(path) in BUNDLED and curated.is_file() else truth_for_robot(path)
     path = Path(path) if path is not None else DEFAULT_TRUTH
     try:
         data = _read_yaml(path)
@@ -412,3 +423,90 @@ def params_from_truth(truth: Truth) -> dict[str, Any]:
     if truth.payload is not None:
         out["payload"] = truth.payload.model_dump()
     return out
+
+
+# ------------------------------------------------------------------------------------------ any robot
+
+
+def truth_for_robot(robot: str | Path, base_dir: Path | None = None, *,
+                    gravity_m_s2: tuple[float, float, float] = (0.0, 0.0, -9.81), noise_seed: int = 1,
+                    initial_q_rad: list[float] | None = None) -> Truth:
+    """A truth for any URDF: joint names and ranges from it, drives sized as ``dragd config init`` sizes them
+    (dragd/robots/sizing.py: they hold the robot's gravity) with the true K_t 0.5-3 % below that belief, friction
+    about 5 % of each joint's peak torque (Coulomb; static 1.3×, viscous 6 %/(rad/s), 2-8 % direction asymmetry),
+    20 mA Hall noise, a 12-bit current ADC, hard stops 0.05 rad beyond the URDF's limits. Deterministic per
+    ``noise_seed``; starts at ``initial_q_rad`` (default: the URDF's zero, moved inside the ranges)."""
+    from dragd.model import RobotModel
+    from dragd.robots import urdf_reference
+    from dragd.robots.sizing import ENCODER_COUNTS_PER_REV, GEAR_RATIO, size_joints
+
+    try:
+        ref = urdf_reference(robot, base_dir)
+        model = RobotModel.from_urdf(ref, base_dir, gravity_m_s2)
+    except (FileNotFoundError, ValueError) as exc:
+        raise TruthError(f"robot {robot}: {exc}") from None
+    sizes = size_joints(model)
+    rng = np.random.default_rng(noise_seed)
+    q0 = initial_q_rad if initial_q_rad is not None else [min(max(0.0, s.lower_rad + 0.2), s.upper_rad - 0.2)
+                                                           for s in sizes]
+    if len(q0) != len(sizes):
+        raise TruthError(f"initial_q_rad: expected {len(sizes)} values ({', '.join(model.joint_names)}), got {len(q0)}")
+    joints = []
+    for i, sz in enumerate(sizes):
+        peak, limit, large = sz.peak_torque_Nm, sz.current_limit_A, sz.large
+        fc, asym = 0.05 * peak, float(rng.uniform(0.92, 0.98))
+        joints.append({
+            "name": sz.name,
+            "drive": {"node_id": i + 1, "rated_current_A": sz.rated_current_A, "rated_torque_Nm": sz.rated_motor_torque_Nm,
+                      "max_torque_permille": 3000, "max_current_A": limit, "encoder_counts_per_rev": ENCODER_COUNTS_PER_REV,
+                      # the seed cobot's CSP stiffness and damping relative to the drive's peak torque
+                      "csp_kp_A_per_rad": limit * 10.0 / 3.0, "csp_kd_A_s_per_rad": limit / (6.0 if large else 12.0)},
+            "gear_ratio": GEAR_RATIO,
+            "torque_constant_Nm_per_A": sz.kt_Nm_per_A * float(rng.uniform(0.97, 0.995)),  # a real gear loses a little
+            "rotor_inertia_kgm2": 1.7e-4 * sz.rated_motor_torque_Nm,  # the seed's motors: 1.7e-4 kg·m² per N·m rated
+            "current_loop_time_constant_s": 3.0e-4 if large else 2.5e-4,
+            "current_noise_std_A": 0.020,
+            "current_quantum_A": 2.0 * limit * 5.0 / 3.0 / 4096,  # 12-bit ADC over ±5/3 of the current limit
+            "friction": {"coulomb_pos_Nm": fc, "coulomb_neg_Nm": -fc * asym, "static_pos_Nm": 1.3 * fc,
+                         "static_neg_Nm": -1.3 * fc * asym, "stribeck_velocity_rad_s": 0.02 if large else 0.03,
+                         "stribeck_exponent": 1.5, "viscous_pos_Nm_s_per_rad": 0.06 * peak,
+                         "viscous_neg_Nm_s_per_rad": 0.06 * peak * asym},
+            "hard_stops": {"lower_rad": sz.lower_rad - 0.05, "upper_rad": sz.upper_rad + 0.05,
+                           "stiffness_Nm_per_rad": 20000.0 if large else 10000.0,
+                           "damping_Nm_s_per_rad": 100.0 if large else 30.0},
+            "brake_holding_torque_Nm": 1.4 * peak,
+            "initial_position_rad": float(q0[i]),
+        })
+    data = {"robot": ref, "gravity_m_s2": list(gravity_m_s2), "noise_seed": noise_seed, "joints": joints}
+    return validate_truth(data, f"<truth for {ref}>")
+
+
+def truth_yaml(truth: Truth) -> str:
+    """A truth as a YAML file's text (``load_truth`` reads it back)."""
+    import yaml
+
+    head = (f"# The simulated {Path(truth.robot).stem}'s truth, generated from its URDF by sim/truth.py "
+            "truth_for_robot;\n# dragd never reads this file. Joint side: rad, rad/s, N·m, A of motor current.\n")
+    return head + yaml.safe_dump(truth.model_dump(mode="json"), sort_keys=False, default_flow_style=None, width=110)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m sim.truth --robot PATH [--seed N]``: print a generated truth as YAML (to tune, then --config)."""
+    import argparse
+    import sys
+
+    parser = argparse.ArgumentParser(prog="python -m sim.truth", description=main.__doc__)
+    parser.add_argument("--robot", required=True, help="bundled robot name or URDF path")
+    parser.add_argument("--seed", type=int, default=1, help="noise seed (also varies K_t and friction asymmetry)")
+    args = parser.parse_args(argv)
+    try:
+        truth = truth_for_robot(args.robot, Path.cwd(), noise_seed=args.seed)
+    except TruthError as exc:
+        print(f"sim: {exc}", file=sys.stderr)
+        return 2
+    sys.stdout.write(truth_yaml(truth))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -59,6 +59,7 @@ class Limits:
     upper_rad: np.ndarray
     velocity_rad_s: np.ndarray
     acceleration_rad_s2: np.ndarray
+    names: tuple[str, ...] = ()  # the robot's joint names (URDF order), for messages
 
     @classmethod
     def from_model(cls, model: Any, cfg: Any | None = None, margin_rad: float = 0.15,
@@ -74,7 +75,12 @@ class Limits:
                 vel[i] = min(vel[i], j.velocity_limit_rad_s)
             margin_rad = margin_rad + cfg.safety.soft_limit_margin_rad
         n = lo.shape[0]
-        return cls(lo + margin_rad, hi - margin_rad, vel * velocity_scale, np.full(n, float(acceleration_rad_s2)))
+        return cls(lo + margin_rad, hi - margin_rad, vel * velocity_scale, np.full(n, float(acceleration_rad_s2)),
+                   tuple(getattr(model, "joint_names", ())))
+
+    def label(self, i: int) -> str:
+        """Joint ``i``'s name (the URDF's), or its number when the limits carry no names."""
+        return self.names[i] if i < len(self.names) else f"joint #{i + 1}"
 
     @property
     def n(self) -> int:
@@ -110,7 +116,7 @@ class Plan:
         out = []
         dq, ddq = self.derivatives()
         for i in range(self.n):
-            name = f"joint{i + 1}"
+            name = limits.label(i)
             lo, hi = self.q_rad[:, i].min(), self.q_rad[:, i].max()
             if lo < limits.lower_rad[i] - 1e-9 or hi > limits.upper_rad[i] + 1e-9:
                 out.append(f"{name}: position [{lo:.3f}, {hi:.3f}] rad outside [{limits.lower_rad[i]:.3f}, "
@@ -208,7 +214,7 @@ class PlanBuilder:
         bad = np.nonzero((self.q < limits.lower_rad - 1e-9) | (self.q > limits.upper_rad + 1e-9))[0]
         if bad.size:
             raise PlanError("plan: start pose outside the identification limits (soft limits minus margin) at "
-                            + ", ".join(f"joint{i + 1} = {self.q[i]:.3f} rad not in [{limits.lower_rad[i]:.3f}, "
+                            + ", ".join(f"{limits.label(i)} = {self.q[i]:.3f} rad not in [{limits.lower_rad[i]:.3f}, "
                                         f"{limits.upper_rad[i]:.3f}]" for i in bad))
         self.t_parts: list[np.ndarray] = [np.zeros(1)]
         self.q_parts: list[np.ndarray] = [self.q[None, :].copy()]

@@ -23,3 +23,9 @@ def resolve_urdf(name_or_path: str | Path, base_dir: Path | None = None) -> Path
         names = ", ".join(sorted(BUNDLED))
         raise FileNotFoundError(f"robot '{text}': no such URDF file ({path}) and no bundled robot of that name (bundled: {names})")
     return path
+
+
+def urdf_reference(name_or_path: str | Path, base_dir: Path | None = None) -> str:
+    """How a configuration or sim truth names a robot: a bundled name as is, a URDF file by its absolute path."""
+    text = str(name_or_path)
+    return text if text in BUNDLED else str(resolve_urdf(name_or_path, base_dir).resolve())
