@@ -66,7 +66,7 @@ class Kinematics:
                                   "pose is out of reach or at a singularity")
         if np.any(q < self.lower - 1e-9) or np.any(q > self.upper + 1e-9):
             j = int(np.argmax(np.maximum(self.lower - q, q - self.upper)))
-            raise KinematicsError(f"inverse kinematics: the solution leaves the limits of joint{j + 1} "
+            raise KinematicsError(f"inverse kinematics: the solution leaves the limits of {self.model.names[j + 1]} "
                                   f"({q[j]:.3f} rad, limits [{self.lower[j]:.3f}, {self.upper[j]:.3f}])")
         return q
 

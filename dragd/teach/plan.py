@@ -328,9 +328,9 @@ def circle_piece(q1: np.ndarray, q2: np.ndarray, q3: np.ndarray, names: tuple[st
         dev = np.abs(Q[i] - qt)
         if dev.max() > tolerance_rad:
             j = int(np.argmax(dev))
-            raise PlanError(f"circular: the circle reaches {name} in another arm configuration (joint{j + 1} differs by "
-                            f"{math.degrees(dev[j]):.1f}°); teach points the arm can join without reconfiguring, or "
-                            "use linear")
+            raise PlanError(f"circular: the circle reaches {name} in another arm configuration "
+                            f"({kin.model.names[j + 1]} differs by {math.degrees(dev[j]):.1f}°); teach points the arm "
+                            "can join without reconfiguring, or use linear")
         Q[i] = qt  # the taught encoder positions exactly (the IK agrees to ~1e-10)
     Q[-1] = Q[0]
     spline = CubicSpline(theta, Q, bc_type="periodic")
@@ -417,7 +417,7 @@ def assemble(pieces: list[Piece], dt: float, body_index: int, waypoint_q: dict[s
     return Plan(dt, np.vstack(qs), np.vstack(dqs), np.vstack(ddqs), body_row, marks, segs, {})
 
 
-def _check_soft_limits(plan: Plan, lim: Limits) -> None:
+def _check_soft_limits(plan: Plan, lim: Limits, names: list[str]) -> None:
     lo = plan.q < lim.lower
     hi = plan.q > lim.upper
     if lo.any() or hi.any():
@@ -425,7 +425,7 @@ def _check_soft_limits(plan: Plan, lim: Limits) -> None:
         r, j = np.argwhere(bad)[0]
         t = r * plan.dt
         seg = next((s["label"] for s in plan.segments if s["t0_s"] <= t < s["t1_s"]), "?")
-        raise PlanError(f"the motion leaves the soft limits of joint{j + 1} at t = {t:.2f} s ({seg}): "
+        raise PlanError(f"the motion leaves the soft limits of {names[j]} at t = {t:.2f} s ({seg}): "
                         f"{plan.q[r, j]:.3f} rad outside [{lim.lower[j]:.3f}, {lim.upper[j]:.3f}]")
 
 
@@ -559,7 +559,7 @@ def plan_program(program: Program, req: ReplayRequest, model: pin.Model) -> Plan
                         "split the program")
     plan = assemble(fitted, dt, len(intro), wq)
     plan.info = info
-    _check_soft_limits(plan, lim)
+    _check_soft_limits(plan, lim, list(model.names[1:]))
     if req.feedforward:
         plan.ff_Nm = feedforward(model, plan)
     return plan
