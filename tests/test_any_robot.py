@@ -22,6 +22,7 @@ from dragd.config import ConfigError, load_config
 from dragd.model import RobotModel
 
 from conftest import run_cli
+from daemon_helpers import AS_DEPLOYED
 
 ROBOTS = ("ur5", "ur10")
 START = "0,-0.5,0.8,-1.57,-1.57,0"  # elbow up, wrist down: every joint's identification range is reachable
@@ -205,7 +206,7 @@ def test_ur5_drag_on_the_simulator(configs, tmp_path):
 
     truth = tmp_path / "ur5_truth.yaml"
     truth.write_text(truth_yaml(truth_for_robot(erd_urdf("ur5"), initial_q_rad=[0.0, -0.5, 0.8, -1.57, -1.57, 0.0])))
-    rig = Rig("ur5", workdir=tmp_path, config=configs["ur5"], sim_config=truth)
+    rig = Rig("ur5", workdir=tmp_path, config=configs["ur5"], sim_config=truth, **AS_DEPLOYED)
     try:
         rig.start_sim()
         rig.start_daemon()
