@@ -7,7 +7,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from dragd.cli.app import CliError, _add_config, _emit, _table
+from dragd.cli.common import CliError, add_config, emit, table
 
 
 def _joints(text: str | None, n: int) -> list[int]:
@@ -39,7 +39,7 @@ def _bench(args: argparse.Namespace, joints_arg: str | None):  # noqa: ANN202
 def cmd_startup(args: argparse.Namespace) -> int:
     from dragd.lab.experiment import plots
     from dragd.lab.experiment.startup import run_startup
-    from dragd.telemetry.writer import read_rows
+    from dragd.telemetry.reader import read_rows
 
     bench, joints = _bench(args, args.joints)
     result = run_startup(bench, joints, reps=args.reps, ramp_s=args.ramp_s)
@@ -54,10 +54,10 @@ def cmd_startup(args: argparse.Namespace) -> int:
     def text(d: dict[str, Any]) -> str:
         rows = [(n, v["starting_torque_without_Nm"], v["starting_torque_with_Nm"], f"{v['reduction_pct']:.2f}",
                  f"{v['oscillation_deg']:.4f}") for n, v in d["joints"].items()]
-        return (_table(["joint", "without_Nm", "with_Nm", "reduction_%", "oscillation_°"], rows)
+        return (table(["joint", "without_Nm", "with_Nm", "reduction_%", "oscillation_°"], rows)
                 + f"\nmean reduction {d['mean_reduction_pct']:.2f} % (seed 001: 60.58 %)")
 
-    _emit(args, result, text)
+    emit(args, result, text)
     return 0
 
 
@@ -87,11 +87,11 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         rows = [(p["frequency_Hz"], p["starting_torque_Nm"], f"{p['oscillation_deg']:.4f}") for p in d["points"]]
         cmp = [(k, v["starting_torque_Nm"], f"{v['oscillation_deg']:.4f}", v["handover_step_A"])
                for k, v in d["comparisons"].items()]
-        return (_table(["frequency_Hz", "starting_torque_Nm", "oscillation_°"], rows)
+        return (table(["frequency_Hz", "starting_torque_Nm", "oscillation_°"], rows)
                 + f"\nchosen {d['best_frequency_Hz']} Hz\n"
-                + _table(["variant", "starting_torque_Nm", "oscillation_°", "handover_step_A"], cmp))
+                + table(["variant", "starting_torque_Nm", "oscillation_°", "handover_step_A"], cmp))
 
-    _emit(args, result, text)
+    emit(args, result, text)
     return 0
 
 
@@ -109,9 +109,9 @@ def cmd_quality(args: argparse.Namespace) -> int:
     def text(d: dict[str, Any]) -> str:
         rows = [(n, v["effort_uncompensated_Nm"], v["effort_compensated_Nm"], v["effort_pct"], v["drift_after_release_deg"])
                 for n, v in d["joints"].items()]
-        return _table(["joint", "uncompensated_Nm", "drag_Nm", "effort_%", "drift_°"], rows)
+        return table(["joint", "uncompensated_Nm", "drag_Nm", "effort_%", "drift_°"], rows)
 
-    _emit(args, result, text)
+    emit(args, result, text)
     return 0
 
 
@@ -124,7 +124,7 @@ def register(sub: Any) -> None:
     esub.required = True
 
     def common(p: argparse.ArgumentParser) -> None:
-        _add_config(p)
+        add_config(p)
         p.add_argument("--reps", type=int, default=2, help="repetitions per joint (alternating direction; default 2)")
         p.add_argument("--plots", help="write PNG figures to this folder")
         p.add_argument("--work-dir", help="keep the rigs' logs and MCAP recordings here (default: a temp folder)")

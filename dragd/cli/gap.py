@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from dragd.cli.app import CliError, _add_config, _emit, _table
+from dragd.cli.common import CliError, add_config, emit, table
 
 
 def cmd_gap(args: argparse.Namespace) -> int:
@@ -57,13 +57,13 @@ def cmd_gap(args: argparse.Namespace) -> int:
         lines = [f"{args.measured}: baseline ({det['baseline_kind']}) RMSE {ma(d['baseline']['rmse_A'])} mA → "
                  f"{ma(d['final']['rmse_A'])} mA (noise {ma(det['noise_A'])} mA)"]
         if d["effects"]:
-            lines.append(_table(["effect", "joints", "RMSE after mA"],
+            lines.append(table(["effect", "joints", "RMSE after mA"],
                                 [(e["effect"], ",".join(e["joints"]), ma(e["rmse_A"])) for e in d["effects"]]))
         else:
             lines.append("nothing missing: no effect improves the held-out error")
         rows = [(nm, ma(v["rmse_A"]), ma(det["final_joints"][nm]["rmse_A"]), ma(v["noise_A"]))
                 for nm, v in d["baseline"]["joints"].items()]
-        lines.append(_table(["joint", "before mA", "after mA", "noise mA"], rows))
+        lines.append(table(["joint", "before mA", "after mA", "noise mA"], rows))
         if extra.get("out"):
             lines.append(f"extended model: {extra['out']}")
         if extra.get("report"):
@@ -71,7 +71,7 @@ def cmd_gap(args: argparse.Namespace) -> int:
         lines += [f"warning: {w}" for w in det["warnings"]]
         return "\n".join(lines)
 
-    _emit(args, data, text)  # --json: exactly baseline, effects, final (details: the report's gap.json)
+    emit(args, data, text)  # --json: exactly baseline, effects, final (details: the report's gap.json)
     return 0
 
 
@@ -88,6 +88,6 @@ def register(sub: Any) -> None:
     p.add_argument("--out", help="write the extended model (params YAML: the daemon, `dragd model` and the sim load it)")
     p.add_argument("--report", help="directory for the report (report.md, PNG residual plots before/after)")
     p.add_argument("--effects", help=f"candidates to consider (default all): {','.join(NAMES)}")
-    _add_config(p, params=False)
+    add_config(p, params=False)
     p.add_argument("--json", action="store_true", help="print JSON: baseline, effects, final (+ details)")
     p.set_defaults(func=cmd_gap)

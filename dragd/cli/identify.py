@@ -12,7 +12,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from dragd.cli.app import CliError, _add_config, _emit, _floats, _table
+from dragd.cli.common import CliError, add_config, add_socket, emit, floats, table
 
 FIT_METHODS = ("lowspeed", "symmetric", "synchronous", "full", "auto")
 
@@ -54,14 +54,14 @@ def _build_plan(args: argparse.Namespace, q_start: list[float] | None = None):  
     limits = Limits.from_model(model, cfg, margin_rad=args.margin, acceleration_rad_s2=args.acceleration)
     if q_start is None:
         if args.start:
-            q_start = _floats(args.start, "--start")
+            q_start = floats(args.start, "--start")
         else:
             raise CliError("--start: the plan's start pose is needed (the robot's current pose; "
                            "'dragd identify run --plan KIND' takes it from the daemon)")
     q0 = np.array(q_start, dtype=float)
     if q0.shape[0] != model.nq:
         raise CliError(f"--start: expected {model.nq} values ({', '.join(model.joint_names)}), got {q0.shape[0]}")
-    joints = [int(x) for x in _floats(args.joints, "--joints")] if args.joints else None
+    joints = [int(x) for x in floats(args.joints, "--joints")] if args.joints else None
     try:
         return build_plan(args.kind, model, q0, limits, joints=joints, scale=args.scale, seed=args.seed)
     except PlanError as exc:
@@ -79,7 +79,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
         kinds[s.kind] = kinds.get(s.kind, 0) + 1
     data = {"out": str(out), "kind": args.kind, "duration_s": round(plan.duration_s, 3), "samples": int(plan.t_s.shape[0]),
             "segments": kinds, "info": plan.info}
-    _emit(args, data, lambda d: f"{d['out']}: {d['kind']} plan, {d['duration_s']:.1f} s "
+    emit(args, data, lambda d: f"{d['out']}: {d['kind']} plan, {d['duration_s']:.1f} s "
                                 f"({', '.join(f'{v} {k}' for k, v in d['segments'].items())})")
     return 0
 
@@ -115,7 +115,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         res = run_plan(call, plan, args.out, progress=not args.no_progress and not args.json, chunk_s=args.chunk)
     except RunError as exc:
         raise CliError(str(exc), status=1) from None
-    _emit(args, res, lambda d: f"{d['log']}: {d['rows']} rows recorded ({d['plan']}, {d['plan_duration_s']:.1f} s plan, "
+    emit(args, res, lambda d: f"{d['log']}: {d['rows']} rows recorded ({d['plan']}, {d['plan_duration_s']:.1f} s plan, "
                                f"{d['chunks']} motion(s), {d['wall_time_s']:.0f} s)"
                                + (" — interrupted" if d.get("interrupted") else "")
                                + (f"; faults: {d['faults']}" if d.get("faults") else ""))
@@ -140,7 +140,7 @@ def _fit_text(d: dict[str, Any]) -> str:
                      f(fr["static_pos_A"]), f(fr["static_neg_A"]), f(fr["stribeck_velocity_rad_s"], fmt=".3f")))
     lines = [f"method {d['method']} on {d['log']} (load {d.get('load_s', 0):.1f} s, fit {d.get('elapsed_s', 0):.1f} s) "
              f"→ {d.get('out')}",
-             _table(["joint", "K_t N·m/A", "F_c+ A", "F_c- A", "F_v A·s/rad", "F_s+ A", "F_s- A", "v_s rad/s"], rows)]
+             table(["joint", "K_t N·m/A", "F_c+ A", "F_c- A", "F_v A·s/rad", "F_s+ A", "F_s- A", "v_s rad/s"], rows)]
     for name, j in d["joints"].items():
         seen = set()
         for k, why in j["reasons"].items():
@@ -178,7 +178,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     data = res.to_json()
     data["out"] = str(out)
     data["load_s"] = round(load_s, 3)
-    _emit(args, data, _fit_text)
+    emit(args, data, _fit_text)
     return 0
 
 
@@ -217,12 +217,12 @@ def cmd_check(args: argparse.Namespace) -> int:
                  j.get("reason", "")) for nm, j in d["joints"].items()]
         lines = [f"{args.log} predicted with {args.params} ({d['mask']} samples, {d['terms']} model): "
                  f"RMSE {ma(d['rmse_A'])} mA overall",
-                 _table(["joint", "RMSE mA", "MAE mA", "max mA", "samples", "note"], rows)]
+                 table(["joint", "RMSE mA", "MAE mA", "max mA", "samples", "note"], rows)]
         lines += [f"warning: {w}" for w in d.get("warnings", [])]
         lines += [f"plot: {p}" for p in d.get("plots", [])]
         return "\n".join(lines)
 
-    _emit(args, data, text)
+    emit(args, data, text)
     return 0
 
 
@@ -230,7 +230,6 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 
 def register(sub: Any) -> None:
-    from dragd.cli.daemon import DEFAULT_SOCKET
     from dragd.identify.excitation import PLAN_KINDS
 
     p = sub.add_parser("identify", help="identification: excitation plans, runs, fits, checks (docs/IDENTIFICATION.md)")
@@ -244,7 +243,7 @@ def register(sub: Any) -> None:
         q.add_argument("--acceleration", type=float, default=1.5, help="joint acceleration limit [rad/s²]")
         q.add_argument("--seed", type=int, default=5, help="random seed of pose choices and the Fourier optimisation")
         q.add_argument("--robot", help="bundled robot name or URDF path (default: the configuration's robot)")
-        _add_config(q, params=False)
+        add_config(q, params=False)
 
     pl = isub.add_parser("plan", help="write an excitation plan (.npz: t_s, q_rad, segments)")
     pl.add_argument("--kind", required=True, choices=PLAN_KINDS, help="lowspeed (seed 000), symmetric and friction "
@@ -259,8 +258,7 @@ def register(sub: Any) -> None:
     rn.add_argument("--plan", required=True, help=f"plan file (.npz) or a kind ({', '.join(PLAN_KINDS)}) built from "
                                                  "the current pose")
     rn.add_argument("--out", required=True, help="MCAP file the daemon records the run to")
-    rn.add_argument("--socket", default=DEFAULT_SOCKET, help=f"daemon control socket (default {DEFAULT_SOCKET})")
-    rn.add_argument("--timeout", type=float, default=30.0, help="seconds to wait for each daemon answer")
+    add_socket(rn, timeout=30.0, json_flag=False)
     rn.add_argument("--chunk", type=float, default=600.0, help="longest single motion [s]; longer plans are cut at rests")
     rn.add_argument("--no-progress", action="store_true", help="no progress bar")
     plan_opts(rn)
@@ -274,7 +272,7 @@ def register(sub: Any) -> None:
                     "synchronous (seed 002), full (rigid-body base parameters + friction), auto (default)")
     ft.add_argument("--out", required=True, help="params file to write (YAML; the model, daemon and sim load it)")
     ft.add_argument("--cutoff", type=float, default=None, help="regression filter cutoff [Hz] (default 5)")
-    _add_config(ft, params=False)
+    add_config(ft, params=False)
     ft.add_argument("--json", action="store_true", help="print JSON")
     ft.set_defaults(func=cmd_fit)
 
@@ -287,7 +285,7 @@ def register(sub: Any) -> None:
     ck.add_argument("--terms", default="rigid", choices=("rigid", "gravity"),
                     help="rigid-body torque from the URDF (default) or gravity only (what drag compensates)")
     ck.add_argument("--plots", help="directory for PNG plots of measured vs predicted current per joint")
-    _add_config(ck, params=False)
+    add_config(ck, params=False)
     ck.add_argument("--json", action="store_true", help="print JSON")
     ck.set_defaults(func=cmd_check)
 

@@ -12,16 +12,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-from dragd.cli.app import CliError, _add_config, _emit, _table
-from dragd.cli.daemon import DEFAULT_SOCKET, _call
+from dragd.cli.common import CliError, add_config, add_socket, emit, table
+from dragd.cli.daemon import call_daemon
 
 REPLAY_ACTIONS = ("pause", "resume", "stop", "speed", "status")
-
-
-def _add_socket(p: argparse.ArgumentParser, timeout: float = 10.0) -> None:
-    p.add_argument("--socket", default=DEFAULT_SOCKET, help=f"daemon control socket (default {DEFAULT_SOCKET})")
-    p.add_argument("--timeout", type=float, default=timeout, help=f"seconds to wait for the daemon (default {timeout:g})")
-    p.add_argument("--json", action="store_true", help="print JSON")
 
 
 def _program_arg(text: str) -> str:
@@ -42,9 +36,9 @@ def cmd_teach_start(args: argparse.Namespace) -> int:
     kw: dict[str, Any] = {"action": "start", "name": _program_arg(args.name), "overwrite": args.overwrite}
     if args.rate is not None:
         kw["rate_Hz"] = args.rate
-    resp = _call(args, "teach", **kw)
+    resp = call_daemon(args, "teach", **kw)
     resp.pop("ok", None)
-    _emit(args, resp, lambda d: f"teaching '{d['name']}' → {d['program']} (positions at {d['rate_Hz']:g} Hz, raw MCAP "
+    emit(args, resp, lambda d: f"teaching '{d['name']}' → {d['program']} (positions at {d['rate_Hz']:g} Hz, raw MCAP "
                                 f"{d['mcap']}); mode {d['mode']}: guide the arm, 'dragd teach mark' at each waypoint")
     return 0
 
@@ -53,16 +47,16 @@ def cmd_teach_mark(args: argparse.Namespace) -> int:
     kw: dict[str, Any] = {"action": "mark"}
     if args.name:
         kw["name"] = args.name
-    resp = _call(args, "teach", **kw)
+    resp = call_daemon(args, "teach", **kw)
     resp.pop("ok", None)
-    _emit(args, resp, lambda d: f"{d['name']} (waypoint {d['index']}) at t = {d['t_s']:.3f} s: q = [{_deg(d['q_rad'])}]°")
+    emit(args, resp, lambda d: f"{d['name']} (waypoint {d['index']}) at t = {d['t_s']:.3f} s: q = [{_deg(d['q_rad'])}]°")
     return 0
 
 
 def cmd_teach_stop(args: argparse.Namespace) -> int:
-    resp = _call(args, "teach", action="stop")
+    resp = call_daemon(args, "teach", action="stop")
     resp.pop("ok", None)
-    _emit(args, resp, lambda d: f"program '{d['name']}' written: {d['program']} ({d['waypoints']} waypoints, "
+    emit(args, resp, lambda d: f"program '{d['name']}' written: {d['program']} ({d['waypoints']} waypoints, "
                                 f"{d['samples']} samples over {d['duration_s']:.1f} s; raw MCAP {d['mcap']})")
     return 0
 
@@ -76,7 +70,7 @@ def _programs_text(d: dict[str, Any]) -> str:
             rows.append((p["name"], p["waypoints"], p["samples"], f"{p['duration_s']:.1f}", p["created"]))
     if not rows:
         return f"no programs in {d['program_dir']}"
-    return f"{d['program_dir']}:\n" + _table(["program", "waypoints", "samples", "duration_s", "created"], rows)
+    return f"{d['program_dir']}:\n" + table(["program", "waypoints", "samples", "duration_s", "created"], rows)
 
 
 def cmd_teach_list(args: argparse.Namespace) -> int:
@@ -85,9 +79,9 @@ def cmd_teach_list(args: argparse.Namespace) -> int:
 
         data = {"program_dir": str(args.dir), "programs": list_programs(args.dir)}
     else:
-        data = _call(args, "teach", action="list")
+        data = call_daemon(args, "teach", action="list")
         data.pop("ok", None)
-    _emit(args, data, _programs_text)
+    emit(args, data, _programs_text)
     return 0
 
 
@@ -112,7 +106,7 @@ def cmd_teach_show(args: argparse.Namespace) -> int:
             lines.append(f"  {name}: [{_deg(q)}]°")
         return "\n".join(lines)
 
-    _emit(args, data, text)
+    emit(args, data, text)
     return 0
 
 
@@ -140,7 +134,7 @@ def cmd_teach_keyframes(args: argparse.Namespace) -> int:
         prog.notes = {**prog.notes, "keyframe_tolerance_deg": args.tolerance_deg}
         save_program(prog, args.program)
         data["written"] = True
-    _emit(args, data, lambda d: f"{d['keyframes']} keyframes from {d['samples']} samples ({d['kinds']}); the spline "
+    emit(args, data, lambda d: f"{d['keyframes']} keyframes from {d['samples']} samples ({d['kinds']}); the spline "
                                 f"through them stays within {d['max_deviation_deg']:.3f}° of the recording"
                                 + (" — written to the program" if d["written"] else ""))
     return 0
@@ -178,12 +172,12 @@ def cmd_replay(args: argparse.Namespace) -> int:
                           "cycles": args.cycles}
     if args.source:
         kw["source"] = args.source
-    resp = _call(args, "replay", **kw)
+    resp = call_daemon(args, "replay", **kw)
     resp.pop("ok", None)
     if args.wait:
         end = time.monotonic() + args.wait_timeout
         while time.monotonic() < end:
-            st = _call(args, "status")
+            st = call_daemon(args, "status")
             r = st.get("replay") or {}
             if r.get("outcome"):
                 resp["outcome"] = r["outcome"]
@@ -193,9 +187,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
         else:
             raise CliError(f"replay: still running after {args.wait_timeout:.0f} s (--wait-timeout)", status=1)
         if resp["outcome"] != "done":
-            _emit(args, resp, lambda d: f"replay ended: {d['outcome']}")
+            emit(args, resp, lambda d: f"replay ended: {d['outcome']}")
             return 1
-    _emit(args, resp, lambda d: f"replaying {d['program']} ({d['interp']}, {d['source']}): move to start "
+    emit(args, resp, lambda d: f"replaying {d['program']} ({d['interp']}, {d['source']}): move to start "
                                 f"{d['move_to_start_s']:.1f} s, cycle {d['cycle_s']:.1f} s"
                                 + (f" → {d['outcome']}" if "outcome" in d else ""))
     return 0
@@ -203,9 +197,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 def _replay_action(args: argparse.Namespace, action: str) -> int:
     if action == "status":
-        st = _call(args, "status")
+        st = call_daemon(args, "status")
         data = {"replay": st.get("replay"), "mode": st["mode"]}
-        _emit(args, data, _replay_text)
+        emit(args, data, _replay_text)
         return 0
     if action == "speed":
         if args.value is None:
@@ -216,15 +210,15 @@ def _replay_action(args: argparse.Namespace, action: str) -> int:
             raise CliError(f"replay speed: expected a fraction 0.1..1, got '{args.value}'") from None
         if not 0.1 <= v <= 1.0:
             raise CliError(f"replay speed: expected a fraction 0.1..1, got {v}")
-        resp = _call(args, "replay_speed", speed=v)
+        resp = call_daemon(args, "replay_speed", speed=v)
         resp.pop("ok", None)
-        _emit(args, resp, lambda d: f"speed override {d['speed_override']:g} ({d['state']})")
+        emit(args, resp, lambda d: f"speed override {d['speed_override']:g} ({d['state']})")
         return 0
     if args.value is not None:
         raise CliError(f"replay {action}: unexpected argument '{args.value}'")
-    resp = _call(args, f"replay_{action}")
+    resp = call_daemon(args, f"replay_{action}")
     resp.pop("ok", None)
-    _emit(args, resp, lambda d: f"replay {action}: {d['state']} (mode {d['mode']})")
+    emit(args, resp, lambda d: f"replay {action}: {d['state']} (mode {d['mode']})")
     return 0
 
 
@@ -257,7 +251,7 @@ def _dry_run(args: argparse.Namespace) -> int:
     s = res["summary"]
     s["max_velocity_rad_s"] = np.abs(res["dq"]).max(axis=0).round(4).tolist()
     s["program"] = str(path)
-    _emit(args, s, lambda d: f"{d['program']} ({d['interp']}, {d['source']}): cycle {d['cycle_s']:.2f} s in "
+    emit(args, s, lambda d: f"{d['program']} ({d['interp']}, {d['source']}): cycle {d['cycle_s']:.2f} s in "
                              f"{len(d['segments']) - 2} segment(s); waypoints "
                              + ", ".join(f"{m['name']} at {m['t_s']:.2f} s ({m['kind']})" for m in d["marks"]))
     return 0
@@ -275,18 +269,18 @@ def register(sub: Any) -> None:
     s.add_argument("name", help="program name (stored in the daemon's replay.program_dir) or a .yaml path")
     s.add_argument("--rate", type=float, default=None, help="recording rate in Hz (default: replay.record_rate_Hz)")
     s.add_argument("--overwrite", action="store_true", help="replace an existing program of that name")
-    _add_socket(s)
+    add_socket(s)
     s.set_defaults(func=cmd_teach_start)
     m = tsub.add_parser("mark", help="mark the present pose as the next waypoint (p1, p2, ...)")
     m.add_argument("name", nargs="?", default=None, help="waypoint name (default p<N>)")
-    _add_socket(m)
+    add_socket(m)
     m.set_defaults(func=cmd_teach_mark)
     st = tsub.add_parser("stop", help="stop teaching and write the program file")
-    _add_socket(st, timeout=30.0)
+    add_socket(st, timeout=30.0)
     st.set_defaults(func=cmd_teach_stop)
     ls = tsub.add_parser("list", help="taught programs (the daemon's program_dir, or --dir)")
     ls.add_argument("--dir", type=Path, default=None, help="list this folder instead of asking the daemon")
-    _add_socket(ls, timeout=30.0)
+    add_socket(ls, timeout=30.0)
     ls.set_defaults(func=cmd_teach_list)
     sh = tsub.add_parser("show", help="summary and waypoints of a program file")
     sh.add_argument("program", type=Path)
@@ -314,6 +308,6 @@ def register(sub: Any) -> None:
     r.add_argument("--wait", action="store_true", help="return when the replay has ended (exit 1 unless done)")
     r.add_argument("--wait-timeout", type=float, default=600.0, help="seconds --wait waits at most (default 600)")
     r.add_argument("--dry-run", action="store_true", help="plan offline with --config and print the plan, no daemon")
-    _add_config(r, params=False)
-    _add_socket(r, timeout=60.0)
+    add_config(r, params=False)
+    add_socket(r, timeout=60.0)
     r.set_defaults(func=cmd_replay)

@@ -1,0 +1,42 @@
+"""``dragd bench [NAME ...]``: the benchmarks of docs/PERFORMANCE.md."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from dragd.cli.common import CliError, add_config, emit, table
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from dragd.lab import bench
+
+    if args.list:
+        for name in bench.names():
+            b = bench.REGISTRY[name]
+            print(f"{name:24s} [{b.unit}] {b.doc}")
+        return 0
+    if args.realtime_priority is not None and not 0 <= args.realtime_priority <= 99:
+        raise CliError(f"--realtime-priority: expected 0..99, got {args.realtime_priority}")
+    opts = {"config": args.config, "seconds": args.seconds, "realtime_priority": args.realtime_priority}
+    try:
+        result = bench.run(args.names, {k: v for k, v in opts.items() if v is not None})
+    except KeyError as exc:
+        raise CliError(str(exc.args[0])) from None
+    except bench.BenchError as exc:
+        raise CliError(str(exc), status=1) from None
+    emit(args, result, lambda d: table(["benchmark", "value", "unit"], [(k, v["value"], v["unit"]) for k, v in d.items()]))
+    return 0
+
+
+def register(sub: Any) -> None:
+    b = sub.add_parser("bench", help="run benchmarks (see docs/PERFORMANCE.md)")
+    b.add_argument("names", nargs="*", metavar="NAME", help="benchmarks to run (default: all); --list shows them")
+    b.add_argument("--list", action="store_true", help="list benchmarks")
+    b.add_argument("--seconds", type=float, default=None, help="duration of timed benchmarks")
+    b.add_argument("--realtime-priority", type=int, default=None, metavar="N",
+                   help="loop benchmarks: SCHED_FIFO priority of the daemon's cycle thread as deployed (default 70, "
+                        "the sim's 10 below; applied when permitted), 0 for none")
+    add_config(b, params=False)
+    b.add_argument("--json", action="store_true", help="print JSON")
+    b.set_defaults(func=cmd_bench)

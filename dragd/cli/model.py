@@ -1,0 +1,116 @@
+"""``dragd model gravity|current`` (the robot model and the compensation law) and ``dragd config check|init``."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from dragd.cli.common import CliError, add_config, emit, floats, table
+
+
+def _robot_model(args: argparse.Namespace) -> Any:
+    from dragd.config import load_config
+    from dragd.model import RobotModel
+
+    if getattr(args, "robot", None):
+        return RobotModel.from_urdf(args.robot)
+    cfg = load_config(args.config)
+    return RobotModel.from_urdf(cfg.robot.urdf, cfg.base_dir, cfg.robot.gravity_m_s2)
+
+
+def cmd_model_gravity(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    model = _robot_model(args)
+    q = np.array(floats(args.q, "--q"))
+    try:
+        q = model.check_q(q, "--q")
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    g = model.gravity(q)
+    data = {"joints": list(model.joint_names), "gravity_Nm": [float(x) for x in g]}
+    emit(args, data, lambda d: table(["joint", "gravity_Nm"], list(zip(d["joints"], d["gravity_Nm"]))))
+    return 0
+
+
+def cmd_model_current(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from dragd.config import load_config
+    from dragd.control.law import compensate
+    from dragd.control.params import LawParams
+    from dragd.model import RobotModel
+
+    cfg = load_config(args.config, args.params)
+    model = RobotModel.from_config(cfg)  # with the params' payload (docs/GAP.md)
+    if model.nq != len(cfg.joints):
+        raise CliError(f"{cfg.source}: joints: the robot has {model.nq} joints, the configuration {len(cfg.joints)}")
+    try:
+        q = model.check_q(np.array(floats(args.q, "--q")), "--q")
+        dq = model.check_q(np.array(floats(args.dq, "--dq")), "--dq")
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    out = compensate(model.gravity(q), dq, float(args.t), LawParams.from_config(cfg), q_rad=q)
+    data = {
+        "joints": list(model.joint_names),
+        "current_A": out.current_A.tolist(),
+        "gravity_A": out.gravity_A.tolist(),
+        "friction_A": out.friction_A.tolist(),
+        "startup_A": out.startup_A.tolist(),
+        "back_emf_A": out.back_emf_A.tolist(),
+        "damping_A": out.damping_A.tolist(),
+        "effects_A": out.effects_A.tolist(),
+        "clamped": out.clamped.tolist(),
+    }
+    emit(args, data, lambda d: table(
+        ["joint", "current_A", "gravity_A", "friction_A", "startup_A", "back_emf_A", "damping_A", "clamped"],
+        list(zip(d["joints"], d["current_A"], d["gravity_A"], d["friction_A"], d["startup_A"], d["back_emf_A"],
+                 d["damping_A"], d["clamped"]))))
+    return 0
+
+
+def cmd_config_check(args: argparse.Namespace) -> int:
+    from dragd.config import load_config
+    from dragd.model import RobotModel
+    from dragd.robots.gravity import check_gravity_currents  # any gravity current above current_limit_A: ConfigError
+
+    cfg = load_config(args.config, args.params)
+    model = RobotModel.from_urdf(cfg.robot.urdf, cfg.base_dir, cfg.robot.gravity_m_s2)
+    if list(model.joint_names) != cfg.joint_names:
+        raise CliError(f"{cfg.source}: joints: expected the robot's joints {', '.join(model.joint_names)}, "
+                       f"got {', '.join(cfg.joint_names)}")
+    data = {"config": cfg.source, "robot": str(model.urdf_path), "joints": cfg.joint_names,
+            "buses": [b.name for b in cfg.buses], "gravity": [g.to_json() for g in check_gravity_currents(cfg)],
+            "ok": True}
+    emit(args, data, lambda d: f"{d['config']}: ok ({len(d['joints'])} joints, robot {d['robot']})")
+    return 0
+
+
+def register(sub: Any) -> None:
+    from dragd.cli.robot_config import register_config
+
+    model = sub.add_parser("model", help="evaluate the robot model and the compensation law")
+    msub = model.add_subparsers(dest="model_command", metavar="WHAT")
+    msub.required = True
+    g = msub.add_parser("gravity", help="G(q) in N·m")
+    g.add_argument("--q", required=True, help="joint positions Q1,...,QN [rad]")
+    g.add_argument("--robot", help="bundled robot name or URDF path (default: the config's robot)")
+    add_config(g, params=False)
+    g.add_argument("--json", action="store_true", help="print JSON")
+    g.set_defaults(func=cmd_model_gravity)
+    c = msub.add_parser("current", help="the law's current command and its components in A")
+    c.add_argument("--q", required=True, help="joint positions [rad], comma-separated")
+    c.add_argument("--dq", required=True, help="joint velocities [rad/s], comma-separated")
+    c.add_argument("--t", default=0.0, type=float, help="time [s] for the start-up sine (default 0)")
+    add_config(c)
+    c.add_argument("--json", action="store_true", help="print JSON")
+    c.set_defaults(func=cmd_model_current)
+
+    cfgp = sub.add_parser("config", help="configuration tools")
+    csub = cfgp.add_subparsers(dest="config_command", metavar="WHAT")
+    csub.required = True
+    chk = csub.add_parser("check", help="validate a configuration (and params) file and its robot")
+    add_config(chk)
+    chk.add_argument("--json", action="store_true", help="print JSON")
+    chk.set_defaults(func=cmd_config_check)
+    register_config(csub)  # dragd config init
