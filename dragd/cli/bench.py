@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from dragd.cli.common import CliError, add_config, emit, table
+from dragd.cli.common import CliError, absolute, add_config, emit, table
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -18,7 +18,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         return 0
     if args.realtime_priority is not None and not 0 <= args.realtime_priority <= 99:
         raise CliError(f"--realtime-priority: expected 0..99, got {args.realtime_priority}")
-    opts = {"config": args.config, "seconds": args.seconds, "realtime_priority": args.realtime_priority}
+    opts = {"config": absolute(args.config), "seconds": args.seconds, "realtime_priority": args.realtime_priority}
     try:
         result = bench.run(args.names, {k: v for k, v in opts.items() if v is not None})
     except KeyError as exc:

@@ -74,6 +74,11 @@ def add_config(p: argparse.ArgumentParser, params: bool = True) -> None:
         p.add_argument("--params", type=Path, default=None, help="identified-parameters file overriding the config's")
 
 
+def absolute(path: Path | None) -> Path | None:
+    """``path`` made absolute for the simulator and daemon processes a command starts (their working folder differs)."""
+    return None if path is None else path.expanduser().absolute()
+
+
 def default_socket() -> str:
     """The daemon's control socket for clients: ``$DRAGD_SOCKET``, else /run/dragd/dragd.sock."""
     return os.environ.get("DRAGD_SOCKET") or DEFAULT_SOCKET

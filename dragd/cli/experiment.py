@@ -7,7 +7,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from dragd.cli.common import CliError, add_config, emit, table
+from dragd.cli.common import CliError, absolute, add_config, emit, table
 
 
 def _joints(text: str | None, n: int) -> list[int]:
@@ -29,7 +29,7 @@ def _bench(args: argparse.Namespace, joints_arg: str | None):  # noqa: ANN202
     if args.ramp_s is not None and not 1.0 <= args.ramp_s <= 120.0:
         raise CliError(f"--ramp-s: expected seconds in [1, 120], got {args.ramp_s}")
     work = Path(args.work_dir) if args.work_dir else Path(tempfile.mkdtemp(prefix="dragd-experiment-"))
-    bench = Bench(work, config=args.config, params=args.params, progress=not args.json)
+    bench = Bench(work, config=absolute(args.config), params=absolute(args.params), progress=not args.json)
     joints = _joints(joints_arg, len(bench.cfg.joints))
     if args.params is None:  # the compensation runs on identified parameters only (never the sim's truth)
         bench.identify_on_sim(joints)

@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from dragd.cli.common import CliError, add_config, emit
+from dragd.cli.common import CliError, absolute, add_config, emit
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
@@ -22,7 +22,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from dragd.lab.demo import DemoError, run_demo
 
     try:
-        result = run_demo(seconds=args.seconds, config=args.config, out=args.out, scenario=args.scenario,
+        result = run_demo(seconds=args.seconds, config=absolute(args.config), out=args.out, scenario=args.scenario,
                           progress=not args.json)
     except DemoError as exc:
         raise CliError(str(exc), status=1) from None
