@@ -203,3 +203,28 @@ def test_teach_recorder_rate_and_marks(tmp_path):
     for k in range(100):
         small.add(k * 1e-3, np.zeros(1))
     assert small.count == small.buf.shape[0] and small.dropped == 100 - small.count
+
+
+def test_start_during_a_motion_ends_it_and_motions_work_again(tmp_path):
+    """`dragd start` while a replay runs holds where the arm is and ends the motion (it used to leave the
+    trajectory set: every later motion refused with "a motion is running", `replay stop` with "no motion")."""
+    traj = _plan(tmp_path, "linear")
+
+    async def main():
+        arm = Arm()
+        c = arm.c
+        await arm.m.track(traj, rate=1.0, cycles=0)
+        arm.until(lambda: c.track.tau > traj.body_start_s + 0.2)
+        arm.d.start()
+        assert c.mode == Mode.HOLD and not c.track.active and arm.m.replay is None
+        await arm.settle_tasks()
+        assert arm.m.drive_mode == MODE_CST
+        with pytest.raises(ValueError, match="no motion is running"):
+            arm.m.stop()
+        arm.step(300)
+        q = arm.cy.est.q_rad.copy()
+        again = Trajectory(np.array([0.0, 1.0]), np.stack([q, q + 0.01]), arm.cy.dt, "track")
+        await arm.m.track(again)
+        assert c.mode == Mode.TRACK
+
+    run(main())

@@ -145,7 +145,9 @@ class Controller:
         self.events.append(Event("mode", self.t, fields={"mode": MODE_NAMES[mode], "previous": MODE_NAMES[self.prev_mode]}))
 
     def start(self, q: np.ndarray) -> None:
-        """Hold the pose ``q`` (the drives are being enabled)."""
+        """Hold the pose ``q`` (the drives are being enabled); a running motion ends where the arm is."""
+        if self.track.active:
+            self.end_track("stopped (start)", q, hold_at_ref=False)
         self.q_hold[:] = q
         self.stop_after_hold_at = None
         self.feedback_hold = False
