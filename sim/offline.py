@@ -12,14 +12,15 @@ trajectory (a plan written by ``dragd identify plan``: arrays ``t_s``, ``q_rad``
   ``sim/drive.py`` does: ``kp·(q_target − q) + kd·(v_ff − q̇) (+ ki·∫e) + offset``, clamped;
 * :class:`sim.physics.ArmPhysics` integrates the arm (friction, stick–slip, Hall noise, quantisation).
 
-The MCAP has the daemon's telemetry layout (topic ``/dragd/cycle``, mode ``track``); the CSV has
+The MCAP is written as the daemon writes its telemetry (dragd/telemetry: ``cycle_layout``, ``write_file``;
+topic ``/dragd/cycle``, mode ``track``; fields the run does not simulate hold what the daemon would write or 0,
+see `write_mcap`); the CSV has
 ``t,q1..qN,i1..iN,dq1..dqN`` (s, rad, A, rad/s; dq is the daemon-style filtered estimate).
 This is harness code: it reads the truth; dragd/ never imports it.
 """
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from collections.abc import Callable
@@ -28,23 +29,12 @@ from typing import Any
 
 import numpy as np
 
+from dragd.control.modes import Mode
 from sim.axis import AxisIO
 from sim.physics import ArmPhysics
 from sim.truth import Truth
 
-MODE_LABELS = {0: "IDLE", 1: "HOLD", 2: "DRAG", 3: "TRACK", 4: "FAULT"}
-TRACK_MODE = 3
 STATUSWORD_ENABLED = 0x1237  # operation enabled, voltage, remote, target reached cleared
-
-
-def telemetry_layout(n: int) -> dict[str, Any]:
-    """The daemon's /dragd/cycle layout (dragd/daemon.py ``Daemon._telemetry_layout``)."""
-    from dragd.telemetry.writer import Field
-
-    return {"t_s": 1, "mode": Field(1, kind="int", labels={k: v.lower() for k, v in MODE_LABELS.items()}),
-            "q_rad": n, "dq_rad_s": n, "current_measured_A": n, "current_command_A": n, "gravity_A": n,
-            "friction_A": n, "startup_A": n, "damping_A": n, "statusword": Field(n, kind="int"),
-            "rx": Field(n, kind="bool"), "period_us": 1, "compute_us": 1}
 
 
 def load_plan(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
@@ -82,7 +72,7 @@ class OfflineArm:
     def __init__(self, truth: Truth, config: str | Path | None = None, rate_Hz: float = 1000.0,
                  csp_interpolation: bool = False) -> None:
         from dragd.config import load_config
-        from dragd.control.law import LawParams
+        from dragd.control.params import LawParams
 
         self.truth = truth
         self.model = truth.load_model()
@@ -130,6 +120,7 @@ class OfflineArm:
         out = {k: np.empty((steps, n)) for k in ("q_rad", "dq_rad_s", "current_measured_A", "current_command_A",
                                                    "gravity_A", "friction_A")}
         out["t_s"] = np.arange(steps) * dt
+        out["q_ref_rad"] = table
         kt = law.kt_Nm_per_A
         kp, kd, ki, limit = self.kp, self.kd, self.ki, self.limit
         rad_per_count = [1.0 / c for c in self.counts_per_rad]
@@ -219,36 +210,39 @@ def write_csv(path: str | Path, data: dict[str, np.ndarray]) -> None:
 
 
 def write_mcap(path: str | Path, data: dict[str, np.ndarray], metadata: dict[str, str] | None = None,
-               mode: int = TRACK_MODE) -> int:
-    """The daemon's telemetry format (``/dragd/cycle`` JSON rows); returns the number of rows."""
-    from mcap.writer import CompressionType, Writer
+               mode: int = Mode.TRACK) -> int:
+    """The daemon's telemetry file (dragd/telemetry ``cycle_layout``, ``write_file``); returns the number of rows.
 
-    from dragd.telemetry.writer import CYCLE_TOPIC, RowLayout
+    ``data`` holds what the run simulates (t_s, q_rad, dq_rad_s, current_measured_A, current_command_A,
+    gravity_A, friction_A, optionally q_ref_rad: the plan's reference, else q_rad); the other fields get what the
+    daemon writes in TRACK without its drag terms: statusword enabled, every feedback received, the nominal
+    period, track_t_s = t_s, zeros for the drag terms, compute time and residual.
+    """
+    from dragd.telemetry.layout import RowLayout
+    from dragd.telemetry.schema import cycle_layout
+    from dragd.telemetry.writer import write_file
 
+    t = np.asarray(data["t_s"], dtype=float)
     n = data["q_rad"].shape[1]
-    layout = RowLayout(telemetry_layout(n))
-    rows = np.zeros((data["t_s"].shape[0], layout.width))
-    sl = layout.slices
-    rows[:, sl["t_s"]] = data["t_s"][:, None]
-    rows[:, sl["mode"]] = mode
-    for key in ("q_rad", "dq_rad_s", "current_measured_A", "current_command_A", "gravity_A", "friction_A"):
-        rows[:, sl[key]] = data[key]
-    rows[:, sl["statusword"]] = STATUSWORD_ENABLED
-    rows[:, sl["rx"]] = 1
-    rows[:, sl["period_us"]] = 1000.0
-    t0_ns = time.time_ns()
-    with open(path, "wb") as fh:
-        w = Writer(fh, compression=CompressionType.ZSTD, chunk_size=1 << 20)
-        w.start(profile="", library="sim.offline")
-        schema = w.register_schema("dragd.Cycle", "jsonschema", json.dumps(layout.json_schema()).encode())
-        ch = w.register_channel(CYCLE_TOPIC, "json", schema)
-        stamps = (t0_ns + np.rint(data["t_s"] * 1e9)).astype(np.int64).tolist()
-        encode = layout.encode_json
-        for seq, (values, t) in enumerate(zip(rows.tolist(), stamps), start=1):
-            w.add_message(ch, log_time=t, data=encode(values), publish_time=t, sequence=seq)
-        w.add_metadata("sim.offline", dict(metadata or {}))
-        w.finish()
-    return rows.shape[0]
+    layout = cycle_layout(n)
+    row = RowLayout(layout)
+    sl = row.slices
+    period_us = float(np.median(np.diff(t))) * 1e6 if t.size > 1 else 1000.0
+    values: dict[str, Any] = {
+        "mode": int(mode), "statusword": STATUSWORD_ENABLED, "rx": 1, "period_us": period_us,
+        "compute_us": 0.0, "q_ref_rad": data.get("q_ref_rad", data["q_rad"]), "track_t_s": t,
+        "startup_A": 0.0, "damping_A": 0.0, "residual_A": 0.0, "back_emf_A": 0.0, "effects_A": 0.0,
+    }
+    values.update({k: v for k, v in data.items() if k in layout})
+    missing = [k for k in layout if k not in values]
+    if missing:
+        raise ValueError(f"write_mcap: no values for {', '.join(missing)}")
+    rows = np.zeros((t.shape[0], row.width))
+    for k, v in values.items():
+        v = np.asarray(v, dtype=float)
+        rows[:, sl[k]] = v[:, None] if v.ndim == 1 and sl[k].stop - sl[k].start == 1 else v
+    stamps = time.time_ns() + np.rint(t * 1e9).astype(np.int64)
+    return write_file(path, row, rows, stamps, metadata=metadata, library="sim.offline")
 
 
 def write_log(path: str | Path, data: dict[str, np.ndarray], metadata: dict[str, str] | None = None) -> None:

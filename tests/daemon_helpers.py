@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 import yaml
-from dragd.telemetry.writer import read_rows
+from dragd.telemetry.reader import read_rows
 
 from conftest import DEFAULT_CONFIG
 

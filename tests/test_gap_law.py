@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from dragd.config import ParamsFile, apply_params, load_config
-from dragd.control.law import LawOutput, LawParams, Workspace, compensate, effects_current, friction_current
+from dragd.control.params import LawParams
+from dragd.control.law import LawOutput, Workspace, compensate, effects_current, friction_current
 from dragd.model import RobotModel
 
 PARAMS = {

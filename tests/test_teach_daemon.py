@@ -18,12 +18,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from mcap.reader import make_reader
 
 from dragd.lab.demo import TEACH_STEPS_RAD, guide_and_settle
 from dragd.lab.rig import Rig
-from dragd.teach.analysis import read_rows, replay_errors
+from dragd.teach.analysis import replay_errors
 from dragd.teach.program import Program, Waypoint, load_program, save_program
+from dragd.telemetry.reader import read_events, read_rows
 
 from conftest import run_cli
 from daemon_helpers import derived_config, wait_for
@@ -73,13 +73,7 @@ def _cli_json(rig: Rig, *args: str) -> dict:
 
 
 def _events(mcap: Path, name: str) -> list[dict]:
-    out = []
-    with open(mcap, "rb") as fh:
-        for _, _, m in make_reader(fh).iter_messages(topics=["/dragd/events"]):
-            ev = json.loads(m.data)
-            if ev.get("name") == name:
-                out.append(ev)
-    return out
+    return [{"name": e.name, **e.fields} for e in read_events(mcap, name)]
 
 
 def test_teach_by_hand_replay_linear_and_bumpless_drag_replay_drag(tmp_path):

@@ -49,7 +49,7 @@ class CheckResult:
 def law_from_params(params: Any, names: list[str], cfg: Any | None = None) -> tuple[Any, list[str]]:
     """dragd's LawParams from a params file: overlaid on ``cfg`` when given, else from the file alone."""
     from dragd.config import apply_params
-    from dragd.control.law import LawParams
+    from dragd.control.params import LawParams
 
     warnings: list[str] = []
     if cfg is not None:  # the friction *model* (the daemon under-compensates in drag by friction_scale)
@@ -113,7 +113,6 @@ def check(log: Log, robot: Any, params: Any, cfg: Any | None = None, terms: str 
     p = prepare(log, cutoff_Hz=5.0, deriv_cutoff_Hz=deriv_cutoff_Hz, work_rate_Hz=log.rate_Hz * 1.5)
     rm = RegressorModel(robot, samples=50)
     tau = rm.gravity(p.q) if terms == "gravity" else rm.rnea(p.q, p.dq, p.ddq)
-    n = len(names)
     fr = np.empty_like(p.dq)
     friction_current(p.dq, law, fr, Workspace(p.dq.shape))  # the law's arrays broadcast over the samples
     armature = (getattr(params, "notes", {}) or {}).get("armature_kgm2") or {}

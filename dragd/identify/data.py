@@ -3,7 +3,8 @@
 Inputs
 - MCAP telemetry of the daemon (topic ``/dragd/cycle``: ``t_s``, ``mode``, ``q_rad``, ``current_measured_A``);
   only rows in mode ``track`` are used (the drives follow the excitation in CSP, the measured current is the
-  whole motor current).
+  whole motor current). Read by dragd/telemetry/reader.py: a file whose writer was killed is used up to its last
+  complete chunk, with a warning naming it.
 - CSV ``t,q1..qN,i1..iN`` with optional ``dq1..dqN`` (s, rad, A, rad/s) from any arm.
 
 Problems are errors naming the file and what is wrong (missing columns, non-monotonic time, no usable rows,
@@ -21,7 +22,6 @@ Signal processing (applied the same way to both sides of every regression):
 from __future__ import annotations
 
 import functools
-import json
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -82,85 +82,33 @@ def load_log(path: str | Path, modes: tuple[str, ...] = ("track",)) -> Log:
 
 
 def _load_mcap(path: Path, modes: tuple[str, ...]) -> Log:
-    from mcap.exceptions import McapError
-    from mcap.reader import make_reader
+    from dragd.telemetry.reader import TelemetryFileError, read_log
 
-    # decode in batches while reading (a 10 min log is 600 k rows of ~1 kB: all at once would take > 1 GB)
-    T: list[np.ndarray] = []
-    Q: list[np.ndarray] = []
-    I: list[np.ndarray] = []
-    M: list[np.ndarray] = []
-
-    def decode(part: list[bytes]) -> None:
-        try:
-            rows = json.loads(b"[" + b",".join(_trim_rows(part)) + b"]")
-        except json.JSONDecodeError as exc:
-            raise LogError(f"{path}: /dragd/cycle: messages are not JSON: {exc}") from None
-        if not T:
-            missing = [k for k in ("t_s", "q_rad", "current_measured_A") if k not in rows[0]]
-            if missing:
-                raise LogError(f"{path}: /dragd/cycle: missing fields {', '.join(missing)} (expected t_s, q_rad, "
-                               "current_measured_A)")
-        try:
-            M.append(np.array([r.get("mode", "track") for r in rows]))
-            T.append(np.array([r["t_s"] for r in rows], dtype=float))
-            Q.append(np.array([r["q_rad"] for r in rows], dtype=float))
-            I.append(np.array([r["current_measured_A"] for r in rows], dtype=float))
-        except (ValueError, TypeError, KeyError) as exc:
-            raise LogError(f"{path}: /dragd/cycle: rows of unequal shape or non-numeric values: {exc}") from None
-
-    chunks: list[bytes] = []
     try:
-        with path.open("rb") as fh:
-            # file order is time order for the daemon's writer; t is checked for monotonicity afterwards
-            for _, _, message in make_reader(fh).iter_messages(topics=["/dragd/cycle"], log_time_order=False):
-                chunks.append(message.data)
-                if len(chunks) >= 50_000:
-                    decode(chunks)
-                    chunks = []
-    except LogError:
-        raise
-    except (McapError, EOFError, ValueError, OSError, KeyError) as exc:
-        raise LogError(f"{path}: not a readable MCAP file: {exc}") from None
-    if chunks:
-        decode(chunks)
-    if not T:
+        tl = read_log(path, ("t_s", "mode", "q_rad", "current_measured_A"))
+    except TelemetryFileError as exc:
+        raise LogError(str(exc)) from None
+    if tl.n_rows == 0:
         raise LogError(f"{path}: no /dragd/cycle messages (expected dragd telemetry)")
-    mode = np.concatenate(M)
+    rows = tl.rows
+    mode = rows["mode"]
     counts = {str(m): int(c) for m, c in zip(*np.unique(mode, return_counts=True))}
     keep = np.isin(mode, modes)
     if not keep.any():
         raise LogError(f"{path}: no rows in mode {'/'.join(modes)} (rows per mode: "
                        f"{', '.join(f'{k} {v}' for k, v in counts.items())}); identification uses tracked excitation")
-    try:
-        t, q, i = np.concatenate(T)[keep], np.concatenate(Q)[keep], np.concatenate(I)[keep]
-    except ValueError as exc:
-        raise LogError(f"{path}: /dragd/cycle: rows of unequal shape: {exc}") from None
+    t, q, i = rows["t_s"][keep], rows["q_rad"][keep], rows["current_measured_A"][keep]
     if q.ndim != 2 or i.shape != q.shape:
         raise LogError(f"{path}: /dragd/cycle: q_rad and current_measured_A must have one value per joint, got "
                        f"shapes {q.shape} and {i.shape}")
     log = Log(str(path), t, q, i, None, [], counts)
+    if tl.warning:
+        log.warnings.append(tl.warning)
     dropped = int(mode.shape[0] - t.shape[0])
     if dropped:
         log.warnings.append(f"{dropped} rows not in mode {'/'.join(modes)} ignored (rows per mode: "
                             f"{', '.join(f'{k} {v}' for k, v in counts.items())})")
     return log
-
-
-def _trim_rows(chunks: list[bytes]) -> list[bytes]:
-    """Cut each row JSON to the fields identification reads (parsing ~60 numbers per row dominates load time).
-
-    The daemon's rows start ``{"t_s":..,"mode":..,"q_rad":[..],"dq_rad_s":[..],"current_measured_A":[..],...``;
-    rows of another layout are left whole.
-    """
-    a_mark, b_mark, c_mark = b',"dq_rad_s"', b',"current_measured_A"', b',"current_command_A"'
-    out = []
-    for m in chunks:
-        a = m.find(a_mark)
-        b = m.find(b_mark, a + 1) if a > 0 else -1
-        c = m.find(c_mark, b + 1) if b > 0 else -1
-        out.append(m[:a] + m[b:c] + b"}" if c > 0 else m)
-    return out
 
 
 _COL = re.compile(r"^(t|q\d+|i\d+|dq\d+)$")

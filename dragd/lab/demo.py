@@ -148,7 +148,8 @@ def _wait_replay(rig: Rig, timeout_s: float) -> dict[str, Any]:
 def run_teach_demo(seconds: float = 20.0, config: Path | None = None, out: Path | None = None,
                    progress: bool = True) -> dict[str, Any]:
     """Teach p1, p2, p3 by hand, replay them linearly and circularly; waypoint and path errors [deg]."""
-    from dragd.teach.analysis import read_rows, replay_errors
+    from dragd.teach.analysis import replay_errors
+    from dragd.telemetry.reader import read_rows
 
     if not seconds >= 6.0:
         raise DemoError(f"--seconds: expected at least 6 s of teaching (three hand-guided waypoints), got {seconds}")

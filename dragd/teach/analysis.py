@@ -9,31 +9,15 @@
 * tracking error: |q − q_ref| at the same instant, max over joints (includes the lag along the path).
 
 Only cycles with every joint's position fresh (TPDOs received that cycle) count: a stale position is the daemon's
-old view, not where the arm is.
+old view, not where the arm is. The rows come from dragd.telemetry.reader.read_rows.
 """
 
 from __future__ import annotations
 
-import json
 import math
-from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-
-def read_rows(mcap_path: str | Path, fields: tuple[str, ...] = ("t_s", "mode", "q_rad", "q_ref_rad", "track_t_s", "rx",
-                                                                 "current_measured_A", "residual_A")) -> dict[str, np.ndarray]:
-    """The /dragd/cycle rows of a telemetry file (selected fields) as arrays."""
-    from mcap.reader import make_reader
-
-    cols: dict[str, list[Any]] = {f: [] for f in fields}
-    with open(mcap_path, "rb") as fh:
-        for _, _, message in make_reader(fh).iter_messages(topics=["/dragd/cycle"]):
-            row = json.loads(message.data)
-            for f in fields:
-                cols[f].append(row.get(f))
-    return {k: np.array(v) for k, v in cols.items()}
 
 
 def _rows_between(rows: dict[str, np.ndarray], t0: float, t1: float) -> dict[str, np.ndarray]:

@@ -1,384 +1,73 @@
-"""MCAP telemetry written off the loop, and `summarize` for ``dragd log summary``.
+"""MCAP telemetry written off the loop: `TelemetryWriter` (the daemon) and `write_file` (logs computed offline).
 
 The cycle side is a single-producer ring of preallocated float64 rows::
 
-    writer = TelemetryWriter(path, {"t_s": 1, "mode": Field(labels=Mode), "q_rad": 6, ...})
+    writer = TelemetryWriter(path, cycle_layout(6))
     Q = writer.slices["q_rad"]                 # once, outside the cycle
     row = writer.begin()                       # in the cycle: a preallocated row view
     if row is not None:                        # None: ring full, the row is counted as dropped
         row[0] = t_s; row[Q] = q               # fill *every* field (slots are reused)
         writer.commit()
 
-A writer thread drains the ring every ``flush_interval_s``, encodes each row as a
-JSON message (channel ``topic``, encoding ``json``, JSON Schema registered so
-Foxglove shows arrays as arrays, numbers as numbers, enum fields as their label),
-and writes a chunked, compressed MCAP. I/O errors, a full disk or a slow disk never
-reach the cycle: rows are dropped and counted, the first error is kept and
-`stats()` reports it. After an I/O error the writer retries on a fresh file
-(``retry_after_s``); ``max_bytes`` rolls over to a new file, keeping ``keep_rotated``
-old ones. `close()` finishes the file (summary, indexes, statistics).
+A writer thread drains the ring every ``flush_interval_s`` into an `McapFile`: each row a JSON message (channel
+``topic``, encoding ``json``, JSON Schema registered so Foxglove shows arrays as arrays, numbers as numbers, enum
+fields as their label), chunked and compressed. I/O errors, a full disk or a slow disk never reach the cycle: rows
+are dropped and counted, the first error is kept and `stats()` reports it. After an I/O error the writer retries
+on a fresh file (``retry_after_s``); ``max_bytes`` rolls over to a new file, keeping ``keep_rotated`` old ones.
+`close()` finishes the file (summary, indexes, statistics); a file whose writer was killed lacks them and is
+read up to its last complete chunk (dragd/telemetry/reader.py).
 
-MCAP ``sequence`` of a cycle message is the producer's row counter (``begin`` calls),
-so a gap in sequence numbers shows exactly where rows were dropped.
+MCAP ``sequence`` of a cycle message is the producer's row counter (``begin`` calls), so a gap in sequence
+numbers shows exactly where rows were dropped.
 
-GIL: the writer thread competes with the cycle thread for the GIL. Float formatting
-dominates its work, so rows are formatted through a precompiled template with
-``float_digits`` significant digits (~9 us/row here instead of ~30 us with
-``json.dumps``), chunks are small (64 KiB: short bursts when a chunk is indexed and
-compressed; zstd itself releases the GIL), and the thread sleeps briefly every
-``yield_every_rows`` rows so a waiting cycle thread gets the GIL at once.
+GIL: the writer thread competes with the cycle thread for the GIL. Float formatting dominates its work, so rows
+are formatted through a precompiled template with ``float_digits`` significant digits (~9 us/row here instead of
+~30 us with ``json.dumps``), chunks are small (64 KiB: short bursts when a chunk is indexed and compressed; zstd
+itself releases the GIL), and the thread sleeps briefly every ``yield_every_rows`` rows so a waiting cycle thread
+gets the GIL at once.
 """
 
 from __future__ import annotations
 
 import collections
-import enum
 import errno
 import importlib.util
 import io
-import json
-import math
 import os
 import re
-import struct
 import threading
 import time
-from dataclasses import dataclass
-from datetime import datetime, timezone
+from collections.abc import Iterable, Mapping, Sequence
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, BinaryIO, Iterable, Literal, Mapping, Protocol, Sequence, Union
+from typing import Any, BinaryIO, Literal
 
 import numpy as np
-from mcap.exceptions import EndOfFile
-from mcap.records import Channel, Chunk, Footer, Header, Message, Metadata, Schema, Statistics
-from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
 from dragd.realtime import demote_current_thread
+from dragd.telemetry.layout import RowLayout, dumps
+from dragd.telemetry.schema import (
+    CYCLE_SCHEMA,
+    CYCLE_TOPIC,
+    EVENT_SCHEMA,
+    EVENTS_TOPIC,
+    RUN_METADATA,
+    WRITER_METADATA,
+    Field,
+    event_json_schema,
+)
+from dragd.telemetry.sinks import RerunSink, RowSink
 
-__all__ = [
-    "Field",
-    "RowLayout",
-    "TelemetryWriter",
-    "TelemetryError",
-    "TelemetryFileError",
-    "RowSink",
-    "RerunSink",
-    "RerunUnavailable",
-    "rerun_unavailable",
-    "summarize",
-    "CYCLE_TOPIC",
-    "EVENTS_TOPIC",
-]
+__all__ = ["TelemetryWriter", "TelemetryError", "McapFile", "write_file"]
 
 _YIELD_S = 50e-6  # writer pause between row slices (releases the GIL)
 
-CYCLE_TOPIC = "/dragd/cycle"
-EVENTS_TOPIC = "/dragd/events"
-MCAP_MAGIC = b"\x89MCAP0\r\n"
-
-Labels = Union[Mapping[int, str], Sequence[str], type[enum.Enum]]
+Compression = Literal["zstd", "lz4", "none"]
 
 
 class TelemetryError(RuntimeError):
     """The telemetry file cannot be set up (bad path, directory missing, ...)."""
-
-
-class TelemetryFileError(ValueError):
-    """A telemetry file cannot be read: missing, not MCAP, truncated or corrupt."""
-
-
-# -- layout ---------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Field:
-    """A layout entry: ``width`` values of ``kind``; ``labels`` make it an enum (label strings)."""
-
-    width: int = 1
-    kind: Literal["float", "int", "bool"] = "float"
-    labels: Labels | None = None
-    description: str | None = None
-    digits: int | None = None
-    """Significant digits written for floats (default: the writer's ``float_digits``)."""
-
-
-def _normalize_labels(name: str, labels: Labels) -> dict[int, str]:
-    if isinstance(labels, type) and issubclass(labels, enum.Enum):
-        out = {}
-        for member in labels:
-            if not isinstance(member.value, int):
-                raise ValueError(f"field {name!r}: enum {labels.__name__} needs integer values")
-            out[int(member.value)] = member.name
-        return out
-    if isinstance(labels, Mapping):
-        return {int(k): str(v) for k, v in labels.items()}
-    if isinstance(labels, (list, tuple)):
-        return {i: str(v) for i, v in enumerate(labels)}
-    raise ValueError(
-        f"field {name!r}: labels must be an int Enum, a mapping int -> str or a list of names; "
-        f"got {type(labels).__name__}"
-    )
-
-
-@dataclass(frozen=True)
-class _Column:
-    name: str
-    offset: int
-    width: int
-    kind: str  # "float" | "int" | "bool" | "enum"
-    labels: dict[int, str] | None
-    description: str | None
-    digits: int
-
-
-_NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
-
-
-class RowLayout:
-    """Ordered fields of a telemetry row: offsets, slices, JSON Schema and row encoders.
-
-    Floats are written with ``float_digits`` significant digits (12 by default:
-    1 us resolution for a ``t_s`` up to 10^6 s; ``Field(digits=17)`` round-trips
-    float64 exactly). Formatting floats dominates the writer's CPU (and GIL) time,
-    hence the precompiled %-template in `encode_json`.
-    """
-
-    def __init__(self, layout: Mapping[str, int | Field], float_digits: int = 12) -> None:
-        if not layout:
-            raise ValueError("telemetry layout is empty; expected e.g. {'t_s': 1, 'q_rad': 6}")
-        if not 1 <= float_digits <= 17:
-            raise ValueError(f"float_digits must be in 1..17; got {float_digits}")
-        cols: list[_Column] = []
-        offset = 0
-        for name, spec in layout.items():
-            if not isinstance(name, str) or not _NAME_RE.match(name):
-                raise ValueError(f"telemetry field name {name!r} must be an identifier like 'q_rad'")
-            f = spec if isinstance(spec, Field) else Field(width=spec)
-            if isinstance(f.width, bool) or not isinstance(f.width, int) or f.width < 1:
-                raise ValueError(f"telemetry field {name!r}: width must be an int >= 1; got {f.width!r}")
-            if f.kind not in ("float", "int", "bool"):
-                raise ValueError(
-                    f"telemetry field {name!r}: kind must be 'float', 'int' or 'bool'; got {f.kind!r}"
-                )
-            digits = float_digits if f.digits is None else f.digits
-            if not 1 <= digits <= 17:
-                raise ValueError(f"telemetry field {name!r}: digits must be in 1..17; got {digits}")
-            labels = _normalize_labels(name, f.labels) if f.labels is not None else None
-            kind = "enum" if labels is not None else f.kind
-            cols.append(_Column(name, offset, f.width, kind, labels, f.description, digits))
-            offset += f.width
-        self.columns: tuple[_Column, ...] = tuple(cols)
-        self.width = offset
-        self.names = tuple(c.name for c in cols)
-        self.slices: dict[str, slice] = {c.name: slice(c.offset, c.offset + c.width) for c in cols}
-        self._plan = tuple((c.name, c.offset, c.width, c.kind, c.labels, c.digits) for c in cols)
-        parts = []
-        special: list[tuple[int, dict[int, str] | None]] = []
-        for c in cols:
-            fmt = {"float": f"%.{c.digits}g", "int": "%d"}.get(c.kind, "%s")
-            if c.kind in ("enum", "bool"):
-                quoted = (
-                    {k: json.dumps(v) for k, v in c.labels.items()} if c.labels is not None else None
-                )
-                special.extend((c.offset + j, quoted) for j in range(c.width))
-            body = fmt if c.width == 1 else "[" + ",".join([fmt] * c.width) + "]"
-            parts.append(f'"{c.name}":{body}')
-        self._template = "{" + ",".join(parts) + "}"
-        self._special = tuple(special)
-
-    def encode_json(self, values: list[Any]) -> bytes:
-        """Compact JSON of one row of *finite* values (flat list; modified in place)."""
-        for off, quoted in self._special:
-            v = int(values[off])
-            if quoted is None:
-                values[off] = "true" if v else "false"
-            else:
-                values[off] = quoted.get(v) or f'"{v}"'
-        return (self._template % tuple(values)).encode()
-
-    def json_schema(self, title: str = "dragd.Cycle") -> dict[str, Any]:
-        """JSON Schema of an encoded row (what Foxglove reads to type the fields)."""
-        props: dict[str, Any] = {}
-        for c in self.columns:
-            if c.kind == "enum":
-                assert c.labels is not None
-                item: dict[str, Any] = {
-                    "type": "string",
-                    "description": "one of " + ", ".join(c.labels[k] for k in sorted(c.labels)),
-                }
-            elif c.kind == "int":
-                item = {"type": "integer"}
-            elif c.kind == "bool":
-                item = {"type": "boolean"}
-            else:
-                item = {"type": "number"}
-            if c.description and c.kind != "enum":
-                item["description"] = c.description
-            if c.width == 1:
-                props[c.name] = item
-            else:
-                props[c.name] = {
-                    "type": "array",
-                    "items": item,
-                    "minItems": c.width,
-                    "maxItems": c.width,
-                }
-                if c.description:
-                    props[c.name]["description"] = c.description
-        return {
-            "title": title,
-            "type": "object",
-            "description": "one dragd control cycle; non-finite numbers are written as null",
-            "properties": props,
-            "required": list(self.names),
-        }
-
-    def encode(self, values: Sequence[float]) -> dict[str, Any]:
-        """Row values (flat, e.g. ``row.tolist()``) -> JSON-ready dict (non-finite -> None)."""
-        out: dict[str, Any] = {}
-        for name, off, w, kind, labels, digits in self._plan:
-            if w == 1:
-                out[name] = _convert(values[off], kind, labels, digits)
-            else:
-                out[name] = [_convert(v, kind, labels, digits) for v in values[off : off + w]]
-        return out
-
-    def encode_any(self, values: list[float]) -> bytes:
-        """Compact JSON of one row; rows with NaN/inf take the slower dict path (-> null)."""
-        if all(map(math.isfinite, values)):
-            return self.encode_json(values)
-        return _dumps(self.encode(values))
-
-
-def _convert(v: float, kind: str, labels: dict[int, str] | None, digits: int) -> Any:
-    if v != v or v in (math.inf, -math.inf):
-        return None
-    if kind == "float":
-        return float(f"{v:.{digits}g}")
-    if kind == "int":
-        return int(v)
-    if kind == "bool":
-        return bool(v)
-    assert labels is not None
-    i = int(v)
-    return labels.get(i, str(i))
-
-
-def _dumps(obj: Any) -> bytes:
-    """Compact JSON; NaN/inf -> null (strict JSON for Foxglove)."""
-    try:
-        return json.dumps(obj, separators=(",", ":"), allow_nan=False, default=_default).encode()
-    except ValueError:
-        return json.dumps(_finite(obj), separators=(",", ":"), allow_nan=False, default=_default).encode()
-
-
-def _finite(obj: Any) -> Any:
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
-    return obj
-
-
-def _default(obj: Any) -> Any:
-    tolist = getattr(obj, "tolist", None)
-    if callable(tolist):
-        return tolist()
-    if isinstance(obj, enum.Enum):
-        return obj.name
-    return str(obj)
-
-
-# -- sinks ----------------------------------------------------------------------------------
-
-
-class RowSink(Protocol):
-    """Extra consumer of drained rows (runs in the writer thread, never in the cycle)."""
-
-    def write_rows(self, layout: RowLayout, rows: np.ndarray, log_time_ns: np.ndarray) -> None: ...
-
-    def write_event(self, log_time_ns: int, name: str, fields: Mapping[str, Any]) -> None: ...
-
-    def close(self) -> None: ...
-
-
-class RerunUnavailable(ImportError):
-    """rerun-sdk is not installed."""
-
-
-RERUN_HINT = (
-    "the live view needs the optional extra dragd[rerun] (rerun-sdk==0.41.0): "
-    "pip install 'dragd[rerun]'"
-)
-
-
-def rerun_unavailable() -> str | None:
-    """None when rerun-sdk can be imported, else the message telling how to install it."""
-    try:
-        found = importlib.util.find_spec("rerun") is not None
-    except ValueError:
-        found = False
-    return None if found else RERUN_HINT
-
-
-class RerunSink:
-    """Logs the telemetry rows to a Rerun viewer (``dragd run --rerun``).
-
-    ``url`` connects to a running viewer (gRPC), ``save_path`` writes an .rrd file,
-    otherwise a viewer is spawned. Raises RerunUnavailable when rerun-sdk is missing.
-    Each scalar becomes ``cycle/<field>`` (``cycle/<field>/<joint>`` for arrays) on
-    the ``time`` timeline (wall-clock log time); rows are sent in columnar batches.
-    """
-
-    def __init__(
-        self,
-        *,
-        app_id: str = "dragd",
-        url: str | None = None,
-        save_path: str | os.PathLike[str] | None = None,
-        spawn: bool = True,
-        timeline: str = "time",
-    ) -> None:
-        try:
-            import rerun as rr
-        except ImportError as e:
-            raise RerunUnavailable(RERUN_HINT) from e
-        self._rr = rr
-        self._timeline = timeline
-        rr.init(app_id)
-        if url is not None:
-            rr.connect_grpc(url)
-        elif save_path is not None:
-            rr.save(os.fspath(save_path))
-        elif spawn:
-            rr.spawn()
-
-    def write_rows(self, layout: RowLayout, rows: np.ndarray, log_time_ns: np.ndarray) -> None:
-        rr = self._rr
-        times = [rr.TimeColumn(self._timeline, timestamp=log_time_ns.astype("datetime64[ns]"))]
-        for c in layout.columns:
-            for j in range(c.width):
-                path = f"cycle/{c.name}" if c.width == 1 else f"cycle/{c.name}/{j}"
-                rr.send_columns(
-                    path, indexes=times, columns=rr.Scalars.columns(scalars=rows[:, c.offset + j])
-                )
-
-    def write_event(self, log_time_ns: int, name: str, fields: Mapping[str, Any]) -> None:
-        rr = self._rr
-        rr.set_time(self._timeline, timestamp=np.datetime64(log_time_ns, "ns"))
-        text = name + (" " + json.dumps(fields, default=_default) if fields else "")
-        rr.log("events", rr.TextLog(text))
-
-    def close(self) -> None:
-        disconnect = getattr(self._rr, "disconnect", None)
-        if callable(disconnect):
-            disconnect()
-
-
-# -- the writer -----------------------------------------------------------------------------
 
 
 class _CountingStream:
@@ -434,7 +123,7 @@ def _pick_compression(requested: str) -> tuple[CompressionType, str, str | None]
 
 
 def _rotated_name(path: Path, when: float) -> Path:
-    stamp = datetime.fromtimestamp(when, timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    stamp = datetime.fromtimestamp(when, UTC).strftime("%Y%m%dT%H%M%SZ")
     candidate = path.with_name(f"{path.stem}.{stamp}{path.suffix}")
     k = 1
     while candidate.exists():
@@ -456,6 +145,105 @@ def _rotated_files(path: Path) -> list[Path]:
     return [p for _m, _n, p in sorted(found)]
 
 
+class McapFile:
+    """One telemetry MCAP in ``stream``: header, the cycle and event schemas and channels, the run metadata.
+
+    The one encoding path of dragd telemetry files (`TelemetryWriter`'s thread, `write_file`). Rows are
+    encoded by ``layout`` (`encode_row`), events as ``{"name": ..., **fields}`` (`encode_event`).
+    """
+
+    def __init__(
+        self,
+        stream: Any,
+        layout: RowLayout,
+        *,
+        topic: str = CYCLE_TOPIC,
+        events_topic: str = EVENTS_TOPIC,
+        compression: CompressionType = CompressionType.ZSTD,
+        chunk_size: int = 64 * 1024,
+        schema_name: str = CYCLE_SCHEMA,
+        metadata: Mapping[str, str] | None = None,
+        library: str = "dragd",
+    ) -> None:
+        self.layout = layout
+        self._mcap = Writer(stream, chunk_size=chunk_size, compression=compression)
+        self._mcap.start(profile="", library=library)
+        schema_id = self._mcap.register_schema(
+            name=schema_name, encoding="jsonschema", data=dumps(layout.json_schema(schema_name))
+        )
+        self._cycle = self._mcap.register_channel(topic=topic, message_encoding="json", schema_id=schema_id)
+        event_id = self._mcap.register_schema(
+            name=EVENT_SCHEMA, encoding="jsonschema", data=dumps(event_json_schema())
+        )
+        self._events = self._mcap.register_channel(
+            topic=events_topic, message_encoding="json", schema_id=event_id
+        )
+        if metadata:
+            self._mcap.add_metadata(RUN_METADATA, {str(k): str(v) for k, v in metadata.items()})
+
+    def encode_row(self, values: list[float], finite: bool) -> bytes:
+        """JSON of one row (flat values, modified in place); ``finite``: no NaN/inf (the fast template)."""
+        return self.layout.encode_json(values) if finite else dumps(self.layout.encode(values))
+
+    @staticmethod
+    def encode_event(name: str, fields: Mapping[str, Any]) -> bytes:
+        return dumps({"name": name, **fields})
+
+    def add_row(self, data: bytes, log_time_ns: int, seq: int) -> None:
+        self._mcap.add_message(
+            channel_id=self._cycle, log_time=log_time_ns, data=data, publish_time=log_time_ns, sequence=seq
+        )
+
+    def add_event(self, data: bytes, log_time_ns: int) -> None:
+        self._mcap.add_message(
+            channel_id=self._events, log_time=log_time_ns, data=data, publish_time=log_time_ns, sequence=0
+        )
+
+    def finish(self, counters: Mapping[str, Any] | None = None) -> None:
+        """The writer's counters (metadata ``dragd.telemetry.writer``), the last chunk and the summary."""
+        if counters is not None:
+            self._mcap.add_metadata(WRITER_METADATA, {str(k): str(v) for k, v in counters.items()})
+        self._mcap.finish()
+
+
+def write_file(
+    path: str | os.PathLike[str],
+    layout: Mapping[str, int | Field] | RowLayout,
+    rows: np.ndarray,
+    log_time_ns: Sequence[int] | np.ndarray,
+    *,
+    events: Iterable[tuple[int, str, Mapping[str, Any]]] = (),
+    metadata: Mapping[str, str] | None = None,
+    compression: Compression = "zstd",
+    chunk_size: int = 1 << 20,
+    library: str = "dragd",
+) -> int:
+    """Write ``rows`` ((N, width) in ``layout``'s order) and ``events`` ((time_ns, name, fields)) to a finished
+    MCAP at once, as `TelemetryWriter` would (sequence 1..N); for logs computed offline. Returns N."""
+    lay = layout if isinstance(layout, RowLayout) else RowLayout(layout)
+    rows = np.asarray(rows, dtype=np.float64)
+    if rows.ndim != 2 or rows.shape[1] != lay.width:
+        raise ValueError(f"write_file: rows must be (N, {lay.width}) for this layout; got {rows.shape}")
+    stamps = np.asarray(log_time_ns, dtype=np.int64).tolist()
+    if len(stamps) != rows.shape[0]:
+        raise ValueError(f"write_file: {rows.shape[0]} rows but {len(stamps)} log times")
+    kind = _pick_compression(compression)[0]
+    pending = sorted(events, key=lambda e: e[0])
+    with open(path, "wb") as fh:
+        f = McapFile(fh, lay, compression=kind, chunk_size=chunk_size, metadata=metadata, library=library)
+        finite = np.isfinite(rows).all(axis=1).tolist()
+        k = 0
+        for seq, (values, ok, t) in enumerate(zip(rows.tolist(), finite, stamps, strict=True), start=1):
+            while k < len(pending) and pending[k][0] <= t:
+                f.add_event(f.encode_event(pending[k][1], pending[k][2]), pending[k][0])
+                k += 1
+            f.add_row(f.encode_row(values, ok), t, seq)
+        for t_ev, name, fields in pending[k:]:
+            f.add_event(f.encode_event(name, fields), t_ev)
+        f.finish({"written": len(stamps), "dropped": 0, "events_written": len(pending), "events_dropped": 0})
+    return len(stamps)
+
+
 class TelemetryWriter:
     """Off-loop MCAP writer fed by a preallocated ring of rows (see module docstring).
 
@@ -474,7 +262,7 @@ class TelemetryWriter:
         capacity: int = 4096,
         *,
         events_topic: str = EVENTS_TOPIC,
-        compression: Literal["zstd", "lz4", "none"] = "zstd",
+        compression: Compression = "zstd",
         chunk_size: int = 64 * 1024,
         flush_interval_s: float = 0.02,
         float_digits: int = 12,
@@ -488,7 +276,7 @@ class TelemetryWriter:
         rerun: bool | str = False,
         max_pending_events: int = 10_000,
         avoid_cpus: set[int] | None = None,
-        schema_name: str = "dragd.Cycle",
+        schema_name: str = CYCLE_SCHEMA,
     ) -> None:
         if capacity < 2:
             raise ValueError(f"telemetry capacity must be >= 2 rows; got {capacity}")
@@ -541,11 +329,9 @@ class TelemetryWriter:
         self._unflushed_events = 0
         self._unflushed_bytes = 0
         self._failed_at: float | None = None
-        self._mcap: Writer | None = None
+        self._mcap: McapFile | None = None
         self._stream: _CountingStream | None = None
         self._raw: Any = None
-        self._cycle_channel = 0
-        self._event_channel = 0
 
         if isinstance(path, (str, os.PathLike)):
             self.path: Path | None = Path(path)
@@ -632,7 +418,7 @@ class TelemetryWriter:
 
         return await asyncio.to_thread(self.close, timeout_s)
 
-    def __enter__(self) -> "TelemetryWriter":
+    def __enter__(self) -> TelemetryWriter:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -698,40 +484,19 @@ class TelemetryWriter:
             except (OSError, AttributeError, io.UnsupportedOperation):
                 start = 0
         stream = _CountingStream(target, start)
-        mcap = Writer(
-            stream,  # type: ignore[arg-type]  # write/tell/flush is all mcap uses
-            chunk_size=self._chunk_size,
-            compression=self._compression,
-        )
         with self._lock:
             self._stream = stream
             self._segments += 1
-        mcap.start(profile="", library="dragd")
-        schema_id = mcap.register_schema(
-            name=self._schema_name,
-            encoding="jsonschema",
-            data=_dumps(self.layout.json_schema(self._schema_name)),
+        self._mcap = McapFile(
+            stream,
+            self.layout,
+            topic=self.topic,
+            events_topic=self.events_topic,
+            compression=self._compression,
+            chunk_size=self._chunk_size,
+            schema_name=self._schema_name,
+            metadata=self._metadata,
         )
-        self._cycle_channel = mcap.register_channel(
-            topic=self.topic, message_encoding="json", schema_id=schema_id
-        )
-        event_schema = {
-            "title": "dragd.Event",
-            "type": "object",
-            "description": "rare daemon event; further fields depend on the event name",
-            "properties": {"name": {"type": "string"}},
-            "required": ["name"],
-            "additionalProperties": True,
-        }
-        ev_schema_id = mcap.register_schema(
-            name="dragd.Event", encoding="jsonschema", data=_dumps(event_schema)
-        )
-        self._event_channel = mcap.register_channel(
-            topic=self.events_topic, message_encoding="json", schema_id=ev_schema_id
-        )
-        if self._metadata:
-            mcap.add_metadata("dragd.run", {str(k): str(v) for k, v in self._metadata.items()})
-        self._mcap = mcap
         self._failed_at = None
 
     def _fail(self, exc: BaseException, doing: str) -> None:
@@ -762,17 +527,16 @@ class TelemetryWriter:
             self._events_written += self._unflushed_events
         self._unflushed_rows = self._unflushed_events = self._unflushed_bytes = 0
 
-    def _add(self, channel: int, log_time: int, data: bytes, seq: int, is_row: bool) -> None:
+    def _add(self, log_time: int, data: bytes, seq: int, is_row: bool) -> None:
         assert self._mcap is not None and self._stream is not None
         before = self._stream.position
+        self._unflushed_bytes += len(data)
         if is_row:
             self._unflushed_rows += 1
+            self._mcap.add_row(data, log_time, seq)
         else:
             self._unflushed_events += 1
-        self._unflushed_bytes += len(data)
-        self._mcap.add_message(
-            channel_id=channel, log_time=log_time, data=data, publish_time=log_time, sequence=seq
-        )
+            self._mcap.add_event(data, log_time)
         if self._stream.position != before:
             self._note_flush()
 
@@ -785,15 +549,13 @@ class TelemetryWriter:
             st = self.stats()
             st["written"] += self._unflushed_rows  # finish() below writes them
             st["events_written"] += self._unflushed_events
-            mcap.add_metadata(
-                "dragd.telemetry.writer",
+            mcap.finish(
                 {
-                    k: str(st[k])
+                    k: st[k]
                     for k in ("written", "dropped", "dropped_ring_full", "dropped_io", "errors",
                               "first_error", "events_written", "events_dropped", "segments")
-                },
+                }
             )
-            mcap.finish()
             self._stream.flush()  # type: ignore[union-attr]
             if self._file_obj is None and self._raw is not None:
                 try:
@@ -862,19 +624,18 @@ class TelemetryWriter:
         events_done = rows_done = 0
         try:
             for t, name, fields in events:
-                data = _dumps({"name": name, **fields})
+                data = McapFile.encode_event(name, fields)
                 events_done += 1  # from here on a failure is counted by _fail()
-                self._add(self._event_channel, t, data, 0, False)
+                self._add(t, data, 0, False)
             if taken is not None:
                 rows, stamps, seqs = taken
                 finite = np.isfinite(rows).all(axis=1).tolist()
-                encode_json = self.layout.encode_json
-                encode = self.layout.encode
-                channel = self._cycle_channel
-                for values, ok, t, seq in zip(rows.tolist(), finite, stamps, seqs):
-                    data = encode_json(values) if ok else _dumps(encode(values))
+                assert self._mcap is not None
+                encode_row = self._mcap.encode_row
+                for values, ok, t, seq in zip(rows.tolist(), finite, stamps, seqs, strict=True):
+                    data = encode_row(values, ok)
                     rows_done += 1  # from here on a failure is counted by _fail()
-                    self._add(channel, t, data, seq, True)
+                    self._add(t, data, seq, True)
                     if rows_done % self._yield_every == 0:
                         time.sleep(_YIELD_S)  # hand the GIL to the cycle thread
         except Exception as e:  # noqa: BLE001 - never let the writer thread die
@@ -927,289 +688,3 @@ class TelemetryWriter:
                 with self._lock:
                     self._sink_errors.append(f"{type(sink).__name__} close: {e}")
 
-
-# -- summary --------------------------------------------------------------------------------
-
-
-class _FieldAcc:
-    """Running min/max/mean per element (numbers) or label counts (strings) of one field."""
-
-    def __init__(self, width: int, kind: str, is_array: bool) -> None:
-        self.width = width
-        self.kind = kind
-        self.is_array = is_array
-        self.nulls = 0
-        self.total = np.zeros(width)
-        self.valid = np.zeros(width, dtype=np.int64)
-        self.lo = np.full(width, np.inf)
-        self.hi = np.full(width, -np.inf)
-        self.counts: dict[str, int] = {}
-        self.block: list[list[Any]] = []
-
-    def add(self, v: Any) -> None:
-        if self.kind == "string":
-            key = str(v) if v is not None else "null"
-            self.counts[key] = self.counts.get(key, 0) + 1
-            return
-        row = v if isinstance(v, list) else [v]
-        if len(row) != self.width or not all(isinstance(x, (int, float)) or x is None for x in row):
-            row = [x if isinstance(x, (int, float)) else None for x in row[: self.width]]
-            row += [None] * (self.width - len(row))
-        self.block.append(row)
-        if len(self.block) >= 4096:
-            self.flush()
-
-    def flush(self) -> None:
-        if not self.block:
-            return
-        a = np.array(self.block, dtype=np.float64)
-        self.block = []
-        ok = np.isfinite(a)
-        self.nulls += int((~ok).any(axis=1).sum())
-        self.valid += ok.sum(axis=0)
-        self.total += np.where(ok, a, 0.0).sum(axis=0)
-        self.lo = np.minimum(self.lo, np.where(ok, a, np.inf).min(axis=0))
-        self.hi = np.maximum(self.hi, np.where(ok, a, -np.inf).max(axis=0))
-
-    def result(self) -> dict[str, Any]:
-        if self.kind == "string":
-            return {"type": "enum", "counts": dict(sorted(self.counts.items()))}
-        self.flush()
-
-        def pack(arr: np.ndarray) -> Any:
-            vals = [float(x) if math.isfinite(x) else None for x in arr]
-            return vals if self.is_array else vals[0]
-
-        mean = np.where(self.valid > 0, self.total / np.maximum(self.valid, 1), np.nan)
-        return {
-            "type": "array" if self.is_array else "number",
-            "min": pack(self.lo),
-            "max": pack(self.hi),
-            "mean": pack(mean),
-            "rows_with_null": self.nulls,
-        }
-
-
-def _iso(ns: int) -> str:
-    return datetime.fromtimestamp(ns / 1e9, timezone.utc).isoformat()
-
-
-def summarize(
-    path: str | os.PathLike[str],
-    *,
-    cycle_topic: str = CYCLE_TOPIC,
-    events_topic: str = EVENTS_TOPIC,
-    allow_truncated: bool = False,
-) -> dict[str, Any]:
-    """Summary of a telemetry MCAP for ``dragd log summary FILE.mcap``.
-
-    Channels (topic, encodings, schema, message count), time range, per-field
-    min/max/mean of the cycle topic (per joint for arrays; label counts for enum
-    fields), sequence gaps (dropped rows), the events and the metadata records.
-    Raises TelemetryFileError for a missing, non-MCAP, corrupt or (unless
-    ``allow_truncated``) truncated file; a truncated file's readable part is
-    summarized with ``"complete": False`` when ``allow_truncated`` is set.
-    """
-    p = Path(path)
-    if not p.exists():
-        raise TelemetryFileError(f"{p}: no such file")
-    if p.is_dir():
-        raise TelemetryFileError(f"{p}: is a directory, expected an .mcap file")
-    size = p.stat().st_size
-    with open(p, "rb") as f:
-        head = f.read(8)
-        if size == 0:
-            raise TelemetryFileError(f"{p}: empty file (0 bytes), expected an MCAP file")
-        if head != MCAP_MAGIC:
-            raise TelemetryFileError(
-                f"{p}: not an MCAP file (starts with {head.hex(' ')}, expected the MCAP magic "
-                f"{MCAP_MAGIC.hex(' ')})"
-            )
-        f.seek(0)
-        return _scan(p, f, size, cycle_topic, events_topic, allow_truncated)
-
-
-def _scan(
-    p: Path, f: BinaryIO, size: int, cycle_topic: str, events_topic: str, allow_truncated: bool
-) -> dict[str, Any]:
-    schemas: dict[int, Schema] = {}
-    channels: dict[int, Channel] = {}
-    counts: collections.Counter[int] = collections.Counter()
-    metadata: dict[str, dict[str, str]] = {}
-    events: list[dict[str, Any]] = []
-    header: Header | None = None
-    statistics: Statistics | None = None
-    compressions: collections.Counter[str] = collections.Counter()
-    accs: dict[str, _FieldAcc] | None = None
-    start_ns: int | None = None
-    end_ns: int | None = None
-    rows = 0
-    gaps = 0
-    last_seq: int | None = None
-    complete = False
-    problem: str | None = None
-    truncated = False
-
-    def on_message(m: Message) -> None:
-        nonlocal start_ns, end_ns, accs, rows, gaps, last_seq
-        counts[m.channel_id] += 1
-        start_ns = m.log_time if start_ns is None else min(start_ns, m.log_time)
-        end_ns = m.log_time if end_ns is None else max(end_ns, m.log_time)
-        ch = channels.get(m.channel_id)
-        if ch is None:
-            return
-        if ch.topic == events_topic:
-            try:
-                d = json.loads(m.data)
-            except ValueError:
-                d = {"name": "<undecodable event>"}
-            name = d.pop("name", "?") if isinstance(d, dict) else "?"
-            events.append({"time_ns": m.log_time, "name": name, "fields": d if isinstance(d, dict) else {}})
-        elif ch.topic == cycle_topic and ch.message_encoding == "json":
-            try:
-                d = json.loads(m.data)
-            except ValueError:
-                return
-            if not isinstance(d, dict):
-                return
-            if accs is None:
-                accs = _accumulators(schemas.get(ch.schema_id), d)
-            rows += 1
-            if m.sequence and last_seq is not None and m.sequence > last_seq + 1:
-                gaps += m.sequence - last_seq - 1
-            if m.sequence:
-                last_seq = m.sequence
-            for name, acc in accs.items():
-                acc.add(d.get(name))
-
-    def on_record(r: Any) -> None:
-        nonlocal header, statistics
-        if isinstance(r, Schema):
-            schemas[r.id] = r
-        elif isinstance(r, Channel):
-            channels[r.id] = r
-        elif isinstance(r, Message):
-            on_message(r)
-        elif isinstance(r, Metadata):
-            metadata[r.name] = dict(r.metadata)
-        elif isinstance(r, Header):
-            header = r
-        elif isinstance(r, Statistics):
-            statistics = r
-
-    reader = StreamReader(f, emit_chunks=True)
-    try:
-        for record in reader.records:
-            if isinstance(record, Chunk):
-                compressions[record.compression or "none"] += 1
-                for inner in breakup_chunk(record, validate_crc=True):
-                    on_record(inner)
-            else:
-                on_record(record)
-            if isinstance(record, Footer):
-                complete = True
-    except (EndOfFile, struct.error, EOFError) as e:
-        truncated = True
-        problem = f"unexpected end of file ({type(e).__name__}{': ' + str(e) if str(e) else ''})"
-    except Exception as e:  # noqa: BLE001 - mcap and decompressors raise many types
-        problem = f"{type(e).__name__}: {e}"
-
-    if not complete:
-        if header is None:
-            raise TelemetryFileError(f"{p}: corrupt MCAP, no readable header ({problem})")
-        n = sum(counts.values())
-        if not allow_truncated:
-            what = (
-                "truncated MCAP: no footer/summary, the writer did not finish "
-                "(daemon killed or disk full?)"
-                if truncated
-                else "corrupt MCAP"
-            )
-            raise TelemetryFileError(
-                f"{p}: {what} ({size} bytes); reading stopped at: {problem}; {n} complete "
-                "messages before that are readable -- summarize with allow_truncated=True to see them"
-            )
-
-    channel_list = []
-    for cid, ch in sorted(channels.items()):
-        sch = schemas.get(ch.schema_id)
-        channel_list.append(
-            {
-                "topic": ch.topic,
-                "message_encoding": ch.message_encoding,
-                "schema": sch.name if sch else None,
-                "schema_encoding": sch.encoding if sch else None,
-                "messages": counts.get(cid, 0),
-            }
-        )
-    if start_ns is not None:
-        for ev in events:
-            ev["t_s"] = (ev["time_ns"] - start_ns) / 1e9
-    cycle: dict[str, Any] | None = None
-    if accs is not None:
-        cycle = {
-            "topic": cycle_topic,
-            "rows": rows,
-            "sequence_gaps": gaps,
-            "fields": {name: acc.result() for name, acc in accs.items()},
-        }
-    return {
-        "file": os.fspath(p),
-        "size_bytes": size,
-        "complete": complete,
-        "problem": None if complete else problem,
-        "library": header.library if header else None,
-        "profile": header.profile if header else None,
-        "chunks": dict(compressions),
-        "schemas": sorted({s.name for s in schemas.values()}),
-        "channels": channel_list,
-        "message_count": sum(counts.values()),
-        "start_ns": start_ns,
-        "end_ns": end_ns,
-        "start_utc": _iso(start_ns) if start_ns is not None else None,
-        "duration_s": (end_ns - start_ns) / 1e9 if start_ns is not None and end_ns is not None else 0.0,
-        "statistics_message_count": statistics.message_count if statistics else None,
-        "cycle": cycle,
-        "events": events,
-        "metadata": metadata,
-    }
-
-
-def _accumulators(schema: Schema | None, first: Mapping[str, Any]) -> dict[str, _FieldAcc]:
-    """Field accumulators in schema order (falls back to the first message's keys)."""
-    props: dict[str, Any] = {}
-    if schema is not None and schema.encoding == "jsonschema":
-        try:
-            props = json.loads(schema.data).get("properties", {}) or {}
-        except (ValueError, AttributeError):
-            props = {}
-    names: Iterable[str] = props.keys() if props else first.keys()
-    accs: dict[str, _FieldAcc] = {}
-    for name in names:
-        spec = props.get(name, {})
-        sample = first.get(name)
-        is_array = spec.get("type") == "array" or isinstance(sample, list)
-        item = spec.get("items", {}) if is_array else spec
-        if item.get("type") == "string" or isinstance(sample, str):
-            accs[name] = _FieldAcc(1, "string", False)
-        else:
-            width = int(spec.get("maxItems") or (len(sample) if isinstance(sample, list) else 1))
-            accs[name] = _FieldAcc(max(width, 1), "number", is_array)
-    return accs
-
-
-def read_rows(path: str | os.PathLike[str], topic: str = CYCLE_TOPIC) -> dict[str, np.ndarray]:
-    """Every row of ``topic`` as column arrays (label fields stay strings); for analysis, not for the cycle."""
-    from mcap.reader import make_reader
-
-    cols: dict[str, list[Any]] = {}
-    try:
-        with open(path, "rb") as fh:
-            for _, _, message in make_reader(fh).iter_messages(topics=[topic]):
-                for k, v in json.loads(message.data).items():
-                    cols.setdefault(k, []).append(v)
-    except FileNotFoundError:
-        raise TelemetryFileError(f"{path}: no such telemetry file") from None
-    except (ValueError, KeyError) as exc:
-        raise TelemetryFileError(f"{path}: not a readable dragd MCAP log ({exc})") from None
-    return {k: np.array(v) for k, v in cols.items()}

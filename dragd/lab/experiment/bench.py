@@ -16,7 +16,7 @@ import yaml
 
 from dragd.config import Config, default_config_path, load_config
 from dragd.lab.rig import Rig, wait_until
-from dragd.telemetry.writer import read_rows
+from dragd.telemetry.reader import read_rows
 
 BREAKAWAY_THRESHOLD_RAD = 0.002  # a joint that moved this far has started (0.11°)
 

@@ -48,7 +48,7 @@ def _starting_torques(bench: Bench, rig: Any, joints: list[int], reps: int, rows
     rows = None
     if rows_path is not None:
         rig.must("record", action="stop")
-        from dragd.telemetry.writer import read_rows
+        from dragd.telemetry.reader import read_rows
 
         rows = read_rows(rows_path)
     return out, rows
