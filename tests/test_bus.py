@@ -24,7 +24,7 @@ from dragd.hardware.bus import (
     socketcan_available,
 )
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.rig, pytest.mark.timeout(60)]
 
 
 def unique_group(name: str) -> str:

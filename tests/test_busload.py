@@ -2,6 +2,8 @@ import pytest
 
 from dragd.hardware.busload import FrameSpec, bus_load, fd_length, frame_bits
 
+pytestmark = pytest.mark.unit
+
 
 def test_classic_worst_case_numbers():
     # 47 + 8n + floor((34 + 8n - 1) / 4)

@@ -11,6 +11,8 @@ from dragd.config import ConfigError, load_config, load_params
 
 from conftest import DEFAULT_CONFIG, REPO, run_cli
 
+pytestmark = pytest.mark.unit
+
 
 def _write(tmp_path: Path, data: dict, name: str = "c.yaml") -> Path:
     p = tmp_path / name

@@ -18,6 +18,8 @@ from dragd.protocol import (
     DaemonUnavailable,
 )
 
+pytestmark = pytest.mark.unit
+
 
 def make_table():
     table = CommandTable()

@@ -6,11 +6,14 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import pytest
 import yaml
 
 from dragd.lab.rig import Rig, multicast_group
 
 from conftest import REPO, run_cli
+
+pytestmark = pytest.mark.rig
 
 
 def test_two_classic_buses_compact_layout(tmp_path):

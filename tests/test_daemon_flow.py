@@ -17,6 +17,8 @@ from dragd.lab.rig import Rig
 
 from daemon_helpers import cycle_rows, wait_for
 
+pytestmark = pytest.mark.rig
+
 STATUS_KEYS = {"mode", "drives_enabled", "cycles", "period_p99_us", "missed_cycles", "q_rad", "current_A", "faults"}
 
 

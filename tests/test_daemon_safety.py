@@ -21,6 +21,8 @@ from dragd.lab.rig import Rig
 from conftest import run_cli
 from daemon_helpers import cycle_rows, derived_config, wait_for
 
+pytestmark = pytest.mark.rig
+
 
 def _drag(rig: Rig) -> None:
     rig.start_sim()

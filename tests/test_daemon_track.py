@@ -5,10 +5,13 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import pytest
 
 from dragd.lab.rig import Rig
 
 from daemon_helpers import cycle_rows, wait_for
+
+pytestmark = pytest.mark.rig
 
 
 def test_track_follows_trajectory_in_csp_and_returns_to_hold(tmp_path):

@@ -91,6 +91,8 @@ _REALTIME_PROBE = """
 import asyncio, json, os, threading
 from dragd.daemon.core import go_realtime
 
+pytestmark = pytest.mark.unit
+
 async def main():
     loop = asyncio.get_running_loop()
     label = go_realtime(loop, 10, None)

@@ -17,6 +17,8 @@ from dragd.config import load_params
 
 from conftest import run_cli
 
+pytestmark = [pytest.mark.rig, pytest.mark.slow]
+
 
 @pytest.fixture(scope="module")
 def startup(tmp_path_factory):

@@ -18,6 +18,8 @@ from dragd.model import RobotModel
 from conftest import run_cli
 from gap_helpers import as_log, generate_all, model_for, plan, truth_for
 
+pytestmark = pytest.mark.unit
+
 
 @pytest.fixture(scope="module")
 def files(tmp_path_factory):

@@ -7,16 +7,19 @@ import json
 import time
 
 import numpy as np
+import pytest
 import yaml
 
 from dragd.config import load_config
 from dragd.identify import excitation as E
-from dragd.model import RobotModel
 from dragd.lab.rig import Rig
+from dragd.model import RobotModel
 
 from conftest import run_cli
 from daemon_helpers import AS_DEPLOYED
 from identify_helpers import run_plan
+
+pytestmark = [pytest.mark.rig, pytest.mark.slow]
 
 
 def test_gap_on_daemon_telemetry(tmp_path):

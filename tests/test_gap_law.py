@@ -11,6 +11,8 @@ from dragd.control.params import LawParams
 from dragd.control.law import LawOutput, Workspace, compensate, effects_current, friction_current
 from dragd.model import RobotModel
 
+pytestmark = pytest.mark.unit
+
 PARAMS = {
     "joints": {
         "joint2": {"effects": {"position_periodic": [{"cycles_per_rev": 24.0, "sin_A": 0.03, "cos_A": -0.02},

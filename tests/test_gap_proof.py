@@ -15,7 +15,7 @@ from gap_helpers import CASES, as_log, generate_all, model_for, plan
 
 # the module fixture generates ~15 offline logs of 54 s and analyses them (2.5–3.3 min here): it runs inside the
 # first test, so that test gets more than the suite's default 300 s on a slower or busier machine
-pytestmark = pytest.mark.timeout(900)
+pytestmark = [pytest.mark.unit, pytest.mark.slow, pytest.mark.timeout(900)]
 
 
 @pytest.fixture(scope="module")

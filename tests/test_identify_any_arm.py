@@ -5,9 +5,13 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
+
+from dragd.model import RobotModel
 
 from conftest import run_cli
-from dragd.model import RobotModel
+
+pytestmark = pytest.mark.unit
 
 URDF = """<?xml version="1.0"?>
 <robot name="three">

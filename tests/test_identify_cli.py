@@ -7,11 +7,13 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 import yaml
 
 from conftest import REPO, run_cli
-
 from identify_helpers import START, sync_log
+
+pytestmark = pytest.mark.unit
 
 
 def _sim(*args: str, check: bool = True) -> subprocess.CompletedProcess:

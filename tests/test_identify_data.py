@@ -10,6 +10,8 @@ from dragd.identify.methods import identify
 
 from identify_helpers import robot, sync_log
 
+pytestmark = pytest.mark.unit
+
 
 def _csv(path, t, q, i, dq=None, header=None):
     n = q.shape[1]

@@ -10,6 +10,8 @@ from dragd.identify.runner import _approach, chunks
 
 from identify_helpers import START, limits, robot
 
+pytestmark = pytest.mark.unit
+
 
 def _speeds(plan, kind, joint=None):
     dq, _ = plan.derivatives()

@@ -13,6 +13,8 @@ from dragd.identify.regressors import RegressorModel
 
 from identify_helpers import lowspeed_log, rel, robot, symmetric_log, sync_log, truth
 
+pytestmark = pytest.mark.unit
+
 
 @pytest.fixture(scope="module")
 def sync_fit():

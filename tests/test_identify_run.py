@@ -7,16 +7,19 @@ import json
 import time
 
 import numpy as np
+import pytest
 
 from dragd.config import load_config
 from dragd.identify import excitation as E
 from dragd.identify.data import load_log
-from dragd.model import RobotModel
 from dragd.lab.rig import Rig
+from dragd.model import RobotModel
 
 from conftest import run_cli
 from daemon_helpers import AS_DEPLOYED
 from identify_helpers import run_plan, truth
+
+pytestmark = [pytest.mark.rig, pytest.mark.slow]
 
 
 def test_identify_run_through_the_daemon_then_fit(tmp_path):

@@ -13,6 +13,8 @@ from dragd.control.estimate import VelocityEstimator
 
 from conftest import DEFAULT_CONFIG, cli_json
 
+pytestmark = pytest.mark.unit
+
 
 @pytest.fixture(scope="module")
 def cfg():

@@ -12,6 +12,8 @@ from dragd.model import RobotModel
 
 from conftest import cli_json, run_cli
 
+pytestmark = pytest.mark.unit
+
 
 def seed_closed_form(q: np.ndarray) -> np.ndarray:
     """Seed 000's gravity (N·m), with G5 the gradient of the same potential (see docs/MODEL.md)."""

@@ -6,6 +6,8 @@ import pytest
 
 from dragd import sdnotify
 
+pytestmark = pytest.mark.unit
+
 
 @pytest.fixture
 def systemd_socket(tmp_path, monkeypatch):

@@ -48,7 +48,7 @@ DRIVES = {j.drive.node_id: j.drive for j in TRUTH.joints}
 NODES = tuple(sorted(DRIVES))
 MASTER_ID = 0x7F
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.rig, pytest.mark.timeout(120)]
 
 
 def unique_group(name: str) -> str:

@@ -16,6 +16,8 @@ from sim.operator import Operator, ScenarioError, load_scenario, validate_scenar
 from sim.physics import ArmPhysics
 from sim.truth import DEFAULT_TRUTH, Truth, TruthError, load_truth
 
+pytestmark = pytest.mark.unit
+
 FRICTIONLESS = {"coulomb_pos_Nm": 0.0, "coulomb_neg_Nm": 0.0, "static_pos_Nm": 0.0, "static_neg_Nm": 0.0,
                 "viscous_pos_Nm_s_per_rad": 0.0, "viscous_neg_Nm_s_per_rad": 0.0}
 

@@ -24,6 +24,8 @@ from dragd.model import RobotModel
 from sim.drive import DEFAULT_EDS_PATH
 from sim.truth import load_truth
 
+pytestmark = pytest.mark.rig
+
 REPO = Path(__file__).resolve().parents[1]
 CST = 10
 SW_STATE_MASK, SW_OPERATION_ENABLED = 0x006F, 0x0027

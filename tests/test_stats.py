@@ -7,6 +7,8 @@ import pytest
 
 from dragd.stats import Histogram, RateCounter
 
+pytestmark = pytest.mark.unit
+
 
 def test_counts_mean_max_and_out_of_range():
     h = Histogram(0.0, 10.0, 1.0)

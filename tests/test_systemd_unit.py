@@ -6,6 +6,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.unit
+
 ROOT = Path(__file__).resolve().parents[1]
 UNIT = ROOT / "systemd" / "dragd.service"
 SYSUSERS = ROOT / "systemd" / "dragd.sysusers.conf"

@@ -28,6 +28,8 @@ from dragd.telemetry.reader import read_events, read_rows
 from conftest import run_cli
 from daemon_helpers import derived_config, wait_for
 
+pytestmark = pytest.mark.rig
+
 Q0 = np.array([0.0, -0.6, 1.2, -0.6, 1.5708, 0.0])  # the simulated arm's start pose
 
 

@@ -22,6 +22,8 @@ from dragd.teach.program import (FORMAT, Program, ProgramError, Waypoint, load_p
 from conftest import DEFAULT_CONFIG, run_cli
 from daemon_helpers import derived_config
 
+pytestmark = pytest.mark.unit
+
 Q0 = np.array([0.0, -0.6, 1.2, -0.6, 1.5708, 0.0])  # the simulated arm's start pose
 STEPS = [[0.20, 0.10, -0.10, 0.10, 0.0, 0.0], [0.25, 0.20, -0.35, 0.15, 0.15, 0.25],
          [-0.35, 0.05, 0.25, -0.05, -0.20, -0.15]]  # the teach demo's hand pulls

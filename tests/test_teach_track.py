@@ -24,6 +24,8 @@ from dragd.teach.program import Program, Waypoint, save_program
 from conftest import DEFAULT_CONFIG
 from inproc import InProcess
 
+pytestmark = pytest.mark.unit
+
 Q0 = np.array([0.0, -0.6, 1.2, -0.6, 1.5708, 0.0])
 STEPS = [[0.0] * 6, [0.3, 0.15, -0.15, 0.2, 0.2, 0.3], [-0.1, 0.1, 0.1, -0.2, 0.2, -0.2]]
 

@@ -20,6 +20,8 @@ from dragd.telemetry.schema import Field
 from dragd.telemetry.sinks import RerunSink, RerunUnavailable, rerun_unavailable
 from dragd.telemetry.writer import TelemetryError, TelemetryWriter
 
+pytestmark = pytest.mark.rig
+
 
 class Mode(enum.IntEnum):
     IDLE = 0

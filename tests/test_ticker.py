@@ -120,6 +120,8 @@ def test_invalid_period():
 _SCRIPT = """
 import json, os
 from dragd.realtime import set_realtime
+
+pytestmark = pytest.mark.rig
 res = set_realtime(10, {0}, lock_memory=True)
 res["policy_now"] = os.sched_getscheduler(0) == os.SCHED_FIFO
 print(json.dumps(res))
