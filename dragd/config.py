@@ -57,7 +57,7 @@ class BusConfig(_Strict):
     fd: bool = False
     data_bitrate: PosInt | None = None
     load_limit_pct: Annotated[float, Field(gt=0, le=100), Expect("a percentage in (0, 100]")] = 70.0
-    layout: Literal["shared", "compact"] = "shared"  # PDO layout, see dragd/pdo.py
+    layout: Literal["shared", "compact"] = "shared"  # PDO layout, see dragd/hardware/pdo.py
 
     @model_validator(mode="after")
     def _fd_rate(self) -> BusConfig:

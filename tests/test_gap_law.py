@@ -1,4 +1,4 @@
-"""The law's model-gap term (dragd/law.py ``effects_current``, back-EMF knee) against its formulas, and the payload in
+"""The law's model-gap term (dragd/control/law.py ``effects_current``, back-EMF knee) against its formulas, and the payload in
 the robot model: what ``dragd gap --out`` adds is what the daemon compensates."""
 
 from __future__ import annotations

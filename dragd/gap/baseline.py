@@ -6,7 +6,7 @@ Given model, per joint j (amperes, work rate):
           + the params' effects (position-periodic, load friction, offset, drift × I_f, back-EMF knee term)
           + a play's current (``effects.backlash_*``: the rotor simulated along the output, on the rest of the model)
 
-with I_f dragd's friction law (dragd/law.py, ``friction_scale`` 1: the friction *model*, not the drag setting).
+with I_f dragd's friction law (dragd/control/law.py, ``friction_scale`` 1: the friction *model*, not the drag setting).
 Seed 000 (no ``--model``): î_j = a_j·G_j(q) + F_+·[q̇ > 0] + F_−·[q̇ < 0] with a_j = 1/K_t and the two levels
 fitted on the data (nothing else) — they stay free while effects are added.
 """

@@ -5,7 +5,7 @@ Every effect is a current in amperes that the model lacks, linear in its paramet
 (held-out error). Columns are built at the work rate from the prepared log (q̃, q̇, q̈, G, the URDF's dynamics)
 and filtered by H like the current. ``params`` turns fitted coefficients into the params file's fields
 (``joints[].friction``, ``joints[].effects``, ``payload``); ``predict`` evaluates an effect of a params file — the
-same current the daemon's law adds (dragd/law.py ``effects_current``) and the simulator produces.
+same current the daemon's law adds (dragd/control/law.py ``effects_current``) and the simulator produces.
 
 Signatures (what tells each effect from the others; docs/GAP.md has the full table):
 

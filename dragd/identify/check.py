@@ -5,7 +5,7 @@ Prediction per joint, in amperes, at the log's own rate:
     î = τ(q̃, q̇, q̈)/K_t + I_f(q̇) (+ J_a·q̈/K_t when the params file carries rotor inertia)
 
 with τ the URDF's rigid-body torque (``--terms rigid``, default; ``gravity`` for G(q) only, what the daemon
-compensates), I_f dragd's friction law (dragd/law.py) with the identified values, and q̃, q̇, q̈ from zero-phase
+compensates), I_f dragd's friction law (dragd/control/law.py) with the identified values, and q̃, q̇, q̈ from zero-phase
 filtered positions. The measured current is the raw Hall reading (noise included): RMSE, MAE and max error per
 joint over the evaluation mask — by default steady motion (the joint slides at |q̇| > v_min, no joint
 accelerates, reversals and stiction excluded: the seed validates at constant low speed).

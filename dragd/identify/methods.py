@@ -1,7 +1,7 @@
 """The identification methods: seed 000 (low speed), seed 001 (symmetric), seed 002 (synchronous), full dynamics.
 
 All work on a :class:`~dragd.identify.data.Prepared` log, joint by joint (each joint has its own torque constant),
-in amperes of motor current. Friction uses dragd's law (dragd/law.py) so the result plugs straight in:
+in amperes of motor current. Friction uses dragd's law (dragd/control/law.py) so the result plugs straight in:
 
     I_f(q̇) = d·[F_c,d + (F_s,d − F_c,d)·exp(−(|q̇|/v_s)^δ)] + F_v,d·q̇,   d = sign q̇
 
