@@ -83,7 +83,9 @@ class LawOutput:
 
     @classmethod
     def zeros(cls, n: int) -> LawOutput:
-        return cls(*(np.zeros(n) for _ in range(6)), clamped=np.zeros(n, dtype=bool), effects_A=np.zeros(n))
+        z = np.zeros
+        return cls(current_A=z(n), gravity_A=z(n), friction_A=z(n), startup_A=z(n), back_emf_A=z(n), damping_A=z(n),
+                   clamped=np.zeros(n, dtype=bool), effects_A=z(n))
 
 
 def _out(out: np.ndarray | None, n: int) -> np.ndarray:

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields, replace
-from typing import TYPE_CHECKING
+from dataclasses import dataclass, field, fields, replace
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -57,14 +58,14 @@ class LawParams:
     def replace(self, **changes: object) -> LawParams:
         """A copy with some fields changed (arrays are converted)."""
         arrays = {f.name for f in fields(self) if f.type == "np.ndarray"}
-        conv = {k: (np.array(v, dtype=float) if k in arrays else v) for k, v in changes.items()}
+        conv: dict[str, Any] = {k: (np.array(v, dtype=float) if k in arrays else v) for k, v in changes.items()}
         return replace(self, **conv)
 
     @classmethod
     def from_config(cls, cfg: Config) -> LawParams:
         js = cfg.joints
 
-        def arr(get) -> np.ndarray:  # noqa: ANN001
+        def arr(get: Callable[[Any], float]) -> np.ndarray:
             return np.array([float(get(j)) for j in js], dtype=float)
 
         fs_pos = arr(lambda j: j.friction.static_pos_A if j.friction.static_pos_A is not None else j.friction.coulomb_pos_A)
@@ -135,11 +136,10 @@ class EffectArrays:
     drift_time_constant_s: np.ndarray  # inf: no drift
     back_emf_knee_rad_s: np.ndarray
     scratch: np.ndarray  # (2, n, K)
-    drift_warm_now: np.ndarray | None = None  # 1 where Δ < 0 (apply the warm level at once), else 0
+    drift_warm_now: np.ndarray = field(init=False)  # 1 where Δ < 0 (apply the warm level at once), else 0
 
     def __post_init__(self) -> None:
-        if self.drift_warm_now is None:  # frozen: set once here
-            object.__setattr__(self, "drift_warm_now", (self.drift_change < 0.0).astype(float))
+        object.__setattr__(self, "drift_warm_now", (self.drift_change < 0.0).astype(float))  # frozen: set once
 
     @classmethod
     def from_config(cls, cfg: Config) -> EffectArrays | None:

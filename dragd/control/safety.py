@@ -43,14 +43,14 @@ class SafetyTerms:
         p, v, m = self._p, self._v, self._m
         out.fill(0.0)
         np.greater(q, self.wall_hi_rad, out=m)
-        near = np.count_nonzero(m) > 0  # (count_nonzero: 6× cheaper than .any() on a few joints)
+        near = bool(np.count_nonzero(m) > 0)  # (count_nonzero: 6× cheaper than .any() on a few joints)
         np.less(q, self.wall_lo_rad, out=m)
-        near = near or np.count_nonzero(m) > 0
+        near = near or bool(np.count_nonzero(m) > 0)
         fast = False
         if speed_cap:
             np.abs(dq, out=p)
             np.greater(p, self.speed_cap_rad_s, out=m)
-            fast = np.count_nonzero(m) > 0
+            fast = bool(np.count_nonzero(m) > 0)
         if not (near or fast):
             return
         if near:

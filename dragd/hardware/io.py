@@ -113,11 +113,11 @@ class BusIO:
                 if fb.rx_count >= self.n and self._waiter is not None and not self._waiter.done():
                     self._waiter.set_result(True)
             return
-        j = self._emcy.get(msg.arbitration_id)
-        if j is not None and len(msg.data) >= 3:
+        emcy_joint = self._emcy.get(msg.arbitration_id)
+        if emcy_joint is not None and len(msg.data) >= 3:
             code = msg.data[0] | (msg.data[1] << 8)
             if code != 0:
-                self.on_emcy(j, code, msg.data[2])
+                self.on_emcy(emcy_joint, code, msg.data[2])
 
     def begin_cycle(self) -> None:
         """Before the SYNC: nothing has arrived for this cycle yet."""
