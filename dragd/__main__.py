@@ -1,3 +1,5 @@
-from dragd.cli.app import main
 import sys
+
+from dragd.cli.app import main
+
 sys.exit(main())

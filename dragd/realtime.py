@@ -200,7 +200,7 @@ class Ticker:
         os.close(self._fd)
         self._fd = -1
 
-    def __enter__(self) -> "Ticker":
+    def __enter__(self) -> Ticker:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -21,7 +21,8 @@ def resolve_urdf(name_or_path: str | Path, base_dir: Path | None = None) -> Path
         path = base_dir / path
     if not path.is_file():
         names = ", ".join(sorted(BUNDLED))
-        raise FileNotFoundError(f"robot '{text}': no such URDF file ({path}) and no bundled robot of that name (bundled: {names})")
+        raise FileNotFoundError(f"robot '{text}': no such URDF file ({path}) and no bundled robot of that name "
+                                f"(bundled: {names})")
     return path
 
 

@@ -94,7 +94,8 @@ class GravityLoad:
 
     def message(self, where: str = "over its range") -> str:
         pose = ", ".join(f"{round(x, 3) + 0.0:.3f}" for x in self.q_rad)
-        return (f"joints[{self.index}] ({self.joint}): gravity needs {self.current_A:.2f} A {where} at q = [{pose}] rad "
+        return (f"joints[{self.index}] ({self.joint}): gravity needs {self.current_A:.2f} A {where} "
+                f"at q = [{pose}] rad "
                 f"(|G| {self.torque_Nm:.2f} N·m / K_t {self.kt_Nm_per_A:.4g} N·m/A), above its current_limit_A "
                 f"{self.current_limit_A:g} A")
 

@@ -38,7 +38,8 @@ def _passes(track_t: np.ndarray, t_mark: float, window_s: float) -> list[np.ndar
 
 
 def replay_errors(rows: dict[str, np.ndarray], t0: float, t1: float, marks: list[dict[str, Any]],
-                  waypoints: dict[str, list[float]], body_start_s: float = 0.0, window_s: float = 0.3) -> dict[str, Any]:
+                  waypoints: dict[str, list[float]], body_start_s: float = 0.0,
+                  window_s: float = 0.3) -> dict[str, Any]:
     """Waypoint, path and tracking errors [deg] of the replay the daemon ran between daemon times t0 and t1."""
     r = _rows_between(rows, t0, t1)
     if len(r["t_s"]) == 0:

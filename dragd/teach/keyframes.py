@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -92,7 +93,7 @@ def spline_deviation(q: np.ndarray, idx: np.ndarray, stops: set[int]) -> np.ndar
     """
     dev = np.zeros(len(q))
     cuts = [0] + [k for k in range(1, len(idx) - 1) if int(idx[k]) in stops] + [len(idx) - 1]
-    for c0, c1 in zip(cuts[:-1], cuts[1:]):
+    for c0, c1 in itertools.pairwise(cuts):
         kid = idx[c0:c1 + 1]
         kq = q[kid]
         u = chord_parameter(kq)
@@ -133,7 +134,8 @@ def _dedupe(q: np.ndarray, idx: list[int], kinds: dict[int, str], min_chord: flo
 
 def extract_keyframes(t: np.ndarray, q: np.ndarray, tol_rad: float = np.radians(0.5),
                       marks_t: list[float] | None = None, pause_speed_rad_s: float = 0.01,
-                      pause_min_s: float = 0.3, min_chord_rad: float = 1e-4, max_keyframes: int = 2000) -> KeyframeResult:
+                      pause_min_s: float = 0.3, min_chord_rad: float = 1e-4,
+                      max_keyframes: int = 2000) -> KeyframeResult:
     """Keyframes of a recording (t [s], q [rad] N×joints) keeping the replayed spline within ``tol_rad``."""
     t = np.asarray(t, dtype=float)
     q = np.asarray(q, dtype=float)
@@ -154,7 +156,7 @@ def extract_keyframes(t: np.ndarray, q: np.ndarray, tol_rad: float = np.radians(
             kinds[m] = "mark"
     fixed = sorted(kinds)
     keep = set(fixed)
-    for a, b in zip(fixed[:-1], fixed[1:]):
+    for a, b in itertools.pairwise(fixed):
         keep.update(_rdp(q, a, b, tol_rad))
     idx = _dedupe(q, sorted(keep), kinds, min_chord_rad)
     stops = {k for k in stops if k in set(idx.tolist())}

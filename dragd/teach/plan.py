@@ -23,9 +23,9 @@ daemon adds gravity and friction itself).
 
 from __future__ import annotations
 
-from abc import ABC, abstractmethod
-
+import itertools
 import math
+from abc import ABC, abstractmethod
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -34,8 +34,8 @@ import numpy as np
 import pinocchio as pin
 from scipy.interpolate import CubicSpline
 
-from dragd.teach.kinematics import Circle, Kinematics, KinematicsError
 from dragd.teach.keyframes import chord_parameter, extract_keyframes, path_spline
+from dragd.teach.kinematics import Circle, Kinematics, KinematicsError
 from dragd.teach.profile import SCurve
 from dragd.teach.program import Program, load_program
 
@@ -491,7 +491,8 @@ def plan_program(program: Program, req: ReplayRequest, model: pin.Model) -> Plan
     info: dict[str, Any] = {"interp": req.interp, "source": source, "program": program.name}
     if source == "waypoints":
         if len(wps) < 2:
-            raise PlanError(f"program '{program.name}' has {len(wps)} waypoint(s); replaying waypoints needs at least 2 "
+            raise PlanError(f"program '{program.name}' has {len(wps)} waypoint(s); "
+                            "replaying waypoints needs at least 2 "
                             "(mark them with 'dragd teach mark'), or use --source path")
         start = wps[0]
         if req.interp == "linear":
@@ -534,7 +535,7 @@ def plan_program(program: Program, req: ReplayRequest, model: pin.Model) -> Plan
             raise PlanError(f"program '{program.name}': the recording holds no motion (the arm never moved)")
         start = kq[0]
         stops = [0] + [i for i, k in enumerate(kinds) if k == "pause" and 0 < i < len(kq) - 1] + [len(kq) - 1]
-        for a, b in zip(stops[:-1], stops[1:]):
+        for a, b in itertools.pairwise(stops):
             sec = kq[a:b + 1]
             if np.abs(sec[-1] - sec[0]).max() < 1e-6 and len(sec) <= 2:
                 continue

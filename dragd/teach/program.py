@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 import re
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -90,7 +90,8 @@ class Program(_Strict):
             raise ValueError("joints: expected the robot's joint names, got an empty list")
         for i, w in enumerate(self.waypoints):
             if len(w.q_rad) != n:
-                raise ValueError(f"waypoints[{i}].q_rad: expected {n} values ({', '.join(self.joints)}), got {len(w.q_rad)}")
+                raise ValueError(f"waypoints[{i}].q_rad: expected {n} values ({', '.join(self.joints)}), "
+                                 f"got {len(w.q_rad)}")
         for i, k in enumerate(self.keyframes or []):
             if len(k.q_rad) != n:
                 raise ValueError(f"keyframes[{i}].q_rad: expected {n} values, got {len(k.q_rad)}")
@@ -124,7 +125,8 @@ class Program(_Strict):
     def summary(self) -> dict[str, Any]:
         return {"name": self.name, "version": self.version, "created": self.created, "waypoints": len(self.waypoints),
                 "waypoint_names": [w.name for w in self.waypoints], "samples": len(self.path),
-                "duration_s": self.recording.duration_s, "keyframes": None if self.keyframes is None else len(self.keyframes),
+                "duration_s": self.recording.duration_s,
+                "keyframes": None if self.keyframes is None else len(self.keyframes),
                 "mcap": self.recording.mcap}
 
 
@@ -136,7 +138,7 @@ def check_name(name: str) -> str:
 
 
 def now_iso() -> str:
-    return datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+    return datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
 
 
 # -------------------------------------------------------------------------------------------- file I/O
@@ -169,7 +171,8 @@ def to_yaml(program: Program) -> str:
             k["t_s"] = _round(k["t_s"], 4)
             k["q_rad"] = _Flow(_round(x, 7) for x in k["q_rad"])
     data["path"] = [_Flow([_round(r[0], 4)] + [_round(x, 7) for x in r[1:]]) for r in data["path"]]
-    head = (f"# dragd taught program '{program.name}' (format {FORMAT} v{VERSION}); joint positions in rad, times in s\n"
+    head = (f"# dragd taught program '{program.name}' (format {FORMAT} v{VERSION}); "
+            "joint positions in rad, times in s\n"
             "# from 'teach start'. Replay: dragd replay PROGRAM [--interp linear|circular|spline]\n")
     return head + yaml.dump(data, Dumper=_Dumper, sort_keys=False, width=200)
 

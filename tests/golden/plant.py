@@ -14,8 +14,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from dragd.hardware.cia402 import (CW_FAULT_RESET, STATE_STATUSWORD_BITS, SW_REMOTE, SW_VOLTAGE_ENABLED,
-                                   VOLTAGE_ENABLED_STATES, Command, State, decode_command)
+from dragd.hardware.cia402 import (
+    CW_FAULT_RESET,
+    STATE_STATUSWORD_BITS,
+    SW_REMOTE,
+    SW_VOLTAGE_ENABLED,
+    VOLTAGE_ENABLED_STATES,
+    Command,
+    State,
+    decode_command,
+)
 from dragd.hardware.pdo import BusLayout
 from sim.axis import AxisIO
 from sim.physics import ArmPhysics
@@ -127,7 +135,7 @@ class Plant:
         """A command frame from the daemon, applied at the next SYNC."""
         for joint, off, codec, fields in self._rx.get(cob, ()):
             d = self.drives[joint]
-            for f, v in zip(fields, codec.unpack_from(data, off)):
+            for f, v in zip(fields, codec.unpack_from(data, off), strict=True):
                 if f == "controlword":
                     d.controlword(v)
                 elif f == "target_position":
@@ -165,7 +173,7 @@ class Plant:
         phys.tau_ext_Nm[:] = self.hand_Nm
         for _ in range(self.sub):
             q, dq = phys.q_rad.tolist(), phys.dq_rad_s.tolist()
-            for j, (d, ax) in enumerate(zip(self.drives, self.axes)):
+            for j, (d, ax) in enumerate(zip(self.drives, self.axes, strict=True)):
                 on = d.state is State.OPERATION_ENABLED
                 ax.power_stage_on = on
                 ax.brake_engaged = not on

@@ -240,7 +240,7 @@ def _pack_frames(per_cycle: list[list[tuple[str, int, bytes]]], buses: list[str]
 def _unpack_frames(z: Any, prefix: str, cycles: int, buses: list[str]) -> list[list[tuple[str, int, bytes]]]:
     out: list[list[tuple[str, int, bytes]]] = [[] for _ in range(cycles)]
     for k, b, c, n, d in zip(z[prefix + "cycle"], z[prefix + "bus"], z[prefix + "cob"], z[prefix + "len"],
-                             z[prefix + "data"]):
+                             z[prefix + "data"], strict=True):
         out[int(k)].append((buses[int(b)], int(c), bytes(d[: int(n)])))
     return out
 
@@ -289,7 +289,7 @@ async def _record(sc: Scenario, workdir: Path) -> dict[str, Any]:
             mode[k] = res["mode"]
             drive_mode[k] = res["drive_mode"]
             rows.append(res["telemetry"])
-            for b, cob, data in res["frames"]:
+            for _b, cob, data in res["frames"]:
                 plant.receive(cob, data)
             frames_out.append(res["frames"])
             for dm in ad.drive_mode_events:
