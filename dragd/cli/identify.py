@@ -229,6 +229,11 @@ def cmd_check(args: argparse.Namespace) -> int:
 
     model, _ = _robot(args)
     params = load_params(args.params)
+    if params.inertials:  # the identified arm (docs/MODEL.md)
+        try:
+            model.apply_inertials(params.inertials, str(args.params))
+        except ValueError as exc:
+            raise CliError(str(exc)) from None
     cfg = None
     if args.config is not None:
         cfg = load_config(args.config)
@@ -239,7 +244,8 @@ def cmd_check(args: argparse.Namespace) -> int:
         cfg = load_config(None)
     log = _load_log(args.log)
     try:
-        res = check(log, model, params, cfg=cfg, terms=args.terms, mask=args.mask, keep_series=bool(args.plots))
+        res = check(log, model, params, cfg=cfg, terms=args.terms, mask=args.mask, keep_series=bool(args.plots),
+                    dynamics=args.dynamics)
     except (LogError, ValueError) as exc:
         raise CliError(str(exc)) from None
     data = res.to_json()
@@ -324,6 +330,9 @@ def register(sub: Any) -> None:
                     help="samples evaluated: steady motion (default, seed 001 Table VIII), any sliding, all")
     ck.add_argument("--terms", default="rigid", choices=("rigid", "gravity"),
                     help="rigid-body torque from the URDF (default) or gravity only (what drag compensates)")
+    ck.add_argument("--dynamics", default="base", choices=("base", "inertials"),
+                    help="rigid-body model: the fit's identified base parameters where the params file has them "
+                         "(default), or the link inertials + K_t the daemon compensates with")
     ck.add_argument("--plots", help="directory for PNG plots of measured vs predicted current per joint")
     add_config(ck, params=False)
     ck.add_argument("--json", action="store_true", help="print JSON")
