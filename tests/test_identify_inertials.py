@@ -243,3 +243,19 @@ def test_urdf_masses_20_percent_wrong_identified_arm_gives_the_true_gravity_curr
     assert rms0[1] > 0.4, rms0
     assert np.all(rms1 < 0.04), rms1
     assert np.all(rms1[1:4] < 0.1 * rms0[1:4]), (rms0, rms1)
+
+
+def test_sim_model_params_carry_the_inertials_into_the_truth(tmp_path):
+    """``python -m sim run|log --model params.yaml``: the simulated arm is the identified one."""
+    from dragd.config import ParamsFile
+    from sim.truth import load_truth, truth_from_params
+
+    ins = body_inertial(RobotModel.from_urdf("seed_cobot").model.inertias[2].toDynamicParameters())
+    ins["mass_kg"] *= 0.8
+    params = ParamsFile.model_validate({"version": 1, "inertials": {"link2": ins}})
+    sim_model = truth_from_params(params, load_truth()).load_model()
+    ours = RobotModel.from_urdf("seed_cobot")
+    ours.apply_inertials(params.inertials)
+    q = np.array([0.0, -0.6, 1.2, -0.6, 1.5708, 0.0])
+    assert np.allclose(sim_model.gravity(q), ours.gravity(q), atol=1e-12)
+    assert abs(sim_model.gravity(q)[1] - RobotModel.from_urdf("seed_cobot").gravity(q)[1]) > 1.0
