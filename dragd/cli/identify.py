@@ -257,7 +257,7 @@ def cmd_check(args: argparse.Namespace) -> int:
             return "—" if x is None else f"{x * 1e3:.1f}"
 
         rows = [(nm, ma(j.get("rmse_A")), ma(j.get("mae_A")), ma(j.get("max_A")), j.get("samples", 0),
-                 j.get("reason", "")) for nm, j in d["joints"].items()]
+                 j.get("reason") or j.get("model", "")) for nm, j in d["joints"].items()]
         lines = [f"{args.log} predicted with {args.params} ({d['mask']} samples, {d['terms']} model): "
                  f"RMSE {ma(d['rmse_A'])} mA overall",
                  table(["joint", "RMSE mA", "MAE mA", "max mA", "samples", "note"], rows)]
