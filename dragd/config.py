@@ -156,6 +156,26 @@ class Payload(_Strict):
     com_m: tuple[Finite, Finite, Finite] = (0.0, 0.0, 0.0)
 
 
+class LinkInertial(_Strict):
+    """A link's identified inertial (``dragd identify fit --method full``): replaces the URDF's for that link."""
+
+    mass_kg: PosFloat
+    com_m: tuple[Finite, Finite, Finite]  # centre of mass in the link (joint) frame
+    inertia_kgm2: tuple[Finite, Finite, Finite, Finite, Finite, Finite]  # ixx, ixy, ixz, iyy, iyz, izz about the COM
+
+    @model_validator(mode="after")
+    def _consistent(self) -> LinkInertial:
+        import numpy as np
+
+        xx, xy, xz, yy, yz, zz = self.inertia_kgm2
+        e = np.linalg.eigvalsh(np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]]))
+        tol = 1e-9 * max(1.0, float(np.abs(e).max()))
+        if e.min() < -tol or any(e.sum() - 2 * v < -tol for v in e):
+            raise ValueError(f"inertia_kgm2: expected a physically consistent inertia (principal moments ≥ 0 satisfying "
+                             f"the triangle inequality a + b ≥ c), got principal moments {', '.join(f'{v:.4g}' for v in e)}")
+        return self
+
+
 class JointConfig(_Strict):
     name: str
     node_id: NodeId
@@ -334,6 +354,7 @@ class Config(_Strict):
     control: ControlConfig = ControlConfig()
     replay: ReplayConfig = ReplayConfig()
     payload: Payload | None = None  # flange payload not in the URDF (docs/GAP.md)
+    inertials: dict[str, LinkInertial] | None = None  # identified link inertials over the URDF's (docs/MODEL.md)
     source: str = Field("<memory>", exclude=True)  # file it came from (not a YAML key)
 
     @model_validator(mode="after")
@@ -422,6 +443,7 @@ class ParamsFile(_Strict):
     robot: str | None = None
     joints: dict[str, JointParams] = Field(default_factory=dict)
     payload: Payload | None = None  # added by `dragd gap` (payload_mass)
+    inertials: dict[str, LinkInertial] | None = None  # URDF link name → identified inertial (docs/MODEL.md)
     notes: dict[str, Any] = Field(default_factory=dict)
 
 
@@ -675,6 +697,8 @@ def apply_params(cfg: Config, params: ParamsFile, source: str = "params") -> Con
     data["joints"] = [jj.model_dump(mode="python") for jj in joints]
     if params.payload is not None:
         data["payload"] = params.payload.model_dump(mode="python")
+    if params.inertials:
+        data["inertials"] = {k: v.model_dump(mode="python") for k, v in params.inertials.items()}
     try:
         out = Config.model_validate(data)
     except ValidationError as exc:

@@ -5,12 +5,22 @@ One model serves the control law, identification, the model-gap workflow and the
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
 
 from dragd.robots import resolve_urdf
+
+
+def _body_link(model: pin.Model, jid: int) -> str:
+    """The URDF link joint ``jid`` moves: the body frame whose parent joint it is (first one, Pinocchio's order)."""
+    for f in model.frames:
+        if f.parentJoint == jid and f.type == pin.FrameType.BODY:
+            return f.name
+    return model.names[jid]
 
 
 class RobotModel:
@@ -45,10 +55,35 @@ class RobotModel:
     def from_config(cls, cfg: object) -> RobotModel:
         """The configuration's robot (URDF, gravity) with its ``payload`` (``dragd gap``'s payload_mass) on the flange."""
         model = cls.from_urdf(cfg.robot.urdf, cfg.base_dir, cfg.robot.gravity_m_s2)  # type: ignore[attr-defined]
+        inertials = getattr(cfg, "inertials", None)
+        if inertials:
+            model.apply_inertials(inertials, getattr(cfg, "source", "config"))
         payload = getattr(cfg, "payload", None)
         if payload is not None:
             model.add_payload(payload.mass_kg, payload.com_m)
         return model
+
+    def link_names(self) -> list[str]:
+        """The URDF link each joint moves (the body of joint 1..n), in joint order."""
+        return [_body_link(self.model, jid) for jid in range(1, self.model.njoints)]
+
+    def apply_inertials(self, inertials: Mapping[str, Any], source: str = "params") -> None:
+        """Replace link inertials (``inertials:`` of a params file, docs/MODEL.md) in the Pinocchio model.
+
+        Keys are URDF link names (the link a joint moves; links fixed to it are merged into it by Pinocchio and
+        the identified inertial replaces the merged one). Values: ``mass_kg``, ``com_m`` (link frame) and
+        ``inertia_kgm2`` (ixx, ixy, ixz, iyy, iyz, izz about the COM), mappings or objects with those fields.
+        """
+        links = self.link_names()
+        for name, val in inertials.items():
+            if name not in links:
+                raise ValueError(f"{source}: inertials: expected link names among {', '.join(links)}, got '{name}'")
+            get = (lambda k: val[k]) if isinstance(val, Mapping) else (lambda k: getattr(val, k))  # noqa: E731
+            xx, xy, xz, yy, yz, zz = (float(v) for v in get("inertia_kgm2"))
+            I = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+            self.model.inertias[links.index(name) + 1] = pin.Inertia(float(get("mass_kg")),
+                                                                      np.asarray(get("com_m"), dtype=float), I)
+        self.data = self.model.createData()
 
     def add_payload(self, mass_kg: float, com_m: tuple[float, float, float] | np.ndarray) -> None:
         """Add a point mass in the last joint's frame (a tool or load the URDF does not have)."""

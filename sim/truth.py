@@ -218,6 +218,8 @@ class Truth(_Strict):
     physics_rate_Hz: Annotated[int, Field(ge=4000, le=50000), Expect("an integer rate in [4000, 50000] Hz")] = 4000
     noise_seed: int = 0
     payload: Payload | None = None  # hidden: a flange load the URDF (and dragd's model) does not have
+    # link name → {mass_kg, com_m, inertia_kgm2 (ixx, ixy, ixz, iyy, iyz, izz about the COM)}: replaces the URDF's
+    inertials: dict[str, dict[str, Any]] | None = None
     joints: list[JointTruth] = Field(min_length=1)
     source: str = Field("<memory>", exclude=True)  # file it came from (not a YAML key)
 
@@ -257,6 +259,11 @@ class Truth(_Strict):
             model = RobotModel.from_urdf(self.robot, base_dir=self.base_dir, gravity_m_s2=self.gravity_m_s2)
         except (FileNotFoundError, ValueError) as exc:
             raise TruthError(f"{self.source}: robot: expected a bundled robot name or URDF path, got {self.robot!r} ({exc})") from None
+        if self.inertials:
+            try:
+                model.apply_inertials(self.inertials, f"{self.source}")
+            except (KeyError, TypeError, ValueError) as exc:
+                raise TruthError(f"{self.source}: inertials: {exc}") from None
         self.check_model(model.joint_names)
         return model
 
@@ -345,6 +352,8 @@ def truth_from_params(params: Any, base: Truth | None = None) -> Truth:
     """
     base = base or load_truth()
     changes: dict[str, Any] = {"joints": {}, "payload": None if params.payload is None else params.payload.model_dump()}
+    if params.inertials:  # the identified arm (dragd identify fit --method full)
+        changes["inertials"] = {k: v.model_dump(mode="python") for k, v in params.inertials.items()}
     for jt in base.joints:
         jp = params.joints.get(jt.name)
         if jp is None:

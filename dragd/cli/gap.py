@@ -27,6 +27,11 @@ def cmd_gap(args: argparse.Namespace) -> int:
         raise CliError(f"{cfg.source}: joints {', '.join(cfg.joint_names)} differ from the robot's "
                        f"{', '.join(model.joint_names)}; give --config for this robot")
     params = load_params(args.model) if args.model else None
+    if params is not None and params.inertials:  # the identified arm is the baseline's model (docs/MODEL.md)
+        try:
+            model.apply_inertials(params.inertials, str(args.model))
+        except ValueError as exc:
+            raise CliError(str(exc)) from None
     effects = None
     if args.effects:
         effects = tuple(e.strip() for e in args.effects.split(",") if e.strip())

@@ -149,6 +149,11 @@ def _fit_text(d: dict[str, Any]) -> str:
             seen.add(why)
             keys = [kk for kk, w in j["reasons"].items() if w == why]
             lines.append(f"  {name}: {', '.join(keys)} null: {why}")
+    mp = d.get("inertials_mapping")
+    if mp:
+        ch = ", ".join(f"{k} {v * 100:+.1f} %" for k, v in mp["mass_change"].items() if v is not None)
+        lines.append(f"inertials: {'consistent' if mp['consistent'] else 'NOT consistent'} link set written "
+                     f"(base-parameter residual ≤ {mp['max_base_residual_Nm'] * 1e3:.2f} mN·m; masses vs URDF: {ch})")
     for w in d.get("warnings", []):
         lines.append(f"warning: {w}")
     return "\n".join(lines)
@@ -161,11 +166,27 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
     import time
 
-    model, _ = _robot(args)
+    model, cfg = _robot(args)
+    cfg_kt = None
+    if cfg is not None and cfg.joint_names == list(model.joint_names):
+        cfg_kt = [float(j.kt_Nm_per_A) for j in cfg.joints]
+    opts = Options()
+    if args.torque_constants:
+        if args.torque_constants == "config":
+            if cfg_kt is None:
+                raise CliError("--torque-constants config: needs the configuration's robot (no --robot)")
+            opts.torque_constants = list(cfg_kt)
+        else:
+            kt = floats(args.torque_constants, "--torque-constants")
+            if len(kt) != model.nq or not all(k > 0 for k in kt):
+                raise CliError(f"--torque-constants: expected {model.nq} positive joint-side torque constants [N·m/A] "
+                               f"({', '.join(model.joint_names)}) or 'config', got {args.torque_constants!r}")
+            opts.torque_constants = kt
+        if args.method not in ("full", "auto"):
+            raise CliError(f"--torque-constants: used by --method full (and auto), not {args.method}")
     t0 = time.perf_counter()
     log = _load_log(args.log)
     load_s = time.perf_counter() - t0
-    opts = Options()
     if args.cutoff is not None:
         opts.cutoff_Hz = args.cutoff
     try:
@@ -173,11 +194,27 @@ def cmd_fit(args: argparse.Namespace) -> int:
     except LogError as exc:
         raise CliError(str(exc)) from None
     params = res.to_params()
+    mapped = None
+    if res.notes.get("base_parameters"):  # full dynamics (or auto that chose it): the identified arm is the model
+        from dragd.identify.inertials import inertials_from_fit
+        from dragd.identify.regressors import RegressorModel
+
+        mapped = inertials_from_fit(res, model, RegressorModel(model), cfg_kt)
+        if mapped is not None:
+            from dragd.identify.results import _jsonable
+
+            pd = params.model_dump(mode="python")
+            pd["inertials"] = mapped["inertials"]
+            pd["notes"] = {**pd["notes"], "inertials_mapping": _jsonable(mapped["mapping"])}
+            params = type(params).model_validate(pd)
     out = Path(args.out)
     save_params(params, out)
     data = res.to_json()
     data["out"] = str(out)
     data["load_s"] = round(load_s, 3)
+    if mapped is not None:
+        data["inertials"] = mapped["inertials"]
+        data["inertials_mapping"] = mapped["mapping"]
     emit(args, data, _fit_text)
     return 0
 
@@ -192,6 +229,11 @@ def cmd_check(args: argparse.Namespace) -> int:
 
     model, _ = _robot(args)
     params = load_params(args.params)
+    if params.inertials:  # the identified arm (docs/MODEL.md)
+        try:
+            model.apply_inertials(params.inertials, str(args.params))
+        except ValueError as exc:
+            raise CliError(str(exc)) from None
     cfg = None
     if args.config is not None:
         cfg = load_config(args.config)
@@ -202,7 +244,8 @@ def cmd_check(args: argparse.Namespace) -> int:
         cfg = load_config(None)
     log = _load_log(args.log)
     try:
-        res = check(log, model, params, cfg=cfg, terms=args.terms, mask=args.mask, keep_series=bool(args.plots))
+        res = check(log, model, params, cfg=cfg, terms=args.terms, mask=args.mask, keep_series=bool(args.plots),
+                    dynamics=args.dynamics)
     except (LogError, ValueError) as exc:
         raise CliError(str(exc)) from None
     data = res.to_json()
@@ -214,7 +257,7 @@ def cmd_check(args: argparse.Namespace) -> int:
             return "—" if x is None else f"{x * 1e3:.1f}"
 
         rows = [(nm, ma(j.get("rmse_A")), ma(j.get("mae_A")), ma(j.get("max_A")), j.get("samples", 0),
-                 j.get("reason", "")) for nm, j in d["joints"].items()]
+                 j.get("reason") or j.get("model", "")) for nm, j in d["joints"].items()]
         lines = [f"{args.log} predicted with {args.params} ({d['mask']} samples, {d['terms']} model): "
                  f"RMSE {ma(d['rmse_A'])} mA overall",
                  table(["joint", "RMSE mA", "MAE mA", "max mA", "samples", "note"], rows)]
@@ -272,6 +315,9 @@ def register(sub: Any) -> None:
                     "synchronous (seed 002), full (rigid-body base parameters + friction), auto (default)")
     ft.add_argument("--out", required=True, help="params file to write (YAML; the model, daemon and sim load it)")
     ft.add_argument("--cutoff", type=float, default=None, help="regression filter cutoff [Hz] (default 5)")
+    ft.add_argument("--torque-constants", metavar="K1,..,KN|config",
+                    help="joint-side torque constants [N·m/A] the user knows (or 'config': the configuration's); "
+                         "full/auto method. Without: K_t is reported where the data determine it")
     add_config(ft, params=False)
     ft.add_argument("--json", action="store_true", help="print JSON")
     ft.set_defaults(func=cmd_fit)
@@ -284,6 +330,9 @@ def register(sub: Any) -> None:
                     help="samples evaluated: steady motion (default, seed 001 Table VIII), any sliding, all")
     ck.add_argument("--terms", default="rigid", choices=("rigid", "gravity"),
                     help="rigid-body torque from the URDF (default) or gravity only (what drag compensates)")
+    ck.add_argument("--dynamics", default="base", choices=("base", "inertials"),
+                    help="rigid-body model: the fit's identified base parameters where the params file has them "
+                         "(default), or the link inertials + K_t the daemon compensates with")
     ck.add_argument("--plots", help="directory for PNG plots of measured vs predicted current per joint")
     add_config(ck, params=False)
     ck.add_argument("--json", action="store_true", help="print JSON")

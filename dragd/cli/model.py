@@ -9,13 +9,29 @@ from dragd.cli.common import CliError, add_config, emit, floats, table
 
 
 def _robot_model(args: argparse.Namespace) -> Any:
-    from dragd.config import load_config
+    """``--robot`` (URDF) or the configuration's robot, with a params file's identified arm (``inertials``, payload):
+    ``--params``, else the configuration's ``params``."""
+    from dragd.config import load_config, load_params
     from dragd.model import RobotModel
 
+    params = getattr(args, "params", None)
     if getattr(args, "robot", None):
-        return RobotModel.from_urdf(args.robot)
-    cfg = load_config(args.config)
-    return RobotModel.from_urdf(cfg.robot.urdf, cfg.base_dir, cfg.robot.gravity_m_s2)
+        model = RobotModel.from_urdf(args.robot)
+        if params:
+            pf = load_params(params)
+            try:
+                if pf.inertials:
+                    model.apply_inertials(pf.inertials, str(params))
+            except ValueError as exc:
+                raise CliError(str(exc)) from None
+            if pf.payload is not None:
+                model.add_payload(pf.payload.mass_kg, pf.payload.com_m)
+        return model
+    cfg = load_config(args.config, params)
+    try:
+        return RobotModel.from_config(cfg)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
 
 
 def cmd_model_gravity(args: argparse.Namespace) -> int:
@@ -42,7 +58,10 @@ def cmd_model_current(args: argparse.Namespace) -> int:
     from dragd.model import RobotModel
 
     cfg = load_config(args.config, args.params)
-    model = RobotModel.from_config(cfg)  # with the params' payload (docs/GAP.md)
+    try:
+        model = RobotModel.from_config(cfg)  # with the params' identified inertials and payload (docs/MODEL.md)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
     if model.nq != len(cfg.joints):
         raise CliError(f"{cfg.source}: joints: the robot has {model.nq} joints, the configuration {len(cfg.joints)}")
     try:
@@ -95,7 +114,7 @@ def register(sub: Any) -> None:
     g = msub.add_parser("gravity", help="G(q) in N·m")
     g.add_argument("--q", required=True, help="joint positions Q1,...,QN [rad]")
     g.add_argument("--robot", help="bundled robot name or URDF path (default: the config's robot)")
-    add_config(g, params=False)
+    add_config(g)
     g.add_argument("--json", action="store_true", help="print JSON")
     g.set_defaults(func=cmd_model_gravity)
     c = msub.add_parser("current", help="the law's current command and its components in A")

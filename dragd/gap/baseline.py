@@ -3,6 +3,7 @@
 Given model, per joint j (amperes, work rate):
 
     î_j = G_j(q; payload)/K_t + I_f(q̇) [+ (M(q)q̈ + C q̇)_j/K_t + J_a·q̈_j/K_t when it has ``effects.armature_kgm2``]
+          [+ (M(q)q̈ + C q̇)_j/K_t when the params carry identified ``inertials``: the identified arm's dynamics]
           + the params' effects (position-periodic, load friction, offset, drift × I_f, back-EMF knee term)
           + a play's current (``effects.backlash_*``: the rotor simulated along the output, on the rest of the model)
 
@@ -70,6 +71,11 @@ def given(d: GapData, params: Any, cfg: Any) -> Baseline:
             if x is not None:
                 pred[:, j] += x
                 has_inertia[j] |= name == "inertia"
+    if pf.get("inertials"):  # an identified arm (identify fit --method full): its dynamics are part of the model
+        for j in range(d.n):
+            if not has_inertia[j]:
+                pred[:, j] += d.tau_dyn[:, j] / kt[j]
+                has_inertia[j] = True
     pl = PayloadMass.predict_all(d, pf.get("payload"), kt)
     if pl is not None:
         pred += pl

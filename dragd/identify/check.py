@@ -94,10 +94,36 @@ def law_from_params(params: Any, names: list[str], cfg: Any | None = None) -> tu
     return law, warnings
 
 
+def _base_current(rm: Any, params: Any, names: list[str], q: np.ndarray, dq: np.ndarray | None,
+                  ddq: np.ndarray | None) -> dict[int, np.ndarray]:
+    """Joint j's rigid-body current from the params' identified base parameters (current space, amperes):
+    Y_j(q, q̇, q̈)[base columns]·β̂_j. Only joints whose stored base names match this robot's."""
+    bp = (getattr(params, "notes", {}) or {}).get("base_parameters") or {}
+    use = {}
+    for j, nm in enumerate(names):
+        b = bp.get(nm)
+        if b and list(b.get("names", [])) == list(rm.row_full[j].names) and all(v is not None for v in b["current_A"]):
+            use[j] = np.asarray(b["current_A"], dtype=float)
+    out = {j: np.empty(q.shape[0]) for j in use}
+    if not use:
+        return out
+    for s in range(0, q.shape[0], 5000):
+        sl = slice(s, s + 5000)
+        Y = rm.torque_regressor(q[sl]) if dq is None else rm.torque_regressor(q[sl], dq[sl], ddq[sl])
+        for j, beta in use.items():
+            out[j][sl] = Y[:, j, rm.row_full[j].cols] @ beta
+    return out
+
+
 def check(log: Log, robot: Any, params: Any, cfg: Any | None = None, terms: str = "rigid", mask: str = "steady",
           v_min: float = 0.01, a_max: float = 0.3, guard_s: float = 0.3, deriv_cutoff_Hz: float = 20.0,
-          keep_series: bool = False) -> CheckResult:
-    """Per-joint RMSE/MAE/max error of the predicted against the measured current (see the module docstring)."""
+          keep_series: bool = False, dynamics: str = "base") -> CheckResult:
+    """Per-joint RMSE/MAE/max error of the predicted against the measured current (see the module docstring).
+
+    ``dynamics``: ``base`` — joints with identified base parameters (a full-dynamics fit) are predicted with them
+    (the fit's own current-space model; no K_t needed), the others with the model's torque / K_t; ``inertials`` —
+    every joint with the robot model (with the params' link inertials applied by the caller) / K_t, what the daemon
+    compensates; a joint whose K_t is unknown then falls back to its base parameters."""
     from dragd.control.law import Workspace, friction_current
 
     from dragd.identify.regressors import RegressorModel
@@ -111,15 +137,25 @@ def check(log: Log, robot: Any, params: Any, cfg: Any | None = None, terms: str 
     law, warnings = law_from_params(params, names, cfg)
     warnings = list(log.warnings) + warnings
     p = prepare(log, cutoff_Hz=5.0, deriv_cutoff_Hz=deriv_cutoff_Hz, work_rate_Hz=log.rate_Hz * 1.5)
-    rm = RegressorModel(robot, samples=50)
+    if dynamics not in ("base", "inertials"):
+        raise ValueError(f"--dynamics: expected base or inertials, got '{dynamics}'")
+    rm = RegressorModel(robot)  # the fit's base parameter sets (same samples and seed)
     tau = rm.gravity(p.q) if terms == "gravity" else rm.rnea(p.q, p.dq, p.ddq)
     fr = np.empty_like(p.dq)
     friction_current(p.dq, law, fr, Workspace(p.dq.shape))  # the law's arrays broadcast over the samples
     armature = (getattr(params, "notes", {}) or {}).get("armature_kgm2") or {}
-    pred = tau / law.kt_Nm_per_A + fr
+    with np.errstate(invalid="ignore"):
+        pred = tau / law.kt_Nm_per_A + fr
     for j, nm in enumerate(names):
-        if armature.get(nm) is not None and terms == "rigid":
+        if armature.get(nm) is not None and terms == "rigid" and np.isfinite(law.kt_Nm_per_A[j]):
             pred[:, j] += armature[nm] * p.ddq[:, j] / law.kt_Nm_per_A[j]
+    base_i = _base_current(rm, params, names, p.q, None if terms == "gravity" else p.dq,
+                           None if terms == "gravity" else p.ddq)
+    source = {nm: "model torque / K_t" for nm in names}
+    for j, cur in base_i.items():
+        if dynamics == "base" or not np.isfinite(law.kt_Nm_per_A[j]):
+            pred[:, j] = cur + fr[:, j]
+            source[names[j]] = "identified base parameters (current space)"
     guard = int(round(guard_s * p.fs))
     ddqH = p.regfilter(p.ddq)
     calm = np.all(np.abs(ddqH) < a_max, axis=1)
@@ -137,9 +173,10 @@ def check(log: Log, robot: Any, params: Any, cfg: Any | None = None, terms: str 
             m = sliding(p.dq[:, j:j + 1], v_min, guard)[:, 0]
         else:
             m = sliding(p.dq[:, j:j + 1], v_min, guard)[:, 0] & calm
-        if not np.isfinite(law.kt_Nm_per_A[j]):
+        if not np.all(np.isfinite(pred[:, j])):
             joints[nm] = {"rmse_A": None, "mae_A": None, "max_A": None, "samples": 0,
-                          "reason": "K_t unknown (null in the params file and no --config)"}
+                          "reason": "K_t unknown (null in the params file and no --config) and no identified base "
+                                    "parameters (fit with --method full)"}
             continue
         if m.sum() < 10:
             joints[nm] = {"rmse_A": None, "mae_A": None, "max_A": None, "samples": int(m.sum()),
@@ -154,7 +191,8 @@ def check(log: Log, robot: Any, params: Any, cfg: Any | None = None, terms: str 
         joints[nm] = {"rmse_A": float(np.sqrt(np.mean(e * e))), "mae_A": float(np.mean(np.abs(e))),
                       "max_A": float(np.max(np.abs(e))), "bias_A": float(np.mean(e)), "samples": int(m.sum()),
                       "rmse_window20_A": float(np.sqrt(np.mean(ef * ef))), "mae_window20_A": float(np.mean(np.abs(ef))),
-                      "max_window20_A": float(np.max(np.abs(ef))), "noise_estimate_A": noise}
+                      "max_window20_A": float(np.max(np.abs(ef))), "noise_estimate_A": noise,
+                      "model": source[nm]}
         sq += float(e @ e)
         cnt += e.size
     res = CheckResult(math.sqrt(sq / cnt) if cnt else None, joints, mask, terms, warnings)

@@ -46,6 +46,7 @@ class Options:
     pair_tol_rad: float = 0.004  # symmetric: positions within this are "the same position"
     pair_speed_tol: float = 0.15  # symmetric: |q̇_a + q̇_b| ≤ tol·|q̇_a|
     never_moves_rad: float = 0.5 * math.pi / 180  # a joint whose range stays below this never moves
+    torque_constants: list[float | None] | None = None  # joint-side K_t known to the user (full method), per joint
 
 
 # ------------------------------------------------------------------------------------------ context
@@ -656,7 +657,7 @@ def fit_symmetric(ctx: Context) -> FitResult:
         # K_t from the URDF reference: a = argmin Σ(Ĝ_A − a·G_urdf)², linear in β -> std from cov(β)
         gu = ctx.grav[a, j]
         rng = float(np.ptp(gu))
-        if rng >= 0.5 and live:
+        if rng > 1e-9 and live:  # determined or not: the slope's relative std decides (KT_MAX_REL_STD)
             wvec = (gu @ Yg[a][:, live]) / (gu @ gu)
             idx = [fit.names.index(f"beta{k}") for k in live]
             slope = float(wvec @ beta[live])
@@ -665,7 +666,7 @@ def fit_symmetric(ctx: Context) -> FitResult:
             jr.diagnostics["kt_source"] = "URDF gravity torque / identified gravity current (reference: the URDF's masses)"
         else:
             jr.set("torque_constant_Nm_per_A", None, reason=NO_GRAVITY.format(rng=rng)
-                   if rng < 0.5 else "no identifiable gravity parameters in this joint's row")
+                   if rng <= 1e-9 else "no identifiable gravity parameters in this joint's row")
         notes["minimal_gravity_parameters"][name] = {
             "names": [base.names[k] for k in range(base.r)],
             "current_A": [fit.value(f"beta{k}") for k in range(base.r)],
@@ -871,14 +872,21 @@ def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
         cov_b = Jm @ fit.cov @ Jm.T
         gu = ctx.grav[sel, j]
         rng = float(np.ptp(gu))
-        if rng >= 0.5 and "urdf" in names:
+        given = None if o.torque_constants is None else o.torque_constants[j]
+        if given is not None:
+            jr.set("torque_constant_Nm_per_A", float(given), None)
+            jr.diagnostics["kt_source"] = "given (--torque-constants or the configuration)"
+        elif rng > 1e-9 and "urdf" in names:  # determined or not: the slope's relative std decides (KT_MAX_REL_STD)
             wvec = (gu @ Yg[sel]) / (gu @ gu)
             slope = float(wvec @ beta)
             sslope = float(np.sqrt(max(wvec @ cov_b @ wvec, 0.0)))
             _kt_from_slope(jr, slope, sslope, "")
+            if slope > 0:
+                jr.diagnostics["kt_estimate_Nm_per_A"] = 1.0 / slope
+                jr.diagnostics["kt_relative_std"] = sslope / slope
             jr.diagnostics["kt_source"] = "URDF gravity torque / identified gravity part (reference: the URDF's masses)"
         else:
-            jr.set("torque_constant_Nm_per_A", None, reason=NO_GRAVITY.format(rng=rng) if rng < 0.5 else
+            jr.set("torque_constant_Nm_per_A", None, reason=NO_GRAVITY.format(rng=rng) if rng <= 1e-9 else
                    "the URDF's rigid-body torque is not separable from the other terms in this data")
         kt = jr.torque_constant_Nm_per_A
         own = f"{name}.armature"

@@ -87,6 +87,9 @@ class RegressorModel:
         self.base_gravity = _base_from_samples(Yg.reshape(-1, self.p), self.names)
         self.row_full = [_base_from_samples(Y[:, j, :], self.names) for j in range(self.n)]
         self.row_gravity = [_base_from_samples(Yg[:, j, :], self.names) for j in range(self.n)]
+        # torque [N·m] one unit of each per-row base parameter makes at most over the random states (|q̇|, |q̈| ~ 1)
+        self.row_scale = [np.abs(Y[:, j, b.cols]).max(axis=0) if b.r else np.zeros(0)
+                          for j, b in enumerate(self.row_full)]
 
     # ------------------------------------------------------------------------------------ evaluation
 
