@@ -38,10 +38,11 @@ class Baseline:
     params: dict[str, Any]  # the params file (mapping) the extended model is written into
     armature_kgm2: np.ndarray | None = None  # (n,) the model's rotor inertia at each joint (0: not known)
     has_backlash: np.ndarray | None = None  # (n,) bool: the model predicts a play on the joint
+    torque_A: np.ndarray | None = None  # (T, n) the part of ``fixed`` that is a joint torque / K_t
 
     def info(self) -> ModelInfo:
         return ModelInfo(self.kt, self.friction_A, self.has_inertia, self.coulomb_A, self.armature_kgm2,
-                         self.has_backlash)
+                         self.has_backlash, self.torque_A)
 
 
 def given(d: GapData, params: Any, cfg: Any) -> Baseline:
@@ -57,6 +58,7 @@ def given(d: GapData, params: Any, cfg: Any) -> Baseline:
     friction_current(d.p.dq, law, fr, Workspace(d.p.dq.shape))
     pf = params.model_dump(mode="json")
     pred = d.G / kt + fr
+    torque = d.G / kt  # what a K_t error scales (torque_constant's column)
     has_inertia = np.zeros(d.n, dtype=bool)
     for j, nm in enumerate(d.names):
         jp = pf["joints"].get(nm, {})
@@ -70,14 +72,17 @@ def given(d: GapData, params: Any, cfg: Any) -> Baseline:
             if x is not None:
                 pred[:, j] += x
                 has_inertia[j] |= name == "inertia"
+                if name in ("inertia", "load_dependent_friction"):
+                    torque[:, j] += x
     pl = PayloadMass.predict_all(d, pf.get("payload"), kt)
     if pl is not None:
         pred += pl
+        torque += pl
     coul = [(float(law.coulomb_pos_A[j]), float(law.coulomb_neg_A[j])) for j in range(d.n)]
     armature = np.array([float((pf["joints"].get(nm, {}).get("effects") or {}).get("armature_kgm2") or 0.0)
                          for nm in d.names])
     base = Baseline("given", pred, [None] * d.n, [[] for _ in range(d.n)], kt, np.ones(d.n, dtype=bool), fr,
-                    has_inertia, coul, pf, armature)
+                    has_inertia, coul, pf, armature, torque_A=torque)
     backlash = CATALOGUE["backlash"]
     assert isinstance(backlash, Backlash)
     base.has_backlash = np.zeros(d.n, dtype=bool)

@@ -27,6 +27,11 @@ Signatures (what tells each effect from the others; docs/GAP.md has the full tab
                         over joints 2..n at once (one shared mass and centre of mass); load friction is odd in q̇.
 - ``current_offset``    a constant, the same in both directions and at rest (a Coulomb asymmetry changes only the
                         sliding levels); not separable from a fitted baseline's Coulomb levels while sliding.
+- ``coulomb_friction``  odd in q̇ and constant in speed: the model's sliding levels are off (sign(q̇)·Δ); viscous grows
+                        with speed, Stribeck decays, back-EMF starts at a knee, the offset is even.
+- ``torque_constant``   the joint's gain is off: its whole torque current (gravity, payload, dynamics, rotor inertia,
+                        load friction)/K_t scaled by one factor — gravity's shape *and* inertia's at once, per joint
+                        (a payload is the URDF's kinematic pattern over joints; an offset is a constant).
 """
 
 from __future__ import annotations
@@ -58,6 +63,8 @@ class ModelInfo:
     coulomb_A: list[tuple[float, float]]  # per joint (pos, neg) sliding levels
     armature_kgm2: np.ndarray | None = None  # (n,) the model's rotor inertia at the joint (0: not known)
     has_backlash: np.ndarray | None = None  # (n,) bool: the model already predicts a play on the joint
+    torque_A: np.ndarray | None = None  # (T, n) the model's current that is a joint torque / K_t (gravity, payload,
+    #                                      dynamics, rotor inertia, load friction): what a K_t error scales
 
 
 @dataclass
@@ -420,9 +427,58 @@ class CurrentOffset(Effect):
         return None if not c else np.full(d.T, c)
 
 
+class CoulombFriction(Effect):
+    name = "coulomb_friction"
+    signature = "odd in q̇, constant in speed: the sliding levels are off by ±Δ (viscous grows, Stribeck decays)"
+
+    def columns(self, d, j, hyper, info):
+        return Cols(_sgn(d.p.dq[:, j])[:, None], ["coulomb_change_A"])
+
+    def physical(self, theta, info, j):
+        cp, cn = info.coulomb_A[j]
+        return bool(cp + theta[0] > 0 and cn - theta[0] < 0)
+
+    def params(self, theta, hyper, d, j, info):
+        cp, cn = info.coulomb_A[j]
+        return {"coulomb_pos_A": float(cp + theta[0]), "coulomb_neg_A": float(cn - theta[0]),
+                "change_A": float(theta[0])}
+
+    def write(self, pf, joint, prm):
+        f = _friction(pf, joint)
+        dc = prm["change_A"]
+        f["coulomb_pos_A"] = max(prm["coulomb_pos_A"], 0.0)
+        f["coulomb_neg_A"] = min(prm["coulomb_neg_A"], 0.0)
+        if f.get("static_pos_A") is not None:  # the hump above the level is kept
+            f["static_pos_A"] = max(f["static_pos_A"] + dc, f["coulomb_pos_A"])
+        if f.get("static_neg_A") is not None:
+            f["static_neg_A"] = min(f["static_neg_A"] - dc, f["coulomb_neg_A"])
+
+
+class TorqueConstant(Effect):
+    name = "torque_constant"
+    signature = ("the joint's gain is off: its torque current (gravity, payload, dynamics, rotor inertia)/K_t scaled "
+                 "by one factor — gravity's and inertia's shape at once, on one joint")
+
+    def columns(self, d, j, hyper, info):
+        if info.torque_A is None or not np.any(info.torque_A[:, j]):
+            return None
+        return Cols(info.torque_A[:, j:j + 1], ["gain_change"])
+
+    def physical(self, theta, info, j):
+        return bool(-0.8 < theta[0] < 4.0)  # K_t within a factor 5 of the belief
+
+    def params(self, theta, hyper, d, j, info):
+        return {"torque_constant_Nm_per_A": float(info.kt[j] / (1.0 + theta[0])),
+                "relative_to_model": float(1.0 / (1.0 + theta[0]) - 1.0)}
+
+    def write(self, pf, joint, prm):
+        pf["joints"].setdefault(joint, {})["torque_constant_Nm_per_A"] = prm["torque_constant_Nm_per_A"]
+
+
 CATALOGUE: dict[str, Effect] = {e.name: e for e in (Viscous(), Stribeck(), PositionPeriodic(), LoadFriction(),
                                                       Inertia(), TemperatureDrift(), Backlash(), BackEmf(),
-                                                      PayloadMass(), CurrentOffset())}
+                                                      PayloadMass(), CurrentOffset(), CoulombFriction(),
+                                                      TorqueConstant())}
 NAMES = tuple(CATALOGUE)
 
 

@@ -340,14 +340,15 @@ class Selector:
         self._prune()
         return self.steps
 
-    @staticmethod
-    def _restrict(jm: JointModel, exclude: np.ndarray) -> None:
-        """Drop the joint's fit rows inside ``exclude`` (an effect's uncertain samples) from every later fit and score."""
+    def _restrict(self, jm: JointModel, exclude: np.ndarray) -> None:
+        """Drop the joint's fit rows inside ``exclude`` (an effect's uncertain samples) from every later fit and score
+        (the joint's own terms and its columns of a shared payload alike)."""
         keep = ~exclude[jm.rows]
         jm.rows = jm.rows[keep]
         jm.y = jm.y[keep]
         jm.base = jm.base[keep]
-        for t in jm.terms:
+        shared = [self.payload_cols[jm.j]] if jm.j in self.payload_cols else []
+        for t in jm.terms + shared:
             t.XH = t.XH[keep]
             if t.offH is not None:
                 t.offH = t.offH[keep]
