@@ -30,6 +30,7 @@ from dragd.gap.baseline import Baseline, update_seed000
 from dragd.gap.context import FOLDS, GapData
 from dragd.gap.effects import CATALOGUE, Cols, Effect
 
+AMBIGUOUS = 0.3  # another real effect whose held-out RMS is within this × the joint's noise explains it as well
 REL_MIN = 0.05  # held-out MSE must fall by 5 %
 ABS_MIN = 0.3  # ... and the explained held-out RMS must reach 0.3 × the joint's noise
 MAX_ROUNDS = 8
@@ -70,6 +71,9 @@ class Step:
     joints: list[str]
     hypers: dict[str, Any]
     gain: dict[str, dict[str, float]]  # per joint: held-out RMS before/after, BIC change
+    # effects that explain the same joints as well (held-out RMS within AMBIGUOUS × noise of this one): effect →
+    # {joint: {cv_rmse_after_A of the alternative, of this effect}}
+    ambiguous: dict[str, dict[str, dict[str, float]]] = field(default_factory=dict)
 
 
 def _cv_sse(X: np.ndarray, y: np.ndarray, fold: np.ndarray) -> float:
@@ -299,6 +303,7 @@ class Selector:
         for _ in range(MAX_ROUNDS):
             resid = {jm.j: self._residual(jm) for jm in self.joints}
             best: tuple[float, Effect, dict, Any] | None = None
+            real_by_effect: dict[str, dict[int, dict]] = {}
             for eff in self.effects:
                 if eff.shared:
                     if self.payload_cols:
@@ -316,11 +321,13 @@ class Selector:
                     if sc is not None and sc[0] > 0:
                         found[jm.j] = sc
                         total += sc[0]
+                real_by_effect[eff.name] = {j: v[1] for j, v in found.items()}
                 if found and (best is None or total > best[0]):
                     best = (total, eff, {j: v[1] for j, v in found.items()}, {j: v[2] for j, v in found.items()})
             if best is None:
                 break
             _, eff, infos, terms = best
+            ambiguous = {} if eff.shared else self._ambiguous(eff.name, infos, real_by_effect)
             if eff.shared:
                 self.payload_cols = terms
                 joints = [nm for nm, v in infos["_shared"]["per_joint_explained_rms_A"].items()
@@ -334,11 +341,27 @@ class Selector:
                         self._restrict(self.joints[j], t.cols.exclude)
                 self.steps.append(Step(eff.name, [self.d.names[j] for j in sorted(terms)],
                                        {self.d.names[j]: t.hyper for j, t in terms.items()},
-                                       {self.d.names[j]: infos[j] for j in sorted(terms)}))
+                                       {self.d.names[j]: infos[j] for j in sorted(terms)}, ambiguous))
             self._refit()
             self.snapshots.append(self.predict())
         self._prune()
         return self.steps
+
+    def _ambiguous(self, name: str, infos: dict[int, dict], real: dict[str, dict[int, dict]]
+                   ) -> dict[str, dict[str, dict[str, float]]]:
+        """Other effects, real on some of the chosen effect's joints, whose held-out RMS after is within AMBIGUOUS ×
+        the joint's noise of the chosen one's there: the data do not tell them apart (both are reported)."""
+        out: dict[str, dict[str, dict[str, float]]] = {}
+        for other, per in real.items():
+            if other == name:
+                continue
+            for j, inf in per.items():
+                if j not in infos:
+                    continue
+                a, b = inf["cv_rmse_after_A"], infos[j]["cv_rmse_after_A"]
+                if math.sqrt(max(a * a - b * b, 0.0)) < AMBIGUOUS * float(self.d.noise_A[j]):
+                    out.setdefault(other, {})[self.d.names[j]] = {"cv_rmse_after_A": a, "chosen_cv_rmse_after_A": b}
+        return out
 
     def _restrict(self, jm: JointModel, exclude: np.ndarray) -> None:
         """Drop the joint's fit rows inside ``exclude`` (an effect's uncertain samples) from every later fit and score
@@ -382,6 +405,10 @@ class Selector:
                     changed = True
             if keep:
                 st.joints = keep
+                for alt in list(st.ambiguous):
+                    st.ambiguous[alt] = {nm: v for nm, v in st.ambiguous[alt].items() if nm in keep}
+                    if not st.ambiguous[alt]:
+                        del st.ambiguous[alt]
             else:
                 self.steps.remove(st)
         if changed:

@@ -89,6 +89,7 @@ class RobotSpec:
     speed_rad_s: tuple[float, ...]  # cruise speed cap per joint (≤ 0.8 × the velocity limit)
     accel_rad_s2: float = 1.5  # peak acceleration of the trajectory builders
     pass_robot_flag: bool = False  # give --robot to dragd (a URDF that is not the config's)
+    joint_names: tuple[str, ...] | None = None  # the URDF's joint names when not joint1..jointN
 
     @property
     def n(self) -> int:
@@ -144,8 +145,7 @@ def ur5(out_dir: Path, rename_joints: bool = True) -> RobotSpec:
     path = src
     if rename_joints:
         text = src.read_text()
-        for k, nm in enumerate(("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint",
-                                "wrist_2_joint", "wrist_3_joint"), start=1):
+        for k, nm in enumerate(UR_JOINT_NAMES, start=1):
             text = re.sub(rf'"{nm}"', f'"joint{k}"', text)
         out_dir.mkdir(parents=True, exist_ok=True)
         path = out_dir / "ur5_joint_names.urdf"
@@ -157,9 +157,24 @@ def ur5(out_dir: Path, rename_joints: bool = True) -> RobotSpec:
                                        coulomb_pos_A=b.coulomb_pos_A * 0.9, coulomb_neg_A=b.coulomb_neg_A * 0.9,
                                        static_pos_A=b.static_pos_A * 0.9, static_neg_A=b.static_neg_A * 0.9)
                    for j, b in enumerate(base))
+    names = None if rename_joints else UR_JOINT_NAMES
     return RobotSpec("ur5" if rename_joints else "ur5_original_names", path, joints,
                      home_rad=(0.0, -1.0, 1.3, -1.5, -1.5708, 0.0), excursion_rad=(0.8, 0.5, 0.6, 0.8, 0.8, 1.0),
-                     speed_rad_s=(0.8, 0.8, 0.8, 1.2, 1.2, 1.2), pass_robot_flag=True)
+                     speed_rad_s=(0.8, 0.8, 0.8, 1.2, 1.2, 1.2), pass_robot_flag=True, joint_names=names)
+
+
+UR_JOINT_NAMES = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint",
+                  "wrist_3_joint")
+
+
+def rename_joints(x: Any, names: tuple[str, ...]) -> Any:
+    """``x`` (nested dicts/lists) with every ``jointK`` key or string replaced by the URDF's K-th joint name."""
+    table = {f"joint{k + 1}": nm for k, nm in enumerate(names)}
+    if isinstance(x, dict):
+        return {table.get(k, k): rename_joints(v, names) for k, v in x.items()}
+    if isinstance(x, list):
+        return [rename_joints(v, names) for v in x]
+    return table.get(x, x) if isinstance(x, str) else x
 
 
 def load_pin_model(urdf: Path) -> pin.Model:
@@ -1064,8 +1079,11 @@ def generate(spec: CaseSpec, out_dir: str | Path) -> dict[str, Any]:
     fmt = ["%.4f"] + ["%.7f"] * n + ["%.4f"] * n + (["%.5f"] * n if spec.with_dq else [])
     np.savetxt(out / "log.csv", data, delimiter=",", header=",".join(header), comments="", fmt=fmt)
 
+    cfg = config_yaml(robot, pf)
+    if robot.joint_names:  # the files name the joints as the URDF does (the CSV's columns stay q1..qN)
+        pf, cfg, expected = (rename_joints(x, robot.joint_names) for x in (pf, cfg, expected))
     (out / "belief.yaml").write_text(yaml.safe_dump(pf, sort_keys=False))
-    (out / "config.yaml").write_text(yaml.safe_dump(config_yaml(robot, pf), sort_keys=False))
+    (out / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
     peak = np.abs(reported).max(axis=0)
     info = {
         "case_id": spec.case_id, "description": spec.description, "robot": robot.name, "urdf": str(robot.urdf),
