@@ -17,6 +17,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import generator as g  # noqa: E402
 
+pytestmark = pytest.mark.unit
+
 
 def _load(path: Path) -> tuple[list[str], np.ndarray]:
     header = path.read_text().splitlines()[0].split(",")
