@@ -155,6 +155,9 @@ class Stribeck(Effect):
     # is seen only through the regression filter's leakage of the reversals (where q̇ is estimated, not measured) —
     # fitted there it named a 3–6 A "hump" with v_s ≈ 0.005 on clean independent logs
     V_MIN = 0.02
+    # δ ≤ 2 (the Stribeck exponents reported for gears and bearings lie in 0.5–2): a sharper "hump" at v_s ≈ V_MIN is
+    # a step at breakaway — where q̇ is estimated through the 20 Hz position filter and the exact friction sign is not
+    DELTA_MAX = 2.0
     GRID = [(vs, de) for vs in (0.02, 0.03, 0.05, 0.08, 0.12, 0.2) for de in (1.0, 1.5, 2.0)]
 
     def hypers(self, d, j, resid, info):
@@ -166,13 +169,17 @@ class Stribeck(Effect):
 
         def f(x: np.ndarray) -> float:
             vs, de = math.exp(x[0]), math.exp(x[1])
-            return sse((vs, de)) if self.V_MIN <= vs < 1.0 and 0.5 <= de <= 4.0 else float("inf")
+            return sse((vs, de)) if self.V_MIN <= vs < 1.0 and 0.5 <= de <= self.DELTA_MAX else float("inf")
 
         r = minimize(f, np.log(hyper), method="Nelder-Mead", options={"xatol": 0.02, "fatol": 1e-9, "maxfev": 40})
         return (float(math.exp(r.x[0])), float(math.exp(r.x[1]))) if np.isfinite(r.fun) else hyper
 
+    MIN_ROWS = 20  # fit rows (12.5 Hz) inside the hump, |q̇| < 2·v_s, for its shape to be seen at all
+
     def columns(self, d, j, hyper, info):
         v = d.p.dq[:, j]
+        if int(np.count_nonzero(np.abs(v[d.fit_rows(j)]) < 2.0 * hyper[0])) < self.MIN_ROWS:
+            return None  # the hump's speeds are not on the fit rows: only the filter's leakage of breakaways shows it
         e = np.exp(-(np.abs(v) / hyper[0]) ** hyper[1]) * weight(v)
         return Cols(np.column_stack([e * (v > 0), e * (v < 0)]), ["dstatic_pos_A", "dstatic_neg_A"])
 

@@ -393,12 +393,18 @@ class Selector:
                 fold = self.d.fold[jm.rows]
                 X1, _ = jm.design()
                 y1 = self._payload_y(jm)
+                k = jm.base.shape[1] + sum(tt.XH.shape[1] for tt in jm.terms[:jm.terms.index(t)])
                 jm.terms.remove(t)
                 X0, _ = jm.design()
                 y0 = self._payload_y(jm)
                 cv0, cv1, n = _cv_sse(X0, y0, fold), _cv_sse(X1, y1, fold), y1.size
                 gain = cv0 - cv1
-                if gain >= REL_MIN * cv0 and math.sqrt(max(gain, 0.0) / n) >= ABS_MIN * self.d.noise_A[jm.j]:
+                # the effect's own fitted current (filtered, on the fit rows) must reach what selection asks it to
+                # explain: a term that the later ones reduced to a sliver is not named
+                th1, _ = _fit(X1, y1)
+                own = t.XH @ th1[k:k + t.XH.shape[1]] + (t.offH if t.offH is not None else 0.0)
+                big = math.sqrt(float(np.mean(np.square(own)))) >= ABS_MIN * self.d.noise_A[jm.j]
+                if big and gain >= REL_MIN * cv0 and math.sqrt(max(gain, 0.0) / n) >= ABS_MIN * self.d.noise_A[jm.j]:
                     jm.terms.append(t)
                     keep.append(nm)
                 else:
