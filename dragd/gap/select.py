@@ -71,8 +71,8 @@ class Step:
     joints: list[str]
     hypers: dict[str, Any]
     gain: dict[str, dict[str, float]]  # per joint: held-out RMS before/after, BIC change
-    # effects that explain the same joints as well (held-out RMS within AMBIGUOUS × noise of this one): effect →
-    # {joint: {cv_rmse_after_A of the alternative, of this effect}}
+    # effects that explain the same joints as well in the final model (swapped in, held-out RMS within AMBIGUOUS ×
+    # noise of this one's): effect → {joint: {cv_rmse_after_A of the alternative, of this effect}}
     ambiguous: dict[str, dict[str, dict[str, float]]] = field(default_factory=dict)
 
 
@@ -303,7 +303,6 @@ class Selector:
         for _ in range(MAX_ROUNDS):
             resid = {jm.j: self._residual(jm) for jm in self.joints}
             best: tuple[float, Effect, dict, Any] | None = None
-            real_by_effect: dict[str, dict[int, dict]] = {}
             for eff in self.effects:
                 if eff.shared:
                     if self.payload_cols:
@@ -321,13 +320,12 @@ class Selector:
                     if sc is not None and sc[0] > 0:
                         found[jm.j] = sc
                         total += sc[0]
-                real_by_effect[eff.name] = {j: v[1] for j, v in found.items()}
                 if found and (best is None or total > best[0]):
                     best = (total, eff, {j: v[1] for j, v in found.items()}, {j: v[2] for j, v in found.items()})
             if best is None:
                 break
             _, eff, infos, terms = best
-            ambiguous = {} if eff.shared else self._ambiguous(eff.name, infos, real_by_effect)
+            ambiguous: dict[str, dict[str, dict[str, float]]] = {}  # judged on the final model (_settle_ambiguity)
             if eff.shared:
                 self.payload_cols = terms
                 joints = [nm for nm, v in infos["_shared"]["per_joint_explained_rms_A"].items()
@@ -345,23 +343,66 @@ class Selector:
             self._refit()
             self.snapshots.append(self.predict())
         self._prune()
+        self._settle_ambiguity()
         return self.steps
 
-    def _ambiguous(self, name: str, infos: dict[int, dict], real: dict[str, dict[int, dict]]
-                   ) -> dict[str, dict[str, dict[str, float]]]:
-        """Other effects, real on some of the chosen effect's joints, whose held-out RMS after is within AMBIGUOUS ×
-        the joint's noise of the chosen one's there: the data do not tell them apart (both are reported)."""
-        out: dict[str, dict[str, dict[str, float]]] = {}
-        for other, per in real.items():
-            if other == name:
+    def _settle_ambiguity(self) -> None:
+        """Which added effects the data cannot tell from another catalogue effect, judged on the final model: on each
+        joint, the added effect is swapped for each other per-joint candidate (its best hyperparameter); when the
+        swapped model is real against the model without the effect (the selection's tests, physical sign) and its
+        held-out RMS is within AMBIGUOUS × the joint's noise of the final model's, both explain the data equally and
+        the alternative is reported (``Step.ambiguous``). The shared payload and the play's predictor are not swapped."""
+        info = self.base.info()
+        for st in self.steps:
+            st.ambiguous = {}
+            if CATALOGUE[st.effect].shared:
                 continue
-            for j, inf in per.items():
-                if j not in infos:
+            for nm in st.joints:
+                jm = self.joints[self.d.names.index(nm)]
+                t = next(tt for tt in jm.terms if tt.effect == st.effect and tt.hyper == st.hypers.get(nm))
+                if t.cols.exclude is not None or jm.theta is None:
                     continue
-                a, b = inf["cv_rmse_after_A"], infos[j]["cv_rmse_after_A"]
-                if math.sqrt(max(a * a - b * b, 0.0)) < AMBIGUOUS * float(self.d.noise_A[j]):
-                    out.setdefault(other, {})[self.d.names[j]] = {"cv_rmse_after_A": a, "chosen_cv_rmse_after_A": b}
-        return out
+                fold = self.d.fold[jm.rows]
+                X1, _ = jm.design()
+                y1 = self._payload_y(jm)
+                cv1, n = _cv_sse(X1, y1, fold), y1.size
+                k = jm.base.shape[1] + sum(tt.XH.shape[1] for tt in jm.terms[:jm.terms.index(t)])
+                own = t.cols.X @ jm.theta[k:k + t.cols.X.shape[1]] + (t.cols.offset if t.cols.offset is not None else 0)
+                resid = self._residual(jm) + own  # the residual of the model without this effect (for spectra)
+                idx = jm.terms.index(t)
+                jm.terms.remove(t)
+                try:
+                    X0, _ = jm.design()
+                    y0 = self._payload_y(jm)
+                    cv0 = _cv_sse(X0, y0, fold)
+                    sigma = float(self.d.noise_A[jm.j])
+                    have = {tt.effect for tt in jm.terms}
+                    for eff in self.effects:
+                        if eff.shared or eff.name in have or eff.name in (st.effect, "backlash"):
+                            continue
+                        best = None
+                        for h in eff.hypers(self.d, jm.j, resid, info):
+                            ta = self._term(eff, jm, h)
+                            if ta is None or not _adds(X0, ta):
+                                continue
+                            Xa = np.hstack([X0, ta.XH])
+                            ya = y0 - ta.offH if ta.offH is not None else y0
+                            cva = _cv_sse(Xa, ya, fold)
+                            if best is None or cva < best[0]:
+                                best = (cva, ta, Xa, ya)
+                        if best is None:
+                            continue
+                        cva, ta, Xa, ya = best
+                        tha, _ = _fit(Xa, ya)
+                        gain = cv0 - cva
+                        real = (gain >= REL_MIN * cv0 and math.sqrt(max(gain, 0.0) / n) >= ABS_MIN * sigma
+                                and eff.physical(tha[tha.size - ta.XH.shape[1]:], info, jm.j))
+                        if real and math.sqrt(max(cva - cv1, 0.0) / n) < AMBIGUOUS * sigma:
+                            st.ambiguous.setdefault(eff.name, {})[nm] = {
+                                "cv_rmse_after_A": math.sqrt(max(cva, 0.0) / n),
+                                "chosen_cv_rmse_after_A": math.sqrt(max(cv1, 0.0) / n)}
+                finally:
+                    jm.terms.insert(idx, t)
 
     def _restrict(self, jm: JointModel, exclude: np.ndarray) -> None:
         """Drop the joint's fit rows inside ``exclude`` (an effect's uncertain samples) from every later fit and score
