@@ -365,7 +365,7 @@ def run_matrix(out: Path, cases: list[g.CaseSpec] | None = None, jobs: int = 2, 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", required=True, help="output directory (one folder per case, results.json)")
+    ap.add_argument("--out", help="output directory (one folder per case, results.json); required unless --list")
     ap.add_argument("--cases", help="comma-separated case ids or shell patterns (default: all)")
     ap.add_argument("--list", action="store_true", help="list the cases and exit")
     ap.add_argument("--reuse", action="store_true", help="keep a case's existing result.json (resume a run)")
@@ -380,6 +380,8 @@ def main(argv: list[str] | None = None) -> int:
                   f"σ={c.noise_A * 1e3:.0f} mA {c.duration_s:.0f} s  {', '.join(e.name for e in c.effects) or 'none'}")
         print(f"{len(cases)} cases")
         return 0
+    if not args.out:
+        ap.error("--out: required (the directory for the cases and results.json)")
     out = Path(args.out)
     results = run_matrix(out, cases, args.jobs, args.reuse, args.timeout, args.generate_only,
                          echo=lambda ln: print(ln, flush=True))
