@@ -39,6 +39,7 @@ def test_matrix_is_large_and_covers_the_issue() -> None:
     assert any(len(c.effects) == 2 for c in cases) and sum(not c.effects for c in cases) >= 4
 
 
+@pytest.mark.timeout(900)  # the play's predictor: seconds alone, minutes on a loaded 2-core host
 def test_payload_and_backlash_together_no_crash(tmp_path: Path) -> None:
     """The log that crashed select.py ('boolean index did not match ... 1920 but ... 1854'): a play's crossings left
     the joint's rows but not its shared payload columns. Both effects are named."""
