@@ -36,6 +36,9 @@ CASES: dict[str, dict[str, Any]] = {
     "payload_mass": {"joints": {}, "payload": {"mass_kg": 1.5, "com_m": [0.0, 0.0, 0.05]},
                      "expect": ["joint2", "joint3", "joint4"]},
     "current_offset": {"joints": {"joint4": {"hidden": {"current_offset_A": 0.08}}}, "expect": ["joint4"]},
+    # belief errors (the sim is clean; the model is off): a wrist's K_t 30 % high, the shoulder's Coulomb levels 0.25 A low
+    "torque_constant": {"joints": {}, "expect": ["joint4"]},
+    "coulomb_friction": {"joints": {}, "expect": ["joint2"]},
     "two": {"joints": {"joint3": {"hidden": {"ripple": [RIPPLE]}}, "joint4": {"hidden": {"current_offset_A": 0.08}}},
             "expect": {"position_periodic": ["joint3"], "current_offset": ["joint4"]}},
 }
@@ -68,6 +71,12 @@ def model_for(case: str) -> dict[str, Any]:
             j["friction"]["static_neg_A"] = j["friction"]["coulomb_neg_A"]
         if case == "inertia":
             j["effects"]["armature_kgm2"] = None
+        if case == "torque_constant" and nm == "joint4":
+            j["torque_constant_Nm_per_A"] *= 1.3
+        if case == "coulomb_friction" and nm == "joint2":  # both levels 0.25 A low, the hump above them kept
+            for k, dk in (("coulomb_pos_A", -0.25), ("static_pos_A", -0.25), ("coulomb_neg_A", 0.25),
+                          ("static_neg_A", 0.25)):
+                j["friction"][k] += dk
     return p
 
 

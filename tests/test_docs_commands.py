@@ -238,6 +238,8 @@ RULES: list[Rule] = [
     Rule(r"^dragd bench --list$", "run", "offline"),
     Rule(r"^dragd bench (compensation_us|bus_load) ", "run", "offline"),
     Rule(r"^dragd bench (loop_|--json$)", "run", "sim + daemon", extra="--seconds 3", slow=True),
+    Rule(r"^dragd bench gap_confusion\b", "run", "the independent case matrix: two of its cases here (all: ~30 min)",
+         extra="--cases none__ptp_0,pair__backlash1+payload --jobs 1", slow=True),
     Rule(r"^dragd bench (identify_|gap_)", "run", "a 10 min log (generated once, cached)", slow=True),
     Rule(r"^dragd experiment startup\b", "run", "sim + daemon", extra="--joints 4 --ramp-s 4",
          before=("identified",), slow=True),

@@ -47,7 +47,7 @@ def test_json_has_exactly_the_issue_keys(csv_run):
     assert list(d) == ["baseline", "effects", "final"]
     assert set(d["baseline"]) == {"rmse_A", "joints"} and set(d["final"]) == {"rmse_A"}
     assert set(d["baseline"]["joints"]) == {f"joint{k}" for k in range(1, 7)}
-    assert [set(e) for e in d["effects"]] == [{"effect", "joints", "params", "rmse_A"}]
+    assert [set(e) for e in d["effects"]] == [{"effect", "joints", "params", "rmse_A", "ambiguous_with"}]
     e = d["effects"][0]
     assert e["effect"] == "current_offset" and e["joints"] == ["joint4"]
     assert e["params"]["joint4"]["current_offset_A"] == pytest.approx(0.08, abs=0.01)

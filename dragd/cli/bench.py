@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any
 
 from dragd.cli.common import CliError, absolute, add_config, emit, table
@@ -18,14 +19,18 @@ def cmd_bench(args: argparse.Namespace) -> int:
         return 0
     if args.realtime_priority is not None and not 0 <= args.realtime_priority <= 99:
         raise CliError(f"--realtime-priority: expected 0..99, got {args.realtime_priority}")
-    opts = {"config": absolute(args.config), "seconds": args.seconds, "realtime_priority": args.realtime_priority}
+    if args.jobs is not None and args.jobs < 1:
+        raise CliError(f"--jobs: expected ≥ 1, got {args.jobs}")
+    opts = {"config": absolute(args.config), "seconds": args.seconds, "realtime_priority": args.realtime_priority,
+            "jobs": args.jobs, "cases": args.cases, "out": absolute(args.out)}
     try:
         result = bench.run(args.names, {k: v for k, v in opts.items() if v is not None})
     except KeyError as exc:
         raise CliError(str(exc.args[0])) from None
     except bench.BenchError as exc:
         raise CliError(str(exc), status=1) from None
-    emit(args, result, lambda d: table(["benchmark", "value", "unit"], [(k, v["value"], v["unit"]) for k, v in d.items()]))
+    emit(args, result, lambda d: table(["benchmark", "value", "unit"], [(k, v["value"], v["unit"]) for k, v in d.items()])
+         + "".join(f"\n{k}: details with --json" for k, v in d.items() if "detail" in v))
     return 0
 
 
@@ -37,6 +42,12 @@ def register(sub: Any) -> None:
     b.add_argument("--realtime-priority", type=int, default=None, metavar="N",
                    help="loop benchmarks: SCHED_FIFO priority of the daemon's cycle thread as deployed (default 70, "
                         "the sim's 10 below; applied when permitted), 0 for none")
+    b.add_argument("--jobs", type=int, default=None, metavar="N",
+                   help="gap_confusion: cases run at once in worker processes (default 2)")
+    b.add_argument("--cases", default=None, metavar="PATTERNS",
+                   help="gap_confusion: comma-separated shell patterns of case ids (default: the whole matrix)")
+    b.add_argument("--out", type=Path, default=None, metavar="DIR",
+                   help="gap_confusion: keep the generated cases and results.json here (default: a temporary directory)")
     add_config(b, params=False)
     b.add_argument("--json", action="store_true", help="print JSON")
     b.set_defaults(func=cmd_bench)

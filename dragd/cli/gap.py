@@ -64,6 +64,11 @@ def cmd_gap(args: argparse.Namespace) -> int:
         if d["effects"]:
             lines.append(table(["effect", "joints", "RMSE after mA"],
                                 [(e["effect"], ",".join(e["joints"]), ma(e["rmse_A"])) for e in d["effects"]]))
+            for e in d["effects"]:
+                for a in e["ambiguous_with"]:
+                    lines.append(f"ambiguous: {e['effect']} and {a['effect']} explain {','.join(a['joints'])} equally "
+                                 f"well (held-out difference within the noise); {e['effect']} was added — the data "
+                                 f"do not tell them apart")
         else:
             lines.append("nothing missing: no effect improves the held-out error")
         rows = [(nm, ma(v["rmse_A"]), ma(det["final_joints"][nm]["rmse_A"]), ma(v["noise_A"]))

@@ -8,7 +8,8 @@ Given model, per joint j (amperes, work rate):
           + a play's current (``effects.backlash_*``: the rotor simulated along the output, on the rest of the model)
 
 with I_f dragd's friction law (dragd/control/law.py, ``friction_scale`` 1: the friction *model*, not the drag setting).
-Seed 000 (no ``--model``): î_j = a_j·G_j(q) + F_+·[q̇ > 0] + F_−·[q̇ < 0] with a_j = 1/K_t and the two levels
+Seed 000 (no ``--model``): î_j = a_j·G_j(q) + F_+·[q̇ > 0] + F_−·[q̇ < 0] with a_j = 1/K_t (where the data
+determine it: relative standard deviation ≤ 5 %, else the configuration's K_t and a_j·G_j fixed) and the two levels
 fitted on the data (nothing else) — they stay free while effects are added.
 """
 
@@ -39,10 +40,11 @@ class Baseline:
     params: dict[str, Any]  # the params file (mapping) the extended model is written into
     armature_kgm2: np.ndarray | None = None  # (n,) the model's rotor inertia at each joint (0: not known)
     has_backlash: np.ndarray | None = None  # (n,) bool: the model predicts a play on the joint
+    torque_A: np.ndarray | None = None  # (T, n) the part of ``fixed`` that is a joint torque / K_t
 
     def info(self) -> ModelInfo:
         return ModelInfo(self.kt, self.friction_A, self.has_inertia, self.coulomb_A, self.armature_kgm2,
-                         self.has_backlash)
+                         self.has_backlash, self.torque_A)
 
 
 def given(d: GapData, params: Any, cfg: Any) -> Baseline:
@@ -58,6 +60,7 @@ def given(d: GapData, params: Any, cfg: Any) -> Baseline:
     friction_current(d.p.dq, law, fr, Workspace(d.p.dq.shape))
     pf = params.model_dump(mode="json")
     pred = d.G / kt + fr
+    torque = d.G / kt  # what a K_t error scales (torque_constant's column)
     has_inertia = np.zeros(d.n, dtype=bool)
     for j, nm in enumerate(d.names):
         jp = pf["joints"].get(nm, {})
@@ -71,19 +74,23 @@ def given(d: GapData, params: Any, cfg: Any) -> Baseline:
             if x is not None:
                 pred[:, j] += x
                 has_inertia[j] |= name == "inertia"
+                if name in ("inertia", "load_dependent_friction"):
+                    torque[:, j] += x
     if pf.get("inertials"):  # an identified arm (identify fit --method full): its dynamics are part of the model
         for j in range(d.n):
             if not has_inertia[j]:
                 pred[:, j] += d.tau_dyn[:, j] / kt[j]
+                torque[:, j] += d.tau_dyn[:, j] / kt[j]
                 has_inertia[j] = True
     pl = PayloadMass.predict_all(d, pf.get("payload"), kt)
     if pl is not None:
         pred += pl
+        torque += pl
     coul = [(float(law.coulomb_pos_A[j]), float(law.coulomb_neg_A[j])) for j in range(d.n)]
     armature = np.array([float((pf["joints"].get(nm, {}).get("effects") or {}).get("armature_kgm2") or 0.0)
                          for nm in d.names])
     base = Baseline("given", pred, [None] * d.n, [[] for _ in range(d.n)], kt, np.ones(d.n, dtype=bool), fr,
-                    has_inertia, coul, pf, armature)
+                    has_inertia, coul, pf, armature, torque_A=torque)
     backlash = CATALOGUE["backlash"]
     assert isinstance(backlash, Backlash)
     base.has_backlash = np.zeros(d.n, dtype=bool)
@@ -102,15 +109,41 @@ def seed000(d: GapData, cfg: Any) -> Baseline:
         w = weight(d.p.dq[:, j])
         cols = [w * (d.p.dq[:, j] > 0), w * (d.p.dq[:, j] < 0)]
         nm = ["coulomb_pos_A", "coulomb_neg_A"]
-        if np.ptp(d.G[:, j]) > 1.0:  # N·m of gravity change: a/K_t determinable
+        if _kt_determined(d, j, np.column_stack([d.G[:, j]] + cols), float(cfg.joints[j].kt_Nm_per_A)):
             cols.insert(0, d.G[:, j])
             nm.insert(0, "inv_kt")
         free.append(np.column_stack(cols))
         names.append(nm)
     kt = np.array([jc.kt_Nm_per_A for jc in cfg.joints])
     pf = {"version": 1, "method": "gap", "robot": None, "joints": {nm: {} for nm in d.names}}
-    return Baseline("seed000", np.zeros((d.T, d.n)), free, names, kt, np.zeros(d.n, dtype=bool),
-                    np.zeros((d.T, d.n)), np.zeros(d.n, dtype=bool), [(0.0, 0.0)] * d.n, pf)
+    fixed = np.zeros((d.T, d.n))
+    for j in range(d.n):  # gravity over the configuration's K_t where the data do not determine it
+        if names[j][0] != "inv_kt":
+            fixed[:, j] = d.G[:, j] / kt[j]
+    return Baseline("seed000", fixed, free, names, kt, np.zeros(d.n, dtype=bool),
+                    np.zeros((d.T, d.n)), np.zeros(d.n, dtype=bool), [(0.0, 0.0)] * d.n, pf, torque_A=d.G / kt)
+
+
+KT_REL_STD_MAX = 0.05  # seed 000: 1/K_t is fitted where the data determine it to 5 % (relative standard deviation)
+
+
+def _kt_determined(d: GapData, j: int, X: np.ndarray, kt_cfg: float) -> bool:
+    """Whether the log determines joint j's 1/K_t (the first column of X, gravity, beside the direction levels): the
+    standard deviation of its least-squares estimate on the filtered fit rows (residual RMS × √(XᵀX)⁻¹₀₀), relative
+    to the configuration's 1/K_t, ≤ KT_REL_STD_MAX — no fixed N·m range of gravity."""
+    r = d.fit_rows(j)
+    if r.size < 30 or not np.any(np.ptp(d.G[:, j])):
+        return False
+    XH = d.H(X)[r]
+    y = d.iH[r, j]
+    th, *_ = np.linalg.lstsq(XH, y, rcond=None)
+    e = y - XH @ th
+    s2 = float(e @ e) / max(r.size - X.shape[1], 1)
+    try:
+        var = s2 * float(np.linalg.inv(XH.T @ XH)[0, 0])
+    except np.linalg.LinAlgError:
+        return False
+    return bool(th[0] > 0 and np.sqrt(max(var, 0.0)) * kt_cfg <= KT_REL_STD_MAX)
 
 
 def update_seed000(b: Baseline, d: GapData, j: int, theta: np.ndarray) -> None:

@@ -102,6 +102,10 @@ def markdown(res: GapResult, files: list[str], out_dir: Path, log_path: str, mod
             for nm, v in ev.items():
                 lines.append(f"| {nm} | {_mA(v.get('cv_rmse_before_A'))} | {_mA(v.get('cv_rmse_after_A'))} | "
                              f"{_mA(v.get('explained_rms_A'))} | {v.get('delta_bic', 0):.0f} |")
+        for a in e.get("ambiguous_with", []):
+            lines.append("")
+            lines.append(f"**Ambiguous**: `{a['effect']}` explains {', '.join(a['joints'])} as well (held-out RMS "
+                         f"within 0.3 × the noise of this effect's); the data do not tell the two apart.")
         lines.append("")
     lines += ["## Per joint", "",
               "| joint | noise [mA] | RMSE before [mA] | after [mA] | constant speed / accel. / reversal RMS before [mA] "

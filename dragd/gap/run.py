@@ -35,13 +35,15 @@ class GapResult:
     warnings: list[str] = field(default_factory=list)
 
     def to_json(self) -> dict[str, Any]:
-        """The issue's exact keys: baseline {rmse_A, joints}, effects [{effect, joints, params, rmse_A}], final {rmse_A}."""
+        """Exactly: baseline {rmse_A, joints}, effects [{effect, joints, params, rmse_A, ambiguous_with}], final
+        {rmse_A}; ``ambiguous_with``: [{effect, joints}] that explain those joints as well (docs/GAP.md §4)."""
         names = self.data.names
         per0, all0 = self.baseline_rmse
         return {
             "baseline": {"rmse_A": _f(all0), "joints": {nm: {"rmse_A": _f(per0[j]), "noise_A": _f(self.data.noise_A[j])}
                                                         for j, nm in enumerate(names)}},
-            "effects": [{k: e[k] for k in ("effect", "joints", "params", "rmse_A")} for e in self.effects],
+            "effects": [{k: e[k] for k in ("effect", "joints", "params", "rmse_A", "ambiguous_with")}
+                        for e in self.effects],
             "final": {"rmse_A": _f(self.final_rmse[1])},
         }
 
@@ -50,7 +52,8 @@ class GapResult:
         names = self.data.names
         return {"baseline_kind": self.baseline_kind, "noise_A": _f(float(np.sqrt(np.mean(self.data.noise_A ** 2)))),
                 "final_joints": {nm: {"rmse_A": _f(self.final_rmse[0][j])} for j, nm in enumerate(names)},
-                "evidence": [{"effect": e["effect"], "evidence": e["evidence"]} for e in self.effects],
+                "evidence": [{"effect": e["effect"], "evidence": e["evidence"],
+                              "ambiguity": e["ambiguity_evidence"]} for e in self.effects],
                 "localisation_before": self.localisation, "localisation_after": self.localisation_after,
                 "elapsed_s": round(self.elapsed_s, 3), "warnings": list(self.warnings)}
 
@@ -92,7 +95,9 @@ def analyse(log: Log, robot: Any, cfg: Any, params: Any | None = None,
     for k, (st, (name, joints, prm)) in enumerate(zip(sel.steps, eparams)):
         out_effects.append({"effect": name, "joints": joints, "params": _round(prm),
                             "rmse_A": float(f"{d.raw_rmse(sel.snapshots[k + 1])[1]:.6g}"),
-                            "evidence": _round(st.gain)})
+                            "ambiguous_with": [{"effect": a, "joints": sorted(v, key=d.names.index)}
+                                               for a, v in st.ambiguous.items()],
+                            "evidence": _round(st.gain), "ambiguity_evidence": _round(st.ambiguous)})
     # the extended model as a params file
     pf = base.params
     if base.kind == "seed000":

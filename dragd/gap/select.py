@@ -30,6 +30,7 @@ from dragd.gap.baseline import Baseline, update_seed000
 from dragd.gap.context import FOLDS, GapData
 from dragd.gap.effects import CATALOGUE, Cols, Effect
 
+AMBIGUOUS = 0.3  # another real effect whose held-out RMS is within this × the joint's noise explains it as well
 REL_MIN = 0.05  # held-out MSE must fall by 5 %
 ABS_MIN = 0.3  # ... and the explained held-out RMS must reach 0.3 × the joint's noise
 MAX_ROUNDS = 8
@@ -70,6 +71,9 @@ class Step:
     joints: list[str]
     hypers: dict[str, Any]
     gain: dict[str, dict[str, float]]  # per joint: held-out RMS before/after, BIC change
+    # effects that explain the same joints as well in the final model (swapped in, held-out RMS within AMBIGUOUS ×
+    # noise of this one's): effect → {joint: {cv_rmse_after_A of the alternative, of this effect}}
+    ambiguous: dict[str, dict[str, dict[str, float]]] = field(default_factory=dict)
 
 
 def _cv_sse(X: np.ndarray, y: np.ndarray, fold: np.ndarray) -> float:
@@ -321,6 +325,7 @@ class Selector:
             if best is None:
                 break
             _, eff, infos, terms = best
+            ambiguous: dict[str, dict[str, dict[str, float]]] = {}  # judged on the final model (_settle_ambiguity)
             if eff.shared:
                 self.payload_cols = terms
                 joints = [nm for nm, v in infos["_shared"]["per_joint_explained_rms_A"].items()
@@ -334,20 +339,80 @@ class Selector:
                         self._restrict(self.joints[j], t.cols.exclude)
                 self.steps.append(Step(eff.name, [self.d.names[j] for j in sorted(terms)],
                                        {self.d.names[j]: t.hyper for j, t in terms.items()},
-                                       {self.d.names[j]: infos[j] for j in sorted(terms)}))
+                                       {self.d.names[j]: infos[j] for j in sorted(terms)}, ambiguous))
             self._refit()
             self.snapshots.append(self.predict())
         self._prune()
+        self._settle_ambiguity()
         return self.steps
 
-    @staticmethod
-    def _restrict(jm: JointModel, exclude: np.ndarray) -> None:
-        """Drop the joint's fit rows inside ``exclude`` (an effect's uncertain samples) from every later fit and score."""
+    def _settle_ambiguity(self) -> None:
+        """Which added effects the data cannot tell from another catalogue effect, judged on the final model: on each
+        joint, the added effect is swapped for each other per-joint candidate (its best hyperparameter); when the
+        swapped model is real against the model without the effect (the selection's tests, physical sign) and its
+        held-out RMS is within AMBIGUOUS × the joint's noise of the final model's, both explain the data equally and
+        the alternative is reported (``Step.ambiguous``). The shared payload and the play's predictor are not swapped."""
+        info = self.base.info()
+        for st in self.steps:
+            st.ambiguous = {}
+            if CATALOGUE[st.effect].shared:
+                continue
+            for nm in st.joints:
+                jm = self.joints[self.d.names.index(nm)]
+                t = next(tt for tt in jm.terms if tt.effect == st.effect and tt.hyper == st.hypers.get(nm))
+                if t.cols.exclude is not None or jm.theta is None:
+                    continue
+                fold = self.d.fold[jm.rows]
+                X1, _ = jm.design()
+                y1 = self._payload_y(jm)
+                cv1, n = _cv_sse(X1, y1, fold), y1.size
+                k = jm.base.shape[1] + sum(tt.XH.shape[1] for tt in jm.terms[:jm.terms.index(t)])
+                own = t.cols.X @ jm.theta[k:k + t.cols.X.shape[1]] + (t.cols.offset if t.cols.offset is not None else 0)
+                resid = self._residual(jm) + own  # the residual of the model without this effect (for spectra)
+                idx = jm.terms.index(t)
+                jm.terms.remove(t)
+                try:
+                    X0, _ = jm.design()
+                    y0 = self._payload_y(jm)
+                    cv0 = _cv_sse(X0, y0, fold)
+                    sigma = float(self.d.noise_A[jm.j])
+                    have = {tt.effect for tt in jm.terms}
+                    for eff in self.effects:
+                        if eff.shared or eff.name in have or eff.name in (st.effect, "backlash"):
+                            continue
+                        best = None
+                        for h in eff.hypers(self.d, jm.j, resid, info):
+                            ta = self._term(eff, jm, h)
+                            if ta is None or not _adds(X0, ta):
+                                continue
+                            Xa = np.hstack([X0, ta.XH])
+                            ya = y0 - ta.offH if ta.offH is not None else y0
+                            cva = _cv_sse(Xa, ya, fold)
+                            if best is None or cva < best[0]:
+                                best = (cva, ta, Xa, ya)
+                        if best is None:
+                            continue
+                        cva, ta, Xa, ya = best
+                        tha, _ = _fit(Xa, ya)
+                        gain = cv0 - cva
+                        real = (gain >= REL_MIN * cv0 and math.sqrt(max(gain, 0.0) / n) >= ABS_MIN * sigma
+                                and eff.physical(tha[tha.size - ta.XH.shape[1]:], info, jm.j))
+                        if real and math.sqrt(max(cva - cv1, 0.0) / n) < AMBIGUOUS * sigma:
+                            st.ambiguous.setdefault(eff.name, {})[nm] = {
+                                "cv_rmse_after_A": math.sqrt(max(cva, 0.0) / n),
+                                "chosen_cv_rmse_after_A": math.sqrt(max(cv1, 0.0) / n)}
+                finally:
+                    jm.terms.insert(idx, t)
+
+    def _restrict(self, jm: JointModel, exclude: np.ndarray) -> None:
+        """Drop the joint's fit rows inside ``exclude`` (an effect's uncertain samples) from every later fit and score
+        (the joint's own terms and its columns of a shared payload alike)."""
         keep = ~exclude[jm.rows]
         jm.rows = jm.rows[keep]
         jm.y = jm.y[keep]
         jm.base = jm.base[keep]
-        for t in jm.terms:
+        shared = [self.payload_cols[jm.j]] if jm.j in self.payload_cols else []
+        for t in jm.terms + shared:
             t.XH = t.XH[keep]
             if t.offH is not None:
                 t.offH = t.offH[keep]
@@ -369,18 +434,28 @@ class Selector:
                 fold = self.d.fold[jm.rows]
                 X1, _ = jm.design()
                 y1 = self._payload_y(jm)
+                k = jm.base.shape[1] + sum(tt.XH.shape[1] for tt in jm.terms[:jm.terms.index(t)])
                 jm.terms.remove(t)
                 X0, _ = jm.design()
                 y0 = self._payload_y(jm)
                 cv0, cv1, n = _cv_sse(X0, y0, fold), _cv_sse(X1, y1, fold), y1.size
                 gain = cv0 - cv1
-                if gain >= REL_MIN * cv0 and math.sqrt(max(gain, 0.0) / n) >= ABS_MIN * self.d.noise_A[jm.j]:
+                # the effect's own fitted current (filtered, on the fit rows) must reach what selection asks it to
+                # explain: a term that the later ones reduced to a sliver is not named
+                th1, _ = _fit(X1, y1)
+                own = t.XH @ th1[k:k + t.XH.shape[1]] + (t.offH if t.offH is not None else 0.0)
+                big = math.sqrt(float(np.mean(np.square(own)))) >= ABS_MIN * self.d.noise_A[jm.j]
+                if big and gain >= REL_MIN * cv0 and math.sqrt(max(gain, 0.0) / n) >= ABS_MIN * self.d.noise_A[jm.j]:
                     jm.terms.append(t)
                     keep.append(nm)
                 else:
                     changed = True
             if keep:
                 st.joints = keep
+                for alt in list(st.ambiguous):
+                    st.ambiguous[alt] = {nm: v for nm, v in st.ambiguous[alt].items() if nm in keep}
+                    if not st.ambiguous[alt]:
+                        del st.ambiguous[alt]
             else:
                 self.steps.remove(st)
         if changed:
