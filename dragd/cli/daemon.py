@@ -71,7 +71,8 @@ def cmd_stop(args: argparse.Namespace) -> int:
 
 
 def cmd_mode(args: argparse.Namespace) -> int:
-    resp = call_daemon(args, "mode", mode=args.mode)
+    kw = {"accept": True} if getattr(args, "accept", False) else {}
+    resp = call_daemon(args, "mode", mode=args.mode, **kw)
     emit(args, resp, lambda d: f"mode {d['mode']}")
     return 0
 
@@ -116,6 +117,9 @@ def register(sub: Any) -> None:
         p.set_defaults(func=fn)
     m = sub.add_parser("mode", help="switch mode without a jump in current: idle | hold | drag")
     m.add_argument("mode", choices=["idle", "hold", "drag"])
+    m.add_argument("--accept", action="store_true",
+                   help="drag even where the hold current disagrees with the gravity model: the measured hold currents "
+                   "become the gravity offset around this pose (docs/PAYLOAD.md)")
     add_socket(m)
     m.set_defaults(func=cmd_mode)
     s = sub.add_parser("status", help="the daemon's state, timing and faults")

@@ -65,11 +65,11 @@ def command_table(d: Daemon) -> CommandTable:
         return {"mode": MODE_NAMES[c.mode]}
 
     @command("mode")
-    async def mode(mode: str) -> dict[str, Any]:
+    async def mode(mode: str, accept: bool = False) -> dict[str, Any]:
         if mode in ("hold", "drag") and not c.track.active and c.mode not in (Mode.IDLE, Mode.FAULT):
             await motions.wait_cst(f"mode {mode}")  # after a motion the drives return to CST first (bumpless)
-        d.set_mode(str(mode))
-        return {"mode": MODE_NAMES[c.mode]}
+        check = d.set_mode(str(mode), accept=bool(accept))
+        return {"mode": MODE_NAMES[c.mode], **({"gravity_check": check} if check else {})}
 
     @command("track")
     async def track(file: str | None = None, t_s: list[float] | None = None, q_rad: list[list[float]] | None = None,
