@@ -256,7 +256,7 @@ class GuardConfig(_Strict):
     runaway: bool = True  # the runaway guard in drag
     observer_Hz: Annotated[float, Field(gt=0, le=200), Expect("a bandwidth in (0, 200] Hz")] = 25.0
     speed_rad_s: PosFloat = 0.03  # slower joints are not running away
-    residual_A: PosFloat = 0.2  # smaller missing torques (as current) are friction's business
+    residual_A: PosFloat = 0.3  # smaller missing torques (as current) are friction's business
     confirm_s: Annotated[float, Field(ge=0, le=0.5), Expect("a time in [0, 0.5] s")] = 0.03
     keep_speed: Annotated[float, Field(gt=0, le=1), Expect("a fraction in (0, 1]")] = 0.85
     unexplained_max: Annotated[float, Field(gt=0, le=1), Expect("a fraction in (0, 1]")] = 0.35

@@ -296,8 +296,12 @@ class Controller:
         if self.hold_move is not None:
             step = self.hold_move_speed * self.dt
             np.subtract(self.hold_move, self.q_hold, out=self._tmp)
-            np.clip(self._tmp, -step, step, out=self._tmp)
-            self.q_hold += self._tmp
+            np.abs(self._tmp, out=self._tmp2)
+            if float(self._tmp2.max()) <= step:
+                self.q_hold[:] = self.hold_move  # arrived (exactly: the estimate waits for equality)
+            else:
+                np.clip(self._tmp, -step, step, out=self._tmp)
+                self.q_hold += self._tmp
         if self.blend_t0 >= 0.0 or (self.hold_move is not None and not np.array_equal(self.q_hold, self.hold_move)):
             self.hold_rest_s = 0.0
             return

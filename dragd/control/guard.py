@@ -13,6 +13,8 @@ them apart by where the torque acts and how it changes:
 * a joint is a candidate while it moves (|q̇| > ``speed_rad_s``), the residual drives it (r·q̇ > 0, |r|/K_t >
   ``residual_A``) and it does not slow down (|q̇| ≥ ``keep_speed``·the run's peak: an operator's hand brings the
   arm to a stop at its target; a released arm under a gravity error does not);
+* a run that goes on for ``run_max_s`` without slowing (a released arm at its terminal speed, where the residual
+  is only the virtual damping's torque) is tested again, with any residual, every ``run_max_s``;
 * after ``confirm_s`` of candidacy the residual vector is tested once against what a load on the flange can
   produce at q (``explain``: the fraction of r outside span Y(q), the payload regressor): a hand pulling several
   joints (or the vertical first axis, which gravity never loads) is not payload-like → that run is the hand's and
@@ -36,11 +38,12 @@ import numpy as np
 class GuardSettings:
     observer_Hz: float = 25.0  # residual bandwidth K_o/2π
     speed_rad_s: float = 0.03  # a joint slower than this is not running away
-    residual_A: float = 0.2  # a missing torque smaller than this (as current) is friction's business
+    residual_A: float = 0.3  # a missing torque smaller than this (as current) is friction's business
     confirm_s: float = 0.03  # candidacy this long before the payload-likeness test
     keep_speed: float = 0.85  # a run whose speed falls below this fraction of its peak is decelerating: not a runaway
     unexplained_max: float = 0.35  # a residual with more than this fraction outside span Y(q) is a hand's
     settle_s: float = 0.05  # after (re)arming: observer transient, no decision
+    run_max_s: float = 1.0  # a run that goes on this long without slowing is tested again (with any residual)
 
 
 @dataclass(frozen=True)
@@ -80,6 +83,8 @@ class RunawayGuard:
         self._b = np.zeros(n)
         self._m = np.zeros(n, dtype=bool)
         self._m2 = np.zeros(n, dtype=bool)
+        self._m3 = np.zeros(n, dtype=bool)
+        self.retest_at = 0.0
 
     def arm(self, p_Nms: np.ndarray, t_s: float) -> None:
         """Start watching (the drag law is fully in): the observer starts from the present momentum."""
@@ -113,15 +118,11 @@ class RunawayGuard:
         np.multiply(a, self.k_o, out=self.r)
         if t_s - self.armed_at < s.settle_s:
             return None
-        # candidates: moving, driven by the residual, |r|/K_t above the bound, not slowing down
+        # runs: moving, driven by the residual (r·q̇ > 0), not slowing down (|q̇| ≥ keep_speed·the run's peak)
         np.abs(dq, out=a)  # a = speed
         np.greater(a, s.speed_rad_s, out=m)
         np.multiply(self.r, dq, out=b)
         np.greater(b, 0.0, out=m2)
-        m &= m2
-        np.divide(self.r, self.kt, out=b)
-        np.abs(b, out=b)
-        np.greater(b, s.residual_A, out=m2)
         m &= m2
         np.sign(dq, out=b)
         np.equal(b, self.sign, out=m2)  # same direction as the run so far (a new run starts below)
@@ -131,17 +132,28 @@ class RunawayGuard:
         np.multiply(self.peak, s.keep_speed, out=b)
         np.greater_equal(a, b, out=m2)
         m &= m2
-        # runs: time accumulates while a candidate, else the run ends
         np.sign(dq, out=self.sign)
         self.run_s += self.dt
         self.run_s *= m
         np.copyto(self.hand, False, where=~m)
         np.copyto(self.peak, 0.0, where=~m)
-        np.greater_equal(self.run_s, s.confirm_s, out=m2)
+        # fast path: a missing torque above residual_A for confirm_s → the payload-likeness test, once per run
+        np.divide(self.r, self.kt, out=b)
+        np.abs(b, out=b)
+        np.greater(b, s.residual_A, out=m2)
         m2 &= ~self.hand
-        if not np.count_nonzero(m2):
-            return None
-        return self._decide(q, dq, m2)
+        np.greater_equal(self.run_s, s.confirm_s, out=self._m3)
+        m2 &= self._m3
+        if np.count_nonzero(m2):
+            return self._decide(q, dq, m2)
+        # slow path: a run that keeps going for run_max_s (at a terminal speed the residual is only the virtual
+        # damping's torque) is tested again every run_max_s, with any residual
+        np.greater_equal(self.run_s, s.run_max_s, out=m2)
+        if np.count_nonzero(m2) and t_s >= self.retest_at:
+            self.retest_at = t_s + s.run_max_s
+            self.hand &= ~m2
+            return self._decide(q, dq, m2)
+        return None
 
     def _decide(self, q: np.ndarray, dq: np.ndarray, due: np.ndarray) -> Trip | None:
         """Rare path (once per candidate run): is the residual what a flange load would produce?"""
@@ -151,6 +163,9 @@ class RunawayGuard:
             self.hand |= due
             self.hand_runs += 1
             return None
+        return self._trip(q, dq, due, kg, unexplained)
+
+    def _trip(self, q: np.ndarray, dq: np.ndarray, due: np.ndarray, kg: float, unexplained: float) -> Trip:
         ratio = np.abs(self.r) / self.kt
         j = int(np.argmax(np.where(due, ratio, -1.0)))
         r, v = float(self.r[j]), float(dq[j])

@@ -132,6 +132,25 @@ def command_table(d: Daemon) -> CommandTable:
     async def replay_speed(speed: float) -> dict[str, Any]:
         return {"speed_override": motions.set_speed(float(speed)), "state": c.track.state}
 
+    @command("payload")
+    async def payload(action: str, mass_kg: float | None = None, com_m: list[float] | None = None, poses: int = 6,
+                      apply: bool = False) -> dict[str, Any]:
+        """The flange payload (docs/PAYLOAD.md): estimate from hold currents, set a known one, clear it, show it."""
+        tools = d.payload
+        if action == "estimate":
+            return await tools.estimate(int(poses), bool(apply))
+        if action == "set":
+            if mass_kg is None:
+                raise ValueError("payload set: missing field 'mass_kg'")
+            return tools.apply(float(mass_kg), list(com_m) if com_m is not None else [0.0, 0.0, 0.0],
+                               "dragd payload set")
+        if action == "clear":
+            return tools.apply(0.0, [0.0, 0.0, 0.0], "dragd payload clear")
+        if action == "show":
+            return {"mass_kg": d.model.payload_mass_kg, "com_m": d.model.payload_com_m.tolist(),
+                    "params": str(tools.params_path()) if tools.params_path() else None}
+        raise ValueError(f"payload: action: expected estimate, set, clear or show, got {action!r}")
+
     @command("shutdown")
     async def shutdown() -> dict[str, Any]:
         d.request_exit()

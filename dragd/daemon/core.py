@@ -32,6 +32,7 @@ from dragd.control.modes import MODE_NAMES, Mode
 from dragd.daemon import sdnotify
 from dragd.daemon.cycle import Cycle
 from dragd.daemon.motion import Motions
+from dragd.daemon.payload import PayloadTools
 from dragd.daemon.recording import Recorder
 from dragd.daemon.teach import Teaching
 from dragd.hardware.bus import BusSpec, open_bus, parse_bus
@@ -116,6 +117,7 @@ class Daemon:
         self.recorder = Recorder(cfg, self.n, telemetry_path or cfg.telemetry.path, rerun or cfg.telemetry.rerun)
         self.motions = Motions(self)
         self.teaching = Teaching(self)
+        self.payload = PayloadTools(self)
         self.faults: list[dict[str, Any]] = []
         self.protective_stops = 0
         self.stop_requested = False
@@ -268,8 +270,19 @@ class Daemon:
         if accept:
             import numpy as np
 
-            c.gravity_offset_A[:] = np.array([r["difference_A"] for r in rows])
-            return {"checked": True, "accepted_offset_A": [r["difference_A"] for r in rows]}
+            # the flange load the differences imply (least squares on Y(q)) gives the offset on every joint: a joint
+            # whose stiction hid part of its load in HOLD still gets the load's share; a joint the load does not
+            # explain beyond its bound (a sign or K_t error) gets its own measured difference
+            diff = np.array([r["difference_A"] for r in rows])
+            bound = np.array([r["bound_A"] for r in rows])
+            Y = self.model.payload_regressor(c.hold_rest_q)
+            coef, *_ = np.linalg.lstsq(Y, diff * c.kt, rcond=1e-9)
+            off = Y @ coef / c.kt
+            raw = np.abs(diff - off) > bound
+            off[raw] = diff[raw]
+            c.gravity_offset_A[:] = off
+            return {"checked": True, "accepted_offset_A": [round(float(x), 3) for x in off],
+                    "implied_payload_kg": round(float(coef[0]), 3)}
         import numpy as np
 
         r = np.array([row["hold_A"] - row["model_A"] for row in rows]) * c.kt
