@@ -23,7 +23,9 @@ from tests.inproc import InProcess
 
 
 class ClosedLoop:
-    def __init__(self, cfg: Config | None = None, truth: Truth | None = None) -> None:
+    def __init__(self, cfg: Config | None = None, truth: Truth | None = None, wrong_sign: tuple[int, ...] = ()) -> None:
+        """``wrong_sign``: joints whose configured direction is wrong (the drive's counts and current, as the
+        daemon decodes them, are the physics' negated)."""
         self.cfg = cfg or load_config()
         self.truth = truth or load_truth()
         self.robot = self.truth.load_model()
@@ -33,6 +35,8 @@ class ClosedLoop:
         self.ip = InProcess(self.cfg)
         self.d, self.c = self.ip.d, self.ip.c
         self.q_log: list[np.ndarray] = []
+        self.flip = np.ones(len(self.axes))
+        self.flip[list(wrong_sign)] = -1.0
 
     @property
     def t(self) -> float:
@@ -40,9 +44,9 @@ class ClosedLoop:
 
     def cycle(self) -> None:
         ip, ph = self.ip, self.phys
-        ip.feed(ph.q_rad.copy(), ph.current_measured_A)
+        ip.feed(ph.q_rad * self.flip, ph.current_measured_A * self.flip)
         ip.cycle()
-        cmd = ip.torque_offset_A()
+        cmd = ip.torque_offset_A() * self.flip
         on = self.c.mode not in (Mode.IDLE, Mode.FAULT)
         for k, ax in enumerate(self.axes):
             ax.power_stage_on = on
@@ -57,7 +61,7 @@ class ClosedLoop:
             self.q_log.append(self.phys.q_rad.copy())
 
     def start(self, settle_s: float = 0.5) -> None:
-        self.ip.hold(self.phys.q_rad.copy())
+        self.ip.hold(self.phys.q_rad * self.flip)
         self.run(settle_s)
 
     def mode(self, name: str, accept: bool = False) -> Any:

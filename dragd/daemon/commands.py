@@ -151,6 +151,12 @@ def command_table(d: Daemon) -> CommandTable:
                     "params": str(tools.params_path()) if tools.params_path() else None}
         raise ValueError(f"payload: action: expected estimate, set, clear or show, got {action!r}")
 
+    @command("check_model")
+    async def check_model(step_rad: float = 0.25) -> dict[str, Any]:
+        from dragd.daemon.modelcheck import check_model as run_check
+
+        return await run_check(d, float(step_rad))
+
     @command("shutdown")
     async def shutdown() -> dict[str, Any]:
         d.request_exit()

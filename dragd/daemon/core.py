@@ -118,6 +118,7 @@ class Daemon:
         self.motions = Motions(self)
         self.teaching = Teaching(self)
         self.payload = PayloadTools(self)
+        self.model_check_failed: list[str] = []  # joints `dragd check model` refused: no drag until a check passes
         self.faults: list[dict[str, Any]] = []
         self.protective_stops = 0
         self.stop_requested = False
@@ -318,6 +319,9 @@ class Daemon:
             raise ValueError(f"mode: expected one of {', '.join(modes)}, got '{name}'")
         check = None
         if modes[name] == Mode.DRAG:
+            if self.model_check_failed:
+                raise ValueError(f"mode drag: refused: 'dragd check model' failed on {', '.join(self.model_check_failed)} "
+                                 "(a wrong sign or K_t scale); fix the configuration and run the check again")
             self.check_gravity_current("mode drag")
             if self.controller.mode != Mode.DRAG:
                 check = self._check_before_drag(accept)
