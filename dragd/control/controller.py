@@ -376,7 +376,7 @@ class Controller:
         self.last_trip = {"t_s": round(self.t, 4), "joint": self.names[trip.joint], "residual_Nm": round(trip.residual_Nm, 3),
                           "residual_A": round(trip.residual_A, 3), "speed_rad_s": round(trip.speed_rad_s, 4),
                           "payload_kg": None if trip.payload_kg != trip.payload_kg else round(trip.payload_kg, 3),
-                          "unexplained": round(trip.unexplained, 3)}
+                          "unexplained": round(trip.unexplained, 3), "q_rad": est.q_rad.tolist()}
         self.events.append(Event("protective_stop", self.t, trip.joint, trip.text,
                                  fields={"kind": "runaway", **self.last_trip}))
         self.q_hold[:] = est.q_rad

@@ -43,7 +43,7 @@ class GuardSettings:
     keep_speed: float = 0.85  # a run whose speed falls below this fraction of its peak is decelerating: not a runaway
     unexplained_max: float = 0.35  # a residual with more than this fraction outside span Y(q) is a hand's
     settle_s: float = 0.05  # after (re)arming: observer transient, no decision
-    run_max_s: float = 1.0  # a run that goes on this long without slowing is tested again (with any residual)
+    run_max_s: float = 0.5  # a run that goes on this long without slowing is tested again (with any residual)
 
 
 @dataclass(frozen=True)

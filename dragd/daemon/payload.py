@@ -70,7 +70,11 @@ class PayloadTools:
         if before is not None:
             raise ValueError(before)
         d.model.set_payload(mass_kg, com, ramp_s=RAMP_S, t_s=t)
-        c.gravity_offset_A.fill(0.0)  # an accepted offset was this payload's stand-in
+        if np.count_nonzero(c.gravity_offset_A):  # an accepted / guard-measured offset was this payload's stand-in:
+            c.gravity_offset_A.fill(0.0)  # it goes, and the command blends over the same ramp (no jump)
+            c.blend_from_A[:] = c.prev_cmd_A
+            c.blend_t0 = c.t
+            c.blend_ramp_s = RAMP_S
         path = self._write(mass_kg, com, what) if write else None
         return {"mass_kg": mass_kg, "com_m": com, "ramp_s": RAMP_S, "params": path,
                 "note": None if path or not write else "no params file configured (config 'params:'): applied to the "
