@@ -77,3 +77,64 @@ class ClosedLoop:
 
     def runaway_stops(self) -> list[dict[str, Any]]:
         return [f for f in self.d.faults if f.get("kind") == "runaway"]
+
+
+def payload_scenario() -> dict[str, Any]:
+    """The payload scenario's figures in the closed loop (deterministic; the rig version: dragd demo --scenario
+    payload): hand guiding (false trips), 2 kg hung on (trip, drift), estimate --apply, drag (drift), taken off."""
+    import asyncio
+
+    steps = [[0.25, 0.15, -0.20, 0.30, 0.0, 0.0], [-0.25, -0.15, 0.20, -0.30, 0.0, 0.0]]
+    cl = ClosedLoop()
+    cl.start(0.6)
+    cl.mode("drag")
+    cl.run(0.5)
+    for st in steps:
+        cl.operator({"name": "hand", "segments": [
+            {"kind": "hand", "q_rad": st, "relative": True, "stiffness": 60.0, "damping": 12.0, "max_load": 25.0,
+             "duration_s": 3.0}, {"kind": "release", "ramp_down_s": 0.1, "duration_s": 0.3}]})
+        cl.run(4.0)
+    false_trips = cl.c.guard_trips
+
+    def event(kg: float) -> dict[str, Any]:
+        q0, t0, n0 = cl.phys.q_rad.copy(), cl.t, cl.c.guard_trips
+        cl.hang(kg, (0.0, 0.0, 0.05))
+        drift = 0.0
+        while cl.c.guard_trips == n0 and cl.t - t0 < 5.0:
+            cl.cycle()
+            drift = max(drift, float(np.degrees(np.abs(cl.phys.q_rad - q0)).max()))
+        trip_ms = (cl.t - t0) * 1000.0
+        cl.run(1.0)
+        return {"guard_trip_ms": round(trip_ms, 1), "drift_before_guard_deg": round(drift, 3),
+                "drift_held_deg": round(float(np.degrees(np.abs(cl.phys.q_rad - q0)).max()), 3),
+                "stop": cl.runaway_stops()[-1]["text"] if cl.runaway_stops() else None}
+
+    hung = event(2.0)
+    cl.mode("hold")
+    cl.run(0.5)
+
+    async def est() -> dict[str, Any]:
+        task = asyncio.ensure_future(cl.d.payload.estimate(6, apply=True))
+        while not task.done():
+            cl.cycle()
+            await asyncio.sleep(0)
+        return task.result()
+
+    e = asyncio.run(est())
+    cl.run(1.2)
+    cl.mode("drag")
+    q0 = cl.phys.q_rad.copy()
+    cl.run(3.0)
+    drift_apply = float(np.degrees(np.abs(cl.phys.q_rad - q0)).max())
+    trips_apply = cl.c.guard_trips - false_trips - 1
+    removed = event(0.0)
+    return {"payload_kg_true": 2.0, "payload_kg_estimated": e["mass_kg"],
+            "drift_before_guard_deg": hung["drift_before_guard_deg"], "guard_trip_ms": hung["guard_trip_ms"],
+            "false_trips": false_trips + trips_apply, "drift_after_apply_deg": round(drift_apply, 4),
+            "hung_on": hung, "taken_off": removed, "estimate": e}
+
+
+if __name__ == "__main__":
+    import json
+
+    print(json.dumps(payload_scenario()))

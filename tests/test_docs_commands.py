@@ -206,6 +206,9 @@ RULES: list[Rule] = [
     Rule(r"^dragd start\b", "run", "a session's first step: no motion running", before=("no_replay",), rig=True),
     Rule(r"^dragd (status|stop)\b", "run", "control socket", rig=True),
     Rule(r"^dragd mode ", "run", "control socket", before=("enabled",), rig=True),
+    Rule(r"^dragd payload (show|set|clear)\b", "run", "control socket", before=("enabled",), rig=True),
+    Rule(r"^dragd payload estimate\b", "run", "slow moves in HOLD", before=("enabled",), rig=True, slow=True),
+    Rule(r"^dragd check model\b", "run", "slow moves in HOLD", before=("enabled",), rig=True, slow=True),
     Rule(r"^dragd teach start ", "run", "teaching", before=("enabled", "no_replay", "new_program"), rig=True),
     Rule(r"^dragd teach mark\b", "run", "teaching: the hand moves the arm first", before=("teaching", "guided"),
          rig=True),
@@ -233,6 +236,7 @@ RULES: list[Rule] = [
     Rule(r"^(sed|mkdir|cp|systemd-analyze|systemd-sysusers|systemd-tmpfiles) ", "run", "systemd's offline checks",
          tool=True),
     # long: the shortest documented options
+    Rule(r"^dragd demo --scenario payload\b", "run", "sim + daemon (its own length)", slow=True),
     Rule(r"^dragd demo --scenario teach\b", "run", "sim + daemon", extra="--seconds 6", slow=True),
     Rule(r"^dragd demo\b", "run", "sim + daemon", extra="--seconds 8", slow=True),
     Rule(r"^dragd bench --list$", "run", "offline"),
