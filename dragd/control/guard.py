@@ -85,6 +85,7 @@ class RunawayGuard:
         self._m2 = np.zeros(n, dtype=bool)
         self._m3 = np.zeros(n, dtype=bool)
         self.retest_at = 0.0
+        self.running = False
 
     def arm(self, p_Nms: np.ndarray, t_s: float) -> None:
         """Start watching (the drag law is fully in): the observer starts from the present momentum."""
@@ -120,6 +121,14 @@ class RunawayGuard:
             return None
         # runs: moving, driven by the residual (r·q̇ > 0), not slowing down (|q̇| ≥ keep_speed·the run's peak)
         np.abs(dq, out=a)  # a = speed
+        if float(a.max()) <= s.speed_rad_s:  # the usual cycle at rest: no run can go on
+            if self.running:
+                self.run_s.fill(0.0)
+                self.peak.fill(0.0)
+                self.hand.fill(False)
+                self.running = False
+            return None
+        self.running = True
         np.greater(a, s.speed_rad_s, out=m)
         np.multiply(self.r, dq, out=b)
         np.greater(b, 0.0, out=m2)
