@@ -197,7 +197,7 @@ RULES: list[Rule] = [
     # real hardware: parsed, then run with --help
     Rule(r"--bus socketcan:|^dragd run\b", "help", "the daemon on real drives"),
     # prose naming a command or option: COMMAND --help names every option given
-    Rule(r"^dragd (gap|model|experiment|identify( fit| run)?|log summary|replay --interp|bench identify_\*)$"
+    Rule(r"^dragd (gap|model|payload|experiment|identify( fit| run)?|log summary|replay --interp|bench identify_\*)$"
          r"|^dragd identify (plan|run)(?!.*--out)", "mention", "a command named in prose"),
     # long-running: started, seen ready, stopped
     Rule(r"^dragd sim --help$", "run", "the simulator's options"),
