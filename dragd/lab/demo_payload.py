@@ -111,6 +111,10 @@ def run_payload_demo(config: Path | None = None, out: Path | None = None, progre
         _rest(rig)
         st = rig.must("status")
         false_trips = st["guard"]["trips"]
+        if st["mode"] == "fault":
+            raise PayloadDemoError("the daemon faulted during hand guiding (not the runaway guard: "
+                                   + "; ".join(f["text"] for f in st["faults"][-3:])
+                                   + "); on a loaded machine missed cycles lose the drives' heartbeat: rerun it quieter")
         if st["mode"] != "drag":
             rig.must("mode", mode="drag")  # (a false trip held it: counted; drag again for the rest)
             time.sleep(0.5)
