@@ -259,7 +259,7 @@ class GuardConfig(_Strict):
     residual_A: PosFloat = 0.3  # smaller missing torques (as current) are friction's business
     confirm_s: Annotated[float, Field(ge=0, le=0.5), Expect("a time in [0, 0.5] s")] = 0.03
     keep_speed: Annotated[float, Field(gt=0, le=1), Expect("a fraction in (0, 1]")] = 0.85
-    unexplained_max: Annotated[float, Field(gt=0, le=1), Expect("a fraction in (0, 1]")] = 0.35
+    unexplained_max: Annotated[float, Field(gt=0, le=1), Expect("a fraction in (0, 1]")] = 0.1
     hold_ramp_s: Annotated[float, Field(ge=0, le=1), Expect("a time in [0, 1] s")] = 0.02  # drag → hold on a trip
     # check before drag: |hold current − G/K_t| may exceed the joint's static friction by this much (+ a fraction)
     check: bool = True

@@ -184,3 +184,29 @@ def test_check_model_refuses_a_wrong_sign_and_passes_a_right_config():
     assert row["verdict"] == "wrong sign" and "direction" in row["text"]
     with pytest.raises(ValueError, match="check model' failed on .*joint3"):
         bad.mode("drag")
+
+
+@pytest.mark.slow
+def test_experiments_hands_never_trip():
+    """The drag-quality experiment's hand (each joint moved alone at ±10°/s, then placed) and the start-up
+    experiment's weight-and-pulley ramps (dragd/lab/experiment): one joint pushed alone is not a flange load."""
+    cl = _dragging()
+    v = math.radians(10.0)
+    for j in range(6):
+        name = f"joint{j + 1}"
+        for speed in (v, -v):
+            cl.operator({"name": "move", "segments": [{"kind": "move", "joint": name, "velocity_rad_s": speed,
+                                                       "duration_s": 2.0}, {"kind": "release", "duration_s": 0.0}]})
+            cl.run(2.6)
+        cl.operator({"name": "place", "segments": [
+            {"kind": "move", "joint": name, "velocity_rad_s": v, "duration_s": 1.0},
+            {"kind": "move", "joint": name, "velocity_rad_s": 0.0, "duration_s": 0.6}, {"kind": "release", "duration_s": 0.0}]})
+        cl.run(2.5)
+    for j in range(4):
+        for sign in (1, -1):
+            cl.operator({"name": "ramp", "segments": [{"kind": "ramp", "joint": f"joint{j + 1}", "rate_per_s": 5.0,
+                                                       "sign": sign, "threshold_rad": 0.002, "timeout_s": 6.0,
+                                                       "then": "release"}]})
+            cl.run(4.0)
+    assert cl.c.guard_trips == 0, cl.c.last_trip
+    assert cl.c.mode == Mode.DRAG

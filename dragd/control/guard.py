@@ -14,7 +14,7 @@ them apart by where the torque acts and how it changes:
   ``residual_A``) and it does not slow down (|q̇| ≥ ``keep_speed``·the run's peak: an operator's hand brings the
   arm to a stop at its target; a released arm under a gravity error does not);
 * a run that goes on for ``run_max_s`` without slowing (a released arm at its terminal speed, where the residual
-  is only the virtual damping's torque) is tested again, with any residual, every ``run_max_s``;
+  is only the virtual damping's torque) is tested again every ``run_max_s`` with a residual above residual_A/3;
 * after ``confirm_s`` of candidacy the residual vector is tested once against what a load on the flange can
   produce at q (``explain``: the fraction of r outside span Y(q), the payload regressor): a hand pulling several
   joints (or the vertical first axis, which gravity never loads) is not payload-like → that run is the hand's and
@@ -41,7 +41,7 @@ class GuardSettings:
     residual_A: float = 0.3  # a missing torque smaller than this (as current) is friction's business
     confirm_s: float = 0.03  # candidacy this long before the payload-likeness test
     keep_speed: float = 0.85  # a run whose speed falls below this fraction of its peak is decelerating: not a runaway
-    unexplained_max: float = 0.35  # a residual with more than this fraction outside span Y(q) is a hand's
+    unexplained_max: float = 0.1  # a residual with more than this fraction outside span Y(q) is a hand's
     settle_s: float = 0.05  # after (re)arming: observer transient, no decision
     run_max_s: float = 0.5  # a run that goes on this long without slowing is tested again (with any residual)
 
@@ -158,6 +158,8 @@ class RunawayGuard:
         # slow path: a run that keeps going for run_max_s (at a terminal speed the residual is only the virtual
         # damping's torque) is tested again every run_max_s, with any residual
         np.greater_equal(self.run_s, s.run_max_s, out=m2)
+        np.greater(b, s.residual_A / 3.0, out=self._m3)  # (b = |r|/K_t) a residual above friction noise
+        m2 &= self._m3
         if np.count_nonzero(m2) and t_s >= self.retest_at:
             self.retest_at = t_s + s.run_max_s
             self.hand &= ~m2

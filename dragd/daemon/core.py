@@ -45,6 +45,7 @@ from dragd.model import RobotModel
 from dragd.realtime import demote_current_thread, scheduler_label, set_realtime
 
 MAX_FAULTS = 100  # the fault list keeps the newest
+PAYLOAD_REACH_M = 0.3  # a flange load's centre of mass lies within this of the flange (the guard's plausibility test)
 
 
 class BusBudgetError(RuntimeError):
@@ -229,6 +230,10 @@ class Daemon:
         if nrm == 0.0:
             return 1.0, float("nan")
         coef, *_ = np.linalg.lstsq(Y, r, rcond=1e-9)
+        # a physical load: its centre of mass within PAYLOAD_REACH_M of the flange (a torque on one joint alone
+        # needs an implausible lever to look like a load, e.g. the shoulder pushed by hand)
+        if abs(coef[0]) > 1e-9 and float(np.linalg.norm(coef[1:])) > PAYLOAD_REACH_M * abs(float(coef[0])):
+            return 1.0, float("nan")
         # Y·θ is the load's gravity torque (what holds it); the residual is the torque that moves the arm: −Y·θ
         return float(np.linalg.norm(r - Y @ coef)) / nrm, -float(coef[0])
 
