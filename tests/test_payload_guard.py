@@ -210,3 +210,52 @@ def test_experiments_hands_never_trip():
             cl.run(4.0)
     assert cl.c.guard_trips == 0, cl.c.last_trip
     assert cl.c.mode == Mode.DRAG
+
+
+def test_sim_flange_payload_hook_validates_and_changes_the_truth():
+    from sim.scenario_payload import PayloadSchedule, set_flange_payload
+
+    cl = ClosedLoop()
+    ph = cl.phys
+    q = ph.q_rad.copy()
+    import pinocchio as pin
+
+    g0 = np.array(pin.computeGeneralizedGravity(ph.model, ph.data, q))
+    with pytest.raises(ValueError, match="mass_kg: expected a number >= 0"):
+        set_flange_payload(ph, -1.0)
+    with pytest.raises(ValueError, match="com_m: expected 3 finite numbers"):
+        set_flange_payload(ph, 1.0, (0.0, 0.0))
+    sched = PayloadSchedule()
+    sched.add(ph.t_s + 0.01, 2.0, (0.0, 0.0, 0.05))
+    sched.apply_due(ph)
+    assert sched.pending  # not due yet
+    cl.run(0.02)
+    sched.apply_due(ph)
+    assert not sched.pending and sched.done[0]["mass_kg"] == 2.0
+    g1 = np.array(pin.computeGeneralizedGravity(ph.model, ph.data, q))
+    Y = cl.d.model.payload_regressor(q)
+    np.testing.assert_allclose(g1 - g0, Y @ np.array([2.0, 0.0, 0.0, 0.1]), atol=1e-9)
+    set_flange_payload(ph, 0.0)  # taken off: back to the truth's own arm
+    np.testing.assert_allclose(np.array(pin.computeGeneralizedGravity(ph.model, ph.data, q)), g0, atol=1e-9)
+
+
+def test_guard_config_is_validated():
+    from dragd.config import ConfigError, load_config
+
+    import tempfile
+    from pathlib import Path
+
+    import yaml
+
+    from dragd.config import default_config_path
+
+    data = yaml.safe_load(default_config_path().read_text())
+    data["safety"] = {"guard": {"unexplained_max": 1.5}}
+    with tempfile.TemporaryDirectory() as tmp:
+        p = Path(tmp) / "c.yaml"
+        p.write_text(yaml.safe_dump(data))
+        with pytest.raises(ConfigError, match="safety.guard.unexplained_max.*a fraction in"):
+            load_config(p)
+        data["safety"] = {"guard": {"runaway": False}}
+        p.write_text(yaml.safe_dump(data))
+        assert ClosedLoop(load_config(p)).c.guard is None
