@@ -85,6 +85,12 @@ def _status_text(d: dict[str, Any]) -> str:
     rows = [(dr["joint"], dr["node_id"], dr["state"], f"{math.degrees(q):.3f}", f"{i:.3f}")
             for dr, q, i in zip(d["drives"], d["q_rad"], d["current_A"])]
     lines.append(table(["joint", "node", "state", "q_deg", "current_A"], rows))
+    g, p = d.get("guard"), d.get("payload")
+    if p is not None and p.get("mass_kg"):
+        lines.append(f"payload {p['mass_kg']:g} kg at ({', '.join(f'{x:g}' for x in p['com_m'])}) m")
+    if g is not None and (g.get("trips") or any(g.get("gravity_offset_A") or [])):
+        lines.append(f"runaway guard: {g['trips']} trip(s); gravity offset "
+                     f"{', '.join(f'{x:+.2f}' for x in g['gravity_offset_A'])} A")
     for f in d["faults"]:
         lines.append(f"fault at {f['t_s']:.3f} s: {f['text']}")
     return "\n".join(lines)
