@@ -207,8 +207,9 @@ RULES: list[Rule] = [
     Rule(r"^dragd (status|stop)\b", "run", "control socket", rig=True),
     Rule(r"^dragd mode ", "run", "control socket", before=("enabled",), rig=True),
     Rule(r"^dragd payload (show|set|clear)\b", "run", "control socket", before=("enabled",), rig=True),
-    Rule(r"^dragd payload estimate\b", "run", "slow moves in HOLD", before=("enabled",), rig=True, slow=True),
-    Rule(r"^dragd check model\b", "run", "slow moves in HOLD", before=("enabled",), rig=True, slow=True),
+    Rule(r"^dragd (payload estimate( --apply)?|check model)$", "mention", "a command named in prose"),
+    Rule(r"^dragd payload estimate\b", "run", "slow moves in HOLD", before=("hold",), rig=True, slow=True),
+    Rule(r"^dragd check model\b", "run", "slow moves in HOLD", before=("hold",), rig=True, slow=True),
     Rule(r"^dragd teach start ", "run", "teaching", before=("enabled", "no_replay", "new_program"), rig=True),
     Rule(r"^dragd teach mark\b", "run", "teaching: the hand moves the arm first", before=("teaching", "guided"),
          rig=True),
@@ -390,6 +391,11 @@ class Env:
             status = rig.must("status")
             if what == "enabled" and not status.get("drives_enabled"):
                 rig.must("start")
+            elif what == "hold" and status.get("mode") != "hold":  # payload estimate, check model: from HOLD
+                if not status.get("drives_enabled") or status.get("mode") == "fault":
+                    rig.must("start")
+                rig.must("mode", mode="hold")
+                time.sleep(0.5)
             elif what == "no_replay":
                 self._stop_replay(rig, status)
             elif what == "new_program":
