@@ -305,8 +305,15 @@ class Controller:
         if self.blend_t0 >= 0.0 or (self.hold_move is not None and not np.array_equal(self.q_hold, self.hold_move)):
             self.hold_rest_s = 0.0
             return
+        # at rest: the velocity estimate below 0.03 rad/s (encoder quantisation and sampling jitter make ~0.01)
+        # and the pose within 1 mrad of where the rest began
         np.abs(est.dq_rad_s, out=self._tmp)
-        if float(self._tmp.max()) > 0.005:
+        moving = float(self._tmp.max()) > 0.03
+        if not moving and self.hold_rest_s > 0.0:
+            np.subtract(est.q_rad, self.hold_rest_q, out=self._tmp)
+            np.abs(self._tmp, out=self._tmp)
+            moving = float(self._tmp.max()) > 1e-3
+        if moving:
             self.hold_rest_s = 0.0
             return
         if self.hold_rest_s == 0.0:
