@@ -385,7 +385,7 @@ class Daemon:
             "clamp_cycles": c.clamp_cycles,
             "guard": {"armed": bool(c.guard is not None and c.guard.armed), "trips": c.guard_trips,
                       "hand_runs": c.guard.hand_runs if c.guard is not None else 0, "last_trip": c.last_trip,
-                      "gravity_offset_A": c.gravity_offset_A.tolist()},
+                      "gravity_offset_A": c.gravity_offset_A.tolist(), "hold_rest_s": round(c.hold_rest_s, 3)},
             "payload": {"mass_kg": self.model.payload_mass_kg, "com_m": self.model.payload_com_m.tolist()},
             "telemetry": self.recorder.telemetry.stats() if self.recorder.telemetry is not None else None,
             "recording": self.recorder.recording_path,
