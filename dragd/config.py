@@ -270,6 +270,24 @@ class LoopConfig(_Strict):
     cpus: list[Annotated[int, Field(ge=0)]] | None = None
 
 
+class GuardConfig(_Strict):
+    """The gravity model will be wrong (docs/PAYLOAD.md): the check before drag and the runaway guard in it."""
+
+    runaway: bool = True  # the runaway guard in drag
+    observer_Hz: Annotated[float, Field(gt=0, le=200), Expect("a bandwidth in (0, 200] Hz")] = 25.0
+    speed_rad_s: PosFloat = 0.03  # slower joints are not running away
+    residual_A: PosFloat = 0.3  # smaller missing torques (as current) are friction's business
+    confirm_s: Annotated[float, Field(ge=0, le=0.5), Expect("a time in [0, 0.5] s")] = 0.03
+    keep_speed: Annotated[float, Field(gt=0, le=1), Expect("a fraction in (0, 1]")] = 0.85
+    unexplained_max: Annotated[float, Field(gt=0, le=1), Expect("a fraction in (0, 1]")] = 0.1
+    hold_ramp_s: Annotated[float, Field(ge=0, le=1), Expect("a time in [0, 1] s")] = 0.02  # drag → hold on a trip
+    # check before drag: |hold current − G/K_t| may exceed the joint's static friction by this much (+ a fraction)
+    check: bool = True
+    check_tolerance_A: NonNegFloat = 0.3
+    check_tolerance_fraction: Annotated[float, Field(ge=0, le=1), Expect("a fraction in [0, 1]")] = 0.1
+    check_settle_s: PosFloat = 0.3  # the hold current is averaged over this long at rest
+
+
 class SafetyConfig(_Strict):
     soft_limit_margin_rad: PosFloat = 0.1  # walls start this far inside the position limits
     wall_stiffness_Nm_per_rad: PosFloat = 200.0
@@ -281,6 +299,7 @@ class SafetyConfig(_Strict):
     rpdo_timeout_ms: PosInt = 50  # drive-side watchdog on the cyclic command RPDO (1400h+k sub 5)
     abort_connection_option: Literal[1, 2, 3] = 3  # 6007h: 1 fault, 2 disable voltage, 3 quick stop
     quick_stop_option: Literal[0, 1, 2, 5, 6] = 2  # 605Ah
+    guard: GuardConfig = GuardConfig()  # the runaway guard in drag and the gravity check before it (docs/PAYLOAD.md)
 
 
 class MasterConfig(_Strict):

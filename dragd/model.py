@@ -37,6 +37,12 @@ class RobotModel:
         self.joint_names: tuple[str, ...] = tuple(model.names[1:])
         self.nq: int = model.nq
         self._zero = np.zeros(model.nv)
+        self._payload_base: pin.Inertia | None = None  # the last body's inertia without the payload
+        self.payload_mass_kg = 0.0
+        self.payload_com_m = np.zeros(3)
+        self._ramp: tuple[pin.Model, pin.Data, float, float] | None = None  # (old model, data, t0, duration)
+        self._g_old = np.zeros(model.nv)
+        self._nograv: tuple[pin.Model, pin.Data] | None = None
 
     @classmethod
     def from_urdf(cls, name_or_path: str | Path, base_dir: Path | None = None,
@@ -89,9 +95,98 @@ class RobotModel:
         """Add a point mass in the last joint's frame (a tool or load the URDF does not have)."""
         if mass_kg > 0:
             body = self.model.njoints - 1
+            if self._payload_base is None:
+                self._payload_base = pin.Inertia(self.model.inertias[body])
             self.model.inertias[body] = self.model.inertias[body] + pin.Inertia(
                 float(mass_kg), np.asarray(com_m, dtype=float), np.zeros((3, 3)))
+            self.payload_mass_kg += float(mass_kg)
+            self.payload_com_m = np.asarray(com_m, dtype=float)
             self.data = self.model.createData()
+            self._nograv = None
+
+    # ------------------------------------------------------------------------------ payload (docs/PAYLOAD.md)
+
+    def set_payload(self, mass_kg: float, com_m: tuple[float, float, float] | np.ndarray,
+                    ramp_s: float = 0.0, t_s: float = 0.0) -> None:
+        """Replace the flange payload (a point mass in the last joint's frame; 0 kg: none), outside the cycle.
+
+        With ``ramp_s`` > 0 :meth:`gravity_at` blends G(q) from the previous payload's to the new one's over
+        ``ramp_s`` from the cycle time ``t_s`` (smoothstep): the running law takes it without a jump in current.
+        """
+        body = self.model.njoints - 1
+        if self._payload_base is None:
+            self._payload_base = pin.Inertia(self.model.inertias[body])
+        old = pin.Model(self.model)
+        new = pin.Model(self.model)
+        inertia = pin.Inertia(self._payload_base)
+        if mass_kg > 0:
+            inertia = inertia + pin.Inertia(float(mass_kg), np.asarray(com_m, dtype=float), np.zeros((3, 3)))
+        new.inertias[body] = inertia
+        self._ramp = (old, old.createData(), float(t_s), float(ramp_s)) if ramp_s > 0 else None
+        self.model, self.data = new, new.createData()
+        self.payload_mass_kg = float(mass_kg)
+        self.payload_com_m = np.asarray(com_m, dtype=float).copy()
+        self._nograv = None
+
+    def gravity_at(self, q_rad: np.ndarray, t_s: float, out: np.ndarray) -> np.ndarray:
+        """G(q) as :meth:`gravity`, blended from the previous payload's while a :meth:`set_payload` ramp runs."""
+        self.gravity(q_rad, out)
+        r = self._ramp
+        if r is None:
+            return out
+        x = (t_s - r[2]) / r[3]
+        if x >= 1.0:
+            self._ramp = None
+            return out
+        x = max(x, 0.0)
+        lam = 1.0 - x * x * (3.0 - 2.0 * x)  # weight of the old payload's gravity
+        self._g_old[:] = pin.computeGeneralizedGravity(r[0], r[1], q_rad)
+        self._g_old -= out
+        self._g_old *= lam
+        out += self._g_old
+        return out
+
+    @property
+    def payload_ramping(self) -> bool:
+        return self._ramp is not None
+
+    def momentum(self, q_rad: np.ndarray, dq_rad_s: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """Generalised momentum p = M(q)·q̇ [N·m·s] (RNEA of a gravity-free copy with q̈ = q̇)."""
+        if self._nograv is None:
+            m = pin.Model(self.model)
+            m.gravity.linear = np.zeros(3)
+            self._nograv = (m, m.createData())
+        m, d = self._nograv
+        out[:] = pin.rnea(m, d, q_rad, self._zero, dq_rad_s)
+        return out
+
+    def payload_unexplained(self, q_rad: np.ndarray, residual_Nm: np.ndarray) -> float:
+        """The fraction of a joint-torque residual that no flange load's gravity can produce at q:
+        ‖r − P_Y r‖/‖r‖ with P_Y the projection on span Y(q) (0: exactly payload-like, 1: orthogonal).
+        Allocates: for the runaway guard's rare decision path."""
+        Y = self.payload_regressor(q_rad)
+        nrm = float(np.linalg.norm(residual_Nm))
+        if nrm == 0.0:
+            return 1.0
+        coef, *_ = np.linalg.lstsq(Y, residual_Nm, rcond=1e-9)
+        return float(np.linalg.norm(residual_Nm - Y @ coef)) / nrm
+
+    def payload_regressor(self, q_rad: np.ndarray) -> np.ndarray:
+        """Y(q) (n×4): the gravity torque of a flange point mass is Y·[m, m·c_x, m·c_y, m·c_z] (c in the last
+        joint's frame). Allocates: for estimation and the guard's rare path, not every cycle."""
+        m = self.model
+        d = m.createData()
+        body = m.njoints - 1
+        pin.computeJointJacobians(m, d, q_rad)
+        pin.updateFramePlacements(m, d)
+        J = pin.getJointJacobian(m, d, body, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)  # 6×n at the joint origin
+        R = d.oMi[body].rotation
+        g = np.asarray(m.gravity.linear, dtype=float)
+        Y = np.zeros((m.nv, 4))
+        Y[:, 0] = -J[:3].T @ g  # τ = −Jᵀ·f, f = m·g at the joint origin
+        for k in range(3):  # moment (R c) × (m g) at the origin: τ = −J_ωᵀ·((R e_k) × g)·(m c_k)
+            Y[:, 1 + k] = -J[3:].T @ np.cross(R[:, k], g)
+        return Y
 
     @property
     def position_limits_rad(self) -> tuple[np.ndarray, np.ndarray]:

@@ -39,6 +39,7 @@ from sim.drive import SimDrive
 from sim.network import SimNetwork
 from sim.operator import Operator, ScenarioError, load_scenario, validate_scenario
 from sim.physics import ArmPhysics
+from sim.scenario_payload import PayloadSchedule, set_flange_payload
 from sim.truth import Truth, drive_params
 
 TICK_NS = 1_000_000
@@ -121,6 +122,7 @@ class SimProcess:
         self.control_path = None if control_path is None else str(control_path)
         self.seconds = seconds
         self.operator: Operator | None = None
+        self.payloads = PayloadSchedule()  # hung-on / removed flange masses (sim/scenario_payload.py)
         self.lock = threading.Lock()
         self._stop = threading.Event()
         self.buses: list[Any] = []
@@ -221,6 +223,8 @@ class SimProcess:
                         for d in drives:
                             d.update(t, dt)
                         physics.step()
+                    if self.payloads.pending:
+                        self.payloads.apply_due(physics)
                 busy = time.monotonic_ns() - wake
                 self.busy_ns += busy
                 if busy > self.max_busy_ns:
@@ -358,6 +362,21 @@ class SimProcess:
                     raise ControlError(f"set_q: only while the drives are disabled; power stage on at {', '.join(powered)}")
                 self.physics.set_state(np.array(q_rad, dtype=float))
                 return {"q_rad": self.physics.q_rad.tolist(), "t": self.physics.t_s}
+
+        @table.command("payload")
+        def payload(mass_kg: float, com_m: list[float] | None = None, at_t_s: float | None = None) -> dict[str, Any]:
+            """Hang a mass on the flange (0: take it off), now or at sim time ``at_t_s`` (the payload scenario)."""
+            com = [0.0, 0.0, 0.0] if com_m is None else com_m
+            try:
+                with self.lock:
+                    if at_t_s is None:
+                        return set_flange_payload(self.physics, mass_kg, com)
+                    if not (isinstance(mass_kg, (int, float)) and mass_kg >= 0 and isinstance(at_t_s, (int, float))):
+                        raise ValueError(f"payload: expected mass_kg >= 0 and a sim time at_t_s, got {mass_kg!r}, {at_t_s!r}")
+                    self.payloads.add(float(at_t_s), float(mass_kg), com)
+                    return {"scheduled": True, "at_t_s": float(at_t_s), "mass_kg": float(mass_kg), "t": self.physics.t_s}
+            except (ValueError, TypeError) as exc:
+                raise ControlError(str(exc)) from None
 
         @table.command("drives")
         def drives() -> dict[str, Any]:

@@ -197,7 +197,7 @@ RULES: list[Rule] = [
     # real hardware: parsed, then run with --help
     Rule(r"--bus socketcan:|^dragd run\b", "help", "the daemon on real drives"),
     # prose naming a command or option: COMMAND --help names every option given
-    Rule(r"^dragd (gap|model|experiment|identify( fit| run)?|log summary|replay --interp|bench identify_\*)$"
+    Rule(r"^dragd (gap|model|payload|experiment|identify( fit| run)?|log summary|replay --interp|bench identify_\*)$"
          r"|^dragd identify (plan|run)(?!.*--out)", "mention", "a command named in prose"),
     # long-running: started, seen ready, stopped
     Rule(r"^dragd sim --help$", "run", "the simulator's options"),
@@ -206,6 +206,10 @@ RULES: list[Rule] = [
     Rule(r"^dragd start\b", "run", "a session's first step: no motion running", before=("no_replay",), rig=True),
     Rule(r"^dragd (status|stop)\b", "run", "control socket", rig=True),
     Rule(r"^dragd mode ", "run", "control socket", before=("enabled",), rig=True),
+    Rule(r"^dragd payload (show|set|clear)\b", "run", "control socket", before=("enabled",), rig=True),
+    Rule(r"^dragd (payload estimate( --apply)?|check model)$", "mention", "a command named in prose"),
+    Rule(r"^dragd payload estimate\b", "run", "slow moves in HOLD", before=("hold",), rig=True, slow=True),
+    Rule(r"^dragd check model\b", "run", "slow moves in HOLD", before=("hold",), rig=True, slow=True),
     Rule(r"^dragd teach start ", "run", "teaching", before=("enabled", "no_replay", "new_program"), rig=True),
     Rule(r"^dragd teach mark\b", "run", "teaching: the hand moves the arm first", before=("teaching", "guided"),
          rig=True),
@@ -233,6 +237,7 @@ RULES: list[Rule] = [
     Rule(r"^(sed|mkdir|cp|systemd-analyze|systemd-sysusers|systemd-tmpfiles) ", "run", "systemd's offline checks",
          tool=True),
     # long: the shortest documented options
+    Rule(r"^dragd demo --scenario payload\b", "run", "sim + daemon (its own length)", slow=True),
     Rule(r"^dragd demo --scenario teach\b", "run", "sim + daemon", extra="--seconds 6", slow=True),
     Rule(r"^dragd demo\b", "run", "sim + daemon", extra="--seconds 8", slow=True),
     Rule(r"^dragd bench --list$", "run", "offline"),
@@ -388,6 +393,11 @@ class Env:
             status = rig.must("status")
             if what == "enabled" and not status.get("drives_enabled"):
                 rig.must("start")
+            elif what == "hold" and status.get("mode") != "hold":  # payload estimate, check model: from HOLD
+                if not status.get("drives_enabled") or status.get("mode") == "fault":
+                    rig.must("start")
+                rig.must("mode", mode="hold")
+                time.sleep(0.5)
             elif what == "no_replay":
                 self._stop_replay(rig, status)
             elif what == "new_program":

@@ -71,7 +71,8 @@ def cmd_stop(args: argparse.Namespace) -> int:
 
 
 def cmd_mode(args: argparse.Namespace) -> int:
-    resp = call_daemon(args, "mode", mode=args.mode)
+    kw = {"accept": True} if getattr(args, "accept", False) else {}
+    resp = call_daemon(args, "mode", mode=args.mode, **kw)
     emit(args, resp, lambda d: f"mode {d['mode']}")
     return 0
 
@@ -84,6 +85,12 @@ def _status_text(d: dict[str, Any]) -> str:
     rows = [(dr["joint"], dr["node_id"], dr["state"], f"{math.degrees(q):.3f}", f"{i:.3f}")
             for dr, q, i in zip(d["drives"], d["q_rad"], d["current_A"])]
     lines.append(table(["joint", "node", "state", "q_deg", "current_A"], rows))
+    g, p = d.get("guard"), d.get("payload")
+    if p is not None and p.get("mass_kg"):
+        lines.append(f"payload {p['mass_kg']:g} kg at ({', '.join(f'{x:g}' for x in p['com_m'])}) m")
+    if g is not None and (g.get("trips") or any(g.get("gravity_offset_A") or [])):
+        lines.append(f"runaway guard: {g['trips']} trip(s); gravity offset "
+                     f"{', '.join(f'{x:+.2f}' for x in g['gravity_offset_A'])} A")
     for f in d["faults"]:
         lines.append(f"fault at {f['t_s']:.3f} s: {f['text']}")
     return "\n".join(lines)
@@ -116,6 +123,9 @@ def register(sub: Any) -> None:
         p.set_defaults(func=fn)
     m = sub.add_parser("mode", help="switch mode without a jump in current: idle | hold | drag")
     m.add_argument("mode", choices=["idle", "hold", "drag"])
+    m.add_argument("--accept", action="store_true",
+                   help="drag even where the hold current disagrees with the gravity model: the measured hold currents "
+                   "become the gravity offset around this pose (docs/PAYLOAD.md)")
     add_socket(m)
     m.set_defaults(func=cmd_mode)
     s = sub.add_parser("status", help="the daemon's state, timing and faults")

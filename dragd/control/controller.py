@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from dragd.control.breakout import BreakoutState, breakout_update
+from dragd.control.guard import GuardSettings, RunawayGuard
 from dragd.control.law import LawOutput, Workspace, compensate
 from dragd.control.modes import MODE_NAMES, Mode
 from dragd.control.params import LawParams
@@ -53,10 +54,11 @@ class Estimate:
     dq_rad_s: np.ndarray
     current_A: np.ndarray
     tau_g_Nm: np.ndarray
+    p_Nms: np.ndarray | None = None  # generalised momentum M(q)·q̇ (the runaway guard's observer; DRAG only)
 
     @classmethod
     def zeros(cls, n: int) -> Estimate:
-        return cls(np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n))
+        return cls(np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n))
 
 
 class Controller:
@@ -100,6 +102,19 @@ class Controller:
         self.events: list[Event] = []
         self._tmp = np.zeros(n)
         self._tmp2 = np.zeros(n)
+        self.blend_ramp_s = mode_ramp_s
+        # the gravity model will be wrong (docs/PAYLOAD.md)
+        self.guard: RunawayGuard | None = None  # the runaway guard in DRAG (set by from_config / the daemon)
+        self.guard_hold_ramp_s = 0.02
+        self.guard_trips = 0
+        self.last_trip: dict[str, Any] | None = None
+        self.gravity_offset_A = np.zeros(n)  # `mode drag --accept`: measured hold current − model, in DRAG
+        self.hold_current_A = np.zeros(n)  # the measured current while holding at rest (low-passed)
+        self.hold_rest_s = 0.0  # how long HOLD has been at rest (the hold current's averaging time)
+        self.hold_rest_q = np.zeros(n)
+        self.hold_move: np.ndarray | None = None  # HOLD's pose moving to this target (payload estimate, check model)
+        self.hold_move_speed = 0.1
+        self._tau_in = np.zeros(n)
 
     @classmethod
     def from_config(cls, cfg: Config, position_limits_rad: tuple[np.ndarray, np.ndarray]) -> Controller:
@@ -128,18 +143,34 @@ class Controller:
             integral_max_Nm=per_joint(rc.position_integral_limit_A) * kt,
             output_max_Nm=per_joint(rc.position_output_limit_A) * kt,
             ramp_s=rc.ramp_s, monitor_cycles=rc.monitor_cycles, position_lo_rad=lim_lo, position_hi_rad=lim_hi)
-        return cls(params, safety, limits, cfg.joint_names, dt, s.hold_kp_Nm_per_rad, s.hold_kd_Nm_s_per_rad,
-                   s.mode_ramp_s, cfg.loop.fresh_cycles_resume)
+        c = cls(params, safety, limits, cfg.joint_names, dt, s.hold_kp_Nm_per_rad, s.hold_kd_Nm_s_per_rad,
+                s.mode_ramp_s, cfg.loop.fresh_cycles_resume)
+        g = s.guard
+        if g.runaway:
+            c.guard = RunawayGuard(c.n, kt, dt, GuardSettings(
+                observer_Hz=g.observer_Hz, speed_rad_s=g.speed_rad_s, residual_A=g.residual_A, confirm_s=g.confirm_s,
+                keep_speed=g.keep_speed, unexplained_max=g.unexplained_max), None, cfg.joint_names)
+        c.guard_hold_ramp_s = g.hold_ramp_s
+        return c
 
     # ------------------------------------------------------------------------------------------ transitions
 
-    def set_mode(self, mode: Mode, blend: bool = True) -> None:
-        """Switch the law; with ``blend`` the command fades from its value at this instant over ``mode_ramp_s``."""
+    def set_mode(self, mode: Mode, blend: bool = True, ramp_s: float | None = None) -> None:
+        """Switch the law; with ``blend`` the command fades from its value at this instant over ``mode_ramp_s``
+        (or ``ramp_s``)."""
         if mode == self.mode:
             return
         self.blend_from_A[:] = self.prev_cmd_A
         self.blend_t0 = self.t if blend else -1.0
+        self.blend_ramp_s = self.mode_ramp_s if ramp_s is None else ramp_s
         self.prev_mode, self.mode = self.mode, mode
+        if self.guard is not None:
+            self.guard.disarm()  # armed again once the drag law is fully in
+        if mode not in (Mode.DRAG, Mode.HOLD):
+            self.gravity_offset_A.fill(0.0)
+        if mode != Mode.HOLD:
+            self.hold_move = None
+        self.hold_rest_s = 0.0
         if mode == Mode.DRAG:
             self.breakout.reset(self.t)
         self.events.append(Event("mode", self.t, fields={"mode": MODE_NAMES[mode], "previous": MODE_NAMES[self.prev_mode]}))
@@ -151,6 +182,7 @@ class Controller:
         self.q_hold[:] = q
         self.stop_after_hold_at = None
         self.feedback_hold = False
+        self.gravity_offset_A.fill(0.0)
         self.set_mode(Mode.HOLD, blend=False)
 
     def stop(self, q: np.ndarray) -> None:
@@ -178,6 +210,7 @@ class Controller:
             raise ValueError(f"mode {name}: a {label} motion is running; stop it first")
         if target == Mode.HOLD:
             self.q_hold[:] = q
+            self.hold_move = None
         self.stop_after_hold_at = None
         if self.feedback_hold:  # the feedback hold stays; the new request is what it resumes
             self.resume_mode = target
@@ -245,6 +278,8 @@ class Controller:
 
         ``t`` (the cycle's time) is set by the cycle's tick."""
         t = self.t
+        if self.mode == Mode.HOLD:
+            self._hold_step(est)
         if self.mode == Mode.DRAG and self.params.use_breakout and self.params.use_startup:
             breakout_update(est.q_rad, est.dq_rad_s, t, self.params, self.breakout, est.tau_g_Nm)
         if self.track.active and self.mode == Mode.TRACK:
@@ -255,6 +290,42 @@ class Controller:
             elif res is not None:
                 self.end_track(res, est.q_rad)
 
+    def _hold_step(self, est: Estimate) -> None:
+        """HOLD: move the hold pose toward ``hold_move`` at ``hold_move_speed``; average the measured current
+        while the arm rests (``hold_current_A``, the effort that truly holds it, for the gravity check)."""
+        if self.hold_move is not None:
+            step = self.hold_move_speed * self.dt
+            np.subtract(self.hold_move, self.q_hold, out=self._tmp)
+            np.abs(self._tmp, out=self._tmp2)
+            if float(self._tmp2.max()) <= step:
+                self.q_hold[:] = self.hold_move  # arrived (exactly: the estimate waits for equality)
+            else:
+                np.clip(self._tmp, -step, step, out=self._tmp)
+                self.q_hold += self._tmp
+        if self.blend_t0 >= 0.0 or (self.hold_move is not None and not np.array_equal(self.q_hold, self.hold_move)):
+            self.hold_rest_s = 0.0
+            return
+        # at rest: the velocity estimate below 0.03 rad/s (encoder quantisation and sampling jitter make ~0.01)
+        # and the pose within 1 mrad of where the rest began
+        np.abs(est.dq_rad_s, out=self._tmp)
+        moving = float(self._tmp.max()) > 0.03
+        if not moving and self.hold_rest_s > 0.0:
+            np.subtract(est.q_rad, self.hold_rest_q, out=self._tmp)
+            np.abs(self._tmp, out=self._tmp)
+            moving = float(self._tmp.max()) > 1e-3
+        if moving:
+            self.hold_rest_s = 0.0
+            return
+        if self.hold_rest_s == 0.0:
+            self.hold_current_A[:] = est.current_A
+            self.hold_rest_q[:] = est.q_rad
+        else:  # running mean over the rest so far (exact average, no time constant to tune)
+            k = self.dt / (self.hold_rest_s + self.dt)
+            np.subtract(est.current_A, self.hold_current_A, out=self._tmp)
+            self._tmp *= k
+            self.hold_current_A += self._tmp
+        self.hold_rest_s += self.dt
+
     def compute(self, est: Estimate, enabled: np.ndarray) -> None:
         """``cmd_A`` ← the mode's command (+ safety terms), blended, zero where a drive is not enabled;
         ``ref_rad`` ← the position reference."""
@@ -262,7 +333,7 @@ class Controller:
         self.safety.compute(est.q_rad, est.dq_rad_s, self.mode == Mode.DRAG, self.extra_A)
         self._mode_command(est, cmd)
         if self.blend_t0 >= 0.0:
-            x = (self.t - self.blend_t0) / self.mode_ramp_s
+            x = (self.t - self.blend_t0) / self.blend_ramp_s if self.blend_ramp_s > 0.0 else 1.0
             if x >= 1.0:
                 self.blend_t0 = -1.0
             else:
@@ -275,6 +346,8 @@ class Controller:
             self.stop_after_hold_at = None
             self.set_mode(Mode.IDLE, blend=False)
         cmd *= enabled  # nothing is commanded to a drive that is not enabled
+        if self.guard is not None and self.mode == Mode.DRAG and est.p_Nms is not None:
+            self._guard_step(est, cmd)
         self.prev_cmd_A[:] = cmd
         if np.count_nonzero(self.law_out.clamped):
             self.clamp_cycles += 1
@@ -287,25 +360,60 @@ class Controller:
         else:
             self.ref_rad[:] = est.q_rad
 
+    def _guard_step(self, est: Estimate, cmd: np.ndarray) -> None:
+        """The runaway guard (DRAG, once the law is fully in): a trip holds where the arm is (fast ramp)."""
+        g = self.guard
+        assert g is not None and est.p_Nms is not None
+        if not g.armed:
+            if self.blend_t0 < 0.0:
+                g.arm(est.p_Nms, self.t)
+            return
+        lo, tau = self.law_out, self._tau_in  # τ_in = K_t·(I − gravity − offset − friction − start-up − effects)
+        np.subtract(cmd, lo.gravity_A, out=tau)
+        tau -= self.gravity_offset_A
+        tau -= lo.friction_A
+        tau -= lo.startup_A
+        if self.params.effects is not None and lo.effects_A is not None:
+            tau -= lo.effects_A
+        tau *= self.kt
+        trip = g.update(self.t, est.q_rad, est.dq_rad_s, est.p_Nms, tau)
+        if trip is None:
+            return
+        self.guard_trips += 1
+        self.last_trip = {"t_s": round(self.t, 4), "joint": self.names[trip.joint], "residual_Nm": round(trip.residual_Nm, 3),
+                          "residual_A": round(trip.residual_A, 3), "speed_rad_s": round(trip.speed_rad_s, 4),
+                          "payload_kg": None if trip.payload_kg != trip.payload_kg else round(trip.payload_kg, 3),
+                          "unexplained": round(trip.unexplained, 3), "q_rad": est.q_rad.tolist()}
+        self.events.append(Event("protective_stop", self.t, trip.joint, trip.text,
+                                 fields={"kind": "runaway", **self.last_trip}))
+        self.q_hold[:] = est.q_rad
+        self.set_mode(Mode.HOLD, ramp_s=self.guard_hold_ramp_s)
+        # hold with the missing torque the observer measured (the PD alone would sag by r/k_p)
+        np.divide(g.r, self.kt, out=self._tmp)
+        self.gravity_offset_A -= self._tmp  # the residual drives the motion: hold against it
+        np.clip(self.gravity_offset_A, self.neg_limit_A, self.params.current_limit_A, out=self.gravity_offset_A)
+
     def _mode_command(self, est: Estimate, out: np.ndarray) -> None:
         mode = self.mode
         if mode in (Mode.IDLE, Mode.FAULT):
             out.fill(0.0)
             return
         if mode == Mode.DRAG:
+            self.extra_A += self.gravity_offset_A  # `mode drag --accept` (zero otherwise)
             compensate(est.tau_g_Nm, est.dq_rad_s, self.t, self.params, self.law_out, self.ws, self.extra_A,
                        self.breakout, est.q_rad)
             out[:] = self.law_out.current_A
             return
         if mode == Mode.TRACK:
             self.track.command(est.tau_g_Nm, self.params, out, self._tmp2)
-        else:  # HOLD: gravity + joint PD around the pose
+        else:  # HOLD: gravity + joint PD around the pose (+ an accepted / measured gravity offset)
             np.subtract(self.q_hold, est.q_rad, out=out)
             out *= self.hold_kp
             np.multiply(est.dq_rad_s, self.hold_kd, out=self._tmp2)
             out -= self._tmp2
             out += est.tau_g_Nm
             out /= self.kt
+            out += self.gravity_offset_A
         out += self.extra_A
         np.minimum(out, self.params.current_limit_A, out=out)
         np.maximum(out, self.neg_limit_A, out=out)

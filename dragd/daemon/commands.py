@@ -65,11 +65,11 @@ def command_table(d: Daemon) -> CommandTable:
         return {"mode": MODE_NAMES[c.mode]}
 
     @command("mode")
-    async def mode(mode: str) -> dict[str, Any]:
+    async def mode(mode: str, accept: bool = False) -> dict[str, Any]:
         if mode in ("hold", "drag") and not c.track.active and c.mode not in (Mode.IDLE, Mode.FAULT):
             await motions.wait_cst(f"mode {mode}")  # after a motion the drives return to CST first (bumpless)
-        d.set_mode(str(mode))
-        return {"mode": MODE_NAMES[c.mode]}
+        check = d.set_mode(str(mode), accept=bool(accept))
+        return {"mode": MODE_NAMES[c.mode], **({"gravity_check": check} if check else {})}
 
     @command("track")
     async def track(file: str | None = None, t_s: list[float] | None = None, q_rad: list[list[float]] | None = None,
@@ -131,6 +131,31 @@ def command_table(d: Daemon) -> CommandTable:
     @command("replay_speed")
     async def replay_speed(speed: float) -> dict[str, Any]:
         return {"speed_override": motions.set_speed(float(speed)), "state": c.track.state}
+
+    @command("payload")
+    async def payload(action: str, mass_kg: float | None = None, com_m: list[float] | None = None, poses: int = 6,
+                      apply: bool = False) -> dict[str, Any]:
+        """The flange payload (docs/PAYLOAD.md): estimate from hold currents, set a known one, clear it, show it."""
+        tools = d.payload
+        if action == "estimate":
+            return await tools.estimate(int(poses), bool(apply))
+        if action == "set":
+            if mass_kg is None:
+                raise ValueError("payload set: missing field 'mass_kg'")
+            return tools.apply(float(mass_kg), list(com_m) if com_m is not None else [0.0, 0.0, 0.0],
+                               "dragd payload set")
+        if action == "clear":
+            return tools.apply(0.0, [0.0, 0.0, 0.0], "dragd payload clear")
+        if action == "show":
+            return {"mass_kg": d.model.payload_mass_kg, "com_m": d.model.payload_com_m.tolist(),
+                    "params": str(tools.params_path()) if tools.params_path() else None}
+        raise ValueError(f"payload: action: expected estimate, set, clear or show, got {action!r}")
+
+    @command("check_model")
+    async def check_model(step_rad: float = 0.25) -> dict[str, Any]:
+        from dragd.daemon.modelcheck import check_model as run_check
+
+        return await run_check(d, float(step_rad))
 
     @command("shutdown")
     async def shutdown() -> dict[str, Any]:

@@ -32,6 +32,7 @@ from dragd.control.modes import MODE_NAMES, Mode
 from dragd.daemon import sdnotify
 from dragd.daemon.cycle import Cycle
 from dragd.daemon.motion import Motions
+from dragd.daemon.payload import PayloadTools
 from dragd.daemon.recording import Recorder
 from dragd.daemon.teach import Teaching
 from dragd.hardware.bus import BusSpec, open_bus, parse_bus
@@ -44,6 +45,7 @@ from dragd.model import RobotModel
 from dragd.realtime import demote_current_thread, scheduler_label, set_realtime
 
 MAX_FAULTS = 100  # the fault list keeps the newest
+PAYLOAD_REACH_M = 0.3  # a flange load's centre of mass lies within this of the flange (the guard's plausibility test)
 
 
 class BusBudgetError(RuntimeError):
@@ -108,12 +110,16 @@ class Daemon:
         self.node_ids = [j.node_id for j in cfg.joints]
         self.scaling = Scaling.from_config(cfg)
         self.controller = Controller.from_config(cfg, self.model.position_limits_rad)
+        if self.controller.guard is not None:
+            self.controller.guard.explain = self._explain_residual
         self.supervisor = DriveSupervisor(self.node_ids, cfg.master.enable_timeout_s)
         self.velocity = VelocityEstimator(self.scaling.counts_per_rev, cfg.law.velocity_filter_Hz,
                                           self.scaling.direction)
         self.recorder = Recorder(cfg, self.n, telemetry_path or cfg.telemetry.path, rerun or cfg.telemetry.rerun)
         self.motions = Motions(self)
         self.teaching = Teaching(self)
+        self.payload = PayloadTools(self)
+        self.model_check_failed: list[str] = []  # joints `dragd check model` refused: no drag until a check passes
         self.faults: list[dict[str, Any]] = []
         self.protective_stops = 0
         self.stop_requested = False
@@ -214,6 +220,89 @@ class Daemon:
                     f"{est.tau_g_Nm[j]:+.1f} N·m at {est.q_rad[j]:+.3f} rad, above its current_limit_A "
                     f"{c.params.current_limit_A[j]:.2f} A (check the URDF's masses, the payload, torque_constant)")
 
+    def _explain_residual(self, q: Any, r: Any) -> tuple[float, float]:
+        """The runaway guard's rare path: the fraction of residual r no flange load explains at q, and that load's
+        mass [kg] (least squares on the payload regressor)."""
+        import numpy as np
+
+        Y = self.model.payload_regressor(q)
+        nrm = float(np.linalg.norm(r))
+        if nrm == 0.0:
+            return 1.0, float("nan")
+        coef, *_ = np.linalg.lstsq(Y, r, rcond=1e-9)
+        # a physical load: its centre of mass within PAYLOAD_REACH_M of the flange (a torque on one joint alone
+        # needs an implausible lever to look like a load, e.g. the shoulder pushed by hand)
+        if abs(coef[0]) > 1e-9 and float(np.linalg.norm(coef[1:])) > PAYLOAD_REACH_M * abs(float(coef[0])):
+            return 1.0, float("nan")
+        # Y·θ is the load's gravity torque (what holds it); the residual is the torque that moves the arm: −Y·θ
+        return float(np.linalg.norm(r - Y @ coef)) / nrm, -float(coef[0])
+
+    def gravity_check(self) -> list[dict[str, Any]]:
+        """Per joint: the current that truly holds the arm (HOLD's measured current, averaged at rest) against the
+        model's G(q)/K_t, with the bound (the joint's static friction + tolerance). Empty until HOLD has rested
+        ``safety.guard.check_settle_s``."""
+        c, g = self.controller, self.cfg.safety.guard
+        if c.mode != Mode.HOLD or c.hold_rest_s < g.check_settle_s:
+            return []
+        tau = self.model.gravity(c.hold_rest_q)
+        p = c.params
+        out = []
+        for j in range(self.n):
+            model_A = float(tau[j] / c.kt[j])
+            hold_A = float(c.hold_current_A[j])
+            friction_A = float(max(p.static_pos_A[j], -p.static_neg_A[j]))
+            bound = friction_A + g.check_tolerance_A + g.check_tolerance_fraction * abs(model_A)
+            out.append({"joint": self.cfg.joints[j].name, "hold_A": round(hold_A, 3), "model_A": round(model_A, 3),
+                        "difference_A": round(hold_A - model_A, 3), "bound_A": round(bound, 3),
+                        "ok": bool(abs(hold_A - model_A) <= bound)})
+        return out
+
+    def _check_before_drag(self, accept: bool) -> dict[str, Any] | None:
+        """Refuse DRAG (ValueError with the figures) where the hold current disagrees with the model beyond the bound;
+        with ``accept`` drag with the measured hold currents as the gravity offset around this pose."""
+        c, g = self.controller, self.cfg.safety.guard
+        if not g.check or c.mode != Mode.HOLD:
+            return None
+        rows = self.gravity_check()
+        if not rows:
+            if accept:
+                raise ValueError(f"mode drag --accept: the hold current is not measured yet (the arm must rest in hold "
+                                 f"for {g.check_settle_s:g} s); try again")
+            return None  # not at rest long enough to judge (the runaway guard watches the drag)
+        bad = [r for r in rows if not r["ok"]]
+        if not bad:
+            c.gravity_offset_A.fill(0.0)
+            return {"checked": True}
+        if accept:
+            import numpy as np
+
+            # the flange load the differences imply (least squares on Y(q)) gives the offset on every joint: a joint
+            # whose stiction hid part of its load in HOLD still gets the load's share; a joint the load does not
+            # explain beyond its bound (a sign or K_t error) gets its own measured difference
+            diff = np.array([r["difference_A"] for r in rows])
+            bound = np.array([r["bound_A"] for r in rows])
+            Y = self.model.payload_regressor(c.hold_rest_q)
+            coef, *_ = np.linalg.lstsq(Y, diff * c.kt, rcond=1e-9)
+            off = Y @ coef / c.kt
+            raw = np.abs(diff - off) > bound
+            off[raw] = diff[raw]
+            c.gravity_offset_A[:] = off
+            return {"checked": True, "accepted_offset_A": [round(float(x), 3) for x in off],
+                    "implied_payload_kg": round(float(coef[0]), 3)}
+        import numpy as np
+
+        r = np.array([row["hold_A"] - row["model_A"] for row in rows]) * c.kt
+        frac, kg = self._explain_residual(c.hold_rest_q, -r)  # the hold current carries the load's gravity: −residual
+        guess = (f"; a load of about {kg:.1f} kg at the flange would explain it" if frac < 0.35 and abs(kg) > 0.05
+                 else "; not a flange load alone: check the joint's sign and torque constant (dragd check model)")
+        worst = max(bad, key=lambda row: abs(row["difference_A"]) - row["bound_A"])
+        raise ValueError(
+            "mode drag: refused: the gravity model disagrees with the current that holds the arm: "
+            + "; ".join(f"{row['joint']} needs {row['hold_A']:+.2f} A to hold, the model says {row['model_A']:+.2f} A "
+                        f"(bound ±{row['bound_A']:.2f} A)" for row in bad)
+            + f"{guess}. Run 'dragd payload estimate', or 'dragd mode drag --accept' to drag with the measured hold "
+              f"currents as the gravity offset around this pose (worst: {worst['joint']})")
+
     def start(self) -> None:
         """Enable the drives (fault reset first) and hold the pose."""
         c = self.controller
@@ -229,14 +318,21 @@ class Daemon:
         self.controller.stop(self.cycle.est.q_rad)
         self.record_events()
 
-    def set_mode(self, name: str) -> None:
+    def set_mode(self, name: str, accept: bool = False) -> dict[str, Any] | None:
         modes = {"idle": Mode.IDLE, "hold": Mode.HOLD, "drag": Mode.DRAG}
         if name not in modes:
             raise ValueError(f"mode: expected one of {', '.join(modes)}, got '{name}'")
+        check = None
         if modes[name] == Mode.DRAG:
+            if self.model_check_failed:
+                raise ValueError(f"mode drag: refused: 'dragd check model' failed on {', '.join(self.model_check_failed)} "
+                                 "(a wrong sign or K_t scale); fix the configuration and run the check again")
             self.check_gravity_current("mode drag")
+            if self.controller.mode != Mode.DRAG:
+                check = self._check_before_drag(accept)
         self.controller.request(modes[name], self.cycle.est.q_rad)
         self.record_events()
+        return check
 
     async def wait_for(self, cond: Callable[[], bool], timeout_s: float) -> bool:
         end = time.monotonic() + timeout_s
@@ -287,6 +383,10 @@ class Daemon:
             "tx_errors": io.tx_errors if io is not None else 0,
             "error_frames": io.error_frames if io is not None else 0,
             "clamp_cycles": c.clamp_cycles,
+            "guard": {"armed": bool(c.guard is not None and c.guard.armed), "trips": c.guard_trips,
+                      "hand_runs": c.guard.hand_runs if c.guard is not None else 0, "last_trip": c.last_trip,
+                      "gravity_offset_A": c.gravity_offset_A.tolist(), "hold_rest_s": round(c.hold_rest_s, 3)},
+            "payload": {"mass_kg": self.model.payload_mass_kg, "com_m": self.model.payload_com_m.tolist()},
             "telemetry": self.recorder.telemetry.stats() if self.recorder.telemetry is not None else None,
             "recording": self.recorder.recording_path,
             "t_s": cy.t,

@@ -51,7 +51,7 @@ class Cycle:
         self.heartbeat_every = max(1, round(heartbeat_ms * 1e-3 / self.dt))
         self.hold_after, self.disable_after = stale_cycles_hold, stale_cycles_disable
         self.node_ids = node_ids
-        self.est = Estimate(np.zeros(n), velocity.velocity_rad_s, np.zeros(n), np.zeros(n))
+        self.est = Estimate(np.zeros(n), velocity.velocity_rad_s, np.zeros(n), np.zeros(n), np.zeros(n))
         self.target_counts = np.zeros(n, dtype=np.int64)
         self.torque_permille = np.zeros(n, dtype=np.int64)
         self._tmp = np.zeros(n)
@@ -91,7 +91,9 @@ class Cycle:
         self.scaling.position_rad(fb.counts, est.q_rad, self._tmp)
         self.velocity.update(fb.counts, self.sample_dt_s, fb.rx)
         self.scaling.current_A(fb.current_permille, est.current_A)
-        self.model.gravity(est.q_rad, est.tau_g_Nm)
+        self.model.gravity_at(est.q_rad, self.t, est.tau_g_Nm)  # (blended while a payload change ramps in)
+        if c.mode == Mode.DRAG and c.guard is not None:
+            self.model.momentum(est.q_rad, est.dq_rad_s, est.p_Nms)  # the runaway guard's observer
         # compute
         c.advance(est, int(fb.stale.max()))
         fault = self.supervisor.update(fb.statusword, _TARGETS.get(c.mode, Target.ENABLED), self.t)

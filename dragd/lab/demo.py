@@ -41,8 +41,15 @@ def run_demo(seconds: float = 20.0, config: Path | None = None, out: Path | None
              progress: bool = True) -> dict[str, Any]:
     if scenario == "teach":
         return run_teach_demo(seconds, config, out, progress)
+    if scenario == "payload":
+        from dragd.lab.demo_payload import PayloadDemoError, run_payload_demo
+
+        try:
+            return run_payload_demo(config, out, progress)
+        except PayloadDemoError as exc:
+            raise DemoError(str(exc)) from None
     if scenario != "drag":
-        raise DemoError(f"--scenario: expected 'drag' or 'teach', got '{scenario}'")
+        raise DemoError(f"--scenario: expected 'drag', 'teach' or 'payload', got '{scenario}'")
     if not seconds >= 8.0:
         raise DemoError(f"--seconds: expected at least 8 s (hold, untouched drag, hand pull, release), got {seconds}")
     out = Path(out) if out is not None else Path.cwd() / "out"

@@ -336,6 +336,9 @@ async def _replay(z: Any, workdir: Path) -> Replay:
     from golden.adapter import DaemonAdapter
 
     cfg = load_config_text(str(z["config"]), workdir)
+    if "guard" not in str(z["config"]):  # recorded before the runaway guard (docs/PAYLOAD.md): replayed without it;
+        g = cfg.safety.guard.model_copy(update={"runaway": False})  # its behaviour: tests/test_payload_guard.py
+        cfg = cfg.model_copy(update={"safety": cfg.safety.model_copy(update={"guard": g})})
     ad = DaemonAdapter(cfg)
     buses = json.loads(str(z["buses"]))
     period, exp = z["period_us"], z["expirations"]

@@ -1,0 +1,188 @@
+"""The runaway guard in DRAG: motion that nobody's hand explains falls back to HOLD (docs/PAYLOAD.md).
+
+A generalised-momentum observer (De Luca's residual, Coriolis term neglected at hand-guiding speeds) estimates
+the joint torque the model does not account for:
+
+    r = K_o·(p − p₀ − ∫(τ_in + r) dt),   p = M(q)·q̇,
+    τ_in = K_t·(I_cmd − I_gravity − I_offset − I_friction − I_startup − I_effects)   (damping, walls, speed cap)
+
+so r ≈ τ_hand + (G_true − G_model) + (friction error). A hung-on tool, a removed one, a wrong K_t or sign all
+make r a torque that *drives* the motion (r·q̇ > 0) and keeps it accelerating; so does a hand. The guard tells
+them apart by where the torque acts and how it changes:
+
+* a joint is a candidate while it moves (|q̇| > ``speed_rad_s``), the residual drives it (r·q̇ > 0, |r|/K_t >
+  ``residual_A``) and it does not slow down (|q̇| ≥ ``keep_speed``·the run's peak: an operator's hand brings the
+  arm to a stop at its target; a released arm under a gravity error does not);
+* a run that goes on for ``run_max_s`` without slowing (a released arm at its terminal speed, where the residual
+  is only the virtual damping's torque) is tested again every ``run_max_s`` with a residual above residual_A/3;
+* after ``confirm_s`` of candidacy the residual vector is tested once against what a load on the flange can
+  produce at q (``explain``: the fraction of r outside span Y(q), the payload regressor): a hand pulling several
+  joints (or the vertical first axis, which gravity never loads) is not payload-like → that run is the hand's and
+  is not tripped again until it ends; a payload-like residual trips: HOLD where the arm is, the event names the
+  joint, the missing torque and the flange mass that would explain it.
+
+Time to trip after the arm starts moving ≈ observer lag (1/K_o) + ``confirm_s``. Allocation-free per cycle; the
+test against Y(q) (Pinocchio, least squares) runs once per candidate run.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class GuardSettings:
+    observer_Hz: float = 25.0  # residual bandwidth K_o/2π
+    speed_rad_s: float = 0.03  # a joint slower than this is not running away
+    residual_A: float = 0.3  # a missing torque smaller than this (as current) is friction's business
+    confirm_s: float = 0.03  # candidacy this long before the payload-likeness test
+    keep_speed: float = 0.85  # a run whose speed falls below this fraction of its peak is decelerating: not a runaway
+    unexplained_max: float = 0.1  # a residual with more than this fraction outside span Y(q) is a hand's
+    settle_s: float = 0.05  # after (re)arming: observer transient, no decision
+    run_max_s: float = 0.5  # a run that goes on this long without slowing is tested again (with any residual)
+
+
+@dataclass(frozen=True)
+class Trip:
+    joint: int
+    residual_Nm: float
+    residual_A: float
+    speed_rad_s: float
+    payload_kg: float
+    unexplained: float
+    text: str
+
+
+Explain = Callable[[np.ndarray, np.ndarray], tuple[float, float]]  # (q, r) → (unexplained fraction, flange kg)
+
+
+class RunawayGuard:
+    """Momentum-observer residual and the per-joint runaway decision for n joints."""
+
+    def __init__(self, n: int, kt_Nm_per_A: np.ndarray, dt_s: float, settings: GuardSettings,
+                 explain: Explain | None, joint_names: list[str]) -> None:
+        self.n, self.kt, self.dt, self.s = n, kt_Nm_per_A, dt_s, settings
+        self.explain = explain
+        self.names = joint_names
+        self.k_o = 2.0 * math.pi * settings.observer_Hz
+        self.p0 = np.zeros(n)
+        self.integ = np.zeros(n)
+        self.r = np.zeros(n)  # residual [N·m]
+        self.run_s = np.zeros(n)  # candidacy time of each joint's present run
+        self.peak = np.zeros(n)  # the run's peak speed
+        self.sign = np.zeros(n)  # the run's direction
+        self.hand = np.zeros(n, dtype=bool)  # the run was judged a hand's
+        self.armed_at = math.inf
+        self.checks = 0  # payload-likeness tests run (hand runs + trips)
+        self.hand_runs = 0
+        self._a = np.zeros(n)
+        self._b = np.zeros(n)
+        self._m = np.zeros(n, dtype=bool)
+        self._m2 = np.zeros(n, dtype=bool)
+        self._m3 = np.zeros(n, dtype=bool)
+        self.retest_at = 0.0
+        self.running = False
+
+    def arm(self, p_Nms: np.ndarray, t_s: float) -> None:
+        """Start watching (the drag law is fully in): the observer starts from the present momentum."""
+        self.p0[:] = p_Nms
+        self.integ.fill(0.0)
+        self.r.fill(0.0)
+        self.run_s.fill(0.0)
+        self.peak.fill(0.0)
+        self.sign.fill(0.0)
+        self.hand.fill(False)
+        self.armed_at = t_s
+
+    def disarm(self) -> None:
+        self.armed_at = math.inf
+
+    @property
+    def armed(self) -> bool:
+        return self.armed_at != math.inf
+
+    def update(self, t_s: float, q: np.ndarray, dq: np.ndarray, p_Nms: np.ndarray, tau_in_Nm: np.ndarray) -> Trip | None:
+        """One cycle: advance the observer; a :class:`Trip` when a joint runs away."""
+        if not self.armed:
+            return None
+        s, a, b, m, m2 = self.s, self._a, self._b, self._m, self._m2
+        # observer: integ += (τ_in + r)·dt;  r = K_o·(p − p₀ − integ)
+        np.add(tau_in_Nm, self.r, out=a)
+        a *= self.dt
+        self.integ += a
+        np.subtract(p_Nms, self.p0, out=a)
+        a -= self.integ
+        np.multiply(a, self.k_o, out=self.r)
+        if t_s - self.armed_at < s.settle_s:
+            return None
+        # runs: moving, driven by the residual (r·q̇ > 0), not slowing down (|q̇| ≥ keep_speed·the run's peak)
+        np.abs(dq, out=a)  # a = speed
+        if float(a.max()) <= s.speed_rad_s:  # the usual cycle at rest: no run can go on
+            if self.running:
+                self.run_s.fill(0.0)
+                self.peak.fill(0.0)
+                self.hand.fill(False)
+                self.running = False
+            return None
+        self.running = True
+        np.greater(a, s.speed_rad_s, out=m)
+        np.multiply(self.r, dq, out=b)
+        np.greater(b, 0.0, out=m2)
+        m &= m2
+        np.sign(dq, out=b)
+        np.equal(b, self.sign, out=m2)  # same direction as the run so far (a new run starts below)
+        np.maximum(self.peak, a, out=b)
+        np.copyto(b, a, where=~m2)  # (direction changed: the peak restarts)
+        np.copyto(self.peak, b)
+        np.multiply(self.peak, s.keep_speed, out=b)
+        np.greater_equal(a, b, out=m2)
+        m &= m2
+        np.sign(dq, out=self.sign)
+        self.run_s += self.dt
+        self.run_s *= m
+        np.copyto(self.hand, False, where=~m)
+        np.copyto(self.peak, 0.0, where=~m)
+        # fast path: a missing torque above residual_A for confirm_s → the payload-likeness test, once per run
+        np.divide(self.r, self.kt, out=b)
+        np.abs(b, out=b)
+        np.greater(b, s.residual_A, out=m2)
+        m2 &= ~self.hand
+        np.greater_equal(self.run_s, s.confirm_s, out=self._m3)
+        m2 &= self._m3
+        if np.count_nonzero(m2):
+            return self._decide(q, dq, m2)
+        # slow path: a run that keeps going for run_max_s (at a terminal speed the residual is only the virtual
+        # damping's torque) is tested again every run_max_s, with any residual
+        np.greater_equal(self.run_s, s.run_max_s, out=m2)
+        np.greater(b, s.residual_A / 3.0, out=self._m3)  # (b = |r|/K_t) a residual above friction noise
+        m2 &= self._m3
+        if np.count_nonzero(m2) and t_s >= self.retest_at:
+            self.retest_at = t_s + s.run_max_s
+            self.hand &= ~m2
+            return self._decide(q, dq, m2)
+        return None
+
+    def _decide(self, q: np.ndarray, dq: np.ndarray, due: np.ndarray) -> Trip | None:
+        """Rare path (once per candidate run): is the residual what a flange load would produce?"""
+        self.checks += 1
+        unexplained, kg = self.explain(q, self.r) if self.explain is not None else (0.0, float("nan"))
+        if unexplained > self.s.unexplained_max:
+            self.hand |= due
+            self.hand_runs += 1
+            return None
+        return self._trip(q, dq, due, kg, unexplained)
+
+    def _trip(self, q: np.ndarray, dq: np.ndarray, due: np.ndarray, kg: float, unexplained: float) -> Trip:
+        ratio = np.abs(self.r) / self.kt
+        j = int(np.argmax(np.where(due, ratio, -1.0)))
+        r, v = float(self.r[j]), float(dq[j])
+        kg_text = f"; a load of about {kg:.2f} kg at the flange would explain it" if math.isfinite(kg) else ""
+        text = (f"runaway in drag: {self.names[j]} moving {v:+.3f} rad/s, driven by {r:+.1f} N·m "
+                f"({r / self.kt[j]:+.2f} A) that the model and no hand explain{kg_text}; holding. "
+                "Check the payload (dragd payload estimate) and the joint's sign and torque constant (dragd check model)")
+        self.disarm()
+        return Trip(j, r, r / float(self.kt[j]), v, kg, unexplained, text)
