@@ -354,6 +354,7 @@ class Config(_Strict):
             if key in seen:
                 raise ValueError(f"joints: {j.name} and {seen[key]} share node id {j.node_id} on bus '{j.bus}'")
             seen[key] = j.name
+        self._cross_timing()
         r = self.replay
         for key in ("velocity_limits_rad_s", "acceleration_limits_rad_s2", "jerk_limits_rad_s3",
                     "tracking_error_limit_rad", "residual_current_limit_A", "position_kp_Nm_per_rad",
@@ -363,6 +364,32 @@ class Config(_Strict):
             if isinstance(v, list) and len(v) != len(self.joints):
                 raise ValueError(f"replay.{key}: expected one value or {len(self.joints)} (one per joint), got {len(v)}")
         return self
+
+    def _cross_timing(self) -> None:
+        """Timing and node-id combinations that would leave an arm unwatched or fault it for nothing."""
+        m, s, lp = self.master, self.safety, self.loop
+        period_ms = 1000.0 / lp.rate_Hz
+        if m.heartbeat_consumer_ms < 2 * m.heartbeat_ms:
+            raise ValueError(f"master.heartbeat_consumer_ms: expected >= 2 x master.heartbeat_ms "
+                             f"({2 * m.heartbeat_ms} ms: one lost heartbeat must not stop the drives), "
+                             f"got {m.heartbeat_consumer_ms}")
+        if m.heartbeat_consumer_ms > 5000:
+            raise ValueError(f"master.heartbeat_consumer_ms: expected <= 5000 ms (a dead master must stop the drives "
+                             f"within seconds), got {m.heartbeat_consumer_ms}")
+        lo_ms = max(5.0, 3.0 * period_ms)
+        if not lo_ms <= s.rpdo_timeout_ms <= 1000:
+            raise ValueError(f"safety.rpdo_timeout_ms: expected {lo_ms:g}..1000 ms (at least 3 cycles of "
+                             f"{period_ms:g} ms, at most 1 s of an unwatched arm), got {s.rpdo_timeout_ms}")
+        if lp.tpdo_deadline_us >= period_ms * 1000.0:
+            raise ValueError(f"loop.tpdo_deadline_us: expected below the cycle period {period_ms * 1000.0:g} us "
+                             f"(loop.rate_Hz {lp.rate_Hz:g}), got {lp.tpdo_deadline_us}")
+        if m.drive_heartbeat_ms > 1000:
+            raise ValueError(f"master.drive_heartbeat_ms: expected <= 1000 ms (the daemon consumes the drives' "
+                             f"heartbeats: a silent drive must be noticed within seconds), got {m.drive_heartbeat_ms}")
+        for i, j in enumerate(self.joints):
+            if j.node_id == m.node_id:
+                raise ValueError(f"master.node_id: expected a node id no drive uses, got {m.node_id} "
+                                 f"= joints[{i}] ({j.name}).node_id")
 
     def per_joint(self, value: float | list[float]) -> list[float]:
         """A ``PerJoint`` setting as one value per joint."""
