@@ -261,6 +261,8 @@ class SafetyConfig(_Strict):
     rpdo_timeout_ms: PosInt = 50  # drive-side watchdog on the cyclic command RPDO (1400h+k sub 5)
     abort_connection_option: Literal[1, 2, 3] = 3  # 6007h: 1 fault, 2 disable voltage, 3 quick stop
     quick_stop_option: Literal[0, 1, 2, 5, 6] = 2  # 605Ah
+    # a position sample further from the last accepted one than this speed allows is an encoder fault (rejected)
+    encoder_plausible_speed_rad_s: PosFloat = 6.0
 
 
 class MasterConfig(_Strict):
@@ -387,6 +389,10 @@ class Config(_Strict):
             raise ValueError(f"master.drive_heartbeat_ms: expected <= 1000 ms (the daemon consumes the drives' "
                              f"heartbeats: a silent drive must be noticed within seconds), got {m.drive_heartbeat_ms}")
         for i, j in enumerate(self.joints):
+            if j.velocity_limit_rad_s >= s.encoder_plausible_speed_rad_s:
+                raise ValueError(f"safety.encoder_plausible_speed_rad_s: expected above every joint's "
+                                 f"velocity_limit_rad_s, got {s.encoder_plausible_speed_rad_s} <= joints[{i}] "
+                                 f"({j.name}) {j.velocity_limit_rad_s}")
             if j.node_id == m.node_id:
                 raise ValueError(f"master.node_id: expected a node id no drive uses, got {m.node_id} "
                                  f"= joints[{i}] ({j.name}).node_id")

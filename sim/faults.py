@@ -11,7 +11,7 @@ Faults (``kind``):
 - ``late_tpdo``      delay_ms, seconds: TPDOs leave ``delay_ms`` late (after the master's read deadline)
 - ``emcy``           node_id, code: an EMCY (the error stays active; the drive keeps running)
 - ``drive_fault``    node_id, code: a device fault (EMCY + the drive's fault reaction)
-- ``switched_on``    node_id: the drive leaves operation enabled on its own (disable operation → switched on)
+- ``switched_on``    node_id: the drive drops from operation enabled to switched on on its own (power off)
 - ``node_reboot``    node_id: a power cycle of the node: objects back to defaults, boot-up, brake engaged
 - ``bus_off``        seconds: the sim's link goes down (nothing in, nothing out), then comes back
 - ``encoder_jump``   node_id, rad, seconds: the reported position jumps by ``rad`` (for ``seconds``; 0 = forever)
@@ -28,7 +28,7 @@ from typing import Any
 
 import can
 
-from dragd.hardware.cia402 import ERR_REG_GENERIC, Command
+from dragd.hardware.cia402 import ERR_REG_GENERIC, State
 
 KINDS = ("drive_silent", "burst_loss", "duplicates", "late_tpdo", "emcy", "drive_fault", "switched_on",
          "node_reboot", "bus_off", "encoder_jump", "garbage")
@@ -196,8 +196,8 @@ class FaultInjector:
                 elif kind == "drive_fault":
                     d.inject_fault(int(number("code", 0x2310, 1, 0xFFFF)))
                 elif kind == "switched_on":
-                    with d._lock:
-                        d._apply_command(Command.SWITCH_ON)
+                    with d._lock:  # drops out on its own (power stage off, brake); a master's cyclic 0x0F would
+                        d._enter_state(State.SWITCHED_ON)  # enable it again on the next RPDO (transition 4)
                 elif kind == "node_reboot":
                     d.reset_node()
                 elif kind == "encoder_jump":

@@ -30,6 +30,7 @@ from dragd.control.controller import Controller
 from dragd.control.estimate import VelocityEstimator
 from dragd.control.modes import MODE_NAMES, Mode
 from dragd.daemon import sdnotify
+from dragd.daemon.comms import CommsMonitor
 from dragd.daemon.cycle import Cycle
 from dragd.daemon.motion import Motions
 from dragd.daemon.recording import Recorder
@@ -114,7 +115,9 @@ class Daemon:
         self.recorder = Recorder(cfg, self.n, telemetry_path or cfg.telemetry.path, rerun or cfg.telemetry.rerun)
         self.motions = Motions(self)
         self.teaching = Teaching(self)
+        self.comms = CommsMonitor(self)
         self.faults: list[dict[str, Any]] = []
+        self.fault_count = 0  # every fault entry since the start (the list is cleared by 'start', capped)
         self.protective_stops = 0
         self.stop_requested = False
         self.scheduler = "not started"
@@ -143,7 +146,8 @@ class Daemon:
         self.cycle = Cycle(self.io, self.scaling, self.model, self.controller, self.supervisor, self.velocity,
                            self.recorder, rate_Hz=cfg.loop.rate_Hz, tpdo_deadline_us=cfg.loop.tpdo_deadline_us,
                            heartbeat_ms=cfg.master.heartbeat_ms, stale_cycles_hold=cfg.loop.stale_cycles_hold,
-                           stale_cycles_disable=cfg.loop.stale_cycles_disable, node_ids=self.node_ids)
+                           stale_cycles_disable=cfg.loop.stale_cycles_disable, node_ids=self.node_ids,
+                           plausible_speed_rad_s=cfg.safety.encoder_plausible_speed_rad_s)
         self.recorder.attach(self.controller, self.cycle.est, self.io.feedback)
         self.cycle.after_cycle = [self.record_events, self.teaching.add]
 
@@ -158,6 +162,7 @@ class Daemon:
         self.record_events()
 
     def _fault_entry(self, joint: int | None, t_s: float, text: str, code: int, **extra: Any) -> None:
+        self.fault_count += 1
         self.faults.append({"t_s": round(t_s, 4), "joint": self.cfg.joints[joint].name if joint is not None else None,
                             "node_id": self.node_ids[joint] if joint is not None else None, "code": code,
                             "text": text, **extra})
@@ -281,10 +286,15 @@ class Daemon:
             "current_A": cy.est.current_A.tolist(),
             "command_A": c.cmd_A.tolist(),
             "faults": list(self.faults),
+            "fault_count": self.fault_count,
             "drives": drives,
             **self.motions.status(),
             "bus_load_pct": {k: round(v["load_pct"], 2) for k, v in self.budget.items()},
             "tx_errors": io.tx_errors if io is not None else 0,
+            "rejected_frames": io.rejected_frames if io is not None else 0,
+            "duplicate_tpdos": io.duplicate_tpdos if io is not None else 0,
+            "encoder_rejects": cy.encoder_rejects,
+            "comms": self.comms.status(),
             "error_frames": io.error_frames if io is not None else 0,
             "clamp_cycles": c.clamp_cycles,
             "telemetry": self.recorder.telemetry.stats() if self.recorder.telemetry is not None else None,
@@ -340,6 +350,8 @@ class Daemon:
         try:
             for name, spec in self.bus_specs.items():
                 buses[name] = open_bus(spec)
+                # CANopen uses 11-bit ids only: 29-bit frames (whose ids can equal a COB-ID) never reach the stack
+                buses[name].set_filters([{"can_id": 0, "can_mask": 0, "extended": False}])
         except BaseException:
             for bus in buses.values():
                 bus.shutdown()
@@ -348,7 +360,9 @@ class Daemon:
         assert self.io is not None
         self.master = Master(self.cfg, self.buses, self.layouts, loop,
                              {name: [self.io.listener(name)] for name in self.buses}, log=self.log)
+        self.master.on_heartbeat = self.comms.on_heartbeat
         server = None
+        comms: asyncio.Task[None] | None = None
         try:
             await self.master.boot()
             self.recorder.open_telemetry()
@@ -360,6 +374,7 @@ class Daemon:
             gc.collect()
             gc.freeze()
             cycle = loop.create_task(self.cycle.run())
+            comms = loop.create_task(self.comms.run())
             server = ControlServer(self.socket_path, command_table(self))
             await server.start()
             self.log(f"running at {self.cfg.loop.rate_Hz:.0f} Hz; control socket {self.socket_path}; "
@@ -376,6 +391,8 @@ class Daemon:
             watchdog.cancel()
             return 0
         finally:
+            if comms is not None:
+                comms.cancel()
             self.motions.planner.close()
             if server is not None:
                 await server.close()

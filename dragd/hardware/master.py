@@ -78,6 +78,8 @@ class Master:
         self.sdo_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dragd-sdo",
                                              initializer=demote_current_thread, initargs=(set(cfg.loop.cpus or ()) or None,))
         self.runtimes: dict[str, BusRuntime] = {}
+        # every drive heartbeat (bus, node, NMT state byte), in the loop's thread: the daemon's comms monitor
+        self.on_heartbeat: Callable[[str, int, int], None] | None = None
         for name, bus in buses.items():
             net = canopen.Network(bus)
             rt = BusRuntime(name, bus, net, layouts[name])
@@ -99,6 +101,8 @@ class Master:
         def cb(can_id: int, data: bytearray, timestamp: float) -> None:
             if len(data) >= 1 and data[0] == 0x00:
                 rt.nodes[node_id].booted_at = time.monotonic()
+            if len(data) >= 1 and self.on_heartbeat is not None:
+                self.on_heartbeat(rt.name, node_id, data[0] & 0x7F)
 
         return cb
 
