@@ -39,6 +39,7 @@ class NodeComms:
     state: int = NmtState.OPERATIONAL
     booted: bool = False  # a boot-up since the last check
     lost: bool = False
+    silent_reported: bool = False
     reported: int | None = None  # the non-operational state already faulted on
     reconfiguring: bool = False
     restart_sent: bool = False
@@ -50,7 +51,8 @@ class CommsMonitor:
     def __init__(self, daemon: Daemon) -> None:
         self.daemon = daemon
         cfg = daemon.cfg
-        self.timeout_s = max(0.05, 3.0 * cfg.master.drive_heartbeat_ms * 1e-3)
+        self.period_s = cfg.master.drive_heartbeat_ms * 1e-3
+        self.timeout_s = max(0.05, 3.0 * self.period_s)
         now = time.monotonic()
         self.nodes = {(j.bus, j.node_id): NodeComms(i, j.bus, j.node_id, now) for i, j in enumerate(cfg.joints)}
         self.outage = False
@@ -84,16 +86,16 @@ class CommsMonitor:
 
     # ------------------------------------------------------------------------------------------ the check
 
-    def _was_enabled(self, now: float) -> bool:
-        """The arm was enabled within a heartbeat timeout of now (the cycle may have faulted first)."""
-        return self.enabled_seen >= 0 and now - self.enabled_seen <= self.timeout_s + 0.2
+    def _was_enabled(self, since: float) -> bool:
+        """The arm was enabled at ``since`` (when communication broke; the cycle's stale count may have faulted
+        it before the heartbeats told why)."""
+        return self.enabled_seen >= 0 and self.enabled_seen >= since - 2 * CHECK_S
 
     def check(self, now: float) -> None:
         d = self.daemon
         c = d.controller
         if c.mode not in (Mode.IDLE, Mode.FAULT):
             self.enabled_seen = now
-        newly_lost = []
         for n in self.nodes.values():
             if n.booted:
                 n.booted = False
@@ -104,22 +106,25 @@ class CommsMonitor:
             silent = now - n.last_hb > self.timeout_s
             if silent and not n.lost:
                 n.lost = True
-                newly_lost.append(n)
+                n.silent_reported = False
             elif not silent and n.lost:
                 n.lost = False
                 n.reported = None
                 d.log(f"node {n.node_id}: heartbeat back ({NMT_NAMES.get(n.state, hex(n.state))})")
-        if newly_lost:
-            if all(n.lost for n in self.nodes.values()) and not self.outage:
-                self.outage = True
-                self.outages += 1
-                self.rejoin = self.rejoin or self._was_enabled(now)
-                d.fault(None, f"bus outage: no heartbeat from any drive for {self.timeout_s * 1e3:.0f} ms "
-                              "(bus off, link down or power lost)")
-            elif not self.outage:
-                for n in newly_lost:
-                    d.fault(n.joint, f"no heartbeat from node {n.node_id} for {self.timeout_s * 1e3:.0f} ms "
-                                     "(drive silent)")
+        lost = [n for n in self.nodes.values() if n.lost]
+        if lost and len(lost) == len(self.nodes) and not self.outage:
+            self.outage = True
+            self.outages += 1
+            # heartbeats are out of phase: the whole bus went quiet around the earliest last heartbeat
+            self.rejoin = self.rejoin or self._was_enabled(min(n.last_hb for n in lost))
+            d.fault(None, f"bus outage: no heartbeat from any drive for {self.timeout_s * 1e3:.0f} ms "
+                          "(bus off, link down or power lost)")
+        elif not self.outage:
+            for n in lost:  # one producer period later, and not every node: that node alone is silent
+                if not n.silent_reported and now - n.last_hb > self.timeout_s + self.period_s:
+                    n.silent_reported = True
+                    d.fault(n.joint, f"no heartbeat from node {n.node_id} for "
+                                     f"{(now - n.last_hb) * 1e3:.0f} ms (drive silent)")
         for n in self.nodes.values():
             if n.lost or n.reconfiguring or n.state in (NmtState.OPERATIONAL, NmtState.INITIALISING):
                 continue
@@ -154,7 +159,7 @@ class CommsMonitor:
     def _rebooted(self, n: NodeComms, now: float) -> None:
         d = self.daemon
         self.reboots += 1
-        self.rejoin = self.rejoin or self._was_enabled(now)
+        self.rejoin = self.rejoin or self._was_enabled(now - 0.1)
         d.fault(n.joint, f"node {n.node_id} rebooted (boot-up while running): reconfiguring it")
         n.reconfiguring = True
         task = asyncio.get_running_loop().create_task(self._reconfigure(n))

@@ -9,6 +9,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -18,7 +19,7 @@ class Benchmark:
     name: str
     unit: str
     doc: str
-    run: Callable[[dict], float]
+    run: Callable[[dict], Any]  # a float, or a report (dict) such as the fault matrix's
 
 
 REGISTRY: dict[str, Benchmark] = {}
@@ -28,8 +29,8 @@ class BenchError(RuntimeError):
     """A benchmark cannot measure what it promises here (the message says why and what to do)."""
 
 
-def benchmark(name: str, unit: str) -> Callable[[Callable[[dict], float]], Callable[[dict], float]]:
-    def wrap(fn: Callable[[dict], float]) -> Callable[[dict], float]:
+def benchmark(name: str, unit: str) -> Callable[[Callable[[dict], Any]], Callable[[dict], Any]]:
+    def wrap(fn: Callable[[dict], Any]) -> Callable[[dict], Any]:
         REGISTRY[name] = Benchmark(name, unit, (fn.__doc__ or "").strip().splitlines()[0], fn)
         return fn
 
@@ -68,7 +69,7 @@ def _load_plugins() -> None:
     """Import modules that register further benchmarks (kept lazy: some pull in heavy dependencies)."""
     import importlib
 
-    for mod in ("dragd.lab.bench.loop", "dragd.lab.bench.identify", "dragd.lab.bench.gap"):
+    for mod in ("dragd.lab.bench.loop", "dragd.lab.bench.identify", "dragd.lab.bench.gap", "dragd.lab.bench.faults"):
         try:
             importlib.import_module(mod)
         except ModuleNotFoundError as exc:
@@ -81,13 +82,14 @@ def names() -> list[str]:
     return sorted(REGISTRY)
 
 
-def run(selected: list[str], opts: dict) -> dict[str, dict[str, float | str]]:
+def run(selected: list[str], opts: dict) -> dict[str, dict[str, Any]]:
     _load_plugins()
     unknown = [n for n in selected if n not in REGISTRY]
     if unknown:
         raise KeyError(f"unknown benchmark(s) {', '.join(unknown)}; expected some of: {', '.join(sorted(REGISTRY))}")
-    result: dict[str, dict[str, float | str]] = {}
+    result: dict[str, dict[str, Any]] = {}
     for name in selected or sorted(REGISTRY):
         b = REGISTRY[name]
-        result[name] = {"value": round(float(b.run(opts)), 6), "unit": b.unit}
+        value = b.run(opts)
+        result[name] = value if isinstance(value, dict) else {"value": round(float(value), 6), "unit": b.unit}
     return result
