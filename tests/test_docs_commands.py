@@ -237,6 +237,7 @@ RULES: list[Rule] = [
     Rule(r"^dragd demo\b", "run", "sim + daemon", extra="--seconds 8", slow=True),
     Rule(r"^dragd bench --list$", "run", "offline"),
     Rule(r"^dragd bench (compensation_us|bus_load) ", "run", "offline"),
+    Rule(r"^dragd bench fault_matrix\b", "run", "sim + daemon: every injectable fault in turn", slow=True),
     Rule(r"^dragd bench (loop_|--json$)", "run", "sim + daemon", extra="--seconds 3", slow=True),
     Rule(r"^dragd bench (identify_|gap_)", "run", "a 10 min log (generated once, cached)", slow=True),
     Rule(r"^dragd experiment startup\b", "run", "sim + daemon", extra="--joints 4 --ramp-s 4",
