@@ -247,6 +247,9 @@ class LoopConfig(_Strict):
     stale_cycles_disable: PosInt = 50  # ... and this many -> disable all (fault)
     fresh_cycles_resume: PosInt = 100  # no axis stale > 1 cycle for this long after a feedback hold -> requested mode
     realtime_priority: Annotated[int, Field(ge=1, le=99), Expect("a SCHED_FIFO priority 1..99")] | None = None
+    # with realtime_priority: mlockall(MCL_CURRENT | MCL_FUTURE) so page faults never stall the cycle (where
+    # permitted: LimitMEMLOCK=infinity in the unit; 'dragd status' memory_locked says whether it applied)
+    lock_memory: bool = True
     cpus: list[Annotated[int, Field(ge=0)]] | None = None
 
 

@@ -22,6 +22,8 @@ from dragd.control.modes import Mode
 from dragd.hardware.cia301 import NmtCommand, NmtState
 from dragd.hardware.master import DriveError
 
+LOG_WARNING, LOG_NOTICE = 4, 5
+
 if TYPE_CHECKING:
     from dragd.daemon.core import Daemon
 
@@ -151,10 +153,10 @@ class CommsMonitor:
             try:
                 d.start()
             except ValueError as exc:
-                d.log(f"rejoin: not enabled again: {exc}")
+                d._log_at(f"rejoin: not enabled again: {exc}", LOG_WARNING)
                 return
             self.rejoins += 1
-            d.log("communication whole again: drives enabled, holding the pose (rejoin)")
+            d._log_at("communication whole again: drives enabled, holding the pose (rejoin)", LOG_NOTICE)
 
     def _rebooted(self, n: NodeComms, now: float) -> None:
         d = self.daemon

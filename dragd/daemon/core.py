@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import gc
+import os
 import signal
 import sys
 import time
@@ -47,21 +48,42 @@ from dragd.realtime import demote_current_thread, scheduler_label, set_realtime
 MAX_FAULTS = 100  # the fault list keeps the newest
 
 
+LOG_ERR, LOG_WARNING, LOG_NOTICE, LOG_INFO = 3, 4, 5, 6  # syslog priorities (journalctl -p)
+
+
+def journal_line(text: str, priority: int = LOG_INFO, journal: bool | None = None) -> str:
+    """One log line; under systemd (stdout is the journal: $JOURNAL_STREAM) prefixed ``<priority>``, which journald
+    takes as the line's priority, so ``journalctl -p warning`` shows dragd's faults."""
+    if journal is None:
+        journal = bool(os.environ.get("JOURNAL_STREAM"))
+    return f"<{priority}>dragd: {text}" if journal else f"dragd: {text}"
+
+
+def _print_log(text: str, priority: int = LOG_INFO) -> None:
+    print(journal_line(text, priority), flush=True)
+
+
 class BusBudgetError(RuntimeError):
     """The configured PDO layout would load a bus beyond its limit."""
 
 
-def go_realtime(loop: asyncio.AbstractEventLoop, priority: int | None, cpus: list[int] | None) -> str:
+def go_realtime(loop: asyncio.AbstractEventLoop, priority: int | None, cpus: list[int] | None,
+                lock_memory: bool = False, applied: dict[str, Any] | None = None) -> str:
     """Make the calling (cycle) thread SCHED_FIFO ``priority`` on ``cpus`` where permitted; return what applies.
 
     Threads started afterwards inherit policy and CPU set, so first the loop's default executor (``run_in_executor
     (None, ...)``, ``asyncio.to_thread``: trajectory resampling, program writes, telemetry open/close) gets threads
     that return to SCHED_OTHER off the cycle's CPUs: a FIFO helper doing seconds of Python would starve the cycle.
+    With ``lock_memory`` (and a priority) the process's memory is locked (mlockall) where permitted; ``applied``
+    receives what set_realtime reports.
     """
     avoid = set(cpus) if cpus else None
     loop.set_default_executor(ThreadPoolExecutor(thread_name_prefix="dragd-exec", initializer=demote_current_thread,
                                                  initargs=(avoid,)))
-    return scheduler_label(set_realtime(priority, avoid), priority)
+    info = set_realtime(priority, avoid, lock_memory=lock_memory and priority is not None)
+    if applied is not None:
+        applied.update(info)
+    return scheduler_label(info, priority)
 
 
 def bus_layouts(cfg: Config) -> dict[str, BusLayout]:
@@ -96,7 +118,7 @@ class Daemon:
                  telemetry_path: str | None = None, rerun: bool = False,
                  log: Callable[[str], None] | None = None) -> None:
         self.cfg = cfg
-        self.log = log or (lambda msg: print(f"dragd: {msg}", flush=True))
+        self.log = log or _print_log  # log(text) or log(text, priority)
         self.socket_path = socket_path or cfg.control.socket
         self.bus_specs = self._bus_specs(bus_override)
         self.layouts = bus_layouts(cfg)
@@ -121,6 +143,7 @@ class Daemon:
         self.protective_stops = 0
         self.stop_requested = False
         self.scheduler = "not started"
+        self.memory_locked = False  # mlockall applied (loop.lock_memory with loop.realtime_priority)
         self.master: Master | None = None
         self.buses: dict[str, can.BusABC] = {}
         self.io: BusIO | None = None
@@ -182,7 +205,7 @@ class Daemon:
             elif ev.kind == "fault":
                 f = ev.fields or {}
                 self._fault_entry(ev.joint, ev.t_s, ev.text, ev.code)
-                self._log_later(f"fault at t={ev.t_s:.3f} s: {ev.text}")
+                self._log_later(f"fault at t={ev.t_s:.3f} s: {ev.text}", LOG_ERR)
                 self.motions.on_fault(ev.text, ev.t_s, bool(f.get("motion")))
                 if self.teaching.recorder is not None:
                     rec.event("teach_fault", program=self.teaching.recorder.name, text=ev.text)
@@ -192,17 +215,27 @@ class Daemon:
                 kind = (ev.fields or {}).get("kind")
                 self.protective_stops += 1
                 self._fault_entry(ev.joint, ev.t_s, ev.text, 0, reaction="hold", kind=kind)
-                self._log_later(f"protective stop at t={ev.t_s:.3f} s: {ev.text}")
+                self._log_later(f"protective stop at t={ev.t_s:.3f} s: {ev.text}", LOG_WARNING)
                 rec.event("protective_stop", kind=kind, text=ev.text)
             elif ev.kind == "track_end":
                 f = ev.fields or {}
                 self.motions.on_end(ev.text, ev.t_s, int(f.get("cycle", 0)))
                 rec.event("track_end", label=f.get("label"), outcome=ev.text)
 
-    def _log_later(self, text: str) -> None:
+    def _log_later(self, text: str, priority: int = LOG_INFO) -> None:
         try:  # logged after this cycle, not inside it
-            asyncio.get_running_loop().call_soon(self.log, text)
+            asyncio.get_running_loop().call_soon(self._log_at, text, priority)
         except RuntimeError:
+            self._log_at(text, priority)
+
+    def _log_at(self, text: str, priority: int) -> None:
+        """A log line with its journald priority (a custom ``log`` that takes only the text gets only the text)."""
+        if priority == LOG_INFO:
+            self.log(text)
+            return
+        try:
+            self.log(text, priority)  # type: ignore[call-arg]
+        except TypeError:
             self.log(text)
 
     # ------------------------------------------------------------------------------------------ operator actions
@@ -279,7 +312,8 @@ class Daemon:
             "tpdo_latency_p99_us": pct(cy.rx_hist, 99),
             "feedback_hold": c.feedback_hold,
             "feedback_holds": c.feedback_holds,
-            "scheduler": self.scheduler,  # the cycle thread's policy (SCHED_FIFO when configured and permitted)
+            "scheduler": self.scheduler,
+            "memory_locked": self.memory_locked,  # the cycle thread's policy (SCHED_FIFO when configured and permitted)
             "requested_mode": MODE_NAMES[c.resume_mode if c.feedback_hold else c.mode],
             "q_rad": cy.est.q_rad.tolist(),
             "dq_rad_s": cy.est.dq_rad_s.tolist(),
@@ -315,7 +349,7 @@ class Daemon:
             try:
                 await asyncio.wait_for(self.teaching.stop(), 15.0)
             except (ValueError, RuntimeError, OSError, asyncio.TimeoutError) as exc:
-                self.log(f"teach: the program could not be written at shutdown: {exc}")
+                self._log_at(f"teach: the program could not be written at shutdown: {exc}", LOG_ERR)
         if c.mode not in (Mode.IDLE, Mode.FAULT):
             self.stop()
             await self.wait_for(lambda: c.mode in (Mode.IDLE, Mode.FAULT), self.cfg.safety.mode_ramp_s + 1.0)
@@ -366,7 +400,13 @@ class Daemon:
         try:
             await self.master.boot()
             self.recorder.open_telemetry()
-            self.scheduler = go_realtime(loop, self.cfg.loop.realtime_priority, self.cfg.loop.cpus)
+            rt: dict[str, Any] = {}
+            self.scheduler = go_realtime(loop, self.cfg.loop.realtime_priority, self.cfg.loop.cpus,
+                                         self.cfg.loop.lock_memory, rt)
+            lock = rt.get("memory_lock") or {}
+            self.memory_locked = bool(lock.get("applied"))
+            if lock.get("requested") and not lock.get("applied"):
+                self._log_at(f"warning: memory not locked: {lock.get('reason')}", LOG_WARNING)
             for sig in (signal.SIGTERM, signal.SIGINT):
                 loop.add_signal_handler(sig, self.request_exit)
             # everything built so far lives for the whole run: out of the cyclic collector's way, so its
