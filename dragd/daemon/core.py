@@ -21,6 +21,7 @@ import signal
 import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -367,6 +368,27 @@ class Daemon:
                 sdnotify.watchdog_ping()
                 last = self.cycle.cycles
 
+    def _lock_run_dir(self) -> None:
+        """One daemon per control socket: an exclusive lock on ``<socket>.lock``, held for the daemon's life and
+        taken before any bus is opened (a second daemon must not send a single frame)."""
+        import fcntl
+
+        path = Path(self.socket_path + ".lock")
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
+        except OSError as exc:
+            raise ValueError(f"cannot create the run lock {path}: {exc.strerror}") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            raise ValueError(f"another dragd holds {path} (its control socket {self.socket_path}); refusing to start "
+                             "a second daemon") from None
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        self._run_lock = fd
+
     async def run(self) -> int:
         from dragd.daemon.commands import command_table
         from dragd.daemon.server import ControlServer
@@ -380,6 +402,7 @@ class Daemon:
             reason = rerun_unavailable()
             if reason:
                 raise ValueError(f"--rerun: {reason}")
+        self._lock_run_dir()
         buses = {}
         try:
             for name, spec in self.bus_specs.items():
