@@ -673,8 +673,10 @@ def load_params(path: str | Path) -> ParamsFile:
 
 def save_params(params: ParamsFile, path: str | Path) -> None:
     """Write a params file (YAML), the format ``load_config`` overlays and the simulator reads."""
+    from dragd.atomic import write_atomic
+
     data = params.model_dump(mode="json", exclude_none=False)
-    Path(path).write_text(yaml.safe_dump(data, sort_keys=False))
+    write_atomic(path, yaml.safe_dump(data, sort_keys=False))  # temp + fsync + rename: never half a params file
 
 
 def apply_params(cfg: Config, params: ParamsFile, source: str = "params") -> Config:

@@ -201,3 +201,25 @@ def test_log_lines_carry_journald_priorities_under_systemd() -> None:
     d.attach({"arm": can.Bus(interface="virtual", channel="unit-journal")})
     d.fault(2, "EMCY 0x2310 from node 3")
     assert any(p == LOG_ERR and "fault at" in t for t, p in lines), lines
+
+
+def test_atomic_write_replaces_whole_or_leaves_the_old_file(tmp_path, monkeypatch) -> None:
+    import os as _os
+
+    from dragd.atomic import write_atomic
+
+    target = tmp_path / "params.yaml"
+    write_atomic(target, "old: 1\n")
+    assert target.read_text() == "old: 1\n"
+
+    def boom(*a, **k):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(_os, "fsync", boom)
+    with pytest.raises(OSError, match="No space"):
+        write_atomic(target, "new: 2\n" * 1000)
+    monkeypatch.undo()
+    assert target.read_text() == "old: 1\n"  # the previous file, whole
+    assert [p.name for p in tmp_path.iterdir()] == ["params.yaml"]  # no temporary left behind
+    write_atomic(target, "new: 2\n")
+    assert target.read_text() == "new: 2\n"

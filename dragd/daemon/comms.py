@@ -45,6 +45,8 @@ class NodeComms:
     reported: int | None = None  # the non-operational state already faulted on
     reconfiguring: bool = False
     restart_sent: bool = False
+    confirmed: bool = True  # reported operational since the master last started it
+    started_at: float = 0.0
 
 
 class CommsMonitor:
@@ -73,6 +75,8 @@ class CommsMonitor:
         self.heartbeats += 1
         n.last_hb = time.monotonic()
         n.state = state
+        if state == NmtState.OPERATIONAL:
+            n.confirmed = True
         if state == NmtState.INITIALISING:
             n.booted = True
 
@@ -82,6 +86,7 @@ class CommsMonitor:
             n.last_hb = now
             n.booted = False  # the boot-ups of the daemon's own NMT reset at start
             n.state = NmtState.OPERATIONAL  # just started by the master (its next heartbeat says so)
+            n.confirmed, n.started_at = False, now  # a pre-operational heartbeat in flight is not a foreign NMT
         while True:
             await asyncio.sleep(CHECK_S)
             self.check(time.monotonic())
@@ -136,6 +141,8 @@ class CommsMonitor:
                     assert d.master is not None
                     d.master.nmt(NmtCommand.START, n.node_id, bus=n.bus)
                     d.log(f"node {n.node_id}: {NMT_NAMES.get(n.state, hex(n.state))} after the outage; NMT start")
+            elif not n.confirmed and now - n.started_at < self.timeout_s:
+                continue  # just started: its heartbeat from before the NMT start may still be in flight
             elif n.reported != n.state:
                 n.reported = n.state
                 d.fault(n.joint, f"node {n.node_id} reports NMT {NMT_NAMES.get(n.state, hex(n.state))} "
@@ -176,6 +183,7 @@ class CommsMonitor:
             await m.run_sdo(m.configure_node, m.runtimes[n.bus], n.node_id)
             m.nmt(NmtCommand.START, n.node_id, bus=n.bus)
             n.state = NmtState.OPERATIONAL  # (its next heartbeat says so; not a foreign NMT command meanwhile)
+            n.confirmed, n.started_at = False, time.monotonic()
             d.log(f"node {n.node_id}: reconfigured after its reboot and started")
         except DriveError as exc:
             self.rejoin = False

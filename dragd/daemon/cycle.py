@@ -49,6 +49,8 @@ class Cycle:
         self.dt = 1.0 / rate_Hz
         self.deadline_s = tpdo_deadline_us * 1e-6
         self.heartbeat_every = max(1, round(heartbeat_ms * 1e-3 / self.dt))
+        self._hb_period_s = self.heartbeat_every * self.dt
+        self._last_hb_t = -1e9
         self.hold_after, self.disable_after = stale_cycles_hold, stale_cycles_disable
         self.node_ids = node_ids
         self.est = Estimate(np.zeros(n), velocity.velocity_rad_s, np.zeros(n), np.zeros(n))
@@ -114,8 +116,11 @@ class Cycle:
         self.scaling.target_counts(c.ref_rad, self.target_counts, self._tmp)
         # write
         io.write(self.supervisor.cw, self.target_counts, self.torque_permille, self.t)
-        if self.cycles % self.heartbeat_every == 0:
+        # the master heartbeat by time as well as by count: a loaded host's missed ticks must not stretch it past
+        # the drives' consumer time (1016h)
+        if self.cycles % self.heartbeat_every == 0 or self.t - self._last_hb_t >= self._hb_period_s - 0.5 * self.dt:
             io.heartbeat()
+            self._last_hb_t = self.t
         return True
 
     def _plausible(self, fb: Feedback) -> None:
