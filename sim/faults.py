@@ -29,6 +29,7 @@ from typing import Any
 import can
 
 from dragd.hardware.cia402 import ERR_REG_GENERIC, State
+from dragd.realtime import demote_current_thread
 
 KINDS = ("drive_silent", "burst_loss", "duplicates", "late_tpdo", "emcy", "drive_fault", "switched_on",
          "node_reboot", "bus_off", "encoder_jump", "garbage")
@@ -120,20 +121,27 @@ class FaultInjector:
                            or self.down_until)
 
     def _late_sender(self) -> None:
+        """Sends the delayed frames in batches (every frame due by now, then sleep until the next is due): one
+        wake-up per millisecond at most, off the real-time policy, so the bus reader answering SYNCs never waits."""
+        demote_current_thread()
         while True:
             with self._late_cv:
                 while not self._late:
                     self._late_cv.wait()
-                due, msg = self._late[0]
+                due = self._late[0][0]
             delay = due - time.monotonic()
             if delay > 0:
-                time.sleep(delay)
+                time.sleep(max(delay, 0.0005))
+            now = time.monotonic()
+            batch = []
             with self._late_cv:
-                self._late.popleft()
-            try:
-                self.bus.send(msg)
-            except can.CanError:
-                self.counters["late_send_errors"] += 1
+                while self._late and self._late[0][0] <= now:
+                    batch.append(self._late.popleft()[1])
+            for msg in batch:
+                try:
+                    self.bus.send(msg)
+                except can.CanError:
+                    self.counters["late_send_errors"] += 1
 
     # -------------------------------------------------------------------------------------- injection
 
