@@ -223,3 +223,23 @@ def test_atomic_write_replaces_whole_or_leaves_the_old_file(tmp_path, monkeypatc
     assert [p.name for p in tmp_path.iterdir()] == ["params.yaml"]  # no temporary left behind
     write_atomic(target, "new: 2\n")
     assert target.read_text() == "new: 2\n"
+
+
+def test_trajectories_are_validated_before_motion() -> None:
+    from dragd.control.trajectory import Trajectory
+
+    ip = InProcess(load_config(DEFAULT_CONFIG))
+    dt = ip.cy.dt
+    n = 6
+    t = np.array([0.0, 1.0, 2.0])
+    ok = Trajectory(t, np.zeros((3, n)), dt)
+    ip.m.validate(ok)  # at rest, inside every limit: accepted
+    far = np.zeros((3, n))
+    far[1:, 2] = 50.0  # beyond the limits (and the encoding)
+    with pytest.raises(ValueError, match="joint3 leaves its position limits"):
+        ip.m.validate(Trajectory(t, far, dt))
+    step = np.zeros((3, n))
+    step[1:, 1] = 0.3
+    fast = Trajectory(np.array([0.0, 0.01, 0.02]), step, dt)  # 0.3 rad in 10 ms: a step target
+    with pytest.raises(ValueError, match="joint2 would move at .* rad/s"):
+        ip.m.validate(fast)
