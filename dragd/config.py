@@ -267,6 +267,9 @@ class LoopConfig(_Strict):
     stale_cycles_disable: PosInt = 50  # ... and this many -> disable all (fault)
     fresh_cycles_resume: PosInt = 100  # no axis stale > 1 cycle for this long after a feedback hold -> requested mode
     realtime_priority: Annotated[int, Field(ge=1, le=99), Expect("a SCHED_FIFO priority 1..99")] | None = None
+    # with realtime_priority: mlockall(MCL_CURRENT | MCL_FUTURE) so page faults never stall the cycle (where
+    # permitted: LimitMEMLOCK=infinity in the unit; 'dragd status' memory_locked says whether it applied)
+    lock_memory: bool = True
     cpus: list[Annotated[int, Field(ge=0)]] | None = None
 
 
@@ -300,6 +303,8 @@ class SafetyConfig(_Strict):
     abort_connection_option: Literal[1, 2, 3] = 3  # 6007h: 1 fault, 2 disable voltage, 3 quick stop
     quick_stop_option: Literal[0, 1, 2, 5, 6] = 2  # 605Ah
     guard: GuardConfig = GuardConfig()  # the runaway guard in drag and the gravity check before it (docs/PAYLOAD.md)
+    # a position sample further from the last accepted one than this speed allows is an encoder fault (rejected)
+    encoder_plausible_speed_rad_s: PosFloat = 6.0
 
 
 class MasterConfig(_Strict):
@@ -394,6 +399,7 @@ class Config(_Strict):
             if key in seen:
                 raise ValueError(f"joints: {j.name} and {seen[key]} share node id {j.node_id} on bus '{j.bus}'")
             seen[key] = j.name
+        self._cross_timing()
         r = self.replay
         for key in ("velocity_limits_rad_s", "acceleration_limits_rad_s2", "jerk_limits_rad_s3",
                     "tracking_error_limit_rad", "residual_current_limit_A", "position_kp_Nm_per_rad",
@@ -403,6 +409,36 @@ class Config(_Strict):
             if isinstance(v, list) and len(v) != len(self.joints):
                 raise ValueError(f"replay.{key}: expected one value or {len(self.joints)} (one per joint), got {len(v)}")
         return self
+
+    def _cross_timing(self) -> None:
+        """Timing and node-id combinations that would leave an arm unwatched or fault it for nothing."""
+        m, s, lp = self.master, self.safety, self.loop
+        period_ms = 1000.0 / lp.rate_Hz
+        if m.heartbeat_consumer_ms < 2 * m.heartbeat_ms:
+            raise ValueError(f"master.heartbeat_consumer_ms: expected >= 2 x master.heartbeat_ms "
+                             f"({2 * m.heartbeat_ms} ms: one lost heartbeat must not stop the drives), "
+                             f"got {m.heartbeat_consumer_ms}")
+        if m.heartbeat_consumer_ms > 5000:
+            raise ValueError(f"master.heartbeat_consumer_ms: expected <= 5000 ms (a dead master must stop the drives "
+                             f"within seconds), got {m.heartbeat_consumer_ms}")
+        lo_ms = max(5.0, 3.0 * period_ms)
+        if not lo_ms <= s.rpdo_timeout_ms <= 1000:
+            raise ValueError(f"safety.rpdo_timeout_ms: expected {lo_ms:g}..1000 ms (at least 3 cycles of "
+                             f"{period_ms:g} ms, at most 1 s of an unwatched arm), got {s.rpdo_timeout_ms}")
+        if lp.tpdo_deadline_us >= period_ms * 1000.0:
+            raise ValueError(f"loop.tpdo_deadline_us: expected below the cycle period {period_ms * 1000.0:g} us "
+                             f"(loop.rate_Hz {lp.rate_Hz:g}), got {lp.tpdo_deadline_us}")
+        if m.drive_heartbeat_ms > 1000:
+            raise ValueError(f"master.drive_heartbeat_ms: expected <= 1000 ms (the daemon consumes the drives' "
+                             f"heartbeats: a silent drive must be noticed within seconds), got {m.drive_heartbeat_ms}")
+        for i, j in enumerate(self.joints):
+            if j.velocity_limit_rad_s >= s.encoder_plausible_speed_rad_s:
+                raise ValueError(f"safety.encoder_plausible_speed_rad_s: expected above every joint's "
+                                 f"velocity_limit_rad_s, got {s.encoder_plausible_speed_rad_s} <= joints[{i}] "
+                                 f"({j.name}) {j.velocity_limit_rad_s}")
+            if j.node_id == m.node_id:
+                raise ValueError(f"master.node_id: expected a node id no drive uses, got {m.node_id} "
+                                 f"= joints[{i}] ({j.name}).node_id")
 
     def per_joint(self, value: float | list[float]) -> list[float]:
         """A ``PerJoint`` setting as one value per joint."""
@@ -678,8 +714,10 @@ def load_params(path: str | Path) -> ParamsFile:
 
 def save_params(params: ParamsFile, path: str | Path) -> None:
     """Write a params file (YAML), the format ``load_config`` overlays and the simulator reads."""
+    from dragd.atomic import write_atomic
+
     data = params.model_dump(mode="json", exclude_none=False)
-    Path(path).write_text(yaml.safe_dump(data, sort_keys=False))
+    write_atomic(path, yaml.safe_dump(data, sort_keys=False))  # temp + fsync + rename: never half a params file
 
 
 def apply_params(cfg: Config, params: ParamsFile, source: str = "params") -> Config:

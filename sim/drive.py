@@ -213,6 +213,7 @@ class SimDrive:
         self.route_epoch = 0
         self.nmt_state = NmtState.INITIALISING
         self._sim_t = 0.0
+        self.encoder_offset_counts = 0  # an injected encoder jump (sim/faults.py), added to 6064h
         self._reset_application_state()
         self._reset_communication_state()
 
@@ -429,7 +430,7 @@ class SimDrive:
     # ==================================================================================================
     def _sample(self, io: AxisIO) -> None:
         cells = self.store.cells
-        cells[self._s_position] = _wrap_int32(round(io.position_rad * self._counts_per_rad))
+        cells[self._s_position] = _wrap_int32(round(io.position_rad * self._counts_per_rad) + self.encoder_offset_counts)
         cells[self._s_velocity] = _clamp_int32(round(io.velocity_rad_s * self._counts_per_rad))
         current_permille = _clamp_int16(round(io.current_measured_A / self._A_per_permille))
         cells[self._s_current_actual] = current_permille

@@ -14,6 +14,7 @@ import logging
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import can
@@ -52,6 +53,7 @@ class SimNetwork:
         self.late_threshold_s = late_threshold_s
         self.recv_timeout_s = recv_timeout_s
         self.counters = NetworkCounters()
+        self.rx_muted: Callable[[], bool] | None = None  # an injected link-down (sim/faults.py): drop what arrives
         self._routes: dict[int, tuple[SimDrive, ...]] = {}
         self._sync_routes: dict[int, tuple[SimDrive, ...]] = {}
         self._epoch = -1
@@ -100,6 +102,8 @@ class SimNetwork:
                 time.sleep(timeout)
                 continue
             if msg is not None:
+                if self.rx_muted is not None and self.rx_muted():
+                    continue
                 self.dispatch(msg)
 
     def dispatch(self, msg: can.Message) -> None:

@@ -8,7 +8,7 @@ the sim then runs behind real time: rtf < 1). The SimNetwork reader thread answe
 
 Control commands: ``state``, ``operator`` (scenario dict or file, starting now), ``operator_events``,
 ``set_q`` (teleport, only while every drive's power stage is off), ``drives``, ``fault`` (inject a
-device fault into one drive), ``stop``.
+device fault into one drive), ``inject`` (a bus or node fault: sim/faults.py), ``stop``.
 """
 
 from __future__ import annotations
@@ -36,6 +36,7 @@ from dragd.protocol import ControlError
 from dragd.realtime import demote_current_thread, scheduler_label, set_realtime
 from sim.axis import AxisIO
 from sim.drive import SimDrive
+from sim.faults import FaultError, FaultInjector
 from sim.network import SimNetwork
 from sim.operator import Operator, ScenarioError, load_scenario, validate_scenario
 from sim.physics import ArmPhysics
@@ -128,6 +129,7 @@ class SimProcess:
         self.buses: list[Any] = []
         self.drives: list[SimDrive] = []
         self.networks: list[SimNetwork] = []
+        self.injectors: list[FaultInjector] = []
         # run statistics
         self.substeps = truth.physics_rate_Hz // 1000
         self.ticks = 0
@@ -163,11 +165,14 @@ class SimProcess:
             self.realtime = set_realtime(self.realtime_priority, self.cpus)
         try:
             self.buses = [open_bus(spec) for spec in self.specs]
+            self.injectors = [FaultInjector(bus) for bus in self.buses]
             for j, ax in zip(self.truth.joints, self.axes):
-                bus, spec = self.buses[j.bus_index], self.specs[j.bus_index]
-                self.drives.append(SimDrive(drive_params(j, spec.fd), ax, bus.send))
+                spec, inj = self.specs[j.bus_index], self.injectors[j.bus_index]
+                self.drives.append(SimDrive(drive_params(j, spec.fd), ax, inj.sender(drive_params(j, spec.fd).node_id)))
             self.networks = [SimNetwork(bus, [d for d, j in zip(self.drives, self.truth.joints) if j.bus_index == k])
                              for k, bus in enumerate(self.buses)]
+            for net, inj in zip(self.networks, self.injectors):
+                net.rx_muted = inj.rx_muted
             if self.control_path is not None:
                 self._start_control()
             if self.scenario is not None:
@@ -392,6 +397,22 @@ class SimProcess:
                 raise ControlError(f"fault: code: expected an EMCY error code 0x0001..0xFFFF, got {code!r}")
             drive.inject_fault(int(code))
             return {"node_id": node_id, "code": int(code)}
+
+        @table.command("inject")
+        def inject(kind: str, node_id: int | None = None, **args: Any) -> dict[str, Any]:
+            """Inject a bus or node fault now (sim/faults.py lists the kinds and their arguments)."""
+            if node_id is not None:
+                args["node_id"] = node_id
+            bus_index = 0
+            if node_id is not None:
+                k = next((i for i, d in enumerate(self.drives) if d.node_id == node_id), None)
+                if k is not None:
+                    bus_index = self.truth.joints[k].bus_index
+            drives = {d.node_id: d for d in self.drives}
+            try:
+                return self.injectors[bus_index].inject(kind, drives, args, self.lock)
+            except FaultError as exc:
+                raise ControlError(str(exc)) from None
 
         @table.command("stop")
         def stop() -> dict[str, Any]:

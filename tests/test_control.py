@@ -235,3 +235,59 @@ def test_server_in_running_loop_with_async_client(sock_path):
             return json.loads(line)
 
     assert asyncio.run(main())["mode"] == "drag"
+
+
+def test_typed_fields_deep_nesting_and_the_client_cap(sock_path):
+    from dragd.daemon import server as srv
+
+    table = make_table()
+
+    @table.command("teach")
+    def teach(action: str, overwrite: bool = False, rate_Hz: float | None = None, joints: list[int] | None = None):
+        return {"overwrite": overwrite}
+
+    with ServerThread(sock_path, table):
+        s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        s.settimeout(5)
+        s.connect(sock_path)
+        f = s.makefile("rwb")
+
+        def ask(raw: bytes) -> dict:
+            f.write(raw + b"\n")
+            f.flush()
+            return json.loads(f.readline())
+
+        r = ask(b'{"cmd": "teach", "action": "start", "overwrite": "false"}')
+        assert r["ok"] is False and "field 'overwrite': expected a boolean" in r["error"], r
+        assert ask(b'{"cmd": "teach", "action": "start", "overwrite": false}') == {"ok": True, "overwrite": False}
+        r = ask(b'{"cmd": "teach", "action": 3}')
+        assert r["ok"] is False and "field 'action': expected a string" in r["error"], r
+        r = ask(b'{"cmd": "teach", "action": "x", "rate_Hz": true}')
+        assert r["ok"] is False and "rate_Hz" in r["error"], r
+        assert ask(b'{"cmd": "teach", "action": "x", "rate_Hz": 50}')["ok"] is True  # an integer is a number
+        r = ask(b'{"cmd": "teach", "action": "x", "joints": [1, "2"]}')
+        assert r["ok"] is False and "a list of an integer" in r["error"], r
+        r = ask(b'{"cmd": "status", "x": ' + b"[" * 100_000 + b"]" * 100_000 + b"}")
+        assert r["ok"] is False and "nested too deeply" in r["error"], r
+        r = ask(b'{"cmd": "status", "x": ' + b"[" * 40 + b"]" * 40 + b"}")
+        assert r["ok"] is False and "nested too deeply" in r["error"], r
+        assert ask(b'{"cmd": "status"}')["ok"] is True  # the connection survived
+        extra = []
+        try:
+            for _ in range(srv.MAX_CLIENTS - 1):  # the cap counts this test's own open connection
+                c = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+                c.settimeout(5)
+                c.connect(sock_path)
+                c.sendall(b'{"cmd": "status"}\n')
+                assert json.loads(c.makefile("rb").readline())["ok"] is True
+                extra.append(c)
+            over = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            over.settimeout(5)
+            over.connect(sock_path)
+            r = json.loads(over.makefile("rb").readline())
+            assert r["ok"] is False and "too many control connections" in r["error"], r
+            over.close()
+        finally:
+            for c in extra:
+                c.close()
+        s.close()

@@ -101,9 +101,14 @@ def test_lost_feedback_holds_then_disables_within_bounded_cycles(tmp_path):
             bus.shutdown()
         wait_for(lambda: rig.must("status")["mode"] == "fault", 2.0, "the feedback-loss fault")
         status = rig.must("status")
-        assert status["feedback_holds"] >= 1  # it held first
         text = status["faults"][0]["text"]
-        assert "feedback lost" in text and "node 4" in text and "for 50 cycles" in text, text
+        # the stale count holds at 10 cycles and faults at 50, unless node 4's heartbeat (consumed by the daemon,
+        # every 100 ms) reported NMT stopped first: then that is the fault, named as such
+        if "reports NMT stopped" in text:
+            assert "node 4" in text, text
+        else:
+            assert status["feedback_holds"] >= 1  # it held first
+            assert "feedback lost" in text and "node 4" in text and "for 50 cycles" in text, text
         wait_for(lambda: all(rig.sim_call("state")["brakes"]), 3.0, "every brake engaged")
 
 

@@ -242,6 +242,7 @@ RULES: list[Rule] = [
     Rule(r"^dragd demo\b", "run", "sim + daemon", extra="--seconds 8", slow=True),
     Rule(r"^dragd bench --list$", "run", "offline"),
     Rule(r"^dragd bench (compensation_us|bus_load) ", "run", "offline"),
+    Rule(r"^dragd bench fault_matrix\b", "run", "sim + daemon: every injectable fault in turn", slow=True),
     Rule(r"^dragd bench (loop_|--json$)", "run", "sim + daemon", extra="--seconds 3", slow=True),
     Rule(r"^dragd bench gap_confusion\b", "run", "the independent case matrix: two of its cases here (all: ~30 min)",
          extra="--cases none__ptp_0,pair__backlash1+payload --jobs 1", slow=True),

@@ -29,8 +29,19 @@ def cmd_bench(args: argparse.Namespace) -> int:
         raise CliError(str(exc.args[0])) from None
     except bench.BenchError as exc:
         raise CliError(str(exc), status=1) from None
-    emit(args, result, lambda d: table(["benchmark", "value", "unit"], [(k, v["value"], v["unit"]) for k, v in d.items()])
-         + "".join(f"\n{k}: details with --json" for k, v in d.items() if "detail" in v))
+    def text(d: dict[str, Any]) -> str:
+        rows = [(k, v["value"], v["unit"]) for k, v in d.items() if "value" in v]
+        out = [table(["benchmark", "value", "unit"], rows)] if rows else []
+        for k, v in d.items():
+            if "faults" in v:
+                out.append(table([k, "detected_ms", "reaction", "max_speed_rad_s", "max_drift_deg", "recovered",
+                                  "rows_lost"],
+                                 [(f, r["detected_ms"], r["reaction"], r["max_joint_speed_rad_s"], r["max_drift_deg"],
+                                   r["recovered"], r["rows_lost"]) for f, r in v["faults"].items()]))
+        out += [f"{k}: details with --json" for k, v in d.items() if "detail" in v]
+        return "\n".join(out)
+
+    emit(args, result, text)
     return 0
 
 

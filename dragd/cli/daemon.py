@@ -56,6 +56,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         raise CliError(str(exc), status=1) from None
     except can.CanError as exc:  # e.g. socketcan:can0 on a machine without that interface
         raise CliError(str(exc), status=1) from None
+    except ValueError as exc:  # e.g. another dragd holds the run lock
+        raise CliError(str(exc), status=1) from None
 
 
 def cmd_start(args: argparse.Namespace) -> int:

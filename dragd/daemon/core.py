@@ -16,10 +16,12 @@ from __future__ import annotations
 
 import asyncio
 import gc
+import os
 import signal
 import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -30,6 +32,7 @@ from dragd.control.controller import Controller
 from dragd.control.estimate import VelocityEstimator
 from dragd.control.modes import MODE_NAMES, Mode
 from dragd.daemon import sdnotify
+from dragd.daemon.comms import CommsMonitor
 from dragd.daemon.cycle import Cycle
 from dragd.daemon.motion import Motions
 from dragd.daemon.payload import PayloadTools
@@ -48,21 +51,42 @@ MAX_FAULTS = 100  # the fault list keeps the newest
 PAYLOAD_REACH_M = 0.3  # a flange load's centre of mass lies within this of the flange (the guard's plausibility test)
 
 
+LOG_ERR, LOG_WARNING, LOG_NOTICE, LOG_INFO = 3, 4, 5, 6  # syslog priorities (journalctl -p)
+
+
+def journal_line(text: str, priority: int = LOG_INFO, journal: bool | None = None) -> str:
+    """One log line; under systemd (stdout is the journal: $JOURNAL_STREAM) prefixed ``<priority>``, which journald
+    takes as the line's priority, so ``journalctl -p warning`` shows dragd's faults."""
+    if journal is None:
+        journal = bool(os.environ.get("JOURNAL_STREAM"))
+    return f"<{priority}>dragd: {text}" if journal else f"dragd: {text}"
+
+
+def _print_log(text: str, priority: int = LOG_INFO) -> None:
+    print(journal_line(text, priority), flush=True)
+
+
 class BusBudgetError(RuntimeError):
     """The configured PDO layout would load a bus beyond its limit."""
 
 
-def go_realtime(loop: asyncio.AbstractEventLoop, priority: int | None, cpus: list[int] | None) -> str:
+def go_realtime(loop: asyncio.AbstractEventLoop, priority: int | None, cpus: list[int] | None,
+                lock_memory: bool = False, applied: dict[str, Any] | None = None) -> str:
     """Make the calling (cycle) thread SCHED_FIFO ``priority`` on ``cpus`` where permitted; return what applies.
 
     Threads started afterwards inherit policy and CPU set, so first the loop's default executor (``run_in_executor
     (None, ...)``, ``asyncio.to_thread``: trajectory resampling, program writes, telemetry open/close) gets threads
     that return to SCHED_OTHER off the cycle's CPUs: a FIFO helper doing seconds of Python would starve the cycle.
+    With ``lock_memory`` (and a priority) the process's memory is locked (mlockall) where permitted; ``applied``
+    receives what set_realtime reports.
     """
     avoid = set(cpus) if cpus else None
     loop.set_default_executor(ThreadPoolExecutor(thread_name_prefix="dragd-exec", initializer=demote_current_thread,
                                                  initargs=(avoid,)))
-    return scheduler_label(set_realtime(priority, avoid), priority)
+    info = set_realtime(priority, avoid, lock_memory=lock_memory and priority is not None)
+    if applied is not None:
+        applied.update(info)
+    return scheduler_label(info, priority)
 
 
 def bus_layouts(cfg: Config) -> dict[str, BusLayout]:
@@ -97,7 +121,7 @@ class Daemon:
                  telemetry_path: str | None = None, rerun: bool = False,
                  log: Callable[[str], None] | None = None) -> None:
         self.cfg = cfg
-        self.log = log or (lambda msg: print(f"dragd: {msg}", flush=True))
+        self.log = log or _print_log  # log(text) or log(text, priority)
         self.socket_path = socket_path or cfg.control.socket
         self.bus_specs = self._bus_specs(bus_override)
         self.layouts = bus_layouts(cfg)
@@ -120,10 +144,13 @@ class Daemon:
         self.teaching = Teaching(self)
         self.payload = PayloadTools(self)
         self.model_check_failed: list[str] = []  # joints `dragd check model` refused: no drag until a check passes
+        self.comms = CommsMonitor(self)
         self.faults: list[dict[str, Any]] = []
+        self.fault_count = 0  # every fault entry since the start (the list is cleared by 'start', capped)
         self.protective_stops = 0
         self.stop_requested = False
         self.scheduler = "not started"
+        self.memory_locked = False  # mlockall applied (loop.lock_memory with loop.realtime_priority)
         self.master: Master | None = None
         self.buses: dict[str, can.BusABC] = {}
         self.io: BusIO | None = None
@@ -149,7 +176,8 @@ class Daemon:
         self.cycle = Cycle(self.io, self.scaling, self.model, self.controller, self.supervisor, self.velocity,
                            self.recorder, rate_Hz=cfg.loop.rate_Hz, tpdo_deadline_us=cfg.loop.tpdo_deadline_us,
                            heartbeat_ms=cfg.master.heartbeat_ms, stale_cycles_hold=cfg.loop.stale_cycles_hold,
-                           stale_cycles_disable=cfg.loop.stale_cycles_disable, node_ids=self.node_ids)
+                           stale_cycles_disable=cfg.loop.stale_cycles_disable, node_ids=self.node_ids,
+                           plausible_speed_rad_s=cfg.safety.encoder_plausible_speed_rad_s)
         self.recorder.attach(self.controller, self.cycle.est, self.io.feedback)
         self.cycle.after_cycle = [self.record_events, self.teaching.add]
 
@@ -164,6 +192,7 @@ class Daemon:
         self.record_events()
 
     def _fault_entry(self, joint: int | None, t_s: float, text: str, code: int, **extra: Any) -> None:
+        self.fault_count += 1
         self.faults.append({"t_s": round(t_s, 4), "joint": self.cfg.joints[joint].name if joint is not None else None,
                             "node_id": self.node_ids[joint] if joint is not None else None, "code": code,
                             "text": text, **extra})
@@ -183,7 +212,7 @@ class Daemon:
             elif ev.kind == "fault":
                 f = ev.fields or {}
                 self._fault_entry(ev.joint, ev.t_s, ev.text, ev.code)
-                self._log_later(f"fault at t={ev.t_s:.3f} s: {ev.text}")
+                self._log_later(f"fault at t={ev.t_s:.3f} s: {ev.text}", LOG_ERR)
                 self.motions.on_fault(ev.text, ev.t_s, bool(f.get("motion")))
                 if self.teaching.recorder is not None:
                     rec.event("teach_fault", program=self.teaching.recorder.name, text=ev.text)
@@ -193,17 +222,27 @@ class Daemon:
                 kind = (ev.fields or {}).get("kind")
                 self.protective_stops += 1
                 self._fault_entry(ev.joint, ev.t_s, ev.text, 0, reaction="hold", kind=kind)
-                self._log_later(f"protective stop at t={ev.t_s:.3f} s: {ev.text}")
+                self._log_later(f"protective stop at t={ev.t_s:.3f} s: {ev.text}", LOG_WARNING)
                 rec.event("protective_stop", kind=kind, text=ev.text)
             elif ev.kind == "track_end":
                 f = ev.fields or {}
                 self.motions.on_end(ev.text, ev.t_s, int(f.get("cycle", 0)))
                 rec.event("track_end", label=f.get("label"), outcome=ev.text)
 
-    def _log_later(self, text: str) -> None:
+    def _log_later(self, text: str, priority: int = LOG_INFO) -> None:
         try:  # logged after this cycle, not inside it
-            asyncio.get_running_loop().call_soon(self.log, text)
+            asyncio.get_running_loop().call_soon(self._log_at, text, priority)
         except RuntimeError:
+            self._log_at(text, priority)
+
+    def _log_at(self, text: str, priority: int) -> None:
+        """A log line with its journald priority (a custom ``log`` that takes only the text gets only the text)."""
+        if priority == LOG_INFO:
+            self.log(text)
+            return
+        try:
+            self.log(text, priority)  # type: ignore[call-arg]
+        except TypeError:
             self.log(text)
 
     # ------------------------------------------------------------------------------------------ operator actions
@@ -370,17 +409,23 @@ class Daemon:
             "tpdo_latency_p99_us": pct(cy.rx_hist, 99),
             "feedback_hold": c.feedback_hold,
             "feedback_holds": c.feedback_holds,
-            "scheduler": self.scheduler,  # the cycle thread's policy (SCHED_FIFO when configured and permitted)
+            "scheduler": self.scheduler,
+            "memory_locked": self.memory_locked,  # the cycle thread's policy (SCHED_FIFO when configured and permitted)
             "requested_mode": MODE_NAMES[c.resume_mode if c.feedback_hold else c.mode],
             "q_rad": cy.est.q_rad.tolist(),
             "dq_rad_s": cy.est.dq_rad_s.tolist(),
             "current_A": cy.est.current_A.tolist(),
             "command_A": c.cmd_A.tolist(),
             "faults": list(self.faults),
+            "fault_count": self.fault_count,
             "drives": drives,
             **self.motions.status(),
             "bus_load_pct": {k: round(v["load_pct"], 2) for k, v in self.budget.items()},
             "tx_errors": io.tx_errors if io is not None else 0,
+            "rejected_frames": io.rejected_frames if io is not None else 0,
+            "duplicate_tpdos": io.duplicate_tpdos if io is not None else 0,
+            "encoder_rejects": cy.encoder_rejects,
+            "comms": self.comms.status(),
             "error_frames": io.error_frames if io is not None else 0,
             "clamp_cycles": c.clamp_cycles,
             "guard": {"armed": bool(c.guard is not None and c.guard.armed), "trips": c.guard_trips,
@@ -405,7 +450,7 @@ class Daemon:
             try:
                 await asyncio.wait_for(self.teaching.stop(), 15.0)
             except (ValueError, RuntimeError, OSError, asyncio.TimeoutError) as exc:
-                self.log(f"teach: the program could not be written at shutdown: {exc}")
+                self._log_at(f"teach: the program could not be written at shutdown: {exc}", LOG_ERR)
         if c.mode not in (Mode.IDLE, Mode.FAULT):
             self.stop()
             await self.wait_for(lambda: c.mode in (Mode.IDLE, Mode.FAULT), self.cfg.safety.mode_ramp_s + 1.0)
@@ -423,6 +468,27 @@ class Daemon:
                 sdnotify.watchdog_ping()
                 last = self.cycle.cycles
 
+    def _lock_run_dir(self) -> None:
+        """One daemon per control socket: an exclusive lock on ``<socket>.lock``, held for the daemon's life and
+        taken before any bus is opened (a second daemon must not send a single frame)."""
+        import fcntl
+
+        path = Path(self.socket_path + ".lock")
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
+        except OSError as exc:
+            raise ValueError(f"cannot create the run lock {path}: {exc.strerror}") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            raise ValueError(f"another dragd holds {path} (its control socket {self.socket_path}); refusing to start "
+                             "a second daemon") from None
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        self._run_lock = fd
+
     async def run(self) -> int:
         from dragd.daemon.commands import command_table
         from dragd.daemon.server import ControlServer
@@ -436,10 +502,13 @@ class Daemon:
             reason = rerun_unavailable()
             if reason:
                 raise ValueError(f"--rerun: {reason}")
+        self._lock_run_dir()
         buses = {}
         try:
             for name, spec in self.bus_specs.items():
                 buses[name] = open_bus(spec)
+                # CANopen uses 11-bit ids only: 29-bit frames (whose ids can equal a COB-ID) never reach the stack
+                buses[name].set_filters([{"can_id": 0, "can_mask": 0, "extended": False}])
         except BaseException:
             for bus in buses.values():
                 bus.shutdown()
@@ -448,11 +517,19 @@ class Daemon:
         assert self.io is not None
         self.master = Master(self.cfg, self.buses, self.layouts, loop,
                              {name: [self.io.listener(name)] for name in self.buses}, log=self.log)
+        self.master.on_heartbeat = self.comms.on_heartbeat
         server = None
+        comms: asyncio.Task[None] | None = None
         try:
             await self.master.boot()
             self.recorder.open_telemetry()
-            self.scheduler = go_realtime(loop, self.cfg.loop.realtime_priority, self.cfg.loop.cpus)
+            rt: dict[str, Any] = {}
+            self.scheduler = go_realtime(loop, self.cfg.loop.realtime_priority, self.cfg.loop.cpus,
+                                         self.cfg.loop.lock_memory, rt)
+            lock = rt.get("memory_lock") or {}
+            self.memory_locked = bool(lock.get("applied"))
+            if lock.get("requested") and not lock.get("applied"):
+                self._log_at(f"warning: memory not locked: {lock.get('reason')}", LOG_WARNING)
             for sig in (signal.SIGTERM, signal.SIGINT):
                 loop.add_signal_handler(sig, self.request_exit)
             # everything built so far lives for the whole run: out of the cyclic collector's way, so its
@@ -460,6 +537,7 @@ class Daemon:
             gc.collect()
             gc.freeze()
             cycle = loop.create_task(self.cycle.run())
+            comms = loop.create_task(self.comms.run())
             server = ControlServer(self.socket_path, command_table(self))
             await server.start()
             self.log(f"running at {self.cfg.loop.rate_Hz:.0f} Hz; control socket {self.socket_path}; "
@@ -476,6 +554,8 @@ class Daemon:
             watchdog.cancel()
             return 0
         finally:
+            if comms is not None:
+                comms.cancel()
             self.motions.planner.close()
             if server is not None:
                 await server.close()

@@ -24,7 +24,7 @@ from dragd.control.controller import Controller, Estimate
 from dragd.control.estimate import VelocityEstimator
 from dragd.control.modes import Mode
 from dragd.hardware.drives import DriveSupervisor, Target
-from dragd.hardware.io import BusIO
+from dragd.hardware.io import BusIO, Feedback
 from dragd.hardware.scaling import Scaling
 from dragd.model import RobotModel
 from dragd.realtime import Ticker
@@ -42,13 +42,15 @@ class Cycle:
     def __init__(self, io: BusIO, scaling: Scaling, model: RobotModel, controller: Controller,
                  supervisor: DriveSupervisor, velocity: VelocityEstimator, recorder: Recorder, *, rate_Hz: float,
                  tpdo_deadline_us: float, heartbeat_ms: float, stale_cycles_hold: int, stale_cycles_disable: int,
-                 node_ids: list[int]) -> None:
+                 node_ids: list[int], plausible_speed_rad_s: float = 6.0) -> None:
         n = controller.n
         self.io, self.scaling, self.model = io, scaling, model
         self.controller, self.supervisor, self.velocity, self.recorder = controller, supervisor, velocity, recorder
         self.dt = 1.0 / rate_Hz
         self.deadline_s = tpdo_deadline_us * 1e-6
         self.heartbeat_every = max(1, round(heartbeat_ms * 1e-3 / self.dt))
+        self._hb_period_s = self.heartbeat_every * self.dt
+        self._last_hb_t = -1e9
         self.hold_after, self.disable_after = stale_cycles_hold, stale_cycles_disable
         self.node_ids = node_ids
         self.est = Estimate(np.zeros(n), velocity.velocity_rad_s, np.zeros(n), np.zeros(n), np.zeros(n))
@@ -66,6 +68,16 @@ class Cycle:
         self.compute_hist = Histogram(0.0, 5_000.0, 2.0)
         self.rx_hist = Histogram(0.0, 5_000.0, 5.0)
         self.after_cycle: list[object] = []  # callables run after each cycle (the daemon records events)
+        # encoder plausibility: a sample further from the last accepted one than plausible_speed allows is rejected
+        # (treated as a missing TPDO); rejected for stale_cycles_hold cycles in a row, it is an encoder fault
+        self.jump_step_counts = plausible_speed_rad_s * self.dt * scaling.counts_per_rev / (2.0 * np.pi) + 2.0
+        self.encoder_rejects = 0
+        self._prev_counts = np.zeros(n, dtype=np.int64)
+        self._since = np.ones(n)  # cycles since the last accepted sample (+1)
+        self._jump_d = np.zeros(n)
+        self._jump_lim = np.zeros(n)
+        self._jump_mask = np.zeros(n, dtype=bool)
+        self._jump_run = np.zeros(n, dtype=np.int64)
 
     def tick(self, period_us: float, expirations: int) -> None:
         """A tick: the cycle's time advances (a late tick samples later and counts the ticks it missed)."""
@@ -84,7 +96,9 @@ class Cycle:
             if not complete:
                 return False  # wait for a first full set of positions before computing anything
             self.velocity.reset(fb.counts)
+            self._prev_counts[:] = fb.counts
             self.primed = True
+        self._plausible(fb)
         worst, j = fb.worst_stale()
         c.feedback(worst, j, self.node_ids[j], est.q_rad, self.hold_after, self.disable_after)
         # estimate
@@ -104,9 +118,46 @@ class Cycle:
         self.scaling.target_counts(c.ref_rad, self.target_counts, self._tmp)
         # write
         io.write(self.supervisor.cw, self.target_counts, self.torque_permille, self.t)
-        if self.cycles % self.heartbeat_every == 0:
+        # the master heartbeat by time as well as by count: a loaded host's missed ticks must not stretch it past
+        # the drives' consumer time (1016h)
+        if self.cycles % self.heartbeat_every == 0 or self.t - self._last_hb_t >= self._hb_period_s - 0.5 * self.dt:
             io.heartbeat()
+            self._last_hb_t = self.t
         return True
+
+    def _plausible(self, fb: Feedback) -> None:
+        """Reject position samples that moved further than physics allows since the last accepted one."""
+        d, lim, mask, prev, since = self._jump_d, self._jump_lim, self._jump_mask, self._prev_counts, self._since
+        np.subtract(fb.counts, prev, out=d, casting="unsafe")
+        np.abs(d, out=d)
+        np.multiply(self.jump_step_counts, since, out=lim)
+        np.greater(d, lim, out=mask)
+        mask &= fb.rx
+        if np.count_nonzero(mask):
+            self._reject(fb, mask)
+        np.copyto(prev, fb.counts, where=fb.rx)
+        since += 1.0
+        np.copyto(since, 1.0, where=fb.rx)
+        np.copyto(self._jump_run, 0, where=fb.rx)
+
+    def _reject(self, fb: Feedback, mask: np.ndarray) -> None:
+        """The rare path: each implausible sample is dropped (the joint counts as stale); persistent, a fault."""
+        for j in np.flatnonzero(mask):
+            raw = int(fb.counts[j])
+            jump_rad = (raw - int(self._prev_counts[j])) * 2.0 * np.pi / float(self.scaling.counts_per_rev[j])
+            self.encoder_rejects += 1
+            self._jump_run[j] += 1
+            if self._jump_run[j] >= self.hold_after:
+                # persistent: a real offset, not a glitch: fault (brakes), and the new position is the baseline
+                self.controller.fault(int(j), f"encoder jump on node {self.node_ids[j]}: position moved "
+                                              f"{jump_rad:+.4f} rad in {int(self._since[j])} cycle(s), beyond "
+                                              "physics; samples rejected, arm stopped")
+                self._jump_run[j] = 0
+                continue  # accepted as the new baseline below
+            fb.counts[j] = self._prev_counts[j]
+            fb.rx[j] = False
+            fb.rx_count -= 1
+            fb.stale[j] = int(self._since[j])
 
     async def run(self) -> None:
         """The loop: tick → read → step → log, until ``exit_requested``."""

@@ -115,6 +115,32 @@ class Motions:
 
     # ------------------------------------------------------------------------------------------ tracks
 
+    def validate(self, traj: Trajectory) -> None:
+        """Refuse (ValueError, before any motion) a trajectory beyond the position limits, faster than physics
+        (a step target would drive full current), or outside the drives' 32-bit position encoding."""
+        d, c = self.d, self.controller
+        table = np.asarray(traj.table)
+        names = d.cfg.joint_names
+        lo, hi = c.safety.lim_lo_rad, c.safety.lim_hi_rad
+        for j in range(c.n):
+            qj = table[:, j]
+            if qj.min() < lo[j] or qj.max() > hi[j]:
+                k = int(np.argmax((qj < lo[j]) | (qj > hi[j])))
+                raise ValueError(f"track: {names[j]} leaves its position limits [{lo[j]:+.3f}, {hi[j]:+.3f}] rad at "
+                                 f"t = {k * traj.dt_s:.3f} s ({qj[k]:+.4f} rad)")
+        vmax = d.cfg.safety.encoder_plausible_speed_rad_s
+        if table.shape[0] > 1:
+            v = np.abs(np.diff(table, axis=0)) / traj.dt_s
+            j = int(np.argmax(v.max(axis=0)))
+            if v[:, j].max() > vmax:
+                k = int(np.argmax(v[:, j]))
+                raise ValueError(f"track: {names[j]} would move at {v[k, j]:.1f} rad/s at t = {k * traj.dt_s:.3f} s "
+                                 f"(a step in the target?), beyond safety.encoder_plausible_speed_rad_s {vmax:g}")
+        counts = (table * d.scaling.counts_per_rev / (2 * np.pi)) * d.scaling.direction + d.scaling.offset_counts
+        if np.abs(counts).max() >= 2 ** 31:
+            j = int(np.argmax(np.abs(counts).max(axis=0)))
+            raise ValueError(f"track: {names[j]}'s target is beyond the drives' 32-bit position encoding")
+
     async def track(self, traj: Trajectory, *, rate: float = 1.0, cycles: int = 1) -> None:
         """Switch the drives to CSP and follow ``traj`` (identification runs and replay).
 
@@ -130,6 +156,7 @@ class Motions:
             raise ValueError(f"track: expected {c.n} joints per sample, got {traj.table.shape[1]}")
         if not 0.0 < rate <= 1.0:
             raise ValueError(f"track: speed: expected a fraction in (0, 1], got {rate}")
+        self.validate(traj)
         c.take_over_feedback_hold("track")
         start_err = np.abs(traj.start_q - q)
         if np.any(start_err > START_TOLERANCE_RAD):

@@ -15,6 +15,8 @@ import logging
 import os
 import socket
 import stat
+import types
+import typing
 from pathlib import Path
 from typing import Any, Awaitable, Callable
 
@@ -39,6 +41,7 @@ class CommandTable:
 
     def __init__(self) -> None:
         self._commands: dict[str, tuple[Callable[..., Any], inspect.Signature]] = {}
+        self._hints: dict[str, dict[str, Any]] = {}
 
     def command(self, name: str | None = None) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
         def register(fn: Callable[..., Any]) -> Callable[..., Any]:
@@ -88,13 +91,83 @@ class CommandTable:
         ]
         if missing:
             raise ControlError(f"cmd {cmd!r} needs field(s): {', '.join(missing)}")
+        hints = self._hints.get(cmd)
+        if hints is None:
+            try:
+                hints = self._hints[cmd] = typing.get_type_hints(fn)
+            except Exception:  # an annotation this module cannot resolve: unchecked, as before
+                hints = self._hints[cmd] = {}
+        for name, value in args.items():
+            want = hints.get(name)
+            if want is not None and not _conforms(value, want):
+                raise ControlError(f"cmd {cmd!r}: field {name!r}: expected {_type_name(want)}, got "
+                                   f"{json.dumps(value)[:80]}")
         result = fn(**args)
         if inspect.isawaitable(result):
             result = await result
         return {} if result is None else result
 
 
+def _conforms(value: Any, want: Any) -> bool:
+    """A JSON value against a handler's annotation: booleans are booleans (``"false"`` is no bool), numbers are
+    numbers (never booleans), strings strings, lists of the element type; unknown annotations accept anything."""
+    if want is Any or want is object:
+        return True
+    origin = typing.get_origin(want)
+    if origin in (typing.Union, types.UnionType):
+        return any(_conforms(value, a) for a in typing.get_args(want))
+    if want is type(None):
+        return value is None
+    if want is bool:
+        return isinstance(value, bool)
+    if want is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if want is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if want is str:
+        return isinstance(value, str)
+    if origin is list or want is list:
+        args = typing.get_args(want)
+        return isinstance(value, list) and (not args or all(_conforms(v, args[0]) for v in value))
+    if origin is dict or want is dict:
+        return isinstance(value, dict)
+    return True
+
+
+def _type_name(want: Any) -> str:
+    if typing.get_origin(want) in (typing.Union, types.UnionType):
+        return " or ".join(_type_name(a) for a in typing.get_args(want))
+    if want is type(None):
+        return "null"
+    names = {bool: "a boolean (true/false)", int: "an integer", float: "a number", str: "a string"}
+    if want in names:
+        return names[want]
+    if typing.get_origin(want) is list:
+        (arg,) = typing.get_args(want) or (Any,)
+        return f"a list of {_type_name(arg)}" if arg is not Any else "a list"
+    return getattr(want, "__name__", str(want))
+
+
+def _depth(obj: Any, limit: int) -> int:
+    """Nesting depth of a parsed JSON value, iteratively (stops counting beyond ``limit``)."""
+    stack, deepest = [(obj, 1)], 0
+    while stack:
+        o, d = stack.pop()
+        deepest = max(deepest, d)
+        if deepest > limit:
+            return deepest
+        if isinstance(o, dict):
+            stack.extend((v, d + 1) for v in o.values())
+        elif isinstance(o, list):
+            stack.extend((v, d + 1) for v in o)
+    return deepest
+
+
 # -- server --------------------------------------------------------------------------------
+
+MAX_DEPTH = 16  # nesting of a request (a trajectory is a list of lists: depth 3)
+MAX_CLIENTS = 16  # connections at once; more get an error line and are closed
+IDLE_TIMEOUT_S = 600.0  # a connection that sends nothing for this long is closed
 
 
 def _probe(path: str, timeout_s: float = 0.5) -> str:
@@ -196,11 +269,22 @@ class ControlServer:
     async def _serve_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         task = asyncio.current_task()
         assert task is not None
+        if len(self._clients) >= MAX_CLIENTS:
+            self.errors += 1
+            writer.write(encode_line({"ok": False, "error": f"too many control connections (at most {MAX_CLIENTS} "
+                                                           "at once); close one and retry"}))
+            try:
+                await writer.drain()
+            finally:
+                writer.close()
+            return
         self._clients.add(task)
         try:
             while True:
                 try:
-                    line = await reader.readuntil(b"\n")
+                    line = await asyncio.wait_for(reader.readuntil(b"\n"), IDLE_TIMEOUT_S)
+                except asyncio.TimeoutError:
+                    break  # idle: the slot goes to someone else
                 except asyncio.IncompleteReadError as e:
                     if not e.partial.strip():
                         break
@@ -240,6 +324,12 @@ class ControlServer:
         except (UnicodeDecodeError, json.JSONDecodeError) as e:
             self.errors += 1
             return {"ok": False, "error": f"malformed JSON request: {e}; expected one JSON object per line"}
+        except RecursionError:
+            self.errors += 1
+            return {"ok": False, "error": f"request nested too deeply (at most {MAX_DEPTH} levels)"}
+        if _depth(request, MAX_DEPTH) > MAX_DEPTH:
+            self.errors += 1
+            return {"ok": False, "error": f"request nested too deeply (at most {MAX_DEPTH} levels)"}
         if not isinstance(request, dict):
             self.errors += 1
             return {

@@ -4,7 +4,9 @@ needs, the enable timeout, and drives that leave operation enabled on their own.
 Targets: ``ENABLED`` (hold, drag, track: operation enabled, a fault reset edge first where a drive is in fault),
 ``QUICK_STOP`` (a fault reaction: quick stop where enabled, else disable voltage), ``DISABLED`` (idle: shutdown to
 ready to switch on). The walk is recomputed only when a statusword, the target or the reset phase changed, or an
-enable is pending: the controlwords otherwise stay as they are (sent every cycle in the command RPDO).
+enable is pending: the controlwords otherwise stay as they are (sent every cycle in the command RPDO). A drive that
+leaves operation enabled on its own (quick stop, switched on, ready to switch on, ...) is a fault: it is never walked
+back up without an operator's ``start``.
 """
 
 from __future__ import annotations
@@ -73,6 +75,10 @@ class DriveSupervisor:
                 if st in (State.FAULT, State.FAULT_REACTION_ACTIVE):
                     # rising edge of bit 7: one cycle low, then high
                     self.cw[i] = CW_FAULT_RESET if self.fault_reset_phase == 1 else CMD_DISABLE_VOLTAGE
+                elif st != State.OPERATION_ENABLED and self.enable_t0 is None and self.fault_reset_phase == 0:
+                    # it left operation enabled on its own (e.g. to switched on): never walked back up silently;
+                    # the fault below takes the arm down and the operator's 'start' enables again
+                    self.cw[i] = CMD_DISABLE_VOLTAGE
                 else:
                     self.cw[i] = next_controlword(st, State.OPERATION_ENABLED)
             else:
@@ -95,7 +101,7 @@ class DriveSupervisor:
         for i, s in enumerate(self.states):
             if s in (State.FAULT, State.FAULT_REACTION_ACTIVE):
                 return i, f"node {self.node_ids[i]} reports {STATE_NAMES[s]} (statusword 0x{int(statusword[i]):04X})"
-            if s == State.QUICK_STOP_ACTIVE or s == State.SWITCH_ON_DISABLED:
+            if s != State.OPERATION_ENABLED:
                 return i, (f"node {self.node_ids[i]} left operation enabled: {STATE_NAMES[s]} "
-                           f"(statusword 0x{int(statusword[i]):04X})")
+                           f"(statusword 0x{int(statusword[i]):04X}); not re-enabled without 'dragd start'")
         return None

@@ -50,6 +50,8 @@ class BusIO:
         self.on_emcy = on_emcy
         self.tx_errors = 0
         self.error_frames = 0
+        self.rejected_frames = 0  # 29-bit ids, RTR, TPDOs shorter than their mapping: dropped, never decoded
+        self.duplicate_tpdos = 0  # a joint's position TPDO a second time within one cycle
         self._waiter: asyncio.Future[bool] | None = None
         self._decoders: dict[str, dict[int, Decoder]] = {}
         self._commands: list[tuple[can.BusABC, can.Message, RpdoEncoder]] = []
@@ -88,17 +90,25 @@ class BusIO:
     def on_frame(self, msg: can.Message, table: dict[int, Decoder]) -> None:
         """Decode a TPDO into the feedback arrays, or report an EMCY.
 
-        Error frames are counted, never decoded: their class bits can equal a COB-ID (0x081 = a node 1 EMCY).
+        Error frames are counted, never decoded: their class bits can equal a COB-ID (0x081 = a node 1 EMCY);
+        29-bit, RTR and too-short frames are counted as rejected; a second position TPDO of a joint within one
+        cycle (a duplicate) is counted and decoded (the same sample).
         """
         if msg.is_error_frame:
             self.error_frames += 1
+            return
+        if msg.is_extended_id or msg.is_remote_frame:  # a 29-bit id can equal a COB-ID; an RTR carries no data
+            self.rejected_frames += 1
             return
         fb = self.feedback
         entry = table.get(msg.arbitration_id)
         if entry is not None:
             j, codec, fields = entry
             if len(msg.data) < codec.size:
+                self.rejected_frames += 1
                 return
+            if fb.rx[j] and "position" in fields:
+                self.duplicate_tpdos += 1
             values = codec.unpack_from(msg.data)
             for f, v in zip(fields, values):
                 if f == "position":

@@ -1,6 +1,6 @@
 """CANopen master: boots the drives in the CiA 302 manner and configures them over SDO.
 
-Sequence (per bus, all nodes): NMT reset node → wait for every boot-up → check device type (CiA 402),
+Sequence (per bus, all nodes): listen for another master's SYNC or heartbeat (refuse if heard) → NMT reset node → wait for every boot-up → check device type (CiA 402),
 supported modes and rated current → configure in pre-operational (heartbeat producer/consumer, PDO
 mappings and transmission types, RPDO deadline, 6007h, 605Ah, 6072h, torque command zero, mode 6060h
 confirmed on 6061h) → read the mappings back and verify → NMT start. SDO runs only here and in the
@@ -24,7 +24,7 @@ import can
 import canopen
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
-from dragd.hardware.cia301 import HEARTBEAT_BASE, NMT_COB_ID, NmtCommand
+from dragd.hardware.cia301 import HEARTBEAT_BASE, NMT_COB_ID, SYNC_COB_ID, NmtCommand
 from dragd.hardware.cia402 import (MODE_CSP, MODE_CST, OD_ABORT_CONNECTION_OPTION, OD_MAX_TORQUE, OD_MODES_OF_OPERATION, OD_MODES_OF_OPERATION_DISPLAY,
                      OD_MOTOR_RATED_CURRENT, OD_QUICK_STOP_OPTION, OD_SUPPORTED_DRIVE_MODES, OD_TARGET_TORQUE,
                      OD_TORQUE_OFFSET)
@@ -38,6 +38,13 @@ DEVICE_TYPE_402 = 0x0192
 
 class DriveError(RuntimeError):
     """A drive that does not answer or behave as configured; the message names bus, node and object."""
+
+
+class MasterConflict(DriveError):
+    """Another CANopen master is active on a bus: this one must not touch the drives."""
+
+
+LISTEN_S = 0.3  # before any NMT: how long to listen for another master's SYNC or heartbeat
 
 
 @dataclass
@@ -78,6 +85,11 @@ class Master:
         self.sdo_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dragd-sdo",
                                              initializer=demote_current_thread, initargs=(set(cfg.loop.cpus or ()) or None,))
         self.runtimes: dict[str, BusRuntime] = {}
+        # every drive heartbeat (bus, node, NMT state byte), in the loop's thread: the daemon's comms monitor
+        self.on_heartbeat: Callable[[str, int, int], None] | None = None
+        self.took_bus = False  # NMT sent: from then on this master owns the drives (and puts them down on exit)
+        self.listening = False  # the window before boot: a SYNC or master heartbeat heard then is another master's
+        self.foreign: str | None = None
         for name, bus in buses.items():
             net = canopen.Network(bus)
             rt = BusRuntime(name, bus, net, layouts[name])
@@ -89,6 +101,9 @@ class Master:
                     node.sdo.MAX_RETRIES = 2
                     net.add_node(node)
                     net.subscribe(HEARTBEAT_BASE + j.node_id, self._heartbeat_cb(rt, j.node_id))
+            net.subscribe(SYNC_COB_ID, self._foreign_cb(name, "SYNC"))
+            net.subscribe(HEARTBEAT_BASE + cfg.master.node_id, self._foreign_cb(name, f"heartbeat of node "
+                                                                                  f"{cfg.master.node_id}"))
             rt.notifier = can.Notifier(bus, [*net.listeners, *listeners.get(name, [])], timeout=0.5, loop=loop)
             net.notifier = rt.notifier
             self.runtimes[name] = rt
@@ -99,8 +114,30 @@ class Master:
         def cb(can_id: int, data: bytearray, timestamp: float) -> None:
             if len(data) >= 1 and data[0] == 0x00:
                 rt.nodes[node_id].booted_at = time.monotonic()
+            if len(data) >= 1 and self.on_heartbeat is not None:
+                self.on_heartbeat(rt.name, node_id, data[0] & 0x7F)
 
         return cb
+
+    def _foreign_cb(self, bus: str, what: str) -> Callable[[int, bytearray, float], None]:
+        def cb(can_id: int, data: bytearray, timestamp: float) -> None:
+            if self.listening and self.foreign is None:
+                self.foreign = f"{what} (COB-ID 0x{can_id:03X}) on bus '{bus}'"
+
+        return cb
+
+    async def listen_for_other_master(self, seconds: float = LISTEN_S) -> None:
+        """Before any NMT: refuse (MasterConflict) when another master's SYNC or heartbeat is on a bus."""
+        self.listening = True
+        try:
+            end = time.monotonic() + seconds
+            while time.monotonic() < end and self.foreign is None:
+                await asyncio.sleep(0.01)
+        finally:
+            self.listening = False
+        if self.foreign is not None:
+            raise MasterConflict(f"another CANopen master is running: heard its {self.foreign} before any NMT; "
+                                 "refusing to reset or configure the drives (is another dragd running on this bus?)")
 
     def nmt(self, command: int, node_id: int = 0, bus: str | None = None) -> None:
         """Send an NMT command (node 0 = all nodes) on one bus or all."""
@@ -110,6 +147,8 @@ class Master:
 
     async def boot(self) -> None:
         """Reset, check, configure and start every drive; raise DriveError naming what failed."""
+        await self.listen_for_other_master()
+        self.took_bus = True
         for rt in self.runtimes.values():
             for info in rt.nodes.values():
                 info.booted_at = None
@@ -241,8 +280,11 @@ class Master:
             raise DriveError(f"{where}: mapping read back {[hex(w) for w in words]}, wrote {[hex(w) for w in want]}")
 
     async def shutdown(self) -> None:
-        """NMT pre-operational (PDOs and their watchdogs stop), stop the notifiers and the worker."""
-        self.nmt(NmtCommand.PRE_OPERATIONAL)
+        """NMT pre-operational (PDOs and their watchdogs stop), stop the notifiers and the worker.
+
+        A master that never took the bus (another master was heard) sends nothing."""
+        if self.took_bus:
+            self.nmt(NmtCommand.PRE_OPERATIONAL)
         for rt in self.runtimes.values():
             if rt.notifier is not None:
                 rt.notifier.stop(timeout=0.5)

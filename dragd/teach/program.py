@@ -178,11 +178,9 @@ def to_yaml(program: Program) -> str:
 
 
 def save_program(program: Program, path: str | Path) -> Path:
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(to_yaml(program))
-    tmp.replace(path)  # atomic: a reader never sees half a program
-    return path
+    from dragd.atomic import write_atomic
+
+    return write_atomic(path, to_yaml(program))  # temp + fsync + rename: a reader never sees half a program
 
 
 def load_program(path: str | Path) -> Program:

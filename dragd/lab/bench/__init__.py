@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from typing import Any
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -19,7 +19,7 @@ class Benchmark:
     name: str
     unit: str
     doc: str
-    run: Callable[[dict], Any]  # value, or (value, detail mapping) reported under "detail"
+    run: Callable[[dict], Any]  # a float, (value, detail mapping) reported under "detail", or a report (dict)
 
 
 REGISTRY: dict[str, Benchmark] = {}
@@ -70,7 +70,7 @@ def _load_plugins() -> None:
     import importlib
 
     for mod in ("dragd.lab.bench.loop", "dragd.lab.bench.identify", "dragd.lab.bench.gap",
-                "dragd.lab.bench.gap_confusion"):
+                "dragd.lab.bench.gap_confusion", "dragd.lab.bench.faults"):
         try:
             importlib.import_module(mod)
         except ModuleNotFoundError as exc:
@@ -92,6 +92,9 @@ def run(selected: list[str], opts: dict) -> dict[str, dict[str, Any]]:
     for name in selected or sorted(REGISTRY):
         b = REGISTRY[name]
         v = b.run(opts)
+        if isinstance(v, dict):  # a report (e.g. the fault matrix): reported as it is
+            result[name] = v
+            continue
         value, detail = v if isinstance(v, tuple) else (v, None)  # a benchmark may add its evidence
         result[name] = {"value": round(float(value), 6), "unit": b.unit}
         if detail is not None:

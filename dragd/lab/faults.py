@@ -1,0 +1,207 @@
+"""The fault matrix: every fault the simulator injects, run against the sim + daemon, measured (docs/SAFETY.md).
+
+For each fault: the arm in drag at rest, the sim's ``inject``, then the daemon's status and the sim's truth polled
+until the policy's reaction and recovery are seen (or a time limit). Per fault::
+
+    detected_ms             injection → the daemon's status shows it (fault, hold, or the counter that names it)
+    reaction                what the daemon did: fault | hold | dropped | tolerated
+    max_joint_speed_rad_s   fastest joint (the sim's truth) from the injection until recovered
+    max_drift_deg           largest joint excursion from the pose at the injection (truth) until recovered
+    recovered               the policy's recovery happened (auto rejoin in HOLD; or 'dragd start' → HOLD; or drag
+                            went on / resumed)
+    rows_lost               telemetry rows dropped by the writer meanwhile (a cycle without feedback still logs a row)
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from dragd.lab.rig import Rig
+
+
+@dataclass(frozen=True)
+class FaultCase:
+    kind: str
+    args: dict[str, Any]
+    reaction: str  # the documented reaction
+    recover: str  # auto (rejoin in hold) | start (operator) | continue (drag goes on or resumes by itself)
+    detect: str  # the status field that detects it when no fault is raised
+    settle_s: float = 0.0  # wait after the injection before recovering (the fault's own duration)
+    expect_fault: tuple[str, ...] = field(default_factory=tuple)  # words in the first fault's text
+
+
+CASES: dict[str, FaultCase] = {
+    "drive_silent": FaultCase("drive_silent", {"node_id": 3, "seconds": 1.0}, "fault", "start", "faults", 1.3,
+                              ("node 3",)),
+    "burst_loss": FaultCase("burst_loss", {"frames": 150}, "hold", "continue", "feedback_holds"),
+    "burst_loss_short": FaultCase("burst_loss", {"frames": 18}, "tolerated", "continue", "late_tpdo_cycles"),
+    "duplicates": FaultCase("duplicates", {"frames": 60}, "tolerated", "continue", "duplicate_tpdos"),
+    "late_tpdo": FaultCase("late_tpdo", {"delay_ms": 15.0, "seconds": 0.3}, "hold", "continue",
+                           "late_tpdo_cycles", 0.4),
+    "emcy": FaultCase("emcy", {"node_id": 2, "code": 0x4210}, "fault", "start", "faults", 0.2, ("EMCY 0x4210",)),
+    "drive_fault": FaultCase("drive_fault", {"node_id": 3, "code": 0x2310}, "fault", "start", "faults", 0.2,
+                             ("node 3",)),
+    "switched_on": FaultCase("switched_on", {"node_id": 5}, "fault", "start", "faults", 0.3,
+                             ("node 5", "left operation enabled")),
+    "node_reboot": FaultCase("node_reboot", {"node_id": 4}, "fault", "auto", "faults", 0.0, ("node 4",)),
+    "bus_off": FaultCase("bus_off", {"seconds": 1.0}, "fault", "auto", "faults", 1.0),
+    "encoder_jump": FaultCase("encoder_jump", {"node_id": 2, "rad": 0.3, "seconds": 0.5}, "fault", "start",
+                              "faults", 0.8, ("encoder jump", "node 2")),
+    "garbage": FaultCase("garbage", {"node_id": 2}, "dropped", "continue", "rejected_frames"),
+}
+
+RECOVER_TIMEOUT_S = 15.0
+
+
+def _counter(status: dict[str, Any], name: str) -> int:
+    if name == "faults":
+        return int(status["fault_count"])
+    return int(status.get(name) or 0)
+
+
+def drag_at_rest(rig: Rig, timeout_s: float = 20.0) -> None:
+    """Enabled, in drag, no fault (restarting the arm where needed)."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        st = rig.must("status")
+        if st["mode"] == "drag" and not st["feedback_hold"]:
+            time.sleep(0.5)
+            return
+        if st["mode"] in ("idle", "fault"):
+            rig.call("start")
+            time.sleep(0.4)
+        elif st["mode"] == "hold" and not st["feedback_hold"] and st["drives_enabled"]:
+            rig.call("mode", mode="drag")
+            time.sleep(0.3)
+        else:
+            time.sleep(0.1)
+    st = rig.must('status')
+    raise RuntimeError(f"the arm did not reach drag within {timeout_s:.0f} s: {st['mode']}, faults {[f['text'] for f in st['faults']][-4:]}")
+
+
+def run_fault(rig: Rig, name: str) -> dict[str, Any]:
+    """Inject one fault into a running rig (arm in drag) and measure the daemon's reaction and recovery."""
+    case = CASES[name]
+    drag_at_rest(rig)
+    before = rig.must("status")
+    telemetry0 = (before.get("telemetry") or {}).get("dropped", 0)
+    sim0 = rig.sim_call("state")
+    q0 = sim0["q_rad"]
+    max_speed, max_drift = 0.0, 0.0
+    texts: list[str] = []
+    old_texts = {f["text"] for f in before["faults"]}
+
+    def saw(st: dict[str, Any]) -> dict[str, Any]:
+        for f in st["faults"]:
+            if f["text"] not in old_texts and f["text"] not in texts:
+                texts.append(f["text"])
+        return st
+
+    def truth() -> None:
+        nonlocal max_speed, max_drift
+        s = rig.sim_call("state")
+        max_speed = max(max_speed, max(abs(v) for v in s["dq_rad_s"]))
+        max_drift = max(max_drift, max(abs(a - b) for a, b in zip(s["q_rad"], q0)))
+
+    injected = rig.sim_call("inject", kind=case.kind, **case.args)
+    if not injected.get("ok"):
+        raise RuntimeError(f"inject {name}: {injected.get('error')}")
+    t_inj = float(injected["t_mono"])
+    detected_ms = None
+    status = before
+    end_detect = time.monotonic() + 5.0
+    while time.monotonic() < end_detect:
+        status = saw(rig.must("status"))
+        now = time.monotonic()
+        if _counter(status, case.detect) > _counter(before, case.detect) or \
+                status["fault_count"] > before["fault_count"]:
+            detected_ms = (now - t_inj) * 1e3
+            break
+        truth()
+    # the fault's own duration, watching the truth
+    end_settle = t_inj + case.settle_s + 0.3
+    while time.monotonic() < end_settle:
+        truth()
+        saw(rig.must("status"))  # (a rejoin's 'start' clears the daemon's fault list: texts are collected here)
+    status = saw(rig.must("status"))
+    new_count = status["fault_count"] - before["fault_count"]
+    holds = status["feedback_holds"] - before["feedback_holds"]
+    if new_count > 0:
+        reaction = "fault"
+    elif case.reaction == "hold":
+        reaction = "hold" if holds > 0 else "tolerated"
+    elif case.detect == "rejected_frames" and detected_ms is not None:
+        reaction = "dropped"
+    else:
+        # (a feedback hold here is the loaded host's own multicast loss, the documented reaction to stale
+        # feedback, not this fault's: reported as feedback_holds, not as the reaction)
+        reaction = "tolerated"
+    recovered = False
+    end = time.monotonic() + RECOVER_TIMEOUT_S
+    started = False
+    while time.monotonic() < end:
+        truth()
+        st = saw(rig.must("status"))
+        if case.recover == "auto":
+            if st["mode"] == "hold" and st["drives_enabled"] and st["comms"]["rejoins"] > before["comms"]["rejoins"]:
+                recovered = True
+                break
+        elif case.recover == "start":
+            if st["mode"] == "hold" and st["drives_enabled"] and started:
+                recovered = True
+                break
+            if st["mode"] == "fault" and not started:
+                if rig.call("start").get("ok"):
+                    started = True
+            elif st["mode"] == "fault":
+                time.sleep(0.2)
+                if rig.must("status")["mode"] == "fault":
+                    rig.call("start")
+        else:
+            if st["mode"] == "drag" and not st["feedback_hold"] and st["fault_count"] == before["fault_count"]:
+                recovered = True
+                break
+            if st["mode"] == "fault":
+                break
+        time.sleep(0.02)
+    after = rig.must("status")
+    sim1 = rig.sim_call("state")
+    rate = sim1["steps"] / sim1["t"] if sim1["t"] > 0 else 1000.0
+    behind = (sim1["late_steps"] + sim1["dropped_steps"] - sim0["late_steps"] - sim0["dropped_steps"]) / rate
+    telemetry1 = (after.get("telemetry") or {}).get("dropped", 0)
+    return {
+        "detected_ms": None if detected_ms is None else round(detected_ms, 1),
+        "reaction": reaction,
+        "max_joint_speed_rad_s": round(max_speed, 4),
+        "max_drift_deg": round(math.degrees(max_drift), 3),
+        "recovered": recovered,
+        "rows_lost": int(telemetry1 - telemetry0),
+        "feedback_holds": holds,
+        # how far the host left the simulated robot behind real time meanwhile (its bus thread starved alike)
+        "sim_behind_ms": round(behind * 1e3, 1),
+        "expected": {"reaction": case.reaction, "recover": case.recover},
+        "faults": texts[:4],
+    }
+
+
+def fault_matrix(names: list[str] | None = None, workdir: Path | None = None,
+                 daemon_args: list[str] | None = None, sim_args: list[str] | None = None) -> dict[str, Any]:
+    """Every fault (or ``names``) against one sim + daemon rig, in turn."""
+    out: dict[str, Any] = {}
+    # as deployed: the daemon's cycle SCHED_FIFO 70, the sim 60 (where permitted; a loaded host otherwise stalls
+    # the master heartbeat past the drives' consumer time, a fault of its own)
+    rig_kw: dict[str, Any] = {"daemon_args": daemon_args if daemon_args is not None else ["--realtime-priority", "70"],
+                              "sim_args": sim_args if sim_args is not None else ["--realtime-priority", "60"]}
+    if workdir is not None:
+        rig_kw["workdir"] = workdir
+    with Rig("faults", **rig_kw) as rig:
+        rig.telemetry = rig.workdir / "faults.mcap"
+        rig.start_sim()
+        rig.start_daemon()
+        for name in names or list(CASES):
+            out[name] = run_fault(rig, name)
+    return out

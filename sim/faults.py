@@ -1,0 +1,218 @@
+"""Bus and node faults the simulated robot injects on command (control socket ``inject``; docs/SAFETY.md).
+
+Every drive transmits through ``FaultInjector.sender(node_id)``; the network's reader thread asks ``rx_muted()``
+before dispatching a frame. With no fault active a frame costs one attribute test and the bus's own ``send``.
+
+Faults (``kind``):
+
+- ``drive_silent``   node_id, seconds: the node transmits nothing (a cut cable; it still receives)
+- ``burst_loss``     frames: the next N frames the drives transmit are lost
+- ``duplicates``     frames: the next N frames are transmitted twice
+- ``late_tpdo``      delay_ms, seconds: TPDOs leave ``delay_ms`` late (after the master's read deadline)
+- ``emcy``           node_id, code: an EMCY (the error stays active; the drive keeps running)
+- ``drive_fault``    node_id, code: a device fault (EMCY + the drive's fault reaction)
+- ``switched_on``    node_id: the drive drops from operation enabled to switched on on its own (power off)
+- ``node_reboot``    node_id: a power cycle of the node: objects back to defaults, boot-up, brake engaged
+- ``bus_off``        seconds: the sim's link goes down (nothing in, nothing out), then comes back
+- ``encoder_jump``   node_id, rad, seconds: the reported position jumps by ``rad`` (for ``seconds``; 0 = forever)
+- ``garbage``        node_id: frames on the node's TPDO COB-ID a master must drop: short DLC, 29-bit id, RTR
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import can
+
+from dragd.hardware.cia402 import ERR_REG_GENERIC, State
+from dragd.realtime import demote_current_thread
+
+KINDS = ("drive_silent", "burst_loss", "duplicates", "late_tpdo", "emcy", "drive_fault", "switched_on",
+         "node_reboot", "bus_off", "encoder_jump", "garbage")
+
+
+class FaultError(ValueError):
+    """An inject request that names no known fault or carries a bad argument (the message says which)."""
+
+
+class FaultInjector:
+    """Faults on one bus: a gate on the drives' transmit path and on the reader's receive path."""
+
+    def __init__(self, bus: can.BusABC) -> None:
+        self.bus = bus
+        self.active = False  # any transmit-side fault armed (the fast path tests only this)
+        self.silent_until: dict[int, float] = {}
+        self.drop_frames = 0
+        self.dup_frames = 0
+        self.late_until = 0.0
+        self.late_s = 0.0
+        self.down_until = 0.0
+        self.counters = collections.Counter[str]()
+        self._late: collections.deque[tuple[float, can.Message]] = collections.deque()
+        self._late_cv = threading.Condition()
+        self._late_thread: threading.Thread | None = None
+
+    # -------------------------------------------------------------------------------------- the gates
+
+    def sender(self, node_id: int) -> Callable[[can.Message], None]:
+        """The transmit function of one drive."""
+        send = self.bus.send
+
+        def tx(msg: can.Message) -> None:
+            if self.active:
+                self._tx_faulty(node_id, msg)
+            else:
+                send(msg)
+
+        return tx
+
+    def rx_muted(self) -> bool:
+        """True while the link is down (the reader drops what it receives)."""
+        return self.down_until != 0.0 and self._down()
+
+    def _down(self) -> bool:
+        if time.monotonic() < self.down_until:
+            return True
+        self.down_until = 0.0
+        self._rearm()
+        return False
+
+    def _tx_faulty(self, node_id: int, msg: can.Message) -> None:
+        now = time.monotonic()
+        c = self.counters
+        if self.down_until and self._down():
+            c["lost_link_down"] += 1
+            return
+        until = self.silent_until.get(node_id)
+        if until is not None:
+            if now < until:
+                c["lost_silent"] += 1
+                return
+            del self.silent_until[node_id]
+            self._rearm()
+        if self.drop_frames > 0:
+            self.drop_frames -= 1
+            c["lost_burst"] += 1
+            self._rearm()
+            return
+        if self.late_until:
+            if now < self.late_until and 0x181 <= msg.arbitration_id <= 0x4FF:
+                c["late"] += 1
+                with self._late_cv:
+                    self._late.append((now + self.late_s, msg))
+                    self._late_cv.notify()
+                return
+            if now >= self.late_until:
+                self.late_until = 0.0
+                self._rearm()
+        self.bus.send(msg)
+        if self.dup_frames > 0:
+            self.dup_frames -= 1
+            c["duplicated"] += 1
+            self.bus.send(msg)
+            self._rearm()
+
+    def _rearm(self) -> None:
+        self.active = bool(self.silent_until or self.drop_frames or self.dup_frames or self.late_until
+                           or self.down_until)
+
+    def _late_sender(self) -> None:
+        """Sends the delayed frames in batches (every frame due by now, then sleep until the next is due): one
+        wake-up per millisecond at most, off the real-time policy, so the bus reader answering SYNCs never waits."""
+        demote_current_thread()
+        while True:
+            with self._late_cv:
+                while not self._late:
+                    self._late_cv.wait()
+                due = self._late[0][0]
+            delay = due - time.monotonic()
+            if delay > 0:
+                time.sleep(max(delay, 0.0005))
+            now = time.monotonic()
+            batch = []
+            with self._late_cv:
+                while self._late and self._late[0][0] <= now:
+                    batch.append(self._late.popleft()[1])
+            for msg in batch:
+                try:
+                    self.bus.send(msg)
+                except can.CanError:
+                    self.counters["late_send_errors"] += 1
+
+    # -------------------------------------------------------------------------------------- injection
+
+    def inject(self, kind: str, drives: dict[int, Any], args: dict[str, Any], lock: threading.Lock) -> dict[str, Any]:
+        """Arm one fault now; returns what was done with ``t_mono`` (CLOCK_MONOTONIC, s) of the injection."""
+        if kind not in KINDS:
+            raise FaultError(f"inject: kind: expected one of {', '.join(KINDS)}, got {kind!r}")
+        now = time.monotonic()
+        done: dict[str, Any] = {"kind": kind, "t_mono": now}
+
+        def number(name: str, default: float | None, lo: float, hi: float) -> float:
+            v = args.get(name, default)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not lo <= v <= hi:
+                raise FaultError(f"inject {kind}: {name}: expected a number in [{lo:g}, {hi:g}], got {v!r}")
+            done[name] = v
+            return float(v)
+
+        def node() -> Any:
+            nid = args.get("node_id")
+            if nid not in drives:
+                raise FaultError(f"inject {kind}: node_id: expected one of {sorted(drives)}, got {nid!r}")
+            done["node_id"] = nid
+            return drives[nid]
+
+        if kind == "drive_silent":
+            d = node()
+            self.silent_until[d.node_id] = now + number("seconds", 1.0, 0.001, 600.0)
+        elif kind == "burst_loss":
+            self.drop_frames += int(number("frames", 30, 1, 1e6))
+        elif kind == "duplicates":
+            self.dup_frames += int(number("frames", 30, 1, 1e6))
+        elif kind == "late_tpdo":
+            self.late_s = number("delay_ms", 3.0, 0.1, 1000.0) * 1e-3
+            self.late_until = now + number("seconds", 0.2, 0.001, 600.0)
+            if self._late_thread is None:
+                self._late_thread = threading.Thread(target=self._late_sender, name="sim-late-tpdo", daemon=True)
+                self._late_thread.start()
+        elif kind == "bus_off":
+            self.down_until = now + number("seconds", 1.0, 0.001, 600.0)
+        elif kind == "garbage":
+            d = node()
+            cob = 0x180 + d.node_id
+            frames = [can.Message(arbitration_id=cob, data=b"\x01\x02", is_extended_id=False),  # short DLC
+                      can.Message(arbitration_id=cob, data=bytes(8), is_extended_id=True),  # 29-bit id
+                      can.Message(arbitration_id=0x700 + d.node_id, data=b"\x00", is_extended_id=True),  # "boot-up"
+                      can.Message(arbitration_id=0x080 + d.node_id, data=b"\x10\x23\x01\x00\x00\x00\x00\x00",
+                                  is_extended_id=True),  # "EMCY"
+                      can.Message(arbitration_id=cob, is_remote_frame=True, dlc=8, is_extended_id=False)]  # RTR
+            for msg in frames:
+                self.bus.send(msg)
+            done["frames"] = len(frames)
+        else:
+            d = node()
+            with lock:
+                if kind == "emcy":
+                    code = int(number("code", 0x4210, 1, 0xFFFF))
+                    with d._lock:
+                        d._raise_error(code, ERR_REG_GENERIC)
+                        d._refresh_statusword()
+                elif kind == "drive_fault":
+                    d.inject_fault(int(number("code", 0x2310, 1, 0xFFFF)))
+                elif kind == "switched_on":
+                    with d._lock:  # drops out on its own (power stage off, brake); a master's cyclic 0x0F would
+                        d._enter_state(State.SWITCHED_ON)  # enable it again on the next RPDO (transition 4)
+                elif kind == "node_reboot":
+                    d.reset_node()
+                elif kind == "encoder_jump":
+                    rad = number("rad", 0.2, -100.0, 100.0)
+                    seconds = number("seconds", 0.0, 0.0, 600.0)
+                    d.encoder_offset_counts = round(rad * d.params.encoder_counts_per_rev / (2.0 * 3.141592653589793))
+                    if seconds > 0:
+                        threading.Timer(seconds, lambda: setattr(d, "encoder_offset_counts", 0)).start()
+        self._rearm()
+        return done

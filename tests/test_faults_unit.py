@@ -1,0 +1,245 @@
+"""Fault detection pieces without processes: frame filtering, duplicates, the 402 drop-out, encoder plausibility,
+the sim's fault injector on an in-process bus, the configuration's timing cross-checks (docs/SAFETY.md)."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import can
+import numpy as np
+import pytest
+import yaml
+
+from dragd.config import ConfigError, load_config
+from dragd.control.modes import Mode
+from dragd.daemon.core import Daemon
+from dragd.hardware.cia402 import State
+from dragd.hardware.drives import DriveSupervisor, Target
+from sim.faults import FaultError, FaultInjector
+
+from conftest import DEFAULT_CONFIG
+from inproc import InProcess
+
+pytestmark = pytest.mark.unit
+
+SW_ENABLED, SW_SWITCHED_ON = 0x0237, 0x0233
+
+
+@pytest.fixture
+def daemon() -> Daemon:
+    d = Daemon(load_config(DEFAULT_CONFIG), bus_override="udp_multicast:239.74.200.2", log=lambda msg: None)
+    d.attach({"arm": can.Bus(interface="virtual", channel="unit-faults")})
+    return d
+
+
+def test_extended_rtr_and_short_frames_are_rejected_never_decoded(daemon: Daemon) -> None:
+    rx = daemon.io.listener("arm")
+    fb = daemon.io.feedback
+    rx.on_message_received(can.Message(arbitration_id=0x181, data=bytes([1, 0, 0, 0, 0, 0, 0, 0]), is_extended_id=True))
+    rx.on_message_received(can.Message(arbitration_id=0x181, is_remote_frame=True, dlc=8, is_extended_id=False))
+    rx.on_message_received(can.Message(arbitration_id=0x181, data=b"\x01\x02", is_extended_id=False))
+    rx.on_message_received(can.Message(arbitration_id=0x081, data=bytes([0x10, 0x23, 1, 0, 0, 0, 0, 0]),
+                                       is_extended_id=True))  # an "EMCY" with a 29-bit id
+    assert daemon.io.rejected_frames == 4
+    assert fb.counts[0] == 0 and not fb.rx[0] and daemon.faults == []
+
+
+def test_a_duplicate_tpdo_is_counted_once_per_extra_copy(daemon: Daemon) -> None:
+    rx = daemon.io.listener("arm")
+    daemon.io.begin_cycle()
+    frame = can.Message(arbitration_id=0x181, data=bytes([7, 0, 0, 0, 0, 0, 0x37, 0x02]), is_extended_id=False)
+    rx.on_message_received(frame)
+    rx.on_message_received(frame)
+    assert daemon.io.duplicate_tpdos == 1 and daemon.io.feedback.rx_count == 1
+
+
+def test_a_drive_dropping_to_switched_on_is_a_fault_not_re_enabled() -> None:
+    sup = DriveSupervisor([1, 2], enable_timeout_s=1.0)
+    sw = np.array([SW_ENABLED, SW_ENABLED])
+    sup.request_enable(0.0)
+    for k in range(4):
+        sup.update(sw, Target.ENABLED, 0.001 * k)
+    assert sup.enable_t0 is None and sup.all_enabled
+    sw[1] = SW_SWITCHED_ON
+    fault = sup.update(sw, Target.ENABLED, 0.01)
+    assert fault is not None and fault[0] == 1 and "switched_on" in fault[1] and "not re-enabled" in fault[1]
+    assert sup.states[1] == State.SWITCHED_ON
+    assert sup.cw[1] == 0x0000  # disable voltage, never enable operation (0x000F) on its own
+
+
+def test_an_encoder_jump_is_rejected_then_faults_when_it_persists() -> None:
+    ip = InProcess(load_config(DEFAULT_CONFIG))
+    q = np.array([0.0, -0.5, 0.8, 0.0, 0.5, 0.0])
+    ip.hold(q)
+    for _ in range(5):
+        ip.feed(q)
+        ip.cycle()
+    assert ip.c.mode == Mode.HOLD
+    jumped = q.copy()
+    jumped[2] += 0.2  # 0.2 rad in 1 ms: 200 rad/s
+    ip.feed(jumped)
+    ip.cycle()
+    assert ip.cy.encoder_rejects == 1 and abs(ip.cy.est.q_rad[2] - q[2]) < 1e-3  # rejected: the estimate stays
+    ip.feed(q)  # a glitch: the next sample is plausible again
+    ip.cycle()
+    assert ip.c.mode == Mode.HOLD and ip.d.faults == []
+    for _ in range(ip.cy.hold_after):
+        ip.feed(jumped)
+        ip.cycle()
+    assert ip.c.mode == Mode.FAULT
+    assert any("encoder jump on node 3" in f["text"] for f in ip.d.faults), ip.d.faults
+    ip.feed(jumped)
+    ip.cycle()  # the new position is the baseline: one fault, not one per cycle
+    assert sum("encoder jump" in f["text"] for f in ip.d.faults) == 1
+
+
+def test_plausible_motion_is_never_rejected() -> None:
+    ip = InProcess(load_config(DEFAULT_CONFIG))
+    q = np.zeros(6)
+    ip.hold(q)
+    for k in range(200):  # 3 rad/s on every joint: fast, but physical
+        ip.feed(q + 3.0 * 0.001 * k)
+        ip.cycle()
+    assert ip.cy.encoder_rejects == 0
+
+
+def _bus_pair(name: str) -> tuple[can.BusABC, can.BusABC]:
+    return can.Bus(interface="virtual", channel=name), can.Bus(interface="virtual", channel=name)
+
+
+class _Drive:
+    def __init__(self, node_id: int) -> None:
+        self.node_id = node_id
+
+
+def test_sim_injector_drops_duplicates_and_silences_frames() -> None:
+    sim_bus, master = _bus_pair("unit-injector")
+    try:
+        inj = FaultInjector(sim_bus)
+        tx = {n: inj.sender(n) for n in (1, 2)}
+        drives = {1: _Drive(1), 2: _Drive(2)}
+        lock = threading.Lock()
+
+        def frame(n: int) -> can.Message:
+            return can.Message(arbitration_id=0x180 + n, data=bytes(8), is_extended_id=False)
+
+        def received() -> list[int]:
+            out = []
+            while (m := master.recv(0.01)) is not None:
+                out.append(m.arbitration_id)
+            return out
+
+        inj.inject("burst_loss", drives, {"frames": 2}, lock)
+        for n in (1, 2, 1, 2):
+            tx[n](frame(n))
+        assert received() == [0x181, 0x182]
+        inj.inject("duplicates", drives, {"frames": 1}, lock)
+        tx[1](frame(1))
+        tx[2](frame(2))
+        assert received() == [0x181, 0x181, 0x182]
+        inj.inject("drive_silent", drives, {"node_id": 2, "seconds": 0.05}, lock)
+        tx[1](frame(1))
+        tx[2](frame(2))
+        assert received() == [0x181]
+        time.sleep(0.06)
+        tx[2](frame(2))
+        assert received() == [0x182] and not inj.active
+        inj.inject("bus_off", drives, {"seconds": 0.05}, lock)
+        assert inj.rx_muted()
+        tx[1](frame(1))
+        assert received() == []
+        time.sleep(0.06)
+        assert not inj.rx_muted()
+        out = inj.inject("garbage", drives, {"node_id": 1}, lock)
+        got = []
+        while (m := master.recv(0.01)) is not None:
+            got.append(m)
+        assert len(got) == out["frames"] and any(m.is_extended_id for m in got) and any(m.is_remote_frame for m in got)
+        with pytest.raises(FaultError, match="node_id: expected one of"):
+            inj.inject("drive_silent", drives, {"node_id": 9}, lock)
+        with pytest.raises(FaultError, match="frames: expected a number"):
+            inj.inject("burst_loss", drives, {"frames": "many"}, lock)
+    finally:
+        sim_bus.shutdown()
+        master.shutdown()
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda d: d.setdefault("master", {}).update(heartbeat_consumer_ms=150), "heartbeat_consumer_ms: expected >= 2 x"),
+    (lambda d: d.setdefault("safety", {}).update(rpdo_timeout_ms=1), "rpdo_timeout_ms: expected 5..1000"),
+    (lambda d: d.setdefault("safety", {}).update(rpdo_timeout_ms=60000), "rpdo_timeout_ms: expected 5..1000"),
+    (lambda d: d.setdefault("loop", {}).update(tpdo_deadline_us=1500), "tpdo_deadline_us: expected below"),
+    (lambda d: d.setdefault("master", {}).update(node_id=3), "master.node_id: expected a node id no drive uses"),
+])
+def test_config_refuses_dangerous_timing(tmp_path, edit, match) -> None:
+    data = yaml.safe_load(DEFAULT_CONFIG.read_text())
+    data["robot"]["urdf"] = "seed_cobot"
+    edit(data)
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match=match):
+        load_config(path)
+
+
+def test_default_config_passes_the_cross_checks() -> None:
+    cfg = load_config(DEFAULT_CONFIG)
+    assert cfg.master.heartbeat_consumer_ms >= 2 * cfg.master.heartbeat_ms
+    assert math.isfinite(cfg.safety.encoder_plausible_speed_rad_s)
+
+
+def test_log_lines_carry_journald_priorities_under_systemd() -> None:
+    from dragd.daemon.core import LOG_ERR, journal_line
+
+    assert journal_line("fault at t=1.000 s: EMCY", LOG_ERR, journal=True) == "<3>dragd: fault at t=1.000 s: EMCY"
+    assert journal_line("running", journal=True) == "<6>dragd: running"
+    assert journal_line("running", journal=False) == "dragd: running"  # a terminal gets no prefix
+    lines: list[tuple] = []
+    d = Daemon(load_config(DEFAULT_CONFIG), bus_override="udp_multicast:239.74.200.3",
+               log=lambda text, priority=6: lines.append((text, priority)))
+    d.attach({"arm": can.Bus(interface="virtual", channel="unit-journal")})
+    d.fault(2, "EMCY 0x2310 from node 3")
+    assert any(p == LOG_ERR and "fault at" in t for t, p in lines), lines
+
+
+def test_atomic_write_replaces_whole_or_leaves_the_old_file(tmp_path, monkeypatch) -> None:
+    import os as _os
+
+    from dragd.atomic import write_atomic
+
+    target = tmp_path / "params.yaml"
+    write_atomic(target, "old: 1\n")
+    assert target.read_text() == "old: 1\n"
+
+    def boom(*a, **k):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(_os, "fsync", boom)
+    with pytest.raises(OSError, match="No space"):
+        write_atomic(target, "new: 2\n" * 1000)
+    monkeypatch.undo()
+    assert target.read_text() == "old: 1\n"  # the previous file, whole
+    assert [p.name for p in tmp_path.iterdir()] == ["params.yaml"]  # no temporary left behind
+    write_atomic(target, "new: 2\n")
+    assert target.read_text() == "new: 2\n"
+
+
+def test_trajectories_are_validated_before_motion() -> None:
+    from dragd.control.trajectory import Trajectory
+
+    ip = InProcess(load_config(DEFAULT_CONFIG))
+    dt = ip.cy.dt
+    n = 6
+    t = np.array([0.0, 1.0, 2.0])
+    ok = Trajectory(t, np.zeros((3, n)), dt)
+    ip.m.validate(ok)  # at rest, inside every limit: accepted
+    far = np.zeros((3, n))
+    far[1:, 2] = 50.0  # beyond the limits (and the encoding)
+    with pytest.raises(ValueError, match="joint3 leaves its position limits"):
+        ip.m.validate(Trajectory(t, far, dt))
+    step = np.zeros((3, n))
+    step[1:, 1] = 0.3
+    fast = Trajectory(np.array([0.0, 0.01, 0.02]), step, dt)  # 0.3 rad in 10 ms: a step target
+    with pytest.raises(ValueError, match="joint2 would move at .* rad/s"):
+        ip.m.validate(fast)
