@@ -68,7 +68,7 @@ def _load_plugins() -> None:
     """Import modules that register further benchmarks (kept lazy: some pull in heavy dependencies)."""
     import importlib
 
-    for mod in ("dragd.lab.bench.loop", "dragd.lab.bench.identify", "dragd.lab.bench.gap"):
+    for mod in ("dragd.lab.bench.loop", "dragd.lab.bench.identify", "dragd.lab.bench.gap", "dragd.lab.bench.telemetry"):
         try:
             importlib.import_module(mod)
         except ModuleNotFoundError as exc:

@@ -27,7 +27,6 @@ TELEMETRY = {  # session variant -> `dragd run` telemetry options (None: no tele
     "off": None,
     "foxglove": [],  # as configured by default: every cycle + Foxglove channels at 30 Hz
     "plain": ["--no-foxglove"],
-    "decimated10": ["--telemetry-decimation", "10"],
 }
 
 
@@ -63,7 +62,7 @@ def _session(seconds: float, config: str | None, priority: int, telemetry: str =
         time.sleep(seconds)
         sim1, w1 = rig.sim_call("state"), time.monotonic()
         after = rig.must("status")
-        tel0, tel1 = before.get("telemetry") or {}, after.get("telemetry") or {}
+        tel0, tel1 = before.get("telemetry") or {}, after.get("telemetry") or {}  # the writer's counters
         rig.must("stop")
     print(f"bench: loop session {seconds:.0f} s, telemetry {telemetry}, daemon cycle thread {after.get('scheduler')}",
           file=sys.stderr)
@@ -77,8 +76,6 @@ def _session(seconds: float, config: str | None, priority: int, telemetry: str =
         "missed_ratio": missed / max(1, cycles + missed),
         "compute_p50_us": after["compute_p50_us"],
         "rtf": (sim1["t"] - sim0["t"]) / (w1 - w0),  # sim time over wall time, this session only
-        # bytes the writer put on disk over the measured span (compressed chunks), per hour
-        "MB_per_h": ((tel1.get("bytes", 0) - tel0.get("bytes", 0)) / (w1 - w0) * 3600 / 1e6) if tel1 else 0.0,
         "telemetry_dropped": tel1.get("dropped", 0) - tel0.get("dropped", 0) if tel1 else 0,
     }
 
@@ -143,21 +140,3 @@ def loop_period_p99_us_foxglove(opts: dict) -> float:
 def loop_period_p99_us_telemetry_plain(opts: dict) -> float:
     """loop_period_p99_us with the telemetry MCAP written without the Foxglove channels (--no-foxglove)."""
     return float(_telemetry(opts, "plain")["period_p99_us"])
-
-
-@benchmark("telemetry_MB_per_h", "MB/h")
-def telemetry_MB_per_h(opts: dict) -> float:
-    """Telemetry MCAP growth in drag: every cycle + Foxglove channels at 30 Hz (the default configuration)."""
-    return float(_telemetry(opts, "foxglove")["MB_per_h"])
-
-
-@benchmark("telemetry_MB_per_h_plain", "MB/h")
-def telemetry_MB_per_h_plain(opts: dict) -> float:
-    """Telemetry MCAP growth in drag without the Foxglove channels (--no-foxglove)."""
-    return float(_telemetry(opts, "plain")["MB_per_h"])
-
-
-@benchmark("telemetry_MB_per_h_decimated10", "MB/h")
-def telemetry_MB_per_h_decimated10(opts: dict) -> float:
-    """Telemetry MCAP growth in drag with --telemetry-decimation 10 (Foxglove channels at 30 Hz kept)."""
-    return float(_telemetry(opts, "decimated10")["MB_per_h"])
