@@ -18,10 +18,14 @@ from dragd.cli.common import CliError, add_config, emit, table
 @contextlib.contextmanager
 def _network(args: argparse.Namespace) -> Iterator[tuple[Any, Any, Any]]:
     """(bus, canopen network, config) of ``--bus`` or the config's first bus, after the busy check."""
+    import logging
+
     import can
     import canopen
 
     from dragd.config import load_config
+
+    logging.getLogger("canopen").addHandler(logging.NullHandler())  # its warnings: ours say it in one line
     from dragd.hardware.bus import open_bus, parse_bus
     from dragd.hardware.operator import busy_reason
 

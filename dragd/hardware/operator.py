@@ -99,7 +99,7 @@ def _remote(network: canopen.Network, node_id: int, timeout_s: float) -> canopen
         node = canopen.RemoteNode(node_id, canopen.ObjectDictionary())
         network.add_node(node)
     node.sdo.RESPONSE_TIMEOUT = timeout_s
-    node.sdo.MAX_RETRIES = 0
+    node.sdo.MAX_RETRIES = 1  # one request, no retry (python canopen counts the first try)
     return node
 
 
