@@ -4,6 +4,7 @@ Real processes on a private udp_multicast group: the sim alone (the tools act), 
 bus (the tools refuse, unless --force).
 """
 
+import asyncio
 import json
 import subprocess
 import sys
@@ -12,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+from dragd.client import Client
 from dragd.lab.rig import Rig
 
 pytestmark = [pytest.mark.rig, pytest.mark.slow]  # ~2 min: each CLI process starts in seconds here
@@ -84,6 +86,13 @@ def test_tools_refuse_while_the_daemon_drives_the_bus(rig):
         assert json.loads(p.stdout)["value"] & 0xFFFF == 402
         assert "acting beside it (--force)" in p.stderr
         assert rig.must("status")["cycles"] > 0  # the daemon ran on
+
+        async def status() -> dict:  # dragd.client (asyncio) against the real daemon
+            async with Client(rig.socket) as d:
+                return await d.status()
+
+        st = asyncio.run(status())
+        assert st["ok"] and st["mode"] in ("idle", "hold") and st["cycles"] > 0
     finally:
         rig.daemon.terminate()
         rig.daemon = None
