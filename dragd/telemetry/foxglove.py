@@ -180,6 +180,20 @@ class ArmFrames:
         self.root = next((frames[i].name for i, f in enumerate(frames) if f.type == body), "base_link")
         self.links = [frames[c].name for _p, c in pairs]
         self._names = [(frames[p].name, frames[c].name) for p, c in pairs]
+        # the kinematic chain root -> last link (for a skeleton drawing): each body frame's origin in the root
+        chain = [i for i, f in enumerate(frames) if f.type == body]
+        self._chain = chain
+        self.chain_names = [frames[i].name for i in chain]
+
+    def origins(self, q_rad: np.ndarray) -> np.ndarray:
+        """(n, 3) origins of the URDF's links (root first) in the root link's frame at ``q_rad``."""
+        pin = self._pin
+        q = self._q
+        q[self._idx_q] = q_rad
+        pin.framesForwardKinematics(self.model, self.data, q)
+        omf = self.data.oMf
+        root = omf[self._chain[0]]
+        return np.array([root.actInv(omf[i]).translation for i in self._chain])
 
     def transforms(self, q_rad: np.ndarray, time_ns: int) -> dict[str, Any]:
         """foxglove.FrameTransforms of every link at ``q_rad`` (telemetry joint order)."""
