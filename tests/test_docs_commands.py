@@ -199,6 +199,9 @@ RULES: list[Rule] = [
     Rule(r"^\./dev (test|lint|setup)\b", "dev", "the developer wrapper's own commands"),
     # real hardware: parsed, then run with --help
     Rule(r"--bus socketcan:|^dragd run\b", "help", "the daemon on real drives"),
+    Rule(r"^dragd view\b|^dragd log view \S+$|^dragd run --rerun$", "help",
+         "a Rerun viewer (a display): tests/test_rerun_view.py and tests/test_can_tools.py run them with --save"),
+    Rule(r"^dragd log view \S+ --save ", "run", "offline export to .rrd", tool=False),
     Rule(r"^dragd (can scan|sdo (read|write)|nmt) ", "help",
          "a bus no daemon drives (the docs rig's daemon does): tests/test_can_tools.py runs them against the sim"),
     # prose naming a command or option: COMMAND --help names every option given
