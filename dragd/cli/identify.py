@@ -12,7 +12,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from dragd.cli.common import CliError, add_config, add_socket, emit, floats, table
+from dragd.cli.common import CliError, Stages, add_config, add_socket, emit, floats, table
 
 FIT_METHODS = ("lowspeed", "symmetric", "synchronous", "full", "auto")
 
@@ -161,20 +161,25 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
     import time
 
-    model, _ = _robot(args)
-    t0 = time.perf_counter()
-    log = _load_log(args.log)
-    load_s = time.perf_counter() - t0
-    opts = Options()
-    if args.cutoff is not None:
-        opts.cutoff_Hz = args.cutoff
-    try:
-        res = identify(log, model, args.method, opts)
-    except LogError as exc:
-        raise CliError(str(exc)) from None
-    params = res.to_params()
-    out = Path(args.out)
-    save_params(params, out)
+    with Stages(args, "identify fit") as st:
+        st.stage("loading the robot model")
+        model, _ = _robot(args)
+        st.stage(f"reading {args.log}")
+        t0 = time.perf_counter()
+        log = _load_log(args.log)
+        load_s = time.perf_counter() - t0
+        opts = Options()
+        if args.cutoff is not None:
+            opts.cutoff_Hz = args.cutoff
+        st.stage(f"fitting ({args.method})")
+        try:
+            res = identify(log, model, args.method, opts)
+        except LogError as exc:
+            raise CliError(str(exc)) from None
+        params = res.to_params()
+        out = Path(args.out)
+        st.stage(f"writing {out}")
+        save_params(params, out)
     data = res.to_json()
     data["out"] = str(out)
     data["load_s"] = round(load_s, 3)
