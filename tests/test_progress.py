@@ -33,11 +33,14 @@ def test_identify_fit_reports_its_stages_on_stderr_and_is_quiet_with_json(tmp_pa
     log = tmp_path / "log.mcap"
     write_file(log, cycle_layout(6), rows, (t * 1e9).astype(np.int64) + 1_700_000_000_000_000_000)
 
-    def fit(*extra):
+    def fit(*extra, env=None):
         return subprocess.run([sys.executable, "-m", "dragd", "identify", "fit", "--log", str(log), "--out",
-                               str(tmp_path / "p.yaml"), *extra], capture_output=True, text=True, timeout=300, cwd=REPO)
+                               str(tmp_path / "p.yaml"), *extra], capture_output=True, text=True, timeout=300, cwd=REPO,
+                              env=env)
 
-    p = fit()
+    import os
+
+    p = fit(env={**os.environ, "DRAGD_PROGRESS": "1"})  # stderr is a pipe here: asked for explicitly
     stages = [line for line in p.stderr.splitlines() if line.startswith("identify fit: ")]
     if p.returncode != 0:  # a fit that fails still said how far it came
         assert stages, p.stderr
@@ -45,6 +48,8 @@ def test_identify_fit_reports_its_stages_on_stderr_and_is_quiet_with_json(tmp_pa
     assert [s.split(" ... ")[0] for s in stages][:3] == [
         "identify fit: loading the robot model", f"identify fit: reading {log}", "identify fit: fitting (auto)"]
     assert all(s.endswith(" s") for s in stages)
-    q = fit("--json")
+    q = fit("--json", env={**os.environ, "DRAGD_PROGRESS": "1"})
     assert q.returncode == 0 and "identify fit:" not in q.stderr
     json.loads(q.stdout)
+    r = fit()  # a pipe, not asked: silent (an error stays one line)
+    assert r.returncode == 0 and "identify fit:" not in r.stderr

@@ -97,8 +97,9 @@ def add_socket(p: argparse.ArgumentParser, timeout: float = 10.0, json_flag: boo
 class Stages:
     """Progress of a long offline command on stderr, one stage at a time (quiet with ``--json``).
 
-    A terminal shows rich's spinner with the stage and its elapsed time; otherwise each stage is one line
-    (``identify fit: reading log.mcap ... 2.1 s``) when it ends::
+    A terminal shows rich's spinner with the stage and, as each ends, a line with its elapsed time
+    (``identify fit: reading log.mcap ... 2.1 s``). Not a terminal (a pipe, a log file): silent, so an error stays
+    the one line on stderr, unless ``DRAGD_PROGRESS=1`` asks for the stage lines::
 
         with Stages(args, "identify fit") as st:
             st.stage("reading log.mcap")
@@ -110,7 +111,8 @@ class Stages:
         import sys
 
         self.command = command
-        self.quiet = bool(getattr(args, "json", False))
+        self.quiet = bool(getattr(args, "json", False)) or not (
+            sys.stderr.isatty() or os.environ.get("DRAGD_PROGRESS") == "1")
         self._stream = sys.stderr
         self._status: Any = None
         self._name: str | None = None
