@@ -206,7 +206,7 @@ RULES: list[Rule] = [
          "a bus no daemon drives (the docs rig's daemon does): tests/test_can_tools.py runs them against the sim"),
     # prose naming a command or option: COMMAND --help names every option given
     Rule(r"^dragd (gap|model|experiment|identify( fit| run)?|log summary|replay --interp|bench identify_\*"
-         r"|can scan|sdo read\|write|nmt)$"
+         r"|can scan|sdo read\|write|nmt|log view)$"
          r"|^dragd identify (plan|run)(?!.*--out)", "mention", "a command named in prose"),
     # long-running: started, seen ready, stopped
     Rule(r"^dragd sim --help$", "run", "the simulator's options"),
