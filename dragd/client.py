@@ -58,7 +58,7 @@ class Client:
         try:
             self._reader, self._writer = await asyncio.wait_for(
                 asyncio.open_unix_connection(self.path, limit=MAX_LINE_BYTES * 16), self.timeout_s)
-        except (FileNotFoundError, ConnectionRefusedError, PermissionError, OSError, asyncio.TimeoutError) as exc:
+        except (TimeoutError, FileNotFoundError, ConnectionRefusedError, PermissionError, OSError) as exc:
             reason = {FileNotFoundError: "socket file does not exist",
                       ConnectionRefusedError: "connection refused (stale socket file)",
                       PermissionError: "permission denied (is your user in group 'dragd'?)"}.get(
@@ -106,7 +106,8 @@ class Client:
                     response = json.loads(line)
                 except json.JSONDecodeError:
                     continue
-                fut = self._pending.pop(response.get("id"), None) if isinstance(response, dict) else None
+                rid = response.get("id") if isinstance(response, dict) else None
+                fut = self._pending.pop(rid, None) if isinstance(rid, int) else None
                 if fut is not None and not fut.done():
                     fut.set_result(response)
         except (ConnectionError, OSError, asyncio.LimitOverrunError, ValueError) as exc:
@@ -127,7 +128,7 @@ class Client:
             await self._writer.drain()
         try:
             response = await asyncio.wait_for(fut, timeout_s or self.timeout_s)
-        except asyncio.TimeoutError:
+        except TimeoutError:
             self._pending.pop(rid, None)
             raise DaemonTimeout(f"dragd at {self.path} did not answer {cmd!r} within {timeout_s or self.timeout_s} s"
                                 ) from None

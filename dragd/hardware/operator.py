@@ -93,10 +93,11 @@ def eds_identity(path: Path) -> dict[str, int]:
     return out
 
 
-def _remote(network: canopen.Network, node_id: int, timeout_s: float) -> canopen.RemoteNode:
-    node = network.nodes.get(node_id)
+def _remote(network: canopen.Network, node_id: int, timeout_s: float) -> Any:
+    """A RemoteNode without object dictionary (raw SDO upload/download), one SDO attempt of ``timeout_s``."""
+    node: Any = network.nodes.get(node_id)
     if node is None:
-        node = canopen.RemoteNode(node_id, canopen.ObjectDictionary())
+        node = canopen.RemoteNode(node_id, canopen.ObjectDictionary())  # type: ignore[no-untyped-call]
         network.add_node(node)
     node.sdo.RESPONSE_TIMEOUT = timeout_s
     node.sdo.MAX_RETRIES = 1  # one request, no retry (python canopen counts the first try)
@@ -182,7 +183,7 @@ def eds_type(index: int, sub: int, eds: Path | None) -> str | None:
         var = obj if isinstance(obj, canopen.objectdictionary.ODVariable) else obj[sub]
     except KeyError:
         return None
-    return _EDS_TYPES.get(int(var.data_type))
+    return None if var.data_type is None else _EDS_TYPES.get(int(var.data_type))
 
 
 def decode(raw: bytes, kind: str | None) -> Any:

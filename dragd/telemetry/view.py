@@ -95,7 +95,7 @@ def live_to_rerun(call: Callable[[], dict[str, Any]], sink: RerunSink, n: int, r
             t_ns = time.time_ns()
             row[:] = 0.0
             row[0, lay.slices["t_s"]] = st.get("t_s") or 0.0
-            row[0, lay.slices["mode"]] = inv.get(st.get("mode"), -1)
+            row[0, lay.slices["mode"]] = inv.get(str(st.get("mode")), -1)
             for src, dst in (("q_rad", "q_rad"), ("dq_rad_s", "dq_rad_s"), ("current_A", "current_measured_A"),
                              ("command_A", "current_command_A")):
                 row[0, lay.slices[dst]] = st[src]

@@ -32,7 +32,7 @@ def _rows() -> tuple[np.ndarray, np.ndarray]:
         v = log.rows[c.name]
         if c.labels is not None:
             inv = {label: k for k, label in c.labels.items()}
-            v = np.vectorize(lambda s: inv.get(str(s), 0))(v)
+            v = np.array([inv.get(str(x), 0) for x in np.asarray(v).reshape(-1)], dtype=float)
         rows[:, c.offset:c.offset + c.width] = np.asarray(v, dtype=float).reshape(n, c.width)
     t_ns = 1_700_000_000_000_000_000 + np.arange(n, dtype=np.int64) * 1_000_000  # 1 kHz log times
     return rows, t_ns
