@@ -325,6 +325,11 @@ class TelemetryConfig(_Strict):
     max_file_MiB: PosInt = 512  # rotate the MCAP file beyond this size
     keep_rotated: PosInt = 20
     rerun: bool = False
+    # size: write every N-th cycle row to /dragd/cycle (1 = every cycle; record windows always keep every cycle)
+    cycle_decimation: PosInt = 1
+    # Foxglove's well-known channels beside /dragd/cycle (joint states, link transforms, logs, the URDF)
+    foxglove: bool = True
+    foxglove_rate_Hz: Annotated[float, Field(gt=0, le=1000), Expect("a rate in (0, 1000] Hz")] = 30.0
 
 
 class ControlConfig(_Strict):

@@ -193,11 +193,20 @@ RULES: list[Rule] = [
     Rule(r"^(systemctl|journalctl) |^systemd-analyze security dragd", "host", "a systemd host running dragd"),
     Rule(r"^(\w+=\S+ )*tests/vcan/run\b", "host", "the vcan suite (QEMU or CAN interfaces): CI's own step"),
     Rule(r"^python3 -m pip wheel ", "host", "builds the wheel: tests/wheel/run does"),
+    Rule(r"^python -m can\.(logger|viewer) ", "host",
+         "python-can's tools with the group routed to lo (root): tests/test_python_can_interop.py runs them in a "
+         "network namespace"),
     Rule(r"^\./dev (test|lint|setup)\b", "dev", "the developer wrapper's own commands"),
     # real hardware: parsed, then run with --help
     Rule(r"--bus socketcan:|^dragd run\b", "help", "the daemon on real drives"),
+    Rule(r"^dragd view\b|^dragd log view \S+$|^dragd run --rerun$", "help",
+         "a Rerun viewer (a display): tests/test_rerun_view.py and tests/test_can_tools.py run them with --save"),
+    Rule(r"^dragd log view \S+ --save ", "run", "offline export to .rrd", tool=False),
+    Rule(r"^dragd (can scan|sdo (read|write)|nmt) ", "help",
+         "a bus no daemon drives (the docs rig's daemon does): tests/test_can_tools.py runs them against the sim"),
     # prose naming a command or option: COMMAND --help names every option given
-    Rule(r"^dragd (gap|model|payload|experiment|identify( fit| run)?|log summary|replay --interp|bench identify_\*)$"
+    Rule(r"^dragd (gap|model|payload|experiment|identify( fit| run)?|log summary|replay --interp|bench identify_\*"
+         r"|can scan|sdo read\|write|nmt|log view)$"
          r"|^dragd identify (plan|run)(?!.*--out)", "mention", "a command named in prose"),
     # long-running: started, seen ready, stopped
     Rule(r"^dragd sim --help$", "run", "the simulator's options"),
@@ -246,7 +255,7 @@ RULES: list[Rule] = [
     Rule(r"^dragd bench (loop_|--json$)", "run", "sim + daemon", extra="--seconds 3", slow=True),
     Rule(r"^dragd bench gap_confusion\b", "run", "the independent case matrix: two of its cases here (all: ~30 min)",
          extra="--cases none__ptp_0,pair__backlash1+payload --jobs 1", slow=True),
-    Rule(r"^dragd bench (identify_|gap_)", "run", "a 10 min log (generated once, cached)", slow=True),
+    Rule(r"^dragd bench (identify_|gap_|telemetry_)", "run", "a 10 min log (generated once, cached)", slow=True),
     Rule(r"^dragd experiment startup\b", "run", "sim + daemon", extra="--joints 4 --ramp-s 4",
          before=("identified",), slow=True),
     Rule(r"^dragd experiment sine-sweep\b", "run", "sim + daemon", extra="--joint 4 --frequencies 8,16 --ramp-s 4",

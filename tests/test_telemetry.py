@@ -7,7 +7,6 @@ import sys
 import threading
 import time
 import tracemalloc
-import types
 
 import numpy as np
 import pytest
@@ -412,53 +411,6 @@ def test_rerun_missing_gives_clear_message(monkeypatch, tmp_path):
     with pytest.raises(RerunUnavailable, match=r"pip install 'dragd\[rerun\]'"):
         TelemetryWriter(tmp_path / "x.mcap", {"t_s": 1}, rerun=True)
     assert "dragd[rerun]" in rerun_unavailable()
-
-
-def fake_rerun():
-    calls = []
-    rr = types.ModuleType("rerun")
-    rr.init = lambda app_id, **k: calls.append(("init", app_id))
-    rr.save = lambda path: calls.append(("save", path))
-    rr.spawn = lambda **k: calls.append(("spawn",))
-    rr.connect_grpc = lambda url=None: calls.append(("connect", url))
-    rr.TimeColumn = lambda name, timestamp=None, **k: ("time", name, np.asarray(timestamp))
-    rr.Scalars = types.SimpleNamespace(columns=lambda scalars: ("scalars", np.asarray(scalars)))
-    rr.send_columns = lambda path, indexes, columns: calls.append(("send", path, columns[1].copy()))
-    rr.set_time = lambda *a, **k: None
-    rr.TextLog = lambda text: text
-    rr.log = lambda path, obj: calls.append(("log", path, obj))
-    return rr, calls
-
-
-def test_rerun_flag_connects_to_a_viewer(tmp_path, monkeypatch):
-    rr, calls = fake_rerun()
-    monkeypatch.setitem(sys.modules, "rerun", rr)
-    w = TelemetryWriter(tmp_path / "v.mcap", {"t_s": 1}, rerun="rerun+http://127.0.0.1:9876/proxy")
-    run_rows(w, 5)
-    w.close()
-    assert ("connect", "rerun+http://127.0.0.1:9876/proxy") in calls
-    assert any(c[0] == "send" and c[1] == "cycle/t_s" for c in calls)
-
-
-def test_rerun_sink_receives_rows_off_the_loop(tmp_path, monkeypatch):
-    rr, calls = fake_rerun()
-    monkeypatch.setitem(sys.modules, "rerun", rr)
-    sink = RerunSink(save_path=tmp_path / "x.rrd")
-    w = TelemetryWriter(tmp_path / "s.mcap", {"t_s": 1, "q_rad": 2}, sinks=[sink])
-    for i in range(10):
-        row = w.begin()
-        row[:] = [i, 10 + i, 20 + i]
-        w.commit()
-    w.event("fault", code=7)
-    w.close()
-    assert ("save", str(tmp_path / "x.rrd")) in calls
-    sent = {}
-    for c in calls:
-        if c[0] == "send":
-            sent.setdefault(c[1], []).extend(c[2].tolist())
-    assert sent["cycle/t_s"] == list(range(10))
-    assert sent["cycle/q_rad/1"] == [20 + i for i in range(10)]
-    assert any(c[0] == "log" and "fault" in c[2] for c in calls)
 
 
 def test_failing_sink_is_disabled_and_reported(tmp_path):

@@ -12,10 +12,11 @@ import sys
 from collections.abc import Sequence
 from types import ModuleType
 
-from dragd.cli import bench, daemon, experiment, gap, identify, log, model, payload, sim, teach
+from dragd.cli import bench, can, daemon, experiment, gap, identify, log, model, payload, sim, teach, view
 from dragd.cli.common import EXIT_FAIL, EXIT_USAGE, CliError, Parser
 
-COMMANDS: tuple[ModuleType, ...] = (model, bench, sim, daemon, payload, log, identify, teach, gap, experiment)
+COMMANDS: tuple[ModuleType, ...] = (model, bench, sim, daemon, payload, view, can, log, identify, teach, gap,
+                                    experiment)
 
 
 def version() -> str:

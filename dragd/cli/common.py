@@ -92,3 +92,65 @@ def add_socket(p: argparse.ArgumentParser, timeout: float = 10.0, json_flag: boo
                    help=f"seconds to wait for the daemon's answer (default {timeout:g})")
     if json_flag:
         p.add_argument("--json", action="store_true", help="print JSON")
+
+
+class Stages:
+    """Progress of a long offline command on stderr, one stage at a time (quiet with ``--json``).
+
+    A terminal shows rich's spinner with the stage and, as each ends, a line with its elapsed time
+    (``identify fit: reading log.mcap ... 2.1 s``). Not a terminal (a pipe, a log file): silent, so an error stays
+    the one line on stderr, unless ``DRAGD_PROGRESS=1`` asks for the stage lines::
+
+        with Stages(args, "identify fit") as st:
+            st.stage("reading log.mcap")
+            ...
+            st.stage("fitting")
+    """
+
+    def __init__(self, args: argparse.Namespace, command: str) -> None:
+        import sys
+
+        self.command = command
+        self.quiet = bool(getattr(args, "json", False)) or not (
+            sys.stderr.isatty() or os.environ.get("DRAGD_PROGRESS") == "1")
+        self._stream = sys.stderr
+        self._status: Any = None
+        self._name: str | None = None
+        self._t0 = 0.0
+        self.done: list[tuple[str, float]] = []
+
+    def __enter__(self) -> Stages:
+        if not self.quiet and self._stream.isatty():
+            from rich.console import Console
+
+            self._status = Console(stderr=True).status("")
+            self._status.start()
+        return self
+
+    def _end(self) -> None:
+        import time
+
+        if self._name is None:
+            return
+        dt = time.perf_counter() - self._t0
+        self.done.append((self._name, dt))
+        if not self.quiet:
+            if self._status is not None:
+                self._status.console.print(f"{self.command}: {self._name} ... {dt:.1f} s")
+            else:
+                print(f"{self.command}: {self._name} ... {dt:.1f} s", file=self._stream, flush=True)
+        self._name = None
+
+    def stage(self, name: str) -> None:
+        import time
+
+        self._end()
+        self._name, self._t0 = name, time.perf_counter()
+        if self._status is not None:
+            self._status.update(f"{self.command}: {name} ...")
+
+    def __exit__(self, *exc: object) -> None:
+        if exc[0] is None:
+            self._end()
+        if self._status is not None:
+            self._status.stop()

@@ -35,6 +35,27 @@ def with_realtime_priority(cfg: Config, priority: int) -> Config:
     return cfg.model_copy(update={"loop": loop})
 
 
+def with_telemetry_options(cfg: Any, args: argparse.Namespace) -> Any:
+    """``cfg`` with ``--telemetry-decimation`` / ``--foxglove-rate`` / ``--no-foxglove`` applied (validated)."""
+    update: dict[str, Any] = {}
+    if getattr(args, "telemetry_decimation", None) is not None:
+        update["cycle_decimation"] = args.telemetry_decimation
+    if getattr(args, "foxglove_rate", None) is not None:
+        update["foxglove_rate_Hz"] = args.foxglove_rate
+    if getattr(args, "no_foxglove", False):
+        update["foxglove"] = False
+    if not update:
+        return cfg
+    from pydantic import ValidationError
+
+    try:
+        tel = type(cfg.telemetry).model_validate({**cfg.telemetry.model_dump(), **update})
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        raise CliError(f"telemetry.{err['loc'][0]}: {err['msg']} (got {err.get('input')!r})") from None
+    return cfg.model_copy(update={"telemetry": tel})
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     import can
 
@@ -45,6 +66,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, args.params)
     if args.realtime_priority is not None:
         cfg = with_realtime_priority(cfg, args.realtime_priority)
+    cfg = with_telemetry_options(cfg, args)
     try:
         daemon = Daemon(cfg, bus_override=args.bus, socket_path=args.socket, telemetry_path=args.telemetry,
                         rerun=args.rerun)
@@ -113,6 +135,13 @@ def register(sub: Any) -> None:
     r.add_argument("--socket", default=os.environ.get("DRAGD_SOCKET") or None,
                    help=f"control socket path (default: $DRAGD_SOCKET, else the config's control.socket, {DEFAULT_SOCKET})")
     r.add_argument("--telemetry", default=None, help="write every cycle to this MCAP file")
+    r.add_argument("--telemetry-decimation", type=int, default=None, metavar="N",
+                   help="write every N-th cycle to the MCAP's /dragd/cycle (size option; overrides "
+                        "telemetry.cycle_decimation; docs/TELEMETRY.md gives MB per hour)")
+    r.add_argument("--foxglove-rate", type=float, default=None, metavar="HZ",
+                   help="rate of the MCAP's Foxglove channels (joint states, transforms; telemetry.foxglove_rate_Hz)")
+    r.add_argument("--no-foxglove", action="store_true",
+                   help="no Foxglove channels in the MCAP (telemetry.foxglove: false)")
     r.add_argument("--realtime-priority", type=int, default=None, metavar="N",
                    help="SCHED_FIFO priority 1..99 of the cycle thread, when permitted (0: none); overrides loop.realtime_priority")
     r.add_argument("--rerun", action="store_true", help="live view in rerun (needs the optional extra dragd[rerun])")

@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from dragd.cli.common import CliError, add_config, emit, table
+from dragd.cli.common import CliError, Stages, add_config, emit, table
 
 
 def cmd_gap(args: argparse.Namespace) -> int:
@@ -38,21 +38,26 @@ def cmd_gap(args: argparse.Namespace) -> int:
         bad = [e for e in effects if e not in NAMES]
         if bad:
             raise CliError(f"--effects: unknown {', '.join(bad)}; expected some of {', '.join(NAMES)}")
-    try:
-        log = load_log(args.measured)
-        res = analyse(log, model, cfg, params, effects)
-    except LogError as exc:
-        raise CliError(str(exc)) from None
-    data = res.to_json()
-    extra: dict[str, Any] = {}
-    if args.out:
-        save_params(res.params, Path(args.out))
-        extra["out"] = str(args.out)
-    if args.report:
-        from dragd.gap.report import write
+    with Stages(args, "gap") as st:
+        try:
+            st.stage(f"reading {args.measured}")
+            log = load_log(args.measured)
+            st.stage("analysing (baseline, effects, fit, validation)")
+            res = analyse(log, model, cfg, params, effects)
+        except LogError as exc:
+            raise CliError(str(exc)) from None
+        data = res.to_json()
+        extra: dict[str, Any] = {}
+        if args.out:
+            st.stage(f"writing {args.out}")
+            save_params(res.params, Path(args.out))
+            extra["out"] = str(args.out)
+        if args.report:
+            from dragd.gap.report import write
 
-        extra.update(write(res, args.report, str(args.measured), str(args.model) if args.model else None,
-                           str(args.out) if args.out else None))
+            st.stage(f"writing the report {args.report}")
+            extra.update(write(res, args.report, str(args.measured), str(args.model) if args.model else None,
+                               str(args.out) if args.out else None))
 
     def ma(x: Any) -> str:
         return "—" if x is None else f"{x * 1e3:.1f}"

@@ -12,7 +12,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from dragd.cli.common import CliError, add_config, add_socket, emit, floats, table
+from dragd.cli.common import CliError, Stages, add_config, add_socket, emit, floats, table
 
 FIT_METHODS = ("lowspeed", "symmetric", "synchronous", "full", "auto")
 
@@ -166,49 +166,54 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
     import time
 
-    model, cfg = _robot(args)
-    cfg_kt = None
-    if cfg is not None and cfg.joint_names == list(model.joint_names):
-        cfg_kt = [float(j.kt_Nm_per_A) for j in cfg.joints]
-    opts = Options()
-    if args.torque_constants:
-        if args.torque_constants == "config":
-            if cfg_kt is None:
-                raise CliError("--torque-constants config: needs the configuration's robot (no --robot)")
-            opts.torque_constants = list(cfg_kt)
-        else:
-            kt = floats(args.torque_constants, "--torque-constants")
-            if len(kt) != model.nq or not all(k > 0 for k in kt):
-                raise CliError(f"--torque-constants: expected {model.nq} positive joint-side torque constants [N·m/A] "
-                               f"({', '.join(model.joint_names)}) or 'config', got {args.torque_constants!r}")
-            opts.torque_constants = kt
-        if args.method not in ("full", "auto"):
-            raise CliError(f"--torque-constants: used by --method full (and auto), not {args.method}")
-    t0 = time.perf_counter()
-    log = _load_log(args.log)
-    load_s = time.perf_counter() - t0
-    if args.cutoff is not None:
-        opts.cutoff_Hz = args.cutoff
-    try:
-        res = identify(log, model, args.method, opts)
-    except LogError as exc:
-        raise CliError(str(exc)) from None
-    params = res.to_params()
-    mapped = None
-    if res.notes.get("base_parameters"):  # full dynamics (or auto that chose it): the identified arm is the model
-        from dragd.identify.inertials import inertials_from_fit
-        from dragd.identify.regressors import RegressorModel
+    with Stages(args, "identify fit") as st:
+        st.stage("loading the robot model")
+        model, cfg = _robot(args)
+        cfg_kt = None
+        if cfg is not None and cfg.joint_names == list(model.joint_names):
+            cfg_kt = [float(j.kt_Nm_per_A) for j in cfg.joints]
+        opts = Options()
+        if args.torque_constants:
+            if args.torque_constants == "config":
+                if cfg_kt is None:
+                    raise CliError("--torque-constants config: needs the configuration's robot (no --robot)")
+                opts.torque_constants = list(cfg_kt)
+            else:
+                kt = floats(args.torque_constants, "--torque-constants")
+                if len(kt) != model.nq or not all(k > 0 for k in kt):
+                    raise CliError(f"--torque-constants: expected {model.nq} positive joint-side torque constants [N·m/A] "
+                                   f"({', '.join(model.joint_names)}) or 'config', got {args.torque_constants!r}")
+                opts.torque_constants = kt
+            if args.method not in ("full", "auto"):
+                raise CliError(f"--torque-constants: used by --method full (and auto), not {args.method}")
+        st.stage(f"reading {args.log}")
+        t0 = time.perf_counter()
+        log = _load_log(args.log)
+        load_s = time.perf_counter() - t0
+        if args.cutoff is not None:
+            opts.cutoff_Hz = args.cutoff
+        st.stage(f"fitting ({args.method})")
+        try:
+            res = identify(log, model, args.method, opts)
+        except LogError as exc:
+            raise CliError(str(exc)) from None
+        params = res.to_params()
+        mapped = None
+        if res.notes.get("base_parameters"):  # full dynamics (or auto that chose it): the identified arm is the model
+            from dragd.identify.inertials import inertials_from_fit
+            from dragd.identify.regressors import RegressorModel
 
-        mapped = inertials_from_fit(res, model, RegressorModel(model), cfg_kt)
-        if mapped is not None:
-            from dragd.identify.results import _jsonable
+            mapped = inertials_from_fit(res, model, RegressorModel(model), cfg_kt)
+            if mapped is not None:
+                from dragd.identify.results import _jsonable
 
-            pd = params.model_dump(mode="python")
-            pd["inertials"] = mapped["inertials"]
-            pd["notes"] = {**pd["notes"], "inertials_mapping": _jsonable(mapped["mapping"])}
-            params = type(params).model_validate(pd)
-    out = Path(args.out)
-    save_params(params, out)
+                pd = params.model_dump(mode="python")
+                pd["inertials"] = mapped["inertials"]
+                pd["notes"] = {**pd["notes"], "inertials_mapping": _jsonable(mapped["mapping"])}
+                params = type(params).model_validate(pd)
+        out = Path(args.out)
+        st.stage(f"writing {out}")
+        save_params(params, out)
     data = res.to_json()
     data["out"] = str(out)
     data["load_s"] = round(load_s, 3)

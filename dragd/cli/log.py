@@ -1,4 +1,4 @@
-"""``dragd log summary FILE``: what a telemetry (MCAP) log holds."""
+"""``dragd log summary FILE``: what a telemetry (MCAP) log holds; ``dragd log view FILE`` (dragd/cli/view.py)."""
 
 from __future__ import annotations
 
@@ -32,3 +32,6 @@ def register(sub: Any) -> None:
     su.add_argument("file", type=Path)
     su.add_argument("--json", action="store_true", help="print compact JSON")
     su.set_defaults(func=cmd_log_summary)
+    from dragd.cli.view import register_log
+
+    register_log(lsub)

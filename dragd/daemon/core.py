@@ -383,6 +383,15 @@ class Daemon:
 
     # ------------------------------------------------------------------------------------------ status
 
+    def _components(self) -> dict[str, list[float]]:
+        """The drag law's current terms (zeros outside drag), as the telemetry row names them."""
+        c = self.controller
+        out = c.law_out
+        drag = c.mode == Mode.DRAG
+        zero = [0.0] * self.n
+        return {name: (getattr(out, name).tolist() if drag and getattr(out, name, None) is not None else zero)
+                for name in ("gravity_A", "friction_A", "startup_A", "damping_A", "back_emf_A", "effects_A")}
+
     def status(self) -> dict[str, Any]:
         c, cy, sup, io = self.controller, self.cycle, self.supervisor, self.io
         fb = io.feedback if io is not None else None
@@ -416,6 +425,7 @@ class Daemon:
             "dq_rad_s": cy.est.dq_rad_s.tolist(),
             "current_A": cy.est.current_A.tolist(),
             "command_A": c.cmd_A.tolist(),
+            "components_A": self._components(),
             "faults": list(self.faults),
             "fault_count": self.fault_count,
             "drives": drives,

@@ -103,9 +103,26 @@ class Recorder:
         from dragd.telemetry.writer import TelemetryWriter
 
         tc = self.cfg.telemetry
+        foxglove = None
+        if tc.foxglove:
+            from dragd.robots import resolve_urdf
+            from dragd.telemetry.foxglove import FoxgloveSpec
+
+            foxglove = FoxgloveSpec(self.cfg.joint_names, resolve_urdf(self.cfg.robot.urdf, self.cfg.base_dir),
+                                    rate_Hz=tc.foxglove_rate_Hz)
+        sinks = []
+        if self.rerun:  # the live view (dragd/telemetry/sinks.py): 3D arm, currents and components, mode, faults
+            from dragd.robots import resolve_urdf
+            from dragd.telemetry.sinks import RerunSink
+
+            sinks.append(RerunSink(joint_names=self.cfg.joint_names,
+                                   urdf=resolve_urdf(self.cfg.robot.urdf, self.cfg.base_dir)))
         self.telemetry = TelemetryWriter(self.telemetry_path, self.layout, capacity=tc.capacity_rows,
-                                         rerun=self.rerun, max_bytes=tc.max_file_MiB * 2**20,
-                                         keep_rotated=tc.keep_rotated, avoid_cpus=set(self.cfg.loop.cpus or ()))
+                                         sinks=sinks, max_bytes=tc.max_file_MiB * 2**20,
+                                         keep_rotated=tc.keep_rotated, avoid_cpus=set(self.cfg.loop.cpus or ()),
+                                         foxglove=foxglove, cycle_decimation=tc.cycle_decimation,
+                                         metadata={"config": self.cfg.source,
+                                                   "cycle_decimation": str(tc.cycle_decimation)})
         self._writers = [w for w in (self.telemetry, self.recording) if w is not None]
         self.telemetry.event("start", config=self.cfg.source, joints=self.cfg.joint_names)
 

@@ -17,7 +17,9 @@ For this each sender stamps the msgpack ``channel`` field (the map's first key, 
 its own echoes by their first bytes) with a 64-bit integer: a random 32-bit sender
 token (per bus instance) in the high half and a 32-bit sequence number in the low half (the receiver
 replaces the field with its own channel name). Python-can's ``channel`` field accepts any msgpack value,
-so the frames stay readable by python-can. A receiver tracks, per sender token, the highest sequence
+so the frames stay readable by python-can: with the group routed to the loopback interface
+(``ip route add 239.74.0.0/16 dev lo``) python-can's own udp_multicast bus and tools (can.logger, can.viewer) join
+on ``lo`` too and talk to dragd and the sim both ways (docs/TOOLS.md, tests/test_python_can_interop.py). A receiver tracks, per sender token, the highest sequence
 seen plus a 64-frame window: repeats in the window are duplicates, numbers skipped are gaps (a frame that
 arrives late fills its gap again and counts as reordered). Losses the kernel itself counts (receive
 buffer overflow, SO_RXQ_OVFL) are reported as well. Not detectable: frames from senders that do not

@@ -13,6 +13,7 @@ All figures come from the daemon (its encoders and timing), as they would on a r
 from __future__ import annotations
 
 import math
+import sys
 import time
 from datetime import datetime
 from pathlib import Path
@@ -30,7 +31,7 @@ HAND_TARGET_RAD = [0.25, 0.15, -0.20, 0.30, 0.0, 0.0]  # relative joint-space pu
 
 def _say(progress: bool, text: str) -> None:
     if progress:
-        print(f"demo: {text}", flush=True)
+        print(f"demo: {text}", file=sys.stderr, flush=True)
 
 
 def _max_deg(a: list[float], b: list[float]) -> float:

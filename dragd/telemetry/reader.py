@@ -533,6 +533,13 @@ class _Stats:
                 "mean": pack(mean), "rows_with_null": self.nulls}
 
 
+def _decimation(ch: Channel) -> int:
+    try:
+        return max(1, int((ch.metadata or {}).get("decimation", 1)))
+    except (TypeError, ValueError):
+        return 1
+
+
 def _iso(ns: int) -> str:
     return datetime.fromtimestamp(ns / 1e9, UTC).isoformat()
 
@@ -571,8 +578,9 @@ def summarize(path: str | os.PathLike[str], *, cycle_topic: str = CYCLE_TOPIC,
                 cols = _Columns(walk.path, cycle_topic, walk.schemas.get(ch.schema_id), m.data, None, accumulate)
             cols.add(m.data)
             rows += 1
-            if m.sequence and last_seq is not None and m.sequence > last_seq + 1:
-                gaps += m.sequence - last_seq - 1
+            step = _decimation(ch)  # a decimated file keeps every step-th producer row
+            if m.sequence and last_seq is not None and m.sequence > last_seq + step:
+                gaps += (m.sequence - last_seq) // step - 1
             if m.sequence:
                 last_seq = m.sequence
     if cols is not None:
@@ -590,6 +598,8 @@ def summarize(path: str | os.PathLike[str], *, cycle_topic: str = CYCLE_TOPIC,
     cycle = None
     if cols is not None:
         cycle = {"topic": cycle_topic, "rows": rows, "sequence_gaps": gaps,
+                 "decimation": max((_decimation(c) for c in walk.channels.values() if c.topic == cycle_topic),
+                                   default=1),
                  "fields": {name: stats[name].result() if name in stats else _Stats(cols.specs[name]).result()
                             for name in cols.names}}
     header = walk.header

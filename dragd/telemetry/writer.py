@@ -46,6 +46,7 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 
 from dragd.realtime import demote_current_thread
+from dragd.telemetry.foxglove import FoxgloveChannels, FoxgloveSpec
 from dragd.telemetry.layout import RowLayout, dumps
 from dragd.telemetry.schema import (
     CYCLE_SCHEMA,
@@ -164,6 +165,8 @@ class McapFile:
         schema_name: str = CYCLE_SCHEMA,
         metadata: Mapping[str, str] | None = None,
         library: str = "dragd",
+        foxglove: FoxgloveSpec | None = None,
+        cycle_decimation: int = 1,
     ) -> None:
         self.layout = layout
         self._mcap = Writer(stream, chunk_size=chunk_size, compression=compression)
@@ -171,13 +174,17 @@ class McapFile:
         schema_id = self._mcap.register_schema(
             name=schema_name, encoding="jsonschema", data=dumps(layout.json_schema(schema_name))
         )
-        self._cycle = self._mcap.register_channel(topic=topic, message_encoding="json", schema_id=schema_id)
+        self._cycle = self._mcap.register_channel(
+            topic=topic, message_encoding="json", schema_id=schema_id,
+            metadata={"decimation": str(int(cycle_decimation))} if cycle_decimation > 1 else {},
+        )
         event_id = self._mcap.register_schema(
             name=EVENT_SCHEMA, encoding="jsonschema", data=dumps(event_json_schema())
         )
         self._events = self._mcap.register_channel(
             topic=events_topic, message_encoding="json", schema_id=event_id
         )
+        self.foxglove = FoxgloveChannels(self._mcap, foxglove) if foxglove is not None else None
         if metadata:
             self._mcap.add_metadata(RUN_METADATA, {str(k): str(v) for k, v in metadata.items()})
 
@@ -199,6 +206,14 @@ class McapFile:
             channel_id=self._events, log_time=log_time_ns, data=data, publish_time=log_time_ns, sequence=0
         )
 
+    def add_foxglove_event(self, log_time_ns: int, name: str, fields: Mapping[str, Any]) -> int:
+        """The event as a foxglove.Log message (bytes added; 0 without the Foxglove channels)."""
+        return 0 if self.foxglove is None else self.foxglove.add_event(log_time_ns, name, fields)
+
+    def add_foxglove_rows(self, rows: np.ndarray, log_time_ns: Sequence[int]) -> int:
+        """Joint states and link transforms of ``rows`` at the Foxglove rate (bytes added)."""
+        return 0 if self.foxglove is None else self.foxglove.add_rows(self.layout, rows, log_time_ns)
+
     def finish(self, counters: Mapping[str, Any] | None = None) -> None:
         """The writer's counters (metadata ``dragd.telemetry.writer``), the last chunk and the summary."""
         if counters is not None:
@@ -217,9 +232,11 @@ def write_file(
     compression: Compression = "zstd",
     chunk_size: int = 1 << 20,
     library: str = "dragd",
+    foxglove: FoxgloveSpec | None = None,
 ) -> int:
     """Write ``rows`` ((N, width) in ``layout``'s order) and ``events`` ((time_ns, name, fields)) to a finished
-    MCAP at once, as `TelemetryWriter` would (sequence 1..N); for logs computed offline. Returns N."""
+    MCAP at once, as `TelemetryWriter` would (sequence 1..N); for logs computed offline. Returns N.
+    ``foxglove``: add Foxglove's well-known channels (joint states, transforms, logs; see `FoxgloveSpec`)."""
     lay = layout if isinstance(layout, RowLayout) else RowLayout(layout)
     rows = np.asarray(rows, dtype=np.float64)
     if rows.ndim != 2 or rows.shape[1] != lay.width:
@@ -230,16 +247,20 @@ def write_file(
     kind = _pick_compression(compression)[0]
     pending = sorted(events, key=lambda e: e[0])
     with open(path, "wb") as fh:
-        f = McapFile(fh, lay, compression=kind, chunk_size=chunk_size, metadata=metadata, library=library)
+        f = McapFile(fh, lay, compression=kind, chunk_size=chunk_size, metadata=metadata, library=library,
+                     foxglove=foxglove)
         finite = np.isfinite(rows).all(axis=1).tolist()
         k = 0
         for seq, (values, ok, t) in enumerate(zip(rows.tolist(), finite, stamps, strict=True), start=1):
             while k < len(pending) and pending[k][0] <= t:
                 f.add_event(f.encode_event(pending[k][1], pending[k][2]), pending[k][0])
+                f.add_foxglove_event(*pending[k])
                 k += 1
             f.add_row(f.encode_row(values, ok), t, seq)
+        f.add_foxglove_rows(rows, stamps)
         for t_ev, name, fields in pending[k:]:
             f.add_event(f.encode_event(name, fields), t_ev)
+            f.add_foxglove_event(t_ev, name, fields)
         f.finish({"written": len(stamps), "dropped": 0, "events_written": len(pending), "events_dropped": 0})
     return len(stamps)
 
@@ -249,6 +270,10 @@ class TelemetryWriter:
 
     ``path`` is a file path (created; an existing file is handled per ``on_exists``)
     or an open binary file object (not closed by us; no rotation/retry).
+    ``foxglove`` adds Foxglove's well-known channels (joint states, link transforms, logs, the URDF; see
+    dragd/telemetry/foxglove.py), written by the writer thread at ``foxglove.rate_Hz``. ``cycle_decimation``
+    N > 1 writes only every N-th cycle row (producer sequence divisible by N) to ``topic``: the file's size
+    option (sinks still get every row).
     ``rerun=True`` (or a viewer URL) adds a `RerunSink`; raises RerunUnavailable
     with the install hint when rerun-sdk is missing (check `rerun_unavailable()`
     before booting the drives to fail early).
@@ -277,11 +302,17 @@ class TelemetryWriter:
         max_pending_events: int = 10_000,
         avoid_cpus: set[int] | None = None,
         schema_name: str = CYCLE_SCHEMA,
+        foxglove: FoxgloveSpec | None = None,
+        cycle_decimation: int = 1,
     ) -> None:
         if capacity < 2:
             raise ValueError(f"telemetry capacity must be >= 2 rows; got {capacity}")
         if on_exists not in ("rotate", "overwrite", "error"):
             raise ValueError(f"on_exists must be 'rotate', 'overwrite' or 'error'; got {on_exists!r}")
+        if isinstance(cycle_decimation, bool) or not isinstance(cycle_decimation, int) or cycle_decimation < 1:
+            raise ValueError(f"cycle_decimation must be an int >= 1; got {cycle_decimation!r}")
+        self._foxglove = foxglove
+        self._decimation = cycle_decimation
         self.layout = RowLayout(layout, float_digits)
         self._yield_every = max(1, int(yield_every_rows))
         self.slices = self.layout.slices
@@ -322,6 +353,7 @@ class TelemetryWriter:
         self._errors = 0
         self._first_error: str | None = None
         self._events_written = 0
+        self._decimated = 0
         self._events_dropped = 0
         self._sink_errors: list[str] = []
         self._segments = 0
@@ -388,6 +420,7 @@ class TelemetryWriter:
                 "dropped_ring_full": self._dropped_full,
                 "dropped_io": self._dropped_io,
                 "dropped_bytes": self._dropped_bytes,
+                "decimated": self._decimated,
                 "errors": self._errors,
                 "first_error": self._first_error,
                 "bytes": self._bytes_done + current,
@@ -496,6 +529,8 @@ class TelemetryWriter:
             chunk_size=self._chunk_size,
             schema_name=self._schema_name,
             metadata=self._metadata,
+            foxglove=self._foxglove,
+            cycle_decimation=self._decimation,
         )
         self._failed_at = None
 
@@ -552,7 +587,7 @@ class TelemetryWriter:
             mcap.finish(
                 {
                     k: st[k]
-                    for k in ("written", "dropped", "dropped_ring_full", "dropped_io", "errors",
+                    for k in ("written", "dropped", "dropped_ring_full", "dropped_io", "decimated", "errors",
                               "first_error", "events_written", "events_dropped", "segments")
                 }
             )
@@ -622,15 +657,30 @@ class TelemetryWriter:
                 self._events_dropped += len(events)
             return
         events_done = rows_done = 0
+        batch_rows = 0 if taken is None else len(taken[1])
         try:
             for t, name, fields in events:
                 data = McapFile.encode_event(name, fields)
                 events_done += 1  # from here on a failure is counted by _fail()
                 self._add(t, data, 0, False)
+                assert self._mcap is not None
+                self._unflushed_bytes += self._mcap.add_foxglove_event(t, name, fields)
             if taken is not None:
                 rows, stamps, seqs = taken
-                finite = np.isfinite(rows).all(axis=1).tolist()
                 assert self._mcap is not None
+                if self._mcap.foxglove is not None:
+                    self._unflushed_bytes += self._mcap.add_foxglove_rows(rows, stamps)
+                    time.sleep(_YIELD_S)
+                d = self._decimation
+                if d > 1:  # thinned out by choice: counted apart (not lost, not written)
+                    keep = np.flatnonzero(np.asarray(seqs, dtype=np.int64) % d == 0)
+                    with self._lock:
+                        self._decimated += len(seqs) - keep.size
+                    batch_rows = keep.size
+                    rows = rows[keep]
+                    stamps = [stamps[i] for i in keep.tolist()]
+                    seqs = [seqs[i] for i in keep.tolist()]
+                finite = np.isfinite(rows).all(axis=1).tolist()
                 encode_row = self._mcap.encode_row
                 for values, ok, t, seq in zip(rows.tolist(), finite, stamps, seqs, strict=True):
                     data = encode_row(values, ok)
@@ -641,7 +691,7 @@ class TelemetryWriter:
         except Exception as e:  # noqa: BLE001 - never let the writer thread die
             # rows/events of this batch not handed to the MCAP writer are lost too
             with self._lock:
-                self._dropped_io += (0 if taken is None else len(taken[1])) - rows_done
+                self._dropped_io += batch_rows - rows_done
                 self._events_dropped += len(events) - events_done
             self._fail(e, "writing")
             return

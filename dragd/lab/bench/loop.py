@@ -23,13 +23,26 @@ REALTIME_PRIORITY = 70  # the cycle thread's SCHED_FIFO priority as deployed (do
 # (at least 1: with --realtime-priority 1..10 both run at the same priority)
 
 
-@lru_cache(maxsize=4)
-def _session(seconds: float, config: str | None, priority: int) -> dict:
+TELEMETRY = {  # session variant -> `dragd run` telemetry options (None: no telemetry file)
+    "off": None,
+    "foxglove": [],  # as configured by default: every cycle + Foxglove channels at 30 Hz
+    "plain": ["--no-foxglove"],
+}
+
+
+@lru_cache(maxsize=8)
+def _session(seconds: float, config: str | None, priority: int, telemetry: str = "off") -> dict:
     from dragd.lab.rig import Rig
 
     rt = ["--realtime-priority", str(priority)] if priority else []
     sim_rt = ["--realtime-priority", str(max(1, priority - 10))] if priority else []
-    with Rig("bench", config=Path(config) if config else None, daemon_args=rt, sim_args=sim_rt) as rig:
+    tel_args = TELEMETRY[telemetry]
+    import tempfile
+
+    tmp = Path(tempfile.mkdtemp(prefix="dragd-bench-tel-"))
+    tel_path = tmp / "telemetry.mcap" if tel_args is not None else None
+    with Rig("bench", config=Path(config) if config else None, daemon_args=rt + (tel_args or []), sim_args=sim_rt,
+             telemetry=tel_path) as rig:
         rig.start_sim()
         rig.start_daemon()
         if priority:  # measure what was asked for, or say why not (never SCHED_OTHER figures labelled FIFO)
@@ -49,8 +62,13 @@ def _session(seconds: float, config: str | None, priority: int) -> dict:
         time.sleep(seconds)
         sim1, w1 = rig.sim_call("state"), time.monotonic()
         after = rig.must("status")
+        tel0, tel1 = before.get("telemetry") or {}, after.get("telemetry") or {}  # the writer's counters
         rig.must("stop")
-    print(f"bench: loop session {seconds:.0f} s, daemon cycle thread {after.get('scheduler')}", file=sys.stderr)
+    print(f"bench: loop session {seconds:.0f} s, telemetry {telemetry}, daemon cycle thread {after.get('scheduler')}",
+          file=sys.stderr)
+    import shutil
+
+    shutil.rmtree(tmp, ignore_errors=True)
     cycles = after["cycles"] - before["cycles"]
     missed = after["missed_cycles"] - before["missed_cycles"]
     return {
@@ -58,6 +76,7 @@ def _session(seconds: float, config: str | None, priority: int) -> dict:
         "missed_ratio": missed / max(1, cycles + missed),
         "compute_p50_us": after["compute_p50_us"],
         "rtf": (sim1["t"] - sim0["t"]) / (w1 - w0),  # sim time over wall time, this session only
+        "telemetry_dropped": tel1.get("dropped", 0) - tel0.get("dropped", 0) if tel1 else 0,
     }
 
 
@@ -101,3 +120,23 @@ def bus_load(opts: dict) -> float:
     layouts = bus_layouts(cfg)
     return max(layouts[b.name].budget(cfg.loop.rate_Hz, b.bitrate, b.data_bitrate, 1000.0 / cfg.master.heartbeat_ms).percent
                for b in cfg.buses)
+
+
+def _telemetry(opts: dict, variant: str) -> dict:
+    seconds, config, prio = _opts(opts)
+    out = _session(seconds, config, prio, variant)
+    if out["telemetry_dropped"]:
+        raise BenchError(f"telemetry ({variant}): the writer dropped {out['telemetry_dropped']} rows")
+    return out
+
+
+@benchmark("loop_period_p99_us_foxglove", "us")
+def loop_period_p99_us_foxglove(opts: dict) -> float:
+    """loop_period_p99_us with the telemetry MCAP written (every cycle + Foxglove channels at 30 Hz, default)."""
+    return float(_telemetry(opts, "foxglove")["period_p99_us"])
+
+
+@benchmark("loop_period_p99_us_telemetry_plain", "us")
+def loop_period_p99_us_telemetry_plain(opts: dict) -> float:
+    """loop_period_p99_us with the telemetry MCAP written without the Foxglove channels (--no-foxglove)."""
+    return float(_telemetry(opts, "plain")["period_p99_us"])

@@ -38,7 +38,7 @@ class Bench:
 
     def say(self, text: str) -> None:
         if self.progress:
-            print(f"experiment: {text}", flush=True)
+            print(f"experiment: {text}", file=sys.stderr, flush=True)
 
     def derived_config(self, tag: str, edits: dict[tuple[Any, ...], Any]) -> Path:
         """The configuration with ``edits`` ({("law", "startup"): False, ("joints", 0, "startup", "frequency_Hz"): 8})."""
