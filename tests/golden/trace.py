@@ -103,6 +103,17 @@ def _track_args(ad: Any) -> dict[str, Any]:
     return {"t_s": t.tolist(), "q_rad": (q0[None, :] + bump[:, None] * amp[None, :]).tolist()}
 
 
+def _track_args_near_wall(ad: Any) -> dict[str, Any]:
+    """The same track with joint 6 (next to its 0.35 rad wall after the drag) kept inside its position limits: a
+    trajectory that leaves them is refused before motion (issue 12's validation)."""
+    args = _track_args(ad)
+    q0 = ad.q.copy()
+    q = np.asarray(args["q_rad"])
+    q[:, 5] = q0[5] + (q[:, 5] - q0[5]) * 0.5
+    args["q_rad"] = q.tolist()
+    return args
+
+
 def _replay_args(ad: Any) -> dict[str, Any]:
     """A replay-like table (velocity and feed-forward tables, a repeated body) from where the arm is."""
     dt = 1e-3
@@ -136,7 +147,7 @@ def scenario_default() -> Scenario:
     sc.at(6500, _req("replay", _replay_args))
     sc.at(7000, _req("pause")).at(7700, _req("resume")).at(8000, _req("speed", {"speed": 0.5}))
     sc.at(8700, _req("track_stop"))
-    sc.at(9300, _req("track", _track_args))
+    sc.at(9300, _req("track", _track_args_near_wall))
     sc.at(9500, _hand(1, -60.0)).at(9800, _hand(1, 0.0))  # a blocked shoulder: tracking-error stop
     sc.at(10500, _emcy(2, 0x2310))
     sc.at(10700, _req("start"))
