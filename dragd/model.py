@@ -84,11 +84,11 @@ class RobotModel:
         for name, val in inertials.items():
             if name not in links:
                 raise ValueError(f"{source}: inertials: expected link names among {', '.join(links)}, got '{name}'")
-            get = (lambda k: val[k]) if isinstance(val, Mapping) else (lambda k: getattr(val, k))  # noqa: E731
-            xx, xy, xz, yy, yz, zz = (float(v) for v in get("inertia_kgm2"))
-            I = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
-            self.model.inertias[links.index(name) + 1] = pin.Inertia(float(get("mass_kg")),
-                                                                      np.asarray(get("com_m"), dtype=float), I)
+            fields = val if isinstance(val, Mapping) else {k: getattr(val, k) for k in ("mass_kg", "com_m", "inertia_kgm2")}
+            xx, xy, xz, yy, yz, zz = (float(v) for v in fields["inertia_kgm2"])
+            inertia = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+            self.model.inertias[links.index(name) + 1] = pin.Inertia(float(fields["mass_kg"]),
+                                                                      np.asarray(fields["com_m"], dtype=float), inertia)
         self.data = self.model.createData()
 
     def add_payload(self, mass_kg: float, com_m: tuple[float, float, float] | np.ndarray) -> None:

@@ -36,7 +36,8 @@ CASES: dict[str, dict[str, Any]] = {
     "payload_mass": {"joints": {}, "payload": {"mass_kg": 1.5, "com_m": [0.0, 0.0, 0.05]},
                      "expect": ["joint2", "joint3", "joint4"]},
     "current_offset": {"joints": {"joint4": {"hidden": {"current_offset_A": 0.08}}}, "expect": ["joint4"]},
-    # belief errors (the sim is clean; the model is off): a wrist's K_t 30 % high, the shoulder's Coulomb levels 0.25 A low
+    # belief errors (the sim is clean; the model is off): a wrist's K_t 30 % high, the shoulder's Coulomb levels
+    # 0.25 A low
     "torque_constant": {"joints": {}, "expect": ["joint4"]},
     "coulomb_friction": {"joints": {}, "expect": ["joint2"]},
     "two": {"joints": {"joint3": {"hidden": {"ripple": [RIPPLE]}}, "joint4": {"hidden": {"current_offset_A": 0.08}}},

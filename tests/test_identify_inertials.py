@@ -157,7 +157,7 @@ def test_full_fit_writes_a_consistent_arm_reproducing_its_base_parameters(fitted
     assert max(mp["base_residual_over_std"].values()) < 5.0, mp["base_residual_over_std"]
     # K_t: reported where the relative std is below the bound, else null with the reason (joints 1 and 6 have no
     # gravity torque at all on this arm)
-    for name, j in fit["joints"].items():
+    for j in fit["joints"].values():
         kt = j["torque_constant_Nm_per_A"]
         if kt is not None:
             assert j["std"]["torque_constant_Nm_per_A"] / kt <= KT_MAX_REL_STD

@@ -183,7 +183,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
                 if len(kt) != model.nq or not all(k > 0 for k in kt):
                     raise CliError(f"--torque-constants: expected {model.nq} positive joint-side torque constants [N·m/A] "
                                    f"({', '.join(model.joint_names)}) or 'config', got {args.torque_constants!r}")
-                opts.torque_constants = kt
+                opts.torque_constants = list[float | None](kt)
             if args.method not in ("full", "auto"):
                 raise CliError(f"--torque-constants: used by --method full (and auto), not {args.method}")
         st.stage(f"reading {args.log}")

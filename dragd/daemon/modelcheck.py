@@ -89,5 +89,5 @@ async def check_model(d: Daemon, step_rad: float = 0.25) -> dict[str, Any]:
         c.hold_move = None
         d.payload.busy = False
     ok = all(r["verdict"] in ("ok", "not checkable here") for r in rows)
-    d.model_check_failed = [r["joint"] for r in rows if r["verdict"] not in ("ok", "not checkable here")]
+    d.model_check_failed = [str(r["joint"]) for r in rows if r["verdict"] not in ("ok", "not checkable here")]
     return {"ok": ok, "tolerance": TOLERANCE, "step_rad": step_rad, "joints": rows}

@@ -160,7 +160,7 @@ class PayloadTools:
         m = d.model
         th_now = np.r_[m.payload_mass_kg, m.payload_mass_kg * m.payload_com_m]
         A, b = [], []
-        for qk, ik in zip(q, current_A):
+        for qk, ik in zip(q, current_A, strict=True):
             Y = m.payload_regressor(qk)
             g_arm = m.gravity(qk) - Y @ th_now  # the arm without the payload the model carries now
             A.append(Y)
@@ -176,9 +176,9 @@ class PayloadTools:
         com = (theta[1:] / mass).tolist() if mass > 1e-6 else [0.0, 0.0, 0.0]
         com_std = (np.sqrt(std[1:] ** 2 / mass ** 2 + (theta[1:] * std[0] / mass ** 2) ** 2)).tolist() if mass > 1e-6 \
             else [float("inf")] * 3
-        unobs = [ax for ax, s in zip("xyz", com_std) if not s <= OBSERVABLE_STD_M]
+        unobs = [ax for ax, s in zip("xyz", com_std, strict=True) if not s <= OBSERVABLE_STD_M]
         sv = np.linalg.svd(A_, compute_uv=False)
-        out = {"mass_kg": round(mass, 4), "mass_std_kg": round(float(std[0]), 4),
+        out: dict[str, Any] = {"mass_kg": round(mass, 4), "mass_std_kg": round(float(std[0]), 4),
                "com_m": [round(x, 4) for x in com], "com_std_m": [round(float(x), 4) for x in com_std],
                "rms_residual_Nm": round(float(np.sqrt(np.mean(resid ** 2))), 4),
                "samples": int(q.shape[0]), "singular_values": [round(float(x), 3) for x in sv]}

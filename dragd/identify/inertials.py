@@ -187,7 +187,7 @@ def consistent_inertials(targets: list[RowTarget | None], pi_urdf: np.ndarray, a
             D[10 * i:10 * i + 10, 10 * i:10 * i + 10] = logchol_jacobian(x[10 * i:10 * i + 10])[1]
         D[10 * n:, 10 * n:11 * n] = np.diag(2.0 * x[10 * n:11 * n])
         out = []
-        for (j, t), w in zip(rows, wts):
+        for (_j, t), w in zip(rows, wts, strict=True):
             out.append(weight[0] * w[:, None] * (t.E @ D))
         out.append(D[:10 * n] / scales[:, None])
         out.append(D[10 * n:] / arm_scale[:, None])

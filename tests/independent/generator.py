@@ -50,7 +50,8 @@ from scipy.signal import butter, sosfiltfilt
 REPO = Path(__file__).resolve().parents[2]
 SEED_COBOT_URDF = REPO / "dragd" / "robots" / "seed_cobot.urdf"
 GRID_HZ = 1000  # internal time grid of the truth; log rates must divide it
-NAMES_NOT_IN_CATALOGUE: tuple[str, ...] = ()  # expected names dragd's catalogue lacks (none since torque_constant, coulomb_friction)
+# expected names dragd's catalogue lacks (none since torque_constant, coulomb_friction)
+NAMES_NOT_IN_CATALOGUE: tuple[str, ...] = ()
 
 # ------------------------------------------------------------------------------------------ robots and truth
 

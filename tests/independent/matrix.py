@@ -124,7 +124,8 @@ def pair_cases() -> list[g.CaseSpec]:
         ("inertia+viscous2", "fourier", (E.MissingDynamics(), E.ViscousFriction(joints=(1,))), None),
         ("kt2+payload", "ptp", (E.TorqueConstantError(joints=(1,), relative=-0.15), E.Payload(mass_kg=1.5)), None),
         ("backlash1+payload", "trapezoid", (E.Backlash(joints=(0,), play_rad=0.015), E.Payload(mass_kg=1.5)), None),
-        ("backlash1+offset1", "fourier", (E.Backlash(joints=(0,), play_rad=0.015), E.CurrentOffset(joints=(0,), offset_A=0.08)), None),
+        ("backlash1+offset1", "fourier",
+         (E.Backlash(joints=(0,), play_rad=0.015), E.CurrentOffset(joints=(0,), offset_A=0.08)), None),
     ]
     return [g.CaseSpec(f"pair__{nm}", excitation=kind, effects=effs, seed=300 + k, moving_joints=mv,
                        description="two effects at once", **_vary(k + 1))

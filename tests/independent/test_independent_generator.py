@@ -124,7 +124,8 @@ def test_offset_and_belief_error_leave_the_truth(tmp_path: Path) -> None:
     diff = b[:, 7:13] - a[:, 7:13]
     assert abs(diff[:, 3].mean() - 0.08) < 2e-3 and np.abs(diff[:, [0, 1, 2, 4, 5]]).max() < 1e-9
     assert np.array_equal(a, c)  # a belief error changes the params file, not the log
-    kt_clean = yaml.safe_load((tmp_path / "clean/belief.yaml").read_text())["joints"]["joint2"]["torque_constant_Nm_per_A"]
+    belief = yaml.safe_load((tmp_path / "clean/belief.yaml").read_text())
+    kt_clean = belief["joints"]["joint2"]["torque_constant_Nm_per_A"]
     kt_bad = yaml.safe_load((tmp_path / "kt/belief.yaml").read_text())["joints"]["joint2"]["torque_constant_Nm_per_A"]
     assert math.isclose(kt_bad, kt_clean * 1.3)
 
