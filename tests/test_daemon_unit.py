@@ -11,6 +11,8 @@ from dragd.daemon.core import Daemon
 
 from conftest import DEFAULT_CONFIG
 
+pytestmark = pytest.mark.unit
+
 
 @pytest.fixture
 def daemon() -> Daemon:
@@ -91,7 +93,6 @@ _REALTIME_PROBE = """
 import asyncio, json, os, threading
 from dragd.daemon.core import go_realtime
 
-pytestmark = pytest.mark.unit
 
 async def main():
     loop = asyncio.get_running_loop()

@@ -9,6 +9,8 @@ import pytest
 
 from dragd.realtime import Ticker, demote_current_thread, set_realtime
 
+pytestmark = pytest.mark.rig
+
 
 def run(coro):
     return asyncio.run(coro)
@@ -121,7 +123,6 @@ _SCRIPT = """
 import json, os
 from dragd.realtime import set_realtime
 
-pytestmark = pytest.mark.rig
 res = set_realtime(10, {0}, lock_memory=True)
 res["policy_now"] = os.sched_getscheduler(0) == os.SCHED_FIFO
 print(json.dumps(res))
