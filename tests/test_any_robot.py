@@ -197,6 +197,7 @@ def test_gap_names_the_missing_rotor_inertia(identified):
 
 
 @pytest.mark.rig
+@pytest.mark.slow
 def test_ur5_drag_on_the_simulator(configs, tmp_path):
     """The UR5 on the simulated robot (its truth generated from the URDF), the daemon on the generated config:
     start holds the arm, drag lets a push move the base joint, the arm stays where it comes to rest, stop."""

@@ -33,7 +33,7 @@ from dragd.lab.demo import TEACH_STEPS_RAD, guide_and_settle
 from dragd.lab.rig import Rig, multicast_group
 from dragd.resources import DATA_DIR
 
-pytestmark = [pytest.mark.rig, pytest.mark.timeout(1800)]  # the slow ones: benchmarks generating their 10 min logs once
+pytestmark = pytest.mark.timeout(1800)  # the slow ones: benchmarks generating their 10 min logs once
 
 REPO = Path(__file__).resolve().parents[1]
 DOCUMENTS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
@@ -461,10 +461,12 @@ def env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Env]:
 # --------------------------------------------------------------------------------------------- the tests
 
 
+@pytest.mark.unit
 def test_the_documents_hold_commands() -> None:
     assert len(ALL) > 50 and {c.doc for c in ALL} >= {"README.md", "TEACH.md", "IDENTIFICATION.md"}
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize("cmd", ALL, ids=lambda c: c.id)
 def test_every_command_has_a_rule(cmd: Command) -> None:
     assert rule_for(command_line(cmd)) is not None, (
@@ -472,6 +474,8 @@ def test_every_command_has_a_rule(cmd: Command) -> None:
         f"(documented as '{cmd.text}'): add one saying how it is run")
 
 
+@pytest.mark.rig
+@pytest.mark.slow  # every documented command against a sim + daemon rig: ~6 min, in CI (./dev test --all)
 @pytest.mark.parametrize("cmd", [_param(c) for c in ALL])
 def test_documented_command_runs(cmd: Command, env: Env) -> None:
     line = command_line(cmd)

@@ -34,6 +34,7 @@ def _synthetic(n_joints=6, seconds=20.0, rate=500.0, moving=(1,)):
     return t, q, i
 
 
+@pytest.mark.slow
 def test_mcap_and_csv_of_the_same_run_load_alike():
     m = load_log(sync_log("mcap"))
     c = load_log(sync_log("csv"))

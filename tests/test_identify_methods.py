@@ -36,6 +36,7 @@ def test_synchronous_kt_and_friction_lines(sync_fit):
         assert j.friction["static_pos_A"] is None and "Stribeck" in j.reasons["static_pos_A"]
 
 
+@pytest.mark.slow
 def test_sim_drive_csp_sawtooth_biases_viscous_low():
     """sim/drive.py holds each CSP target for the whole SYNC period: the position error is a sawtooth of
     kp·q̇·T and the current sampled at SYNC sits at its low end — an apparent viscous slope too low by
@@ -70,6 +71,7 @@ def test_lowspeed_seed000_per_direction_lines():
     assert j.friction["viscous_A_s_per_rad"] is None and "seed 000" in j.reasons["viscous_A_s_per_rad"]
 
 
+@pytest.mark.slow
 def test_symmetric_seed001_gravity_in_amperes_and_friction():
     res = identify(load_log(symmetric_log()), robot(), "symmetric")
     t = truth()["joints"]
@@ -103,6 +105,7 @@ def test_auto_is_the_best_quasi_static_estimate():
     assert "quasi-static" in res.notes["auto"]
 
 
+@pytest.mark.slow
 def test_params_file_round_trip_and_check_on_held_out_log(tmp_path, sync_fit):
     p = tmp_path / "params.yaml"
     save_params(sync_fit.to_params(), p)
@@ -167,6 +170,7 @@ def test_options_change_the_filter():
     assert rel(res.joint("joint2").torque_constant_Nm_per_A, truth()["joints"]["joint2"]["torque_constant_Nm_per_A"]) < 0.01
 
 
+@pytest.mark.slow
 def test_full_dynamics_on_a_fourier_log():
     from identify_helpers import fourier_log
 

@@ -17,6 +17,7 @@ pytestmark = pytest.mark.unit
 REPO = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow
 def test_identify_fit_reports_its_stages_on_stderr_and_is_quiet_with_json(tmp_path):
     lay = RowLayout(cycle_layout(6))
     n = 4000

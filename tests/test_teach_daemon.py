@@ -78,6 +78,7 @@ def _events(mcap: Path, name: str) -> list[dict]:
     return [{"name": e.name, **e.fields} for e in read_events(mcap, name)]
 
 
+@pytest.mark.slow
 def test_teach_by_hand_replay_linear_and_bumpless_drag_replay_drag(tmp_path):
     mcap = tmp_path / "daemon.mcap"
     cfg = _config(tmp_path, "teach", residual_current_limit_A=4.0)  # (the monitors are the next test's subject)
@@ -264,6 +265,7 @@ def test_pause_resume_speed_override_stop_and_monitors(tmp_path):
     assert np.abs(held - ref[-1]).max() < 1e-6
 
 
+@pytest.mark.slow
 def test_demo_teach_scenario_json(tmp_path):
     cfg = _config(tmp_path, "demo", residual_current_limit_A=4.0)
     proc = run_cli("demo", "--scenario", "teach", "--seconds", "9", "--config", str(cfg), "--out", str(tmp_path),
