@@ -67,7 +67,12 @@ def test_soft_limit_wall_speed_cap_and_current_clamp(tmp_path):
     free_run = (q1 > 0.1) & (q1 < 0.35)
     assert free_run.sum() > 100
     assert np.median(np.abs(dq1[free_run])) < vcap + push / cap_damping, np.median(np.abs(dq1[free_run]))
-    assert np.abs(dq1).max() < 1.0, np.abs(dq1).max()  # the break-away transient stays well below uncapped
+    # the break-away transient stays well below uncapped: the arm's speed over 20 ms windows of the encoder (the
+    # cycle's q̇ estimate spikes after a late TPDO on a loaded host: a stale position, then the jump)
+    t1 = np.array(rows["t_s"])
+    k = 20
+    v20 = (q1[k:] - q1[:-k]) / (t1[k:] - t1[:-k])
+    assert np.abs(v20).max() < 1.0, np.abs(v20).max()
     assert np.abs(cmd1).max() <= i_max + 1e-6
     assert status["clamp_cycles"] > 0  # the clamp did act
 

@@ -4,7 +4,7 @@ import uuid
 
 import pytest
 
-from dragd import sdnotify
+from dragd.daemon import sdnotify
 
 pytestmark = pytest.mark.unit
 
