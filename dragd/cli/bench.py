@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any
 
 from dragd.cli.common import CliError, absolute, add_config, emit, table
@@ -18,7 +19,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
         return 0
     if args.realtime_priority is not None and not 0 <= args.realtime_priority <= 99:
         raise CliError(f"--realtime-priority: expected 0..99, got {args.realtime_priority}")
-    opts = {"config": absolute(args.config), "seconds": args.seconds, "realtime_priority": args.realtime_priority}
+    opts = {"config": absolute(args.config), "seconds": args.seconds, "realtime_priority": args.realtime_priority,
+            "profile": absolute(args.profile)}
     try:
         result = bench.run(args.names, {k: v for k, v in opts.items() if v is not None})
     except KeyError as exc:
@@ -37,6 +39,9 @@ def register(sub: Any) -> None:
     b.add_argument("--realtime-priority", type=int, default=None, metavar="N",
                    help="loop benchmarks: SCHED_FIFO priority of the daemon's cycle thread as deployed (default 70, "
                         "the sim's 10 below; applied when permitted), 0 for none")
+    b.add_argument("--profile", type=Path, default=None, metavar="DIR",
+                   help="loop benchmarks: also sample the daemon and the simulator with py-spy over the session and "
+                        "write DIR/daemon.svg, DIR/sim.svg (flame graphs) and DIR/*.txt (collapsed stacks)")
     add_config(b, params=False)
     b.add_argument("--json", action="store_true", help="print JSON")
     b.set_defaults(func=cmd_bench)

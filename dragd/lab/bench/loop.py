@@ -1,7 +1,9 @@
 """Loop benchmarks: the daemon's 1 kHz cycle with the simulated robot beside it (separate processes).
 
 One session (default 60 s of drag, `--seconds`) yields ``loop_period_p99_us``, ``loop_missed_ratio``,
-``loop_compute_us`` and ``sim_rtf``; running several of them in one ``dragd bench`` call shares the session.
+``loop_compute_us``, ``sim_rtf``, ``daemon_cpu_pct``, ``sim_cpu_pct`` and the CPU time per cycle
+(``daemon_cpu_us_per_cycle``, ``sim_cpu_us_per_cycle``: far less sensitive to other load on the machine than the
+latency figures); running several of them in one ``dragd bench`` call shares the session.
 ``bus_load`` is the worst-case load of the configured PDO layout (no session needed).
 
 The session runs as deployed (docs/SYSTEMD.md): the daemon's cycle thread SCHED_FIFO 70 and the simulator's
@@ -11,6 +13,9 @@ printed on stderr (``dragd status`` → ``scheduler``).
 
 from __future__ import annotations
 
+import os
+import shutil
+import subprocess
 import sys
 import time
 from functools import lru_cache
@@ -23,8 +28,52 @@ REALTIME_PRIORITY = 70  # the cycle thread's SCHED_FIFO priority as deployed (do
 # (at least 1: with --realtime-priority 1..10 both run at the same priority)
 
 
+def process_cpu_s(pid: int) -> float:
+    """CPU time (user + system, all threads) the process ``pid`` has used so far, from /proc/<pid>/stat."""
+    with open(f"/proc/{pid}/stat", "rb") as f:
+        fields = f.read().rsplit(b")", 1)[1].split()  # after the command name (which may hold spaces)
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime (fields 14, 15)
+
+
+def _py_spy(profile: str | None, seconds: float, pids: dict[str, int]) -> list[subprocess.Popen]:
+    """Start one py-spy sampler per process for the session: DIR/<name>.txt, collapsed stacks per thread."""
+    if not profile:
+        return []
+    exe = shutil.which("py-spy") or str(Path(sys.executable).with_name("py-spy"))
+    if not Path(exe).exists():
+        raise BenchError("--profile: py-spy is not installed here (pip install py-spy)")
+    out = Path(profile)
+    out.mkdir(parents=True, exist_ok=True)
+    return [subprocess.Popen([exe, "record", "-r", "250", "-d", str(max(1, round(seconds))), "-f", "raw", "--threads",
+                              "--nonblocking", "-o", str(out / f"{name}.txt"), "-p", str(pid)],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) for name, pid in pids.items()]
+
+
+def profile_summary(stacks: Path, top: int = 25) -> str:
+    """Self and inclusive sample shares per function from py-spy's collapsed stacks (``frame;frame;... count``)."""
+    own: dict[str, int] = {}
+    incl: dict[str, int] = {}
+    total = 0
+    for line in stacks.read_text().splitlines():
+        path, _, n = line.rpartition(" ")
+        if not path or not n.isdigit():
+            continue
+        count = int(n)
+        frames = [f.split(" (")[0] + " (" + f.split(" (")[-1].split(":")[0].rsplit("/", 1)[-1] + ")" if " (" in f else f
+                  for f in path.split(";")]
+        total += count
+        own[frames[-1]] = own.get(frames[-1], 0) + count
+        for f in set(frames):
+            incl[f] = incl.get(f, 0) + count
+    lines = [f"{stacks.stem}: {total} samples"]
+    for title, d in (("self", own), ("inclusive", incl)):
+        lines.append(f"  top {title}:")
+        lines += [f"    {100 * c / max(1, total):5.1f} %  {f}" for f, c in sorted(d.items(), key=lambda kv: -kv[1])[:top]]
+    return "\n".join(lines)
+
+
 @lru_cache(maxsize=4)
-def _session(seconds: float, config: str | None, priority: int) -> dict:
+def _session(seconds: float, config: str | None, priority: int, profile: str | None = None) -> dict:
     from dragd.lab.rig import Rig
 
     rt = ["--realtime-priority", str(priority)] if priority else []
@@ -44,16 +93,35 @@ def _session(seconds: float, config: str | None, priority: int) -> dict:
         time.sleep(0.5)
         rig.must("mode", mode="drag")
         rig.sim_call("operator", scenario="flange_drag")
+        pids = (rig.daemon.proc.pid, rig.sim.proc.pid)  # type: ignore[union-attr]
         before = rig.must("status")
         sim0, w0 = rig.sim_call("state"), time.monotonic()
+        spies = _py_spy(profile, seconds, {"daemon": pids[0], "sim": pids[1]})
+        cpu0 = [process_cpu_s(p) for p in pids]
         time.sleep(seconds)
+        cpu1 = [process_cpu_s(p) for p in pids]
+        for spy in spies:
+            spy.wait(60)
         sim1, w1 = rig.sim_call("state"), time.monotonic()
         after = rig.must("status")
         rig.must("stop")
     print(f"bench: loop session {seconds:.0f} s, daemon cycle thread {after.get('scheduler')}", file=sys.stderr)
+    for name in ("daemon", "sim") if profile else ():
+        stacks = Path(profile) / f"{name}.txt"
+        if stacks.exists():
+            summary = profile_summary(stacks)
+            stacks.with_name(f"{name}-top.txt").write_text(summary + "\n")
+            print(summary, file=sys.stderr)
     cycles = after["cycles"] - before["cycles"]
     missed = after["missed_cycles"] - before["missed_cycles"]
+    wall = w1 - w0
+    d_cpu, s_cpu = cpu1[0] - cpu0[0], cpu1[1] - cpu0[1]
+    ticks = max(1, cycles + missed)
     return {
+        "daemon_cpu_pct": 100.0 * d_cpu / wall,  # share of one core (the sim's and the daemon's own CPU time)
+        "sim_cpu_pct": 100.0 * s_cpu / wall,
+        "daemon_cpu_us_per_cycle": 1e6 * d_cpu / ticks,
+        "sim_cpu_us_per_cycle": 1e6 * s_cpu / ticks,
         "period_p99_us": after["period_p99_us"],
         "missed_ratio": missed / max(1, cycles + missed),
         "compute_p50_us": after["compute_p50_us"],
@@ -61,10 +129,10 @@ def _session(seconds: float, config: str | None, priority: int) -> dict:
     }
 
 
-def _opts(opts: dict) -> tuple[float, str | None, int]:
+def _opts(opts: dict) -> tuple[float, str | None, int, str | None]:
     prio = opts.get("realtime_priority")
     return (float(opts.get("seconds", 60.0)), str(opts["config"]) if opts.get("config") else None,
-            REALTIME_PRIORITY if prio is None else int(prio))
+            REALTIME_PRIORITY if prio is None else int(prio), str(opts["profile"]) if opts.get("profile") else None)
 
 
 @benchmark("loop_period_p99_us", "us")
@@ -89,6 +157,30 @@ def loop_compute_us(opts: dict) -> float:
 def sim_rtf(opts: dict) -> float:
     """Real-time factor of the simulated robot (sim time / wall time) while the daemon runs beside it."""
     return float(_session(*_opts(opts))["rtf"])
+
+
+@benchmark("daemon_cpu_pct", "%")
+def daemon_cpu_pct(opts: dict) -> float:
+    """The daemon's CPU time over the loop session as a share of one core (drag at the configured rate)."""
+    return float(_session(*_opts(opts))["daemon_cpu_pct"])
+
+
+@benchmark("sim_cpu_pct", "%")
+def sim_cpu_pct(opts: dict) -> float:
+    """The simulator's CPU time over the loop session as a share of one core (physics + drives + bus)."""
+    return float(_session(*_opts(opts))["sim_cpu_pct"])
+
+
+@benchmark("daemon_cpu_us_per_cycle", "us")
+def daemon_cpu_us_per_cycle(opts: dict) -> float:
+    """The daemon's CPU time per cycle over the loop session (all threads; less load-sensitive than latency)."""
+    return float(_session(*_opts(opts))["daemon_cpu_us_per_cycle"])
+
+
+@benchmark("sim_cpu_us_per_cycle", "us")
+def sim_cpu_us_per_cycle(opts: dict) -> float:
+    """The simulator's CPU time per daemon cycle over the loop session (4 physics steps + SYNC answers each)."""
+    return float(_session(*_opts(opts))["sim_cpu_us_per_cycle"])
 
 
 @benchmark("bus_load", "%")
