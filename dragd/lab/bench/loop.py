@@ -105,6 +105,10 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
         sim1, w1 = rig.sim_call("state"), time.monotonic()
         after = rig.must("status")
         rig.must("stop")
+    if after.get("mode") != "drag":  # a fault or a hold mid-session: the figures would not be of the drag loop
+        raise BenchError(f"loop benchmark: the daemon left drag during the session (mode {after.get('mode')!r}, "
+                         f"last fault: {(after.get('faults') or ['none'])[-1]}); is the machine overloaded? "
+                         f"daemon log: {rig.daemon.log_path if rig.daemon else '?'}")
     print(f"bench: loop session {seconds:.0f} s, daemon cycle thread {after.get('scheduler')}", file=sys.stderr)
     for name in ("daemon", "sim") if profile else ():
         stacks = Path(profile) / f"{name}.txt"
