@@ -11,7 +11,6 @@ The network does not own the bus: the caller opens it before and shuts it down a
 from __future__ import annotations
 
 import logging
-import select
 import sys
 import threading
 import time
@@ -91,9 +90,6 @@ class SimNetwork:
         self.stop()
 
     def _run(self) -> None:
-        if callable(getattr(self.bus, "drain", None)):
-            self._run_draining()
-            return
         recv, timeout = self.bus.recv, self.recv_timeout_s
         while not self._stop.is_set():
             try:
@@ -105,25 +101,6 @@ class SimNetwork:
                 continue
             if msg is not None:
                 self.dispatch(msg)
-
-    def _run_draining(self) -> None:
-        """The reader on a bus with ``drain`` (udp_multicast): one wake-up takes every frame already queued.
-
-        After a SYNC the drives' own TPDO echoes queue up behind their sends: they are read (and dropped by the
-        bus) in one go instead of one blocking ``recv`` each.
-        """
-        bus, timeout_ms = self.bus, max(1, int(self.recv_timeout_s * 1000))
-        poller = select.poll()
-        poller.register(bus.fileno(), select.POLLIN)
-        refuse, dispatch = (lambda cob, data: False), self.dispatch
-        while not self._stop.is_set():
-            try:
-                if poller.poll(timeout_ms):
-                    bus.drain(refuse, dispatch)  # type: ignore[attr-defined]
-            except can.CanError as exc:
-                log.error("sim bus receive failed: %s", exc)
-                self.counters.handler_errors += 1
-                time.sleep(self.recv_timeout_s)
 
     def dispatch(self, msg: can.Message) -> None:
         """Hand one frame to the drives that consume it (also usable without the thread); error frames are dropped."""
