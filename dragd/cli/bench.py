@@ -20,7 +20,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if args.realtime_priority is not None and not 0 <= args.realtime_priority <= 99:
         raise CliError(f"--realtime-priority: expected 0..99, got {args.realtime_priority}")
     opts = {"config": absolute(args.config), "seconds": args.seconds, "realtime_priority": args.realtime_priority,
-            "profile": absolute(args.profile)}
+            "profile": absolute(args.profile), "sim_config": absolute(args.sim_config)}
     try:
         result = bench.run(args.names, {k: v for k, v in opts.items() if v is not None})
     except KeyError as exc:
@@ -42,6 +42,9 @@ def register(sub: Any) -> None:
     b.add_argument("--profile", type=Path, default=None, metavar="DIR",
                    help="loop benchmarks: also sample the daemon and the simulator with py-spy over the session and "
                         "write DIR/daemon.svg, DIR/sim.svg (flame graphs) and DIR/*.txt (collapsed stacks)")
+    b.add_argument("--sim-config", type=Path, default=None, metavar="FILE",
+                   help="loop benchmarks: the simulator's truth file (default: the bundled seed cobot's); with a "
+                        "daemon configuration of several buses its joints' bus_index must match")
     add_config(b, params=False)
     b.add_argument("--json", action="store_true", help="print JSON")
     b.set_defaults(func=cmd_bench)

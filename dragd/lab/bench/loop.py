@@ -3,7 +3,10 @@
 One session (default 60 s of drag, `--seconds`) yields ``loop_period_p99_us``, ``loop_missed_ratio``,
 ``loop_compute_us``, ``sim_rtf``, ``daemon_cpu_pct``, ``sim_cpu_pct`` and the CPU time per cycle
 (``daemon_cpu_us_per_cycle``, ``sim_cpu_us_per_cycle``: far less sensitive to other load on the machine than the
-latency figures); running several of them in one ``dragd bench`` call shares the session.
+latency figures); running several of them in one ``dragd bench`` call shares the session. ``--config`` gives the
+daemon's configuration (several buses: one private multicast group each), ``--sim-config`` the simulator's truth
+(e.g. config/loop_2khz.yaml with sim/config/seed_cobot_two_buses.yaml: the 2 kHz figures), ``--profile DIR``
+samples both processes with py-spy over the session.
 ``bus_load`` is the worst-case load of the configured PDO layout (no session needed).
 
 The session runs as deployed (docs/SYSTEMD.md): the daemon's cycle thread SCHED_FIFO 70 and the simulator's
@@ -73,12 +76,18 @@ def profile_summary(stacks: Path, top: int = 25) -> str:
 
 
 @lru_cache(maxsize=4)
-def _session(seconds: float, config: str | None, priority: int, profile: str | None = None) -> dict:
-    from dragd.lab.rig import Rig
+def _session(seconds: float, config: str | None, priority: int, profile: str | None = None,
+             sim_config: str | None = None) -> dict:
+    from dragd.config import load_config
+    from dragd.lab.rig import Rig, multicast_group
 
     rt = ["--realtime-priority", str(priority)] if priority else []
     sim_rt = ["--realtime-priority", str(max(1, priority - 10))] if priority else []
-    with Rig("bench", config=Path(config) if config else None, daemon_args=rt, sim_args=sim_rt) as rig:
+    n_buses = len(load_config(config).buses)
+    with Rig("bench", config=Path(config) if config else None, sim_config=Path(sim_config) if sim_config else None,
+             daemon_args=rt, sim_args=sim_rt) as rig:
+        if n_buses > 1:  # one private multicast group per configured bus (the sim's truth maps joints to them)
+            rig.bus = ",".join(f"udp_multicast:{multicast_group(f'bench{k}')}" for k in range(n_buses))
         rig.start_sim()
         rig.start_daemon()
         if priority:  # measure what was asked for, or say why not (never SCHED_OTHER figures labelled FIFO)
@@ -133,10 +142,11 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
     }
 
 
-def _opts(opts: dict) -> tuple[float, str | None, int, str | None]:
+def _opts(opts: dict) -> tuple[float, str | None, int, str | None, str | None]:
     prio = opts.get("realtime_priority")
     return (float(opts.get("seconds", 60.0)), str(opts["config"]) if opts.get("config") else None,
-            REALTIME_PRIORITY if prio is None else int(prio), str(opts["profile"]) if opts.get("profile") else None)
+            REALTIME_PRIORITY if prio is None else int(prio), str(opts["profile"]) if opts.get("profile") else None,
+            str(opts["sim_config"]) if opts.get("sim_config") else None)
 
 
 @benchmark("loop_period_p99_us", "us")
