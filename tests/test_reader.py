@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import os
+import struct
 
 import can
 import pytest
@@ -114,3 +115,42 @@ def test_bus_without_drain_is_read_frame_by_frame_with_the_same_split(request: p
         bus.shutdown()
         peer.shutdown()
     _check(offered, rest)
+
+
+@pytest.mark.parametrize("config", ["default.yaml", "two_buses.yaml"])
+def test_tpdo_decoder_fills_the_feedback_as_the_listener_does(config: str) -> None:
+    """The frames the reader hands over without can.Message decode into the same feedback as through the listener
+    (the path the golden traces replay), TPDOs claimed, everything else (EMCY, heartbeat) refused."""
+    import numpy as np
+
+    from dragd.config import load_config
+    from inproc import InProcess
+    from conftest import REPO
+
+    cfg = load_config(REPO / "config" / config)
+    a, b = InProcess(cfg).d.io, InProcess(cfg).d.io
+    emcys: list[tuple[int, int, int]] = []
+    a.on_emcy = lambda j, code, reg: emcys.append((j, code, reg))
+    rng = np.random.default_rng(7)
+    frames = []
+    for name, layout in a.layouts.items():
+        for fr in layout.frames:
+            if fr.direction == "tpdo":
+                size = struct.Struct(fr.slots[0].fmt).size
+                frames += [(name, fr.cob_id, bytes(rng.integers(0, 256, size, dtype=np.uint8))) for _ in range(2)]
+                frames.append((name, fr.cob_id, b"\x01"))  # too short: ignored by both
+    frames += [(next(iter(a.layouts)), 0x081, b"\x10\x32\x01\x00\x00\x00\x00\x00"),
+               (next(iter(a.layouts)), 0x701, b"\x05")]
+    for io in (a, b):
+        io.begin_cycle()
+    claimed = {}
+    listeners = {name: a.listener(name) for name in a.layouts}
+    decoders = {name: b.tpdo_decoder(name) for name in b.layouts}
+    for name, cob, data in frames:
+        listeners[name].on_message_received(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
+        claimed[cob] = decoders[name](cob, data)
+    assert claimed.pop(0x081) is False and claimed.pop(0x701) is False and all(claimed.values())
+    assert emcys == [(0, 0x3210, 1)]
+    for field in ("counts", "statusword", "current_permille", "rx"):
+        assert np.array_equal(getattr(a.feedback, field), getattr(b.feedback, field)), field
+    assert a.feedback.rx_count == b.feedback.rx_count == a.n and a.end_read() and b.end_read()
