@@ -5,7 +5,7 @@ Needs numba (not a dragd dependency): ``pip install --target /tmp/nb numba==0.68
 fire, gravity suppression included) and motions through both, asserts every state array identical bit for bit each
 cycle, and prints the thread CPU per call of each. Findings: docs/PERFORMANCE.md (issue 17, "Left open").
 """
-import time, copy
+import time
 import numpy as np
 import numba as nb
 from dragd.config import load_config
