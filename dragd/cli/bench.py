@@ -22,7 +22,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if args.jobs is not None and args.jobs < 1:
         raise CliError(f"--jobs: expected ≥ 1, got {args.jobs}")
     opts = {"config": absolute(args.config), "seconds": args.seconds, "realtime_priority": args.realtime_priority,
-            "jobs": args.jobs, "cases": args.cases, "out": absolute(args.out)}
+            "jobs": args.jobs, "cases": args.cases, "out": absolute(args.out), "profile": absolute(args.profile),
+            "sim_config": absolute(args.sim_config)}
     try:
         result = bench.run(args.names, {k: v for k, v in opts.items() if v is not None})
     except KeyError as exc:
@@ -59,6 +60,12 @@ def register(sub: Any) -> None:
                    help="gap_confusion: comma-separated shell patterns of case ids (default: the whole matrix)")
     b.add_argument("--out", type=Path, default=None, metavar="DIR",
                    help="gap_confusion: keep the generated cases and results.json here (default: a temporary directory)")
+    b.add_argument("--profile", type=Path, default=None, metavar="DIR",
+                   help="loop benchmarks: also sample the daemon and the simulator with py-spy over the session and "
+                        "write DIR/daemon.svg, DIR/sim.svg (flame graphs) and DIR/*.txt (collapsed stacks)")
+    b.add_argument("--sim-config", type=Path, default=None, metavar="FILE",
+                   help="loop benchmarks: the simulator's truth file (default: the bundled seed cobot's); with a "
+                        "daemon configuration of several buses its joints' bus_index must match")
     add_config(b, params=False)
     b.add_argument("--json", action="store_true", help="print JSON")
     b.set_defaults(func=cmd_bench)

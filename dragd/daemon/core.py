@@ -526,7 +526,8 @@ class Daemon:
         self.attach(buses)
         assert self.io is not None
         self.master = Master(self.cfg, self.buses, self.layouts, loop,
-                             {name: [self.io.listener(name)] for name in self.buses}, log=self.log)
+                             {name: [self.io.listener(name)] for name in self.buses}, log=self.log,
+                             on_data={name: self.io.tpdo_decoder(name) for name in self.buses})
         self.master.on_heartbeat = self.comms.on_heartbeat
         server = None
         comms: asyncio.Task[None] | None = None

@@ -37,6 +37,7 @@ import select
 import socket
 import struct
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -276,6 +277,27 @@ class UdpMulticastCanBus(can.BusABC):
             return self._decode(raw, ancillary), False
 
     def _decode(self, raw: bytes, ancillary: list[tuple[int, int, bytes]]) -> can.Message | None:
+        got = self._fields(raw, ancillary)
+        if got is None:
+            return None
+        fields, timestamp, own = got
+        return self._message(fields, timestamp, own)
+
+    def _message(self, fields: dict[str, Any], timestamp: float, own: bool) -> can.Message | None:
+        try:
+            msg = can.Message(timestamp=timestamp, arbitration_id=fields["arbitration_id"],
+                              is_extended_id=fields["is_extended_id"], is_remote_frame=fields["is_remote_frame"],
+                              is_error_frame=fields["is_error_frame"], channel=self.channel, dlc=fields["dlc"],
+                              data=fields["data"], is_fd=fields["is_fd"], bitrate_switch=fields["bitrate_switch"],
+                              error_state_indicator=fields["error_state_indicator"], is_rx=not own, check=False)
+        except (ValueError, TypeError, KeyError):
+            self._c["undecodable"] += 1
+            return None
+        self._c["frames_received"] += 1
+        return msg
+
+    def _fields(self, raw: bytes, ancillary: list[tuple[int, int, bytes]]) -> tuple[dict[str, Any], float, bool] | None:
+        """A datagram's frame fields, reception time and whether it is our own echo; None when it is dropped."""
         c = self._c
         timestamp = 0.0
         for level, kind, payload in ancillary:
@@ -305,16 +327,48 @@ class UdpMulticastCanBus(can.BusABC):
             if fields["is_fd"] and self._can_protocol is not can.CanProtocol.CAN_FD:
                 c["fd_frames_dropped"] += 1
                 return None
-            msg = can.Message(timestamp=timestamp, arbitration_id=fields["arbitration_id"],
-                              is_extended_id=fields["is_extended_id"], is_remote_frame=fields["is_remote_frame"],
-                              is_error_frame=fields["is_error_frame"], channel=self.channel, dlc=fields["dlc"],
-                              data=fields["data"], is_fd=fields["is_fd"], bitrate_switch=fields["bitrate_switch"],
-                              error_state_indicator=fields["error_state_indicator"], is_rx=not own, check=False)
-        except (ValueError, TypeError, KeyError, msgpack.UnpackException):
+        except (ValueError, TypeError, KeyError, AttributeError, msgpack.UnpackException):
             c["undecodable"] += 1
             return None
-        c["frames_received"] += 1
-        return msg
+        return fields, timestamp, own
+
+    def drain(self, on_data: Callable[[int, bytes | bytearray], bool], on_message: Callable[[can.Message], None],
+              limit: int = 64) -> int:
+        """Take every datagram already queued (at most ``limit``) without waiting; returns how many were read.
+
+        A plain data frame (standard id, not remote, not an error frame) is first offered to ``on_data(cob_id,
+        data)``; when that returns True it is consumed without a ``can.Message`` (the 1 kHz cycle's TPDOs).
+        Every other accepted frame goes to ``on_message`` as a ``can.Message``. Echo, duplicate and loss
+        handling and the counters are those of ``recv``.
+        """
+        recvmsg, size, anc_size, c = self._sock.recvmsg, 4096, self._ancillary_size, self._c
+        n = 0
+        while n < limit:
+            try:
+                raw, ancillary, _, _ = recvmsg(size, anc_size, socket.MSG_DONTWAIT)
+            except BlockingIOError:
+                break
+            except OSError as exc:
+                raise can.CanOperationError(f"{self.channel_info}: receive failed: {exc}") from exc
+            n += 1
+            with self._rx_lock:
+                got = self._fields(raw, ancillary)
+                if got is None:
+                    continue
+                fields, timestamp, own = got
+                try:
+                    plain = not (own or fields["is_extended_id"] or fields["is_remote_frame"]
+                                 or fields["is_error_frame"])
+                    if plain and on_data(fields["arbitration_id"], fields["data"]):
+                        c["frames_received"] += 1
+                        continue
+                except (TypeError, KeyError):
+                    c["undecodable"] += 1
+                    continue
+                msg = self._message(fields, timestamp, own)
+            if msg is not None:
+                on_message(msg)
+        return n
 
     def _accept(self, token: int, seq: int) -> bool:
         """Sequence bookkeeping for one sender; False for a duplicate or a hopelessly late frame."""

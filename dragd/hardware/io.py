@@ -1,6 +1,7 @@
 """The cycle's process data on the buses: SYNC out, TPDOs in (decoded into arrays), command RPDOs out, heartbeat.
 
-Frames are read by each bus's ``can.Notifier`` in the asyncio loop's thread (``listener``): TPDOs are decoded with
+Frames are read by each bus's notifier in the asyncio loop's thread (hardware/reader.py; ``tpdo_decoder`` takes
+the TPDOs before any ``can.Message`` is made, ``listener`` the rest): TPDOs are decoded with
 precompiled ``struct`` codecs straight into the feedback arrays, EMCYs go to ``on_emcy``; the read step of a
 cycle ends when every joint's position TPDO arrived after the SYNC, or at the deadline. ``write`` packs the
 controlwords, target positions and torque offsets into each command frame's preallocated buffer.
@@ -100,34 +101,44 @@ class BusIO:
         if msg.is_extended_id or msg.is_remote_frame:  # a 29-bit id can equal a COB-ID; an RTR carries no data
             self.rejected_frames += 1
             return
-        fb = self.feedback
-        entry = table.get(msg.arbitration_id)
-        if entry is not None:
-            j, codec, fields = entry
-            if len(msg.data) < codec.size:
-                self.rejected_frames += 1
-                return
-            if fb.rx[j] and "position" in fields:
-                self.duplicate_tpdos += 1
-            values = codec.unpack_from(msg.data)
-            for f, v in zip(fields, values):
-                if f == "position":
-                    fb.counts[j] = v
-                elif f == "current":
-                    fb.current_permille[j] = v
-                else:
-                    fb.statusword[j] = v
-            if "position" in fields and not fb.rx[j]:
-                fb.rx[j] = True
-                fb.rx_count += 1
-                if fb.rx_count >= self.n and self._waiter is not None and not self._waiter.done():
-                    self._waiter.set_result(True)
+        if self._tpdo(msg.arbitration_id, msg.data, table):
             return
         emcy_joint = self._emcy.get(msg.arbitration_id)
         if emcy_joint is not None and len(msg.data) >= 3:
             code = msg.data[0] | (msg.data[1] << 8)
             if code != 0:
                 self.on_emcy(emcy_joint, code, msg.data[2])
+
+    def tpdo_decoder(self, bus_name: str) -> Callable[[int, bytes | bytearray], bool]:
+        """``on_data`` for the bus's reader: decodes a (plain data) frame that is a TPDO, True if it was one."""
+        table, tpdo = self._decoders.setdefault(bus_name, {}), self._tpdo
+        return lambda cob, data: tpdo(cob, data, table)
+
+    def _tpdo(self, cob: int, data: bytes | bytearray, table: dict[int, Decoder]) -> bool:
+        entry = table.get(cob)
+        if entry is None:
+            return False
+        j, codec, fields = entry
+        if len(data) < codec.size:
+            self.rejected_frames += 1
+            return True
+        fb = self.feedback
+        if fb.rx[j] and "position" in fields:
+            self.duplicate_tpdos += 1
+        values = codec.unpack_from(data)
+        for f, v in zip(fields, values):
+            if f == "position":
+                fb.counts[j] = v
+            elif f == "current":
+                fb.current_permille[j] = v
+            else:
+                fb.statusword[j] = v
+        if "position" in fields and not fb.rx[j]:
+            fb.rx[j] = True
+            fb.rx_count += 1
+            if fb.rx_count >= self.n and self._waiter is not None and not self._waiter.done():
+                self._waiter.set_result(True)
+        return True
 
     def begin_cycle(self) -> None:
         """Before the SYNC: nothing has arrived for this cycle yet."""

@@ -25,6 +25,7 @@ import canopen
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from dragd.hardware.cia301 import HEARTBEAT_BASE, NMT_COB_ID, SYNC_COB_ID, NmtCommand
+from dragd.hardware.reader import DrainingNotifier
 from dragd.hardware.cia402 import (MODE_CSP, MODE_CST, OD_ABORT_CONNECTION_OPTION, OD_MAX_TORQUE, OD_MODES_OF_OPERATION, OD_MODES_OF_OPERATION_DISPLAY,
                      OD_MOTOR_RATED_CURRENT, OD_QUICK_STOP_OPTION, OD_SUPPORTED_DRIVE_MODES, OD_TARGET_TORQUE,
                      OD_TORQUE_OFFSET)
@@ -77,7 +78,8 @@ class Master:
 
     def __init__(self, cfg: Config, buses: dict[str, can.BusABC], layouts: dict[str, BusLayout],
                  loop: asyncio.AbstractEventLoop, listeners: dict[str, list[can.Listener]],
-                 log: Callable[[str], None] = print) -> None:
+                 log: Callable[[str], None] = print,
+                 on_data: dict[str, Callable[[int, bytes | bytearray], bool]] | None = None) -> None:
         self.cfg = cfg
         self.loop = loop
         self.log = log
@@ -104,7 +106,8 @@ class Master:
             net.subscribe(SYNC_COB_ID, self._foreign_cb(name, "SYNC"))
             net.subscribe(HEARTBEAT_BASE + cfg.master.node_id, self._foreign_cb(name, f"heartbeat of node "
                                                                                   f"{cfg.master.node_id}"))
-            rt.notifier = can.Notifier(bus, [*net.listeners, *listeners.get(name, [])], timeout=0.5, loop=loop)
+            rt.notifier = DrainingNotifier(bus, [*net.listeners, *listeners.get(name, [])], timeout=0.5, loop=loop,
+                                           on_data=(on_data or {}).get(name))
             net.notifier = rt.notifier
             self.runtimes[name] = rt
 

@@ -1,7 +1,12 @@
 """Loop benchmarks: the daemon's 1 kHz cycle with the simulated robot beside it (separate processes).
 
 One session (default 60 s of drag, `--seconds`) yields ``loop_period_p99_us``, ``loop_missed_ratio``,
-``loop_compute_us`` and ``sim_rtf``; running several of them in one ``dragd bench`` call shares the session.
+``loop_compute_us``, ``sim_rtf``, ``daemon_cpu_pct``, ``sim_cpu_pct`` and the CPU time per cycle
+(``daemon_cpu_us_per_cycle``, ``sim_cpu_us_per_cycle``: far less sensitive to other load on the machine than the
+latency figures); running several of them in one ``dragd bench`` call shares the session. ``--config`` gives the
+daemon's configuration (several buses: one private multicast group each), ``--sim-config`` the simulator's truth
+(e.g. config/loop_2khz.yaml with sim/config/seed_cobot_two_buses.yaml: the 2 kHz figures), ``--profile DIR``
+samples both processes with py-spy over the session.
 ``bus_load`` is the worst-case load of the configured PDO layout (no session needed).
 
 The session runs as deployed (docs/SYSTEMD.md): the daemon's cycle thread SCHED_FIFO 70 and the simulator's
@@ -11,6 +16,9 @@ printed on stderr (``dragd status`` → ``scheduler``).
 
 from __future__ import annotations
 
+import os
+import shutil
+import subprocess
 import sys
 import time
 from functools import lru_cache
@@ -23,6 +31,50 @@ REALTIME_PRIORITY = 70  # the cycle thread's SCHED_FIFO priority as deployed (do
 # (at least 1: with --realtime-priority 1..10 both run at the same priority)
 
 
+def process_cpu_s(pid: int) -> float:
+    """CPU time (user + system, all threads) the process ``pid`` has used so far, from /proc/<pid>/stat."""
+    with open(f"/proc/{pid}/stat", "rb") as f:
+        fields = f.read().rsplit(b")", 1)[1].split()  # after the command name (which may hold spaces)
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime (fields 14, 15)
+
+
+def _py_spy(profile: str | None, seconds: float, pids: dict[str, int]) -> list[subprocess.Popen]:
+    """Start one py-spy sampler per process for the session: DIR/<name>.txt, collapsed stacks per thread."""
+    if not profile:
+        return []
+    exe = shutil.which("py-spy") or str(Path(sys.executable).with_name("py-spy"))
+    if not Path(exe).exists():
+        raise BenchError("--profile: py-spy is not installed here (pip install py-spy)")
+    out = Path(profile)
+    out.mkdir(parents=True, exist_ok=True)
+    return [subprocess.Popen([exe, "record", "-r", "250", "-d", str(max(1, round(seconds))), "-f", "raw", "--threads",
+                              "--nonblocking", "-o", str(out / f"{name}.txt"), "-p", str(pid)],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) for name, pid in pids.items()]
+
+
+def profile_summary(stacks: Path, top: int = 25) -> str:
+    """Self and inclusive sample shares per function from py-spy's collapsed stacks (``frame;frame;... count``)."""
+    own: dict[str, int] = {}
+    incl: dict[str, int] = {}
+    total = 0
+    for line in stacks.read_text().splitlines():
+        path, _, n = line.rpartition(" ")
+        if not path or not n.isdigit():
+            continue
+        count = int(n)
+        frames = [f.split(" (")[0] + " (" + f.split(" (")[-1].split(":")[0].rsplit("/", 1)[-1] + ")" if " (" in f else f
+                  for f in path.split(";")]
+        total += count
+        own[frames[-1]] = own.get(frames[-1], 0) + count
+        for f in set(frames):
+            incl[f] = incl.get(f, 0) + count
+    lines = [f"{stacks.stem}: {total} samples"]
+    for title, d in (("self", own), ("inclusive", incl)):
+        lines.append(f"  top {title}:")
+        lines += [f"    {100 * c / max(1, total):5.1f} %  {f}" for f, c in sorted(d.items(), key=lambda kv: -kv[1])[:top]]
+    return "\n".join(lines)
+
+
 TELEMETRY = {  # session variant -> `dragd run` telemetry options (None: no telemetry file)
     "off": None,
     "foxglove": [],  # as configured by default: every cycle + Foxglove channels at 30 Hz
@@ -31,18 +83,23 @@ TELEMETRY = {  # session variant -> `dragd run` telemetry options (None: no tele
 
 
 @lru_cache(maxsize=8)
-def _session(seconds: float, config: str | None, priority: int, telemetry: str = "off") -> dict:
-    from dragd.lab.rig import Rig
+def _session(seconds: float, config: str | None, priority: int, profile: str | None = None,
+             sim_config: str | None = None, telemetry: str = "off") -> dict:
+    import tempfile
+
+    from dragd.config import load_config
+    from dragd.lab.rig import Rig, multicast_group
 
     rt = ["--realtime-priority", str(priority)] if priority else []
     sim_rt = ["--realtime-priority", str(max(1, priority - 10))] if priority else []
+    n_buses = len(load_config(config).buses)
     tel_args = TELEMETRY[telemetry]
-    import tempfile
-
     tmp = Path(tempfile.mkdtemp(prefix="dragd-bench-tel-"))
     tel_path = tmp / "telemetry.mcap" if tel_args is not None else None
-    with Rig("bench", config=Path(config) if config else None, daemon_args=rt + (tel_args or []), sim_args=sim_rt,
-             telemetry=tel_path) as rig:
+    with Rig("bench", config=Path(config) if config else None, sim_config=Path(sim_config) if sim_config else None,
+             daemon_args=rt + (tel_args or []), sim_args=sim_rt, telemetry=tel_path) as rig:
+        if n_buses > 1:  # one private multicast group per configured bus (the sim's truth maps joints to them)
+            rig.bus = ",".join(f"udp_multicast:{multicast_group(f'bench{k}')}" for k in range(n_buses))
         rig.start_sim()
         rig.start_daemon()
         if priority:  # measure what was asked for, or say why not (never SCHED_OTHER figures labelled FIFO)
@@ -57,21 +114,42 @@ def _session(seconds: float, config: str | None, priority: int, telemetry: str =
         time.sleep(0.5)
         rig.must("mode", mode="drag")
         rig.sim_call("operator", scenario="flange_drag")
+        pids = (rig.daemon.proc.pid, rig.sim.proc.pid)
         before = rig.must("status")
         sim0, w0 = rig.sim_call("state"), time.monotonic()
+        spies = _py_spy(profile, seconds, {"daemon": pids[0], "sim": pids[1]})
+        cpu0 = [process_cpu_s(p) for p in pids]
         time.sleep(seconds)
+        cpu1 = [process_cpu_s(p) for p in pids]
+        for spy in spies:
+            spy.wait(60)
         sim1, w1 = rig.sim_call("state"), time.monotonic()
         after = rig.must("status")
-        tel0, tel1 = before.get("telemetry") or {}, after.get("telemetry") or {}  # the writer's counters
         rig.must("stop")
+    if after.get("mode") != "drag":  # a fault or a hold mid-session: the figures would not be of the drag loop
+        raise BenchError(f"loop benchmark: the daemon left drag during the session (mode {after.get('mode')!r}, "
+                         f"last fault: {(after.get('faults') or ['none'])[-1]}); is the machine overloaded? "
+                         f"daemon log: {rig.daemon.log_path if rig.daemon else '?'}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tel0, tel1 = before.get("telemetry") or {}, after.get("telemetry") or {}  # the writer's counters
     print(f"bench: loop session {seconds:.0f} s, telemetry {telemetry}, daemon cycle thread {after.get('scheduler')}",
           file=sys.stderr)
-    import shutil
-
-    shutil.rmtree(tmp, ignore_errors=True)
+    for name in ("daemon", "sim") if profile else ():
+        stacks = Path(profile) / f"{name}.txt"
+        if stacks.exists():
+            summary = profile_summary(stacks)
+            stacks.with_name(f"{name}-top.txt").write_text(summary + "\n")
+            print(summary, file=sys.stderr)
     cycles = after["cycles"] - before["cycles"]
     missed = after["missed_cycles"] - before["missed_cycles"]
+    wall = w1 - w0
+    d_cpu, s_cpu = cpu1[0] - cpu0[0], cpu1[1] - cpu0[1]
+    ticks = max(1, cycles + missed)
     return {
+        "daemon_cpu_pct": 100.0 * d_cpu / wall,  # share of one core (the sim's and the daemon's own CPU time)
+        "sim_cpu_pct": 100.0 * s_cpu / wall,
+        "daemon_cpu_us_per_cycle": 1e6 * d_cpu / ticks,
+        "sim_cpu_us_per_cycle": 1e6 * s_cpu / ticks,
         "period_p99_us": after["period_p99_us"],
         "missed_ratio": missed / max(1, cycles + missed),
         "compute_p50_us": after["compute_p50_us"],
@@ -80,10 +158,11 @@ def _session(seconds: float, config: str | None, priority: int, telemetry: str =
     }
 
 
-def _opts(opts: dict) -> tuple[float, str | None, int]:
+def _opts(opts: dict) -> tuple[float, str | None, int, str | None, str | None]:
     prio = opts.get("realtime_priority")
     return (float(opts.get("seconds", 60.0)), str(opts["config"]) if opts.get("config") else None,
-            REALTIME_PRIORITY if prio is None else int(prio))
+            REALTIME_PRIORITY if prio is None else int(prio), str(opts["profile"]) if opts.get("profile") else None,
+            str(opts["sim_config"]) if opts.get("sim_config") else None)
 
 
 @benchmark("loop_period_p99_us", "us")
@@ -110,6 +189,30 @@ def sim_rtf(opts: dict) -> float:
     return float(_session(*_opts(opts))["rtf"])
 
 
+@benchmark("daemon_cpu_pct", "%")
+def daemon_cpu_pct(opts: dict) -> float:
+    """The daemon's CPU time over the loop session as a share of one core (drag at the configured rate)."""
+    return float(_session(*_opts(opts))["daemon_cpu_pct"])
+
+
+@benchmark("sim_cpu_pct", "%")
+def sim_cpu_pct(opts: dict) -> float:
+    """The simulator's CPU time over the loop session as a share of one core (physics + drives + bus)."""
+    return float(_session(*_opts(opts))["sim_cpu_pct"])
+
+
+@benchmark("daemon_cpu_us_per_cycle", "us")
+def daemon_cpu_us_per_cycle(opts: dict) -> float:
+    """The daemon's CPU time per cycle over the loop session (all threads; less load-sensitive than latency)."""
+    return float(_session(*_opts(opts))["daemon_cpu_us_per_cycle"])
+
+
+@benchmark("sim_cpu_us_per_cycle", "us")
+def sim_cpu_us_per_cycle(opts: dict) -> float:
+    """The simulator's CPU time per daemon cycle over the loop session (4 physics steps + SYNC answers each)."""
+    return float(_session(*_opts(opts))["sim_cpu_us_per_cycle"])
+
+
 @benchmark("bus_load", "%")
 def bus_load(opts: dict) -> float:
     """Worst-case bus load (bit stuffing included) of the configured PDO layout, highest over the buses."""
@@ -123,8 +226,7 @@ def bus_load(opts: dict) -> float:
 
 
 def _telemetry(opts: dict, variant: str) -> dict:
-    seconds, config, prio = _opts(opts)
-    out = _session(seconds, config, prio, variant)
+    out = _session(*_opts(opts), telemetry=variant)
     if out["telemetry_dropped"]:
         raise BenchError(f"telemetry ({variant}): the writer dropped {out['telemetry_dropped']} rows")
     return out

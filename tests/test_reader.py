@@ -1,0 +1,156 @@
+"""dragd.hardware.reader: the draining notifier hands the cycle's TPDOs over without can.Message objects.
+
+In-process (two udp_multicast buses or a virtual bus, one asyncio loop); no wall-clock assertions.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import os
+import struct
+
+import can
+import pytest
+
+from dragd.hardware.bus import open_bus, parse_bus
+from dragd.hardware.reader import DrainingNotifier
+
+pytestmark = [pytest.mark.unit, pytest.mark.timeout(60)]
+
+
+def _group(name: str) -> str:
+    h = int.from_bytes(hashlib.sha256(f"reader:{name}:{os.getpid()}".encode()).digest()[:4], "big")
+    return f"239.74.{200 + h % 50}.{1 + (h >> 8) % 254}"
+
+
+class _Collect(can.Listener):
+    def __init__(self) -> None:
+        self.got: list[tuple[int, bytes, bool, bool]] = []
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self.got.append((msg.arbitration_id, bytes(msg.data), msg.is_extended_id, msg.is_remote_frame))
+
+
+FRAMES = [
+    can.Message(arbitration_id=0x181, data=b"\x01\x02\x03\x04", is_extended_id=False),  # claimed
+    can.Message(arbitration_id=0x701, data=b"\x05", is_extended_id=False),  # offered, refused
+    can.Message(arbitration_id=0x181, data=b"\x09", is_extended_id=True),  # extended: never offered
+    can.Message(arbitration_id=0x182, is_remote_frame=True, dlc=0, is_extended_id=False),  # remote: never offered
+    can.Message(arbitration_id=0x182, data=b"\xAA\xBB", is_extended_id=False),  # claimed
+]
+
+
+async def _run(bus: can.BusABC, peer: can.BusABC) -> tuple[list, list, int]:
+    offered: list[tuple[int, bytes]] = []
+
+    def on_data(cob: int, data: bytes) -> bool:
+        offered.append((cob, bytes(data)))
+        return cob in (0x181, 0x182)
+
+    rest = _Collect()
+    notifier = DrainingNotifier(bus, [rest], loop=asyncio.get_running_loop(), on_data=on_data, timeout=0.1)
+    try:
+        for msg in FRAMES:
+            peer.send(msg)
+        for _ in range(400):  # until everything arrived (bounded: 4 s)
+            if len(offered) + len(rest.got) >= 6:
+                break
+            await asyncio.sleep(0.01)
+        await asyncio.sleep(0.05)
+    finally:
+        notifier.stop()
+    return offered, rest.got, len(notifier._readers)
+
+
+def _check(offered: list, rest: list) -> None:
+    assert offered == [(0x181, b"\x01\x02\x03\x04"), (0x701, b"\x05"), (0x182, b"\xAA\xBB")]
+    assert rest == [(0x701, b"\x05", False, False), (0x181, b"\x09", True, False), (0x182, b"", False, True)]
+
+
+def test_udp_bus_drain_claims_plain_frames_and_delivers_the_rest(request: pytest.FixtureRequest) -> None:
+    spec = parse_bus(f"udp_multicast:{_group(request.node.name)}")
+    bus, peer = open_bus(spec), open_bus(spec)
+    try:
+        offered, rest, _ = asyncio.run(_run(bus, peer))
+        c = bus.counters()
+    finally:
+        bus.shutdown()
+        peer.shutdown()
+    _check(offered, rest)
+    assert c.frames_received == 5 and c.undecodable == 0 and c.duplicates_dropped == 0
+
+
+def test_udp_bus_drain_takes_a_burst_in_one_call(request: pytest.FixtureRequest) -> None:
+    """Everything queued is read by one drain() (bounded by its limit), echoes and duplicates filtered as recv does."""
+    spec = parse_bus(f"udp_multicast:{_group(request.node.name)}")
+    bus, peer = open_bus(spec), open_bus(spec)
+    try:
+        bus.send(can.Message(arbitration_id=0x80, data=b"", is_extended_id=False))  # own echo: dropped
+        for i in range(10):
+            peer.send(can.Message(arbitration_id=0x181 + i % 6, data=bytes([i]), is_extended_id=False))
+        assert bus.recv(2.0) is not None  # wait for the first; the rest is queued behind it
+        import time
+        time.sleep(0.1)
+        seen: list[int] = []
+        n = bus.drain(lambda cob, data: seen.append(data[0]) is None, lambda m: seen.append(-1), limit=4)
+        n += bus.drain(lambda cob, data: seen.append(data[0]) is None, lambda m: seen.append(-1))
+        assert bus.drain(lambda cob, data: True, lambda m: None) == 0
+        c = bus.counters()
+    finally:
+        bus.shutdown()
+        peer.shutdown()
+    assert n == 9 and seen == list(range(1, 10))
+    assert c.own_echoes_dropped == 1 and c.frames_received == 10
+
+
+def test_bus_without_drain_is_read_frame_by_frame_with_the_same_split(request: pytest.FixtureRequest) -> None:
+    """A bus without drain() (virtual here: no file descriptor, the notifier's thread) splits frames the same way."""
+    channel = f"reader-{request.node.name}-{os.getpid()}"
+    bus = can.Bus(interface="virtual", channel=channel)
+    peer = can.Bus(interface="virtual", channel=channel)
+    try:
+        offered, rest, readers = asyncio.run(_run(bus, peer))
+    finally:
+        bus.shutdown()
+        peer.shutdown()
+    _check(offered, rest)
+
+
+@pytest.mark.parametrize("config", ["default.yaml", "two_buses.yaml"])
+def test_tpdo_decoder_fills_the_feedback_as_the_listener_does(config: str) -> None:
+    """The frames the reader hands over without can.Message decode into the same feedback as through the listener
+    (the path the golden traces replay), TPDOs claimed, everything else (EMCY, heartbeat) refused."""
+    import numpy as np
+
+    from dragd.config import load_config
+    from inproc import InProcess
+    from conftest import REPO
+
+    cfg = load_config(REPO / "config" / config)
+    a, b = InProcess(cfg).d.io, InProcess(cfg).d.io
+    emcys: list[tuple[int, int, int]] = []
+    a.on_emcy = lambda j, code, reg: emcys.append((j, code, reg))
+    rng = np.random.default_rng(7)
+    frames = []
+    for name, layout in a.layouts.items():
+        for fr in layout.frames:
+            if fr.direction == "tpdo":
+                size = struct.Struct(fr.slots[0].fmt).size
+                frames += [(name, fr.cob_id, bytes(rng.integers(0, 256, size, dtype=np.uint8))) for _ in range(2)]
+                frames.append((name, fr.cob_id, b"\x01"))  # too short: ignored by both
+    frames += [(next(iter(a.layouts)), 0x081, b"\x10\x32\x01\x00\x00\x00\x00\x00"),
+               (next(iter(a.layouts)), 0x701, b"\x05")]
+    for io in (a, b):
+        io.begin_cycle()
+    claimed = {}
+    listeners = {name: a.listener(name) for name in a.layouts}
+    decoders = {name: b.tpdo_decoder(name) for name in b.layouts}
+    for name, cob, data in frames:
+        listeners[name].on_message_received(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
+        claimed[cob] = decoders[name](cob, data)
+    assert claimed.pop(0x081) is False and claimed.pop(0x701) is False and all(claimed.values())
+    assert emcys == [(0, 0x3210, 1)]
+    for field in ("counts", "statusword", "current_permille", "rx"):
+        assert np.array_equal(getattr(a.feedback, field), getattr(b.feedback, field)), field
+    assert a.feedback.rx_count == b.feedback.rx_count == a.n and a.end_read() and b.end_read()
