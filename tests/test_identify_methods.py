@@ -21,6 +21,7 @@ def sync_fit():
     return identify(load_log(sync_log("mcap")), robot(), "synchronous")
 
 
+@pytest.mark.slow
 def test_synchronous_kt_and_friction_lines(sync_fit):
     t = truth()["joints"]
     for name in ("joint2", "joint4"):

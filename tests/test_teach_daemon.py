@@ -180,6 +180,7 @@ def _write_program(tmp: Path, name: str, steps, start=Q0) -> Path:
     return save_program(prog, tmp / "programs" / f"{name}.yaml")
 
 
+@pytest.mark.slow
 def test_pause_resume_speed_override_stop_and_monitors(tmp_path):
     mcap = tmp_path / "daemon.mcap"
     # a tight tracking-error bound on joint 6 (0.6°; 2° elsewhere), the default residual bound (2 A): a push on the
