@@ -338,8 +338,8 @@ class UdpMulticastCanBus(can.BusABC):
 
         A plain data frame (standard id, not remote, not an error frame) is first offered to ``on_data(cob_id,
         data)``; when that returns True it is consumed without a ``can.Message`` (the 1 kHz cycle's TPDOs).
-        Every other accepted frame goes to ``on_message`` as a ``can.Message``. Echo, duplicate and loss
-        handling and the counters are those of ``recv``.
+        Every other accepted frame that passes the bus's filters (``set_filters``: e.g. no 29-bit ids) goes to
+        ``on_message`` as a ``can.Message``. Echo, duplicate and loss handling and the counters are those of ``recv``.
         """
         recvmsg, size, anc_size, c = self._sock.recvmsg, 4096, self._ancillary_size, self._c
         n = 0
@@ -366,7 +366,7 @@ class UdpMulticastCanBus(can.BusABC):
                     c["undecodable"] += 1
                     continue
                 msg = self._message(fields, timestamp, own)
-            if msg is not None:
+            if msg is not None and self._matches_filters(msg):  # the bus's can_filters, as recv() applies them
                 on_message(msg)
         return n
 
