@@ -277,7 +277,9 @@ class GuardConfig(_Strict):
     """The gravity model will be wrong (docs/PAYLOAD.md): the check before drag and the runaway guard in it."""
 
     runaway: bool = True  # the runaway guard in drag
-    observer_Hz: Annotated[float, Field(gt=0, le=200), Expect("a bandwidth in (0, 200] Hz")] = 25.0
+    observer_Hz: Annotated[float, Field(gt=0, le=200), Expect("a bandwidth in (0, 200] Hz")] = 10.0
+    # the residual and speeds the decisions use are low-passed at this (velocity noise, late samples)
+    decide_Hz: Annotated[float, Field(gt=0, le=100), Expect("a bandwidth in (0, 100] Hz")] = 8.0
     speed_rad_s: PosFloat = 0.03  # slower joints are not running away
     residual_A: PosFloat = 0.3  # smaller missing torques (as current) are friction's business
     confirm_s: Annotated[float, Field(ge=0, le=0.5), Expect("a time in [0, 0.5] s")] = 0.03

@@ -23,9 +23,12 @@ from tests.inproc import InProcess
 
 
 class ClosedLoop:
-    def __init__(self, cfg: Config | None = None, truth: Truth | None = None, wrong_sign: tuple[int, ...] = ()) -> None:
+    def __init__(self, cfg: Config | None = None, truth: Truth | None = None, wrong_sign: tuple[int, ...] = (),
+                 loaded_host: int | None = None) -> None:
         """``wrong_sign``: joints whose configured direction is wrong (the drive's counts and current, as the
-        daemon decodes them, are the physics' negated)."""
+        daemon decodes them, are the physics' negated). ``loaded_host`` (an RNG seed): the timing of a loaded
+        2-core host as measured on the rig (docs/NOTES.md): 15 % of cycles late by 1–2 periods (the physics runs
+        on with the old command), 20 % of position samples repeated from the cycle before (the drive's TPDO lags)."""
         self.cfg = cfg or load_config()
         self.truth = truth or load_truth()
         self.robot = self.truth.load_model()
@@ -37,6 +40,8 @@ class ClosedLoop:
         self.q_log: list[np.ndarray] = []
         self.flip = np.ones(len(self.axes))
         self.flip[list(wrong_sign)] = -1.0
+        self.rng = np.random.default_rng(loaded_host) if loaded_host is not None else None
+        self._q_sent = self.phys.q_rad.copy()
 
     @property
     def t(self) -> float:
@@ -44,8 +49,18 @@ class ClosedLoop:
 
     def cycle(self) -> None:
         ip, ph = self.ip, self.phys
-        ip.feed(ph.q_rad * self.flip, ph.current_measured_A * self.flip)
-        ip.cycle()
+        ticks = 1
+        if self.rng is not None:
+            if self.rng.random() < 0.15:  # the loop was parked: the physics ran on with the last command
+                ticks = int(self.rng.integers(2, 4))
+                for _ in range(self.sub * (ticks - 1)):
+                    ph.step()
+            if self.rng.random() >= 0.2:  # else the drive's sample is the one before (repeated)
+                self._q_sent = ph.q_rad.copy()
+        else:
+            self._q_sent = ph.q_rad
+        ip.feed(self._q_sent * self.flip, ph.current_measured_A * self.flip)
+        ip.cycle(ticks)
         cmd = ip.torque_offset_A() * self.flip
         on = self.c.mode not in (Mode.IDLE, Mode.FAULT)
         for k, ax in enumerate(self.axes):

@@ -54,6 +54,27 @@ def test_hung_on_2kg_tool_is_stopped_within_150ms_and_1_5_deg():
     assert float(np.degrees(np.abs(cl.phys.q_rad - q0)).max()) <= 1.5
 
 
+def test_loaded_host_hung_on_tool_is_stopped_and_hand_guiding_never_trips():
+    """The rig on a loaded host (late cycles, repeated position samples → a noisy q̇ and momentum): the guard's
+    decisions on low-passed signals still stop a hung-on tool in bounds and never trip on the hand (before the
+    fix, a replay of such a rig log never tripped: the speed "dropped" below keep_speed every few cycles)."""
+    for seed in (1, 2):
+        cl = ClosedLoop(loaded_host=seed)
+        cl.start(0.6)
+        assert cl.mode("drag") == {"checked": True}
+        cl.run(0.5)
+        for step in (HAND_TARGET_RAD, [-x for x in HAND_TARGET_RAD]):
+            cl.operator(_hand(step))
+            cl.run(4.0)
+            assert cl.c.mode == Mode.DRAG, cl.d.faults
+        assert cl.c.guard_trips == 0 and cl.c.guard.hand_runs >= 2
+        q0, t0 = cl.phys.q_rad.copy(), cl.t
+        cl.hang(2.0, (0.0, 0.0, 0.05))
+        dt, drift = _until_trip(cl, q0, t0, 1.0)
+        assert dt <= 0.150 and drift <= 1.5, (seed, dt, drift)
+        assert cl.runaway_stops()[-1]["joint"] in ("joint2", "joint3")
+
+
 def test_removed_payload_arm_rises_and_is_stopped():
     cl = ClosedLoop()
     cl.hang(2.0, (0.0, 0.0, 0.05))  # the tool is on, and the model knows it

@@ -149,7 +149,7 @@ class Controller:
         if g.runaway:
             c.guard = RunawayGuard(c.n, kt, dt, GuardSettings(
                 observer_Hz=g.observer_Hz, speed_rad_s=g.speed_rad_s, residual_A=g.residual_A, confirm_s=g.confirm_s,
-                keep_speed=g.keep_speed, unexplained_max=g.unexplained_max), None, cfg.joint_names)
+                keep_speed=g.keep_speed, unexplained_max=g.unexplained_max, decide_Hz=g.decide_Hz), None, cfg.joint_names)
         c.guard_hold_ramp_s = g.hold_ramp_s
         return c
 
@@ -389,7 +389,7 @@ class Controller:
         self.q_hold[:] = est.q_rad
         self.set_mode(Mode.HOLD, ramp_s=self.guard_hold_ramp_s)
         # hold with the missing torque the observer measured (the PD alone would sag by r/k_p)
-        np.divide(g.r, self.kt, out=self._tmp)
+        np.divide(g.r_f, self.kt, out=self._tmp)
         self.gravity_offset_A -= self._tmp  # the residual drives the motion: hold against it
         np.clip(self.gravity_offset_A, self.neg_limit_A, self.params.current_limit_A, out=self.gravity_offset_A)
 

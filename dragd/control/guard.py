@@ -21,8 +21,13 @@ them apart by where the torque acts and how it changes:
   is not tripped again until it ends; a payload-like residual trips: HOLD where the arm is, the event names the
   joint, the missing torque and the flange mass that would explain it.
 
-Time to trip after the arm starts moving ≈ observer lag (1/K_o) + ``confirm_s``. Allocation-free per cycle; the
-test against Y(q) (Pinocchio, least squares) runs once per candidate run.
+Decisions use the residual and the joint speeds low-passed at ``decide_Hz`` (first order): on a real controller the
+velocity estimate is noisy (encoder quantisation; on a loaded host late or repeated position samples), and K_o passes
+that noise straight into r — unfiltered, a runaway's speed "drops" below ``keep_speed`` of its peak every few cycles
+and no run ever lasts ``confirm_s``. The observer integrates the true elapsed time (a late cycle counts the periods
+it missed). Time to trip after the arm starts moving ≈ observer lag (1/K_o) + decision filter lag (1/(2π·decide_Hz))
++ ``confirm_s``. Allocation-free per cycle; the test against Y(q) (Pinocchio, least squares) runs once per candidate
+run.
 """
 
 from __future__ import annotations
@@ -36,7 +41,7 @@ import numpy as np
 
 @dataclass(frozen=True)
 class GuardSettings:
-    observer_Hz: float = 25.0  # residual bandwidth K_o/2π
+    observer_Hz: float = 10.0  # residual bandwidth K_o/2π (K_o passes q̇ noise into r: not higher)
     speed_rad_s: float = 0.03  # a joint slower than this is not running away
     residual_A: float = 0.3  # a missing torque smaller than this (as current) is friction's business
     confirm_s: float = 0.03  # candidacy this long before the payload-likeness test
@@ -44,6 +49,7 @@ class GuardSettings:
     unexplained_max: float = 0.1  # a residual with more than this fraction outside span Y(q) is a hand's
     settle_s: float = 0.05  # after (re)arming: observer transient, no decision
     run_max_s: float = 0.5  # a run that goes on this long without slowing is tested again (with any residual)
+    decide_Hz: float = 8.0  # low-pass of the residual and speeds the decisions use (velocity noise)
 
 
 @dataclass(frozen=True)
@@ -72,6 +78,9 @@ class RunawayGuard:
         self.p0 = np.zeros(n)
         self.integ = np.zeros(n)
         self.r = np.zeros(n)  # residual [N·m]
+        self.r_f = np.zeros(n)  # the residual low-passed at decide_Hz: what the decisions see [N·m]
+        self.v_f = np.zeros(n)  # joint speeds low-passed at decide_Hz [rad/s]
+        self._t_last = 0.0
         self.run_s = np.zeros(n)  # candidacy time of each joint's present run
         self.peak = np.zeros(n)  # the run's peak speed
         self.sign = np.zeros(n)  # the run's direction
@@ -92,6 +101,9 @@ class RunawayGuard:
         self.p0[:] = p_Nms
         self.integ.fill(0.0)
         self.r.fill(0.0)
+        self.r_f.fill(0.0)
+        self.v_f.fill(0.0)
+        self._t_last = t_s
         self.run_s.fill(0.0)
         self.peak.fill(0.0)
         self.sign.fill(0.0)
@@ -110,15 +122,27 @@ class RunawayGuard:
         if not self.armed:
             return None
         s, a, b, m, m2 = self.s, self._a, self._b, self._m, self._m2
+        # the true elapsed time since the last update (a late cycle missed periods); bounded against clock steps
+        dt = min(max(t_s - self._t_last, 0.0), 0.05) if t_s > self._t_last else self.dt
+        self._t_last = t_s
         # observer: integ += (τ_in + r)·dt;  r = K_o·(p − p₀ − integ)
         np.add(tau_in_Nm, self.r, out=a)
-        a *= self.dt
+        a *= dt
         self.integ += a
         np.subtract(p_Nms, self.p0, out=a)
         a -= self.integ
         np.multiply(a, self.k_o, out=self.r)
+        # the decision signals: residual and speeds low-passed (first order, exact for the step dt)
+        alpha = 1.0 - math.exp(-2.0 * math.pi * s.decide_Hz * dt)
+        np.subtract(self.r, self.r_f, out=a)
+        a *= alpha
+        self.r_f += a
+        np.subtract(dq, self.v_f, out=a)
+        a *= alpha
+        self.v_f += a
         if t_s - self.armed_at < s.settle_s:
             return None
+        dq = self.v_f  # (below: the filtered speeds)
         # runs: moving, driven by the residual (r·q̇ > 0), not slowing down (|q̇| ≥ keep_speed·the run's peak)
         np.abs(dq, out=a)  # a = speed
         if float(a.max()) <= s.speed_rad_s:  # the usual cycle at rest: no run can go on
@@ -130,7 +154,7 @@ class RunawayGuard:
             return None
         self.running = True
         np.greater(a, s.speed_rad_s, out=m)
-        np.multiply(self.r, dq, out=b)
+        np.multiply(self.r_f, dq, out=b)
         np.greater(b, 0.0, out=m2)
         m &= m2
         np.sign(dq, out=b)
@@ -147,7 +171,7 @@ class RunawayGuard:
         np.copyto(self.hand, False, where=~m)
         np.copyto(self.peak, 0.0, where=~m)
         # fast path: a missing torque above residual_A for confirm_s → the payload-likeness test, once per run
-        np.divide(self.r, self.kt, out=b)
+        np.divide(self.r_f, self.kt, out=b)
         np.abs(b, out=b)
         np.greater(b, s.residual_A, out=m2)
         m2 &= ~self.hand
@@ -169,7 +193,7 @@ class RunawayGuard:
     def _decide(self, q: np.ndarray, dq: np.ndarray, due: np.ndarray) -> Trip | None:
         """Rare path (once per candidate run): is the residual what a flange load would produce?"""
         self.checks += 1
-        unexplained, kg = self.explain(q, self.r) if self.explain is not None else (0.0, float("nan"))
+        unexplained, kg = self.explain(q, self.r_f) if self.explain is not None else (0.0, float("nan"))
         if unexplained > self.s.unexplained_max:
             self.hand |= due
             self.hand_runs += 1
@@ -177,9 +201,9 @@ class RunawayGuard:
         return self._trip(q, dq, due, kg, unexplained)
 
     def _trip(self, q: np.ndarray, dq: np.ndarray, due: np.ndarray, kg: float, unexplained: float) -> Trip:
-        ratio = np.abs(self.r) / self.kt
+        ratio = np.abs(self.r_f) / self.kt
         j = int(np.argmax(np.where(due, ratio, -1.0)))
-        r, v = float(self.r[j]), float(dq[j])
+        r, v = float(self.r_f[j]), float(dq[j])
         kg_text = f"; a load of about {kg:.2f} kg at the flange would explain it" if math.isfinite(kg) else ""
         text = (f"runaway in drag: {self.names[j]} moving {v:+.3f} rad/s, driven by {r:+.1f} N·m "
                 f"({r / self.kt[j]:+.2f} A) that the model and no hand explain{kg_text}; holding. "
