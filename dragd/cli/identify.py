@@ -144,6 +144,8 @@ def _fit_text(d: dict[str, Any]) -> str:
     lines = [f"method {d['method']} on {d['log']} (load {d.get('load_s', 0):.1f} s, fit {d.get('elapsed_s', 0):.1f} s) "
              f"→ {d.get('out')}",
              table(["joint", "K_t N·m/A", "F_c+ A", "F_c- A", "F_v A·s/rad", "F_s+ A", "F_s- A", "v_s rad/s"], rows)]
+    if d.get("notes", {}).get("auto"):
+        lines.append(f"auto: {d['notes']['auto']}")
     for name, j in d["joints"].items():
         seen = set()
         for k, why in j["reasons"].items():
