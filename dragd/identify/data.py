@@ -372,7 +372,7 @@ def _in_sequence(t: np.ndarray, min_run: int = 10, window: int = 32) -> np.ndarr
 
 def _validate(log: Log, drop_bad_rows: bool = False) -> Log:
     """Finite values per column, strictly increasing time, radians — errors name the file, column and line."""
-    where = "line" if log.row_word == "line" else log.row_word
+    where = log.row_word
     lines = log.lines if log.lines is not None else np.arange(log.t.shape[0]) + 1
     named = log.named_columns()
     bad = np.zeros(log.t.shape[0], dtype=bool)
@@ -383,9 +383,12 @@ def _validate(log: Log, drop_bad_rows: bool = False) -> Log:
             per_col.append((name, lines[nf]))
             bad |= nf
     if per_col:
-        desc = "; ".join(f"{c}: {ls.size} rows ({where}s {_first(ls)})" for c, ls in per_col)
+        def at(ls: np.ndarray) -> str:
+            return f"{where}{'s' if ls.size > 1 else ''} {_first(ls)}"
+
+        desc = "; ".join(f"{c}: {ls.size} row{'s' if ls.size > 1 else ''} ({at(ls)})" for c, ls in per_col)
         if not drop_bad_rows:
-            raise LogError(f"{log.path}: {per_col[0][0]}: NaN or infinite values at {where}s {_first(per_col[0][1])} "
+            raise LogError(f"{log.path}: {per_col[0][0]}: NaN or infinite values at {at(per_col[0][1])} "
                            f"({desc}); expected finite numbers — fix the log or pass --drop-bad-rows to skip such rows")
         if bad.all():
             raise LogError(f"{log.path}: every row has NaN or infinite values ({desc})")
@@ -404,8 +407,8 @@ def _validate(log: Log, drop_bad_rows: bool = False) -> Log:
             raise LogError(msg + extra + " — fix the log or pass --drop-bad-rows to skip rows out of sequence")
         log = log.select(seq)
         lines = lines[seq]
-        log.warnings.append(f"--drop-bad-rows: {out.size} rows with time out of sequence dropped ({where}s "
-                            f"{_ranges(out)})")
+        log.warnings.append(f"--drop-bad-rows: {out.size} row{'s' if out.size > 1 else ''} with time out of "
+                            f"sequence dropped ({where}{'s' if out.size > 1 else ''} {_ranges(out)})")
     if log.t.shape[0] < 50:
         raise LogError(f"{log.path}: only {log.t.shape[0]} usable rows; expected a log of at least a few seconds")
     _check_radians(log)
