@@ -5,10 +5,14 @@ Inputs
   only rows in mode ``track`` are used (the drives follow the excitation in CSP, the measured current is the
   whole motor current). Read by dragd/telemetry/reader.py: a file whose writer was killed is used up to its last
   complete chunk, with a warning naming it.
-- CSV ``t,q1..qN,i1..iN`` with optional ``dq1..dqN`` (s, rad, A, rad/s) from any arm.
+- CSV ``t,q1..qN,i1..iN`` with optional ``dq1..dqN``, ``i_target1..N``, ``tau_target1..N`` (s, rad, A, rad/s,
+  A, N·m) from any arm; headerless: 1+5N columns = the UR RTDE recording (t,q,qd,i,i_target,tau_target), 1+3N =
+  t,q,dq,i, 1+2N = t,q,i (N = the robot's joints). A name without extension is sniffed (or NAME.csv/.mcap).
 
-Problems are errors naming the file and what is wrong (missing columns, non-monotonic time, no usable rows,
-a joint count that differs from the robot's) or warnings (rows with NaN dropped, gaps split).
+Problems are errors naming the file, the column and the line (missing columns, NaN/inf values, time not strictly
+increasing, malformed rows, angles in degrees, no usable rows, a joint count that differs from the robot's) —
+``drop_bad_rows`` skips NaN/malformed/out-of-sequence rows instead, naming them in a warning; a truncated last row
+(writer stopped) is skipped with a warning; gaps are split with a warning. See docs/IDENTIFICATION.md.
 
 Signal processing (applied the same way to both sides of every regression):
 1. contiguous stretches ("segments") are split at gaps; each is resampled on a uniform grid;
