@@ -71,21 +71,30 @@ def test_unknown_column_and_bad_number_are_named(tmp_path):
         load_log(p)
 
 
-def test_nan_rows_are_dropped_with_a_warning(tmp_path):
+def test_nan_rows_are_an_error_naming_the_column_unless_dropped(tmp_path):
     t, q, i = _synthetic()
     i[[10, 11, 500], 2] = np.nan
     q[700, 0] = np.inf
-    log = load_log(_csv(tmp_path / "n.csv", t, q, i))
+    p = _csv(tmp_path / "n.csv", t, q, i)
+    with pytest.raises(LogError, match=r"n\.csv: q1: NaN or infinite values at line 702 \(q1: 1 row \(line 702\); "
+                                       r"i3: 3 rows \(lines 12, 13, 502\)\).*--drop-bad-rows"):
+        load_log(p)
+    log = load_log(p, drop_bad_rows=True)
     assert log.t.shape[0] == t.shape[0] - 4
-    assert any("4 rows with NaN or infinite values dropped (data rows 11, 12, 501, 701)" in w for w in log.warnings)
+    assert any("4 rows with NaN or infinite values dropped (q1: 1 row (line 702); i3: 3 rows (lines 12, 13, 502))"
+               in w for w in log.warnings)
 
 
 def test_non_monotonic_time_is_an_error_naming_the_row(tmp_path):
     t, q, i = _synthetic()
     t[100] = t[98]
-    with pytest.raises(LogError, match=r"t: expected strictly increasing time, got t = 0\.196000 s after 0\.198000 s "
-                                       r"at data row 101"):
-        load_log(_csv(tmp_path / "m.csv", t, q, i))
+    p = _csv(tmp_path / "m.csv", t, q, i)
+    with pytest.raises(LogError, match=r"m\.csv: t: expected strictly increasing time, got t = 0\.196000 s after "
+                                       r"0\.198000 s at line 102 — .*--drop-bad-rows"):
+        load_log(p)
+    log = load_log(p, drop_bad_rows=True)  # only the row out of sequence goes
+    assert log.t.shape[0] == t.shape[0] - 1 and 102 not in log.lines
+    assert any("1 row with time out of sequence dropped (line 102)" in w for w in log.warnings)
 
 
 def test_joint_count_mismatch_names_both(tmp_path):

@@ -41,7 +41,8 @@ def cmd_gap(args: argparse.Namespace) -> int:
     with Stages(args, "gap") as st:
         try:
             st.stage(f"reading {args.measured}")
-            log = load_log(args.measured)
+            log = load_log(args.measured, joints=list(model.joint_names), robot=str(model.urdf_path or "robot"),
+                           drop_bad_rows=args.drop_bad_rows)
             st.stage("analysing (baseline, effects, fit, validation)")
             res = analyse(log, model, cfg, params, effects)
         except LogError as exc:
@@ -98,6 +99,9 @@ def register(sub: Any) -> None:
     p.add_argument("--measured", required=True, help="measured log: MCAP (dragd telemetry, TRACK rows) or CSV "
                                                      "t,q1..qN,i1..iN[,dq1..dqN]")
     p.add_argument("--robot", help="bundled robot name or URDF path (default: the configuration's robot)")
+    p.add_argument("--drop-bad-rows", action="store_true",
+                   help="skip log rows with NaN/inf values, malformed or out-of-sequence rows (warned, lines named) "
+                        "instead of stopping with an error")
     p.add_argument("--model", help="params file of the model to check (default: seed 000's G/K_t + Coulomb levels "
                                    "fitted on the log)")
     p.add_argument("--out", help="write the extended model (params YAML: the daemon, `dragd model` and the sim load it)")

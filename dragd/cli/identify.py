@@ -33,11 +33,14 @@ def _robot(args: argparse.Namespace):  # noqa: ANN202
         raise CliError(str(exc)) from None
 
 
-def _load_log(path: str):  # noqa: ANN202
+def _load_log(path: str, model: Any = None, drop_bad_rows: bool = False):  # noqa: ANN202
     from dragd.identify.data import LogError, load_log
 
     try:
-        return load_log(path)
+        if model is None:
+            return load_log(path, drop_bad_rows=drop_bad_rows)
+        return load_log(path, joints=list(model.joint_names), robot=str(model.urdf_path or "robot"),
+                        drop_bad_rows=drop_bad_rows)
     except LogError as exc:
         raise CliError(str(exc)) from None
 
@@ -141,6 +144,8 @@ def _fit_text(d: dict[str, Any]) -> str:
     lines = [f"method {d['method']} on {d['log']} (load {d.get('load_s', 0):.1f} s, fit {d.get('elapsed_s', 0):.1f} s) "
              f"→ {d.get('out')}",
              table(["joint", "K_t N·m/A", "F_c+ A", "F_c- A", "F_v A·s/rad", "F_s+ A", "F_s- A", "v_s rad/s"], rows)]
+    if d.get("notes", {}).get("auto"):
+        lines.append(f"auto: {d['notes']['auto']}")
     for name, j in d["joints"].items():
         seen = set()
         for k, why in j["reasons"].items():
@@ -188,7 +193,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
                 raise CliError(f"--torque-constants: used by --method full (and auto), not {args.method}")
         st.stage(f"reading {args.log}")
         t0 = time.perf_counter()
-        log = _load_log(args.log)
+        log = _load_log(args.log, model, args.drop_bad_rows)
         load_s = time.perf_counter() - t0
         if args.cutoff is not None:
             opts.cutoff_Hz = args.cutoff
@@ -247,7 +252,7 @@ def cmd_check(args: argparse.Namespace) -> int:
                            f"{', '.join(model.joint_names)}")
     elif not args.robot:
         cfg = load_config(None)
-    log = _load_log(args.log)
+    log = _load_log(args.log, model, args.drop_bad_rows)
     try:
         res = check(log, model, params, cfg=cfg, terms=args.terms, mask=args.mask, keep_series=bool(args.plots),
                     dynamics=args.dynamics)
@@ -314,11 +319,15 @@ def register(sub: Any) -> None:
     rn.set_defaults(func=cmd_run)
 
     ft = isub.add_parser("fit", help="identify K_t and friction from a log → params file")
-    ft.add_argument("--log", required=True, help="MCAP (dragd telemetry, TRACK rows) or CSV t,q1..qN,i1..iN[,dq1..dqN]")
+    ft.add_argument("--log", required=True, help="MCAP (dragd telemetry, TRACK rows) or CSV t,q1..qN,i1..iN[,dq1..dqN] "
+                    "(or headerless: UR RTDE t,q,qd,i,i_target,tau_target; docs/IDENTIFICATION.md)")
     ft.add_argument("--robot", help="bundled robot name or URDF path (default: the configuration's robot)")
     ft.add_argument("--method", default="auto", choices=FIT_METHODS, help="lowspeed (seed 000), symmetric (seed 001), "
                     "synchronous (seed 002), full (rigid-body base parameters + friction), auto (default)")
     ft.add_argument("--out", required=True, help="params file to write (YAML; the model, daemon and sim load it)")
+    ft.add_argument("--drop-bad-rows", action="store_true",
+                    help="skip log rows with NaN/inf values, malformed or out-of-sequence rows (warned, lines named) "
+                         "instead of stopping with an error")
     ft.add_argument("--cutoff", type=float, default=None, help="regression filter cutoff [Hz] (default 5)")
     ft.add_argument("--torque-constants", metavar="K1,..,KN|config",
                     help="joint-side torque constants [N·m/A] the user knows (or 'config': the configuration's); "
@@ -338,6 +347,9 @@ def register(sub: Any) -> None:
     ck.add_argument("--dynamics", default="base", choices=("base", "inertials"),
                     help="rigid-body model: the fit's identified base parameters where the params file has them "
                          "(default), or the link inertials + K_t the daemon compensates with")
+    ck.add_argument("--drop-bad-rows", action="store_true",
+                    help="skip log rows with NaN/inf values, malformed or out-of-sequence rows (warned, lines named) "
+                         "instead of stopping with an error")
     ck.add_argument("--plots", help="directory for PNG plots of measured vs predicted current per joint")
     add_config(ck, params=False)
     ck.add_argument("--json", action="store_true", help="print JSON")

@@ -936,7 +936,8 @@ def fit_auto(ctx: Context) -> FitResult:
         res.notes["auto"] = (f"full dynamics: only {steady_share:.0%} of the moving samples are steady (constant speed); "
                              "the log excites the rigid-body dynamics")
         return res
-    dynamic_share = 1.0 - steady_share
+    movers = [j for j in range(ctx.n) if not ctx.never_moves(j)]
+    seed000: list[str] = []
     out = []
     for j, name in enumerate(ctx.names):
         jr = JointResult(name)
@@ -990,6 +991,22 @@ def fit_auto(ctx: Context) -> FitResult:
         _kt_from_slope(jr, fit.value("gravity"), fit.std("gravity"), fit.dropped.get("gravity", "not determined"))
         vmax = float(np.abs(vsel).max())
         _set_friction_from_fit(jr, fit, vmax, v=vsel)
+        if len(movers) == 1 and all(f"friction_level_{d}_A" in jr.diagnostics for d in ("pos", "neg")):
+            # seed 000's experiment (one joint, one constant speed each way): its model, one friction level per
+            # direction = the current at the test speed less gravity (eq. 20) — the Coulomb levels of the law
+            sp = {d: float(np.mean(np.abs(vsel[np.sign(vsel) == s]))) for d, s in (("pos", 1), ("neg", -1))}
+            for d in ("pos", "neg"):
+                jr.set(f"coulomb_{d}_A", jr.diagnostics[f"friction_level_{d}_A"], fit.std(f"coulomb_{d}_A"))
+            why = (f"seed 000's model (one joint, one speed each way): one friction level per direction, the level at "
+                   f"the test speed (+{sp['pos']:.3f}/−{sp['neg']:.3f} rad/s); viscous friction is not separable "
+                   "from it at one speed — add passes at other speeds to identify it")
+            for key in ("viscous_A_s_per_rad", "viscous_pos_A_s_per_rad", "viscous_neg_A_s_per_rad"):
+                jr.set(key, None, reason=why)
+            jr.diagnostics["model"] = "seed 000 (level at the test speed)"
+            seed000.append(f"seed-000 experiment recognised: one joint ({name}), one speed each way; Coulomb = level "
+                           f"at {sp['pos']:.2f} rad/s (+) and {sp['neg']:.2f} rad/s (−): "
+                           f"{jr.friction['coulomb_pos_A']:+.4f}/{jr.friction['coulomb_neg_A']:+.4f} A, gravity "
+                           "removed with the fitted K_t (seed 000 eq. 20)")
         if stb is not None and stb[2] < 0.5 * stb[0]:
             for d in ("pos", "neg"):
                 c, dv, ds = jr.friction[f"coulomb_{d}_A"], fit.value(f"dstatic_{d}_A"), fit.std(f"dstatic_{d}_A")
@@ -1019,6 +1036,8 @@ def fit_auto(ctx: Context) -> FitResult:
     res = FitResult("auto", out, ctx.log.path, str(ctx.robot.urdf_path), list(ctx.warnings))
     res.notes["auto"] = (f"quasi-static: {steady_share:.0%} of the moving samples are steady; synchronous model on "
                          "every steady row, Stribeck by variable projection, breakaway static levels")
+    if seed000:
+        res.notes["auto"] = seed000[0] + "; " + res.notes["auto"]
     return res
 
 
