@@ -249,8 +249,7 @@ RULES: list[Rule] = [
     Rule(r"^(sed|mkdir|cp|systemd-analyze|systemd-sysusers|systemd-tmpfiles) ", "run", "systemd's offline checks",
          tool=True),
     # long: the shortest documented options
-    # known, open (docs/NOTES.md): the payload scenario faults on #15's encoder plausibility check; --help until fixed
-    Rule(r"^dragd demo --scenario payload\b", "help", "sim + daemon (its own length)"),
+    Rule(r"^dragd demo --scenario payload\b", "run", "sim + daemon (its own length, ~1 min)", slow=True),
     Rule(r"^dragd demo --scenario teach\b", "run", "sim + daemon", extra="--seconds 6", slow=True),
     Rule(r"^dragd demo\b", "run", "sim + daemon", extra="--seconds 8", slow=True),
     Rule(r"^dragd bench --list$", "run", "offline"),

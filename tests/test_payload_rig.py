@@ -12,8 +12,6 @@ import pytest
 pytestmark = [pytest.mark.rig, pytest.mark.slow]
 
 
-@pytest.mark.xfail(reason="known, open: after merging #15's encoder plausibility check (6 rad/s), the payload scenario "
-                   "faults with 'encoder jump on node 2' before the guard acts (docs/NOTES.md, session 5)", strict=False)
 def test_payload_demo_meets_the_targets(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "dragd", "demo", "--scenario", "payload", "--out", str(tmp_path),
                            "--json"], capture_output=True, text=True, timeout=900)
