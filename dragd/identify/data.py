@@ -91,8 +91,8 @@ class Log:
         run: list[str] = []
         for c in self.columns + [""]:
             m = re.fullmatch(r"(\D+)(\d+)", c)
-            if run and m and re.fullmatch(r"(\D+)(\d+)", run[-1]).group(1) == m.group(1) \
-                    and int(m.group(2)) == int(re.fullmatch(r"(\D+)(\d+)", run[-1]).group(2)) + 1:
+            last = re.fullmatch(r"(\D+)(\d+)", run[-1]) if run else None
+            if m and last and last.group(1) == m.group(1) and int(m.group(2)) == int(last.group(2)) + 1:
                 run.append(c)
                 continue
             if run:
