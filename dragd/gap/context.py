@@ -162,15 +162,18 @@ def load_gap_data(log: Log, robot: Any, cutoff_Hz: float = 5.0) -> GapData:
     slide = np.column_stack([sliding(p.dq[:, j:j + 1], V_SLIDE, guard)[:, 0] for j in range(len(names))])
     missed = _near_missed(log, p.t)
     notes = []
+    guard_s = MISSED_GUARD_S
     if missed.mean() > MISSED_MAX_SHARE:
         # missed cycles throughout the log (a loaded host): the full guard would leave too little; the drive's
         # position loop settles from a late target within MISSED_GUARD_DENSE_S — only that much is left out
-        missed = _near_missed(log, p.t, MISSED_GUARD_DENSE_S)
-        notes.append(f"missed cycles throughout the log: samples within {MISSED_GUARD_DENSE_S:g} s of one (not "
-                     f"{MISSED_GUARD_S:g} s) left out; figures noisier — record on a quieter controller")
+        guard_s = MISSED_GUARD_DENSE_S
+        missed = _near_missed(log, p.t, guard_s)
+        notes.append(f"missed cycles throughout the log: only samples within {guard_s:g} s of one left out (not "
+                     f"{MISSED_GUARD_S:g} s); figures noisier, timing artefacts may be named — record on a quieter "
+                     "controller")
     if missed.any():
         slide &= ~missed[:, None]
-        notes.append(f"{int(missed.sum())} work-rate samples within {MISSED_GUARD_S:g} s of missed cycles not evaluated "
+        notes.append(f"{int(missed.sum())} work-rate samples within {guard_s:g} s of missed cycles not evaluated "
                      "(the drive followed a jerky target there)")
     pid, pass_notes = _passes(p)
     notes += pass_notes
