@@ -189,6 +189,8 @@ class Rule:
 
 
 RULES: list[Rule] = [
+    # the public UR10e dataset (no licence: not here): options checked; tests/test_ur10e_payload.py runs them with it
+    Rule(r"\bDATA/", "mention", "a public dataset's files (tests/test_ur10e_payload.py runs these when present)"),
     # not run here: root, a systemd host with dragd installed, QEMU or CAN hardware
     Rule(r"^(sudo|sudoedit) ", "host", "root on the robot controller"),
     Rule(r"^(systemctl|journalctl) |^systemd-analyze security dragd", "host", "a systemd host running dragd"),
