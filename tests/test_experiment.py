@@ -70,7 +70,9 @@ def test_drag_quality_effort_and_drift(startup, tmp_path):
     work, _ = startup
     proc = run_cli("experiment", "drag-quality", "--joints", "4", "--params", str(work / "identified.yaml"),
                    "--work-dir", str(tmp_path / "w"), "--json", timeout=600)
-    j = json.loads(proc.stdout)["joints"]["joint4"]
+    data = json.loads(proc.stdout)
+    assert data["guard_trips"] == 0  # the runaway guard never takes the hand's moves for a runaway
+    j = data["joints"]["joint4"]
     # at 10°/s the hand pushes against Coulomb + viscous friction without compensation; with it only the
     # under-compensation (5 %) and the virtual damping are left
     assert j["effort_uncompensated_Nm"] > 1.0

@@ -100,6 +100,7 @@ def run_demo(seconds: float = 20.0, config: Path | None = None, out: Path | None
             "observed_after_release_s": round(observe_s, 1),
             "bus_load_pct": max(status["bus_load_pct"].values()),
             "faults": len(status["faults"]),
+            "guard_trips": status["guard"]["trips"],  # runaway-guard holds: the hand's pull is not one (0 expected)
             "mcap": str(mcap),
         }
     except ProcessError as exc:

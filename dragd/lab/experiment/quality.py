@@ -47,7 +47,8 @@ def run_quality(bench: Bench, joints: list[int], move_s: float = 2.0, observe_s:
             time.sleep(observe_s)
             q1 = np.array(rig.must("status")["q_rad"])
             drift[j] = float(np.degrees(np.abs(q1 - q0)).max())
-    result: dict[str, Any] = {"joints": {}}
+        guard_trips = int(rig.must("status")["guard"]["trips"])  # the hand's moves are not runaways: 0 expected
+    result: dict[str, Any] = {"joints": {}, "guard_trips": guard_trips}
     for j in joints:
         result["joints"][bench.cfg.joints[j].name] = {
             "effort_uncompensated_Nm": round(base[j], 4),
