@@ -118,18 +118,19 @@ def _noise(i_raw: np.ndarray) -> np.ndarray:
     return 1.4826 * mad / math.sqrt(2.0)
 
 
-def _near_missed(log: Log, t: np.ndarray, guard_s: float = MISSED_GUARD_S) -> np.ndarray:
-    """Work-rate samples within ``guard_s`` of a missed cycle of the log (a gap of 1.5–5.5 periods, interpolated)."""
+def _to_missed_s(log: Log, t: np.ndarray) -> np.ndarray:
+    """Per work-rate sample, the time to the nearest missed cycle of the log (a gap of 1.5–5.5 periods,
+    interpolated) [s]; inf without any."""
     d = np.diff(log.t)
     med = float(np.median(d))
     k = np.nonzero((d > 1.5 * med) & (d <= 5.5 * med))[0]
     if k.size == 0:
-        return np.zeros(t.shape[0], dtype=bool)
+        return np.full(t.shape[0], np.inf)
     centres = 0.5 * (log.t[k] + log.t[k + 1])
     idx = np.searchsorted(centres, t)
     left = np.abs(t - centres[np.clip(idx - 1, 0, centres.size - 1)])
     right = np.abs(centres[np.clip(idx, 0, centres.size - 1)] - t)
-    return np.minimum(left, right) <= guard_s
+    return np.minimum(left, right)
 
 
 def _passes(p: Prepared, rest_s: float = 0.1, block_s: float = 10.0) -> tuple[np.ndarray, list[str]]:
@@ -160,17 +161,17 @@ def load_gap_data(log: Log, robot: Any, cutoff_Hz: float = 5.0) -> GapData:
     tau_dyn = rm.rnea(p.q, p.dq, p.ddq) - G
     guard = int(round(GUARD_S * p.fs))
     slide = np.column_stack([sliding(p.dq[:, j:j + 1], V_SLIDE, guard)[:, 0] for j in range(len(names))])
-    missed = _near_missed(log, p.t)
+    to_missed = _to_missed_s(log, p.t)
     notes = []
     guard_s = MISSED_GUARD_S
-    if missed.mean() > MISSED_MAX_SHARE:
+    if np.mean(to_missed <= guard_s) > MISSED_MAX_SHARE:
         # missed cycles throughout the log (a loaded host): the full guard would leave too little; the drive's
         # position loop settles from a late target within MISSED_GUARD_DENSE_S — only that much is left out
         guard_s = MISSED_GUARD_DENSE_S
-        missed = _near_missed(log, p.t, guard_s)
         notes.append(f"missed cycles throughout the log: only samples within {guard_s:g} s of one left out (not "
                      f"{MISSED_GUARD_S:g} s); figures noisier, timing artefacts may be named — record on a quieter "
                      "controller")
+    missed = to_missed <= guard_s
     if missed.any():
         slide &= ~missed[:, None]
         notes.append(f"{int(missed.sum())} work-rate samples within {guard_s:g} s of missed cycles not evaluated "

@@ -63,16 +63,20 @@ class Log:
         d = np.diff(self.t)
         return float(1.0 / np.median(d)) if d.size else 0.0
 
+    @property
+    def from_mcap(self) -> bool:
+        """Read from dragd telemetry (columns named as its fields, rows as message numbers)."""
+        return self.columns is not None and self.columns[0] != "t"
+
     def q_names(self) -> list[str]:
-        return [f"q{k + 1}" for k in range(self.n)] if self.columns is None or self.columns[0] == "t" else \
-            [f"q_rad[{k}]" for k in range(self.n)]
+        return [f"q_rad[{k}]" if self.from_mcap else f"q{k + 1}" for k in range(self.n)]
 
     def dq_names(self) -> list[str]:
         return [f"dq{k + 1}" for k in range(self.n)]
 
     def named_columns(self) -> list[tuple[str, np.ndarray]]:
         """(column name, values) of every array read, in file order where known."""
-        mcap = self.columns is not None and self.columns[0] != "t"
+        mcap = self.from_mcap
         out = [("t_s" if mcap else "t", self.t)]
         for pre, arr in (("q", self.q), ("i", self.i), ("dq", self.dq), ("i_target", self.i_target),
                          ("tau_target", self.tau_target)):
