@@ -227,6 +227,8 @@ RULES: list[Rule] = [
          rig=True),
     Rule(r"^dragd teach stop\b", "run", "teaching", before=("teaching",), rig=True),
     Rule(r"^dragd teach list\b", "run", "teaching", rig=True),
+    Rule(r"^dragd teach recover\b", "mention", "an interrupted session (tests/test_teach_recover.py kills a daemon "
+         "mid-teach and runs it)"),
     Rule(r"^dragd replay \S+ .*--dry-run", "run", "offline plan"),
     Rule(r"^dragd replay (pause|stop|speed)\b", "run", "a running replay", before=("replaying",), rig=True),
     Rule(r"^dragd replay resume\b", "run", "a paused replay", before=("paused",), rig=True),
@@ -317,6 +319,22 @@ def _fixture_files(d: Path, run: Callable[[str], object]) -> None:
         (d / link).symlink_to(REPO / link)
 
 
+def _kill_session(sid: int) -> list[str]:
+    """SIGKILL every process of session ``sid``; their command lines."""
+    found = []
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            if os.getsid(int(d.name)) != sid:
+                continue
+            found.append((int(d.name), (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")))
+            os.kill(int(d.name), signal.SIGKILL)
+        except (ProcessLookupError, PermissionError, FileNotFoundError):
+            continue
+    return [f"{pid}: {cmd.strip()[:120]}" for pid, cmd in found]
+
+
 class Env:
     """The folders, the rig (started on first use) and the environment the documented commands run in."""
 
@@ -365,8 +383,19 @@ class Env:
                 .replace("{repo}", str(REPO)).replace("{spare_group}", self.spare_group))
 
     def shell(self, line: str, cwd: Path, check: bool = False, timeout: float = 300) -> subprocess.CompletedProcess:
-        proc = subprocess.run(["bash", "-c", line], cwd=cwd, env=self.environ(), capture_output=True, text=True,
-                              timeout=timeout)
+        """Run ``line`` in its own session; whatever it started is gone when this returns (a command timed out or
+        one that leaves processes behind would load the machine for every later test)."""
+        with subprocess.Popen(["bash", "-c", line], cwd=cwd, env=self.environ(), stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True, start_new_session=True) as p:
+            try:
+                out, err = p.communicate(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                _kill_session(p.pid)
+                out, err = p.communicate()
+                raise AssertionError(f"{line}: no exit within {timeout:.0f} s\n{out[-3000:]}\n{err[-3000:]}") from None
+            left = _kill_session(p.pid)
+        proc = subprocess.CompletedProcess(p.args, p.returncode, out, err)
+        assert not left, f"{line}: exit {proc.returncode} but left processes running (killed): {left}"
         if check and proc.returncode != 0:
             raise AssertionError(f"{line}: exit {proc.returncode}\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
         return proc
@@ -397,6 +426,13 @@ class Env:
             self.rig.start_sim()
             self.rig.start_daemon()
         return self.rig
+
+    def stop_rig(self) -> None:
+        """A command that starts its own simulator and daemon runs alone (two rigs at 1 kHz overload 2 cores); the
+        docs rig starts again when a later command needs it."""
+        if self.rig is not None:
+            self.rig.close()
+            self.rig = None
 
     def prepare(self, before: tuple[str, ...], line: str = "", work: Path | None = None) -> None:
         """Bring the rig into the state a documented command expects (what the document's previous lines did)."""
@@ -523,6 +559,8 @@ def test_documented_command_runs(cmd: Command, env: Env) -> None:
         line = first_alternatives(line) if cmd.kind == "span" else line
         if rule.rig:
             env.prepare(rule.before, line, work)
+        elif rule.slow:  # its own sim + daemon, or a long offline run: not beside the docs rig
+            env.stop_rig()
         full = f"{line} {rule.extra}".strip()
         proc = env.shell(full, work, timeout=1700 if rule.slow else 300)
         assert proc.returncode == 0, where.format(full) + f"\nexit {proc.returncode}\n{proc.stdout[-3000:]}\n" \

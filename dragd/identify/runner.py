@@ -72,6 +72,7 @@ def run_plan(call: Callable[..., dict[str, Any]], plan: Plan, out: str | Path, *
     st = call("status")
     if st.get("mode") not in ("hold", "drag"):
         raise RunError(f"the arm is in mode {st.get('mode')}; enable it first ('dragd start'), then run again")
+    since_s = float(st.get("t_s", 0.0))  # faults before the run (the daemon keeps a history) are not the run's
     q = np.array(st["q_rad"], dtype=float)
     if q.shape[0] != plan.n:
         raise RunError(f"plan {plan.name}: {plan.n} joints, the daemon's arm {q.shape[0]}")
@@ -105,8 +106,9 @@ def run_plan(call: Callable[..., dict[str, Any]], plan: Plan, out: str | Path, *
         result.update({"rows": stats.get("written"), "dropped_rows": stats.get("dropped"),
                        "wall_time_s": round(time.monotonic() - t0, 2)})
     end = call("status")
-    if end.get("faults"):
-        result["faults"] = end["faults"]
+    faults = [f for f in end.get("faults", []) if float(f.get("t_s", since_s)) >= since_s]
+    if faults:
+        result["faults"] = faults
     return result
 
 
