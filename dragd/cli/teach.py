@@ -64,7 +64,9 @@ def cmd_teach_stop(args: argparse.Namespace) -> int:
 def _programs_text(d: dict[str, Any]) -> str:
     rows = []
     for p in d["programs"]:
-        if "error" in p:
+        if p.get("interrupted"):
+            rows.append((Path(p["path"]).stem, "-", "-", "-", f"interrupted: dragd teach recover {Path(p['path']).stem}"))
+        elif "error" in p:
             rows.append((Path(p["path"]).stem, "-", "-", "-", p["error"][:60]))
         else:
             rows.append((p["name"], p["waypoints"], p["samples"], f"{p['duration_s']:.1f}", p["created"]))
@@ -82,6 +84,29 @@ def cmd_teach_list(args: argparse.Namespace) -> int:
         data = call_daemon(args, "teach", action="list")
         data.pop("ok", None)
     emit(args, data, _programs_text)
+    return 0
+
+
+def cmd_teach_recover(args: argparse.Namespace) -> int:
+    from dragd.config import load_config
+    from dragd.teach.program import ProgramError, check_name
+    from dragd.teach.recover import recover
+
+    src = Path(args.session)
+    if src.suffix != ".mcap" and "/" not in args.session:  # a bare name: the configured program folder
+        try:
+            check_name(args.session)
+        except ProgramError as exc:
+            raise CliError(str(exc)) from None
+        folder = args.dir if args.dir is not None else load_config(args.config).program_dir
+        src = Path(folder) / f"{args.session}.mcap"
+    try:
+        res = recover(src, args.out, overwrite=args.overwrite)
+    except ProgramError as exc:
+        raise CliError(str(exc)) from None
+    emit(args, res, lambda d: f"program '{d['name']}' recovered: {d['program']} ({d['waypoints']} waypoints, "
+                              f"{d['samples']} samples over {d['duration_s']:.1f} s"
+                              + ("; the recording was cut at its last complete chunk" if d["truncated"] else "") + ")")
     return 0
 
 
@@ -282,6 +307,16 @@ def register(sub: Any) -> None:
     ls.add_argument("--dir", type=Path, default=None, help="list this folder instead of asking the daemon")
     add_socket(ls, timeout=30.0)
     ls.set_defaults(func=cmd_teach_list)
+    rc = tsub.add_parser("recover", help="write the program of a teach session that never reached 'stop' (daemon "
+                         "killed, power lost) from its recording")
+    rc.add_argument("session", help="program name (in replay.program_dir, or --dir) or the session's .mcap file")
+    rc.add_argument("--dir", type=Path, default=None, help="the program folder (default: the configuration's)")
+    rc.add_argument("--out", type=Path, default=None, help="program file to write (default: NAME.yaml beside the "
+                    "recording)")
+    rc.add_argument("--overwrite", action="store_true", help="replace an existing program file")
+    add_config(rc, params=False)
+    rc.add_argument("--json", action="store_true", help="print JSON")
+    rc.set_defaults(func=cmd_teach_recover)
     sh = tsub.add_parser("show", help="summary and waypoints of a program file")
     sh.add_argument("program", type=Path)
     sh.add_argument("--json", action="store_true", help="print JSON")

@@ -235,6 +235,14 @@ class Daemon:
         except RuntimeError:
             self._log_at(text, priority)
 
+    def _report_interrupted_teach(self) -> None:
+        """Teach sessions a previous run did not finish (killed, power lost): their recordings are the autosave."""
+        from dragd.teach.recover import interrupted_sessions
+
+        for m in interrupted_sessions(self.cfg.program_dir):
+            self._log_at(f"warning: teach session '{m.stem}' was interrupted ({m} has no program file): "
+                         f"'dragd teach recover {m.stem}' writes it from the recording", LOG_WARNING)
+
     def _log_at(self, text: str, priority: int) -> None:
         """A log line with its journald priority (a custom ``log`` that takes only the text gets only the text)."""
         if priority == LOG_INFO:
@@ -554,6 +562,7 @@ class Daemon:
             self.log(f"running at {self.cfg.loop.rate_Hz:.0f} Hz; control socket {self.socket_path}; "
                      f"cycle thread: {self.scheduler}")
             sdnotify.ready(f"running, {self.n} drives")
+            self._report_interrupted_teach()
             watchdog = loop.create_task(self._watchdog())
             while not self.stop_requested and not cycle.done():
                 await asyncio.sleep(0.05)

@@ -61,6 +61,11 @@ class Teaching:
         await d.recorder.start_recording(str(mcap), label=f"teach {path.stem}")
         self.recorder = TeachRecorder(path.stem, path, mcap, d.cfg.joint_names, rate, d.cycle.dt, rc.max_record_s,
                                       d.cycle.t)
+        # the recording is the autosave: this event says how to rebuild the program if the session is cut short
+        # (dragd teach recover)
+        assert d.recorder.recording is not None  # (opened just above)
+        d.recorder.recording.event("teach_start", **self.recorder.autosave_info(
+            str(d.cfg.robot.urdf), d.cfg.replay.frame, d.cfg.source))
         motions.planner.warm()
         if c.mode == Mode.HOLD and not c.feedback_hold:
             try:

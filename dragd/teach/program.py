@@ -221,7 +221,7 @@ def resolve_program(name_or_path: str, program_dir: str | Path) -> Path:
 
 def list_programs(program_dir: str | Path) -> list[dict[str, Any]]:
     """Every readable program in ``program_dir`` (unreadable files are listed with their error)."""
-    out = []
+    out: list[dict[str, Any]] = []
     d = Path(program_dir)
     if not d.is_dir():
         return out
@@ -232,4 +232,9 @@ def list_programs(program_dir: str | Path) -> list[dict[str, Any]]:
             out.append({"path": str(p), "error": str(exc)})
             continue
         out.append({"path": str(p), **prog.summary()})
+    from dragd.teach.recover import interrupted_sessions
+
+    for m in interrupted_sessions(d):  # teach sessions that never reached 'stop': their recording is the autosave
+        out.append({"path": str(m), "interrupted": True,
+                    "error": f"interrupted teach session: 'dragd teach recover {m}' writes its program"})
     return out

@@ -62,6 +62,13 @@ class TeachRecorder:
                 "samples": self.count, "dropped": self.dropped, "marks": len(self.marks),
                 "mark_names": [m["name"] for m in self.marks], "t_s": round(self.t_last - self.t0, 3)}
 
+    def autosave_info(self, robot: str, frame: str, config: str | None) -> dict[str, Any]:
+        """What ``teach stop`` would write, for the recording's record_start event: an interrupted session's program
+        is rebuilt from its MCAP with it (dragd/teach/recover.py)."""
+        return {"name": self.name, "program": str(self.program_path), "joints": self.joints, "t0_s": self.t0,
+                "period_s": self.period_s, "capacity_rows": int(self.buf.shape[0]), "created": self.created,
+                "robot": robot, "frame": frame, "config": config}
+
     def snapshot(self) -> dict[str, Any]:
         """Plain data for ``write_program`` (copied: the table is reused by nobody after stop)."""
         return {"name": self.name, "path": str(self.program_path), "joints": self.joints,
@@ -78,6 +85,6 @@ def write_program(snap: dict[str, Any], robot: str, frame: str, config: str | No
                    recording=Recording(mcap=snap["mcap"], rate_Hz=snap["rate_Hz"], duration_s=snap["duration_s"],
                                        samples=len(rows), dropped=snap["dropped"]),
                    waypoints=[Waypoint(**m) for m in snap["marks"]],
-                   path=rows.tolist())
+                   path=rows.tolist(), notes=dict(snap.get("notes") or {}))
     path = save_program(prog, snap["path"])
     return {"program": str(path), **prog.summary()}
