@@ -307,6 +307,8 @@ class SafetyConfig(_Strict):
     guard: GuardConfig = GuardConfig()  # the runaway guard in drag and the gravity check before it (docs/PAYLOAD.md)
     # a position sample further from the last accepted one than this speed allows is an encoder fault (rejected)
     encoder_plausible_speed_rad_s: PosFloat = 6.0
+    # a commanded motion (track, identify run, replay) accelerating harder than this on any joint is refused
+    track_acceleration_limit_rad_s2: PosFloat = 20.0
 
 
 class MasterConfig(_Strict):

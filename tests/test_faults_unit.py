@@ -243,3 +243,42 @@ def test_trajectories_are_validated_before_motion() -> None:
     fast = Trajectory(np.array([0.0, 0.01, 0.02]), step, dt)  # 0.3 rad in 10 ms: a step target
     with pytest.raises(ValueError, match="joint2 would move at .* rad/s"):
         ip.m.validate(fast)
+
+
+def test_trajectories_accelerating_too_hard_or_needing_too_much_current_are_refused() -> None:
+    from dragd.control.trajectory import Trajectory
+    from dragd.teach.plan import rigid_body_effort
+
+    ip = InProcess(load_config(DEFAULT_CONFIG))
+    dt, n = ip.cy.dt, 6
+    q0 = np.array([0.0, -0.6, 1.2, -0.6, 1.5708, 0.0])
+
+    def swing(amp_rad: float, period_s: float) -> Trajectory:
+        t = np.linspace(0.0, period_s, 41)
+        q = np.tile(q0, (t.size, 1))
+        q[:, 1] += amp_rad * (1 - np.cos(2 * np.pi * t / period_s)) / 2  # joint2: peak accel amp·2π²/T²
+        return Trajectory(t, q, dt)
+
+    gentle = swing(0.2, 4.0)  # 0.25 rad/s², 0.16 rad/s
+    ip.m.validate(gentle)
+    eff = rigid_body_effort(str(ip.d.model.urdf_path), tuple(ip.d.cfg.robot.gravity_m_s2), gentle.table, dt)
+    assert eff[0].shape == gentle.table.shape and eff[1].shape == (n,)
+    ip.m.check_current(gentle, eff[1], eff[2])  # gravity and a slow swing: within every current limit
+    gentle_need = eff[1] / ip.d.controller.kt
+    hard = swing(0.3, 0.7)  # 0.3·2π²/0.49 ≈ 12 rad/s² (under the 20 rad/s² limit), 1.35 rad/s
+    ip.m.validate(hard)
+    eff = rigid_body_effort(str(ip.d.model.urdf_path), tuple(ip.d.cfg.robot.gravity_m_s2), hard.table, dt)
+    c = ip.d.controller
+    need = eff[1] / c.kt
+    assert need[1] > gentle_need[1] + 0.1  # the swing's inertia needs current on top of the gravity's
+    limit = c.params.current_limit_A.copy()
+    c.params.current_limit_A[:] = np.maximum(limit, need * 1.01)
+    c.params.current_limit_A[1] = 0.9 * need[1]  # the drive of joint 2 could not give what the swing needs
+    try:
+        with pytest.raises(ValueError, match=r"joint2 would need .* A at t = .* beyond its current_limit_A"):
+            ip.m.check_current(hard, eff[1], eff[2])
+    finally:
+        c.params.current_limit_A[:] = limit
+    too_hard = swing(0.5, 0.6)  # 0.5·2π²/0.36 ≈ 27 rad/s²
+    with pytest.raises(ValueError, match=r"joint2 would accelerate at 2\d\.\d rad/s² at t = .*safety\.track_acceleration_limit_rad_s2 20"):
+        ip.m.validate(too_hard)

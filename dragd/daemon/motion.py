@@ -116,8 +116,9 @@ class Motions:
     # ------------------------------------------------------------------------------------------ tracks
 
     def validate(self, traj: Trajectory) -> None:
-        """Refuse (ValueError, before any motion) a trajectory beyond the position limits, faster than physics
-        (a step target would drive full current), or outside the drives' 32-bit position encoding."""
+        """Refuse (ValueError, before any motion) a trajectory beyond the position limits, faster or accelerating
+        harder than allowed (a step target would drive full current), or outside the drives' 32-bit position
+        encoding. The current a motion needs is checked against the limits by ``check_current``."""
         d, c = self.d, self.controller
         table = np.asarray(traj.table)
         names = d.cfg.joint_names
@@ -136,10 +137,30 @@ class Motions:
                 k = int(np.argmax(v[:, j]))
                 raise ValueError(f"track: {names[j]} would move at {v[k, j]:.1f} rad/s at t = {k * traj.dt_s:.3f} s "
                                  f"(a step in the target?), beyond safety.encoder_plausible_speed_rad_s {vmax:g}")
+        amax = d.cfg.safety.track_acceleration_limit_rad_s2
+        if table.shape[0] > 2:
+            a = np.abs(np.diff(table, n=2, axis=0)) / traj.dt_s ** 2
+            j = int(np.argmax(a.max(axis=0)))
+            if a[:, j].max() > amax:
+                k = int(np.argmax(a[:, j])) + 1
+                raise ValueError(f"track: {names[j]} would accelerate at {a[k - 1, j]:.1f} rad/s² at t = "
+                                 f"{k * traj.dt_s:.3f} s, beyond safety.track_acceleration_limit_rad_s2 {amax:g}")
         counts = (table * d.scaling.counts_per_rev / (2 * np.pi)) * d.scaling.direction + d.scaling.offset_counts
         if np.abs(counts).max() >= 2 ** 31:
             j = int(np.argmax(np.abs(counts).max(axis=0)))
             raise ValueError(f"track: {names[j]}'s target is beyond the drives' 32-bit position encoding")
+
+    def check_current(self, traj: Trajectory, peak_Nm: np.ndarray, peak_row: np.ndarray) -> None:
+        """Refuse a motion whose rigid-body effort (the URDF's M q̈ + C q̇ + G, friction aside) needs more current
+        than a joint's ``current_limit_A``: the drives would clamp it and the arm leave the path."""
+        c, names = self.controller, self.d.cfg.joint_names
+        need = np.abs(np.asarray(peak_Nm, dtype=float)) / c.kt
+        over = need - c.params.current_limit_A
+        j = int(np.argmax(over))
+        if over[j] > 0:
+            raise ValueError(f"track: {names[j]} would need {need[j]:.2f} A at t = {int(peak_row[j]) * traj.dt_s:.3f} s "
+                             f"(rigid-body effort {float(peak_Nm[j]):.1f} N·m), beyond its current_limit_A "
+                             f"{c.params.current_limit_A[j]:.2f} A: slow the motion down")
 
     async def track(self, traj: Trajectory, *, rate: float = 1.0, cycles: int = 1) -> None:
         """Switch the drives to CSP and follow ``traj`` (identification runs and replay).
@@ -186,11 +207,12 @@ class Motions:
         # the residual monitor's rigid-body effort of the motion (in the planner process: seconds of Pinocchio
         # calls for a long run would hold the GIL against the cycle)
         try:
-            traj.pred_table = await self.planner.call("rigid_body_effort", str(self.d.model.urdf_path),
-                                                      tuple(self.d.cfg.robot.gravity_m_s2), traj.table, dt)
+            traj.pred_table, peak_Nm, peak_row = await self.planner.call(
+                "rigid_body_effort", str(self.d.model.urdf_path), tuple(self.d.cfg.robot.gravity_m_s2), traj.table, dt)
         except RuntimeError as exc:
-            self.d.log(f"track: no rigid-body prediction ({exc}); the residual-current monitor is off for it")
-            traj.residual_monitor = False
+            raise ValueError(f"track: the motion's effort could not be computed ({exc}); not started (its current "
+                             "cannot be checked against the drives' limits)") from None
+        self.check_current(traj, peak_Nm, peak_row)
         await self.track(traj)
         return {"mode": MODE_NAMES[self.controller.mode], "duration_s": traj.duration_s}
 

@@ -566,8 +566,10 @@ def plan_program(program: Program, req: ReplayRequest, model: pin.Model) -> Plan
     return plan
 
 
-def rigid_body_effort(urdf: str, gravity: tuple[float, float, float], q: np.ndarray, dt: float) -> np.ndarray:
-    """M(q)q̈ + C(q,q̇)q̇ [N·m] along a joint table sampled every ``dt`` (float32; the residual monitor's)."""
+def rigid_body_effort(urdf: str, gravity: tuple[float, float, float], q: np.ndarray,
+                      dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Along a joint table sampled every ``dt``: M(q)q̈ + C(q,q̇)q̇ [N·m] (float32; the residual monitor's), and per
+    joint the peak of the whole rigid-body effort |M q̈ + C q̇ + G| [N·m] and its row (the motion's current check)."""
     model = _model(urdf, gravity)
     data = model.createData()
     q = np.asarray(q, dtype=float)
@@ -578,12 +580,19 @@ def rigid_body_effort(urdf: str, gravity: tuple[float, float, float], q: np.ndar
     if idx[-1] != len(q) - 1:
         idx = np.append(idx, len(q) - 1)
     coarse = np.empty((len(idx), q.shape[1]))
+    peak = np.zeros(q.shape[1])
+    peak_row = np.zeros(q.shape[1], dtype=int)
     for k, i in enumerate(idx):
-        coarse[k] = pin.rnea(model, data, q[i], dq[i], ddq[i]) - pin.computeGeneralizedGravity(model, data, q[i])
+        full = pin.rnea(model, data, q[i], dq[i], ddq[i])
+        a = np.abs(full)
+        more = a > peak
+        peak[more], peak_row[more] = a[more], i
+        coarse[k] = full - pin.computeGeneralizedGravity(model, data, q[i])
     if step == 1:
-        return coarse.astype(np.float32)
+        return coarse.astype(np.float32), peak, peak_row
     rows = np.arange(len(q))
-    return np.column_stack([np.interp(rows, idx, coarse[:, j]) for j in range(q.shape[1])]).astype(np.float32)
+    dyn = np.column_stack([np.interp(rows, idx, coarse[:, j]) for j in range(q.shape[1])]).astype(np.float32)
+    return dyn, peak, peak_row
 
 
 def plan_replay(req: ReplayRequest) -> dict[str, Any]:
