@@ -29,3 +29,18 @@ def test_golden_traces_cover_every_mode_and_reaction() -> None:
     assert all(e["error"] is None for e in c["events"])
     assert {e["request"] for e in c["events"]} >= {"start", "stop", "mode", "track", "replay", "pause", "resume",
                                                    "speed", "track_stop"}
+
+
+def test_the_guard_holds_the_compact_traces_recorded_fall(tmp_path, monkeypatch) -> None:
+    """Why 'compact' replays with the guard off (golden.trace.GUARD_OFF): its recorded arm falls in drag, and with
+    the guard on today's daemon holds that fall on the shoulder, named as a runaway; nothing else changes before it."""
+    import golden.trace as gt
+
+    monkeypatch.setattr(gt, "GUARD_OFF", {})
+    r = replay("compact", tmp_path)
+    assert [f for f in r.faults[1] if f.startswith("runaway in drag: joint2 moving +")] == r.faults[1] != []
+    rec, now = r.mode
+    first = int((rec != now).nonzero()[0][0])
+    assert rec[first] == 2 and now[first] == 1  # drag recorded, hold now: the guard's reaction
+    dq = r.telemetry["dq_rad_s"][0]
+    assert dq[first - 1][1] > 3.0  # the shoulder was falling at > 3 rad/s

@@ -343,12 +343,21 @@ class Replay:
     faults: tuple[list[str], list[str]]
 
 
-async def _replay(z: Any, workdir: Path) -> Replay:
+# Traces replayed with the runaway guard off, and why. The others run with it on (all were recorded before it
+# existed): their hands never trip it, so their outputs stay bit for bit (a false trip would change the mode).
+GUARD_OFF = {
+    "compact": "its recording's plant does not apply the compact layout's current command (the recorded arm falls "
+               "at 3.4 rad/s in drag with ~0 A measured; the real sim holds it: tests/test_daemon_buses.py); the guard "
+               "rightly holds that fall at cycle 529, which the pre-guard recording cannot show",
+}
+
+
+async def _replay(z: Any, workdir: Path, name: str = "") -> Replay:
     from golden.adapter import DaemonAdapter
 
     cfg = load_config_text(str(z["config"]), workdir)
-    if "guard" not in str(z["config"]):  # recorded before the runaway guard (docs/PAYLOAD.md): replayed without it;
-        g = cfg.safety.guard.model_copy(update={"runaway": False})  # its behaviour: tests/test_payload_guard.py
+    if name in GUARD_OFF:
+        g = cfg.safety.guard.model_copy(update={"runaway": False})
         cfg = cfg.model_copy(update={"safety": cfg.safety.model_copy(update={"guard": g})})
     ad = DaemonAdapter(cfg)
     buses = json.loads(str(z["buses"]))
@@ -396,7 +405,7 @@ async def _replay(z: Any, workdir: Path) -> Replay:
 
 def replay(name: str, workdir: Path) -> Replay:
     with np.load(trace_path(name), allow_pickle=False) as z:
-        return asyncio.run(_replay(z, workdir))
+        return asyncio.run(_replay(z, workdir, name))
 
 
 def compare(r: Replay, rtol: float = 1e-9, atol: float = 1e-9) -> list[str]:
