@@ -511,3 +511,55 @@ def test_summarize_missing_garbage_empty_and_truncated(tmp_path):
     partial = summarize(cut)  # a killed writer's file: summarized up to its last complete chunk
     assert partial["complete"] is False and partial["truncated"] is True
     assert 0 < partial["cycle"]["rows"] == partial["recovered_rows"] < 3000
+
+
+def test_a_disk_that_stays_full_never_costs_an_older_log(tmp_path, monkeypatch):
+    """Retries on a full disk (every retry_after_s) keep every earlier log: a failed file with rows goes aside
+    (no pruning for it), one without rows is removed; rows are dropped and counted, 'failing' says so; when space
+    returns the writer resumes on a complete file."""
+    full = {"on": False}
+    real_open = open
+
+    class Disk:
+        def __init__(self, f):
+            self.f = f
+
+        def write(self, b):
+            if full["on"]:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            return self.f.write(b)
+
+        def flush(self):
+            self.f.flush()
+
+        def fileno(self):
+            return self.f.fileno()
+
+        def close(self):
+            self.f.close()
+
+    monkeypatch.setattr(writer_module, "open", lambda *a, **k: Disk(real_open(*a, **k)), raising=False)
+    path = tmp_path / "t.mcap"
+    w = TelemetryWriter(path, {"t_s": 1, "q_rad": 6}, capacity=4096, flush_interval_s=0.005, chunk_size=1024,
+                        max_bytes=3_000, keep_rotated=3, retry_after_s=0.02)
+    run_rows(w, 3000, pause_every=50)  # roll-overs: three older complete logs
+    wait_for(lambda: w.stats()["pending"] == 0)
+    older = sorted(tmp_path.glob("t.*.mcap"))
+    assert len(older) == 3 and all(summarize(p)["complete"] for p in older)
+    full["on"] = True
+    for _ in range(30):  # ~30 retries (the old policy rotated and pruned on each: every older log gone)
+        run_rows(w, 50)
+        time.sleep(0.03)
+    st = w.stats()
+    assert st["failing"] and "ENOSPC" in st["last_error"] and st["dropped_io"] > 0
+    assert st["failed_segments_removed"] >= 10 and st["failed_segments_kept"] <= 1
+    now = sorted(tmp_path.glob("t.*.mcap"))
+    assert set(older) <= set(now) and len(now) <= len(older) + 1  # every older log is still there
+    full["on"] = False
+    time.sleep(0.05)
+    run_rows(w, 10)  # (fewer than a roll-over: normal retention, keep_rotated, would apply then)
+    st = w.close()
+    monkeypatch.undo()
+    assert not st["failing"] and st["written"] + st["dropped"] == 3000 + 30 * 50 + 10
+    assert summarize(path)["complete"] and summarize(path)["cycle"]["rows"] > 0
+    assert set(older) <= set(tmp_path.glob("t.*.mcap"))

@@ -13,7 +13,9 @@ A writer thread drains the ring every ``flush_interval_s`` into an `McapFile`: e
 ``topic``, encoding ``json``, JSON Schema registered so Foxglove shows arrays as arrays, numbers as numbers, enum
 fields as their label), chunked and compressed. I/O errors, a full disk or a slow disk never reach the cycle: rows
 are dropped and counted, the first error is kept and `stats()` reports it. After an I/O error the writer retries
-on a fresh file (``retry_after_s``); ``max_bytes`` rolls over to a new file, keeping ``keep_rotated`` old ones.
+on a fresh file (``retry_after_s``); ``max_bytes`` rolls over to a new file, keeping ``keep_rotated`` old ones. A
+retry never deletes an older log: a failed file with rows is kept aside, one without is removed; on a disk that
+stays full the rows are dropped and counted (``failing``, ``last_error``) and every earlier log is kept.
 `close()` finishes the file (summary, indexes, statistics); a file whose writer was killed lacks them and is
 read up to its last complete chunk (dragd/telemetry/reader.py).
 
@@ -361,6 +363,11 @@ class TelemetryWriter:
         self._unflushed_events = 0
         self._unflushed_bytes = 0
         self._failed_at: float | None = None
+        self._last_error: str | None = None
+        self._segment_rows = 0  # rows of the open segment that reached its file
+        self._failed_rows = 0  # ... of the segment that failed last (a retry keeps it only if it holds some)
+        self._failed_kept = 0  # failed segments kept aside on a retry (never at the cost of older logs)
+        self._failed_removed = 0  # failed segments removed on a retry (they held no row)
         self._mcap: McapFile | None = None
         self._stream: _CountingStream | None = None
         self._raw: Any = None
@@ -423,6 +430,11 @@ class TelemetryWriter:
                 "decimated": self._decimated,
                 "errors": self._errors,
                 "first_error": self._first_error,
+                "last_error": self._last_error,
+                # failing now (no file open after an error): rows are dropped and counted, older logs are kept
+                "failing": self._failed_at is not None and self._mcap is None,
+                "failed_segments_kept": self._failed_kept,
+                "failed_segments_removed": self._failed_removed,
                 "bytes": self._bytes_done + current,
                 "pending": self._head - self._tail,
                 "capacity": self.capacity,
@@ -492,6 +504,7 @@ class TelemetryWriter:
     def _record_error(self, message: str) -> None:
         with self._lock:
             self._errors += 1
+            self._last_error = message
             if self._first_error is None:
                 self._first_error = message
 
@@ -506,9 +519,19 @@ class TelemetryWriter:
         if self._raw is None and self._file_obj is None:
             assert self.path is not None
             if self.path.is_file():
-                self.path.rename(_rotated_name(self.path, self.path.stat().st_mtime))
-                self._prune_rotated()
+                if self._failed_at is None:  # a roll-over: the finished file goes aside, the oldest beyond N go
+                    self.path.rename(_rotated_name(self.path, self.path.stat().st_mtime))
+                    self._prune_rotated()
+                elif self._failed_rows > 0:  # a retry: the failed file holds rows (readable up to its last
+                    # chunk): kept aside, and no older log is deleted for it (a full disk must not eat them)
+                    self.path.rename(_rotated_name(self.path, self.path.stat().st_mtime))
+                    self._failed_kept += 1
+                else:  # a retry over a failed file without a single row: nothing to keep
+                    self.path.unlink()
+                    self._failed_removed += 1
+                self._failed_rows = 0
             self._raw = open(self.path, "wb", buffering=0)
+        self._segment_rows = 0
         target = self._raw if self._file_obj is None else self._file_obj
         start = 0
         if self._file_obj is not None:
@@ -537,6 +560,8 @@ class TelemetryWriter:
     def _fail(self, exc: BaseException, doing: str) -> None:
         """Abandon the current segment after an error; count what was lost."""
         self._record_error(self._describe(exc, doing))
+        if self._mcap is not None:
+            self._failed_rows = self._segment_rows
         with self._lock:
             self._dropped_io += self._unflushed_rows
             self._dropped_bytes += self._unflushed_bytes
@@ -560,6 +585,7 @@ class TelemetryWriter:
         with self._lock:
             self._written += self._unflushed_rows
             self._events_written += self._unflushed_events
+        self._segment_rows += self._unflushed_rows
         self._unflushed_rows = self._unflushed_events = self._unflushed_bytes = 0
 
     def _add(self, log_time: int, data: bytes, seq: int, is_row: bool) -> None:
