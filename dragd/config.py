@@ -338,6 +338,9 @@ class TelemetryConfig(_Strict):
 
 class ControlConfig(_Strict):
     socket: str = "/run/dragd/dragd.sock"
+    # folders the socket's requests may read/write files in (record, track, teach/replay program paths); relative:
+    # to this file. Default: replay.program_dir, the telemetry folder, /var/lib/dragd, the temporary folder
+    allowed_dirs: list[str] | None = None
 
 
 PerJoint = PosFloat | list[PosFloat]  # one value for every joint, or a list with one per joint

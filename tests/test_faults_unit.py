@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from pathlib import Path
 
 import can
 import numpy as np
@@ -282,3 +283,43 @@ def test_trajectories_accelerating_too_hard_or_needing_too_much_current_are_refu
     too_hard = swing(0.5, 0.6)  # 0.5·2π²/0.36 ≈ 27 rad/s²
     with pytest.raises(ValueError, match=r"joint2 would accelerate at 2\d\.\d rad/s² at t = .*safety\.track_acceleration_limit_rad_s2 20"):
         ip.m.validate(too_hard)
+
+
+def test_socket_paths_are_confined_to_the_daemons_folders(tmp_path) -> None:
+    """record / track / teach / replay paths from the socket: inside control.allowed_dirs (after resolving '..' and
+    symbolic links) or refused with the folders named — the daemon never writes or reads elsewhere for a client."""
+    import asyncio
+    import os
+
+    from dragd.daemon.commands import command_table
+    from dragd.daemon.paths import PathPolicy, allowed_dirs
+    from dragd.protocol import ControlError
+
+    cfg = load_config(DEFAULT_CONFIG)
+    dirs = allowed_dirs(cfg, str(tmp_path / "tel" / "t.mcap"), [str(tmp_path / "lab")])
+    assert cfg.program_dir in dirs or Path(os.path.realpath(cfg.program_dir)) in dirs
+    assert Path(os.path.realpath(tmp_path / "tel")) in dirs and Path(os.path.realpath(tmp_path / "lab")) in dirs
+    pol = PathPolicy([Path(os.path.realpath(tmp_path / "lab"))])
+    (tmp_path / "lab").mkdir()
+    assert pol.check("x", tmp_path / "lab" / "a.mcap") == Path(os.path.realpath(tmp_path / "lab" / "a.mcap"))
+    for bad in (tmp_path / "lab" / ".." / "b.mcap", "/etc/passwd"):
+        with pytest.raises(ValueError, match="outside the folders the daemon may use"):
+            pol.check("x", bad)
+    (tmp_path / "lab" / "link.mcap").symlink_to("/etc/dragd-escape.mcap")
+    with pytest.raises(ValueError, match="link.mcap is outside"):
+        pol.check("record start", tmp_path / "lab" / "link.mcap")
+
+    ip = InProcess(cfg)
+    ip.d.paths = PathPolicy([Path(os.path.realpath(tmp_path / "lab"))])
+    table = command_table(ip.d)
+
+    def ask(**req: object) -> str:
+        with pytest.raises(ControlError) as e:
+            asyncio.run(table(req))
+        return str(e.value)
+
+    assert "record start: /etc/dragd.mcap is outside" in ask(cmd="record", action="start", path="/etc/dragd.mcap")
+    assert not Path("/etc/dragd.mcap").exists()
+    err = ask(cmd="track", file="/etc/passwd")
+    assert "track: /etc/passwd is outside" in err and "root:" not in err  # refused before reading anything
+    assert "control.allowed_dirs" in ask(cmd="teach", action="start", name="/root/prog.yaml", overwrite=True)

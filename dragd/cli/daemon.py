@@ -69,7 +69,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     cfg = with_telemetry_options(cfg, args)
     try:
         daemon = Daemon(cfg, bus_override=args.bus, socket_path=args.socket, telemetry_path=args.telemetry,
-                        rerun=args.rerun)
+                        rerun=args.rerun, allow_dirs=args.allow_dir)
     except (BusBudgetError, ValueError) as exc:
         raise CliError(str(exc)) from None
     try:
@@ -132,6 +132,8 @@ def register(sub: Any) -> None:
     add_config(r)
     r.add_argument("--bus", help="INTERFACE:CHANNEL overriding the config's bus (comma-separated for several buses), "
                    "e.g. socketcan:can0, udp_multicast:239.74.163.2, virtual:arm")
+    r.add_argument("--allow-dir", action="append", default=None, metavar="DIR",
+                   help="a folder control requests may read/write files in, beside control.allowed_dirs (repeatable)")
     r.add_argument("--socket", default=os.environ.get("DRAGD_SOCKET") or None,
                    help=f"control socket path (default: $DRAGD_SOCKET, else the config's control.socket, {DEFAULT_SOCKET})")
     r.add_argument("--telemetry", default=None, help="write every cycle to this MCAP file")

@@ -81,7 +81,7 @@ def command_table(d: Daemon) -> CommandTable:
         if action == "start":
             if path is None:
                 raise ValueError("record start: missing field 'path'")
-            return {"recording": await recorder.start_recording(str(path), str(label))}
+            return {"recording": await recorder.start_recording(str(d.paths.check("record start", path)), str(label))}
         if action == "stop":
             return await recorder.stop_recording()
         raise ValueError(f"record: action: expected 'start' or 'stop', got {action!r}")

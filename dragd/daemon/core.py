@@ -118,9 +118,12 @@ class Daemon:
     """The servo daemon for one arm. ``await Daemon(cfg).run()`` runs until SIGTERM/SIGINT or ``request_exit``."""
 
     def __init__(self, cfg: Config, *, bus_override: str | None = None, socket_path: str | None = None,
-                 telemetry_path: str | None = None, rerun: bool = False,
+                 telemetry_path: str | None = None, rerun: bool = False, allow_dirs: list[str] | None = None,
                  log: Callable[[str], None] | None = None) -> None:
+        from dragd.daemon.paths import PathPolicy, allowed_dirs
+
         self.cfg = cfg
+        self.paths = PathPolicy(allowed_dirs(cfg, telemetry_path, allow_dirs))  # where requests may read/write
         self.log = log or _print_log  # log(text) or log(text, priority)
         self.socket_path = socket_path or cfg.control.socket
         self.bus_specs = self._bus_specs(bus_override)

@@ -199,7 +199,7 @@ class Motions:
         loop = asyncio.get_running_loop()
         dt = self.d.cycle.dt
         if file is not None:
-            traj = await loop.run_in_executor(None, Trajectory.load, file, dt, label)
+            traj = await loop.run_in_executor(None, Trajectory.load, str(self.d.paths.check("track", file)), dt, label)
         elif t_s is not None and q_rad is not None:
             traj = await loop.run_in_executor(None, Trajectory, t_s, q_rad, dt, label)
         else:
@@ -269,6 +269,7 @@ class Motions:
             path = resolve_program(program, d.cfg.program_dir)
         except ProgramError as exc:
             raise ValueError(f"replay: {exc}") from None
+        path = d.paths.check("replay", path)
         if not path.is_file():
             raise ValueError(f"replay: program {path} not found")
         self.planning = True

@@ -28,6 +28,12 @@ class Teaching:
     async def start(self, name: str, rate_Hz: float | None = None, overwrite: bool = False) -> dict[str, Any]:
         """Start teaching: the raw MCAP window, positions at ``rate_Hz`` and marks; the arm goes to drag."""
         d, c, motions = self.d, self.d.controller, self.d.motions
+        try:
+            path = resolve_program(name, d.cfg.program_dir)
+            check_name(path.stem)
+            path = d.paths.check("teach start", path)
+        except ProgramError as exc:
+            raise ValueError(f"teach start: {exc}") from None
         if self.recorder is not None:
             raise ValueError(f"teach start: already teaching '{self.recorder.name}'; 'dragd teach stop' first")
         if c.mode not in (Mode.HOLD, Mode.DRAG) or c.track.active or motions.planning:
@@ -39,11 +45,6 @@ class Teaching:
         rate = rc.record_rate_Hz if rate_Hz is None else float(rate_Hz)
         if not 0.0 < rate <= d.cfg.loop.rate_Hz:
             raise ValueError(f"teach start: rate: expected (0, {d.cfg.loop.rate_Hz:.0f}] Hz, got {rate}")
-        try:
-            path = resolve_program(name, d.cfg.program_dir)
-            check_name(path.stem)
-        except ProgramError as exc:
-            raise ValueError(f"teach start: {exc}") from None
         if path.suffix not in (".yaml", ".yml"):
             path = path.with_suffix(".yaml")
         mcap = path.with_suffix(".mcap")

@@ -169,7 +169,7 @@ def run_teach_demo(seconds: float = 20.0, config: Path | None = None, out: Path 
     program = out / "programs" / f"teach-{stamp}.yaml"
     per_point = seconds / len(TEACH_STEPS_RAD)
     hand_s = max(1.5, per_point - 0.5)
-    rig = Rig("demo-teach", config=config, telemetry=mcap)
+    rig = Rig("demo-teach", config=config, telemetry=mcap, allow_dirs=[out])
     try:
         _say(progress, f"starting the simulated robot on {rig.bus} ...")
         rig.start_sim()

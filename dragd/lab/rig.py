@@ -91,7 +91,8 @@ class Rig:
     def __init__(self, tag: str = "rig", workdir: Path | None = None, config: Path | None = None,
                  sim_config: Path | None = None, telemetry: Path | None = None, group: str | None = None,
                  sim_args: list[str] | None = None, daemon_args: list[str] | None = None,
-                 env: dict[str, str] | None = None, bus: str | None = None) -> None:
+                 env: dict[str, str] | None = None, bus: str | None = None,
+                 allow_dirs: list[Path] | None = None) -> None:
         self.workdir = Path(workdir or tempfile.mkdtemp(prefix=f"dragd-{tag}-"))
         self.workdir.mkdir(parents=True, exist_ok=True)
         if bus is not None and group is not None:
@@ -105,6 +106,7 @@ class Rig:
         self.socket = str(self.workdir / "dragd.sock")
         self.sim_args = sim_args or []
         self.daemon_args = daemon_args or []
+        self.allow_dirs = [self.workdir, *(allow_dirs or [])]  # where the daemon may write what the rig asks
         self.env = env
         self.sim: Child | None = None
         self.daemon: Child | None = None
@@ -119,6 +121,8 @@ class Rig:
 
     def start_daemon(self, timeout_s: float = 30.0) -> None:
         argv = [sys.executable, "-m", "dragd", "run", "--bus", self.bus, "--socket", self.socket, *self.daemon_args]
+        for d in self.allow_dirs:
+            argv += ["--allow-dir", str(Path(d).absolute())]
         if self.config is not None:
             argv += ["--config", str(self.config)]
         if self.telemetry is not None:

@@ -67,7 +67,8 @@ class Bench:
         """Simulated robot + daemon with the derived config, enabled and in drag."""
         cfg = self.derived_config(tag, edits or {})
         args = ["--params", str(self.params)] if self.params else []
-        rig = Rig(tag, workdir=self.workdir / f"{tag}-{self._count}", config=cfg, daemon_args=args)
+        rig = Rig(tag, workdir=self.workdir / f"{tag}-{self._count}", config=cfg, daemon_args=args,
+                  allow_dirs=[self.workdir])
         try:
             rig.start_sim()
             rig.start_daemon()
