@@ -341,6 +341,9 @@ class ControlConfig(_Strict):
     # folders the socket's requests may read/write files in (record, track, teach/replay program paths); relative:
     # to this file. Default: replay.program_dir, the telemetry folder, /var/lib/dragd, the temporary folder
     allowed_dirs: list[str] | None = None
+    # where clients (operators in group dragd) leave trajectory files for the daemon, e.g. 'dragd identify run': the
+    # systemd unit's PrivateTmp gives the daemon its own /tmp (systemd/dragd.tmpfiles.conf creates it 2770)
+    spool_dir: str = "/var/lib/dragd/spool"
 
 
 PerJoint = PosFloat | list[PosFloat]  # one value for every joint, or a list with one per joint

@@ -119,6 +119,10 @@ def test_sysusers_and_tmpfiles_content():
     assert users[0][:3] == ["u", "dragd", "-"]
     tmp = [l.split() for l in TMPFILES.read_text().splitlines() if l and not l.startswith("#")]
     assert ["d", "/var/lib/dragd", "0750", "dragd", "dragd", "-"] in tmp
+    from dragd.config import ControlConfig
+
+    spool = ControlConfig().spool_dir  # the daemon's default, made group-writable (setgid) for operators
+    assert ["d", spool, "2770", "dragd", "dragd", "1d"] in tmp
 
 
 @pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze not installed")

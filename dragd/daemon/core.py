@@ -120,10 +120,11 @@ class Daemon:
     def __init__(self, cfg: Config, *, bus_override: str | None = None, socket_path: str | None = None,
                  telemetry_path: str | None = None, rerun: bool = False, allow_dirs: list[str] | None = None,
                  log: Callable[[str], None] | None = None) -> None:
-        from dragd.daemon.paths import PathPolicy, allowed_dirs
+        from dragd.daemon.paths import PathPolicy, allowed_dirs, spool_dir
 
         self.cfg = cfg
         self.paths = PathPolicy(allowed_dirs(cfg, telemetry_path, allow_dirs))  # where requests may read/write
+        self.spool_dir = spool_dir(cfg)  # where clients leave trajectory files (status: spool_dir)
         self.log = log or _print_log  # log(text) or log(text, priority)
         self.socket_path = socket_path or cfg.control.socket
         self.bus_specs = self._bus_specs(bus_override)
@@ -456,6 +457,7 @@ class Daemon:
             "telemetry": self.recorder.telemetry.stats() if self.recorder.telemetry is not None else None,
             "recording": self.recorder.recording_path,
             "t_s": cy.t,
+            "spool_dir": self.spool_dir,
             "teach": self.teaching.recorder.status() if self.teaching.recorder is not None else None,
         }
 

@@ -4,8 +4,8 @@ A request names files (``record`` path, ``track`` file, ``teach``/``replay`` pro
 runs as its own user with its own rights: without a bound, anyone allowed on the socket could have it overwrite or
 read any file it can reach (``teach start /etc/... --overwrite``). Every such path is resolved (``..`` and symbolic
 links followed) and must lie inside one of ``control.allowed_dirs`` (default: the program folder, the telemetry
-folder, /var/lib/dragd and the daemon's temporary folder — private under systemd's PrivateTmp) or a
-``dragd run --allow-dir DIR``.
+folder, /var/lib/dragd, the spool folder and the daemon's temporary folder — private under systemd's PrivateTmp) or
+a ``dragd run --allow-dir DIR``.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ def allowed_dirs(cfg: Config, telemetry_path: str | None = None, extra: list[str
         dirs = [Path(d).expanduser() for d in cfg.control.allowed_dirs]
         dirs = [d if d.is_absolute() else cfg.base_dir / d for d in dirs]
     else:
-        dirs = [cfg.program_dir, Path(STATE_DIR), Path(tempfile.gettempdir())]
+        dirs = [cfg.program_dir, Path(STATE_DIR), Path(cfg.control.spool_dir), Path(tempfile.gettempdir())]
         tel = telemetry_path or cfg.telemetry.path
         if tel:
             dirs.append(Path(tel).expanduser().absolute().parent)
@@ -38,6 +38,13 @@ def allowed_dirs(cfg: Config, telemetry_path: str | None = None, extra: list[str
         if r not in out:
             out.append(r)
     return out
+
+
+def spool_dir(cfg: Config) -> str | None:
+    """The folder clients leave trajectory files in for this daemon (``control.spool_dir``), when it exists."""
+    p = Path(cfg.control.spool_dir).expanduser()
+    p = p if p.is_absolute() else cfg.base_dir / p
+    return str(p) if p.is_dir() else None
 
 
 class PathPolicy:

@@ -10,6 +10,8 @@ Ctrl-C stops the motion along its path (``replay_stop``) and closes the recordin
 
 from __future__ import annotations
 
+import os
+import shutil
 import sys
 import tempfile
 import time
@@ -60,6 +62,17 @@ def chunks(plan: Plan, chunk_s: float = 600.0) -> list[tuple[float, float]]:
     return list(zip(cuts[:-1], cuts[1:]))
 
 
+def motion_workdir(status: dict[str, Any]) -> Path:
+    """A fresh folder for the motion files the daemon reads: in its spool folder when it has one this user may
+    write (a daemon under systemd has a private /tmp), readable by the daemon's group; else a temporary folder."""
+    spool = status.get("spool_dir")
+    if spool and os.access(spool, os.W_OK | os.X_OK):
+        work = Path(tempfile.mkdtemp(prefix="identify-", dir=spool))
+        work.chmod(0o750)  # the spool is setgid dragd: the daemon reads through its group
+        return work
+    return Path(tempfile.mkdtemp(prefix="dragd-identify-"))
+
+
 def run_plan(call: Callable[..., dict[str, Any]], plan: Plan, out: str | Path, *, chunk_s: float = 600.0,
              progress: bool = True, poll_s: float = 0.2, label: str | None = None,
              workdir: Path | None = None) -> dict[str, Any]:
@@ -76,8 +89,18 @@ def run_plan(call: Callable[..., dict[str, Any]], plan: Plan, out: str | Path, *
     q = np.array(st["q_rad"], dtype=float)
     if q.shape[0] != plan.n:
         raise RunError(f"plan {plan.name}: {plan.n} joints, the daemon's arm {q.shape[0]}")
-    work = Path(workdir or tempfile.mkdtemp(prefix="dragd-identify-"))
-    label = label or f"identify {plan.name}"
+    work, own = (Path(workdir), False) if workdir is not None else (motion_workdir(st), True)
+    try:
+        return _drive(call, plan, out, q, work, label or f"identify {plan.name}", since_s, chunk_s=chunk_s,
+                      progress=progress, poll_s=poll_s)
+    finally:
+        if own:
+            shutil.rmtree(work, ignore_errors=True)
+
+
+def _drive(call: Callable[..., dict[str, Any]], plan: Plan, out: Path, q: np.ndarray, work: Path, label: str,
+           since_s: float, *, chunk_s: float, progress: bool, poll_s: float) -> dict[str, Any]:
+    """run_plan's motions: approach, record, the plan chunk by chunk, and what the daemon said."""
     t0 = time.monotonic()
     # 1. approach the plan's start
     if np.max(np.abs(plan.q_rad[0] - q)) > 0.005:
