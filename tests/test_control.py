@@ -291,3 +291,24 @@ def test_typed_fields_deep_nesting_and_the_client_cap(sock_path):
             for c in extra:
                 c.close()
         s.close()
+
+
+def test_a_trickled_request_loses_its_slot(sock_path, monkeypatch):
+    """A request once begun must arrive whole within REQUEST_READ_S: a client that sends half a line and stalls
+    gets an error line and is closed (it cannot hold one of the MAX_CLIENTS slots); a whole request is answered."""
+    from dragd.daemon import server as srv
+
+    monkeypatch.setattr(srv, "REQUEST_READ_S", 0.3)
+    with ServerThread(sock_path, make_table()):
+        s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        s.settimeout(5)
+        s.connect(sock_path)
+        f = s.makefile("rwb")
+        f.write(b'{"cmd": "sta')
+        f.flush()
+        r = json.loads(f.readline())
+        assert r["ok"] is False and "not complete within 0.3 s" in r["error"], r
+        assert f.readline() == b""  # then closed
+        s.close()
+        ok = ControlClient(sock_path).call("status")
+        assert ok["ok"] is True

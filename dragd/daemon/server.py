@@ -168,6 +168,7 @@ def _depth(obj: Any, limit: int) -> int:
 MAX_DEPTH = 16  # nesting of a request (a trajectory is a list of lists: depth 3)
 MAX_CLIENTS = 16  # connections at once; more get an error line and are closed
 IDLE_TIMEOUT_S = 600.0  # a connection that sends nothing for this long is closed
+REQUEST_READ_S = 10.0  # a request line, once its first byte arrived, must be complete within this
 
 
 def _probe(path: str, timeout_s: float = 0.5) -> str:
@@ -282,13 +283,24 @@ class ControlServer:
         try:
             while True:
                 try:
-                    line = await asyncio.wait_for(reader.readuntil(b"\n"), IDLE_TIMEOUT_S)
+                    first = await asyncio.wait_for(reader.readexactly(1), IDLE_TIMEOUT_S)
                 except asyncio.TimeoutError:
                     break  # idle: the slot goes to someone else
+                except asyncio.IncompleteReadError:
+                    break  # closed
+                try:  # a request once begun arrives whole within REQUEST_READ_S (no slot held by a trickle)
+                    line = first if first == b"\n" else \
+                        first + await asyncio.wait_for(reader.readuntil(b"\n"), REQUEST_READ_S)
+                except asyncio.TimeoutError:
+                    self.errors += 1
+                    writer.write(encode_line({"ok": False, "error": f"request line not complete within "
+                                                                   f"{REQUEST_READ_S:g} s; closing"}))
+                    await writer.drain()
+                    break
                 except asyncio.IncompleteReadError as e:
-                    if not e.partial.strip():
+                    if not (first + e.partial).strip():
                         break
-                    line = e.partial  # last request without trailing newline
+                    line = first + e.partial  # last request without trailing newline
                 except asyncio.LimitOverrunError:
                     self.errors += 1
                     writer.write(
