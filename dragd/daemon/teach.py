@@ -65,7 +65,7 @@ class Teaching:
         # the recording is the autosave: this event says how to rebuild the program if the session is cut short
         # (dragd teach recover)
         assert d.recorder.recording is not None  # (opened just above)
-        d.recorder.recording.event("teach_start", **self.recorder.autosave_info(
+        d.recorder.recording.event("teach_start", session=self.recorder.autosave_info(
             str(d.cfg.robot.urdf), d.cfg.replay.frame, d.cfg.source))
         motions.planner.warm()
         if c.mode == Mode.HOLD and not c.feedback_hold:

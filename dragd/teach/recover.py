@@ -34,10 +34,11 @@ def teach_info(mcap: str | Path) -> dict[str, Any]:
         starts = read_events(mcap, "teach_start")
     except TelemetryFileError as exc:
         raise ProgramError(str(exc)) from None
-    if not starts:
-        raise ProgramError(f"{mcap}: not a teach recording (no teach_start event: recorded by 'dragd identify run' "
-                           "or 'record', or by an older dragd)")
-    return dict(starts[0].fields)
+    session = starts[0].fields.get("session") if starts else None
+    if not isinstance(session, dict):
+        raise ProgramError(f"{mcap}: not a teach recording (no teach_start event with the session: recorded by "
+                           "'dragd identify run' or 'record', or by an older dragd)")
+    return dict(session)
 
 
 def sample_rows(t_s: np.ndarray, period_s: float, t0_s: float) -> np.ndarray:
