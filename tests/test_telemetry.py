@@ -542,12 +542,14 @@ def test_a_disk_that_stays_full_never_costs_an_older_log(tmp_path, monkeypatch):
     path = tmp_path / "t.mcap"
     w = TelemetryWriter(path, {"t_s": 1, "q_rad": 6}, capacity=4096, flush_interval_s=0.005, chunk_size=1024,
                         max_bytes=3_000, keep_rotated=3, retry_after_s=0.02)
-    run_rows(w, 3000, pause_every=50)  # roll-overs: three older complete logs
+    run_rows(w, 3000, pause_every=50)  # roll-overs: older complete logs, the newest three kept (keep_rotated)
     wait_for(lambda: w.stats()["pending"] == 0)
+    full["on"] = True
+    run_rows(w, 50)
+    wait_for(lambda: w.stats()["failing"])  # from here no write succeeds: no roll-over, no normal pruning
     older = sorted(tmp_path.glob("t.*.mcap"))
     assert len(older) == 3 and all(summarize(p)["complete"] for p in older)
-    full["on"] = True
-    for _ in range(30):  # ~30 retries (the old policy rotated and pruned on each: every older log gone)
+    for _ in range(29):  # ~30 retries (the old policy rotated and pruned on each: every older log gone)
         run_rows(w, 50)
         time.sleep(0.03)
     st = w.stats()
