@@ -28,6 +28,7 @@ METHODS = ("lowspeed", "symmetric", "synchronous", "full", "auto")
 PRIOR_REL = 0.05  # full dynamics: prior std of a base parameter relative to its URDF value (CAD masses)
 ARMATURE_PRIOR_KGM2 = 1.0  # ... and of a rotor inertia (not in a URDF), reflected to the joint
 PRIOR_GRAVITY_REL = 0.01  # ... and of a gravity parameter (the K_t reference; see fit_full)
+PRIOR_GRAVITY_REL_GIVEN_KT = 0.25  # ... with K_t given (--torque-constants): the scale is known, see fit_full
 RESOLUTION_A = 0.05  # a friction term whose uncertainty moves the current by more than this over the data is null
 KT_MAX_REL_STD = 0.05  # a torque constant not determined to 5 % is null
 MIN_ROWS = 20
@@ -759,7 +760,10 @@ def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
     URDF value for inertial parameters, ~1 kg·m² for rotor inertias (not in a URDF), at least what moves the current
     by 20 mA for parameters the URDF has at zero, and 1 % for gravity parameters — they are the K_t reference and,
     with the excitation a 6-joint Fourier plan reaches (regressor condition ~10⁴), they trade off against the
-    friction levels; a log that determines them moves them anyway. Directions the data determines move freely,
+    friction levels; a log that determines them moves them anyway. With K_t given (``Options.torque_constants``,
+    ``--torque-constants``) the scale is fixed, c_j = 1/K_t, and the gravity parameters are no longer the K_t
+    reference: their prior is loose (25 %, ≥ ``RESOLUTION_A`` of current), the data sets them (docs/IDENTIFICATION.md
+    "Real robot logs"). Directions the data determines move freely,
     the others stay near the URDF instead of absorbing noise. All columns and the current go through the same
     zero-phase filter H; rows where the joint slides (stiction is not a function of q̇); weighted least squares
     (the accelerating and the steady rows each by the inverse of their residual variance, two-step); standard
@@ -798,7 +802,12 @@ def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
         arm0 = p.regfilter(p.ddq[:, j:j + 1])
         s1 = linear_fit(np.column_stack([tauH[sel], arm0[sel], F0H[sel]]), ctx.iH[sel, j], ["urdf", "arm"] + f0names,
                         prefer_drop=PREFER_DROP)
-        c0 = abs(s1.value("urdf") or 0.0) or 0.1
+        given = None if o.torque_constants is None else o.torque_constants[j]
+        # K_t given: the URDF's current is τ_URDF/K_t (the scale is known, not fitted) and the gravity parameters are
+        # no longer the K_t reference: they take a loose prior (25 % of the URDF's value, at least what moves the
+        # current by RESOLUTION_A), so the data sets the gravity model — it has to absorb whatever the given K_t and
+        # the URDF's masses disagree by (UR10e dataset: its drvGains and the URDF's scale differ by up to ~10 %)
+        c0 = 1.0 / float(given) if given else (abs(s1.value("urdf") or 0.0) or 0.1)
         # prior on the corrections: 30 % of the URDF's value (in current, via c₀), at least what moves the current
         # by ~20 mA over this data — CAD values are that uncertain; the data moves what it determines
         colmax = np.maximum(np.abs(YfH[sel]).max(axis=0), 1e-12)
@@ -808,21 +817,24 @@ def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
             if ".armature" in nm_:  # rotor inertias are not in the URDF: up to ~1 kg·m² reflected
                 prior[names_rb[k]] = max(prior[names_rb[k]], c0 * ARMATURE_PRIOR_KGM2)
             elif gcol[k] > 1e-9:  # gravity parameters: tied to the URDF (the K_t reference), see the docstring
-                prior[names_rb[k]] = max(PRIOR_GRAVITY_REL * c0 * abs(beta_urdf[k]), 0.002 / colmax[k])
+                rel = PRIOR_GRAVITY_REL_GIVEN_KT if given else PRIOR_GRAVITY_REL
+                floor = RESOLUTION_A if given else 0.002
+                prior[names_rb[k]] = max(rel * c0 * abs(beta_urdf[k]), floor / colmax[k])
+        y_sel = ctx.iH[sel, j] - (c0 * tauH[sel] if given else 0.0)  # K_t given: the URDF's current is known
 
         def solve(stb: tuple[float, float] | None) -> LinearFit:
             F, fnames = friction_columns(v, vs=None if stb is None else stb[0], delta=2.0 if stb is None else stb[1])
             FH = p.regfilter(F)
-            A = np.column_stack([tauH[sel], YfH[sel], FH[sel]])
-            nm = ["urdf"] + names_rb + fnames
-            f0 = prior_fit(A, ctx.iH[sel, j], nm, prior)
+            A = np.column_stack(([] if given else [tauH[sel]]) + [YfH[sel], FH[sel]])
+            nm = ([] if given else ["urdf"]) + names_rb + fnames
+            f0 = prior_fit(A, y_sel, nm, prior)
             hi = np.abs(ctx.ddqH[sel, j]) > max(acc_level * 0.5, 0.05)
             w = np.ones(sel.size)
             if hi.sum() > MIN_ROWS and (~hi).sum() > MIN_ROWS:  # WLS: each regime weighted by its residual variance
                 w[hi] = 1 / max(float(np.std(f0.residual[hi])), 1e-9) ** 2
                 w[~hi] = 1 / max(float(np.std(f0.residual[~hi])), 1e-9) ** 2
                 w /= w.mean()
-            return prior_fit(A, ctx.iH[sel, j], nm, prior, w=w)
+            return prior_fit(A, y_sel, nm, prior, w=w)
 
         fit = solve(None)
         best = (fit.sigma, None, fit)
@@ -868,11 +880,10 @@ def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
             if f"dbeta{k}" in names:
                 Jm[k, names.index(f"dbeta{k}")] = 1.0
                 kept.append(k)
-        beta = Jm @ fit.theta
+        beta = Jm @ fit.theta + (c0 * beta_urdf if given else 0.0)
         cov_b = Jm @ fit.cov @ Jm.T
         gu = ctx.grav[sel, j]
         rng = float(np.ptp(gu))
-        given = None if o.torque_constants is None else o.torque_constants[j]
         if given is not None:
             jr.set("torque_constant_Nm_per_A", float(given), None)
             jr.diagnostics["kt_source"] = "given (--torque-constants or the configuration)"
