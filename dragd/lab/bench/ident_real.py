@@ -324,7 +324,10 @@ def ident_real(opts: dict) -> tuple[float, dict[str, Any]]:
                   "check": "dragd identify check --robot URDF --params FITTED --log VALID --mask all (per file; "
                            "pooled over files)"},
         "evaluation": "RMSE of predicted vs raw measured motor current [A] over all samples of validation p1..p10 "
-                      "(held out), per joint; overall = over all joints' samples; ratio = dragd / reference",
+                      "(held out), per joint; overall = over all joints' samples; ratio = dragd / reference. The "
+                      "reference is fitted with the drive gains in both cases (the textbook model needs them). "
+                      "dragd's check evaluates each log on its uniform resampling at the log's median rate "
+                      "(interpolated raw current), the reference on the CSV rows",
         **out,
         "targets": {"with_gains_overall_ratio_max": TARGET_WITH_GAINS,
                     "without_gains_overall_ratio_max": TARGET_WITHOUT_GAINS, "every_joint_predicted": True},
