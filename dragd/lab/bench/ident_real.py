@@ -249,7 +249,8 @@ def _dragd_case(ds: Dataset, gains: np.ndarray | None, workdir: Path) -> dict[st
     return {"rmse": rmse, "samples": cnt, "unpredicted": unpredicted, "fit_s": fit_s,
             "train_rows": _rows_of(res),
             "models": sorted(models), "warnings": res.warnings,
-            "kt": [jr.torque_constant_Nm_per_A for jr in res.joints]}
+            "kt": [jr.torque_constant_Nm_per_A for jr in res.joints],
+            "gravity_prior_rel": [jr.diagnostics.get("gravity_prior_rel") for jr in res.joints]}
 
 
 def _rows_of(res: Any) -> list[int]:
@@ -270,7 +271,7 @@ def _overall(rmse: np.ndarray, cnt: np.ndarray) -> float:
 
 
 @benchmark("ident_real", "ratio")
-def ident_real(opts: dict) -> tuple[float, dict[str, Any]]:
+def ident_real(opts: dict) -> tuple[float, dict[str, Any]] | dict[str, Any]:
     """Held-out RMSE of dragd's full-dynamics fit on the real UR10e logs / the textbook LS reference's (--data DIR)."""
     data = opts.get("data") or os.environ.get("DRAGD_UR10E_DATA")
     if not data and "ident_real" not in opts.get("selected", ["ident_real"]):  # `dragd bench` (all) without the data
@@ -307,7 +308,9 @@ def ident_real(opts: dict) -> tuple[float, dict[str, Any]]:
             "target_ratio": target, "every_joint_predicted": all_pred, "unpredicted": c["unpredicted"],
             "dragd_fit_s": round(c["fit_s"], 1), "dragd_fit_rows_per_joint": c["train_rows"],
             "dragd_check_samples_per_joint": [int(x) for x in c["samples"]], "dragd_prediction": c["models"],
-            "dragd_torque_constants_Nm_per_A": c["kt"], "dragd_warnings": c["warnings"]}
+            "dragd_torque_constants_Nm_per_A": c["kt"], "dragd_warnings": c["warnings"],
+            # with K_t given: the gravity parameters' prior width per joint, chosen by the fit's own cross-validation
+            "dragd_gravity_prior_rel": c["gravity_prior_rel"]}
     detail = {
         "data": str(ds.root), "urdf": str(ds.urdf), "drive_gains_Nm_per_A": ds.gains.tolist(),
         "drive_gains_source": ds.gains_source,
