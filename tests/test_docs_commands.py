@@ -190,7 +190,10 @@ class Rule:
 
 RULES: list[Rule] = [
     # the public UR10e dataset (no licence: not here): options checked; tests/test_ur10e_payload.py runs them with it
-    Rule(r"\bDATA/", "mention", "a public dataset's files (tests/test_ur10e_payload.py runs these when present)"),
+    Rule(r"\bDATA/", "mention", "a public dataset's files (tests/test_ur10e_payload.py, tests/test_ur10e_ident.py run "
+                               "these when present)"),
+    Rule(r"^dragd bench ident_real$", "mention", "the real-data benchmark named in prose (needs --data DATA/: "
+                                                 "tests/test_ur10e_ident.py runs it when the dataset is present)"),
     # not run here: root, a systemd host with dragd installed, QEMU or CAN hardware
     Rule(r"^(sudo|sudoedit) ", "host", "root on the robot controller"),
     Rule(r"^(systemctl|journalctl) |^systemd-analyze security dragd", "host", "a systemd host running dragd"),

@@ -55,6 +55,20 @@ def test_fit_text_names_nulls(tmp_path):
     assert "K_t N·m/A" in proc.stdout
 
 
+def test_fit_several_logs_stacked(tmp_path):
+    """``--log A --log B``: both logs fitted together (each its own stretch, rows stacked); formats may differ."""
+    one = json.loads(run_cli("identify", "fit", "--log", str(sync_log("csv")), "--method", "synchronous",
+                             "--out", str(tmp_path / "one.yaml"), "--json").stdout)
+    two = json.loads(run_cli("identify", "fit", "--log", str(sync_log("csv")), "--log", str(sync_log("mcap")),
+                             "--method", "synchronous", "--out", str(tmp_path / "two.yaml"), "--json").stdout)
+    assert two["log"] == f"{sync_log('csv')} + {sync_log('mcap')}"
+    assert any("2 logs stacked" in w for w in two["warnings"]), two["warnings"]
+    rows1, rows2 = (d["joints"]["joint2"]["diagnostics"]["rows"] for d in (one, two))
+    assert rows2 > 1.8 * rows1  # the second log's rows are in the regression
+    k1, k2 = (d["joints"]["joint2"]["torque_constant_Nm_per_A"] for d in (one, two))
+    assert k2 == pytest.approx(k1, rel=0.01)  # the same run twice: the same K_t
+
+
 def test_check_json_and_plots(tmp_path):
     params = tmp_path / "params.yaml"
     run_cli("identify", "fit", "--log", str(sync_log("mcap")), "--method", "synchronous", "--out", str(params))

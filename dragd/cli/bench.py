@@ -23,7 +23,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         raise CliError(f"--jobs: expected ≥ 1, got {args.jobs}")
     opts = {"config": absolute(args.config), "seconds": args.seconds, "realtime_priority": args.realtime_priority,
             "jobs": args.jobs, "cases": args.cases, "out": absolute(args.out), "profile": absolute(args.profile),
-            "sim_config": absolute(args.sim_config)}
+            "sim_config": absolute(args.sim_config), "data": absolute(args.data)}
     try:
         result = bench.run(args.names, {k: v for k, v in opts.items() if v is not None})
     except KeyError as exc:
@@ -66,6 +66,9 @@ def register(sub: Any) -> None:
     b.add_argument("--sim-config", type=Path, default=None, metavar="FILE",
                    help="loop benchmarks: the simulator's truth file (default: the bundled seed cobot's); with a "
                         "daemon configuration of several buses its joints' bus_index must match")
+    b.add_argument("--data", type=Path, default=None, metavar="DIR",
+                   help="ident_real: the UR10e dataset, a checkout of github:shamilmamedov/dynamic_calibration "
+                        "(default: $DRAGD_UR10E_DATA)")
     add_config(b, params=False)
     b.add_argument("--json", action="store_true", help="print JSON")
     b.set_defaults(func=cmd_bench)

@@ -164,10 +164,34 @@ def _fit_text(d: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def fit_params(log: Any, model: Any, method: str, opts: Any, cfg_kt: list[float] | None = None
+               ) -> tuple[Any, Any, dict[str, Any] | None]:
+    """``identify fit``'s pipeline on a loaded (or stacked) log: the fit, its params file content and — for a
+    full-dynamics fit — the link inertials mapped from the identified base parameters (None otherwise)."""
+    from dragd.identify.methods import identify
+
+    res = identify(log, model, method, opts)
+    params = res.to_params()
+    mapped = None
+    if res.notes.get("base_parameters"):  # full dynamics (or auto that chose it): the identified arm is the model
+        from dragd.identify.inertials import inertials_from_fit
+        from dragd.identify.regressors import RegressorModel
+
+        mapped = inertials_from_fit(res, model, RegressorModel(model), cfg_kt)
+        if mapped is not None:
+            from dragd.identify.results import _jsonable
+
+            pd = params.model_dump(mode="python")
+            pd["inertials"] = mapped["inertials"]
+            pd["notes"] = {**pd["notes"], "inertials_mapping": _jsonable(mapped["mapping"])}
+            params = type(params).model_validate(pd)
+    return res, params, mapped
+
+
 def cmd_fit(args: argparse.Namespace) -> int:
     from dragd.config import save_params
-    from dragd.identify.data import LogError
-    from dragd.identify.methods import Options, identify
+    from dragd.identify.data import LogError, stack_logs
+    from dragd.identify.methods import Options
 
     import time
 
@@ -191,31 +215,21 @@ def cmd_fit(args: argparse.Namespace) -> int:
                 opts.torque_constants = list[float | None](kt)
             if args.method not in ("full", "auto"):
                 raise CliError(f"--torque-constants: used by --method full (and auto), not {args.method}")
-        st.stage(f"reading {args.log}")
+        logs = args.log if isinstance(args.log, list) else [args.log]
+        st.stage(f"reading {', '.join(logs)}")
         t0 = time.perf_counter()
-        log = _load_log(args.log, model, args.drop_bad_rows)
+        try:
+            log = stack_logs([_load_log(p, model, args.drop_bad_rows) for p in logs])
+        except LogError as exc:
+            raise CliError(str(exc)) from None
         load_s = time.perf_counter() - t0
         if args.cutoff is not None:
             opts.cutoff_Hz = args.cutoff
         st.stage(f"fitting ({args.method})")
         try:
-            res = identify(log, model, args.method, opts)
+            res, params, mapped = fit_params(log, model, args.method, opts, cfg_kt)
         except LogError as exc:
             raise CliError(str(exc)) from None
-        params = res.to_params()
-        mapped = None
-        if res.notes.get("base_parameters"):  # full dynamics (or auto that chose it): the identified arm is the model
-            from dragd.identify.inertials import inertials_from_fit
-            from dragd.identify.regressors import RegressorModel
-
-            mapped = inertials_from_fit(res, model, RegressorModel(model), cfg_kt)
-            if mapped is not None:
-                from dragd.identify.results import _jsonable
-
-                pd = params.model_dump(mode="python")
-                pd["inertials"] = mapped["inertials"]
-                pd["notes"] = {**pd["notes"], "inertials_mapping": _jsonable(mapped["mapping"])}
-                params = type(params).model_validate(pd)
         out = Path(args.out)
         st.stage(f"writing {out}")
         save_params(params, out)
@@ -232,18 +246,24 @@ def cmd_fit(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------------------------- check
 
 
+def check_params(log: Any, model: Any, params: Any, params_name: str = "params", **kw: Any) -> Any:
+    """``identify check``'s pipeline: the params' link inertials applied to ``model`` (the identified arm,
+    docs/MODEL.md), then :func:`dragd.identify.check.check` (``kw``: cfg, terms, mask, keep_series, dynamics).
+    Raises ValueError for inertials that do not fit the model."""
+    from dragd.identify.check import check
+
+    if params.inertials:
+        model.apply_inertials(params.inertials, params_name)
+    return check(log, model, params, **kw)
+
+
 def cmd_check(args: argparse.Namespace) -> int:
     from dragd.config import load_config, load_params
-    from dragd.identify.check import check, plot
+    from dragd.identify.check import plot
     from dragd.identify.data import LogError
 
     model, _ = _robot(args)
     params = load_params(args.params)
-    if params.inertials:  # the identified arm (docs/MODEL.md)
-        try:
-            model.apply_inertials(params.inertials, str(args.params))
-        except ValueError as exc:
-            raise CliError(str(exc)) from None
     cfg = None
     if args.config is not None:
         cfg = load_config(args.config)
@@ -254,8 +274,8 @@ def cmd_check(args: argparse.Namespace) -> int:
         cfg = load_config(None)
     log = _load_log(args.log, model, args.drop_bad_rows)
     try:
-        res = check(log, model, params, cfg=cfg, terms=args.terms, mask=args.mask, keep_series=bool(args.plots),
-                    dynamics=args.dynamics)
+        res = check_params(log, model, params, str(args.params), cfg=cfg, terms=args.terms, mask=args.mask,
+                           keep_series=bool(args.plots), dynamics=args.dynamics)
     except (LogError, ValueError) as exc:
         raise CliError(str(exc)) from None
     data = res.to_json()
@@ -319,8 +339,10 @@ def register(sub: Any) -> None:
     rn.set_defaults(func=cmd_run)
 
     ft = isub.add_parser("fit", help="identify K_t and friction from a log → params file")
-    ft.add_argument("--log", required=True, help="MCAP (dragd telemetry, TRACK rows) or CSV t,q1..qN,i1..iN[,dq1..dqN] "
-                    "(or headerless: UR RTDE t,q,qd,i,i_target,tau_target; docs/IDENTIFICATION.md)")
+    ft.add_argument("--log", required=True, action="append",
+                    help="MCAP (dragd telemetry, TRACK rows) or CSV t,q1..qN,i1..iN[,dq1..dqN] (or headerless: UR RTDE "
+                         "t,q,qd,i,i_target,tau_target; docs/IDENTIFICATION.md); repeat to fit several logs together "
+                         "(each filtered as its own stretch, rows stacked)")
     ft.add_argument("--robot", help="bundled robot name or URDF path (default: the configuration's robot)")
     ft.add_argument("--method", default="auto", choices=FIT_METHODS, help="lowspeed (seed 000), symmetric (seed 001), "
                     "synchronous (seed 002), full (rigid-body base parameters + friction), auto (default)")

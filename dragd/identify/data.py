@@ -378,6 +378,47 @@ def _in_sequence(t: np.ndarray, min_run: int = 10, window: int = 32) -> np.ndarr
     return keep
 
 
+STACK_GAP_S = 10.0  # the time gap put between stacked logs: far above prepare()'s max gap, so each is its own stretch
+
+
+def stack_logs(logs: list[Log], max_rate_mismatch: float = 0.1) -> Log:
+    """Several logs of one robot as one: each keeps its own samples and is preprocessed as its own stretch.
+
+    The logs are placed one after another on a common time axis with a gap of ``STACK_GAP_S`` between them, so
+    :func:`prepare` filters and differentiates each separately (no filter runs across a file boundary) and the
+    regressions stack their rows. The logs must have the same joints and sampling rates within 10 %.
+    """
+    if not logs:
+        raise LogError("no log given")
+    if len(logs) == 1:
+        return logs[0]
+    first = logs[0]
+    for lg in logs[1:]:
+        if lg.n != first.n:
+            raise LogError(f"{lg.path}: {lg.n} joints, but {first.path} has {first.n}; stacked logs must be of one robot")
+        if abs(lg.rate_Hz - first.rate_Hz) > max_rate_mismatch * first.rate_Hz:
+            raise LogError(f"{lg.path}: sampled at {lg.rate_Hz:.1f} Hz, {first.path} at {first.rate_Hz:.1f} Hz; stacked "
+                           f"logs must share a rate within {max_rate_mismatch:.0%}")
+    ts, offset = [], 0.0
+    for lg in logs:
+        ts.append(lg.t - lg.t[0] + offset)
+        offset = ts[-1][-1] + STACK_GAP_S
+
+    def cat(name: str) -> np.ndarray | None:
+        arrs = [getattr(lg, name) for lg in logs]
+        return None if any(a is None for a in arrs) else np.concatenate(arrs)
+
+    warnings = [f"{lg.path}: {w}" for lg in logs for w in lg.warnings]
+    warnings.append(f"{len(logs)} logs stacked ({', '.join(str(lg.t.shape[0]) for lg in logs)} rows): each is "
+                    "filtered and differentiated as its own stretch")
+    modes: dict[str, int] = {}
+    for lg in logs:
+        for k, v in lg.modes.items():
+            modes[k] = modes.get(k, 0) + v
+    return Log(" + ".join(lg.path for lg in logs), np.concatenate(ts), cat("q"), cat("i"), cat("dq"), warnings, modes,
+               cat("i_target"), cat("tau_target"), first.columns, cat("lines"), first.row_word)
+
+
 def _validate(log: Log, drop_bad_rows: bool = False) -> Log:
     """Finite values per column, strictly increasing time, radians — errors name the file, column and line."""
     where = log.row_word

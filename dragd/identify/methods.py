@@ -28,6 +28,10 @@ METHODS = ("lowspeed", "symmetric", "synchronous", "full", "auto")
 PRIOR_REL = 0.05  # full dynamics: prior std of a base parameter relative to its URDF value (CAD masses)
 ARMATURE_PRIOR_KGM2 = 1.0  # ... and of a rotor inertia (not in a URDF), reflected to the joint
 PRIOR_GRAVITY_REL = 0.01  # ... and of a gravity parameter (the K_t reference; see fit_full)
+# ... with K_t given (--torque-constants): the scale is known and the gravity parameters are free to move; their
+# prior width is chosen per joint among these by cross-validation over time blocks of the fit's own rows (fit_full)
+PRIOR_GRAVITY_REL_GIVEN_KT = (0.05, 0.1, 0.25, 0.5, 1.0)
+CV_FOLDS = 5
 RESOLUTION_A = 0.05  # a friction term whose uncertainty moves the current by more than this over the data is null
 KT_MAX_REL_STD = 0.05  # a torque constant not determined to 5 % is null
 MIN_ROWS = 20
@@ -746,6 +750,32 @@ def _row_full_columns(ctx: Context, j: int) -> tuple[np.ndarray, np.ndarray]:
     return full, grav
 
 
+def _cv_gravity_prior(A: np.ndarray, y: np.ndarray, names: list[str], prior: dict[str, float], grav: list[int],
+                      names_rb: list[str], scale: np.ndarray, floor: np.ndarray) -> tuple[float, dict[float, float]]:
+    """With K_t given: the relative prior width of the gravity parameters (``PRIOR_GRAVITY_REL_GIVEN_KT``) whose fit
+    predicts held-out time blocks of these rows best (``CV_FOLDS`` contiguous blocks, each left out once); sets it in
+    ``prior`` and returns it with every candidate's cross-validated RMSE [A]. Nothing outside the fit's data is used."""
+    n = y.shape[0]
+    edges = np.linspace(0, n, CV_FOLDS + 1).astype(int)
+    cv: dict[float, float] = {}
+    for rel in PRIOR_GRAVITY_REL_GIVEN_KT:
+        trial = dict(prior)
+        for k in grav:
+            trial[names_rb[k]] = max(rel * float(scale[k]), float(floor[k]))
+        sq = 0.0
+        for a, b in zip(edges[:-1], edges[1:]):
+            test = np.zeros(n, dtype=bool)
+            test[a:b] = True
+            f = prior_fit(A[~test], y[~test], names, trial)
+            cols = [names.index(nm) for nm in f.names]
+            sq += float(np.sum((y[test] - A[test][:, cols] @ f.theta) ** 2))
+        cv[rel] = float(np.sqrt(sq / n))
+    best = min(cv, key=lambda r: cv[r])
+    for k in grav:
+        prior[names_rb[k]] = max(best * float(scale[k]), float(floor[k]))
+    return best, cv
+
+
 def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
     """Full dynamics: base parameters of the rigid-body model + rotor inertia + friction, per joint, in amperes.
 
@@ -759,7 +789,11 @@ def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
     URDF value for inertial parameters, ~1 kg·m² for rotor inertias (not in a URDF), at least what moves the current
     by 20 mA for parameters the URDF has at zero, and 1 % for gravity parameters — they are the K_t reference and,
     with the excitation a 6-joint Fourier plan reaches (regressor condition ~10⁴), they trade off against the
-    friction levels; a log that determines them moves them anyway. Directions the data determines move freely,
+    friction levels; a log that determines them moves them anyway. With K_t given (``Options.torque_constants``,
+    ``--torque-constants``) the scale is fixed, c_j = 1/K_t, and the gravity parameters are no longer the K_t
+    reference: their prior width (relative to the URDF's value, ≥ ``RESOLUTION_A`` of current) is chosen per joint by
+    cross-validation over time blocks of the fit's own rows (``_cv_gravity_prior``; docs/IDENTIFICATION.md "Real robot
+    logs"). Directions the data determines move freely,
     the others stay near the URDF instead of absorbing noise. All columns and the current go through the same
     zero-phase filter H; rows where the joint slides (stiction is not a function of q̇); weighted least squares
     (the accelerating and the steady rows each by the inverse of their residual variance, two-step); standard
@@ -798,7 +832,12 @@ def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
         arm0 = p.regfilter(p.ddq[:, j:j + 1])
         s1 = linear_fit(np.column_stack([tauH[sel], arm0[sel], F0H[sel]]), ctx.iH[sel, j], ["urdf", "arm"] + f0names,
                         prefer_drop=PREFER_DROP)
-        c0 = abs(s1.value("urdf") or 0.0) or 0.1
+        given = None if o.torque_constants is None else o.torque_constants[j]
+        # K_t given: the URDF's current is τ_URDF/K_t (the scale is known, not fitted) and the gravity parameters are
+        # no longer the K_t reference: how far the data may move them from the URDF is chosen by cross-validation on
+        # this fit's rows — they absorb whatever the given K_t and the URDF's masses disagree by (UR10e dataset: its
+        # drvGains and the URDF's scale differ by up to ~10 %)
+        c0 = 1.0 / float(given) if given else (abs(s1.value("urdf") or 0.0) or 0.1)
         # prior on the corrections: 30 % of the URDF's value (in current, via c₀), at least what moves the current
         # by ~20 mA over this data — CAD values are that uncertain; the data moves what it determines
         colmax = np.maximum(np.abs(YfH[sel]).max(axis=0), 1e-12)
@@ -807,22 +846,31 @@ def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
         for k, nm_ in enumerate(base.names):
             if ".armature" in nm_:  # rotor inertias are not in the URDF: up to ~1 kg·m² reflected
                 prior[names_rb[k]] = max(prior[names_rb[k]], c0 * ARMATURE_PRIOR_KGM2)
-            elif gcol[k] > 1e-9:  # gravity parameters: tied to the URDF (the K_t reference), see the docstring
+            elif gcol[k] > 1e-9 and not given:  # gravity parameters: tied to the URDF (the K_t reference)
                 prior[names_rb[k]] = max(PRIOR_GRAVITY_REL * c0 * abs(beta_urdf[k]), 0.002 / colmax[k])
+        y_sel = ctx.iH[sel, j] - (c0 * tauH[sel] if given else 0.0)  # K_t given: the URDF's current is known
+        if given:  # the gravity parameters' prior width: chosen by cross-validation on this fit's own rows
+            grav = [k for k, nm_ in enumerate(base.names) if ".armature" not in nm_ and gcol[k] > 1e-9]
+            F0c, f0c = friction_columns(v)
+            A_cv = np.column_stack([YfH[sel], p.regfilter(F0c)[sel]])
+            rel, cv = _cv_gravity_prior(A_cv, y_sel, names_rb + f0c, prior, grav, names_rb, c0 * np.abs(beta_urdf),
+                                        RESOLUTION_A / colmax)
+            jr.diagnostics["gravity_prior_rel"] = rel
+            jr.diagnostics["gravity_prior_cv_rmse_A"] = {f"{r:g}": round(e, 5) for r, e in cv.items()}
 
         def solve(stb: tuple[float, float] | None) -> LinearFit:
             F, fnames = friction_columns(v, vs=None if stb is None else stb[0], delta=2.0 if stb is None else stb[1])
             FH = p.regfilter(F)
-            A = np.column_stack([tauH[sel], YfH[sel], FH[sel]])
-            nm = ["urdf"] + names_rb + fnames
-            f0 = prior_fit(A, ctx.iH[sel, j], nm, prior)
+            A = np.column_stack(([] if given else [tauH[sel]]) + [YfH[sel], FH[sel]])
+            nm = ([] if given else ["urdf"]) + names_rb + fnames
+            f0 = prior_fit(A, y_sel, nm, prior)
             hi = np.abs(ctx.ddqH[sel, j]) > max(acc_level * 0.5, 0.05)
             w = np.ones(sel.size)
             if hi.sum() > MIN_ROWS and (~hi).sum() > MIN_ROWS:  # WLS: each regime weighted by its residual variance
                 w[hi] = 1 / max(float(np.std(f0.residual[hi])), 1e-9) ** 2
                 w[~hi] = 1 / max(float(np.std(f0.residual[~hi])), 1e-9) ** 2
                 w /= w.mean()
-            return prior_fit(A, ctx.iH[sel, j], nm, prior, w=w)
+            return prior_fit(A, y_sel, nm, prior, w=w)
 
         fit = solve(None)
         best = (fit.sigma, None, fit)
@@ -868,11 +916,10 @@ def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
             if f"dbeta{k}" in names:
                 Jm[k, names.index(f"dbeta{k}")] = 1.0
                 kept.append(k)
-        beta = Jm @ fit.theta
+        beta = Jm @ fit.theta + (c0 * beta_urdf if given else 0.0)
         cov_b = Jm @ fit.cov @ Jm.T
         gu = ctx.grav[sel, j]
         rng = float(np.ptp(gu))
-        given = None if o.torque_constants is None else o.torque_constants[j]
         if given is not None:
             jr.set("torque_constant_Nm_per_A", float(given), None)
             jr.diagnostics["kt_source"] = "given (--torque-constants or the configuration)"

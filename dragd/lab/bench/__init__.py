@@ -70,7 +70,8 @@ def _load_plugins() -> None:
     import importlib
 
     for mod in ("dragd.lab.bench.loop", "dragd.lab.bench.identify", "dragd.lab.bench.gap",
-                "dragd.lab.bench.gap_confusion", "dragd.lab.bench.faults", "dragd.lab.bench.telemetry"):
+                "dragd.lab.bench.gap_confusion", "dragd.lab.bench.ident_real", "dragd.lab.bench.faults",
+                "dragd.lab.bench.telemetry"):
         try:
             importlib.import_module(mod)
         except ModuleNotFoundError as exc:
@@ -89,6 +90,7 @@ def run(selected: list[str], opts: dict) -> dict[str, dict[str, Any]]:
     if unknown:
         raise KeyError(f"unknown benchmark(s) {', '.join(unknown)}; expected some of: {', '.join(sorted(REGISTRY))}")
     result: dict[str, dict[str, Any]] = {}
+    opts = {**opts, "selected": list(selected)}  # a benchmark needing external data may skip when not named
     for name in selected or sorted(REGISTRY):
         b = REGISTRY[name]
         v = b.run(opts)

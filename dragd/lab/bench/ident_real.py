@@ -1,0 +1,340 @@
+"""``ident_real``: dragd's full-dynamics identification on a real robot's logs against the textbook reference.
+
+Data: the public UR10e dataset github:shamilmamedov/dynamic_calibration (no licence: never in this repository; the
+benchmark takes its path, ``dragd bench ident_real --data DIR --json``, DIR = a checkout of that repository, or
+``$DRAGD_UR10E_DATA``). Its CSV logs are headerless, 31 columns: t, q1..q6, q̇1..q̇6, i1..i6 (motor current),
+i_target1..6, τ_target1..6. Drive gains (joint torque per motor current) are read from the dataset's
+``UR10E_parameters.txt`` (``drvGains = [...]``, main.m's), the URDF is ``URe/urdf/ur10e.urdf``.
+
+Train on the identification runs ``ur-20_02_12-50sec_12harm`` and ``ur-20_02_05-20sec_12harm``; predict the held-out
+validation runs ``ur-20_01_17-p1`` … ``p10`` (the arm holding ten poses) and compare the RMSE of the predicted against
+the raw measured motor current, per joint and over all joints' samples (overall).
+
+- **dragd**: its own pipeline, exactly what ``dragd identify fit --robot URDF --log A --log B --method full
+  [--torque-constants K1,..,K6]`` and ``dragd identify check --robot URDF --params P --log V --mask all`` run
+  (:func:`dragd.cli.identify.fit_params`, :func:`dragd.cli.identify.check_params`; the params file goes through
+  YAML as the CLI writes it). "with_gains": the drive gains given as torque constants; "without_gains": none given
+  (dragd's current-space model).
+- **reference** (fitted here, same files, same gains): the textbook ordinary least squares of the dataset's own
+  scripts — Pinocchio's joint-torque regressor reduced to its base columns (QR with pivoting on random states) plus
+  per joint viscous, Coulomb (sign of the filtered q̇) and offset, K_j·i_j = Y_j·β + f_v,j·q̇_j + f_c,j·sign(q̇_j) + f_0,j
+  stacked over joints and both files; preprocessing as the repository's filterData.m (zero-phase Butterworth, order
+  5, normalised cut-off 0.15 on q̇ and on its central difference, 0.20 on the current), the scripts' row ranges.
+
+Value: the overall RMSE ratio dragd / reference with gains. ``detail`` holds per joint and overall figures for both
+cases, the rows used, and ``targets_met`` (ratio ≤ 0.85 with gains, ≤ 1.0 without, every joint predicted).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dragd.lab.bench import BenchError, benchmark
+
+# training runs and the row ranges (1-based, inclusive) the dataset's MATLAB scripts cut them to (main.m: 50 s run;
+# estimate_drive_gains.m at the repository's commit aa3982f: 20 s run); the reference uses these rows
+TRAIN: tuple[tuple[str, tuple[int, int]], ...] = (("ur-20_02_12-50sec_12harm", (355, 5090)),
+                                                  ("ur-20_02_05-20sec_12harm", (605, 2710)))
+VALID: tuple[str, ...] = tuple(f"ur-20_01_17-p{k}" for k in range(1, 11))
+TARGET_WITH_GAINS = 0.85
+TARGET_WITHOUT_GAINS = 1.0
+N_COLS = 31
+EXPECTED = ("a checkout of github:shamilmamedov/dynamic_calibration (dataset_ur10e/identification_data/*.csv, "
+            "dataset_ur10e/validation_data/*.csv, URe/urdf/ur10e.urdf, UR10E_parameters.txt)")
+
+
+# ------------------------------------------------------------------------------------------ dataset
+
+
+@dataclass(frozen=True)
+class Dataset:
+    root: Path
+    urdf: Path
+    train: tuple[Path, ...]
+    valid: tuple[Path, ...]
+    gains: np.ndarray  # drvGains: joint torque per motor current [N·m/A]
+    gains_source: str
+
+
+def drive_gains(root: Path) -> tuple[np.ndarray, str]:
+    """The dataset's drive gains ``drvGains = [g1 … g6]`` from UR10E_parameters.txt (else main.m)."""
+    for name in ("UR10E_parameters.txt", "main.m"):
+        f = root / name
+        if not f.is_file():
+            continue
+        for line in f.read_text(errors="replace").splitlines():
+            m = re.match(r"\s*drvGains\s*=\s*\[([^\]]*)\]", line)
+            if m:
+                vals = [float(x) for x in re.split(r"[\s,;]+", m.group(1).strip()) if x]
+                if len(vals) == 6 and all(v > 0 for v in vals):
+                    return np.array(vals), f"{f} (drvGains)"
+    raise BenchError(f"ident_real: {root}: no 'drvGains = [six positive values]' line in UR10E_parameters.txt or "
+                     f"main.m; expected {EXPECTED}")
+
+
+def find_dataset(data: str | Path | None) -> Dataset:
+    """The dataset at ``data``; a one-line BenchError naming the path and what was expected otherwise."""
+    if not data:
+        raise BenchError("ident_real: needs the UR10e dataset: --data DIR (or $DRAGD_UR10E_DATA), DIR = " + EXPECTED)
+    root = Path(data).expanduser().resolve()
+    if not root.is_dir():
+        raise BenchError(f"ident_real: --data {root}: not a directory; expected {EXPECTED}")
+    ds = root / "dataset_ur10e"
+    train = tuple(ds / "identification_data" / f"{n}.csv" for n, _ in TRAIN)
+    valid = tuple(ds / "validation_data" / f"{n}.csv" for n in VALID)
+    urdf = root / "URe" / "urdf" / "ur10e.urdf"
+    missing = [str(p.relative_to(root)) for p in (*train, *valid, urdf) if not p.is_file()]
+    if missing:
+        raise BenchError(f"ident_real: --data {root}: missing {', '.join(missing[:3])}"
+                         f"{f' (+{len(missing) - 3} more)' if len(missing) > 3 else ''}; expected {EXPECTED}")
+    g, src = drive_gains(root)
+    return Dataset(root, urdf, train, valid, g, src)
+
+
+def read_rows(path: Path) -> np.ndarray:
+    """The 31-column rows of a dataset CSV (a malformed row is a BenchError naming the file and line)."""
+    rows = []
+    with path.open() as fh:
+        for ln, line in enumerate(fh, 1):
+            s = line.strip().rstrip(",")
+            if not s:
+                continue
+            parts = s.split(",")
+            try:
+                v = [float(x) for x in parts]
+            except ValueError:
+                v = []
+            if len(v) != N_COLS or not all(math.isfinite(x) for x in v):
+                raise BenchError(f"ident_real: {path}:{ln}: expected {N_COLS} finite comma-separated numbers "
+                                 "(t, q1..6, qd1..6, i1..6, i_target1..6, tau_target1..6)")
+            rows.append(v)
+    a = np.asarray(rows)
+    if a.shape[0] < 20 or np.any(np.diff(a[:, 0]) <= 0):
+        raise BenchError(f"ident_real: {path}: expected ≥ 20 rows with increasing time")
+    return a
+
+
+# ------------------------------------------------------------------------------------------ reference
+
+
+@dataclass
+class Traj:
+    """One log after filterData.m: filtered q̇, q̈ and current, raw current kept for evaluation."""
+
+    name: str
+    q: np.ndarray
+    dq: np.ndarray
+    ddq: np.ndarray
+    i_filt: np.ndarray
+    i_raw: np.ndarray
+
+
+def filter_data(name: str, a: np.ndarray, rows: tuple[int, int] | None = None) -> Traj:
+    """filterData.m: Butterworth order 5, zero-phase (filtfilt), normalised cut-off 0.15 on the measured q̇ and on
+    its three-point central difference (real time stamps), 0.20 on the current; filtered over the whole file, then
+    cut to ``rows`` (1-based inclusive, the scripts' convention)."""
+    from scipy.signal import butter, sosfiltfilt
+
+    t, q, dq_raw, i_raw = a[:, 0], a[:, 1:7], a[:, 7:13], a[:, 13:19]
+    dq = sosfiltfilt(butter(5, 0.15, output="sos"), dq_raw, axis=0)
+    ddq = np.zeros_like(dq)
+    ddq[1:-1] = (dq[2:] - dq[:-2]) / (t[2:] - t[:-2])[:, None]
+    ddq = sosfiltfilt(butter(5, 0.15, output="sos"), ddq, axis=0)
+    i_f = sosfiltfilt(butter(5, 0.20, output="sos"), i_raw, axis=0)
+    sl = slice(None) if rows is None else slice(rows[0] - 1, rows[1])
+    return Traj(name, q[sl], dq[sl], ddq[sl], i_f[sl], i_raw[sl])
+
+
+class Reference:
+    """The textbook reference: base-parameter rigid body + viscous/Coulomb/offset per joint, ordinary LS in N·m."""
+
+    def __init__(self, urdf: Path, gains: np.ndarray) -> None:
+        import pinocchio as pin
+
+        self.pin = pin
+        self.model = pin.buildModelFromUrdf(str(urdf))  # kinematics and inertials; meshes are not opened
+        self.data = self.model.createData()
+        self.K = np.asarray(gains, dtype=float)
+        self.n = self.model.nv
+        self.cols = self._base_columns()
+        self.theta: np.ndarray | None = None
+
+    def regressor(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:
+        """Pinocchio's joint-torque regressor per sample, (N, n, 10·n)."""
+        Y = np.empty((q.shape[0], self.n, 10 * self.n))
+        for k in range(q.shape[0]):
+            Y[k] = self.pin.computeJointTorqueRegressor(self.model, self.data, q[k], dq[k], ddq[k])
+        return Y
+
+    def _base_columns(self, samples: int = 400, seed: int = 0, tol: float = 1e-8) -> np.ndarray:
+        """Independent regressor columns: QR with column pivoting of the regressor at random states."""
+        from scipy.linalg import qr
+
+        rng = np.random.default_rng(seed)
+        n = self.n
+        Y = self.regressor(rng.uniform(-np.pi, np.pi, (samples, n)), rng.uniform(-2, 2, (samples, n)),
+                           rng.uniform(-5, 5, (samples, n))).reshape(-1, 10 * n)
+        _, R, P = qr(Y, mode="economic", pivoting=True)
+        d = np.abs(np.diag(R))
+        return np.sort(P[: int(np.sum(d > tol * d[0]))])
+
+    def features(self, tr: Traj) -> np.ndarray:
+        """(N, n, base + 3n): base rigid-body columns, then per joint [q̇_j, sign(q̇_j), 1] on its own row."""
+        Yb = self.regressor(tr.q, tr.dq, tr.ddq)[:, :, self.cols]
+        N, n = tr.q.shape
+        F = np.zeros((N, n, 3 * n))
+        for j in range(n):
+            F[:, j, 3 * j:3 * j + 3] = np.column_stack([tr.dq[:, j], np.sign(tr.dq[:, j]), np.ones(N)])
+        return np.concatenate([Yb, F], axis=2)
+
+    def fit(self, trajs: list[Traj]) -> None:
+        """Ordinary least squares on K·(filtered current), all joints' rows of all logs stacked."""
+        A = np.concatenate([self.features(tr).reshape(-1, len(self.cols) + 3 * self.n) for tr in trajs])
+        b = np.concatenate([(tr.i_filt * self.K).reshape(-1) for tr in trajs])
+        self.theta = np.linalg.lstsq(A, b, rcond=None)[0]
+
+    def predict_current(self, tr: Traj) -> np.ndarray:
+        assert self.theta is not None
+        return (self.features(tr) @ self.theta) / self.K
+
+
+# ------------------------------------------------------------------------------------------ dragd
+
+
+def _dragd_case(ds: Dataset, gains: np.ndarray | None, workdir: Path) -> dict[str, Any]:
+    """``identify fit --method full`` on both training logs, ``identify check --mask all`` on each validation log."""
+    from dragd.cli.identify import check_params, fit_params
+    from dragd.config import load_params, save_params
+    from dragd.identify.data import load_log, stack_logs
+    from dragd.identify.methods import Options
+    from dragd.model import RobotModel
+
+    model = RobotModel.from_urdf(ds.urdf)
+    names = list(model.joint_names)
+    opts = Options()
+    if gains is not None:
+        opts.torque_constants = [float(g) for g in gains]
+    t0 = time.perf_counter()
+    log = stack_logs([load_log(p, joints=names, robot=str(ds.urdf)) for p in ds.train])
+    res, params, _ = fit_params(log, model, "full", opts)
+    fit_s = time.perf_counter() - t0
+    pfile = workdir / f"fitted_{'gains' if gains is not None else 'nogains'}.yaml"
+    save_params(params, pfile)
+    params = load_params(pfile)
+    sq = np.zeros(len(names))
+    cnt = np.zeros(len(names), dtype=int)
+    unpredicted: dict[str, str] = {}
+    models: set[str] = set()
+    for p in ds.valid:
+        chk = check_params(load_log(p, joints=names, robot=str(ds.urdf)), RobotModel.from_urdf(ds.urdf), params,
+                           str(pfile), cfg=None, terms="rigid", mask="all", dynamics="base")
+        for j, nm in enumerate(names):
+            r = chk.joints[nm]
+            if r.get("rmse_A") is None:
+                unpredicted.setdefault(nm, f"{p.name}: {r.get('reason')}")
+                continue
+            sq[j] += r["rmse_A"] ** 2 * r["samples"]
+            cnt[j] += r["samples"]
+            models.add(r.get("model", ""))
+    rmse = np.where(cnt > 0, np.sqrt(sq / np.maximum(cnt, 1)), np.nan)
+    return {"rmse": rmse, "samples": cnt, "unpredicted": unpredicted, "fit_s": fit_s,
+            "train_rows": _rows_of(res),
+            "models": sorted(models), "warnings": res.warnings,
+            "kt": [jr.torque_constant_Nm_per_A for jr in res.joints],
+            "gravity_prior_rel": [jr.diagnostics.get("gravity_prior_rel") for jr in res.joints]}
+
+
+def _rows_of(res: Any) -> list[int]:
+    return [int(jr.diagnostics.get("rows", 0)) for jr in res.joints]
+
+
+# ------------------------------------------------------------------------------------------ benchmark
+
+
+def _r(x: float | None, nd: int = 4) -> float | None:
+    return None if x is None or not math.isfinite(x) else round(float(x), nd)
+
+
+def _overall(rmse: np.ndarray, cnt: np.ndarray) -> float:
+    """RMSE over all joints' samples pooled."""
+    ok = np.isfinite(rmse) & (cnt > 0)
+    return float(np.sqrt(np.sum(rmse[ok] ** 2 * cnt[ok]) / np.sum(cnt[ok]))) if ok.any() else math.nan
+
+
+@benchmark("ident_real", "ratio")
+def ident_real(opts: dict) -> tuple[float, dict[str, Any]] | dict[str, Any]:
+    """Held-out RMSE of dragd's full-dynamics fit on the real UR10e logs / the textbook LS reference's (--data DIR)."""
+    data = opts.get("data") or os.environ.get("DRAGD_UR10E_DATA")
+    if not data and "ident_real" not in opts.get("selected", ["ident_real"]):  # `dragd bench` (all) without the data
+        return {"skipped": "the UR10e dataset is not here (--data DIR or $DRAGD_UR10E_DATA); DIR = " + EXPECTED}
+    ds = find_dataset(data)
+    t0 = time.perf_counter()
+    ref = Reference(ds.urdf, ds.gains)
+    train = [filter_data(p.stem, read_rows(p), rows) for p, (_, rows) in zip(ds.train, TRAIN)]
+    valid = [filter_data(p.stem, read_rows(p)) for p in ds.valid]
+    ref.fit(train)
+    e = np.concatenate([tr.i_raw - ref.predict_current(tr) for tr in valid])
+    ref_rmse = np.sqrt(np.mean(e * e, axis=0))
+    ref_cnt = np.full(ref_rmse.shape, e.shape[0])
+    ref_s = time.perf_counter() - t0
+    with tempfile.TemporaryDirectory(prefix="dragd-ident-real-") as tmp:
+        cases = {"with_gains": _dragd_case(ds, ds.gains, Path(tmp)), "without_gains": _dragd_case(ds, None, Path(tmp))}
+    from dragd.model import RobotModel
+
+    names = list(RobotModel.from_urdf(ds.urdf).joint_names)
+    ref_all = _overall(ref_rmse, ref_cnt)
+    out: dict[str, Any] = {}
+    met = {}
+    for case, c in cases.items():
+        dr = c["rmse"]
+        overall = _overall(dr, c["samples"])
+        all_pred = not c["unpredicted"] and bool(np.all(np.isfinite(dr)))
+        ratio = overall / ref_all if all_pred else math.nan
+        target = TARGET_WITH_GAINS if case == "with_gains" else TARGET_WITHOUT_GAINS
+        met[case] = bool(all_pred and ratio <= target)
+        out[case] = {
+            "joints": {nm: {"dragd_rmse_A": _r(dr[j]), "reference_rmse_A": _r(ref_rmse[j]),
+                            "ratio": _r(dr[j] / ref_rmse[j], 3)} for j, nm in enumerate(names)},
+            "overall": {"dragd": _r(overall), "reference": _r(ref_all), "ratio": _r(ratio, 3)},
+            "target_ratio": target, "every_joint_predicted": all_pred, "unpredicted": c["unpredicted"],
+            "dragd_fit_s": round(c["fit_s"], 1), "dragd_fit_rows_per_joint": c["train_rows"],
+            "dragd_check_samples_per_joint": [int(x) for x in c["samples"]], "dragd_prediction": c["models"],
+            "dragd_torque_constants_Nm_per_A": c["kt"], "dragd_warnings": c["warnings"],
+            # with K_t given: the gravity parameters' prior width per joint, chosen by the fit's own cross-validation
+            "dragd_gravity_prior_rel": c["gravity_prior_rel"]}
+    detail = {
+        "data": str(ds.root), "urdf": str(ds.urdf), "drive_gains_Nm_per_A": ds.gains.tolist(),
+        "drive_gains_source": ds.gains_source,
+        "files": {"train": [str(p.relative_to(ds.root)) for p in ds.train],
+                  "validation": [str(p.relative_to(ds.root)) for p in ds.valid]},
+        "reference": {"model": "OLS, base rigid-body columns + per joint viscous/Coulomb(sign of filtered q̇)/offset, "
+                               "torque = drive gain × filtered current (filterData.m preprocessing)",
+                      "parameters": int(len(ref.cols) + 3 * ref.n), "base_columns": int(len(ref.cols)),
+                      "train_rows": {tr.name: int(tr.q.shape[0]) for tr in train},
+                      "train_row_ranges_1based": {n: list(r) for n, r in TRAIN},
+                      "validation_rows": int(e.shape[0]), "elapsed_s": round(ref_s, 1)},
+        "dragd": {"fit": "dragd identify fit --robot URDF --log TRAIN1 --log TRAIN2 --method full "
+                         "[--torque-constants GAINS] (whole files; its own preprocessing and row selection)",
+                  "check": "dragd identify check --robot URDF --params FITTED --log VALID --mask all (per file; "
+                           "pooled over files)"},
+        "evaluation": "RMSE of predicted vs raw measured motor current [A] over all samples of validation p1..p10 "
+                      "(held out), per joint; overall = over all joints' samples; ratio = dragd / reference. The "
+                      "reference is fitted with the drive gains in both cases (the textbook model needs them). "
+                      "dragd's check evaluates each log on its uniform resampling at the log's median rate "
+                      "(interpolated raw current), the reference on the CSV rows",
+        **out,
+        "targets": {"with_gains_overall_ratio_max": TARGET_WITH_GAINS,
+                    "without_gains_overall_ratio_max": TARGET_WITHOUT_GAINS, "every_joint_predicted": True},
+        "targets_met": bool(all(met.values())), "targets_met_by_case": met,
+    }
+    value = out["with_gains"]["overall"]["ratio"]
+    return (math.nan if value is None else float(value)), detail
