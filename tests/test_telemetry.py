@@ -308,26 +308,37 @@ def test_dev_full_path(tmp_path):
     assert "ENOSPC" in st["first_error"] and "/dev/full" in st["first_error"]
 
 
-def test_retry_on_a_fresh_file_after_an_io_error(tmp_path, monkeypatch):
-    failing = {"on": False}
+class _Switched:
+    """A real file whose writes fail with ``err`` while ``state["on"]`` (an I/O error or a full disk, on cue)."""
+
+    def __init__(self, f, state, err):
+        self.f, self.state, self.err = f, state, err
+
+    def write(self, b):
+        if self.state["on"]:
+            raise OSError(self.err, os.strerror(self.err))
+        return self.f.write(b)
+
+    def flush(self):
+        self.f.flush()
+
+    def fileno(self):
+        return self.f.fileno()
+
+    def close(self):
+        self.f.close()
+
+
+def _failing_writes(monkeypatch, err):
+    """The writer's files fail with ``err`` while the returned switch's "on" is true."""
+    state = {"on": False}
     real_open = open
+    monkeypatch.setattr(writer_module, "open", lambda *a, **k: _Switched(real_open(*a, **k), state, err), raising=False)
+    return state
 
-    class Flaky:
-        def __init__(self, f):
-            self.f = f
 
-        def write(self, b):
-            if failing["on"]:
-                raise OSError(errno.EIO, "Input/output error")
-            return self.f.write(b)
-
-        def flush(self):
-            self.f.flush()
-
-        def close(self):
-            self.f.close()
-
-    monkeypatch.setattr(writer_module, "open", lambda *a, **k: Flaky(real_open(*a, **k)), raising=False)
+def test_retry_on_a_fresh_file_after_an_io_error(tmp_path, monkeypatch):
+    failing = _failing_writes(monkeypatch, errno.EIO)
     path = tmp_path / "r.mcap"
     w = TelemetryWriter(path, {"t_s": 1}, capacity=256, flush_interval_s=0.005,
                         chunk_size=2048, retry_after_s=0.05)
@@ -517,28 +528,7 @@ def test_a_disk_that_stays_full_never_costs_an_older_log(tmp_path, monkeypatch):
     """Retries on a full disk (every retry_after_s) keep every earlier log: a failed file with rows goes aside
     (no pruning for it), one without rows is removed; rows are dropped and counted, 'failing' says so; when space
     returns the writer resumes on a complete file."""
-    full = {"on": False}
-    real_open = open
-
-    class Disk:
-        def __init__(self, f):
-            self.f = f
-
-        def write(self, b):
-            if full["on"]:
-                raise OSError(errno.ENOSPC, "No space left on device")
-            return self.f.write(b)
-
-        def flush(self):
-            self.f.flush()
-
-        def fileno(self):
-            return self.f.fileno()
-
-        def close(self):
-            self.f.close()
-
-    monkeypatch.setattr(writer_module, "open", lambda *a, **k: Disk(real_open(*a, **k)), raising=False)
+    full = _failing_writes(monkeypatch, errno.ENOSPC)
     path = tmp_path / "t.mcap"
     w = TelemetryWriter(path, {"t_s": 1, "q_rad": 6}, capacity=4096, flush_interval_s=0.005, chunk_size=1024,
                         max_bytes=3_000, keep_rotated=3, retry_after_s=0.02)

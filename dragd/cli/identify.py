@@ -215,7 +215,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
                 opts.torque_constants = list[float | None](kt)
             if args.method not in ("full", "auto"):
                 raise CliError(f"--torque-constants: used by --method full (and auto), not {args.method}")
-        logs = args.log if isinstance(args.log, list) else [args.log]
+        logs = args.log  # --log is repeatable: a list
         st.stage(f"reading {', '.join(logs)}")
         t0 = time.perf_counter()
         try:

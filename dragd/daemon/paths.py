@@ -27,7 +27,7 @@ def allowed_dirs(cfg: Config, telemetry_path: str | None = None, extra: list[str
         dirs = [Path(d).expanduser() for d in cfg.control.allowed_dirs]
         dirs = [d if d.is_absolute() else cfg.base_dir / d for d in dirs]
     else:
-        dirs = [cfg.program_dir, Path(STATE_DIR), Path(cfg.control.spool_dir), Path(tempfile.gettempdir())]
+        dirs = [cfg.program_dir, Path(STATE_DIR), _spool_path(cfg), Path(tempfile.gettempdir())]
         tel = telemetry_path or cfg.telemetry.path
         if tel:
             dirs.append(Path(tel).expanduser().absolute().parent)
@@ -40,10 +40,14 @@ def allowed_dirs(cfg: Config, telemetry_path: str | None = None, extra: list[str
     return out
 
 
+def _spool_path(cfg: Config) -> Path:
+    p = Path(cfg.control.spool_dir).expanduser()
+    return p if p.is_absolute() else cfg.base_dir / p
+
+
 def spool_dir(cfg: Config) -> str | None:
     """The folder clients leave trajectory files in for this daemon (``control.spool_dir``), when it exists."""
-    p = Path(cfg.control.spool_dir).expanduser()
-    p = p if p.is_absolute() else cfg.base_dir / p
+    p = _spool_path(cfg)
     return str(p) if p.is_dir() else None
 
 

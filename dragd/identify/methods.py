@@ -28,10 +28,6 @@ METHODS = ("lowspeed", "symmetric", "synchronous", "full", "auto")
 PRIOR_REL = 0.05  # full dynamics: prior std of a base parameter relative to its URDF value (CAD masses)
 ARMATURE_PRIOR_KGM2 = 1.0  # ... and of a rotor inertia (not in a URDF), reflected to the joint
 PRIOR_GRAVITY_REL = 0.01  # ... and of a gravity parameter (the K_t reference; see fit_full)
-# ... with K_t given (--torque-constants): the scale is known and the gravity parameters are free to move; their
-# prior width is chosen per joint among these by cross-validation over time blocks of the fit's own rows (fit_full)
-PRIOR_GRAVITY_REL_GIVEN_KT = (0.05, 0.1, 0.25, 0.5, 1.0)
-CV_FOLDS = 5
 RESOLUTION_A = 0.05  # a friction term whose uncertainty moves the current by more than this over the data is null
 KT_MAX_REL_STD = 0.05  # a torque constant not determined to 5 % is null
 MIN_ROWS = 20
@@ -750,32 +746,6 @@ def _row_full_columns(ctx: Context, j: int) -> tuple[np.ndarray, np.ndarray]:
     return full, grav
 
 
-def _cv_gravity_prior(A: np.ndarray, y: np.ndarray, names: list[str], prior: dict[str, float], grav: list[int],
-                      names_rb: list[str], scale: np.ndarray, floor: np.ndarray) -> tuple[float, dict[float, float]]:
-    """With K_t given: the relative prior width of the gravity parameters (``PRIOR_GRAVITY_REL_GIVEN_KT``) whose fit
-    predicts held-out time blocks of these rows best (``CV_FOLDS`` contiguous blocks, each left out once); sets it in
-    ``prior`` and returns it with every candidate's cross-validated RMSE [A]. Nothing outside the fit's data is used."""
-    n = y.shape[0]
-    edges = np.linspace(0, n, CV_FOLDS + 1).astype(int)
-    cv: dict[float, float] = {}
-    for rel in PRIOR_GRAVITY_REL_GIVEN_KT:
-        trial = dict(prior)
-        for k in grav:
-            trial[names_rb[k]] = max(rel * float(scale[k]), float(floor[k]))
-        sq = 0.0
-        for a, b in zip(edges[:-1], edges[1:]):
-            test = np.zeros(n, dtype=bool)
-            test[a:b] = True
-            f = prior_fit(A[~test], y[~test], names, trial)
-            cols = [names.index(nm) for nm in f.names]
-            sq += float(np.sum((y[test] - A[test][:, cols] @ f.theta) ** 2))
-        cv[rel] = float(np.sqrt(sq / n))
-    best = min(cv, key=lambda r: cv[r])
-    for k in grav:
-        prior[names_rb[k]] = max(best * float(scale[k]), float(floor[k]))
-    return best, cv
-
-
 def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
     """Full dynamics: base parameters of the rigid-body model + rotor inertia + friction, per joint, in amperes.
 
@@ -791,9 +761,8 @@ def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
     with the excitation a 6-joint Fourier plan reaches (regressor condition ~10⁴), they trade off against the
     friction levels; a log that determines them moves them anyway. With K_t given (``Options.torque_constants``,
     ``--torque-constants``) the scale is fixed, c_j = 1/K_t, and the gravity parameters are no longer the K_t
-    reference: their prior width (relative to the URDF's value, ≥ ``RESOLUTION_A`` of current) is chosen per joint by
-    cross-validation over time blocks of the fit's own rows (``_cv_gravity_prior``; docs/IDENTIFICATION.md "Real robot
-    logs"). Directions the data determines move freely,
+    reference: their prior is the CAD uncertainty of every inertial parameter (``PRIOR_REL``, ≥ ``RESOLUTION_A`` of
+    current; docs/IDENTIFICATION.md "Real robot logs"). Directions the data determines move freely,
     the others stay near the URDF instead of absorbing noise. All columns and the current go through the same
     zero-phase filter H; rows where the joint slides (stiction is not a function of q̇); weighted least squares
     (the accelerating and the steady rows each by the inverse of their residual variance, two-step); standard
@@ -834,9 +803,8 @@ def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
                         prefer_drop=PREFER_DROP)
         given = None if o.torque_constants is None else o.torque_constants[j]
         # K_t given: the URDF's current is τ_URDF/K_t (the scale is known, not fitted) and the gravity parameters are
-        # no longer the K_t reference: how far the data may move them from the URDF is chosen by cross-validation on
-        # this fit's rows — they absorb whatever the given K_t and the URDF's masses disagree by (UR10e dataset: its
-        # drvGains and the URDF's scale differ by up to ~10 %)
+        # no longer the K_t reference: they take the CAD prior of every inertial parameter (the data moves them as far
+        # as it determines them)
         c0 = 1.0 / float(given) if given else (abs(s1.value("urdf") or 0.0) or 0.1)
         # prior on the corrections: 30 % of the URDF's value (in current, via c₀), at least what moves the current
         # by ~20 mA over this data — CAD values are that uncertain; the data moves what it determines
@@ -846,17 +814,11 @@ def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
         for k, nm_ in enumerate(base.names):
             if ".armature" in nm_:  # rotor inertias are not in the URDF: up to ~1 kg·m² reflected
                 prior[names_rb[k]] = max(prior[names_rb[k]], c0 * ARMATURE_PRIOR_KGM2)
-            elif gcol[k] > 1e-9 and not given:  # gravity parameters: tied to the URDF (the K_t reference)
-                prior[names_rb[k]] = max(PRIOR_GRAVITY_REL * c0 * abs(beta_urdf[k]), 0.002 / colmax[k])
+            elif gcol[k] > 1e-9:  # gravity parameters: the K_t reference (1 %), or with K_t given CAD-uncertain
+                # like every inertial parameter (PRIOR_REL, at least what moves the current by RESOLUTION_A)
+                rel, floor = (PRIOR_REL, RESOLUTION_A) if given else (PRIOR_GRAVITY_REL, 0.002)
+                prior[names_rb[k]] = max(rel * c0 * abs(beta_urdf[k]), floor / colmax[k])
         y_sel = ctx.iH[sel, j] - (c0 * tauH[sel] if given else 0.0)  # K_t given: the URDF's current is known
-        if given:  # the gravity parameters' prior width: chosen by cross-validation on this fit's own rows
-            grav = [k for k, nm_ in enumerate(base.names) if ".armature" not in nm_ and gcol[k] > 1e-9]
-            F0c, f0c = friction_columns(v)
-            A_cv = np.column_stack([YfH[sel], p.regfilter(F0c)[sel]])
-            rel, cv = _cv_gravity_prior(A_cv, y_sel, names_rb + f0c, prior, grav, names_rb, c0 * np.abs(beta_urdf),
-                                        RESOLUTION_A / colmax)
-            jr.diagnostics["gravity_prior_rel"] = rel
-            jr.diagnostics["gravity_prior_cv_rmse_A"] = {f"{r:g}": round(e, 5) for r, e in cv.items()}
 
         def solve(stb: tuple[float, float] | None) -> LinearFit:
             F, fnames = friction_columns(v, vs=None if stb is None else stb[0], delta=2.0 if stb is None else stb[1])

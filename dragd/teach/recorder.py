@@ -13,6 +13,13 @@ import numpy as np
 from dragd.teach.program import Program, Recording, Waypoint, now_iso, save_program
 
 
+def next_due(t: float, due: float, period: float) -> float:
+    """The teach recorder's sampling rule: a sample was taken at ``t`` (the first cycle at or after ``due``); the
+    next is due a period later — or a period after ``t`` when the loop stalled past it (no burst to catch up)."""
+    due += period
+    return t + period if due <= t else due
+
+
 class TeachRecorder:
     def __init__(self, name: str, program_path: Path, mcap_path: Path | None, joints: list[str], rate_Hz: float,
                  loop_dt: float, max_s: float, t0: float) -> None:
@@ -37,9 +44,7 @@ class TeachRecorder:
         self.t_last = t
         if t < self._next_t:
             return
-        self._next_t += self.period_s
-        if self._next_t <= t:  # missed cycles: no burst of samples to catch up
-            self._next_t = t + self.period_s
+        self._next_t = next_due(t, self._next_t, self.period_s)
         if self.count < self.buf.shape[0]:
             row = self.buf[self.count]
             row[0] = t - self.t0

@@ -44,15 +44,14 @@ def teach_info(mcap: str | Path) -> dict[str, Any]:
 def sample_rows(t_s: np.ndarray, period_s: float, t0_s: float) -> np.ndarray:
     """Indices of the rows the teach recorder keeps: the first cycle at or after each due time (missed cycles do not
     make bursts), as ``TeachRecorder.add``."""
+    from dragd.teach.recorder import next_due
+
     keep = []
-    next_t = t0_s - 1e-9
+    due = t0_s - 1e-9  # (as the recorder starts)
     for k, t in enumerate(t_s.tolist()):
-        if t < next_t:
-            continue
-        keep.append(k)
-        next_t += period_s
-        if next_t <= t:
-            next_t = t + period_s
+        if t >= due:
+            keep.append(k)
+            due = next_due(t, due, period_s)
     return np.asarray(keep, dtype=int)
 
 

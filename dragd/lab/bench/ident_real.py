@@ -47,7 +47,6 @@ TRAIN: tuple[tuple[str, tuple[int, int]], ...] = (("ur-20_02_12-50sec_12harm", (
 VALID: tuple[str, ...] = tuple(f"ur-20_01_17-p{k}" for k in range(1, 11))
 TARGET_WITH_GAINS = 0.85
 TARGET_WITHOUT_GAINS = 1.0
-N_COLS = 31
 EXPECTED = ("a checkout of github:shamilmamedov/dynamic_calibration (dataset_ur10e/identification_data/*.csv, "
             "dataset_ur10e/validation_data/*.csv, URe/urdf/ur10e.urdf, UR10E_parameters.txt)")
 
@@ -100,27 +99,15 @@ def find_dataset(data: str | Path | None) -> Dataset:
     return Dataset(root, urdf, train, valid, g, src)
 
 
-def read_rows(path: Path) -> np.ndarray:
-    """The 31-column rows of a dataset CSV (a malformed row is a BenchError naming the file and line)."""
-    rows = []
-    with path.open() as fh:
-        for ln, line in enumerate(fh, 1):
-            s = line.strip().rstrip(",")
-            if not s:
-                continue
-            parts = s.split(",")
-            try:
-                v = [float(x) for x in parts]
-            except ValueError:
-                v = []
-            if len(v) != N_COLS or not all(math.isfinite(x) for x in v):
-                raise BenchError(f"ident_real: {path}:{ln}: expected {N_COLS} finite comma-separated numbers "
-                                 "(t, q1..6, qd1..6, i1..6, i_target1..6, tau_target1..6)")
-            rows.append(v)
-    a = np.asarray(rows)
-    if a.shape[0] < 20 or np.any(np.diff(a[:, 0]) <= 0):
-        raise BenchError(f"ident_real: {path}: expected ≥ 20 rows with increasing time")
-    return a
+def read_logs(ds: Dataset, names: list[str]) -> dict[Path, Any]:
+    """Every training and validation file through dragd's own log reader (the headerless UR RTDE layout; a bad file
+    is one line naming it, its column and line): one read serves the reference and dragd."""
+    from dragd.identify.data import LogError, load_log
+
+    try:
+        return {p: load_log(p, joints=names, robot=str(ds.urdf)) for p in (*ds.train, *ds.valid)}
+    except LogError as exc:
+        raise BenchError(f"ident_real: {exc}") from None
 
 
 # ------------------------------------------------------------------------------------------ reference
@@ -138,13 +125,13 @@ class Traj:
     i_raw: np.ndarray
 
 
-def filter_data(name: str, a: np.ndarray, rows: tuple[int, int] | None = None) -> Traj:
-    """filterData.m: Butterworth order 5, zero-phase (filtfilt), normalised cut-off 0.15 on the measured q̇ and on
-    its three-point central difference (real time stamps), 0.20 on the current; filtered over the whole file, then
-    cut to ``rows`` (1-based inclusive, the scripts' convention)."""
+def filter_data(name: str, log: Any, rows: tuple[int, int] | None = None) -> Traj:
+    """filterData.m on a log's rows: Butterworth order 5, zero-phase (filtfilt), normalised cut-off 0.15 on the
+    measured q̇ and on its three-point central difference (real time stamps), 0.20 on the current; filtered over the
+    whole file, then cut to ``rows`` (1-based inclusive, the scripts' convention)."""
     from scipy.signal import butter, sosfiltfilt
 
-    t, q, dq_raw, i_raw = a[:, 0], a[:, 1:7], a[:, 7:13], a[:, 13:19]
+    t, q, dq_raw, i_raw = log.t, log.q, log.dq, log.i
     dq = sosfiltfilt(butter(5, 0.15, output="sos"), dq_raw, axis=0)
     ddq = np.zeros_like(dq)
     ddq[1:-1] = (dq[2:] - dq[:-2]) / (t[2:] - t[:-2])[:, None]
@@ -210,11 +197,11 @@ class Reference:
 # ------------------------------------------------------------------------------------------ dragd
 
 
-def _dragd_case(ds: Dataset, gains: np.ndarray | None, workdir: Path) -> dict[str, Any]:
+def _dragd_case(ds: Dataset, logs: dict[Path, Any], gains: np.ndarray | None, workdir: Path) -> dict[str, Any]:
     """``identify fit --method full`` on both training logs, ``identify check --mask all`` on each validation log."""
     from dragd.cli.identify import check_params, fit_params
     from dragd.config import load_params, save_params
-    from dragd.identify.data import load_log, stack_logs
+    from dragd.identify.data import stack_logs
     from dragd.identify.methods import Options
     from dragd.model import RobotModel
 
@@ -224,7 +211,7 @@ def _dragd_case(ds: Dataset, gains: np.ndarray | None, workdir: Path) -> dict[st
     if gains is not None:
         opts.torque_constants = [float(g) for g in gains]
     t0 = time.perf_counter()
-    log = stack_logs([load_log(p, joints=names, robot=str(ds.urdf)) for p in ds.train])
+    log = stack_logs([logs[p] for p in ds.train])
     res, params, _ = fit_params(log, model, "full", opts)
     fit_s = time.perf_counter() - t0
     pfile = workdir / f"fitted_{'gains' if gains is not None else 'nogains'}.yaml"
@@ -234,9 +221,10 @@ def _dragd_case(ds: Dataset, gains: np.ndarray | None, workdir: Path) -> dict[st
     cnt = np.zeros(len(names), dtype=int)
     unpredicted: dict[str, str] = {}
     models: set[str] = set()
+    identified = RobotModel.from_urdf(ds.urdf)  # check_params puts the params' link inertials in (idempotent)
     for p in ds.valid:
-        chk = check_params(load_log(p, joints=names, robot=str(ds.urdf)), RobotModel.from_urdf(ds.urdf), params,
-                           str(pfile), cfg=None, terms="rigid", mask="all", dynamics="base")
+        chk = check_params(logs[p], identified, params, str(pfile), cfg=None, terms="rigid", mask="all",
+                           dynamics="base")
         for j, nm in enumerate(names):
             r = chk.joints[nm]
             if r.get("rmse_A") is None:
@@ -249,8 +237,7 @@ def _dragd_case(ds: Dataset, gains: np.ndarray | None, workdir: Path) -> dict[st
     return {"rmse": rmse, "samples": cnt, "unpredicted": unpredicted, "fit_s": fit_s,
             "train_rows": _rows_of(res),
             "models": sorted(models), "warnings": res.warnings,
-            "kt": [jr.torque_constant_Nm_per_A for jr in res.joints],
-            "gravity_prior_rel": [jr.diagnostics.get("gravity_prior_rel") for jr in res.joints]}
+            "kt": [jr.torque_constant_Nm_per_A for jr in res.joints]}
 
 
 def _rows_of(res: Any) -> list[int]:
@@ -277,20 +264,22 @@ def ident_real(opts: dict) -> tuple[float, dict[str, Any]] | dict[str, Any]:
     if not data and "ident_real" not in opts.get("selected", ["ident_real"]):  # `dragd bench` (all) without the data
         return {"skipped": "the UR10e dataset is not here (--data DIR or $DRAGD_UR10E_DATA); DIR = " + EXPECTED}
     ds = find_dataset(data)
+    from dragd.model import RobotModel
+
+    names = list(RobotModel.from_urdf(ds.urdf).joint_names)
+    logs = read_logs(ds, names)
     t0 = time.perf_counter()
     ref = Reference(ds.urdf, ds.gains)
-    train = [filter_data(p.stem, read_rows(p), rows) for p, (_, rows) in zip(ds.train, TRAIN)]
-    valid = [filter_data(p.stem, read_rows(p)) for p in ds.valid]
+    train = [filter_data(p.stem, logs[p], rows) for p, (_, rows) in zip(ds.train, TRAIN)]
+    valid = [filter_data(p.stem, logs[p]) for p in ds.valid]
     ref.fit(train)
     e = np.concatenate([tr.i_raw - ref.predict_current(tr) for tr in valid])
     ref_rmse = np.sqrt(np.mean(e * e, axis=0))
     ref_cnt = np.full(ref_rmse.shape, e.shape[0])
     ref_s = time.perf_counter() - t0
     with tempfile.TemporaryDirectory(prefix="dragd-ident-real-") as tmp:
-        cases = {"with_gains": _dragd_case(ds, ds.gains, Path(tmp)), "without_gains": _dragd_case(ds, None, Path(tmp))}
-    from dragd.model import RobotModel
-
-    names = list(RobotModel.from_urdf(ds.urdf).joint_names)
+        cases = {"with_gains": _dragd_case(ds, logs, ds.gains, Path(tmp)),
+                 "without_gains": _dragd_case(ds, logs, None, Path(tmp))}
     ref_all = _overall(ref_rmse, ref_cnt)
     out: dict[str, Any] = {}
     met = {}
@@ -308,9 +297,7 @@ def ident_real(opts: dict) -> tuple[float, dict[str, Any]] | dict[str, Any]:
             "target_ratio": target, "every_joint_predicted": all_pred, "unpredicted": c["unpredicted"],
             "dragd_fit_s": round(c["fit_s"], 1), "dragd_fit_rows_per_joint": c["train_rows"],
             "dragd_check_samples_per_joint": [int(x) for x in c["samples"]], "dragd_prediction": c["models"],
-            "dragd_torque_constants_Nm_per_A": c["kt"], "dragd_warnings": c["warnings"],
-            # with K_t given: the gravity parameters' prior width per joint, chosen by the fit's own cross-validation
-            "dragd_gravity_prior_rel": c["gravity_prior_rel"]}
+            "dragd_torque_constants_Nm_per_A": c["kt"], "dragd_warnings": c["warnings"]}
     detail = {
         "data": str(ds.root), "urdf": str(ds.urdf), "drive_gains_Nm_per_A": ds.gains.tolist(),
         "drive_gains_source": ds.gains_source,
