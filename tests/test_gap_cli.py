@@ -133,3 +133,16 @@ def test_bad_input_is_named(files, tmp_path):
     assert unk.returncode == 2 and "friction_wobble" in unk.stderr
     eff = run_cli("gap", "--measured", str(files / "log.csv"), "--effects", "viscous_friction,wobble", check=False)
     assert eff.returncode == 2 and "--effects: unknown wobble" in eff.stderr
+
+
+def test_json_keeps_the_warnings_on_stderr(files, tmp_path):
+    """With ``--json`` stdout is exactly the result; what the text output warns about is said on stderr."""
+    lines = (files / "log.csv").read_text().splitlines()
+    lines[500] = ",".join(["nan"] * len(lines[500].split(",")))
+    bad = tmp_path / "nan.csv"
+    bad.write_text("\n".join(lines) + "\n")
+    proc = run_cli("gap", "--measured", str(bad), "--model", str(files / "model.yaml"), "--drop-bad-rows", "--json")
+    d = json.loads(proc.stdout)
+    assert list(d) == ["baseline", "effects", "final"]
+    warned = [ln for ln in proc.stderr.splitlines() if ln.startswith("warning: ")]
+    assert warned and any("501" in ln for ln in warned), proc.stderr

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -88,6 +89,9 @@ def cmd_gap(args: argparse.Namespace) -> int:
         return "\n".join(lines)
 
     emit(args, data, text)  # --json: exactly baseline, effects, final (details: the report's gap.json)
+    if args.json:  # the warnings still reach the user: on stderr, the JSON on stdout stays exactly the result
+        for w in res.details()["warnings"]:
+            print(f"warning: {w}", file=sys.stderr)
     return 0
 
 

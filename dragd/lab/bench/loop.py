@@ -44,7 +44,7 @@ def _py_spy(profile: str | None, seconds: float, pids: dict[str, int]) -> list[s
         return []
     exe = shutil.which("py-spy") or str(Path(sys.executable).with_name("py-spy"))
     if not Path(exe).exists():
-        raise BenchError("--profile: py-spy is not installed here (pip install py-spy)")
+        raise BenchError("--profile: py-spy is not installed here (pip install 'dragd[profile]'; ./dev installs it)")
     out = Path(profile)
     out.mkdir(parents=True, exist_ok=True)
     return [subprocess.Popen([exe, "record", "-r", "250", "-d", str(max(1, round(seconds))), "-f", "raw", "--threads",

@@ -41,7 +41,8 @@ def _starting_torques(bench: Bench, rig: Any, joints: list[int], reps: int, rows
             sign = 1 if r % 2 == 0 else -1
             ev = ramp_breakaway(rig, name, sign, rate, timeout_s=1.5 * ramp)
             if ev["kind"] != "breakaway":
-                raise RuntimeError(f"{name}: no breakaway within the ramp ({ev['kind']}: {ev})")
+                raise RuntimeError(f"{name}: no breakaway within the ramp ({ev['kind']}: {ev}); the daemon then: "
+                                   f"{_daemon_state(rig)}")
             loads.append(abs(float(ev["torque_Nm"])))
             wait_rest(rig)
         out[j] = loads
@@ -52,6 +53,19 @@ def _starting_torques(bench: Bench, rig: Any, joints: list[int], reps: int, rows
 
         rows = read_rows(rows_path)
     return out, rows
+
+
+def _daemon_state(rig: Any) -> str:
+    """What the daemon was doing (a ramp that never moves the joint: a hold, a fault, a disabled drive?)."""
+    try:
+        st = rig.must("status")
+    except Exception as exc:  # noqa: BLE001 — a diagnostic only; the daemon may be gone
+        return f"status failed: {exc}"
+    g = st.get("guard") or {}
+    return (f"mode {st.get('mode')} (requested {st.get('requested_mode')}), drives enabled {st.get('drives_enabled')} "
+            f"{[d['state'] for d in st.get('drives', [])]}, feedback hold {st.get('feedback_hold')}, guard trips "
+            f"{g.get('trips')} (last {g.get('last_trip')}), missed cycles {st.get('missed_cycles')}, faults "
+            f"{st.get('faults', [])[-3:]}")
 
 
 def run_startup(bench: Bench, joints: list[int], reps: int = 2, rest_s: float = 2.0,
