@@ -44,6 +44,24 @@ def test_version() -> None:
     assert proc.returncode == 0 and proc.stdout == f"dragd {want}\n", proc
 
 
+# --------------------------------------------------------------------------------------------- light commands
+
+HEAVY = ("scipy", "pinocchio", "numpy", "pydantic", "canopen", "can", "yaml", "asyncio")
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["status", "--json"], ["mode", "drag"], ["start"], ["stop"]])
+def test_socket_commands_import_no_numerics(argv: list[str], tmp_path: Path) -> None:
+    """The operator's socket commands (and the help) load neither the numerics nor the schema nor CAN: a status
+    call on a loaded controller (or in the vcan guest, where an import costs 20x) is a socket round trip."""
+    code = ("import sys\nfrom dragd.cli.app import main\ntry:\n    main(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
+            f"print('imported:', ','.join(m for m in {HEAVY!r} if m in sys.modules))")
+    sock = ["--socket", str(tmp_path / "none.sock")] if argv != ["--help"] else []
+    proc = subprocess.run([sys.executable, "-c", code, *argv, *sock], capture_output=True, text=True, timeout=60)
+    assert "Traceback" not in proc.stderr, proc.stderr
+    last = proc.stdout.splitlines()[-1]
+    assert last == "imported: ", f"{argv}: {last}"
+
+
 # --------------------------------------------------------------------------------------------- number lists
 
 

@@ -165,7 +165,7 @@ def _common(p: argparse.ArgumentParser, timeout: float = 0.5) -> None:
 
 
 def register(sub: Any) -> None:
-    from dragd.hardware.operator import NMT_COMMANDS, TYPES
+    from dragd.hardware.cia301 import NMT_COMMANDS, SDO_TYPES as TYPES
 
     c = sub.add_parser("can", help="CAN bus tools: scan for CANopen nodes")
     csub = c.add_subparsers(dest="can_command", metavar="ACTION")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import asyncio
 import os
 from typing import TYPE_CHECKING, Any
 
@@ -73,6 +72,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     except (BusBudgetError, ValueError) as exc:
         raise CliError(str(exc)) from None
     try:
+        import asyncio
+
         return asyncio.run(daemon.run())
     except DriveError as exc:
         raise CliError(str(exc), status=1) from None

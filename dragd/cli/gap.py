@@ -96,7 +96,7 @@ def cmd_gap(args: argparse.Namespace) -> int:
 
 
 def register(sub: Any) -> None:
-    from dragd.gap.effects import NAMES
+    from dragd.gap import EFFECT_NAMES as NAMES
 
     p = sub.add_parser("gap", help="model gap: where model and measurement disagree, the missing effect named, added, "
                                    "the gap shown shrinking (docs/GAP.md)")

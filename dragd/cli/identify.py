@@ -303,7 +303,7 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 
 def register(sub: Any) -> None:
-    from dragd.identify.excitation import PLAN_KINDS
+    from dragd.identify import PLAN_KINDS
 
     p = sub.add_parser("identify", help="identification: excitation plans, runs, fits, checks (docs/IDENTIFICATION.md)")
     isub = p.add_subparsers(dest="identify_command", metavar="WHAT")

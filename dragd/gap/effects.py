@@ -47,6 +47,7 @@ from scipy.ndimage import binary_dilation
 
 from dragd.identify.methods import friction_columns
 
+from dragd.gap import EFFECT_NAMES
 from dragd.gap import backlash as BL
 from dragd.gap.context import GapData
 
@@ -491,6 +492,8 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (Viscous(), Stribeck(), Posit
                                                       PayloadMass(), CurrentOffset(), CoulombFriction(),
                                                       TorqueConstant())}
 NAMES = tuple(CATALOGUE)
+if NAMES != EFFECT_NAMES:
+    raise ImportError(f"dragd.gap.EFFECT_NAMES {EFFECT_NAMES} is not the catalogue {NAMES}: list the effects there too")
 
 
 # ------------------------------------------------------------------------------------------ helpers

@@ -22,6 +22,14 @@ class NmtCommand(IntEnum):
     RESET_COMMUNICATION = 0x82
 
 
+NMT_COMMANDS = {"start": NmtCommand.START, "stop": NmtCommand.STOP, "preop": NmtCommand.PRE_OPERATIONAL,
+                "reset": NmtCommand.RESET_NODE, "reset-comm": NmtCommand.RESET_COMMUNICATION}  # `dragd nmt` names
+SDO_TYPES: dict[str, str | None] = {  # `dragd sdo --type` -> struct format (None: bytes as text or hex)
+    "u8": "<B", "u16": "<H", "u32": "<I", "u64": "<Q", "i8": "<b", "i16": "<h", "i32": "<i", "i64": "<q",
+    "f32": "<f", "f64": "<d", "str": None, "hex": None,
+}
+
+
 class NmtState(IntEnum):
     """NMT states with their heartbeat codes."""
 

@@ -18,20 +18,15 @@ from typing import Any
 import can
 import canopen
 
-from dragd.hardware.cia301 import HEARTBEAT_BASE, NMT_COB_ID, SDO_RX_BASE, SDO_TX_BASE, SYNC_COB_ID, NmtCommand, \
-    NmtState
+from dragd.hardware.cia301 import HEARTBEAT_BASE, NMT_COB_ID, NMT_COMMANDS, SDO_RX_BASE, SDO_TX_BASE, SDO_TYPES, \
+    SYNC_COB_ID, NmtState
 
 __all__ = ["BusBusy", "NodeInfo", "busy_reason", "scan", "parse_address", "TYPES", "sdo_read", "sdo_write", "nmt",
            "NMT_COMMANDS", "eds_identity"]
 
-TYPES: dict[str, str | None] = {  # --type -> struct format (None: bytes as text or hex)
-    "u8": "<B", "u16": "<H", "u32": "<I", "u64": "<Q", "i8": "<b", "i16": "<h", "i32": "<i", "i64": "<q",
-    "f32": "<f", "f64": "<d", "str": None, "hex": None,
-}
+TYPES = SDO_TYPES
 _EDS_TYPES = {0x1: "u8", 0x2: "i8", 0x3: "i16", 0x4: "i32", 0x5: "u8", 0x6: "u16", 0x7: "u32", 0x8: "f32",
               0x9: "str", 0xA: "hex", 0xF: "hex", 0x11: "f64", 0x15: "i64", 0x1B: "u64"}
-NMT_COMMANDS = {"start": NmtCommand.START, "stop": NmtCommand.STOP, "preop": NmtCommand.PRE_OPERATIONAL,
-                "reset": NmtCommand.RESET_NODE, "reset-comm": NmtCommand.RESET_COMMUNICATION}
 _STATES = {int(s): s.name.lower().replace("_", "-") for s in NmtState}
 _STATES[int(NmtState.INITIALISING)] = "boot-up"
 

@@ -33,7 +33,8 @@ from typing import Any
 
 import numpy as np
 
-PLAN_KINDS = ("lowspeed", "symmetric", "friction", "synchronous", "fourier", "gap", "standard", "all")
+from dragd.identify import PLAN_KINDS
+
 DEG = math.pi / 180.0
 
 
