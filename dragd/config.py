@@ -117,10 +117,13 @@ class PeriodicTerm(_Strict):
 
 
 class TemperatureDrift(_Strict):
-    """Friction warm-up: every friction current × (1 + friction_change·(1 − e^(−t/τ))), t since start."""
+    """Friction warm-up, t since start, g = 1 − e^(−t/τ): the Coulomb/Stribeck current × (1 + friction_change·g),
+    the viscous current × (1 + viscous_change·g) — the lubricant's viscosity falls faster with temperature than the
+    contact friction does; ``viscous_change`` null: the same change for both."""
 
     friction_change: Annotated[float, Field(gt=-0.95, lt=5), Expect("a relative change in (-0.95, 5)")]
     time_constant_s: PosFloat
+    viscous_change: Annotated[float, Field(gt=-0.95, lt=5), Expect("a relative change in (-0.95, 5)")] | None = None
 
 
 class BackEmfEffect(_Strict):

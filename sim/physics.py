@@ -177,9 +177,13 @@ class ArmPhysics:
             if (t := j.hidden.thermal) is not None:
                 self._temp[i] = t.initial_C if t.initial_C is not None else t.ambient_C
         self._scale = [1.0] * n
-        # friction warm-up drift rows (joint, change, time constant) and back-EMF headroom rows (joint, A·s/rad, knee)
-        self._drift = [(i, d.change, d.time_constant_s) for i, j in enumerate(joints)
+        self._vscale = self._scale  # the viscous slope's scale: its own list only where a drift changes it apart
+        # friction warm-up drift rows (joint, change, time constant, viscous change) and back-EMF headroom rows
+        # (joint, A·s/rad, knee)
+        self._drift = [(i, d.change, d.time_constant_s, d.viscous_change) for i, j in enumerate(joints)
                        if (d := j.hidden.friction_drift) is not None]
+        if any(row[3] is not None for row in self._drift):
+            self._vscale = [1.0] * n
         self._thermal_coef = {row[0]: (row[2], row[6]) for row in self._thermal}
         self._emf = [(i, b.A_s_per_rad, b.knee_rad_s) for i, j in enumerate(joints) if (b := j.hidden.back_emf) is not None]
 
@@ -412,10 +416,16 @@ class ArmPhysics:
         brakes, hold, scale = self._brakes, self._hold, self._scale
         for j, _amb, ref, _cap, _res, _rw, coef in self._thermal:
             scale[j] = 1.0 + coef * (self._temp[j] - ref)
-        for j, change, tau in self._drift:
+        vscale = self._vscale
+        if vscale is not scale:
+            vscale[:] = scale
+        for j, change, tau, vchange in self._drift:
             th = self._thermal_coef.get(j)
             base = 1.0 + th[1] * (self._temp[j] - th[0]) if th is not None else 1.0
-            scale[j] = base * (1.0 + change * (1.0 - math.exp(-self.t_s / tau)))
+            g = 1.0 - math.exp(-self.t_s / tau)
+            scale[j] = base * (1.0 + change * g)
+            if vscale is not scale:
+                vscale[j] = base * (1.0 + (change if vchange is None else vchange) * g)
         load = self._load_on
         fdof = self._fdof
         for j, k, share in self._frows:
@@ -442,17 +452,18 @@ class ArmPhysics:
             d = dirs[k]
             v = vs[k]
             s = self._scale[j] * share
+            sv = self._vscale[j] * share
             extra = self._load_coef[j] * abs(self._gravity[j]) * share if self._load_on else 0.0
             if self._brakes[j] and k == fdof[j]:
                 extra += self._hold[j]
             if d > 0.0:
                 fc = self._fc_pos[j] * s + extra
                 lim = self._lim_pos[k]
-                visc = self._visc_pos[j] * s
+                visc = self._visc_pos[j] * sv
             elif d < 0.0:
                 fc = self._fc_neg[j] * s + extra
                 lim = self._lim_neg[k]
-                visc = self._visc_neg[j] * s
+                visc = self._visc_neg[j] * sv
             else:  # at rest without friction (cannot stick): only a viscous term, which is zero here
                 fric[k] = 0.0
                 continue

@@ -147,10 +147,12 @@ class BackEmfHeadroom(_Strict):
 
 
 class FrictionDrift(_Strict):
-    """Friction warm-up over time: every friction level × (1 + change·(1 − e^(−t/τ))) (t: simulated time)."""
+    """Friction warm-up over time, g = 1 − e^(−t/τ) (t: simulated time): the Coulomb/Stribeck levels × (1 + change·g),
+    the viscous slope × (1 + viscous_change·g) (null: ``change`` for both)."""
 
     change: Annotated[float, Field(gt=-0.95, lt=5), Expect("a relative change in (-0.95, 5)")]
     time_constant_s: PosFloat
+    viscous_change: Annotated[float, Field(gt=-0.95, lt=5), Expect("a relative change in (-0.95, 5)")] | None = None
 
 
 class Payload(_Strict):
@@ -390,7 +392,8 @@ def truth_from_params(params: Any, base: Truth | None = None) -> Truth:
                                                else jt.hidden.output_friction_fraction),
                   "back_emf": None if e.back_emf is None else e.back_emf.model_dump(),
                   "friction_drift": None if e.temperature_drift is None else
-                  {"change": e.temperature_drift.friction_change, "time_constant_s": e.temperature_drift.time_constant_s}}
+                  {"change": e.temperature_drift.friction_change, "time_constant_s": e.temperature_drift.time_constant_s,
+                   "viscous_change": e.temperature_drift.viscous_change}}
         jc: dict[str, Any] = {"torque_constant_Nm_per_A": kt, "friction": fr, "hidden": hidden}
         rotor = e.armature_kgm2 if e.armature_kgm2 is not None else e.backlash_inertia_kgm2
         if rotor is not None:
@@ -416,7 +419,8 @@ def params_from_truth(truth: Truth) -> dict[str, Any]:
             eff["back_emf"] = h.back_emf.model_dump()
         if h.friction_drift is not None:
             eff["temperature_drift"] = {"friction_change": h.friction_drift.change,
-                                        "time_constant_s": h.friction_drift.time_constant_s}
+                                        "time_constant_s": h.friction_drift.time_constant_s,
+                                        "viscous_change": h.friction_drift.viscous_change}
         if h.backlash_rad:
             eff["backlash_rad"] = h.backlash_rad
             eff["backlash_output_friction_fraction"] = h.output_friction_fraction

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -28,11 +29,18 @@ def test_track_follows_trajectory_in_csp_and_returns_to_hold(tmp_path):
         np.savez(tmp_path / "traj.npz", t_s=t, q_rad=q)
         bad = rig.call("track", t_s=[0.0, 1.0], q_rad=[(q0 + 0.5).tolist(), q0.tolist()])
         assert not bad["ok"] and "starts" in bad["error"]  # refuses a jump to a far start
+        # built in the planner process: its errors come back named, and scipy (the spline) never loads in the daemon
+        bad_t = rig.call("track", t_s=[0.0, 0.0, 1.0], q_rad=[q0.tolist()] * 3)
+        assert not bad_t["ok"] and "t must increase strictly" in bad_t["error"], bad_t
+        (tmp_path / "bad.csv").write_text("t,q1\nx,y\n")
+        bad_f = rig.call("track", file=str(tmp_path / "bad.csv"))
+        assert not bad_f["ok"] and "bad.csv" in bad_f["error"], bad_f
         resp = rig.must("track", file=str(tmp_path / "traj.npz"), label="identify")
         assert resp["mode"] == "track" and resp["duration_s"] == 3.0
         s = rig.must("status")
         assert s["drive_mode"] == "csp" and s["trajectory"]["label"] == "identify"
         wait_for(lambda: rig.must("status")["mode"] == "hold", 6.0, "the end of the motion")
+        assert "/scipy/" not in Path(f"/proc/{rig.daemon.proc.pid}/maps").read_text()  # (numpy.libs: scipy_openblas)
         wait_for(lambda: rig.must("status")["drive_mode"] == "cst", 2.0, "the drives back in CST")
         time.sleep(0.3)
         end = rig.must("status")

@@ -50,6 +50,25 @@ def test_effects_current_matches_its_formula(law_cfg):
         assert np.allclose(np.delete(out, 1), 0.0)
 
 
+def test_drift_with_its_own_viscous_change_matches_its_formula():
+    """A warm-up whose viscous part changes by its own factor (grease viscosity): Δ·g·(I_f − I_visc) + Δ_v·g·I_visc,
+    each part at its warm level at once where it falls (the safe side), else rising with g = 1 − e^(−t/τ)."""
+    data = {"joints": {"joint2": {"friction": {"viscous_pos_A_s_per_rad": 0.5, "viscous_neg_A_s_per_rad": 0.4},
+                                  "effects": {"temperature_drift": {"friction_change": 0.2, "viscous_change": -0.3,
+                                                                    "time_constant_s": 40.0}}}}}
+    p = LawParams.from_config(apply_params(load_config(), ParamsFile.model_validate(data), "test"))
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        dq = rng.uniform(-0.6, 0.6, 6)
+        t = float(rng.uniform(0, 200))
+        fr = friction_current(dq, p)
+        out = effects_current(np.zeros(6), dq, np.zeros(6), t, p, fr, ws=Workspace(6))
+        visc = p.friction_scale * (0.5 if dq[1] >= 0 else 0.4) * dq[1]
+        g = 1.0 - np.exp(-t / 40.0)
+        assert out[1] == pytest.approx(0.2 * g * (fr[1] - visc) - 0.3 * visc, abs=1e-12)
+        assert np.allclose(np.delete(out, 1), 0.0)
+
+
 def test_back_emf_knee_and_switch(law_cfg):
     p, _ = law_cfg
     assert p.use_back_emf and p.back_emf_A_s_per_rad[2] == pytest.approx(0.4)

@@ -380,6 +380,28 @@ def test_thermal_drift_lowers_friction_as_the_joint_heats(truth: Truth, robot: R
     assert hot == pytest.approx(expected) and hot < cold
 
 
+def test_friction_drift_changes_the_viscous_slope_by_its_own_factor(truth: Truth, robot: RobotModel) -> None:
+    """Warm-up drift: the Coulomb level × (1 + change·g), the viscous slope × (1 + viscous_change·g)."""
+    def sliding_friction(viscous_change: float | None) -> float:
+        drift = {"change": 0.2, "time_constant_s": 0.01, "viscous_change": viscous_change}
+        t = truth.with_updates(joints={0: {"hidden": {"friction_drift": drift}}})
+        phys, axes = make(t, robot)
+        axes[0].brake_engaged = False
+        phys.set_state(phys.q_rad, np.array([0.5, 0, 0, 0, 0, 0.0]))
+        run(phys, 0.2)  # g = 1 − e^(−20): warm
+        phys.set_state(phys.q_rad, np.array([0.5, 0, 0, 0, 0, 0.0]))
+        phys.step()
+        return -float(phys.tau_friction_Nm[0])
+
+    f = truth.joints[0].friction
+    v = 0.5
+    both = sliding_friction(None)
+    apart = sliding_friction(-0.5)
+    visc = f.viscous_pos_Nm_s_per_rad * v
+    assert both - apart == pytest.approx((0.2 + 0.5) * visc, rel=0.02)  # only the viscous part differs
+    assert visc > 0.05 * both  # the check means something: the viscous part is not negligible at this speed
+
+
 def test_backlash_lets_the_output_move_against_a_braked_rotor(truth: Truth, robot: RobotModel) -> None:
     gap = 0.004
     t_b = truth.with_updates(joints={0: {"hidden": {"backlash_rad": gap, "gear_stiffness_Nm_per_rad": 20000.0}}})

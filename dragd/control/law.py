@@ -38,9 +38,10 @@ Terms
 - clamp: |I| ≤ the joint's current limit; clamped joints are flagged.
 - model-gap effects (``joints[].effects``, added by ``dragd gap``, docs/GAP.md; :class:`EffectArrays`):
   position-periodic harmonics Σ s·sin(c·q) + k·cos(c·q), load-dependent friction w·d·k_L·|G|/K_t, the current
-  offset, the friction warm-up drift I_f·Δ·(1 − e^(−t/τ)), and a knee on the back-EMF term. Inertia (rotor
-  inertia) and backlash are prediction/simulation-only: drag compensates no q̈ term (the hand feels the arm's
-  inertia on purpose, and a q̈ estimate at 1 kHz is noise) and the output encoder cannot see the lost motion.
+  offset, the friction warm-up drift I_f·Δ·(1 − e^(−t/τ)) (its viscous part by its own Δ_v when given), and a
+  knee on the back-EMF term. Inertia (rotor inertia) and backlash are prediction/simulation-only: drag compensates
+  no q̈ term (the hand feels the arm's inertia on purpose, and a q̈ estimate at 1 kHz is noise) and the output
+  encoder cannot see the lost motion.
 """
 
 from __future__ import annotations
@@ -256,6 +257,22 @@ def effects_current(q_rad: np.ndarray, dq_rad_s: np.ndarray, tau_g_Nm: np.ndarra
         np.divide(-t_s, e.drift_time_constant_s, out=a)
         np.exp(a, out=a)
         np.subtract(1.0, a, out=a)
+        if e.drift_viscous_change is not None and (vwarm := e.drift_viscous_warm_now) is not None:
+            # the viscous part's own change: (Δ_v·g_v − Δ·g)·I_visc on top of Δ·g·I_f below
+            c, pos = ws.c, ws.pos
+            np.greater_equal(dq_rad_s, 0.0, out=pos)
+            np.copyto(c, p.viscous_neg_A_s_per_rad)
+            np.copyto(c, p.viscous_pos_A_s_per_rad, where=pos)
+            c *= dq_rad_s
+            c *= p.friction_scale  # c = I_visc, as in friction_current
+            np.maximum(a, vwarm, out=b)
+            b *= e.drift_viscous_change
+            b *= c
+            out += b
+            np.maximum(a, e.drift_warm_now, out=b)
+            b *= e.drift_change
+            b *= c
+            out -= b
         np.maximum(a, e.drift_warm_now, out=a)
         a *= e.drift_change
         a *= friction_A

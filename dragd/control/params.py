@@ -136,10 +136,14 @@ class EffectArrays:
     drift_time_constant_s: np.ndarray  # inf: no drift
     back_emf_knee_rad_s: np.ndarray
     scratch: np.ndarray  # (2, n, K)
+    drift_viscous_change: np.ndarray | None = None  # the viscous part's own change (None: drift_change for all)
     drift_warm_now: np.ndarray = field(init=False)  # 1 where Δ < 0 (apply the warm level at once), else 0
+    drift_viscous_warm_now: np.ndarray | None = field(init=False)  # the same for the viscous part's change
 
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "drift_warm_now", (self.drift_change < 0.0).astype(float))  # frozen: set once
+    def __post_init__(self) -> None:  # frozen: set once
+        object.__setattr__(self, "drift_warm_now", (self.drift_change < 0.0).astype(float))
+        v = self.drift_viscous_change
+        object.__setattr__(self, "drift_viscous_warm_now", None if v is None else (v < 0.0).astype(float))
 
     @classmethod
     def from_config(cls, cfg: Config) -> EffectArrays | None:
@@ -159,4 +163,7 @@ class EffectArrays:
                    drift_change=np.array([0.0 if d is None else d.friction_change for d in td]),
                    drift_time_constant_s=np.array([np.inf if d is None else d.time_constant_s for d in td]),
                    back_emf_knee_rad_s=np.array([0.0 if e.back_emf is None else e.back_emf.knee_rad_s for e in effs]),
-                   scratch=np.zeros((2, n, k)))
+                   scratch=np.zeros((2, n, k)),
+                   drift_viscous_change=None if all(d is None or d.viscous_change is None for d in td) else
+                   np.array([0.0 if d is None else d.friction_change if d.viscous_change is None else d.viscous_change
+                             for d in td]))

@@ -1,7 +1,8 @@
 """A joint trajectory for TRACK mode as a table at the loop period: what the cycle samples in O(1).
 
 Built off the loop (a clamped cubic spline through samples, or a replay plan's table with velocity and
-feed-forward tables); the cycle only indexes rows and interpolates between two of them.
+feed-forward tables); the cycle only indexes rows and interpolates between two of them. The daemon builds it in
+its planner process (dragd/teach/worker.py ``trajectory``): the spline's scipy is never imported beside the cycle.
 """
 
 from __future__ import annotations
@@ -10,7 +11,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.interpolate import CubicSpline  # imported at start-up: an import in the loop's process stalls it
 
 
 class Trajectory:
@@ -36,6 +36,8 @@ class Trajectory:
         self.label = label
         self.dt_s = dt_s
         self.duration_s = float(t_s[-1])
+        from scipy.interpolate import CubicSpline  # in the planner process (the daemon never builds one itself)
+
         grid = np.arange(0.0, self.duration_s + dt_s / 2, dt_s)
         self.table = np.ascontiguousarray(CubicSpline(t_s, q_rad, bc_type="clamped")(grid))
         self.start_q = self.table[0].copy()

@@ -196,12 +196,11 @@ class Motions:
     async def track_request(self, label: str, file: str | None, t_s: list[float] | None,
                             q_rad: list[list[float]] | None) -> dict[str, Any]:
         """The ``track`` command: a trajectory file or samples, built off the loop, then followed."""
-        loop = asyncio.get_running_loop()
         dt = self.d.cycle.dt
         if file is not None:
-            traj = await loop.run_in_executor(None, Trajectory.load, str(self.d.paths.check("track", file)), dt, label)
+            traj = await self._trajectory(dt, label, file=str(self.d.paths.check("track", file)))
         elif t_s is not None and q_rad is not None:
-            traj = await loop.run_in_executor(None, Trajectory, t_s, q_rad, dt, label)
+            traj = await self._trajectory(dt, label, t_s=t_s, q_rad=q_rad)
         else:
             raise ValueError("track: expected 'file' or both 't_s' and 'q_rad'")
         # the residual monitor's rigid-body effort of the motion (in the planner process: seconds of Pinocchio
@@ -215,6 +214,16 @@ class Motions:
         self.check_current(traj, peak_Nm, peak_row)
         await self.track(traj)
         return {"mode": MODE_NAMES[self.controller.mode], "duration_s": traj.duration_s}
+
+    async def _trajectory(self, dt: float, label: str, **source: Any) -> Trajectory:
+        """The trajectory built in the planner process; its errors (a bad file or samples) as ValueError."""
+        try:
+            traj = await self.planner.call("trajectory", dt, label, **source)
+        except RuntimeError as exc:  # the worker died (a bad file or samples come back as ValueError)
+            raise ValueError(f"track: the trajectory could not be built ({exc})") from None
+        if not isinstance(traj, Trajectory):
+            raise ValueError(f"track: the planner returned {type(traj).__name__}, not a trajectory")
+        return traj
 
     def _running(self, what: str) -> Any:
         c = self.controller

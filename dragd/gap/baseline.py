@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from dragd.gap.context import GapData
-from dragd.gap.effects import CATALOGUE, Backlash, ModelInfo, PayloadMass, weight
+from dragd.gap.effects import CATALOGUE, Backlash, ModelInfo, PayloadMass, TemperatureDrift, weight
 
 
 @dataclass
@@ -41,10 +41,11 @@ class Baseline:
     armature_kgm2: np.ndarray | None = None  # (n,) the model's rotor inertia at each joint (0: not known)
     has_backlash: np.ndarray | None = None  # (n,) bool: the model predicts a play on the joint
     torque_A: np.ndarray | None = None  # (T, n) the part of ``fixed`` that is a joint torque / K_t
+    viscous_A: np.ndarray | None = None  # (T, n) the viscous part of friction_A
 
     def info(self) -> ModelInfo:
         return ModelInfo(self.kt, self.friction_A, self.has_inertia, self.coulomb_A, self.armature_kgm2,
-                         self.has_backlash, self.torque_A)
+                         self.has_backlash, self.torque_A, self.viscous_A)
 
 
 def given(d: GapData, params: Any, cfg: Any) -> Baseline:
@@ -58,6 +59,7 @@ def given(d: GapData, params: Any, cfg: Any) -> Baseline:
     kt = np.array([j.kt_Nm_per_A for j in cfg2.joints])
     fr = np.empty_like(d.p.dq)
     friction_current(d.p.dq, law, fr, Workspace(d.p.dq.shape))
+    visc = np.where(d.p.dq >= 0.0, law.viscous_pos_A_s_per_rad, law.viscous_neg_A_s_per_rad) * d.p.dq
     pf = params.model_dump(mode="json")
     pred = d.G / kt + fr
     torque = d.G / kt  # what a K_t error scales (torque_constant's column)
@@ -65,10 +67,10 @@ def given(d: GapData, params: Any, cfg: Any) -> Baseline:
     for j, nm in enumerate(d.names):
         jp = pf["joints"].get(nm, {})
         for name, eff in CATALOGUE.items():
-            if name == "temperature_drift":
-                x = eff.predict(d, j, jp, kt[j])
+            if isinstance(eff, TemperatureDrift):
+                x = eff.current(d, jp, fr[:, j], visc[:, j])
                 if x is not None:
-                    pred[:, j] += x * fr[:, j]
+                    pred[:, j] += x
                 continue
             x = eff.predict(d, j, jp, kt[j])
             if x is not None:
@@ -90,7 +92,7 @@ def given(d: GapData, params: Any, cfg: Any) -> Baseline:
     armature = np.array([float((pf["joints"].get(nm, {}).get("effects") or {}).get("armature_kgm2") or 0.0)
                          for nm in d.names])
     base = Baseline("given", pred, [None] * d.n, [[] for _ in range(d.n)], kt, np.ones(d.n, dtype=bool), fr,
-                    has_inertia, coul, pf, armature, torque_A=torque)
+                    has_inertia, coul, pf, armature, torque_A=torque, viscous_A=visc if np.any(visc) else None)
     backlash = CATALOGUE["backlash"]
     assert isinstance(backlash, Backlash)
     base.has_backlash = np.zeros(d.n, dtype=bool)

@@ -66,6 +66,7 @@ class ModelInfo:
     has_backlash: np.ndarray | None = None  # (n,) bool: the model already predicts a play on the joint
     torque_A: np.ndarray | None = None  # (T, n) the model's current that is a joint torque / K_t (gravity, payload,
     #                                      dynamics, rotor inertia, load friction): what a K_t error scales
+    viscous_A: np.ndarray | None = None  # (T, n) the viscous part of friction_A (None: the model has none)
 
 
 @dataclass
@@ -281,7 +282,8 @@ class Inertia(Effect):
 
 class TemperatureDrift(Effect):
     name = "temperature_drift"
-    signature = "the friction level drifting with time: I_f·(1 − e^(−t/τ)); passes through the same states disagree"
+    signature = ("the friction level drifting with time: I_f·(1 − e^(−t/τ)), its viscous part by its own factor; "
+                 "passes through the same states disagree")
     extra_params = 1
 
     def hypers(self, d, j, resid, info):
@@ -292,17 +294,36 @@ class TemperatureDrift(Effect):
         f = info.friction_A[:, j]
         if not np.any(f):
             return None
-        return Cols((f * (1.0 - np.exp(-d.t_rel / hyper)))[:, None], ["friction_change"])
+        g = 1.0 - np.exp(-d.t_rel / hyper)
+        v = info.viscous_A[:, j] if info.viscous_A is not None else None
+        if v is None or not np.any(v) or not np.any(f - v):
+            return Cols((f * g)[:, None], ["friction_change"])
+        # the lubricant's viscosity falls faster with temperature than the contact (Coulomb/Stribeck) friction
+        return Cols(np.column_stack([(f - v) * g, v * g]), ["friction_change", "viscous_change"])
 
     def params(self, theta, hyper, d, j, info):
-        return {"friction_change": float(theta[0]), "time_constant_s": float(hyper)}
+        out = {"friction_change": float(theta[0]), "time_constant_s": float(hyper)}
+        if theta.size > 1:
+            out["viscous_change"] = float(theta[1])
+        return out
+
+    def physical(self, theta, info, j):
+        return bool(np.all((theta > -0.95) & (theta < 5.0)))  # a relative change the params file can hold
 
     def write(self, pf, joint, prm):
         _effects(pf, joint)["temperature_drift"] = dict(prm)
 
-    def predict(self, d, j, jp, kt):
+    def current(self, d: GapData, jp: dict[str, Any], friction_A: np.ndarray,
+                viscous_A: np.ndarray | None) -> np.ndarray | None:
+        """The drift's current on a joint from its params entry, the model's friction current and its viscous part."""
         td = (jp.get("effects") or {}).get("temperature_drift")
-        return None if not td else td["friction_change"] * (1.0 - np.exp(-d.t_rel / td["time_constant_s"]))
+        if not td:
+            return None
+        g = 1.0 - np.exp(-d.t_rel / td["time_constant_s"])
+        out = td["friction_change"] * g * friction_A
+        if td.get("viscous_change") is not None and viscous_A is not None:
+            out += (td["viscous_change"] - td["friction_change"]) * g * viscous_A
+        return out
 
 
 class Backlash(Effect):

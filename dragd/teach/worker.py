@@ -21,6 +21,15 @@ class WorkerError(RuntimeError):
     """The worker process failed (crashed, or could not be started)."""
 
 
+def trajectory(dt_s: float, label: str, file: str | None = None, t_s: Any = None, q_rad: Any = None) -> Any:
+    """A TRACK trajectory from a file or samples (the spline's seconds and its scipy stay out of the daemon)."""
+    from dragd.control.trajectory import Trajectory
+
+    if file is not None:
+        return Trajectory.load(file, dt_s, label)
+    return Trajectory(t_s, q_rad, dt_s, label)
+
+
 def _functions() -> dict[str, Any]:
     from dragd.teach.keyframes import extract_keyframes
     from dragd.teach.plan import plan_replay, rigid_body_effort, warm_up
@@ -29,7 +38,7 @@ def _functions() -> dict[str, Any]:
 
     return {"plan_replay": plan_replay, "write_program": write_program, "warm_up": warm_up,
             "extract_keyframes": extract_keyframes, "list_programs": list_programs,
-            "rigid_body_effort": rigid_body_effort}
+            "rigid_body_effort": rigid_body_effort, "trajectory": trajectory}
 
 
 def main() -> int:
