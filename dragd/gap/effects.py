@@ -388,6 +388,17 @@ class BackEmf(Effect):
             return []
         return sorted({round(float(x), 3) for x in np.quantile(v, [0.15, 0.3, 0.45, 0.6, 0.75])})
 
+    def refine(self, sse: Any, hyper: float) -> float:
+        """The knee as a continuous value (the grid is the speeds' quantiles): bounded search on the fit's residual
+        (variable projection: the slope is solved inside), within a factor of two of the grid's best."""
+        from scipy.optimize import minimize_scalar
+
+        if hyper <= 0.0:
+            return hyper
+        r = minimize_scalar(lambda k: sse(round(float(k), 4)), bounds=(0.5 * hyper, 2.0 * hyper), method="bounded",
+                            options={"xatol": 2e-3, "maxiter": 25})
+        return round(float(r.x), 4) if np.isfinite(r.fun) and r.fun < sse(hyper) else hyper
+
     def columns(self, d, j, hyper, info):
         v = d.p.dq[:, j]
         return Cols((np.sign(v) * np.maximum(np.abs(v) - hyper, 0.0))[:, None], ["A_s_per_rad"])
@@ -520,11 +531,15 @@ if NAMES != EFFECT_NAMES:
 # ------------------------------------------------------------------------------------------ helpers
 
 
+PERIODS_MIN = 1.0  # the longest period looked for: the travelled range (a stroke of 1.1 periods shows a whole wave)
+
+
 def spectrum_peaks(d: GapData, j: int, resid: np.ndarray, max_peaks: int = 3) -> list[float]:
     """Orders c (cycles per joint revolution) of the largest peaks of the residual's angle-domain spectrum.
 
     Lomb–Scargle periodogram of the residual against q over the sliding samples (q is not uniformly sampled), for c
-    from two periods over the travelled range up to what the regression filter passes at the typical speed.
+    from one period over the travelled range (PERIODS_MIN) up to what the regression filter passes at the typical
+    speed; whether a peak is real is the selection's test (held-out error, BIC), not the spectrum's.
     """
     from scipy.signal import lombscargle
 
@@ -536,7 +551,7 @@ def spectrum_peaks(d: GapData, j: int, resid: np.ndarray, max_peaks: int = 3) ->
     if rng < 0.05:
         return []
     v = float(np.median(np.abs(d.p.dq[m, j])))
-    c_min = 2.0 * 2.0 * math.pi / rng
+    c_min = PERIODS_MIN * 2.0 * math.pi / rng
     c_max = min(400.0, 2.0 * math.pi * 0.8 * d.p.cutoff_Hz / max(v, 1e-3))
     if c_max <= c_min:
         return []

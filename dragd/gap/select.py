@@ -418,49 +418,76 @@ class Selector:
                 t.offH = t.offH[keep]
 
     def _prune(self) -> None:
-        """Backward check: drop an added effect (from a joint) that is no longer real given the later ones (an effect
-        that took its uncertain samples out of the joint's rows cannot be re-scored on them and stays)."""
+        """Backward elimination: while some added effect (on a joint) is no longer real given the others, drop the
+        weakest such one and refit — least useful first, so that a term the others only stood in for goes before the
+        one they stood in for (a K_t error and a payload explain part of each other). An effect that took its
+        uncertain samples out of the joint's rows cannot be re-scored on them and stays."""
         changed = False
-        for st in list(self.steps):
-            if CATALOGUE[st.effect].shared:
-                continue
-            keep = []
-            for nm in st.joints:
-                jm = self.joints[self.d.names.index(nm)]
-                t = next(tt for tt in jm.terms if tt.effect == st.effect and tt.hyper == st.hypers.get(nm))
-                if t.cols.exclude is not None:
-                    keep.append(nm)
+        while True:
+            weakest: tuple[float, Step, str, JointModel, Term] | None = None
+            for st in self.steps:
+                if CATALOGUE[st.effect].shared:
                     continue
-                fold = self.d.fold[jm.rows]
-                X1, _ = jm.design()
-                y1 = self._payload_y(jm)
-                k = jm.base.shape[1] + sum(tt.XH.shape[1] for tt in jm.terms[:jm.terms.index(t)])
-                jm.terms.remove(t)
-                X0, _ = jm.design()
-                y0 = self._payload_y(jm)
-                cv0, cv1, n = _cv_sse(X0, y0, fold), _cv_sse(X1, y1, fold), y1.size
-                gain = cv0 - cv1
-                # the effect's own fitted current (filtered, on the fit rows) must reach what selection asks it to
-                # explain: a term that the later ones reduced to a sliver is not named
-                th1, _ = _fit(X1, y1)
-                own = t.XH @ th1[k:k + t.XH.shape[1]] + (t.offH if t.offH is not None else 0.0)
-                big = math.sqrt(float(np.mean(np.square(own)))) >= ABS_MIN * self.d.noise_A[jm.j]
-                if big and gain >= REL_MIN * cv0 and math.sqrt(max(gain, 0.0) / n) >= ABS_MIN * self.d.noise_A[jm.j]:
-                    jm.terms.append(t)
-                    keep.append(nm)
-                else:
-                    changed = True
-            if keep:
-                st.joints = keep
-                for alt in list(st.ambiguous):
-                    st.ambiguous[alt] = {nm: v for nm, v in st.ambiguous[alt].items() if nm in keep}
-                    if not st.ambiguous[alt]:
-                        del st.ambiguous[alt]
-            else:
+                for nm in st.joints:
+                    jm = self.joints[self.d.names.index(nm)]
+                    t = next(tt for tt in jm.terms if tt.effect == st.effect and tt.hyper == st.hypers.get(nm))
+                    if t.cols.exclude is not None:
+                        continue
+                    real, explained = self._still_real(jm, t)
+                    if not real and (weakest is None or explained < weakest[0]):
+                        weakest = (explained, st, nm, jm, t)
+            if weakest is None:
+                break
+            _, st, nm, jm, t = weakest
+            jm.terms.remove(t)
+            st.joints = [x for x in st.joints if x != nm]
+            for alt in list(st.ambiguous):
+                st.ambiguous[alt] = {x: v for x, v in st.ambiguous[alt].items() if x != nm}
+                if not st.ambiguous[alt]:
+                    del st.ambiguous[alt]
+            if not st.joints:
                 self.steps.remove(st)
-        if changed:
             self._refit()
+            changed = True
+        if changed:
             self.snapshots = self.snapshots[:1] + [self.predict()] * len(self.steps)
+
+    def _still_real(self, jm: JointModel, t: Term) -> tuple[bool, float]:
+        """Whether term ``t`` of joint ``jm`` passes the selection's tests against the model without it (the shared
+        payload refitted too where it couples the joint), and the held-out RMS it explains [A]."""
+        fold = self.d.fold[jm.rows]
+        X1, _ = jm.design()
+        y1 = self._payload_y(jm)
+        idx = jm.terms.index(t)
+        k = jm.base.shape[1] + sum(tt.XH.shape[1] for tt in jm.terms[:idx])
+        coupled = jm.j in self.payload_cols  # the shared payload was fitted with this term: refit it without
+        cv1 = self._cv_payload() if coupled else _cv_sse(X1, y1, fold)
+        jm.terms.remove(t)
+        try:
+            X0, _ = jm.design()
+            y0 = self._payload_y(jm)
+            cv0_own = _cv_sse(X0, y0, fold)
+            cv0 = self._cv_payload() if coupled else cv0_own
+        finally:
+            jm.terms.insert(idx, t)
+        n = y1.size
+        gain = cv0 - cv1  # over every joint the payload couples, against this joint's own error
+        # the effect's own fitted current (filtered, on the fit rows) must reach what selection asks it to explain: a
+        # term that the later ones reduced to a sliver is not named
+        th1, _ = _fit(X1, y1)
+        own = t.XH @ th1[k:k + t.XH.shape[1]] + (t.offH if t.offH is not None else 0.0)
+        sigma = self.d.noise_A[jm.j]
+        explained = math.sqrt(max(gain, 0.0) / n)
+        big = math.sqrt(float(np.mean(np.square(own)))) >= ABS_MIN * sigma
+        return bool(big and gain >= REL_MIN * cv0_own and explained >= ABS_MIN * sigma), explained
+
+    def _cv_payload(self) -> float:
+        """Held-out SSE summed over the payload's joints, the shared payload refitted on each fold's training rows
+        with the joints' present columns (what dropping a term from one of them does to all)."""
+        sse = 0.0
+        for f in range(FOLDS):
+            sse += sum(self._shared_fit(self.payload_cols, f)[1].values())
+        return sse
 
     # ------------------------------------------------------------------------------------ results
 

@@ -39,7 +39,9 @@ def _starting_torques(bench: Bench, rig: Any, joints: list[int], reps: int, rows
         loads = []
         for r in range(reps):
             sign = 1 if r % 2 == 0 else -1
-            ev = ramp_breakaway(rig, name, sign, rate, timeout_s=1.5 * ramp)
+            # up to 3 × the believed level: an identified static friction that came out low (a log from a loaded
+            # host) must not end the experiment — the seed adds weights until the joint moves
+            ev = ramp_breakaway(rig, name, sign, rate, timeout_s=3.0 * ramp)
             if ev["kind"] != "breakaway":
                 raise RuntimeError(f"{name}: no breakaway within the ramp ({ev['kind']}: {ev}); the daemon then: "
                                    f"{_daemon_state(rig)}")
