@@ -1,5 +1,5 @@
 """The payload scenario on the real rig (sim + daemon processes over a python-can bus): ``dragd demo --scenario
-payload --json`` as documented, against the issue's targets (docs/PAYLOAD.md). One run; slow."""
+payload --json`` as documented, against the issue's targets (docs/PAYLOAD.md; one run, slow), and --accept right after start."""
 
 from __future__ import annotations
 
@@ -9,9 +9,10 @@ import sys
 
 import pytest
 
-pytestmark = [pytest.mark.rig, pytest.mark.slow]
+pytestmark = pytest.mark.rig
 
 
+@pytest.mark.slow
 def test_payload_demo_meets_the_targets(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "dragd", "demo", "--scenario", "payload", "--out", str(tmp_path),
                            "--json"], capture_output=True, text=True, timeout=900)
@@ -26,3 +27,20 @@ def test_payload_demo_meets_the_targets(tmp_path):
     assert r["drift_after_apply_deg"] <= 0.1
     assert r["taken_off"]["guard_trip_ms"] <= 170.0 and r["taken_off"]["drift_before_guard_deg"] <= 1.5
     assert "payload:" in (tmp_path / r["params"].split("/")[-1]).read_text()  # --apply wrote the params file
+
+
+@pytest.mark.timeout(300)
+def test_accept_right_after_start_waits_for_the_hold_current(tmp_path):
+    """``dragd start`` then at once ``dragd mode drag --accept`` (as README and docs/PAYLOAD.md write it): the daemon
+    waits until the arm has rested in HOLD long enough to measure its hold current, then drags."""
+    from dragd.lab.rig import Rig
+
+    with Rig("accept", workdir=tmp_path) as rig:
+        rig.start_sim()
+        rig.start_daemon()
+        start = rig.cli("start")
+        assert start.returncode == 0, start.stderr
+        proc = rig.cli("mode", "drag", "--accept", "--json")
+        assert proc.returncode == 0, proc.stderr
+        assert json.loads(proc.stdout)["mode"] == "drag"
+        assert rig.must("status")["mode"] == "drag"

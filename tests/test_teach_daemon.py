@@ -119,6 +119,9 @@ def test_teach_by_hand_replay_linear_and_bumpless_drag_replay_drag(tmp_path):
         assert drag["mode"] == "drag"
         time.sleep(0.6)
         end = rig.must("status")
+        # planned in the planner process: the daemon never imported the planner's scipy (a late import beside the
+        # cycle holds the GIL for a third of a second: the drag → hold switch then steps)
+        assert "/scipy/" not in Path(f"/proc/{rig.daemon.proc.pid}/maps").read_text()
         rig.must("stop")
     assert end["faults"] == [] and end["drive_mode"] == "cst"
     # the program file: versioned, readable, the marks and the continuous recording at the chosen rate

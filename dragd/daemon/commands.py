@@ -7,6 +7,7 @@ the controller's events before it answers (a fault or mode change it caused is i
 
 from __future__ import annotations
 
+import asyncio
 import functools
 from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any
@@ -16,6 +17,8 @@ from dragd.hardware.cia402 import MODE_CST
 from dragd.hardware.master import DriveError
 from dragd.daemon.server import CommandTable
 from dragd.protocol import ControlError
+
+HOLD_WAIT_S = 3.0  # mode drag --accept waits this long beyond the settle time for the arm to rest in HOLD
 
 if TYPE_CHECKING:
     from dragd.daemon.core import Daemon
@@ -68,8 +71,20 @@ def command_table(d: Daemon) -> CommandTable:
     async def mode(mode: str, accept: bool = False) -> dict[str, Any]:
         if mode in ("hold", "drag") and not c.track.active and c.mode not in (Mode.IDLE, Mode.FAULT):
             await motions.wait_cst(f"mode {mode}")  # after a motion the drives return to CST first (bumpless)
+        if mode == "drag" and accept:
+            await _hold_measured()
         check = d.set_mode(str(mode), accept=bool(accept))
         return {"mode": MODE_NAMES[c.mode], **({"gravity_check": check} if check else {})}
+
+    async def _hold_measured() -> None:
+        """``mode drag --accept`` right after ``start`` or ``mode hold``: wait (up to the settle time + 3 s) until the
+        arm has rested in HOLD long enough for its hold current to be measured; an arm that keeps moving is refused
+        by the check itself."""
+        g = d.cfg.safety.guard
+        end = asyncio.get_running_loop().time() + g.check_settle_s + HOLD_WAIT_S
+        while (g.check and c.mode == Mode.HOLD and c.hold_rest_s < g.check_settle_s
+               and asyncio.get_running_loop().time() < end):
+            await asyncio.sleep(0.02)
 
     @command("track")
     async def track(file: str | None = None, t_s: list[float] | None = None, q_rad: list[list[float]] | None = None,

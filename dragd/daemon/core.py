@@ -317,8 +317,8 @@ class Daemon:
         rows = self.gravity_check()
         if not rows:
             if accept:
-                raise ValueError(f"mode drag --accept: the hold current is not measured yet (the arm must rest in hold "
-                                 f"for {g.check_settle_s:g} s); try again")
+                raise ValueError(f"mode drag --accept: the hold current is not measured (the arm did not rest in hold "
+                                 f"for {g.check_settle_s:g} s within the wait); let it come to rest and try again")
             return None  # not at rest long enough to judge (the runaway guard watches the drag)
         bad = [r for r in rows if not r["ok"]]
         if not bad:

@@ -22,6 +22,7 @@ from dragd.hardware.cia402 import MODE_CSP, MODE_CST
 from dragd.hardware.master import DriveError
 from dragd.realtime import demote_current_thread
 from dragd.teach.program import ProgramError, resolve_program
+from dragd.teach.request import INTERPS, SOURCES, ReplayRequest, limits_from_config
 
 if TYPE_CHECKING:
     from dragd.daemon.core import Daemon
@@ -252,8 +253,6 @@ class Motions:
     async def replay_start(self, program: str, interp: str = "linear", speed: float = 1.0, cycles: int = 1,
                            source: str | None = None) -> dict[str, Any]:
         """Plan (in the planner process, from the held pose) and run a taught program in CSP."""
-        from dragd.teach.plan import INTERPS, SOURCES
-
         d, c = self.d, self.controller
         if d.teaching.recorder is not None:
             raise ValueError(f"replay: teaching '{d.teaching.recorder.name}' is in progress; 'dragd teach stop' first")
@@ -289,8 +288,6 @@ class Motions:
 
     async def _replay_start(self, path: Path, interp: str, speed: float, cycles: int,
                             source: str | None) -> dict[str, Any]:
-        from dragd.teach.plan import ReplayRequest, limits_from_config
-
         d, c = self.d, self.controller
         was = c.mode
         # hold where the arm is (not where an older hold wanted it), stiffly: the drives' own position loops (CSP)
