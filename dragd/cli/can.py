@@ -165,7 +165,7 @@ def _common(p: argparse.ArgumentParser, timeout: float = 0.5) -> None:
 
 
 def register(sub: Any) -> None:
-    from dragd.hardware.cia301 import NMT_COMMANDS, SDO_TYPES as TYPES
+    from dragd.hardware.cia301 import NMT_COMMANDS, SDO_TYPES
 
     c = sub.add_parser("can", help="CAN bus tools: scan for CANopen nodes")
     csub = c.add_subparsers(dest="can_command", metavar="ACTION")
@@ -179,7 +179,7 @@ def register(sub: Any) -> None:
     p.add_argument("node", metavar="NODE", help="node id 1..127")
     p.add_argument("address", metavar="INDEX[:SUB]", help="object index in hex, sub-index (default 0), e.g. 6041, 1018:2")
     p.add_argument("value", metavar="VALUE", nargs="?", help="write: the value (numbers: decimal or 0x hex)")
-    p.add_argument("--type", choices=list(TYPES), default=None,
+    p.add_argument("--type", choices=list(SDO_TYPES), default=None,
                    help="data type (default: the drive EDS's type of the object; read: unsigned by length)")
     _common(p)
     p.set_defaults(func=cmd_sdo)

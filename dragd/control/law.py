@@ -142,13 +142,18 @@ def friction_current(dq_rad_s: np.ndarray, p: LawParams, out: np.ndarray | None 
         c += b
     _sliding_weight(a, p, b, a, rest_weight)
     np.multiply(b, c, out=out)
-    # viscous, direction-dependent slope
-    np.copyto(c, p.viscous_neg_A_s_per_rad)
-    np.copyto(c, p.viscous_pos_A_s_per_rad, where=pos)
-    c *= dq_rad_s
-    out += c
+    out += viscous_current(dq_rad_s, p, pos, c)
     if p.friction_scale != 1.0:
         out *= p.friction_scale
+    return out
+
+
+def viscous_current(dq_rad_s: np.ndarray, p: LawParams, pos: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """The viscous part of the friction term before ``friction_scale``: the direction's slope × q̇ (``pos``: q̇ ≥ 0,
+    as the caller has it)."""
+    np.copyto(out, p.viscous_neg_A_s_per_rad)
+    np.copyto(out, p.viscous_pos_A_s_per_rad, where=pos)
+    out *= dq_rad_s
     return out
 
 
@@ -259,12 +264,9 @@ def effects_current(q_rad: np.ndarray, dq_rad_s: np.ndarray, tau_g_Nm: np.ndarra
         np.subtract(1.0, a, out=a)
         if e.drift_viscous_change is not None and (vwarm := e.drift_viscous_warm_now) is not None:
             # the viscous part's own change: (Δ_v·g_v − Δ·g)·I_visc on top of Δ·g·I_f below
-            c, pos = ws.c, ws.pos
-            np.greater_equal(dq_rad_s, 0.0, out=pos)
-            np.copyto(c, p.viscous_neg_A_s_per_rad)
-            np.copyto(c, p.viscous_pos_A_s_per_rad, where=pos)
-            c *= dq_rad_s
-            c *= p.friction_scale  # c = I_visc, as in friction_current
+            np.greater_equal(dq_rad_s, 0.0, out=ws.pos)
+            c = viscous_current(dq_rad_s, p, ws.pos, ws.c)
+            c *= p.friction_scale  # I_visc as in friction_current
             np.maximum(a, vwarm, out=b)
             b *= e.drift_viscous_change
             b *= c

@@ -12,5 +12,6 @@ missing physical effect from a catalogue, add it to the params file, and show th
 
 # the catalogue's effects in selection order, for the command line without importing the workflow (scipy);
 # dragd.gap.effects builds CATALOGUE in this order and refuses to import if the two differ
-EFFECT_NAMES = ("viscous_friction", "stribeck", "position_periodic", "load_dependent_friction", "inertia", "temperature_drift",
-                "backlash", "back_emf", "payload_mass", "current_offset", "coulomb_friction", "torque_constant")
+EFFECT_NAMES = ("viscous_friction", "stribeck", "position_periodic", "load_dependent_friction", "inertia",
+                "temperature_drift", "backlash", "back_emf", "payload_mass", "current_offset", "coulomb_friction",
+                "torque_constant")

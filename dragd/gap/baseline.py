@@ -52,14 +52,14 @@ def given(d: GapData, params: Any, cfg: Any) -> Baseline:
     """The model of a params file overlaid on the configuration ``cfg`` (K_t/friction the file leaves null)."""
     from dragd.config import apply_params
     from dragd.identify.check import law_from_params
-    from dragd.control.law import Workspace, friction_current
+    from dragd.control.law import Workspace, friction_current, viscous_current
 
     law, _ = law_from_params(params, d.names, cfg)
     cfg2 = apply_params(cfg, params, "params")
     kt = np.array([j.kt_Nm_per_A for j in cfg2.joints])
     fr = np.empty_like(d.p.dq)
     friction_current(d.p.dq, law, fr, Workspace(d.p.dq.shape))
-    visc = np.where(d.p.dq >= 0.0, law.viscous_pos_A_s_per_rad, law.viscous_neg_A_s_per_rad) * d.p.dq
+    visc = viscous_current(d.p.dq, law, d.p.dq >= 0.0, np.empty_like(d.p.dq))
     pf = params.model_dump(mode="json")
     pred = d.G / kt + fr
     torque = d.G / kt  # what a K_t error scales (torque_constant's column)

@@ -21,10 +21,9 @@ import canopen
 from dragd.hardware.cia301 import HEARTBEAT_BASE, NMT_COB_ID, NMT_COMMANDS, SDO_RX_BASE, SDO_TX_BASE, SDO_TYPES, \
     SYNC_COB_ID, NmtState
 
-__all__ = ["BusBusy", "NodeInfo", "busy_reason", "scan", "parse_address", "TYPES", "sdo_read", "sdo_write", "nmt",
+__all__ = ["BusBusy", "NodeInfo", "busy_reason", "scan", "parse_address", "SDO_TYPES", "sdo_read", "sdo_write", "nmt",
            "NMT_COMMANDS", "eds_identity"]
 
-TYPES = SDO_TYPES
 _EDS_TYPES = {0x1: "u8", 0x2: "i8", 0x3: "i16", 0x4: "i32", 0x5: "u8", 0x6: "u16", 0x7: "u32", 0x8: "f32",
               0x9: "str", 0xA: "hex", 0xF: "hex", 0x11: "f64", 0x15: "i64", 0x1B: "u64"}
 _STATES = {int(s): s.name.lower().replace("_", "-") for s in NmtState}
@@ -184,7 +183,7 @@ def eds_type(index: int, sub: int, eds: Path | None) -> str | None:
 def decode(raw: bytes, kind: str | None) -> Any:
     if kind is None:
         return int.from_bytes(raw, "little") if len(raw) in (1, 2, 4, 8) else raw.hex()
-    fmt = TYPES[kind]
+    fmt = SDO_TYPES[kind]
     if kind == "str":
         return raw.rstrip(b"\x00").decode("utf-8", "replace")
     if kind == "hex" or fmt is None:
@@ -196,9 +195,9 @@ def decode(raw: bytes, kind: str | None) -> Any:
 
 
 def encode(value: str, kind: str) -> bytes:
-    fmt = TYPES.get(kind, "?")
+    fmt = SDO_TYPES.get(kind, "?")
     if fmt == "?":
-        raise ValueError(f"--type {kind!r}: expected one of {', '.join(TYPES)}")
+        raise ValueError(f"--type {kind!r}: expected one of {', '.join(SDO_TYPES)}")
     if kind == "str":
         return value.encode("utf-8")
     if kind == "hex":
