@@ -288,6 +288,8 @@ class GuardConfig(_Strict):
     confirm_s: Annotated[float, Field(ge=0, le=0.5), Expect("a time in [0, 0.5] s")] = 0.03
     keep_speed: Annotated[float, Field(gt=0, le=1), Expect("a fraction in (0, 1]")] = 0.85
     unexplained_max: Annotated[float, Field(gt=0, le=1), Expect("a fraction in (0, 1]")] = 0.1
+    # a runaway's residual drives the arm: r·q̇ at least this share of Σ|r_j·q̇_j| (else a braking hand's)
+    drive_share: Annotated[float, Field(ge=-1, le=1), Expect("a share in [-1, 1]")] = 0.5
     hold_ramp_s: Annotated[float, Field(ge=0, le=1), Expect("a time in [0, 1] s")] = 0.02  # drag → hold on a trip
     # check before drag: |hold current − G/K_t| may exceed the joint's static friction by this much (+ a fraction)
     check: bool = True

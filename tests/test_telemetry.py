@@ -532,8 +532,13 @@ def test_a_disk_that_stays_full_never_costs_an_older_log(tmp_path, monkeypatch):
     path = tmp_path / "t.mcap"
     w = TelemetryWriter(path, {"t_s": 1, "q_rad": 6}, capacity=4096, flush_interval_s=0.005, chunk_size=1024,
                         max_bytes=3_000, keep_rotated=3, retry_after_s=0.02)
-    run_rows(w, 3000, pause_every=50)  # roll-overs: older complete logs, the newest three kept (keep_rotated)
-    wait_for(lambda: w.stats()["pending"] == 0)
+    # roll-overs: older complete logs, the newest three kept (keep_rotated). The size is checked once per drained
+    # batch, so rows go in small batches, each drained before the next (a starved writer thread would take them all
+    # at once into one file): at least five segments, so that pruning has run
+    for _ in range(30):
+        run_rows(w, 100, pause_every=50)
+        wait_for(lambda: w.stats()["pending"] == 0)
+    assert w.stats()["segments"] >= 5, w.stats()
     full["on"] = True
     run_rows(w, 50)
     wait_for(lambda: w.stats()["failing"])  # from here no write succeeds: no roll-over, no normal pruning
@@ -552,6 +557,6 @@ def test_a_disk_that_stays_full_never_costs_an_older_log(tmp_path, monkeypatch):
     run_rows(w, 10)  # (fewer than a roll-over: normal retention, keep_rotated, would apply then)
     st = w.close()
     monkeypatch.undo()
-    assert not st["failing"] and st["written"] + st["dropped"] == 3000 + 30 * 50 + 10
+    assert not st["failing"] and st["written"] + st["dropped"] == 30 * 100 + 30 * 50 + 10
     assert summarize(path)["complete"] and summarize(path)["cycle"]["rows"] > 0
     assert set(older) <= set(tmp_path.glob("t.*.mcap"))

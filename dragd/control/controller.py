@@ -149,7 +149,8 @@ class Controller:
         if g.runaway:
             c.guard = RunawayGuard(c.n, kt, dt, GuardSettings(
                 observer_Hz=g.observer_Hz, speed_rad_s=g.speed_rad_s, residual_A=g.residual_A, confirm_s=g.confirm_s,
-                keep_speed=g.keep_speed, unexplained_max=g.unexplained_max, decide_Hz=g.decide_Hz), None, cfg.joint_names)
+                keep_speed=g.keep_speed, unexplained_max=g.unexplained_max, decide_Hz=g.decide_Hz,
+                drive_share=g.drive_share), None, cfg.joint_names)
         c.guard_hold_ramp_s = g.hold_ramp_s
         return c
 

@@ -50,6 +50,7 @@ class GuardSettings:
     settle_s: float = 0.05  # after (re)arming: observer transient, no decision
     run_max_s: float = 0.5  # a run that goes on this long without slowing is tested again (with any residual)
     decide_Hz: float = 8.0  # low-pass of the residual and speeds the decisions use (velocity noise)
+    drive_share: float = 0.5  # a runaway's residual drives the arm: r·q̇ at least this share of Σ|r_j·q̇_j|
 
 
 @dataclass(frozen=True)
@@ -193,6 +194,14 @@ class RunawayGuard:
     def _decide(self, q: np.ndarray, dq: np.ndarray, due: np.ndarray) -> Trip | None:
         """Rare path (once per candidate run): is the residual what a flange load would produce?"""
         self.checks += 1
+        # a runaway is driven by what is missing: the residual does positive work on the arm as a whole. A hand that
+        # brakes a moving arm (an upward pull on an arm moving down) can drive one joint while it brakes the others,
+        # and its force can look like a lighter load: it is the hand's while it takes more energy than it gives
+        power = float(np.dot(self.r_f, dq))
+        if power < self.s.drive_share * float(np.abs(self.r_f * dq).sum()):
+            self.hand |= due
+            self.hand_runs += 1
+            return None
         unexplained, kg = self.explain(q, self.r_f) if self.explain is not None else (0.0, float("nan"))
         if unexplained > self.s.unexplained_max:
             self.hand |= due
