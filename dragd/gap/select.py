@@ -30,6 +30,7 @@ from dragd.gap.baseline import Baseline, update_seed000
 from dragd.gap.context import FOLDS, GapData
 from dragd.gap.effects import CATALOGUE, Cols, Effect
 
+KT_PAYLOAD_ROUNDS = 4  # payload ↔ K_t gain refits (bilinear): the gains settle to 1e-4 in two or three
 AMBIGUOUS = 0.3  # another real effect whose held-out RMS is within this × the joint's noise explains it as well
 REL_MIN = 0.05  # held-out MSE must fall by 5 %
 ABS_MIN = 0.3  # ... and the explained held-out RMS must reach 0.3 × the joint's noise
@@ -143,6 +144,8 @@ class Selector:
         self.payload: Term | None = None  # shared: columns per joint in a dict
         self.payload_cols: dict[int, Term] = {}
         self.payload_theta: np.ndarray | None = None
+        # a joint's K_t error scales its whole torque current, the payload's too: (1 + gain) on its payload columns
+        self.payload_scale = np.ones(d.n)
         self.steps: list[Step] = []
         self.snapshots: list[np.ndarray] = []  # work-rate prediction after the baseline and after each step
         self._refit()
@@ -154,18 +157,37 @@ class Selector:
         """Joint target with the shared payload's current removed."""
         X, y = jm.design()
         if self.payload_theta is not None and jm.j in self.payload_cols:
-            y = y - self.payload_cols[jm.j].XH @ self.payload_theta
+            y = y - (self.payload_cols[jm.j].XH @ self.payload_theta) * self.payload_scale[jm.j]
         return y
 
     def _refit(self) -> None:
-        """Fit every joint (and the shared payload) on all rows; update the seed-000 baseline's K_t/levels."""
-        if self.payload_cols:
-            self.payload_theta = self._shared_fit(self.payload_cols, None)[0]
-        for jm in self.joints:
-            X, _ = jm.design()
-            jm.theta, _ = _fit(X, self._payload_y(jm))
-            if self.base.kind == "seed000" and jm.theta.size:
-                update_seed000(self.base, self.d, jm.j, jm.theta)
+        """Fit every joint (and the shared payload) on all rows; update the seed-000 baseline's K_t/levels. A K_t error
+        on one of the payload's joints scales the payload's current there too (i = (1 + g)·(τ_model + τ_payload)/K_t):
+        the payload and the gains are fitted in turn until the gains settle (bilinear; a few rounds)."""
+        for _ in range(KT_PAYLOAD_ROUNDS):
+            if self.payload_cols:
+                self.payload_theta = self._shared_fit(self.payload_cols, None)[0]
+            for jm in self.joints:
+                X, _ = jm.design()
+                jm.theta, _ = _fit(X, self._payload_y(jm))
+                if self.base.kind == "seed000" and jm.theta.size:
+                    update_seed000(self.base, self.d, jm.j, jm.theta)
+            scale = self._kt_scales()
+            if np.allclose(scale, self.payload_scale, rtol=0.0, atol=1e-4):
+                break
+            self.payload_scale = scale
+
+    def _kt_scales(self) -> np.ndarray:
+        """(1 + the fitted K_t gain change) on the payload's joints that carry a torque_constant term, else 1."""
+        scale = np.ones(self.d.n)
+        for j in self.payload_cols:
+            jm = self.joints[j]
+            k = jm.base.shape[1]
+            for t in jm.terms:
+                if t.effect == "torque_constant" and jm.theta is not None and jm.theta.size > k:
+                    scale[j] = max(1.0 + float(jm.theta[k]), 0.2)
+                k += t.XH.shape[1]
+        return scale
 
     def _shared_fit(self, terms: dict[int, Term], fold: int | None) -> tuple[np.ndarray, dict[int, float]]:
         """Shared θ_p over joints (their own columns eliminated); returns θ_p and per-joint held-out SSE for ``fold``."""
@@ -177,7 +199,7 @@ class Selector:
             X, y = jm.design()
             f = self.d.fold[jm.rows]
             tr = np.ones(y.size, bool) if fold is None else f != fold
-            C = t.XH
+            C = t.XH * self.payload_scale[j]
             if X.shape[1]:
                 Q, _ = np.linalg.qr(X[tr])
                 Ct = C[tr] - Q @ (Q.T @ C[tr])
@@ -463,6 +485,9 @@ class Selector:
         coupled = jm.j in self.payload_cols  # the shared payload was fitted with this term: refit it without
         cv1 = self._cv_payload() if coupled else _cv_sse(X1, y1, fold)
         jm.terms.remove(t)
+        scale = self.payload_scale[jm.j]
+        if t.effect == "torque_constant":
+            self.payload_scale[jm.j] = 1.0  # (without the K_t term its gain no longer scales the payload)
         try:
             X0, _ = jm.design()
             y0 = self._payload_y(jm)
@@ -470,6 +495,7 @@ class Selector:
             cv0 = self._cv_payload() if coupled else cv0_own
         finally:
             jm.terms.insert(idx, t)
+            self.payload_scale[jm.j] = scale
         n = y1.size
         gain = cv0 - cv1  # over every joint the payload couples, against this joint's own error
         # the effect's own fitted current (filtered, on the fit rows) must reach what selection asks it to explain: a
@@ -510,7 +536,7 @@ class Selector:
                 k += kk
         if self.payload_theta is not None:
             for j, t in self.payload_cols.items():
-                out[:, j] += t.cols.X @ self.payload_theta
+                out[:, j] += (t.cols.X @ self.payload_theta) * self.payload_scale[j]
         del d
         return out
 
