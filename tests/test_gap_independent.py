@@ -69,6 +69,19 @@ def test_two_effects_that_explain_the_data_equally_are_both_reported(tmp_path: P
     assert r["status"] == "right" and r["score"]["right_via_ambiguity"] in ({}, {"torque_constant": ["joint1"]})
 
 
+def test_a_kt_error_and_a_payload_together_are_told_apart(tmp_path: Path) -> None:
+    """K_t −15 % on joint 2 and a 1.5 kg payload, point-to-point moves: the gain scales the payload's current on joint 2
+    too (bilinear). Fitted linearly the shared payload could not be 1.5 kg on joint 2 and on the others at once: K_t
+    terms on joints 1, 3 and 4 took what a 0.15 kg "load" centred 1.4 m from the flange left."""
+    r = _run("pair__kt2+payload", tmp_path)
+    assert r["status"] == "right", r["score"]["reasons"]
+    effs = {e["effect"]: e for e in r["effects_json"]}
+    assert effs["torque_constant"]["joints"] == ["joint2"]
+    # the belief's K_t is the truth's × 0.85: the truth is 1/0.85 − 1 = +17.6 % of the model's
+    assert abs(effs["torque_constant"]["params"]["joint2"]["relative_to_model"] - (1 / 0.85 - 1)) < 0.03
+    assert abs(effs["payload_mass"]["params"]["mass_kg"] - 1.5) < 0.15
+
+
 @pytest.mark.parametrize("case_id", ["none__trapezoid_0", "none__constant_speed_0"])
 def test_nothing_named_on_clean_logs(tmp_path: Path, case_id: str) -> None:
     r = _run(case_id, tmp_path)

@@ -164,7 +164,7 @@ class Selector:
         """Fit every joint (and the shared payload) on all rows; update the seed-000 baseline's K_t/levels. A K_t error
         on one of the payload's joints scales the payload's current there too (i = (1 + g)·(τ_model + τ_payload)/K_t):
         the payload and the gains are fitted in turn until the gains settle (bilinear; a few rounds)."""
-        for _ in range(KT_PAYLOAD_ROUNDS):
+        for k in range(KT_PAYLOAD_ROUNDS):
             if self.payload_cols:
                 self.payload_theta = self._shared_fit(self.payload_cols, None)[0]
             for jm in self.joints:
@@ -173,15 +173,20 @@ class Selector:
                 if self.base.kind == "seed000" and jm.theta.size:
                     update_seed000(self.base, self.d, jm.j, jm.theta)
             scale = self._kt_scales()
-            if np.allclose(scale, self.payload_scale, rtol=0.0, atol=1e-4):
+            settled = np.allclose(scale, self.payload_scale, rtol=0.0, atol=1e-4)
+            if not self.payload_cols:  # no payload fitted yet: the gains only wait for one (a candidate's columns)
+                self.payload_scale = scale
+                break
+            if settled or k == KT_PAYLOAD_ROUNDS - 1:  # (the scale in use is the one the fit above used)
                 break
             self.payload_scale = scale
 
     def _kt_scales(self) -> np.ndarray:
-        """(1 + the fitted K_t gain change) on the payload's joints that carry a torque_constant term, else 1."""
+        """(1 + the fitted K_t gain change) on the joints that carry a torque_constant term, else 1: the factor on
+        their payload columns (a payload candidate's too)."""
         scale = np.ones(self.d.n)
-        for j in self.payload_cols:
-            jm = self.joints[j]
+        for jm in self.joints:
+            j = jm.j
             k = jm.base.shape[1]
             for t in jm.terms:
                 if t.effect == "torque_constant" and jm.theta is not None and jm.theta.size > k:

@@ -79,6 +79,7 @@ TELEMETRY = {  # session variant -> `dragd run` telemetry options (None: no tele
     "off": None,
     "foxglove": [],  # as configured by default: every cycle + Foxglove channels at 30 Hz
     "plain": ["--no-foxglove"],
+    "view": None,  # no telemetry file; `dragd view` beside the daemon (its own process, polling status at 50 Hz)
 }
 
 
@@ -114,6 +115,7 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
         time.sleep(0.5)
         rig.must("mode", mode="drag")
         rig.sim_call("operator", scenario="flange_drag")
+        viewer = _viewer(rig.socket, tmp / "view.rrd", seconds) if telemetry == "view" else None
         pids = (rig.daemon.proc.pid, rig.sim.proc.pid)
         before = rig.must("status")
         sim0, w0 = rig.sim_call("state"), time.monotonic()
@@ -121,6 +123,8 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
         cpu0 = [process_cpu_s(p) for p in pids]
         time.sleep(seconds)
         cpu1 = [process_cpu_s(p) for p in pids]
+        if viewer is not None:
+            _viewer_done(viewer, tmp / "view.rrd")
         for spy in spies:
             spy.wait(60)
         sim1, w1 = rig.sim_call("state"), time.monotonic()
@@ -168,6 +172,37 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
         "rtf": (sim1["t"] - sim0["t"]) / (w1 - w0),  # sim time over wall time, this session only
         "telemetry_dropped": tel1.get("dropped", 0) - tel0.get("dropped", 0) if tel1 else 0,
     }
+
+
+def _viewer(socket: str, rrd: Path, seconds: float) -> subprocess.Popen:
+    """`dragd view` beside the daemon for the session (a Rerun recording to ``rrd``: no viewer window here)."""
+    try:
+        import rerun  # noqa: F401
+    except ImportError:
+        raise BenchError("loop_period_p99_us_view needs the optional extra dragd[rerun] (rerun-sdk)") from None
+    proc = subprocess.Popen([sys.executable, "-m", "dragd", "view", "--socket", socket, "--save", str(rrd),
+                             "--seconds", f"{seconds + 30:.0f}"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True)
+    time.sleep(3.0)  # its start-up (imports, the URDF) before the measured window
+    if proc.poll() is not None:
+        raise BenchError(f"dragd view exited at start (exit {proc.returncode}): {proc.stderr.read()[-500:]}")
+    return proc
+
+
+def _viewer_done(proc: subprocess.Popen, rrd: Path) -> None:
+    """Stop the viewer (SIGINT: it closes its recording) and check that it recorded throughout."""
+    import signal
+
+    alive = proc.poll() is None
+    proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(30)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+    if not alive or not rrd.exists() or rrd.stat().st_size == 0:
+        raise BenchError(f"dragd view did not record through the session (exit {proc.returncode}, "
+                         f"{rrd} {'missing' if not rrd.exists() else 'empty'}): {proc.stderr.read()[-500:]}")
 
 
 def _opts(opts: dict) -> tuple[float, str | None, int, str | None, str | None]:
@@ -248,6 +283,18 @@ def _telemetry(opts: dict, variant: str) -> dict:
 def loop_period_p99_us_foxglove(opts: dict) -> float:
     """loop_period_p99_us with the telemetry MCAP written (every cycle + Foxglove channels at 30 Hz, default)."""
     return float(_telemetry(opts, "foxglove")["period_p99_us"])
+
+
+@benchmark("loop_period_p99_us_view", "us")
+def loop_period_p99_us_view(opts: dict) -> float:
+    """loop_period_p99_us with `dragd view` beside the daemon (polling its status at 50 Hz, a Rerun recording)."""
+    return float(_session(*_opts(opts), telemetry="view")["period_p99_us"])
+
+
+@benchmark("loop_missed_ratio_view", "ratio")
+def loop_missed_ratio_view(opts: dict) -> float:
+    """loop_missed_ratio with `dragd view` beside the daemon."""
+    return float(_session(*_opts(opts), telemetry="view")["missed_ratio"])
 
 
 @benchmark("loop_period_p99_us_telemetry_plain", "us")
