@@ -180,12 +180,13 @@ def _viewer(socket: str, rrd: Path, seconds: float) -> subprocess.Popen:
         import rerun  # noqa: F401
     except ImportError:
         raise BenchError("loop_period_p99_us_view needs the optional extra dragd[rerun] (rerun-sdk)") from None
-    proc = subprocess.Popen([sys.executable, "-m", "dragd", "view", "--socket", socket, "--save", str(rrd),
-                             "--seconds", f"{seconds + 30:.0f}"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            text=True)
+    err = rrd.with_suffix(".err")  # (a file, not a pipe nobody reads while the session runs)
+    with err.open("w") as f:
+        proc = subprocess.Popen([sys.executable, "-m", "dragd", "view", "--socket", socket, "--save", str(rrd),
+                                 "--seconds", f"{seconds + 30:.0f}"], stdout=subprocess.DEVNULL, stderr=f)
     time.sleep(3.0)  # its start-up (imports, the URDF) before the measured window
     if proc.poll() is not None:
-        raise BenchError(f"dragd view exited at start (exit {proc.returncode}): {proc.stderr.read()[-500:]}")
+        raise BenchError(f"dragd view exited at start (exit {proc.returncode}): {err.read_text()[-500:]}")
     return proc
 
 
@@ -201,8 +202,10 @@ def _viewer_done(proc: subprocess.Popen, rrd: Path) -> None:
         proc.kill()
         proc.wait()
     if not alive or not rrd.exists() or rrd.stat().st_size == 0:
+        err = rrd.with_suffix(".err")
         raise BenchError(f"dragd view did not record through the session (exit {proc.returncode}, "
-                         f"{rrd} {'missing' if not rrd.exists() else 'empty'}): {proc.stderr.read()[-500:]}")
+                         f"{rrd} {'missing' if not rrd.exists() else 'empty'}): "
+                         f"{err.read_text()[-500:] if err.exists() else ''}")
 
 
 def _opts(opts: dict) -> tuple[float, str | None, int, str | None, str | None]:
