@@ -197,8 +197,8 @@ class RunawayGuard:
         # a runaway is driven by what is missing: the residual does positive work on the arm as a whole. A hand that
         # brakes a moving arm (an upward pull on an arm moving down) can drive one joint while it brakes the others,
         # and its force can look like a lighter load: it is the hand's while it takes more energy than it gives
-        power = float(np.dot(self.r_f, dq))
-        if power < self.s.drive_share * float(np.abs(self.r_f * dq).sum()):
+        p = self.r_f * dq  # (rare path: allocates)
+        if float(p.sum()) < self.s.drive_share * float(np.abs(p).sum()):
             self.hand |= due
             self.hand_runs += 1
             return None

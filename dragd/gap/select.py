@@ -30,7 +30,7 @@ from dragd.gap.baseline import Baseline, update_seed000
 from dragd.gap.context import FOLDS, GapData
 from dragd.gap.effects import CATALOGUE, Cols, Effect
 
-KT_PAYLOAD_ROUNDS = 4  # payload ↔ K_t gain refits (bilinear): the gains settle to 1e-4 in two or three
+KT_PAYLOAD_ROUNDS = 8  # payload ↔ K_t alternating refits: the gains settle ~5× per round (0.12 → 1e-4 in 5)
 AMBIGUOUS = 0.3  # another real effect whose held-out RMS is within this × the joint's noise explains it as well
 REL_MIN = 0.05  # held-out MSE must fall by 5 %
 ABS_MIN = 0.3  # ... and the explained held-out RMS must reach 0.3 × the joint's noise
@@ -163,23 +163,40 @@ class Selector:
     def _refit(self) -> None:
         """Fit every joint (and the shared payload) on all rows; update the seed-000 baseline's K_t/levels. A K_t error
         on one of the payload's joints scales the payload's current there too (i = (1 + g)·(τ_model + τ_payload)/K_t):
-        the payload and the gains are fitted in turn until the gains settle (bilinear; a few rounds)."""
-        for k in range(KT_PAYLOAD_ROUNDS):
+        alternating least squares — the payload with each joint's columns scaled by 1 + g, then each joint with its
+        gain's column the whole torque current (the model's and the payload's) — until the gains settle."""
+        for _ in range(KT_PAYLOAD_ROUNDS):
             if self.payload_cols:
                 self.payload_theta = self._shared_fit(self.payload_cols, None)[0]
             for jm in self.joints:
-                X, _ = jm.design()
-                jm.theta, _ = _fit(X, self._payload_y(jm))
+                X, y = jm.design()
+                k = self._kt_index(jm)
+                if k is None:
+                    y = self._payload_y(jm)
+                else:  # the gain scales the payload's current too: its column carries it, the target loses it unscaled
+                    pay = self.payload_cols[jm.j].XH @ self.payload_theta
+                    X = X.copy()
+                    X[:, k] += pay
+                    y = y - pay
+                jm.theta, _ = _fit(X, y)
                 if self.base.kind == "seed000" and jm.theta.size:
                     update_seed000(self.base, self.d, jm.j, jm.theta)
             scale = self._kt_scales()
             settled = np.allclose(scale, self.payload_scale, rtol=0.0, atol=1e-4)
-            if not self.payload_cols:  # no payload fitted yet: the gains only wait for one (a candidate's columns)
-                self.payload_scale = scale
+            self.payload_scale = scale  # (what the joints' fits above imply: X·θ + (1 + g)·P·θ_p is their prediction)
+            if not self.payload_cols or settled:
                 break
-            if settled or k == KT_PAYLOAD_ROUNDS - 1:  # (the scale in use is the one the fit above used)
-                break
-            self.payload_scale = scale
+
+    def _kt_index(self, jm: JointModel) -> int | None:
+        """The column of the joint's torque_constant term in its design, when a payload is fitted on the joint."""
+        if self.payload_theta is None or jm.j not in self.payload_cols:
+            return None
+        k = jm.base.shape[1]
+        for t in jm.terms:
+            if t.effect == "torque_constant":
+                return k
+            k += t.XH.shape[1]
+        return None
 
     def _kt_scales(self) -> np.ndarray:
         """(1 + the fitted K_t gain change) on the joints that carry a torque_constant term, else 1: the factor on
@@ -306,7 +323,7 @@ class Selector:
             X, y = jm.design()
             per_cv0[j] = _cv_sse(X, y, self.d.fold[jm.rows])
             _, s0 = _fit(X, y)
-            _, s1 = _fit(X, y - t.XH @ th)
+            _, s1 = _fit(X, y - (t.XH @ th) * self.payload_scale[j])
             sse0 += s0
             sse1 += s1
             n_tot += y.size
@@ -398,6 +415,9 @@ class Selector:
                 resid = self._residual(jm) + own  # the residual of the model without this effect (for spectra)
                 idx = jm.terms.index(t)
                 jm.terms.remove(t)
+                scale = self.payload_scale[jm.j]
+                if t.effect == "torque_constant":
+                    self.payload_scale[jm.j] = 1.0  # (without the K_t term its gain no longer scales the payload)
                 try:
                     X0, _ = jm.design()
                     y0 = self._payload_y(jm)
@@ -430,6 +450,7 @@ class Selector:
                                 "chosen_cv_rmse_after_A": math.sqrt(max(cv1, 0.0) / n)}
                 finally:
                     jm.terms.insert(idx, t)
+                    self.payload_scale[jm.j] = scale
 
     def _restrict(self, jm: JointModel, exclude: np.ndarray) -> None:
         """Drop the joint's fit rows inside ``exclude`` (an effect's uncertain samples) from every later fit and score

@@ -115,16 +115,20 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
         time.sleep(0.5)
         rig.must("mode", mode="drag")
         rig.sim_call("operator", scenario="flange_drag")
-        viewer = _viewer(rig.socket, tmp / "view.rrd", seconds) if telemetry == "view" else None
-        pids = (rig.daemon.proc.pid, rig.sim.proc.pid)
-        before = rig.must("status")
-        sim0, w0 = rig.sim_call("state"), time.monotonic()
-        spies = _py_spy(profile, seconds, {"daemon": pids[0], "sim": pids[1]})
-        cpu0 = [process_cpu_s(p) for p in pids]
-        time.sleep(seconds)
-        cpu1 = [process_cpu_s(p) for p in pids]
-        if viewer is not None:
-            _viewer_done(viewer, tmp / "view.rrd")
+        viewer = _viewer(rig.socket, tmp / "view.rrd", seconds, config) if telemetry == "view" else None
+        try:
+            pids = (rig.daemon.proc.pid, rig.sim.proc.pid)
+            before = rig.must("status")
+            sim0, w0 = rig.sim_call("state"), time.monotonic()
+            spies = _py_spy(profile, seconds, {"daemon": pids[0], "sim": pids[1]})
+            cpu0 = [process_cpu_s(p) for p in pids]
+            time.sleep(seconds)
+            cpu1 = [process_cpu_s(p) for p in pids]
+            if viewer is not None:
+                _viewer_done(viewer, tmp / "view.rrd")
+        finally:  # (whatever failed above: the viewer does not outlive the session)
+            if viewer is not None and viewer.poll() is None:
+                _stop(viewer)
         for spy in spies:
             spy.wait(60)
         sim1, w1 = rig.sim_call("state"), time.monotonic()
@@ -174,7 +178,7 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
     }
 
 
-def _viewer(socket: str, rrd: Path, seconds: float) -> subprocess.Popen:
+def _viewer(socket: str, rrd: Path, seconds: float, config: str | None) -> subprocess.Popen:
     """`dragd view` beside the daemon for the session (a Rerun recording to ``rrd``: no viewer window here)."""
     try:
         import rerun  # noqa: F401
@@ -183,7 +187,8 @@ def _viewer(socket: str, rrd: Path, seconds: float) -> subprocess.Popen:
     err = rrd.with_suffix(".err")  # (a file, not a pipe nobody reads while the session runs)
     with err.open("w") as f:
         proc = subprocess.Popen([sys.executable, "-m", "dragd", "view", "--socket", socket, "--save", str(rrd),
-                                 "--seconds", f"{seconds + 30:.0f}"], stdout=subprocess.DEVNULL, stderr=f)
+                                 "--seconds", f"{seconds + 30:.0f}", *(["--config", config] if config else [])],
+                                stdout=subprocess.DEVNULL, stderr=f)
     time.sleep(3.0)  # its start-up (imports, the URDF) before the measured window
     if proc.poll() is not None:
         raise BenchError(f"dragd view exited at start (exit {proc.returncode}): {err.read_text()[-500:]}")
@@ -191,21 +196,26 @@ def _viewer(socket: str, rrd: Path, seconds: float) -> subprocess.Popen:
 
 
 def _viewer_done(proc: subprocess.Popen, rrd: Path) -> None:
-    """Stop the viewer (SIGINT: it closes its recording) and check that it recorded throughout."""
+    """Stop the viewer and check that it recorded throughout."""
+    alive = proc.poll() is None
+    _stop(proc)
+    if not alive or not rrd.exists() or rrd.stat().st_size == 0:
+        err = rrd.with_suffix(".err")
+        raise BenchError(f"dragd view did not record through the session (exit {proc.returncode}, "
+                         f"{rrd} {'missing' if not rrd.exists() else 'empty'}): "
+                         f"{err.read_text()[-500:] if err.exists() else ''}")
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    """SIGINT (the view closes its recording), then SIGKILL after 30 s."""
     import signal
 
-    alive = proc.poll() is None
     proc.send_signal(signal.SIGINT)
     try:
         proc.wait(30)
     except subprocess.TimeoutExpired:
         proc.kill()
         proc.wait()
-    if not alive or not rrd.exists() or rrd.stat().st_size == 0:
-        err = rrd.with_suffix(".err")
-        raise BenchError(f"dragd view did not record through the session (exit {proc.returncode}, "
-                         f"{rrd} {'missing' if not rrd.exists() else 'empty'}): "
-                         f"{err.read_text()[-500:] if err.exists() else ''}")
 
 
 def _opts(opts: dict) -> tuple[float, str | None, int, str | None, str | None]:
