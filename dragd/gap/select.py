@@ -21,6 +21,8 @@ drive's unobserved reference): they leave that joint's rows for every later fit 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -64,6 +66,15 @@ class JointModel:
             if t.offH is not None:
                 y -= t.offH
         return X, y
+
+    def col(self, t: Term) -> int:
+        """The first column of term ``t`` in :meth:`design` (the base columns first, then each term's in order)."""
+        return self.base.shape[1] + sum(tt.XH.shape[1] for tt in self.terms[:self.terms.index(t)])
+
+    def kt_col(self) -> int | None:
+        """The column of the joint's torque_constant term, if it has one."""
+        t = next((tt for tt in self.terms if tt.effect == "torque_constant"), None)
+        return None if t is None else self.col(t)
 
 
 @dataclass
@@ -191,25 +202,31 @@ class Selector:
         """The column of the joint's torque_constant term in its design, when a payload is fitted on the joint."""
         if self.payload_theta is None or jm.j not in self.payload_cols:
             return None
-        k = jm.base.shape[1]
-        for t in jm.terms:
-            if t.effect == "torque_constant":
-                return k
-            k += t.XH.shape[1]
-        return None
+        return jm.kt_col()
 
     def _kt_scales(self) -> np.ndarray:
         """(1 + the fitted K_t gain change) on the joints that carry a torque_constant term, else 1: the factor on
-        their payload columns (a payload candidate's too)."""
+        their payload columns (a payload candidate's too). (≥ 0.2: the term's physical range, K_t within ×5.)"""
         scale = np.ones(self.d.n)
         for jm in self.joints:
-            j = jm.j
-            k = jm.base.shape[1]
-            for t in jm.terms:
-                if t.effect == "torque_constant" and jm.theta is not None and jm.theta.size > k:
-                    scale[j] = max(1.0 + float(jm.theta[k]), 0.2)
-                k += t.XH.shape[1]
+            k = jm.kt_col()
+            if k is not None and jm.theta is not None and jm.theta.size > k:
+                scale[jm.j] = max(1.0 + float(jm.theta[k]), 0.2)
         return scale
+
+    @contextmanager
+    def _without(self, jm: JointModel, t: Term) -> Iterator[None]:
+        """Term ``t`` taken out of joint ``jm`` for a comparison (a K_t term's gain no longer scales the joint's
+        payload columns meanwhile); put back as it was."""
+        idx, scale = jm.terms.index(t), self.payload_scale[jm.j]
+        jm.terms.remove(t)
+        if t.effect == "torque_constant":
+            self.payload_scale[jm.j] = 1.0
+        try:
+            yield
+        finally:
+            jm.terms.insert(idx, t)
+            self.payload_scale[jm.j] = scale
 
     def _shared_fit(self, terms: dict[int, Term], fold: int | None) -> tuple[np.ndarray, dict[int, float]]:
         """Shared θ_p over joints (their own columns eliminated); returns θ_p and per-joint held-out SSE for ``fold``."""
@@ -410,15 +427,10 @@ class Selector:
                 X1, _ = jm.design()
                 y1 = self._payload_y(jm)
                 cv1, n = _cv_sse(X1, y1, fold), y1.size
-                k = jm.base.shape[1] + sum(tt.XH.shape[1] for tt in jm.terms[:jm.terms.index(t)])
+                k = jm.col(t)
                 own = t.cols.X @ jm.theta[k:k + t.cols.X.shape[1]] + (t.cols.offset if t.cols.offset is not None else 0)
                 resid = self._residual(jm) + own  # the residual of the model without this effect (for spectra)
-                idx = jm.terms.index(t)
-                jm.terms.remove(t)
-                scale = self.payload_scale[jm.j]
-                if t.effect == "torque_constant":
-                    self.payload_scale[jm.j] = 1.0  # (without the K_t term its gain no longer scales the payload)
-                try:
+                with self._without(jm, t):
                     X0, _ = jm.design()
                     y0 = self._payload_y(jm)
                     cv0 = _cv_sse(X0, y0, fold)
@@ -448,9 +460,6 @@ class Selector:
                             st.ambiguous.setdefault(eff.name, {})[nm] = {
                                 "cv_rmse_after_A": math.sqrt(max(cva, 0.0) / n),
                                 "chosen_cv_rmse_after_A": math.sqrt(max(cv1, 0.0) / n)}
-                finally:
-                    jm.terms.insert(idx, t)
-                    self.payload_scale[jm.j] = scale
 
     def _restrict(self, jm: JointModel, exclude: np.ndarray) -> None:
         """Drop the joint's fit rows inside ``exclude`` (an effect's uncertain samples) from every later fit and score
@@ -506,22 +515,14 @@ class Selector:
         fold = self.d.fold[jm.rows]
         X1, _ = jm.design()
         y1 = self._payload_y(jm)
-        idx = jm.terms.index(t)
-        k = jm.base.shape[1] + sum(tt.XH.shape[1] for tt in jm.terms[:idx])
+        k = jm.col(t)
         coupled = jm.j in self.payload_cols  # the shared payload was fitted with this term: refit it without
         cv1 = self._cv_payload() if coupled else _cv_sse(X1, y1, fold)
-        jm.terms.remove(t)
-        scale = self.payload_scale[jm.j]
-        if t.effect == "torque_constant":
-            self.payload_scale[jm.j] = 1.0  # (without the K_t term its gain no longer scales the payload)
-        try:
+        with self._without(jm, t):
             X0, _ = jm.design()
             y0 = self._payload_y(jm)
             cv0_own = _cv_sse(X0, y0, fold)
             cv0 = self._cv_payload() if coupled else cv0_own
-        finally:
-            jm.terms.insert(idx, t)
-            self.payload_scale[jm.j] = scale
         n = y1.size
         gain = cv0 - cv1  # over every joint the payload couples, against this joint's own error
         # the effect's own fitted current (filtered, on the fit rows) must reach what selection asks it to explain: a

@@ -301,13 +301,13 @@ def loop_period_p99_us_foxglove(opts: dict) -> float:
 @benchmark("loop_period_p99_us_view", "us")
 def loop_period_p99_us_view(opts: dict) -> float:
     """loop_period_p99_us with `dragd view` beside the daemon (polling its status at 50 Hz, a Rerun recording)."""
-    return float(_session(*_opts(opts), telemetry="view")["period_p99_us"])
+    return float(_telemetry(opts, "view")["period_p99_us"])
 
 
 @benchmark("loop_missed_ratio_view", "ratio")
 def loop_missed_ratio_view(opts: dict) -> float:
     """loop_missed_ratio with `dragd view` beside the daemon."""
-    return float(_session(*_opts(opts), telemetry="view")["missed_ratio"])
+    return float(_telemetry(opts, "view")["missed_ratio"])
 
 
 @benchmark("loop_period_p99_us_telemetry_plain", "us")
