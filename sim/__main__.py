@@ -43,6 +43,9 @@ def main(argv: list[str] | None = None) -> int:
     run_p.add_argument("--json", action="store_true", help="print the exit summary as one JSON object")
     run_p.add_argument("--realtime-priority", type=int, metavar="N",
                        help="SCHED_FIFO priority for the physics and bus threads (needs CAP_SYS_NICE or RLIMIT_RTPRIO)")
+    run_p.add_argument("--batch-frames", action="store_true",
+                       help="udp_multicast: answer each SYNC with one datagram carrying every drive's TPDOs (dragd's "
+                            "buses read it; python-can's own udp_multicast tools do not: leave it off for them)")
     run_p.add_argument("--cpus", help="pin the physics and bus threads to these CPUs, e.g. 1 or 0,1")
     run_p.add_argument("--physics-rate-Hz", type=int, metavar="HZ", dest="physics_rate_Hz",
                        help="override the truth's physics_rate_Hz: a multiple of 1000 in [1000, 50000]; below the "
@@ -106,7 +109,8 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         summary = run(truth, args.bus, scenario=args.scenario, control_path=args.control, seconds=args.seconds,
-                      realtime_priority=args.realtime_priority, cpus=cpus, ready=ready)
+                      realtime_priority=args.realtime_priority, cpus=cpus, batch_frames=args.batch_frames,
+                      ready=ready)
     except (ConfigError, ValueError, OSError, can.CanError) as exc:
         print(f"sim: {exc}", file=sys.stderr)
         return 2

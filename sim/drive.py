@@ -191,6 +191,8 @@ class _Consumer:
 class SimDrive:
     """A CANopen joint drive node backed by an EDS, exchanging signals with the physics through AxisIO."""
 
+    routes_generation = 0  # bumped by every drive whose COB-ID routing changes (SimNetwork rebuilds its tables)
+
     def __init__(self, params: DriveParams, io: AxisIO, send: Callable[[can.Message], None],
                  eds_path: str | Path = DEFAULT_EDS_PATH) -> None:
         self.params = params
@@ -210,7 +212,6 @@ class SimDrive:
         self.tpdos = [PdoChannel(n, False, 0x1800 + n - 1, 0x1A00 + n - 1) for n in range(1, 5)]
         self._install_hooks()
         self._consumers: dict[int, _Consumer] = {}
-        self.route_epoch = 0
         self.nmt_state = NmtState.INITIALISING
         self._sim_t = 0.0
         self.encoder_offset_counts = 0  # an injected encoder jump (sim/faults.py), added to 6064h
@@ -1112,7 +1113,7 @@ class SimDrive:
         ids.update(ch.cob_id for ch in self.rpdos if ch.valid)
         ids.update(HEARTBEAT_BASE + node for node in self._consumers)
         self._rx_ids = frozenset(ids)
-        self.route_epoch += 1
+        SimDrive.routes_generation += 1  # one number for every drive of the process: a network's cheap check
 
     # ==================================================================================================
     # transmit

@@ -15,6 +15,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 
 import can
@@ -54,6 +55,8 @@ class SimNetwork:
         self.recv_timeout_s = recv_timeout_s
         self.counters = NetworkCounters()
         self.rx_muted: Callable[[], bool] | None = None  # an injected link-down (sim/faults.py): drop what arrives
+        # the TPDOs a SYNC triggers leave in one datagram where the bus batches (udp_multicast, batch_frames)
+        self._batch: Callable[[], AbstractContextManager[None]] = getattr(bus, "batch", nullcontext)
         self._routes: dict[int, tuple[SimDrive, ...]] = {}
         self._sync_routes: dict[int, tuple[SimDrive, ...]] = {}
         self._epoch = -1
@@ -113,8 +116,7 @@ class SimNetwork:
             counters.error_frames += 1
             return
         counters.frames += 1
-        epoch = sum(d.route_epoch for d in self.drives)
-        if epoch != self._epoch:
+        if SimDrive.routes_generation != self._epoch:
             self._rebuild_routes()
         cob = msg.arbitration_id
         try:
@@ -137,8 +139,9 @@ class SimNetwork:
 
     def _on_sync(self, msg: can.Message, drives: tuple[SimDrive, ...]) -> None:
         now = time.monotonic()
-        for drive in drives:
-            drive.on_sync(now)
+        with self._batch():
+            for drive in drives:
+                drive.on_sync(now)
         counters = self.counters
         counters.syncs += 1
         if msg.timestamp:
@@ -149,7 +152,7 @@ class SimNetwork:
                 counters.late_responses += 1
 
     def _rebuild_routes(self) -> None:
-        epoch = sum(d.route_epoch for d in self.drives)
+        epoch = SimDrive.routes_generation
         routes: dict[int, list[SimDrive]] = {}
         syncs: dict[int, list[SimDrive]] = {}
         for drive in self.drives:

@@ -104,8 +104,10 @@ class SimProcess:
 
     def __init__(self, truth: Truth, bus: str | None = None, *, scenario: str | Path | dict[str, Any] | None = None,
                  control_path: str | Path | None = None, seconds: float | None = None,
-                 realtime_priority: int | None = None, cpus: set[int] | None = None) -> None:
+                 realtime_priority: int | None = None, cpus: set[int] | None = None,
+                 batch_frames: bool = False) -> None:
         self.truth = truth
+        self.batch_frames = batch_frames
         self.realtime_priority = realtime_priority
         self.cpus = cpus
         self.realtime: dict[str, Any] | None = None
@@ -164,7 +166,7 @@ class SimProcess:
             # before any thread starts: the bus reader inherits it (it answers SYNC); the control thread demotes
             self.realtime = set_realtime(self.realtime_priority, self.cpus)
         try:
-            self.buses = [open_bus(spec) for spec in self.specs]
+            self.buses = [open_bus(spec, batch_frames=self.batch_frames) for spec in self.specs]
             self.injectors = [FaultInjector(bus) for bus in self.buses]
             for j, ax in zip(self.truth.joints, self.axes):
                 spec, inj = self.specs[j.bus_index], self.injectors[j.bus_index]
@@ -462,11 +464,11 @@ class SimProcess:
 
 def run(truth: Truth, bus: str | None = None, *, scenario: str | Path | dict[str, Any] | None = None,
         control_path: str | Path | None = None, seconds: float | None = None,
-        realtime_priority: int | None = None, cpus: set[int] | None = None,
+        realtime_priority: int | None = None, cpus: set[int] | None = None, batch_frames: bool = False,
         ready: Callable[[SimProcess], None] | None = None) -> dict[str, Any]:
     """Run the sim process in this (main) thread until SIGTERM/SIGINT, ``stop`` or ``seconds``; the summary."""
     proc = SimProcess(truth, bus, scenario=scenario, control_path=control_path, seconds=seconds,
-                      realtime_priority=realtime_priority, cpus=cpus)
+                      realtime_priority=realtime_priority, cpus=cpus, batch_frames=batch_frames)
     previous = {sig: signal.signal(sig, lambda *_: proc.request_stop()) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
         return proc.run(ready)

@@ -288,6 +288,93 @@ def test_udp_multicast_receive_own_messages_returns_the_echo(request: pytest.Fix
         plain.shutdown()
 
 
+# --- batched datagrams (the simulated drives' SYNC answers) -----------------------------------------------
+def _frames(n: int, base: int = 0x181) -> list[can.Message]:
+    return [can.Message(arbitration_id=base + i, data=bytes([i, 0xA5, i]), is_extended_id=False) for i in range(n)]
+
+
+def test_udp_multicast_batch_leaves_as_one_datagram_and_arrives_as_frames(request: pytest.FixtureRequest) -> None:
+    """Six frames sent in a batch: one datagram; a peer gets six frames in order (recv and drain), none lost."""
+    spec = parse_bus(f"udp_multicast:{unique_group(request.node.name)}")
+    tx, rx, rx2 = open_bus(spec, batch_frames=True), open_bus(spec), open_bus(spec)
+    try:
+        with tx.batch():
+            for msg in _frames(6):
+                tx.send(msg)
+            assert rx.recv(0.1) is None, "a frame left before the batch ended"
+        got = drain(rx, 0.3)
+        assert [(m.arbitration_id, bytes(m.data)) for m in got] == [(m.arbitration_id, bytes(m.data))
+                                                                    for m in _frames(6)]
+        assert all(m.is_rx and m.timestamp > 0 for m in got)
+        time.sleep(0.05)
+        data, others = [], []
+        assert rx2.drain(lambda cob, d: cob < 0x184 and not data.append((cob, bytes(d))), others.append) == 1
+        assert [c for c, _ in data] == [0x181, 0x182, 0x183] and [m.arbitration_id for m in others] == [0x184, 0x185,
+                                                                                                           0x186]
+        c = tx.counters()
+        assert c.frames_sent == 6 and c.datagrams_sent == 1
+        assert tx.recv(0.1) is None and tx.counters().own_echoes_dropped == 6, "own batch must be dropped whole"
+        for r in (rx, rx2):
+            rc = r.counters()
+            assert rc.frames_received == 6 and rc.gaps == 0 and rc.reordered == 0 and rc.undecodable == 0
+    finally:
+        for b in (tx, rx, rx2):
+            b.shutdown()
+
+
+def test_udp_multicast_batch_is_off_by_default_and_per_thread(request: pytest.FixtureRequest) -> None:
+    """Without batch_frames a batch block changes nothing (python-can's tools read every datagram); with it,
+    a frame another thread sends during the block leaves at once, before the batch."""
+    import threading
+
+    spec = parse_bus(f"udp_multicast:{unique_group(request.node.name)}")
+    plain, batching, rx = open_bus(spec), open_bus(spec, batch_frames=True), open_bus(spec)
+    try:
+        with plain.batch():
+            for msg in _frames(3):
+                plain.send(msg)
+        assert plain.counters().datagrams_sent == 3
+        assert [m.arbitration_id for m in drain(rx, 0.3)] == [0x181, 0x182, 0x183]
+        with batching.batch():
+            batching.send(_frames(1, 0x201)[0])
+            t = threading.Thread(target=batching.send, args=(_frames(1, 0x301)[0],))
+            t.start()
+            t.join()
+            with batching.batch():  # nested: part of the outer batch
+                batching.send(_frames(1, 0x202)[0])
+        assert [m.arbitration_id for m in drain(rx, 0.3)] == [0x301, 0x201, 0x202]
+        c, rc = batching.counters(), rx.counters()
+        assert c.frames_sent == 3 and c.datagrams_sent == 2
+        assert rc.gaps == 0 and rc.reordered == 0, "sequence numbers must follow the order frames leave in"
+    finally:
+        for b in (plain, batching, rx):
+            b.shutdown()
+
+
+def test_udp_multicast_broken_frame_in_a_batch_is_counted(request: pytest.FixtureRequest) -> None:
+    """A datagram whose second map is cut short: the first frame is delivered, the break counted, nothing hangs."""
+    group = unique_group(request.node.name)
+    rx = open_bus(parse_bus(f"udp_multicast:{group}"))
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
+        sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)
+        frame = {"channel": 7 << 32 | 1, "timestamp": 0.0, "arbitration_id": 0x181, "is_extended_id": False,
+                 "is_remote_frame": False, "is_error_frame": False, "dlc": 1, "data": b"\x01", "is_fd": False,
+                 "bitrate_switch": False, "error_state_indicator": False}
+        second = msgpack.packb({**frame, "channel": 7 << 32 | 2, "arbitration_id": 0x182}, use_bin_type=True)
+        not_a_map = msgpack.packb({**frame, "channel": 7 << 32 | 3}, use_bin_type=True) + msgpack.packb([1, 2])
+        sock.sendto(msgpack.packb(frame, use_bin_type=True) + second[:-3], (group, DEFAULT_UDP_PORT))
+        sock.sendto(not_a_map, (group, DEFAULT_UDP_PORT))
+        got = drain(rx, 0.3)
+        assert [(m.arbitration_id, bytes(m.data)) for m in got] == [(0x181, b"\x01"), (0x181, b"\x01")]
+        c = rx.counters()
+        assert c.undecodable == 2 and c.frames_received == 2
+    finally:
+        sock.close()
+        rx.shutdown()
+
+
 # --- virtual and SocketCAN ---------------------------------------------------------------------------------
 def test_virtual_bus_in_process(request: pytest.FixtureRequest) -> None:
     spec = parse_bus(f"virtual:{request.node.name}")

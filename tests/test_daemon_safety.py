@@ -165,7 +165,9 @@ def test_full_telemetry_disk_never_stalls_control(tmp_path):
         s0 = rig.must("status")
         time.sleep(2.0)
         s1 = rig.must("status")
-    assert s1["cycles"] - s0["cycles"] > 1500  # the loop kept running at ~1 kHz
+    # the loop kept running (a write blocked on the full disk would stop it for good); not a rate check: on a
+    # loaded host a share of the 2000 ticks is missed, which the loop benchmarks measure, not this test
+    assert s1["cycles"] - s0["cycles"] > 1000
     assert s1["mode"] == "drag" and s1["faults"] == []
     tel = s1["telemetry"]
     assert tel["errors"] >= 1 and tel["dropped"] > 0 and "ENOSPC" in (tel["first_error"] or ""), tel

@@ -648,3 +648,38 @@ def test_next_controlword_walks_the_drive_between_states(local: LocalDrive, star
         assert decode_statusword(store.get(0x6041)) is State.SWITCH_ON_DISABLED  # transitions 7 / 10
         return
     go(target)
+
+
+def test_sync_answer_leaves_in_one_datagram_with_batch_frames(request: pytest.FixtureRequest) -> None:
+    """The simulated drives answer a SYNC with every drive's TPDOs in one datagram on a batching bus (--batch-frames);
+    the daemon's side reads them as separate frames."""
+    from sim.axis import AxisIO
+    from sim.drive import SimDrive
+    from sim.network import SimNetwork
+    from sim.truth import drive_params
+
+    h = int.from_bytes(hashlib.sha256(f"{request.node.name}:{os.getpid()}".encode()).digest()[:2], "big")
+    spec = parse_bus(f"udp_multicast:239.75.{h % 250}.{1 + (h >> 8) % 250}")
+    sim_bus, master = open_bus(spec, batch_frames=True), open_bus(spec)
+    drives = [SimDrive(drive_params(j, fd=False), AxisIO(), sim_bus.send) for j in TRUTH.joints]
+    net = SimNetwork(sim_bus, drives)
+    try:
+        net.start(boot=True)
+        master.send(can.Message(arbitration_id=0x000, data=b"\x01\x00", is_extended_id=False))  # NMT start all
+        time.sleep(0.2)
+        while master.recv(0.05) is not None:
+            pass
+        before = sim_bus.counters()
+        master.send(can.Message(arbitration_id=0x080, data=b"", is_extended_id=False))
+        got = []
+        while (msg := master.recv(0.3)) is not None:
+            got.append(msg.arbitration_id)
+        after = sim_bus.counters()
+        tpdos = sorted(0x180 + d.node_id for d in drives)
+        assert sorted(c for c in got if c in tpdos) == tpdos, f"every drive's TPDO1 once, got {[hex(c) for c in got]}"
+        assert after.frames_sent - before.frames_sent == len(got)
+        assert after.datagrams_sent - before.datagrams_sent == 1
+    finally:
+        net.stop()
+        sim_bus.shutdown()
+        master.shutdown()

@@ -25,6 +25,12 @@ arrives late fills its gap again and counts as reordered). Losses the kernel its
 buffer overflow, SO_RXQ_OVFL) are reported as well. Not detectable: frames from senders that do not
 stamp the field (plain python-can peers; these are passed through and counted as foreign), losses after
 a sender's last frame, and the first frames of a sender before its first frame that arrived.
+
+Batching (opt-in, ``batch_frames=True``): frames sent inside ``with bus.batch():`` leave as one datagram — their
+msgpack maps back to back, each with its own stamp — when the block ends. The simulated drives answer a SYNC
+that way (six TPDOs, one datagram: one send and one receiver wake-up instead of six). Every bus of this module
+reads such datagrams; python-can's own udp_multicast bus does not (it expects exactly one map), so a bus that
+talks to python-can's tools leaves batching off (the default).
 """
 
 from __future__ import annotations
@@ -37,7 +43,9 @@ import select
 import socket
 import struct
 import threading
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -56,6 +64,7 @@ _SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)
 _TIMESPEC = struct.Struct("@ll")
 _U32 = struct.Struct("@I")
 _WINDOW = 64
+BATCH_MAX_BYTES = 8192  # a batch longer than this leaves in several datagrams
 _WINDOW_MASK = (1 << _WINDOW) - 1
 
 
@@ -128,11 +137,14 @@ def socketcan_available(channel: str | None = None) -> tuple[bool, str]:
 
 
 def open_bus(spec: BusSpec, *, receive_own_messages: bool = False, udp_port: int = DEFAULT_UDP_PORT,
-             rcvbuf_bytes: int = DEFAULT_RCVBUF_BYTES) -> can.BusABC:
-    """Open the python-can bus of a spec (udp_multicast: the filtering host-local bus of this module)."""
+             rcvbuf_bytes: int = DEFAULT_RCVBUF_BYTES, batch_frames: bool = False) -> can.BusABC:
+    """Open the python-can bus of a spec (udp_multicast: the filtering host-local bus of this module).
+
+    ``batch_frames``: udp_multicast only, ``batch()`` blocks send one datagram (see the module docstring).
+    """
     if spec.interface == "udp_multicast":
         return UdpMulticastCanBus(spec.channel, port=udp_port, fd=spec.fd, rcvbuf_bytes=rcvbuf_bytes,
-                                  receive_own_messages=receive_own_messages)
+                                  receive_own_messages=receive_own_messages, batch_frames=batch_frames)
     if spec.interface == "virtual":
         protocol = can.CanProtocol.CAN_FD if spec.fd else can.CanProtocol.CAN_20
         return can.Bus(interface="virtual", channel=spec.channel, receive_own_messages=receive_own_messages,
@@ -167,6 +179,7 @@ class UdpBusCounters:
     foreign_frames: int  # frames without a sender stamp (passed through, not checked)
     fd_frames_dropped: int  # CAN FD frames received on a classic-CAN bus
     undecodable: int
+    datagrams_sent: int  # fewer than frames_sent when frames were batched
     rcvbuf_bytes: int  # receive buffer the kernel granted
 
 
@@ -175,7 +188,7 @@ class UdpMulticastCanBus(can.BusABC):
 
     def __init__(self, channel: str, port: int = DEFAULT_UDP_PORT, fd: bool = False,
                  rcvbuf_bytes: int = DEFAULT_RCVBUF_BYTES, receive_own_messages: bool = False,
-                 can_filters: Any = None, **kwargs: Any) -> None:
+                 can_filters: Any = None, batch_frames: bool = False, **kwargs: Any) -> None:
         _check_multicast_group(f"udp_multicast:{channel}", channel)
         self.group = channel
         self.port = port
@@ -190,9 +203,13 @@ class UdpMulticastCanBus(can.BusABC):
         self._tx_lock = threading.Lock()
         self._rx_lock = threading.Lock()
         self._senders: dict[int, list[int]] = {}
+        self.batch_frames = batch_frames
+        self._batch: list[can.Message] | None = None  # frames held by the open batch() block
+        self._batch_thread = 0  # the thread that holds it (other threads' frames leave at once)
+        self._pending: deque[can.Message] = deque()  # recv(): the rest of a batched datagram
         self._c = dict(frames_sent=0, frames_received=0, own_echoes_dropped=0, duplicates_dropped=0, gaps=0,
                        reordered=0, too_late_dropped=0, kernel_drops=0, foreign_frames=0, fd_frames_dropped=0,
-                       undecodable=0)
+                       undecodable=0, datagrams_sent=0)
         self._sock = self._open_socket(rcvbuf_bytes)
         self.rcvbuf_bytes = self._sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
         self._dest = (self.group, self.port)
@@ -230,29 +247,73 @@ class UdpMulticastCanBus(can.BusABC):
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         if msg.is_fd and self._can_protocol is not can.CanProtocol.CAN_FD:
             raise can.CanOperationError(f"{self.channel_info}: cannot send a CAN FD frame on a classic-CAN bus")
+        held = self._batch
+        if held is not None and self._batch_thread == threading.get_ident():
+            held.append(msg)  # packed (and stamped) when the batch leaves: sequence numbers stay in send order
+            return
         with self._tx_lock:
-            self._seq = (self._seq + 1) & 0xFFFFFFFF
-            data = self._packer.pack({
-                "channel": self._token << 32 | self._seq,  # first: the datagram starts with the sender's stamp
-                "timestamp": msg.timestamp,
-                "arbitration_id": msg.arbitration_id,
-                "is_extended_id": msg.is_extended_id,
-                "is_remote_frame": msg.is_remote_frame,
-                "is_error_frame": msg.is_error_frame,
-                "dlc": msg.dlc,
-                "data": bytes(msg.data),
-                "is_fd": msg.is_fd,
-                "bitrate_switch": msg.bitrate_switch,
-                "error_state_indicator": msg.error_state_indicator,
-            })
-            try:
-                self._sock.sendto(data, self._dest)
-            except OSError as exc:
-                raise can.CanOperationError(f"{self.channel_info}: send failed: {exc}") from exc
-            self._c["frames_sent"] += 1
+            self._sendto(self._pack(msg), 1)
+
+    @contextmanager
+    def batch(self) -> Iterator[None]:
+        """Frames this thread sends inside the block leave together, as one datagram, when it ends.
+
+        Without ``batch_frames`` (and when nested) the block changes nothing: every frame leaves at once.
+        """
+        if not self.batch_frames or self._batch is not None:
+            yield
+            return
+        held: list[can.Message] = []
+        self._batch_thread, self._batch = threading.get_ident(), held
+        try:
+            yield
+        finally:
+            self._batch = None
+            if held:
+                self._flush(held)
+
+    def _flush(self, held: list[can.Message]) -> None:
+        with self._tx_lock:
+            parts: list[bytes] = []
+            size = 0
+            for msg in held:
+                data = self._pack(msg)
+                if parts and size + len(data) > BATCH_MAX_BYTES:
+                    self._sendto(b"".join(parts), len(parts))
+                    parts, size = [], 0
+                parts.append(data)
+                size += len(data)
+            self._sendto(b"".join(parts) if len(parts) > 1 else parts[0], len(parts))
+
+    def _pack(self, msg: can.Message) -> bytes:
+        """One frame's msgpack map, stamped with the next sequence number (caller holds the tx lock)."""
+        self._seq = (self._seq + 1) & 0xFFFFFFFF
+        return self._packer.pack({
+            "channel": self._token << 32 | self._seq,  # first: the datagram starts with the sender's stamp
+            "timestamp": msg.timestamp,
+            "arbitration_id": msg.arbitration_id,
+            "is_extended_id": msg.is_extended_id,
+            "is_remote_frame": msg.is_remote_frame,
+            "is_error_frame": msg.is_error_frame,
+            "dlc": msg.dlc,
+            "data": bytes(msg.data),
+            "is_fd": msg.is_fd,
+            "bitrate_switch": msg.bitrate_switch,
+            "error_state_indicator": msg.error_state_indicator,
+        })
+
+    def _sendto(self, datagram: bytes, frames: int) -> None:
+        try:
+            self._sock.sendto(datagram, self._dest)
+        except OSError as exc:
+            raise can.CanOperationError(f"{self.channel_info}: send failed: {exc}") from exc
+        self._c["frames_sent"] += frames
+        self._c["datagrams_sent"] += 1
 
     # --- receive -----------------------------------------------------------------------------------------
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if self._pending:  # the rest of a batched datagram
+            return self._pending.popleft(), False
         # a datagram already queued is taken without a select() first (one syscall per frame, not two)
         try:
             raw, ancillary, _, _ = self._sock.recvmsg(4096, self._ancillary_size, socket.MSG_DONTWAIT)
@@ -274,14 +335,17 @@ class UdpMulticastCanBus(can.BusABC):
         except OSError as exc:
             raise can.CanOperationError(f"{self.channel_info}: receive failed: {exc}") from exc
         with self._rx_lock:
-            return self._decode(raw, ancillary), False
-
-    def _decode(self, raw: bytes, ancillary: list[tuple[int, int, bytes]]) -> can.Message | None:
-        got = self._fields(raw, ancillary)
-        if got is None:
-            return None
-        fields, timestamp, own = got
-        return self._message(fields, timestamp, own)
+            frames, timestamp = self._frames(raw, ancillary)
+            first: can.Message | None = None
+            for fields, own in frames:
+                msg = self._message(fields, timestamp, own)
+                if msg is None:
+                    continue
+                if first is None:
+                    first = msg
+                else:
+                    self._pending.append(msg)
+            return first, False
 
     def _message(self, fields: dict[str, Any], timestamp: float, own: bool) -> can.Message | None:
         try:
@@ -296,8 +360,13 @@ class UdpMulticastCanBus(can.BusABC):
         self._c["frames_received"] += 1
         return msg
 
-    def _fields(self, raw: bytes, ancillary: list[tuple[int, int, bytes]]) -> tuple[dict[str, Any], float, bool] | None:
-        """A datagram's frame fields, reception time and whether it is our own echo; None when it is dropped."""
+    def _frames(self, raw: bytes, ancillary: list[tuple[int, int, bytes]]
+                ) -> tuple[list[tuple[dict[str, Any], bool]], float]:
+        """A datagram's accepted frames (fields, whether our own echo) and its reception time.
+
+        A datagram holds one frame, or several back to back (a batch); own echoes, duplicates and broken frames
+        are dropped and counted.
+        """
         c = self._c
         timestamp = 0.0
         for level, kind, payload in ancillary:
@@ -307,30 +376,40 @@ class UdpMulticastCanBus(can.BusABC):
             elif level == socket.SOL_SOCKET and kind == _SO_RXQ_OVFL and len(payload) >= _U32.size:
                 c["kernel_drops"] = _U32.unpack_from(payload)[0]
         if not self.receive_own_messages and raw.startswith(self._own_prefix):
-            c["own_echoes_dropped"] += 1  # our own frame, looped back: dropped before decoding
-            return None
-        try:
-            fields = msgpack.unpackb(raw, raw=False)
-            stamp = fields.get("channel")
-            own = False
-            if isinstance(stamp, int) and stamp >> 32:
-                token = stamp >> 32
-                if token == self._token:
-                    c["own_echoes_dropped"] += 1
-                    if not self.receive_own_messages:
-                        return None
-                    own = True
-                elif not self._accept(token, stamp & 0xFFFFFFFF):
-                    return None
-            else:
-                c["foreign_frames"] += 1
-            if fields["is_fd"] and self._can_protocol is not can.CanProtocol.CAN_FD:
-                c["fd_frames_dropped"] += 1
-                return None
-        except (ValueError, TypeError, KeyError, AttributeError, msgpack.UnpackException):
-            c["undecodable"] += 1
-            return None
-        return fields, timestamp, own
+            c["own_echoes_dropped"] += raw.count(self._own_prefix)  # our own datagram, looped back: not decoded
+            return [], timestamp
+        frames: list[tuple[dict[str, Any], bool]] = []
+        rest: bytes | None = raw
+        while rest:
+            try:
+                fields, rest = msgpack.unpackb(rest, raw=False), None
+            except msgpack.ExtraData as more:  # a batch: the next frame follows
+                fields, rest = more.unpacked, more.extra
+            except (ValueError, TypeError, msgpack.UnpackException):
+                c["undecodable"] += 1  # nothing after a broken map can be read
+                break
+            try:
+                stamp = fields.get("channel")
+                own = False
+                if isinstance(stamp, int) and stamp >> 32:
+                    token = stamp >> 32
+                    if token == self._token:
+                        c["own_echoes_dropped"] += 1
+                        if not self.receive_own_messages:
+                            continue
+                        own = True
+                    elif not self._accept(token, stamp & 0xFFFFFFFF):
+                        continue
+                else:
+                    c["foreign_frames"] += 1
+                if fields["is_fd"] and self._can_protocol is not can.CanProtocol.CAN_FD:
+                    c["fd_frames_dropped"] += 1
+                    continue
+            except (TypeError, KeyError, AttributeError):
+                c["undecodable"] += 1
+                continue
+            frames.append((fields, own))
+        return frames, timestamp
 
     def drain(self, on_data: Callable[[int, bytes | bytearray], bool], on_message: Callable[[can.Message], None],
               limit: int = 64) -> int:
@@ -342,6 +421,11 @@ class UdpMulticastCanBus(can.BusABC):
         ``on_message`` as a ``can.Message``. Echo, duplicate and loss handling and the counters are those of ``recv``.
         """
         recvmsg, size, anc_size, c = self._sock.recvmsg, 4096, self._ancillary_size, self._c
+        pending = self._pending
+        while pending:  # left by recv() in the middle of a batch
+            msg = pending.popleft()
+            if self._matches_filters(msg):
+                on_message(msg)
         n = 0
         while n < limit:
             try:
@@ -351,23 +435,25 @@ class UdpMulticastCanBus(can.BusABC):
             except OSError as exc:
                 raise can.CanOperationError(f"{self.channel_info}: receive failed: {exc}") from exc
             n += 1
+            messages: list[can.Message] = []
             with self._rx_lock:
-                got = self._fields(raw, ancillary)
-                if got is None:
-                    continue
-                fields, timestamp, own = got
-                try:
-                    plain = not (own or fields["is_extended_id"] or fields["is_remote_frame"]
-                                 or fields["is_error_frame"])
-                    if plain and on_data(fields["arbitration_id"], fields["data"]):
-                        c["frames_received"] += 1
+                frames, timestamp = self._frames(raw, ancillary)
+                for fields, own in frames:
+                    try:
+                        plain = not (own or fields["is_extended_id"] or fields["is_remote_frame"]
+                                     or fields["is_error_frame"])
+                        if plain and on_data(fields["arbitration_id"], fields["data"]):
+                            c["frames_received"] += 1
+                            continue
+                    except (TypeError, KeyError):
+                        c["undecodable"] += 1
                         continue
-                except (TypeError, KeyError):
-                    c["undecodable"] += 1
-                    continue
-                msg = self._message(fields, timestamp, own)
-            if msg is not None and self._matches_filters(msg):  # the bus's can_filters, as recv() applies them
-                on_message(msg)
+                    msg = self._message(fields, timestamp, own)
+                    if msg is not None:
+                        messages.append(msg)
+            for msg in messages:
+                if self._matches_filters(msg):  # the bus's can_filters, as recv() applies them
+                    on_message(msg)
         return n
 
     def _accept(self, token: int, seq: int) -> bool:

@@ -56,7 +56,7 @@ def run_demo(seconds: float = 20.0, config: Path | None = None, out: Path | None
     out = Path(out) if out is not None else Path.cwd() / "out"
     out.mkdir(parents=True, exist_ok=True)
     mcap = out / f"demo-{datetime.now().strftime('%Y%m%d-%H%M%S')}.mcap"
-    rig = Rig("demo", config=config, telemetry=mcap)
+    rig = Rig("demo", config=config, telemetry=mcap, as_deployed=True)
     try:
         _say(progress, f"starting the simulated robot on {rig.bus} ...")
         rig.start_sim()
@@ -84,6 +84,7 @@ def run_demo(seconds: float = 20.0, config: Path | None = None, out: Path | None
         time.sleep(observe_s)
         status = rig.must("status")
         q_end = status["q_rad"]
+        schedulers = rig.schedulers()
         _say(progress, "stopping: ramp to hold, disable, SIGTERM ...")
         rig.must("stop")
         codes = rig.close()
@@ -94,6 +95,8 @@ def run_demo(seconds: float = 20.0, config: Path | None = None, out: Path | None
             "period_p50_us": status["period_p50_us"],
             "period_p99_us": status["period_p99_us"],
             "missed_cycles": status["missed_cycles"],
+            "missed_ratio": round(status["missed_cycles"] / max(1, status["cycles"]), 6),
+            "scheduler": schedulers,  # as deployed where permitted (SCHED_FIFO), else SCHED_OTHER and why
             "drift_untouched_deg": round(_max_deg(q1, q0), 4),
             "moved_by_hand_deg": round(_max_deg(q_release, q1), 3),
             "drift_after_release_deg": round(_max_deg(q_end, q_release), 4),
@@ -169,7 +172,7 @@ def run_teach_demo(seconds: float = 20.0, config: Path | None = None, out: Path 
     program = out / "programs" / f"teach-{stamp}.yaml"
     per_point = seconds / len(TEACH_STEPS_RAD)
     hand_s = max(1.5, per_point - 0.5)
-    rig = Rig("demo-teach", config=config, telemetry=mcap, allow_dirs=[out])
+    rig = Rig("demo-teach", config=config, telemetry=mcap, allow_dirs=[out], as_deployed=True)
     try:
         _say(progress, f"starting the simulated robot on {rig.bus} ...")
         rig.start_sim()

@@ -93,7 +93,7 @@ def run_payload_demo(config: Path | None = None, out: Path | None = None, progre
     cfg_path = out / f"payload-config-{stamp}.yaml"
     cfg_path.write_text(yaml.safe_dump(data, sort_keys=False))
     mcap = out / f"demo-payload-{stamp}.mcap"
-    rig = Rig("demo-payload", config=cfg_path, telemetry=mcap)
+    rig = Rig("demo-payload", config=cfg_path, telemetry=mcap, as_deployed=True)
     try:
         _say(progress, f"starting the simulated robot on {rig.bus} and the daemon ...")
         rig.start_sim()

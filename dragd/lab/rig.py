@@ -82,17 +82,23 @@ def wait_until(cond: Callable[[], bool], timeout_s: float, what: str, child: Chi
     raise ProcessError(f"timed out after {timeout_s:.0f} s waiting for {what}{tail}")
 
 
+DEPLOYED_PRIORITY = 70  # the cycle thread's SCHED_FIFO priority in the shipped unit (config loop.realtime_priority)
+
+
 class Rig:
     """The simulated robot and (optionally) the daemon, each its own process, on a private multicast group.
 
     ``bus`` ("INTERFACE:CHANNEL", e.g. ``socketcan:vcan0``) puts both on that bus instead of a multicast group.
+    ``as_deployed``: the daemon's cycle thread asks for SCHED_FIFO ``DEPLOYED_PRIORITY`` and the simulator's threads
+    for 10 below, as the systemd unit runs it (docs/SYSTEMD.md); applied where the system permits it, otherwise
+    both run SCHED_OTHER and ``schedulers()`` says why (no root assumed).
     """
 
     def __init__(self, tag: str = "rig", workdir: Path | None = None, config: Path | None = None,
                  sim_config: Path | None = None, telemetry: Path | None = None, group: str | None = None,
                  sim_args: list[str] | None = None, daemon_args: list[str] | None = None,
                  env: dict[str, str] | None = None, bus: str | None = None,
-                 allow_dirs: list[Path] | None = None) -> None:
+                 allow_dirs: list[Path] | None = None, as_deployed: bool = False) -> None:
         self.workdir = Path(workdir or tempfile.mkdtemp(prefix=f"dragd-{tag}-"))
         self.workdir.mkdir(parents=True, exist_ok=True)
         if bus is not None and group is not None:
@@ -104,8 +110,13 @@ class Rig:
         self.telemetry = telemetry
         self.sim_socket = str(self.workdir / "sim.sock")
         self.socket = str(self.workdir / "dragd.sock")
-        self.sim_args = sim_args or []
-        self.daemon_args = daemon_args or []
+        self.sim_args = list(sim_args or [])
+        self.daemon_args = list(daemon_args or [])
+        if as_deployed:
+            if "--realtime-priority" not in self.daemon_args:
+                self.daemon_args += ["--realtime-priority", str(DEPLOYED_PRIORITY)]
+            if "--realtime-priority" not in self.sim_args:
+                self.sim_args += ["--realtime-priority", str(DEPLOYED_PRIORITY - 10)]
         self.allow_dirs = [self.workdir, *(allow_dirs or [])]  # where the daemon may write what the rig asks
         self.env = env
         self.sim: Child | None = None
@@ -114,6 +125,8 @@ class Rig:
     # processes
     def start_sim(self, timeout_s: float = 30.0) -> None:
         argv = [sys.executable, "-m", "sim", "run", "--bus", self.bus, "--control", self.sim_socket, *self.sim_args]
+        if self.bus.startswith("udp_multicast:") and "--batch-frames" not in argv:
+            argv.append("--batch-frames")  # one datagram per SYNC answer: the rig's peers are dragd's own buses
         if self.sim_config is not None:
             argv += ["--config", str(self.sim_config)]
         self.sim = Child("sim", argv, self.workdir, self.env)
@@ -163,6 +176,15 @@ class Rig:
                 return
             self.must("start")
             time.sleep(0.5)
+
+    def schedulers(self) -> dict[str, str]:
+        """The scheduling policy each running process reports (e.g. "SCHED_FIFO 70", or SCHED_OTHER and why)."""
+        got = {}
+        if self.daemon is not None:
+            got["daemon"] = str(self.must("status").get("scheduler"))
+        if self.sim is not None:
+            got["simulator"] = str(self.sim_call("state").get("scheduler"))
+        return got
 
     def must(self, cmd: str, **args: Any) -> dict[str, Any]:
         resp = self.call(cmd, **args)
