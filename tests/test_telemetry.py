@@ -84,10 +84,11 @@ def wait_for(pred, timeout_s=10.0):
 # -- round trip ------------------------------------------------------------------------------
 
 
-def test_round_trip_values_schema_and_events(tmp_path):
+@pytest.mark.parametrize("process", [False, True], ids=["thread", "process"])
+def test_round_trip_values_schema_and_events(tmp_path, process):
     path = tmp_path / "t.mcap"
     rng = np.random.default_rng(7)
-    w = TelemetryWriter(path, cobot_layout(exact=True), capacity=4096)
+    w = TelemetryWriter(path, cobot_layout(exact=True), capacity=4096, process=process)
     expected = []
     for i in range(2000):
         row = w.begin()
@@ -297,10 +298,11 @@ def test_full_disk_midway_counts_are_consistent():
     assert st["bytes"] == f.n
 
 
-def test_dev_full_path(tmp_path):
+@pytest.mark.parametrize("process", [False, True], ids=["thread", "process"])
+def test_dev_full_path(tmp_path, process):
     if not os.path.exists("/dev/full"):
         pytest.skip("/dev/full not available")
-    w = TelemetryWriter("/dev/full", {"t_s": 1}, capacity=64, flush_interval_s=0.005)
+    w = TelemetryWriter("/dev/full", {"t_s": 1}, capacity=64, flush_interval_s=0.005, process=process)
     ok, worst = run_rows(w, 300)
     st = w.close()
     assert os.path.exists("/dev/full") and not os.path.isfile("/dev/full")  # never rotated away
@@ -560,3 +562,80 @@ def test_a_disk_that_stays_full_never_costs_an_older_log(tmp_path, monkeypatch):
     assert not st["failing"] and st["written"] + st["dropped"] == 30 * 100 + 30 * 50 + 10
     assert summarize(path)["complete"] and summarize(path)["cycle"]["rows"] > 0
     assert set(older) <= set(tmp_path.glob("t.*.mcap"))
+
+
+# -- the writer process (process=True: the daemon's telemetry file and record windows) ------------------------
+
+
+def test_writer_process_is_another_process_at_normal_priority(tmp_path):
+    """The encoding runs in a process of its own, started by the (demoted) writer thread: SCHED_OTHER even when the
+    thread that creates the writer is SCHED_FIFO (the daemon's cycle thread), so it never competes as real-time."""
+    result = {}
+
+    def make():
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
+        except PermissionError:
+            result["fifo"] = False
+        else:
+            result["fifo"] = True
+        result["w"] = TelemetryWriter(tmp_path / "p.mcap", {"t_s": 1}, process=True)
+
+    t = threading.Thread(target=make)
+    t.start()
+    t.join()
+    w = result["w"]
+    for i in range(100):
+        w.begin()[0] = i
+        w.commit()
+    wait_for(lambda: w.stats()["writer_pid"] is not None and w.stats()["pending"] == 0)
+    pid = w.stats()["writer_pid"]
+    assert pid != os.getpid()
+    assert os.sched_getscheduler(pid) == os.SCHED_OTHER, "the writer process must not run real-time"
+    st = w.close()
+    assert st["written"] == 100 and st["dropped"] == 0 and st["errors"] == 0
+    assert not os.path.exists(f"/proc/{pid}") or open(f"/proc/{pid}/stat").read().split()[2] == "Z"
+
+
+def test_writer_process_killed_is_reported_and_later_rows_are_counted(tmp_path):
+    """A writer process that dies: its error is in the counters, the rows from then on are dropped and counted, the
+    producer never blocks, and the file keeps what reached it."""
+    import signal
+
+    path = tmp_path / "k.mcap"
+    w = TelemetryWriter(path, {"t_s": 1}, process=True, flush_interval_s=0.005, chunk_size=512)
+    for i in range(200):
+        w.begin()[0] = i
+        w.commit()
+    wait_for(lambda: w.stats()["writer_pid"] is not None and w.stats()["pending"] == 0 and w.stats()["written"] > 0)
+    written = w.stats()["written"]  # in finished chunks; the open chunk's rows die with the process
+    os.kill(w.stats()["writer_pid"], signal.SIGKILL)
+    t0 = time.monotonic()
+    for i in range(300):
+        row = w.begin()
+        if row is not None:
+            row[0] = i
+            w.commit()
+        time.sleep(0.001)
+    assert time.monotonic() - t0 < 5.0
+    st = w.close()
+    assert st["errors"] >= 1 and "writer process" in st["first_error"] and "exit code -9" in st["first_error"]
+    assert st["written"] == written and st["written"] + st["dropped"] == 500 and st["failing"], st
+    assert summarize(path)["cycle"]["rows"] == written  # readable up to its last complete chunk (no summary: killed)
+
+
+def test_writer_process_refuses_file_objects_and_sinks(tmp_path):
+    import io
+
+    with pytest.raises(ValueError, match="file path"):
+        TelemetryWriter(io.BytesIO(), {"t_s": 1}, process=True)
+
+    class Sink:
+        def write_rows(self, *a):
+            pass
+
+    with pytest.raises(ValueError, match="sinks"):
+        TelemetryWriter(tmp_path / "s.mcap", {"t_s": 1}, process=True, sinks=[Sink()])
+    with pytest.raises(TelemetryError, match="does not exist"):
+        TelemetryWriter(tmp_path / "missing" / "x.mcap", {"t_s": 1}, process=True)
+

@@ -121,6 +121,7 @@ class Recorder:
                                          sinks=sinks, max_bytes=tc.max_file_MiB * 2**20,
                                          keep_rotated=tc.keep_rotated, avoid_cpus=set(self.cfg.loop.cpus or ()),
                                          foxglove=foxglove, cycle_decimation=tc.cycle_decimation,
+                                         process=not sinks,  # encoding in its own process (the live view: here)
                                          metadata={"config": self.cfg.source,
                                                    "cycle_decimation": str(tc.cycle_decimation)})
         self._writers = [w for w in (self.telemetry, self.recording) if w is not None]
@@ -135,7 +136,8 @@ class Recorder:
         loop = asyncio.get_running_loop()
         writer = await loop.run_in_executor(None, lambda: TelemetryWriter(
             path, self.layout, capacity=self.cfg.telemetry.capacity_rows, on_exists="error",
-            metadata={"label": label, "config": self.cfg.source}, avoid_cpus=set(self.cfg.loop.cpus or ())))
+            metadata={"label": label, "config": self.cfg.source}, avoid_cpus=set(self.cfg.loop.cpus or ()),
+            process=True))
         self.recording, self.recording_path = writer, str(path)
         writer.event("record_start", label=label, joints=self.cfg.joint_names)
         self._writers = [w for w in (self.telemetry, self.recording) if w is not None]
