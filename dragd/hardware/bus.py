@@ -288,7 +288,7 @@ class UdpMulticastCanBus(can.BusABC):
     def _pack(self, msg: can.Message) -> bytes:
         """One frame's msgpack map, stamped with the next sequence number (caller holds the tx lock)."""
         self._seq = (self._seq + 1) & 0xFFFFFFFF
-        return self._packer.pack({
+        packed: bytes = self._packer.pack({
             "channel": self._token << 32 | self._seq,  # first: the datagram starts with the sender's stamp
             "timestamp": msg.timestamp,
             "arbitration_id": msg.arbitration_id,
@@ -301,6 +301,7 @@ class UdpMulticastCanBus(can.BusABC):
             "bitrate_switch": msg.bitrate_switch,
             "error_state_indicator": msg.error_state_indicator,
         })
+        return packed
 
     def _sendto(self, datagram: bytes, frames: int) -> None:
         try:
@@ -448,9 +449,9 @@ class UdpMulticastCanBus(can.BusABC):
                     except (TypeError, KeyError):
                         c["undecodable"] += 1
                         continue
-                    msg = self._message(fields, timestamp, own)
-                    if msg is not None:
-                        messages.append(msg)
+                    decoded = self._message(fields, timestamp, own)
+                    if decoded is not None:
+                        messages.append(decoded)
             for msg in messages:
                 if self._matches_filters(msg):  # the bus's can_filters, as recv() applies them
                     on_message(msg)

@@ -404,10 +404,11 @@ class TelemetryWriter:
             if self._sinks:
                 raise ValueError("telemetry process=True: sinks (the live view) run in the writer thread; "
                                  "use process=False with them")
+            assert self.path is not None and self._raw is not None
             self._raw.close()  # checked, rotated and created here; the process writes it
             self._raw = None
             self._child_kwargs: dict[str, Any] = dict(
-                path=os.fspath(path), layout=_portable_layout(layout), topic=topic, capacity=4 * self.capacity,
+                path=os.fspath(self.path), layout=_portable_layout(layout), topic=topic, capacity=4 * self.capacity,
                 events_topic=events_topic, compression=compression, chunk_size=chunk_size,
                 flush_interval_s=flush_interval_s, float_digits=float_digits, yield_every_rows=yield_every_rows,
                 on_exists="overwrite", keep_rotated=keep_rotated, max_bytes=max_bytes, retry_after_s=retry_after_s,
