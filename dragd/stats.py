@@ -11,6 +11,8 @@ import math
 import time
 from typing import Any
 
+import numpy as np
+
 __all__ = ["Histogram", "RateCounter"]
 
 _MAX_BINS = 1_000_000
@@ -47,7 +49,7 @@ class Histogram:
         self.bin_width = float(bin_width)
         self.n_bins = n_bins
         self._inv_width = 1.0 / self.bin_width
-        self._counts = [0] * n_bins
+        self._counts = np.zeros(n_bins, dtype=np.int64)  # percentiles by cumsum + searchsorted (status requests)
         self.count = 0
         self.below = 0
         self.above = 0
@@ -79,8 +81,7 @@ class Histogram:
 
     def reset(self) -> None:
         """Forget all samples (keeps the bins)."""
-        for i in range(self.n_bins):
-            self._counts[i] = 0
+        self._counts.fill(0)
         self.count = self.below = self.above = self.nan = 0
         self._sum = 0.0
         self.min = math.inf
@@ -110,16 +111,16 @@ class Histogram:
         rank = max(1, math.ceil(p / 100.0 * self.count))
         if rank <= self.below:
             return min(self.lo, self.max)
-        seen = self.below
-        for i, c in enumerate(self._counts):
-            seen += c
-            if seen >= rank:
-                return min(self.lo + (i + 1) * self.bin_width, self.max)
+        # running counts and a bisection in numpy: a status request reads six percentiles of bins in the thousands,
+        # served on the cycle's event loop (a Python loop over the bins cost ~0.2 ms there)
+        i = int(np.searchsorted(np.cumsum(self._counts), rank - self.below))  # first bin reaching the rank
+        if i < self.n_bins:
+            return min(self.lo + (i + 1) * self.bin_width, self.max)
         return self.max
 
     def bins(self) -> list[tuple[float, int]]:
         """Non-empty bins as ``(lower_edge, count)`` pairs."""
-        return [(self.lo + i * self.bin_width, c) for i, c in enumerate(self._counts) if c]
+        return [(self.lo + i * self.bin_width, int(self._counts[i])) for i in np.flatnonzero(self._counts).tolist()]
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary (NaN/inf reported as None)."""

@@ -99,3 +99,22 @@ def test_rate_counter():
     assert r.rate_Hz(t0 + 7_000_000_000) == 0.0
     with pytest.raises(ValueError):
         RateCounter(window_s=0)
+
+
+def test_percentile_matches_nearest_rank_on_random_samples():
+    """The bin search gives what a nearest-rank percentile of the raw samples gives, mapped to its bin's upper edge
+    (capped at the max; below range: lo; above range: the max), for bins in the thousands as the status reads."""
+    import random
+
+    rng = random.Random(3)
+    for _ in range(200):
+        lo, hi, w = 0.0, rng.choice([100.0, 5000.0]), rng.choice([1.0, 2.0, 5.0, 10.0])
+        h = Histogram(lo, hi, w)
+        xs = [rng.uniform(-50.0, hi + 200.0) for _ in range(rng.randint(1, 400))]
+        for x in xs:
+            h.add(x)
+        ordered = sorted(xs)
+        for p in (0.5, 1, 50, 90, 99, 100):
+            v = ordered[max(1, math.ceil(p / 100 * len(xs))) - 1]
+            want = min(lo, max(xs)) if v < lo else max(xs) if v >= hi else min(lo + (int((v - lo) / w) + 1) * w, max(xs))
+            assert h.percentile(p) == pytest.approx(want, abs=1e-9), (p, lo, hi, w)

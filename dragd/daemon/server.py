@@ -282,15 +282,19 @@ class ControlServer:
         self._clients.add(task)
         try:
             while True:
-                try:
-                    first = await asyncio.wait_for(reader.readexactly(1), IDLE_TIMEOUT_S)
+                try:  # (asyncio.timeout, not wait_for: no extra task per request on the cycle's loop)
+                    async with asyncio.timeout(IDLE_TIMEOUT_S):
+                        first = await reader.readexactly(1)
                 except asyncio.TimeoutError:
                     break  # idle: the slot goes to someone else
                 except asyncio.IncompleteReadError:
                     break  # closed
                 try:  # a request once begun arrives whole within REQUEST_READ_S (no slot held by a trickle)
-                    line = first if first == b"\n" else \
-                        first + await asyncio.wait_for(reader.readuntil(b"\n"), REQUEST_READ_S)
+                    if first == b"\n":
+                        line = first
+                    else:
+                        async with asyncio.timeout(REQUEST_READ_S):
+                            line = first + await reader.readuntil(b"\n")
                 except asyncio.TimeoutError:
                     self.errors += 1
                     writer.write(encode_line({"ok": False, "error": f"request line not complete within "
@@ -312,8 +316,7 @@ class ControlServer:
                     break
                 if not line.strip():
                     continue
-                response = await self._respond(line)
-                writer.write(encode_line(response))
+                writer.write(await self._respond(line))
                 await writer.drain()
                 if reader.at_eof():
                     break
@@ -329,58 +332,57 @@ class ControlServer:
             except (ConnectionError, asyncio.CancelledError):
                 pass
 
-    async def _respond(self, line: bytes) -> dict[str, Any]:
+    async def _respond(self, line: bytes) -> bytes:
+        """The response line to a request line (encoded once: a status is ~3 kB of JSON)."""
+        response, cmd = await self._answer(line)
+        try:
+            return encode_line(response)
+        except (TypeError, ValueError) as e:
+            self.errors += 1
+            return encode_line(self._with_id({"ok": False, "error": f"cmd {cmd!r} result is not JSON: {e}"},
+                                             response.get("id")))
+
+    async def _answer(self, line: bytes) -> tuple[dict[str, Any], Any]:
+        """The response dict and the request's cmd (None before it is known)."""
         self.requests += 1
         try:
             request = json.loads(line)
         except (UnicodeDecodeError, json.JSONDecodeError) as e:
             self.errors += 1
-            return {"ok": False, "error": f"malformed JSON request: {e}; expected one JSON object per line"}
+            return {"ok": False, "error": f"malformed JSON request: {e}; expected one JSON object per line"}, None
         except RecursionError:
             self.errors += 1
-            return {"ok": False, "error": f"request nested too deeply (at most {MAX_DEPTH} levels)"}
+            return {"ok": False, "error": f"request nested too deeply (at most {MAX_DEPTH} levels)"}, None
         if _depth(request, MAX_DEPTH) > MAX_DEPTH:
             self.errors += 1
-            return {"ok": False, "error": f"request nested too deeply (at most {MAX_DEPTH} levels)"}
+            return {"ok": False, "error": f"request nested too deeply (at most {MAX_DEPTH} levels)"}, None
         if not isinstance(request, dict):
             self.errors += 1
             return {
                 "ok": False,
                 "error": f"request must be a JSON object like {{\"cmd\": \"status\"}}; got {type(request).__name__}",
-            }
+            }, None
         rid = request.get("id")
         cmd = request.get("cmd")
         if not isinstance(cmd, str) or not cmd:
             self.errors += 1
-            return self._with_id(
-                {"ok": False, "error": "request needs a non-empty string field 'cmd'"}, rid
-            )
+            return self._with_id({"ok": False, "error": "request needs a non-empty string field 'cmd'"}, rid), cmd
         try:
             result = self._handler(request)
             if inspect.isawaitable(result):
                 result = await result
         except ControlError as e:
             self.errors += 1
-            return self._with_id({"ok": False, "error": str(e)}, rid)
+            return self._with_id({"ok": False, "error": str(e)}, rid), cmd
         except Exception as e:  # a handler bug must not kill the server
             self.errors += 1
             log.exception("control command %r failed", cmd)
-            return self._with_id(
-                {"ok": False, "error": f"cmd {cmd!r} failed: {type(e).__name__}: {e}"}, rid
-            )
+            return self._with_id({"ok": False, "error": f"cmd {cmd!r} failed: {type(e).__name__}: {e}"}, rid), cmd
         if not isinstance(result, dict):
             self.errors += 1
-            return self._with_id(
-                {"ok": False, "error": f"cmd {cmd!r} returned {type(result).__name__}, expected a dict"},
-                rid,
-            )
-        response = {"ok": True, **result}
-        try:
-            encode_line(response)
-        except (TypeError, ValueError) as e:
-            self.errors += 1
-            return self._with_id({"ok": False, "error": f"cmd {cmd!r} result is not JSON: {e}"}, rid)
-        return self._with_id(response, rid)
+            return self._with_id({"ok": False, "error": f"cmd {cmd!r} returned {type(result).__name__}, expected a "
+                                                        "dict"}, rid), cmd
+        return self._with_id({"ok": True, **result}, rid), cmd
 
     @staticmethod
     def _with_id(response: dict[str, Any], rid: Any) -> dict[str, Any]:
