@@ -93,6 +93,16 @@ def test_a_chattering_play_is_named_by_its_drive_loop(tmp_path: Path) -> None:
     assert r["status"] == "right"
 
 
+def test_the_friction_steps_leakage_is_not_named_a_coulomb_change(tmp_path: Path) -> None:
+    """Seed 000's experiment (one joint at a time at 0.08, 0.2, 0.4 rad/s) with a Stribeck hump on joints 2 and 3 and
+    10 mA noise: the model's friction step at each stop sits where the *estimated* q̇ crosses zero; the regression
+    filter spreads that error over ±0.2 s of rows, where it read as a 3 mA Coulomb change on joint 3. Level effects
+    are judged on the steady rows: the hump alone is named."""
+    r = _run("stribeck__constant_speed", tmp_path)
+    assert r["score"]["named"] == {"stribeck": ["joint2", "joint3"]}, r["score"]["reasons"]
+    assert r["status"] == "right"
+
+
 def test_loop_chatter_is_the_joints_own_loop_not_a_neighbours_nor_noise() -> None:
     """backlash.loop_chatter on synthetic 500 Hz signals: a PD loop (100 A/rad, 3 A·s/rad) reacting to its output's
     vibration in bursts is found, with its gains and where it chatters; the same current on a joint whose own output

@@ -21,7 +21,8 @@ Signatures (what tells each effect from the others; docs/GAP.md has the full tab
                         reversals) the rotor crosses the play: the current is then the drive loop's, not what the
                         output's motion needs, and the impacts jump the output's velocity without a current impulse.
                         A physical predictor (``backlash.py``: the rotor simulated along the measured output), not
-                        regressor columns: its fixed current is scored like any effect's.
+                        regressor columns: its fixed current is scored like any effect's. Or the drive loop chatters
+                        (``backlash.loop_chatter``): its own evidence, named before the regression's rounds.
 - ``back_emf``          odd in q̇ but zero below a knee speed, linear above (voltage headroom); viscous starts at 0.
 - ``payload_mass``      even in q̇: the gravity (and dynamics) of a flange mass, in the URDF's kinematic pattern
                         over joints 2..n at once (one shared mass and centre of mass); load friction is odd in q̇.
@@ -96,6 +97,9 @@ class Effect(ABC):
     signature = ""
     shared = False  # one parameter vector for all joints (payload)
     extra_params = 0  # hyperparameters counted in the information criterion
+    # its signature lives in the transients — low speeds, accelerations, the play's crossings, within the regression
+    # filter's reach of a stop or reversal: judged on every sliding row; the others on the steady rows (select.py)
+    transient = False
 
     def hypers(self, d: GapData, j: int, resid: np.ndarray, info: ModelInfo) -> list[Any]:
         return [None]
@@ -259,6 +263,7 @@ class LoadFriction(Effect):
 
 class Inertia(Effect):
     name = "inertia"
+    transient = True
     signature = "∝ q̈ (rotor inertia; with the URDF's M(q)q̈ + C q̇ when the model had no dynamics): zero at constant speed"
 
     def columns(self, d, j, hyper, info):
@@ -328,6 +333,7 @@ class TemperatureDrift(Effect):
 
 class Backlash(Effect):
     name = "backlash"
+    transient = True
     signature = ("where the rotor-output tooth force changes sign the rotor crosses the play: the current is the drive "
                  "loop's (ŝ − k_p·q − k_d·q̇), the impacts jump the output's velocity without a current impulse")
     extra_params = 5  # play, output friction share, two loop gains, the loop-input bandwidth
@@ -518,6 +524,7 @@ class CoulombFriction(Effect):
 
 class TorqueConstant(Effect):
     name = "torque_constant"
+    transient = True
     signature = ("the joint's gain is off: its torque current (gravity, payload, dynamics, rotor inertia)/K_t scaled "
                  "by one factor — gravity's and inertia's shape at once, on one joint")
 
