@@ -39,6 +39,7 @@ class GapData:
     tau_dyn: np.ndarray  # (T, n) URDF rigid-body torque minus gravity: M(q)q̈ + C(q, q̇)q̇ [N·m]
     t_rel: np.ndarray  # (T,) s since the log's first sample
     slide: np.ndarray  # (T, n) bool: the joint slides (evaluation and fit mask)
+    steady: np.ndarray  # (T, n) bool: ... and no stop or reversal of the joint within the regression filter's reach
     rows: np.ndarray  # decimated row indices for regressions (away from stretch edges)
     pass_id: np.ndarray  # (T,) pass number (a move between two rests of the arm)
     fold: np.ndarray  # (T,) cross-validation fold of each sample (whole passes)
@@ -176,6 +177,14 @@ def load_gap_data(log: Log, robot: Any, cutoff_Hz: float = 5.0) -> GapData:
         slide &= ~missed[:, None]
         notes.append(f"{int(missed.sum())} work-rate samples within {guard_s:g} s of missed cycles not evaluated "
                      "(the drive followed a jerky target there)")
+    # steady rows: no zero crossing of the joint's q̇ within H's reach (1/cutoff: beyond it the filter's impulse
+    # response stays < 4 % of its peak; at the 0.1 s guard it is still 13 %). Friction steps where q̇ changes sign
+    # (breakaway, stop, reversal), and the model puts the step where the *estimated* q̇ (20 Hz position filter)
+    # crosses zero, milliseconds off the true instant: that error (the step × the timing error, an impulse at each
+    # stop or reversal) comes through H spread over the filter's reach and reads on the rows nearby as a
+    # direction-odd level
+    reach = max(guard, int(round(p.fs / p.cutoff_Hz)))
+    steady = slide & np.column_stack([sliding(p.dq[:, j:j + 1], V_SLIDE, reach)[:, 0] for j in range(len(names))])
     pid, pass_notes = _passes(p)
     notes += pass_notes
     # folds: passes round-robin, so a pass and its return (the same positions, the other direction) differ
@@ -184,5 +193,5 @@ def load_gap_data(log: Log, robot: Any, cutoff_Hz: float = 5.0) -> GapData:
     for k, u in enumerate(uniq):
         fold[pid == u] = k % FOLDS
     return GapData(log=log, p=p, names=names, robot=robot, G=G, tau_dyn=tau_dyn, t_rel=p.t - p.t[0], slide=slide,
-                   rows=p.rows(), pass_id=pid, fold=fold, noise_A=_noise(log.i), iH=p.regfilter(p.i),
+                   steady=steady, rows=p.rows(), pass_id=pid, fold=fold, noise_A=_noise(log.i), iH=p.regfilter(p.i),
                    warnings=list(p.warnings) + notes)

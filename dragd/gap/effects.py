@@ -21,7 +21,8 @@ Signatures (what tells each effect from the others; docs/GAP.md has the full tab
                         reversals) the rotor crosses the play: the current is then the drive loop's, not what the
                         output's motion needs, and the impacts jump the output's velocity without a current impulse.
                         A physical predictor (``backlash.py``: the rotor simulated along the measured output), not
-                        regressor columns: its fixed current is scored like any effect's.
+                        regressor columns: its fixed current is scored like any effect's. Or the drive loop chatters
+                        (``backlash.loop_chatter``): its own evidence, named before the regression's rounds.
 - ``back_emf``          odd in q̇ but zero below a knee speed, linear above (voltage headroom); viscous starts at 0.
 - ``payload_mass``      even in q̇: the gravity (and dynamics) of a flange mass, in the URDF's kinematic pattern
                         over joints 2..n at once (one shared mass and centre of mass); load friction is odd in q̇.
@@ -96,6 +97,9 @@ class Effect(ABC):
     signature = ""
     shared = False  # one parameter vector for all joints (payload)
     extra_params = 0  # hyperparameters counted in the information criterion
+    # its signature lives in the transients — low speeds, accelerations, the play's crossings, within the regression
+    # filter's reach of a stop or reversal: judged on every sliding row; the others on the steady rows (select.py)
+    transient = False
 
     def hypers(self, d: GapData, j: int, resid: np.ndarray, info: ModelInfo) -> list[Any]:
         return [None]
@@ -259,6 +263,7 @@ class LoadFriction(Effect):
 
 class Inertia(Effect):
     name = "inertia"
+    transient = True
     signature = "∝ q̈ (rotor inertia; with the URDF's M(q)q̈ + C q̇ when the model had no dynamics): zero at constant speed"
 
     def columns(self, d, j, hyper, info):
@@ -328,6 +333,7 @@ class TemperatureDrift(Effect):
 
 class Backlash(Effect):
     name = "backlash"
+    transient = True
     signature = ("where the rotor-output tooth force changes sign the rotor crosses the play: the current is the drive "
                  "loop's (ŝ − k_p·q − k_d·q̇), the impacts jump the output's velocity without a current impulse")
     extra_params = 5  # play, output friction share, two loop gains, the loop-input bandwidth
@@ -339,22 +345,40 @@ class Backlash(Effect):
         model_A = d.p.i[:, j] - resid
         key = ("backlash", j, hashlib.blake2b(model_A.tobytes(), digest_size=16).hexdigest())
         if key not in d.cache:
+            chatter = self.chatter(d, j, model_A)
             path = joint_path(d, j, model_A, info)
             ja = 0.0 if info.armature_kgm2 is None else float(info.armature_kgm2[j])
             inertias = [ja / info.kt[j]] if ja > 0 else [f * float(np.median(path.output_inertia_A_s2_per_rad))
                                                           for f in (0.1, 0.3)]
-            fits = [f for J in inertias if (f := BL.fit(path, resid, J, self.MIN_GAIN)) is not None]
-            d.cache[key] = min(fits, key=lambda f: f.sse_after) if fits else None
+            # a chattering loop is a play's own evidence: its predictor is then fitted however little it explains at
+            # 5 Hz (the params file needs it; the chatter's phase is beyond any prediction)
+            gain = 0.0 if chatter is not None else self.MIN_GAIN
+            fits = [f for J in inertias if (f := BL.fit(path, resid, J, gain)) is not None]
+            fit = min(fits, key=lambda f: f.sse_after) if fits else None
+            if fit is not None:
+                fit.chatter = chatter
+            d.cache[key] = fit
         fit = d.cache[key]
         return [fit] if fit is not None else []
 
+    @staticmethod
+    def chatter(d: GapData, j: int, model_A: np.ndarray) -> BL.Chatter | None:
+        """The drive loop's chatter on joint j (``backlash.loop_chatter``) against the model's current ``model_A``
+        (work rate), on the log's own samples."""
+        t = d.log.t
+        resid = d.log.i[:, j] - np.interp(t, d.p.t, model_A)
+        dq = d.log.dq[:, j] if d.log.dq is not None else None
+        return BL.loop_chatter(t, d.log.q[:, j], resid, float(d.noise_A[j]), d.p.t,
+                               [(s.start, s.stop) for s in d.p.segments], dq)
+
     def columns(self, d, j, hyper, info):
-        if hyper is None or not np.any(hyper.column):
+        if hyper is None or (not np.any(hyper.column) and hyper.chatter is None):
             return None
         # inside the crossings the current follows the drive's unobserved reference: no rigid-body effect is to be
         # fitted to what is left there (± the regression filter's reach)
         reach = max(1, int(round(d.p.fs / d.p.cutoff_Hz)))
-        exclude = binary_dilation(hyper.loop, iterations=reach)
+        loop = hyper.loop | hyper.chatter.windows if hyper.chatter is not None else hyper.loop
+        exclude = binary_dilation(loop, iterations=reach)
         return Cols(np.zeros((d.T, 0)), [], hyper.column, exclude)
 
     def params(self, theta, hyper, d, j, info):
@@ -500,6 +524,7 @@ class CoulombFriction(Effect):
 
 class TorqueConstant(Effect):
     name = "torque_constant"
+    transient = True
     signature = ("the joint's gain is off: its torque current (gravity, payload, dynamics, rotor inertia)/K_t scaled "
                  "by one factor — gravity's and inertia's shape at once, on one joint")
 

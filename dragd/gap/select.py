@@ -16,6 +16,11 @@ joints, with each joint's best hyperparameter; the rounds stop when no effect is
 shared parameter vector across joints (fitted jointly, the joints' other columns eliminated). An effect may mark
 samples where its prediction stays uncertain beyond the noise (a play's crossings, where the current follows the
 drive's unobserved reference): they leave that joint's rows for every later fit and score.
+
+Effects are judged on the joint's *steady* rows (no stop or reversal within the regression filter's reach, where the
+model's misplaced friction steps leak through H as a direction-odd level) unless their signature lives in the
+transients (``Effect.transient``: inertia, K_t, the play); the model is fitted on every row. A joint whose drive loop
+chatters (``backlash.loop_chatter``) is named ``backlash`` before the rounds, on that evidence.
 """
 
 from __future__ import annotations
@@ -37,6 +42,7 @@ AMBIGUOUS = 0.3  # another real effect whose held-out RMS is within this × the 
 REL_MIN = 0.05  # held-out MSE must fall by 5 %
 ABS_MIN = 0.3  # ... and the explained held-out RMS must reach 0.3 × the joint's noise
 MAX_ROUNDS = 8
+MIN_STEADY_ROWS = 30  # fewer steady rows than this: an effect is judged on all the joint's rows
 RIDGE = 1e-9
 
 
@@ -272,22 +278,38 @@ class Selector:
         """Work-rate residual of joint j under the current model (for spectra)."""
         return self.d.p.i[:, jm.j] - self.predict()[:, jm.j]
 
+    def _judged_on(self, eff: Effect, jm: JointModel) -> np.ndarray:
+        """The joint's rows (a mask over ``jm.rows``) an effect is judged on: the steady ones (no stop or reversal
+        within the regression filter's reach: GapData.steady) unless its signature lives in the transients
+        (``Effect.transient``) or too few are steady. Fits of the model itself use every row."""
+        every = np.ones(jm.rows.size, dtype=bool)
+        if eff.transient or eff.shared:
+            return every
+        m = self.d.steady[jm.rows, jm.j]
+        return m if m.sum() >= MIN_STEADY_ROWS else every
+
     def _score_joint(self, eff: Effect, jm: JointModel, resid: np.ndarray | None) -> tuple[float, dict, Term] | None:
         X, y = jm.design()
         y = self._payload_y(jm) if self.payload_theta is not None else y
-        fold = self.d.fold[jm.rows]
+        m = self._judged_on(eff, jm)
+        X, y = X[m], y[m]
+        fold = self.d.fold[jm.rows][m]
         n = y.size
         if n < 30:
             return None
         cv0 = _cv_sse(X, y, fold)
         _, sse0 = _fit(X, y)
+
+        def with_term(tt: Term) -> tuple[np.ndarray, np.ndarray]:
+            return np.hstack([X, tt.XH[m]]), (y - tt.offH[m] if tt.offH is not None else y)
+
         best = None
         for h in eff.hypers(self.d, jm.j, resid if resid is not None else np.zeros(self.d.T), self.base.info()):
             t = self._term(eff, jm, h)
-            if t is None or not _adds(X, t):
+            if t is None or not _adds(X, Term(t.effect, t.hyper, t.cols, t.XH[m],
+                                              None if t.offH is None else t.offH[m])):
                 continue
-            X1 = np.hstack([X, t.XH])
-            y1 = y - t.offH if t.offH is not None else y
+            X1, y1 = with_term(t)
             cv1 = _cv_sse(X1, y1, fold)
             if best is None or cv1 < best[0]:
                 best = (cv1, t, X1, y1)
@@ -298,13 +320,12 @@ class Selector:
                 tt = self._term(eff, jm, h)
                 if tt is None:
                     return float("inf")
-                return _fit(np.hstack([X, tt.XH]), y - tt.offH if tt.offH is not None else y)[1]
+                return _fit(*with_term(tt))[1]
 
             h2 = eff.refine(sse, best[1].hyper)
             t2 = self._term(eff, jm, h2)
-            if t2 is not None and _independent(X, t2.XH):
-                X2 = np.hstack([X, t2.XH])
-                y2 = y - t2.offH if t2.offH is not None else y
+            if t2 is not None and _independent(X, t2.XH[m]):
+                X2, y2 = with_term(t2)
                 cv2 = _cv_sse(X2, y2, fold)
                 if cv2 < best[0]:
                     best = (cv2, t2, X2, y2)
@@ -361,6 +382,7 @@ class Selector:
 
     def run(self) -> list[Step]:
         used: dict[str, set[int]] = {e.name: set() for e in self.effects}
+        self._chatter_first(used)
         for _ in range(MAX_ROUNDS):
             resid = {jm.j: self._residual(jm) for jm in self.joints}
             best: tuple[float, Effect, dict, Any] | None = None
@@ -407,6 +429,36 @@ class Selector:
         self._settle_ambiguity()
         return self.steps
 
+    def _chatter_first(self, used: dict[str, set[int]]) -> None:
+        """A joint whose drive loop chatters (backlash.loop_chatter: current far above the motion's band that is the
+        loop's reaction to its own output's vibration) has a play: named first, on that evidence rather than the
+        regression's (a 5 Hz prediction cannot follow a chatter's phase), and its chatter windows and crossings leave
+        the joint's rows before any rigid-body effect is fitted — else the chatter's low-frequency part is read as
+        one (viscous friction)."""
+        eff = next((e for e in self.effects if e.name == "backlash"), None)
+        if eff is None:
+            return
+        terms: dict[int, Term] = {}
+        for jm in self.joints:
+            h = eff.hypers(self.d, jm.j, self._residual(jm), self.base.info())
+            if not h or h[0].chatter is None:
+                continue
+            t = self._term(eff, jm, h[0])
+            if t is not None:
+                terms[jm.j] = t
+        if not terms:
+            return
+        for j, t in terms.items():
+            self.joints[j].terms.append(t)
+            used[eff.name].add(j)
+            self._restrict(self.joints[j], t.cols.exclude)
+        self.steps.append(Step(eff.name, [self.d.names[j] for j in sorted(terms)],
+                               {self.d.names[j]: t.hyper for j, t in terms.items()},
+                               {self.d.names[j]: {**terms[j].hyper.chatter.evidence(), "real": True}
+                                for j in sorted(terms)}))
+        self._refit()
+        self.snapshots.append(self.predict())
+
     def _settle_ambiguity(self) -> None:
         """Which added effects the data cannot tell from another catalogue effect, judged on the final model: on each
         joint, the added effect is swapped for each other per-joint candidate (its best hyperparameter); when the
@@ -423,9 +475,11 @@ class Selector:
                 t = next(tt for tt in jm.terms if tt.effect == st.effect and tt.hyper == st.hypers.get(nm))
                 if t.cols.exclude is not None or jm.theta is None:
                     continue
-                fold = self.d.fold[jm.rows]
+                m = self._judged_on(CATALOGUE[st.effect], jm)  # the alternatives on the rows this one was judged on
+                fold = self.d.fold[jm.rows][m]
                 X1, _ = jm.design()
                 y1 = self._payload_y(jm)
+                X1, y1 = X1[m], y1[m]
                 cv1, n = _cv_sse(X1, y1, fold), y1.size
                 k = jm.col(t)
                 own = t.cols.X @ jm.theta[k:k + t.cols.X.shape[1]] + (t.cols.offset if t.cols.offset is not None else 0)
@@ -433,6 +487,7 @@ class Selector:
                 with self._without(jm, t):
                     X0, _ = jm.design()
                     y0 = self._payload_y(jm)
+                    X0, y0 = X0[m], y0[m]
                     cv0 = _cv_sse(X0, y0, fold)
                     sigma = float(self.d.noise_A[jm.j])
                     have = {tt.effect for tt in jm.terms}
@@ -442,7 +497,10 @@ class Selector:
                         best = None
                         for h in eff.hypers(self.d, jm.j, resid, info):
                             ta = self._term(eff, jm, h)
-                            if ta is None or not _adds(X0, ta):
+                            if ta is None:
+                                continue
+                            ta = Term(ta.effect, ta.hyper, ta.cols, ta.XH[m], None if ta.offH is None else ta.offH[m])
+                            if not _adds(X0, ta):
                                 continue
                             Xa = np.hstack([X0, ta.XH])
                             ya = y0 - ta.offH if ta.offH is not None else y0
@@ -512,15 +570,19 @@ class Selector:
     def _still_real(self, jm: JointModel, t: Term) -> tuple[bool, float]:
         """Whether term ``t`` of joint ``jm`` passes the selection's tests against the model without it (the shared
         payload refitted too where it couples the joint), and the held-out RMS it explains [A]."""
-        fold = self.d.fold[jm.rows]
+        coupled = jm.j in self.payload_cols  # the shared payload was fitted with this term: refit it without
+        # judged on the rows selection judged it on (all of them where the payload couples the joints)
+        m = np.ones(jm.rows.size, dtype=bool) if coupled else self._judged_on(CATALOGUE[t.effect], jm)
+        fold = self.d.fold[jm.rows][m]
         X1, _ = jm.design()
         y1 = self._payload_y(jm)
+        X1, y1 = X1[m], y1[m]
         k = jm.col(t)
-        coupled = jm.j in self.payload_cols  # the shared payload was fitted with this term: refit it without
         cv1 = self._cv_payload() if coupled else _cv_sse(X1, y1, fold)
         with self._without(jm, t):
             X0, _ = jm.design()
             y0 = self._payload_y(jm)
+            X0, y0 = X0[m], y0[m]
             cv0_own = _cv_sse(X0, y0, fold)
             cv0 = self._cv_payload() if coupled else cv0_own
         n = y1.size
@@ -528,7 +590,7 @@ class Selector:
         # the effect's own fitted current (filtered, on the fit rows) must reach what selection asks it to explain: a
         # term that the later ones reduced to a sliver is not named
         th1, _ = _fit(X1, y1)
-        own = t.XH @ th1[k:k + t.XH.shape[1]] + (t.offH if t.offH is not None else 0.0)
+        own = t.XH[m] @ th1[k:k + t.XH.shape[1]] + (t.offH[m] if t.offH is not None else 0.0)
         sigma = self.d.noise_A[jm.j]
         explained = math.sqrt(max(gain, 0.0) / n)
         big = math.sqrt(float(np.mean(np.square(own)))) >= ABS_MIN * sigma
