@@ -9,7 +9,6 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent / "independent"))
@@ -83,16 +82,6 @@ def test_a_kt_error_and_a_payload_together_are_told_apart(tmp_path: Path) -> Non
     assert abs(effs["payload_mass"]["params"]["mass_kg"] - 1.5) < 0.15
 
 
-def test_a_chattering_play_is_named_by_its_drive_loop(tmp_path: Path) -> None:
-    """A 10 mrad play on joint 4 makes the drive's position loop chatter (≈ 2 A above 20 Hz against 23 mA noise) in
-    point-to-point moves: the 5 Hz predictor cannot follow it (it explained < 2 %) and the chatter's low-frequency part
-    was named viscous friction. The loop's own reaction to its output's vibration names the play, on joint 4 alone
-    (joints 1–3 carry the chatter's inertial coupling, their outputs do not vibrate), and nothing else."""
-    r = _run("backlash__ptp", tmp_path)
-    assert r["score"]["named"] == {"backlash": ["joint4"]}, r["score"]["reasons"]
-    assert r["status"] == "right"
-
-
 def test_the_friction_steps_leakage_is_not_named_a_coulomb_change(tmp_path: Path) -> None:
     """Seed 000's experiment (one joint at a time at 0.08, 0.2, 0.4 rad/s) with a Stribeck hump on joints 2 and 3 and
     10 mA noise: the model's friction step at each stop sits where the *estimated* q̇ crosses zero; the regression
@@ -101,40 +90,6 @@ def test_the_friction_steps_leakage_is_not_named_a_coulomb_change(tmp_path: Path
     r = _run("stribeck__constant_speed", tmp_path)
     assert r["score"]["named"] == {"stribeck": ["joint2", "joint3"]}, r["score"]["reasons"]
     assert r["status"] == "right"
-
-
-def test_loop_chatter_is_the_joints_own_loop_not_a_neighbours_nor_noise() -> None:
-    """backlash.loop_chatter on synthetic 500 Hz signals: a PD loop (100 A/rad, 3 A·s/rad) reacting to its output's
-    vibration in bursts is found, with its gains and where it chatters; the same current on a joint whose own output
-    does not vibrate (a neighbour shaken through the inertial coupling), white noise and friction steps are not."""
-    from scipy.signal import butter, sosfiltfilt
-
-    from dragd.gap.backlash import loop_chatter
-
-    rng = np.random.default_rng(3)
-    fs, kp, kd, sigma = 500.0, 100.0, 3.0, 0.02
-    t = np.arange(0.0, 20.0, 1.0 / fs)
-    burst = (t % 5.0 > 2.0) & (t % 5.0 < 3.0)  # 1 s in every 5
-    vib = sosfiltfilt(butter(4, (40.0, 150.0), btype="band", fs=fs, output="sos"), rng.normal(0.0, 1e-3, t.size))
-    vib *= burst
-    count = 2 * np.pi / 524288  # encoder counts
-    q = np.round((0.3 * np.sin(0.5 * t) + vib) / count) * count
-    loop = -kp * vib - kd * np.gradient(vib, t)
-    noise = rng.normal(0.0, sigma, t.size)
-    t_work = t[::5]
-    seg = [(0, t_work.size)]
-    assert 20 * sigma < np.sqrt(np.mean(loop[burst] ** 2))
-
-    ch = loop_chatter(t, q, loop + noise, sigma, t_work, seg)
-    assert ch is not None and ch.r2 > 0.9
-    assert abs(ch.kp_A_per_rad / kp - 1) < 0.1 and abs(ch.kd_A_s_per_rad / kd - 1) < 0.1
-    inside = burst[::5]
-    assert ch.windows[inside].mean() > 0.9 and ch.windows[~inside].mean() < 0.1
-    q_still = np.round(0.3 * np.sin(0.5 * t) / count) * count  # a neighbour: the current, not the vibration
-    assert loop_chatter(t, q_still, loop + noise, sigma, t_work, seg) is None
-    assert loop_chatter(t, q, noise, sigma, t_work, seg) is None
-    steps = 0.5 * np.sign(np.sin(0.5 * t)) - 0.5 * np.sign(np.sin(0.5 * t + 0.004))  # misplaced friction steps
-    assert loop_chatter(t, q_still, steps + noise, sigma, t_work, seg) is None
 
 
 @pytest.mark.parametrize("case_id", ["none__trapezoid_0", "none__constant_speed_0"])

@@ -35,9 +35,7 @@ from typing import Any
 
 import numpy as np
 from scipy.linalg import solve_banded
-from scipy.ndimage import uniform_filter1d
 from scipy.optimize import minimize
-from scipy.signal import butter, sosfiltfilt
 
 LOOP_CUTOFF_HZ = 5.0  # bandwidth of the loop-input estimate ŝ (Whittaker smoother, half power)
 REFERENCE_CUTOFF_HZ = 3.0  # bandwidth of the output's slow part (the reference's shape), taken out before smoothing
@@ -48,11 +46,6 @@ PLAYS_RAD = (0.002, 0.004, 0.008, 0.016, 0.032)  # grid of the play (geometric)
 SHARES = (0.0, 0.15, 0.3, 0.5)  # grid of the output's friction share
 SCREEN_PLAYS_RAD = (0.004, 0.016)  # the grid's first points: nothing gained there, no search
 SCREEN_SHARES = (0.15, 0.3)
-CHATTER_HIGHPASS_HZ = 20.0  # loop chatter: current above this (the q̈ filter's cutoff: no rigid-body model resolves it)
-CHATTER_WINDOW_S = 0.1  # ... whose RMS over this window
-CHATTER_MIN = 3.0  # ... exceeds this × the Hall noise (white noise: ≤ 1.1 × in 10 samples, p < 1e-6 beyond 3 ×)
-CHATTER_MIN_S = 0.2  # ... for this long in all (a sustained oscillation, not one friction step)
-CHATTER_R2 = 0.7  # ... and the joint's own drive loop explains at least this share of it
 
 
 @dataclass(frozen=True)
@@ -110,72 +103,6 @@ class BacklashFit:
     column: np.ndarray  # (T,) A: predicted current − the model's
     sse_after: float  # Σ r² on the fit samples (work rate)
     loop: np.ndarray  # (T,) bool: where the predicted current is the drive loop's (crossings, impacts)
-    chatter: Chatter | None = None  # the loop chatters on the joint (its windows are the loop's too)
-
-
-@dataclass(eq=False)
-class Chatter:
-    """Evidence that the drive's position loop chatters on a joint (``loop_chatter``)."""
-
-    hf_rms_A: float  # RMS of the current above CHATTER_HIGHPASS_HZ inside the chatter windows
-    noise_A: float  # the joint's Hall noise
-    duration_s: float  # time inside the windows
-    r2: float  # share of that current the loop i = −k_p·q − k_d·q̇ (on the output's own high-frequency motion) explains
-    kp_A_per_rad: float
-    kd_A_s_per_rad: float
-    windows: np.ndarray  # (T,) bool at the work rate: where it chatters
-
-    def evidence(self) -> dict[str, Any]:
-        return {"chatter_rms_A": self.hf_rms_A, "noise_A": self.noise_A, "chatter_s": self.duration_s,
-                "loop_r2": self.r2, "loop_A_per_rad": [self.kp_A_per_rad, self.kd_A_s_per_rad]}
-
-
-def loop_chatter(t: np.ndarray, q: np.ndarray, resid: np.ndarray, noise_A: float, t_work: np.ndarray,
-                 segments: list[tuple[int, int]], dq: np.ndarray | None = None) -> Chatter | None:
-    """Whether the drive's position loop chatters on a joint: the signature of a play that the 5 Hz prediction cannot
-    follow. Inputs at the log's own rate: t, the output position q, the model's residual current, the log's velocity
-    (None: q's derivative); ``t_work``, ``segments`` the work rate's samples and stretches.
-
-    A loop that hunts through a play (the rotor leaves a flank, strikes the other, the output jumps, the loop reacts)
-    puts an oscillation into the current far above the arm's motion — above CHATTER_HIGHPASS_HZ, where no rigid-body
-    model of the measured (smooth) motion puts anything — and that current is the loop's own reaction to its output's
-    vibration: i_hf = −k_p·q_hf − k_d·q̇_hf with positive gains. Found where the high-passed residual's RMS over
-    CHATTER_WINDOW_S exceeds CHATTER_MIN × the noise for CHATTER_MIN_S in all, and the loop explains ≥ CHATTER_R2 of
-    it there. A joint shaken by a neighbour's chatter (inertial coupling) carries such current too, but its own output
-    does not vibrate with it (R² ≈ 0); friction steps at stops and reversals are short and not the loop's."""
-    if t.size < 50:
-        return None
-    fs = 1.0 / float(np.median(np.diff(t)))
-    if CHATTER_HIGHPASS_HZ >= 0.4 * fs:
-        return None  # the log's rate does not reach above the motion's band
-    sos = butter(4, CHATTER_HIGHPASS_HZ, btype="high", fs=fs, output="sos")
-    hi = np.zeros_like(resid, dtype=float)
-    hq = np.zeros_like(q, dtype=float)
-    hv = np.zeros_like(q, dtype=float)
-    inside = np.zeros(t.size, dtype=bool)
-    for a, b in segments:
-        k0, k1 = int(np.searchsorted(t, t_work[a], "left")), int(np.searchsorted(t, t_work[b - 1], "right"))
-        if k1 - k0 < 60:  # sosfiltfilt's padding needs a few periods
-            continue
-        sl = slice(k0, k1)
-        hi[sl] = sosfiltfilt(sos, resid[sl])
-        hq[sl] = sosfiltfilt(sos, q[sl])
-        hv[sl] = sosfiltfilt(sos, dq[sl]) if dq is not None else np.gradient(hq[sl], t[sl])
-        inside[sl] = True
-    w = max(3, int(round(CHATTER_WINDOW_S * fs)))
-    win = inside & (uniform_filter1d(hi ** 2, w, mode="nearest") > (CHATTER_MIN * noise_A) ** 2)
-    if win.sum() / fs < CHATTER_MIN_S:
-        return None
-    A = -np.column_stack([hq[win], hv[win]])
-    y = hi[win]
-    th, *_ = np.linalg.lstsq(A, y, rcond=None)
-    e = y - A @ th
-    r2 = 1.0 - float(e @ e) / max(float(y @ y), 1e-300)
-    if r2 < CHATTER_R2 or th[0] <= 0.0 or th[1] < 0.0:
-        return None
-    k = np.clip(np.searchsorted(t, t_work), 0, t.size - 1)  # the work rate's samples: the log's sample at or after
-    return Chatter(float(np.sqrt(np.mean(y ** 2))), float(noise_A), float(win.sum() / fs), r2, float(th[0]),
-                   float(th[1]), win[k])
 
 
 # ------------------------------------------------------------------------------------------ smoothing

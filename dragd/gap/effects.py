@@ -21,8 +21,7 @@ Signatures (what tells each effect from the others; docs/GAP.md has the full tab
                         reversals) the rotor crosses the play: the current is then the drive loop's, not what the
                         output's motion needs, and the impacts jump the output's velocity without a current impulse.
                         A physical predictor (``backlash.py``: the rotor simulated along the measured output), not
-                        regressor columns: its fixed current is scored like any effect's. Or the drive loop chatters
-                        (``backlash.loop_chatter``): its own evidence, named before the regression's rounds.
+                        regressor columns: its fixed current is scored like any effect's.
 - ``back_emf``          odd in q̇ but zero below a knee speed, linear above (voltage headroom); viscous starts at 0.
 - ``payload_mass``      even in q̇: the gravity (and dynamics) of a flange mass, in the URDF's kinematic pattern
                         over joints 2..n at once (one shared mass and centre of mass); load friction is odd in q̇.
@@ -345,40 +344,22 @@ class Backlash(Effect):
         model_A = d.p.i[:, j] - resid
         key = ("backlash", j, hashlib.blake2b(model_A.tobytes(), digest_size=16).hexdigest())
         if key not in d.cache:
-            chatter = self.chatter(d, j, model_A)
             path = joint_path(d, j, model_A, info)
             ja = 0.0 if info.armature_kgm2 is None else float(info.armature_kgm2[j])
             inertias = [ja / info.kt[j]] if ja > 0 else [f * float(np.median(path.output_inertia_A_s2_per_rad))
                                                           for f in (0.1, 0.3)]
-            # a chattering loop is a play's own evidence: its predictor is then fitted however little it explains at
-            # 5 Hz (the params file needs it; the chatter's phase is beyond any prediction)
-            gain = 0.0 if chatter is not None else self.MIN_GAIN
-            fits = [f for J in inertias if (f := BL.fit(path, resid, J, gain)) is not None]
-            fit = min(fits, key=lambda f: f.sse_after) if fits else None
-            if fit is not None:
-                fit.chatter = chatter
-            d.cache[key] = fit
+            fits = [f for J in inertias if (f := BL.fit(path, resid, J, self.MIN_GAIN)) is not None]
+            d.cache[key] = min(fits, key=lambda f: f.sse_after) if fits else None
         fit = d.cache[key]
         return [fit] if fit is not None else []
 
-    @staticmethod
-    def chatter(d: GapData, j: int, model_A: np.ndarray) -> BL.Chatter | None:
-        """The drive loop's chatter on joint j (``backlash.loop_chatter``) against the model's current ``model_A``
-        (work rate), on the log's own samples."""
-        t = d.log.t
-        resid = d.log.i[:, j] - np.interp(t, d.p.t, model_A)
-        dq = d.log.dq[:, j] if d.log.dq is not None else None
-        return BL.loop_chatter(t, d.log.q[:, j], resid, float(d.noise_A[j]), d.p.t,
-                               [(s.start, s.stop) for s in d.p.segments], dq)
-
     def columns(self, d, j, hyper, info):
-        if hyper is None or (not np.any(hyper.column) and hyper.chatter is None):
+        if hyper is None or not np.any(hyper.column):
             return None
         # inside the crossings the current follows the drive's unobserved reference: no rigid-body effect is to be
         # fitted to what is left there (± the regression filter's reach)
         reach = max(1, int(round(d.p.fs / d.p.cutoff_Hz)))
-        loop = hyper.loop | hyper.chatter.windows if hyper.chatter is not None else hyper.loop
-        exclude = binary_dilation(loop, iterations=reach)
+        exclude = binary_dilation(hyper.loop, iterations=reach)
         return Cols(np.zeros((d.T, 0)), [], hyper.column, exclude)
 
     def params(self, theta, hyper, d, j, info):

@@ -19,8 +19,7 @@ drive's unobserved reference): they leave that joint's rows for every later fit 
 
 Effects are judged on the joint's *steady* rows (no stop or reversal within the regression filter's reach, where the
 model's misplaced friction steps leak through H as a direction-odd level) unless their signature lives in the
-transients (``Effect.transient``: inertia, K_t, the play); the model is fitted on every row. A joint whose drive loop
-chatters (``backlash.loop_chatter``) is named ``backlash`` before the rounds, on that evidence.
+transients (``Effect.transient``: inertia, K_t, the play); the model is fitted on every row.
 """
 
 from __future__ import annotations
@@ -382,7 +381,6 @@ class Selector:
 
     def run(self) -> list[Step]:
         used: dict[str, set[int]] = {e.name: set() for e in self.effects}
-        self._chatter_first(used)
         for _ in range(MAX_ROUNDS):
             resid = {jm.j: self._residual(jm) for jm in self.joints}
             best: tuple[float, Effect, dict, Any] | None = None
@@ -428,36 +426,6 @@ class Selector:
         self._prune()
         self._settle_ambiguity()
         return self.steps
-
-    def _chatter_first(self, used: dict[str, set[int]]) -> None:
-        """A joint whose drive loop chatters (backlash.loop_chatter: current far above the motion's band that is the
-        loop's reaction to its own output's vibration) has a play: named first, on that evidence rather than the
-        regression's (a 5 Hz prediction cannot follow a chatter's phase), and its chatter windows and crossings leave
-        the joint's rows before any rigid-body effect is fitted — else the chatter's low-frequency part is read as
-        one (viscous friction)."""
-        eff = next((e for e in self.effects if e.name == "backlash"), None)
-        if eff is None:
-            return
-        terms: dict[int, Term] = {}
-        for jm in self.joints:
-            h = eff.hypers(self.d, jm.j, self._residual(jm), self.base.info())
-            if not h or h[0].chatter is None:
-                continue
-            t = self._term(eff, jm, h[0])
-            if t is not None:
-                terms[jm.j] = t
-        if not terms:
-            return
-        for j, t in terms.items():
-            self.joints[j].terms.append(t)
-            used[eff.name].add(j)
-            self._restrict(self.joints[j], t.cols.exclude)
-        self.steps.append(Step(eff.name, [self.d.names[j] for j in sorted(terms)],
-                               {self.d.names[j]: t.hyper for j, t in terms.items()},
-                               {self.d.names[j]: {**terms[j].hyper.chatter.evidence(), "real": True}
-                                for j in sorted(terms)}))
-        self._refit()
-        self.snapshots.append(self.predict())
 
     def _settle_ambiguity(self) -> None:
         """Which added effects the data cannot tell from another catalogue effect, judged on the final model: on each
