@@ -7,6 +7,7 @@ so the 1 kHz cycle may call them directly.
 
 from __future__ import annotations
 
+import array
 import math
 import time
 from typing import Any
@@ -29,7 +30,7 @@ class Histogram:
     """
 
     __slots__ = (
-        "lo", "hi", "bin_width", "n_bins", "_inv_width", "_counts",
+        "lo", "hi", "bin_width", "n_bins", "_inv_width", "_store", "_counts",
         "count", "below", "above", "nan", "_sum", "min", "max",
     )
 
@@ -49,7 +50,10 @@ class Histogram:
         self.bin_width = float(bin_width)
         self.n_bins = n_bins
         self._inv_width = 1.0 / self.bin_width
-        self._counts = np.zeros(n_bins, dtype=np.int64)  # percentiles by cumsum + searchsorted (status requests)
+        # a C array the cycle's add() increments as fast as a list's items, viewed by numpy for the percentiles'
+        # cumsum + searchsorted (status requests)
+        self._store = array.array("q", bytes(8 * n_bins))
+        self._counts = np.frombuffer(self._store, dtype=np.int64)
         self.count = 0
         self.below = 0
         self.above = 0
@@ -77,7 +81,7 @@ class Histogram:
             i = int((x - self.lo) * self._inv_width)
             if i >= self.n_bins:  # rounding at the top edge
                 i = self.n_bins - 1
-            self._counts[i] += 1
+            self._store[i] += 1
 
     def reset(self) -> None:
         """Forget all samples (keeps the bins)."""

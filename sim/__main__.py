@@ -45,7 +45,8 @@ def main(argv: list[str] | None = None) -> int:
                        help="SCHED_FIFO priority for the physics and bus threads (needs CAP_SYS_NICE or RLIMIT_RTPRIO)")
     run_p.add_argument("--batch-frames", action="store_true",
                        help="udp_multicast: answer each SYNC with one datagram carrying every drive's TPDOs (dragd's "
-                            "buses read it; python-can's own udp_multicast tools do not: leave it off for them)")
+                            "buses read it; python-can's own udp_multicast tools do not: leave it off for them); "
+                            "no effect on other buses (SocketCAN, virtual: one frame per send)")
     run_p.add_argument("--cpus", help="pin the physics and bus threads to these CPUs, e.g. 1 or 0,1")
     run_p.add_argument("--physics-rate-Hz", type=int, metavar="HZ", dest="physics_rate_Hz",
                        help="override the truth's physics_rate_Hz: a multiple of 1000 in [1000, 50000]; below the "

@@ -20,6 +20,7 @@ Drive-specific behaviour, beyond what CiA 301/402 fix:
 
 from __future__ import annotations
 
+import itertools
 import math
 import struct
 import threading
@@ -188,10 +189,13 @@ class _Consumer:
     expired: bool = False
 
 
+_ROUTE_GENERATIONS = itertools.count(1)
+
+
 class SimDrive:
     """A CANopen joint drive node backed by an EDS, exchanging signals with the physics through AxisIO."""
 
-    routes_generation = 0  # bumped by every drive whose COB-ID routing changes (SimNetwork rebuilds its tables)
+    routes_generation = 0  # renewed by every drive whose COB-ID routing changes (SimNetwork rebuilds its tables)
 
     def __init__(self, params: DriveParams, io: AxisIO, send: Callable[[can.Message], None],
                  eds_path: str | Path = DEFAULT_EDS_PATH) -> None:
@@ -1113,7 +1117,7 @@ class SimDrive:
         ids.update(ch.cob_id for ch in self.rpdos if ch.valid)
         ids.update(HEARTBEAT_BASE + node for node in self._consumers)
         self._rx_ids = frozenset(ids)
-        SimDrive.routes_generation += 1  # one number for every drive of the process: a network's cheap check
+        SimDrive.routes_generation = next(_ROUTE_GENERATIONS)  # atomic across the bus reader threads
 
     # ==================================================================================================
     # transmit

@@ -375,6 +375,35 @@ def test_udp_multicast_broken_frame_in_a_batch_is_counted(request: pytest.Fixtur
         rx.shutdown()
 
 
+def test_udp_multicast_batch_takes_each_frame_as_sent_and_oversize_datagrams_are_counted(
+        request: pytest.FixtureRequest) -> None:
+    """A frame object reused inside a batch (a caller's preallocated buffer) leaves as it was at each send; a datagram
+    longer than the bus reads (DATAGRAM_MAX) is counted, not half-decoded in silence."""
+    from dragd.hardware.bus import DATAGRAM_MAX
+
+    group = unique_group(request.node.name)
+    spec = parse_bus(f"udp_multicast:{group}")
+    tx, rx = open_bus(spec, batch_frames=True), open_bus(spec)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        msg = can.Message(arbitration_id=0x201, data=bytearray(b"\x01\x02"), is_extended_id=False)
+        with tx.batch():
+            tx.send(msg)
+            msg.data[0] = 0x7F
+            tx.send(msg)
+        assert [bytes(m.data) for m in drain(rx, 0.3)] == [b"\x01\x02", b"\x7f\x02"]
+        sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
+        sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)
+        sock.sendto(b"\x00" * (DATAGRAM_MAX + 100), (group, DEFAULT_UDP_PORT))
+        sock.sendto(b"", (group, DEFAULT_UDP_PORT))
+        assert drain(rx, 0.3) == []
+        assert rx.counters().undecodable == 2
+    finally:
+        sock.close()
+        tx.shutdown()
+        rx.shutdown()
+
+
 # --- virtual and SocketCAN ---------------------------------------------------------------------------------
 def test_virtual_bus_in_process(request: pytest.FixtureRequest) -> None:
     spec = parse_bus(f"virtual:{request.node.name}")

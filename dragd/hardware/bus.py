@@ -26,11 +26,15 @@ buffer overflow, SO_RXQ_OVFL) are reported as well. Not detectable: frames from 
 stamp the field (plain python-can peers; these are passed through and counted as foreign), losses after
 a sender's last frame, and the first frames of a sender before its first frame that arrived.
 
-Batching (opt-in, ``batch_frames=True``): frames sent inside ``with bus.batch():`` leave as one datagram — their
-msgpack maps back to back, each with its own stamp — when the block ends. The simulated drives answer a SYNC
-that way (six TPDOs, one datagram: one send and one receiver wake-up instead of six). Every bus of this module
-reads such datagrams; python-can's own udp_multicast bus does not (it expects exactly one map), so a bus that
-talks to python-can's tools leaves batching off (the default).
+Batching (opt-in, ``batch_frames=True``): frames a thread sends inside ``with bus.batch():`` leave as one datagram
+(at most ``DATAGRAM_MAX`` bytes; more: several) — their msgpack maps back to back, each with its own stamp — when
+the block ends. The simulated drives answer a SYNC that way (six TPDOs, one datagram: one send and one receiver
+wake-up instead of six). Every bus of this module decodes such datagrams, and ``drain`` hands out all their frames
+at once; ``recv`` returns them one per call, so a reader that waits on the socket between calls (python-can's
+asyncio ``Notifier``, which calls ``recv(0)`` once per wake-up) would leave the rest of a batch queued until the next
+datagram — dragd's daemon reads with ``DrainingNotifier`` and its tools with a thread that calls ``recv(timeout)``
+in a loop. python-can's own udp_multicast bus cannot read batches at all (it expects exactly one map), so a bus
+that talks to python-can's tools leaves batching off (the default).
 """
 
 from __future__ import annotations
@@ -64,7 +68,8 @@ _SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)
 _TIMESPEC = struct.Struct("@ll")
 _U32 = struct.Struct("@I")
 _WINDOW = 64
-BATCH_MAX_BYTES = 8192  # a batch longer than this leaves in several datagrams
+DATAGRAM_MAX = 4096  # bytes read per datagram; a batch longer than this leaves in several datagrams
+_STAMP = slice(10, 18)  # a packed frame's sender stamp (after the map header, "channel" and the uint64 marker)
 _WINDOW_MASK = (1 << _WINDOW) - 1
 
 
@@ -204,8 +209,7 @@ class UdpMulticastCanBus(can.BusABC):
         self._rx_lock = threading.Lock()
         self._senders: dict[int, list[int]] = {}
         self.batch_frames = batch_frames
-        self._batch: list[can.Message] | None = None  # frames held by the open batch() block
-        self._batch_thread = 0  # the thread that holds it (other threads' frames leave at once)
+        self._local = threading.local()  # .held: this thread's open batch() block (other threads' frames go at once)
         self._pending: deque[can.Message] = deque()  # recv(): the rest of a batched datagram
         self._c = dict(frames_sent=0, frames_received=0, own_echoes_dropped=0, duplicates_dropped=0, gaps=0,
                        reordered=0, too_late_dropped=0, kernel_drops=0, foreign_frames=0, fd_frames_dropped=0,
@@ -247,12 +251,12 @@ class UdpMulticastCanBus(can.BusABC):
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         if msg.is_fd and self._can_protocol is not can.CanProtocol.CAN_FD:
             raise can.CanOperationError(f"{self.channel_info}: cannot send a CAN FD frame on a classic-CAN bus")
-        held = self._batch
-        if held is not None and self._batch_thread == threading.get_ident():
-            held.append(msg)  # packed (and stamped) when the batch leaves: sequence numbers stay in send order
+        held = getattr(self._local, "held", None)
+        if held is not None:
+            held.append(self._pack(msg))  # packed now (the caller may reuse msg), stamped when the batch leaves
             return
         with self._tx_lock:
-            self._sendto(self._pack(msg), 1)
+            self._sendto(self._stamp(self._pack(msg)), 1)
 
     @contextmanager
     def batch(self) -> Iterator[None]:
@@ -260,36 +264,40 @@ class UdpMulticastCanBus(can.BusABC):
 
         Without ``batch_frames`` (and when nested) the block changes nothing: every frame leaves at once.
         """
-        if not self.batch_frames or self._batch is not None:
+        if not self.batch_frames or getattr(self._local, "held", None) is not None:
             yield
             return
-        held: list[can.Message] = []
-        self._batch_thread, self._batch = threading.get_ident(), held
+        held: list[bytearray] = []
+        self._local.held = held
         try:
             yield
         finally:
-            self._batch = None
+            self._local.held = None
             if held:
                 self._flush(held)
 
-    def _flush(self, held: list[can.Message]) -> None:
+    def _flush(self, held: list[bytearray]) -> None:
         with self._tx_lock:
-            parts: list[bytes] = []
+            parts: list[bytearray] = []
             size = 0
-            for msg in held:
-                data = self._pack(msg)
-                if parts and size + len(data) > BATCH_MAX_BYTES:
+            for data in held:
+                if parts and size + len(data) > DATAGRAM_MAX:
                     self._sendto(b"".join(parts), len(parts))
                     parts, size = [], 0
-                parts.append(data)
+                parts.append(self._stamp(data))
                 size += len(data)
-            self._sendto(b"".join(parts) if len(parts) > 1 else parts[0], len(parts))
+            self._sendto(b"".join(parts), len(parts))
 
-    def _pack(self, msg: can.Message) -> bytes:
-        """One frame's msgpack map, stamped with the next sequence number (caller holds the tx lock)."""
+    def _stamp(self, data: bytearray) -> bytearray:
+        """Put the next sequence number into a packed frame's stamp (caller holds the tx lock)."""
         self._seq = (self._seq + 1) & 0xFFFFFFFF
-        packed: bytes = self._packer.pack({
-            "channel": self._token << 32 | self._seq,  # first: the datagram starts with the sender's stamp
+        data[_STAMP] = (self._token << 32 | self._seq).to_bytes(8, "big")
+        return data
+
+    def _pack(self, msg: can.Message) -> bytearray:
+        """One frame's msgpack map; its stamp carries the sender token and sequence 0 until ``_stamp``."""
+        packed = bytearray(self._packer.pack({
+            "channel": self._token << 32,  # first: the datagram starts with the sender's stamp (a uint64)
             "timestamp": msg.timestamp,
             "arbitration_id": msg.arbitration_id,
             "is_extended_id": msg.is_extended_id,
@@ -300,10 +308,10 @@ class UdpMulticastCanBus(can.BusABC):
             "is_fd": msg.is_fd,
             "bitrate_switch": msg.bitrate_switch,
             "error_state_indicator": msg.error_state_indicator,
-        })
+        }))
         return packed
 
-    def _sendto(self, datagram: bytes, frames: int) -> None:
+    def _sendto(self, datagram: bytes | bytearray, frames: int) -> None:
         try:
             self._sock.sendto(datagram, self._dest)
         except OSError as exc:
@@ -317,7 +325,7 @@ class UdpMulticastCanBus(can.BusABC):
             return self._pending.popleft(), False
         # a datagram already queued is taken without a select() first (one syscall per frame, not two)
         try:
-            raw, ancillary, _, _ = self._sock.recvmsg(4096, self._ancillary_size, socket.MSG_DONTWAIT)
+            raw, ancillary, flags, _ = self._sock.recvmsg(DATAGRAM_MAX, self._ancillary_size, socket.MSG_DONTWAIT)
         except BlockingIOError:
             if timeout == 0:
                 return None, False
@@ -328,7 +336,7 @@ class UdpMulticastCanBus(can.BusABC):
             if not ready:
                 return None, False
             try:
-                raw, ancillary, _, _ = self._sock.recvmsg(4096, self._ancillary_size, socket.MSG_DONTWAIT)
+                raw, ancillary, flags, _ = self._sock.recvmsg(DATAGRAM_MAX, self._ancillary_size, socket.MSG_DONTWAIT)
             except BlockingIOError:
                 return None, False  # another reader took it
             except OSError as exc:
@@ -336,7 +344,7 @@ class UdpMulticastCanBus(can.BusABC):
         except OSError as exc:
             raise can.CanOperationError(f"{self.channel_info}: receive failed: {exc}") from exc
         with self._rx_lock:
-            frames, timestamp = self._frames(raw, ancillary)
+            frames, timestamp = self._frames(raw, ancillary, flags)
             first: can.Message | None = None
             for fields, own in frames:
                 msg = self._message(fields, timestamp, own)
@@ -361,7 +369,7 @@ class UdpMulticastCanBus(can.BusABC):
         self._c["frames_received"] += 1
         return msg
 
-    def _frames(self, raw: bytes, ancillary: list[tuple[int, int, bytes]]
+    def _frames(self, raw: bytes, ancillary: list[tuple[int, int, bytes]], flags: int = 0
                 ) -> tuple[list[tuple[dict[str, Any], bool]], float]:
         """A datagram's accepted frames (fields, whether our own echo) and its reception time.
 
@@ -376,6 +384,9 @@ class UdpMulticastCanBus(can.BusABC):
                 timestamp = sec + nsec * 1e-9
             elif level == socket.SOL_SOCKET and kind == _SO_RXQ_OVFL and len(payload) >= _U32.size:
                 c["kernel_drops"] = _U32.unpack_from(payload)[0]
+        if flags & socket.MSG_TRUNC or not raw:  # longer than DATAGRAM_MAX (cut: nobody of ours sends that), or empty
+            c["undecodable"] += 1
+            return [], timestamp
         if not self.receive_own_messages and raw.startswith(self._own_prefix):
             c["own_echoes_dropped"] += raw.count(self._own_prefix)  # our own datagram, looped back: not decoded
             return [], timestamp
@@ -388,6 +399,9 @@ class UdpMulticastCanBus(can.BusABC):
                 fields, rest = more.unpacked, more.extra
             except (ValueError, TypeError, msgpack.UnpackException):
                 c["undecodable"] += 1  # nothing after a broken map can be read
+                break
+            if not isinstance(fields, dict):  # not a frame: the rest of the datagram is not ours to guess at
+                c["undecodable"] += 1
                 break
             try:
                 stamp = fields.get("channel")
@@ -421,7 +435,7 @@ class UdpMulticastCanBus(can.BusABC):
         Every other accepted frame that passes the bus's filters (``set_filters``: e.g. no 29-bit ids) goes to
         ``on_message`` as a ``can.Message``. Echo, duplicate and loss handling and the counters are those of ``recv``.
         """
-        recvmsg, size, anc_size, c = self._sock.recvmsg, 4096, self._ancillary_size, self._c
+        recvmsg, size, anc_size, c = self._sock.recvmsg, DATAGRAM_MAX, self._ancillary_size, self._c
         pending = self._pending
         while pending:  # left by recv() in the middle of a batch
             msg = pending.popleft()
@@ -430,7 +444,7 @@ class UdpMulticastCanBus(can.BusABC):
         n = 0
         while n < limit:
             try:
-                raw, ancillary, _, _ = recvmsg(size, anc_size, socket.MSG_DONTWAIT)
+                raw, ancillary, flags, _ = recvmsg(size, anc_size, socket.MSG_DONTWAIT)
             except BlockingIOError:
                 break
             except OSError as exc:
@@ -438,7 +452,7 @@ class UdpMulticastCanBus(can.BusABC):
             n += 1
             messages: list[can.Message] = []
             with self._rx_lock:
-                frames, timestamp = self._frames(raw, ancillary)
+                frames, timestamp = self._frames(raw, ancillary, flags)
                 for fields, own in frames:
                     try:
                         plain = not (own or fields["is_extended_id"] or fields["is_remote_frame"]

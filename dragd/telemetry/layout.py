@@ -19,7 +19,7 @@ from dragd.telemetry.schema import CYCLE_SCHEMA, Field, Labels
 __all__ = ["RowLayout", "dumps"]
 
 
-def _normalize_labels(name: str, labels: Labels) -> dict[int, str]:
+def normalize_labels(name: str, labels: Labels) -> dict[int, str]:
     if isinstance(labels, type) and issubclass(labels, enum.Enum):
         out = {}
         for member in labels:
@@ -80,7 +80,7 @@ class RowLayout:
             digits = float_digits if f.digits is None else f.digits
             if not 1 <= digits <= 17:
                 raise ValueError(f"telemetry field {name!r}: digits must be in 1..17; got {digits}")
-            labels = _normalize_labels(name, f.labels) if f.labels is not None else None
+            labels = normalize_labels(name, f.labels) if f.labels is not None else None
             kind = "enum" if labels is not None else f.kind
             cols.append(_Column(name, offset, f.width, kind, labels, f.description, digits))
             offset += f.width

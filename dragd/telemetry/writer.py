@@ -59,7 +59,7 @@ from mcap.writer import CompressionType, Writer
 
 from dragd.realtime import demote_current_thread
 from dragd.telemetry.foxglove import FoxgloveChannels, FoxgloveSpec
-from dragd.telemetry.layout import RowLayout, _normalize_labels, dumps
+from dragd.telemetry.layout import RowLayout, dumps, normalize_labels
 from dragd.telemetry.schema import (
     CYCLE_SCHEMA,
     CYCLE_TOPIC,
@@ -400,6 +400,7 @@ class TelemetryWriter:
         self._child_stats: dict[str, Any] = {}
         self._child_error: str | None = None
         self._forwarded = 0  # rows handed to the writer process
+        self._close_timeout_s = 10.0
         if process:
             if self._sinks:
                 raise ValueError("telemetry process=True: sinks (the live view) run in the writer thread; "
@@ -488,13 +489,21 @@ class TelemetryWriter:
             }
 
     def close(self, timeout_s: float = 10.0) -> dict[str, Any]:
-        """Flush everything, finish the MCAP (summary + indexes) and stop the thread."""
+        """Flush everything, finish the MCAP (summary + indexes) and stop the thread (and the writer process)."""
         if not self._closed:
             self._closed = True
+            self._close_timeout_s = timeout_s
             self._stop.set()
             self._thread.join(timeout_s)
+            if self._thread.is_alive() and self._child is not None:
+                # a wedged writer process (stopped, stuck on a disk) holds the thread in a send: it goes, and what it
+                # held is counted as lost
+                self._child_down(f"close: the telemetry writer process did not finish within {timeout_s:g} s; "
+                                 "killed")
+                self._child.kill()
+                self._thread.join(2.0)
             if self._thread.is_alive():
-                self._record_error(f"close: writer thread did not finish within {timeout_s} s")
+                self._record_error(f"close: writer thread did not finish within {timeout_s:g} s")
         return self.stats()
 
     async def aclose(self, timeout_s: float = 10.0) -> dict[str, Any]:
@@ -561,9 +570,15 @@ class TelemetryWriter:
 
         ours, theirs = socket.socketpair()
         try:
+            # a session of its own: a terminal's ^C or a signal to the daemon's process group does not cut the file
+            # short; the process finishes when its input ends (the daemon closed it, or died)
             self._child = subprocess.Popen(
                 [sys.executable, "-c", "from dragd.telemetry.writer import _writer_main; _writer_main()",
-                 str(theirs.fileno())], pass_fds=[theirs.fileno()], stdin=subprocess.DEVNULL, close_fds=True)
+                 str(theirs.fileno())], pass_fds=[theirs.fileno()], stdin=subprocess.DEVNULL, close_fds=True,
+                start_new_session=True)
+        except BaseException:
+            ours.close()
+            raise
         finally:
             theirs.close()
         self._conn = Connection(ours.detach())
@@ -575,15 +590,20 @@ class TelemetryWriter:
         events: list[tuple[int, str, dict[str, Any]]] = []
         while self._events:
             events.append(self._events.popleft())
-        if self._child_error is None and (taken is not None or events):
+        if self._child_error is None and events:
             try:
-                if events:
-                    self._conn.send(("events", events))
-                if taken is not None:
-                    self._conn.send(("rows", taken[0], taken[1], taken[2]))
-                    with self._lock:
-                        self._forwarded += len(taken[1])
-                taken, events = None, []
+                self._conn.send(("events", events))
+                events = []
+            except (OSError, EOFError) as e:
+                self._child_down(f"the telemetry writer process is gone ({type(e).__name__}: {e})")
+            except Exception as e:  # noqa: BLE001 - an event field pickle refuses: those events are counted lost
+                self._record_error(f"telemetry events not forwarded: {type(e).__name__}: {e}")
+        if self._child_error is None and taken is not None:
+            try:
+                self._conn.send(("rows", taken[0], taken[1], taken[2]))
+                with self._lock:
+                    self._forwarded += len(taken[1])
+                taken = None
             except (OSError, EOFError, ValueError) as e:
                 self._child_down(f"the telemetry writer process is gone ({type(e).__name__}: {e})")
         if taken is not None or events:
@@ -609,37 +629,59 @@ class TelemetryWriter:
             self._child_down(f"the telemetry writer process is gone ({type(e).__name__}: {e})")
         return False
 
-    def _finish_process(self, timeout_s: float = 10.0) -> None:
+    def _finish_process(self) -> None:
+        """Ask the process to finish its file within ``close``'s budget; past it, kill it (its rows counted lost)."""
         import subprocess
 
         if self._child is None:
             return
+        budget = max(1.0, self._close_timeout_s - 1.0)  # within close()'s join
         if self._child_error is None:
             try:
-                self._conn.send(("close",))
+                self._conn.send(("close", max(0.5, budget - 1.0)))
             except (OSError, EOFError, ValueError) as e:
                 self._child_down(f"the telemetry writer process is gone ({type(e).__name__}: {e})")
-        end = time.monotonic() + timeout_s
+        end = time.monotonic() + budget
         while self._child_error is None and time.monotonic() < end:
             if self._receive_stats(0.1):
                 break
         else:
             if self._child_error is None:
-                self._record_error(f"close: the telemetry writer process did not finish within {timeout_s} s")
+                self._child_down(f"close: the telemetry writer process did not finish within {budget:g} s; killed")
+        if self._conn is not None:
+            self._conn.close()  # a live process sees the end of its input
         try:
-            self._child.wait(max(0.0, end - time.monotonic()) + 1.0)
+            self._child.wait(max(0.2, end - time.monotonic()))
         except subprocess.TimeoutExpired:
             self._child.kill()
-            self._child.wait(5.0)
-        if self._conn is not None:
-            self._conn.close()
+            try:
+                self._child.wait(5.0)
+            except subprocess.TimeoutExpired:
+                self._record_error(f"close: the telemetry writer process {self._child.pid} did not exit after SIGKILL")
 
     def _child_down(self, message: str) -> None:
+        """The writer process is gone (or given up): say so; from now on its unwritten rows count as dropped."""
+        import subprocess
+
         if self._child_error is not None:
             return
-        code = None if self._child is None else self._child.poll()
+        code = None
+        if self._child is not None:
+            try:
+                code = self._child.wait(0.5)  # its socket closes a moment before it can be reaped
+            except subprocess.TimeoutExpired:
+                code = None
         self._child_error = message + ("" if code is None else f", exit code {code}")
         self._record_error(self._child_error)
+
+    def _put_events(self, events: Iterable[tuple[int, str, dict[str, Any]]]) -> None:
+        """Writer process: events another producer stamped, into this writer's queue (its pending cap applies)."""
+        for ev in events:
+            if len(self._events) >= self._max_pending_events:
+                with self._lock:
+                    self._events_dropped += 1
+            else:
+                self._events.append(ev)
 
     def _put_rows(self, rows: np.ndarray, stamps: Sequence[int], seqs: Sequence[int]) -> None:
         """Writer process: rows that another producer numbered (``seqs``) into this ring; those that do not fit
@@ -956,7 +998,7 @@ def _portable_layout(layout: Mapping[str, int | Field]) -> dict[str, int | Field
     out: dict[str, int | Field] = {}
     for name, f in layout.items():
         if isinstance(f, Field) and f.labels is not None:
-            f = dataclasses.replace(f, labels=_normalize_labels(name, f.labels))
+            f = dataclasses.replace(f, labels=normalize_labels(name, f.labels))
         out[name] = f
     return out
 
@@ -982,6 +1024,7 @@ def _writer_process(conn: Any, kwargs: dict[str, Any]) -> None:
     """The writer process (``process=True``): this module's writer in thread mode, fed from the pipe."""
     fox = kwargs.pop("foxglove")
     writer: TelemetryWriter | None = None
+    close_timeout_s = 10.0
     try:
         try:
             writer = TelemetryWriter(**kwargs, foxglove=None if fox is None else FoxgloveSpec(**fox))
@@ -995,13 +1038,9 @@ def _writer_process(conn: Any, kwargs: dict[str, Any]) -> None:
                 if msg[0] == "rows":
                     writer._put_rows(msg[1], msg[2], msg[3])
                 elif msg[0] == "events":
-                    for ev in msg[1]:
-                        if len(writer._events) >= writer._max_pending_events:
-                            with writer._lock:
-                                writer._events_dropped += 1
-                        else:
-                            writer._events.append(ev)
+                    writer._put_events(msg[1])
                 elif msg[0] == "close":
+                    close_timeout_s = float(msg[1])
                     break
             now = time.monotonic()
             if now >= next_stats:
@@ -1011,7 +1050,7 @@ def _writer_process(conn: Any, kwargs: dict[str, Any]) -> None:
         pass  # the daemon is gone: finish the file
     finally:
         if writer is not None:
-            st = writer.close()
+            st = writer.close(close_timeout_s)
             try:
                 conn.send(("final", st))
             except (OSError, EOFError):
