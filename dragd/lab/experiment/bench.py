@@ -68,7 +68,7 @@ class Bench:
         cfg = self.derived_config(tag, edits or {})
         args = ["--params", str(self.params)] if self.params else []
         rig = Rig(tag, workdir=self.workdir / f"{tag}-{self._count}", config=cfg, daemon_args=args,
-                  allow_dirs=[self.workdir], as_deployed=True)
+                  allow_dirs=[self.workdir])
         try:
             rig.start_sim()
             rig.start_daemon()
