@@ -77,7 +77,9 @@ def test_killed_daemon_mid_teach_the_session_is_recovered(tmp_path):
 
     proc = run_cli("teach", "recover", "crash", "--dir", str(programs), "--json")
     res = json.loads(proc.stdout)
-    assert res["program"] == str(programs / "crash.yaml") and res["truncated"] is True
+    # the raw window's MCAP is written by the telemetry writer process, which outlives the killed daemon and finishes
+    # the file when its input ends: complete, not truncated (the program file is what the kill lost)
+    assert res["program"] == str(programs / "crash.yaml") and res["truncated"] is False
     prog = load_program(programs / "crash.yaml")
     assert [w.name for w in prog.waypoints] == ["p1", "p2"]
     assert np.allclose(prog.waypoint_array(), [m["q_rad"] for m in marks], atol=1e-6)
