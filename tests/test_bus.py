@@ -34,6 +34,14 @@ def unique_group(name: str) -> str:
     return f"239.74.{third + 1 if third == 163 else third}.{1 + h % 254}"
 
 
+def raw_sender() -> socket.socket:
+    """A plain UDP socket that sends to the host-local groups (loopback interface, TTL 0): crafted datagrams."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)
+    sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
+    return sock
+
+
 def drain(bus: can.BusABC, quiet_s: float = 0.2) -> list[can.Message]:
     out = []
     while (msg := bus.recv(quiet_s)) is not None:
@@ -170,9 +178,7 @@ def test_udp_multicast_drops_duplicates_and_counts_gaps(request: pytest.FixtureR
     """Datagrams crafted in python-can's wire format, sent from a plain socket on the loopback interface."""
     group = unique_group(request.node.name)
     bus = open_bus(parse_bus(f"udp_multicast:{group}"))
-    raw = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    raw.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)
-    raw.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
+    raw = raw_sender()
     token = 0x5EED0001
     try:
         for seq, cob in ((1, 0x101), (1, 0x101), (2, 0x102), (4, 0x104), (3, 0x103), (3, 0x103), (9, 0x109)):
@@ -355,10 +361,8 @@ def test_udp_multicast_broken_frame_in_a_batch_is_counted(request: pytest.Fixtur
     """A datagram whose second map is cut short: the first frame is delivered, the break counted, nothing hangs."""
     group = unique_group(request.node.name)
     rx = open_bus(parse_bus(f"udp_multicast:{group}"))
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock = raw_sender()
     try:
-        sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
-        sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)
         frame = {"channel": 7 << 32 | 1, "timestamp": 0.0, "arbitration_id": 0x181, "is_extended_id": False,
                  "is_remote_frame": False, "is_error_frame": False, "dlc": 1, "data": b"\x01", "is_fd": False,
                  "bitrate_switch": False, "error_state_indicator": False}
@@ -384,7 +388,7 @@ def test_udp_multicast_batch_takes_each_frame_as_sent_and_oversize_datagrams_are
     group = unique_group(request.node.name)
     spec = parse_bus(f"udp_multicast:{group}")
     tx, rx = open_bus(spec, batch_frames=True), open_bus(spec)
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock = raw_sender()
     try:
         msg = can.Message(arbitration_id=0x201, data=bytearray(b"\x01\x02"), is_extended_id=False)
         with tx.batch():
@@ -392,8 +396,6 @@ def test_udp_multicast_batch_takes_each_frame_as_sent_and_oversize_datagrams_are
             msg.data[0] = 0x7F
             tx.send(msg)
         assert [bytes(m.data) for m in drain(rx, 0.3)] == [b"\x01\x02", b"\x7f\x02"]
-        sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
-        sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)
         sock.sendto(b"\x00" * (DATAGRAM_MAX + 100), (group, DEFAULT_UDP_PORT))
         sock.sendto(b"", (group, DEFAULT_UDP_PORT))
         assert drain(rx, 0.3) == []

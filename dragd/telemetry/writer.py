@@ -49,7 +49,7 @@ import os
 import re
 import threading
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, BinaryIO, Literal
@@ -552,12 +552,7 @@ class TelemetryWriter:
             self._start_child()
         except Exception as e:  # noqa: BLE001 - counted: the rows are dropped
             self._child_down(f"cannot start the telemetry writer process: {type(e).__name__}: {e}")
-        while True:
-            stopping = self._stop.wait(self._flush_interval_s)
-            self._forward()
-            if stopping:
-                break
-        self._forward()
+        self._every_flush(self._forward)
         self._finish_process()
 
     def _start_child(self) -> None:
@@ -975,15 +970,16 @@ class TelemetryWriter:
         with self._lock:
             self._sink_errors.append(f"{type(sink).__name__} disabled: {type(exc).__name__}: {exc}")
 
+    def _every_flush(self, step: Callable[[], None]) -> None:
+        """Run ``step`` every ``flush_interval_s`` until close(), and once more after it (the last rows)."""
+        while not self._stop.wait(self._flush_interval_s):
+            step()
+        step()
+
     def _run(self) -> None:
         demote_current_thread(self._avoid_cpus)
         self._ensure_segment()
-        while True:
-            stopping = self._stop.wait(self._flush_interval_s)
-            self._drain()
-            if stopping:
-                break
-        self._drain()
+        self._every_flush(self._drain)
         self._finish_segment()
         for sink in self._sinks:
             try:
