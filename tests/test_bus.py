@@ -274,6 +274,47 @@ def test_udp_multicast_own_echo_dropped_before_decoding(request: pytest.FixtureR
         bus.shutdown()
 
 
+def test_udp_multicast_own_echo_is_dropped_in_the_kernel(request: pytest.FixtureRequest) -> None:
+    """The socket filter drops our echoes before they are queued: the socket never becomes readable for them, the
+    kernel's drop counter (which counts filtered datagrams) does not report them as losses, and a peer's frames —
+    also one that merely starts like a frame of ours up to the sender token — still arrive."""
+    import select as _select
+
+    group = unique_group(request.node.name)
+    spec = parse_bus(f"udp_multicast:{group}")
+    bus, peer = open_bus(spec, batch_frames=True), open_bus(spec)
+    try:
+        for i in range(20):
+            bus.send(can.Message(arbitration_id=0x444, data=bytes([i]), is_extended_id=False))
+        with bus.batch():
+            for msg in _frames(6):
+                bus.send(msg)
+        ready, _, _ = _select.select([bus.fileno()], [], [], 0.2)
+        assert ready == [], "an own echo reached the socket's queue"
+        assert len(drain(peer, 0.3)) == 26
+        # our layout with the token's last bit flipped, and a datagram shorter than the stamp: both get through
+        fields = msgpack.unpackb(_raw_datagram(0x555, None, b"\x09"))
+        fields["channel"] = ((bus._token ^ 1) << 32) | 7
+        lookalike = msgpack.packb({"channel": fields.pop("channel"), **fields}, use_bin_type=True)
+        assert lookalike[:13] == bus._own_prefix[:13] and lookalike[13] != bus._own_prefix[13]
+        raw = raw_sender()
+        try:
+            raw.sendto(lookalike, (group, DEFAULT_UDP_PORT))
+            raw.sendto(bus._own_prefix[:9], (group, DEFAULT_UDP_PORT))
+        finally:
+            raw.close()
+        peer.send(can.Message(arbitration_id=0x321, data=b"\x01", is_extended_id=False))
+        got = drain(bus, 0.3)
+        assert sorted(m.arbitration_id for m in got) == [0x321, 0x555]
+        c = bus.counters()
+        assert c.own_echoes_dropped == c.frames_sent == 26 and c.datagrams_sent == 21
+        assert c.undecodable == 1, "the short datagram must reach the bus (and be counted), not be filtered"
+        assert c.kernel_drops == 0, "filtered echoes counted as losses"
+    finally:
+        bus.shutdown()
+        peer.shutdown()
+
+
 def test_udp_multicast_receive_own_messages_returns_the_echo(request: pytest.FixtureRequest) -> None:
     """With receive_own_messages the echo comes back (marked not rx) instead of being dropped before decoding."""
     group = unique_group(request.node.name)

@@ -9,7 +9,9 @@ and send frames onto the LAN. Here the socket is host-local: group joined on the
 only, multicast TTL 0, bound to the group address with IP_MULTICAST_ALL off (so tests on different
 groups sharing a port stay apart), and a large receive buffer. On top of that the bus
 
-- drops its own frames (multicast loopback echoes every datagram to its sender),
+- drops its own frames (multicast loopback echoes every datagram to its sender): in the kernel, by a socket filter
+  (classic BPF) that matches the sender's stamp, so an echo never wakes the process; frames that get past it (a
+  kernel without socket filters) are recognised by the same stamp before they are decoded,
 - drops duplicated datagrams,
 - counts frames lost between sender and receiver.
 
@@ -39,6 +41,7 @@ that talks to python-can's tools leaves batching off (the default).
 
 from __future__ import annotations
 
+import ctypes
 import ipaddress
 import os
 import re
@@ -65,6 +68,8 @@ _IP_MULTICAST_ALL = getattr(socket, "IP_MULTICAST_ALL", 49)  # Linux value; abse
 _SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)
 _SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
 _SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)
+_SO_ATTACH_FILTER = getattr(socket, "SO_ATTACH_FILTER", 26)
+_UDP_HEADER = 8  # a UDP socket's filter sees the datagram from its UDP header on
 _TIMESPEC = struct.Struct("@ll")
 _U32 = struct.Struct("@I")
 _WINDOW = 64
@@ -175,12 +180,12 @@ class UdpBusCounters:
 
     frames_sent: int
     frames_received: int  # delivered to the caller
-    own_echoes_dropped: int
+    own_echoes_dropped: int  # our own frames looped back (by the kernel's socket filter, or after recvmsg)
     duplicates_dropped: int
     gaps: int  # frames missing in senders' sequences (not refilled by a late arrival)
     reordered: int  # frames that arrived after a later one of the same sender
     too_late_dropped: int  # arrived more than 64 frames behind its sender's newest: dropped
-    kernel_drops: int  # datagrams the kernel dropped for a full receive buffer (SO_RXQ_OVFL)
+    kernel_drops: int  # datagrams the kernel dropped for a full receive buffer (SO_RXQ_OVFL, less our filtered echoes)
     foreign_frames: int  # frames without a sender stamp (passed through, not checked)
     fd_frames_dropped: int  # CAN FD frames received on a classic-CAN bus
     undecodable: int
@@ -215,6 +220,10 @@ class UdpMulticastCanBus(can.BusABC):
                        reordered=0, too_late_dropped=0, kernel_drops=0, foreign_frames=0, fd_frames_dropped=0,
                        undecodable=0, datagrams_sent=0)
         self._sock = self._open_socket(rcvbuf_bytes)
+        # own echoes dropped in the kernel: each datagram we send is filtered once on our socket, and the kernel
+        # counts filtered datagrams with its overflow drops (SO_RXQ_OVFL): ``_filtered`` is subtracted from those
+        self._kernel_filter = not receive_own_messages and self._attach_echo_filter()
+        self._filtered = 0
         self.rcvbuf_bytes = self._sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
         self._dest = (self.group, self.port)
         self._ancillary_size = socket.CMSG_SPACE(_TIMESPEC.size) + socket.CMSG_SPACE(_U32.size)
@@ -246,6 +255,28 @@ class UdpMulticastCanBus(can.BusABC):
                 f"udp_multicast:{self.group} port {self.port}: cannot set up the host-local multicast socket: "
                 f"{exc}") from exc
         return sock
+
+    def _attach_echo_filter(self) -> bool:
+        """A socket filter that drops datagrams starting with our stamp (our echoes); False where refused."""
+        prefix = self._own_prefix  # 14 bytes: three words and a half-word, compared as the kernel loads them
+        words = [int.from_bytes(prefix[i:i + 4], "big") for i in (0, 4, 8)]
+        half = int.from_bytes(prefix[12:14], "big")
+        ld_len, ld_w, ld_h, jge, jeq, ret = 0x80, 0x20, 0x28, 0x35, 0x15, 0x06
+        accept = 11  # the last instruction; a jump's offset counts from the instruction after it
+        prog = [(ld_len, 0, 0, 0), (jge, 0, accept - 2, _UDP_HEADER + len(prefix)),  # shorter: not ours
+                (ld_w, 0, 0, _UDP_HEADER), (jeq, 0, accept - 4, words[0]),
+                (ld_w, 0, 0, _UDP_HEADER + 4), (jeq, 0, accept - 6, words[1]),
+                (ld_w, 0, 0, _UDP_HEADER + 8), (jeq, 0, accept - 8, words[2]),
+                (ld_h, 0, 0, _UDP_HEADER + 12), (jeq, 0, accept - 10, half),
+                (ret, 0, 0, 0),  # ours: dropped
+                (ret, 0, 0, 0xFFFFFFFF)]  # anything else: the whole datagram
+        code = ctypes.create_string_buffer(b"".join(struct.pack("HBBI", *insn) for insn in prog))
+        fprog = struct.pack("HL", len(prog), ctypes.addressof(code))
+        try:
+            self._sock.setsockopt(socket.SOL_SOCKET, _SO_ATTACH_FILTER, fprog)
+        except OSError:
+            return False  # the echoes are then dropped after recvmsg, by the same stamp
+        return True
 
     # --- send --------------------------------------------------------------------------------------------
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
@@ -312,12 +343,19 @@ class UdpMulticastCanBus(can.BusABC):
         return packed
 
     def _sendto(self, datagram: bytes | bytearray, frames: int) -> None:
+        if self._kernel_filter:  # counted before the kernel filters the echo: the overflow count never runs ahead
+            self._filtered += 1
         try:
             self._sock.sendto(datagram, self._dest)
         except OSError as exc:
+            if self._kernel_filter:
+                self._filtered -= 1
             raise can.CanOperationError(f"{self.channel_info}: send failed: {exc}") from exc
-        self._c["frames_sent"] += frames
-        self._c["datagrams_sent"] += 1
+        c = self._c
+        c["frames_sent"] += frames
+        c["datagrams_sent"] += 1
+        if self._kernel_filter:
+            c["own_echoes_dropped"] += frames
 
     # --- receive -----------------------------------------------------------------------------------------
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
@@ -383,7 +421,8 @@ class UdpMulticastCanBus(can.BusABC):
                 sec, nsec = _TIMESPEC.unpack_from(payload)
                 timestamp = sec + nsec * 1e-9
             elif level == socket.SOL_SOCKET and kind == _SO_RXQ_OVFL and len(payload) >= _U32.size:
-                c["kernel_drops"] = _U32.unpack_from(payload)[0]
+                # the kernel's drops include the echoes our filter took
+                c["kernel_drops"] = max(0, _U32.unpack_from(payload)[0] - self._filtered)
         if flags & socket.MSG_TRUNC or not raw:  # longer than DATAGRAM_MAX (cut: nobody of ours sends that), or empty
             c["undecodable"] += 1
             return [], timestamp
