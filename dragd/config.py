@@ -274,6 +274,9 @@ class LoopConfig(_Strict):
     # permitted: LimitMEMLOCK=infinity in the unit; 'dragd status' memory_locked says whether it applied)
     lock_memory: bool = True
     cpus: list[Annotated[int, Field(ge=0)]] | None = None
+    # the drag law and its break-out latch by compiled kernels (numba; dragd/control/fused.py); false: the numpy
+    # reference functions (the same results to the last bits of exp/tanh/sin)
+    compiled_law: bool = True
 
 
 class GuardConfig(_Strict):

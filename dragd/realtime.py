@@ -376,3 +376,20 @@ def _policy_name(policy: int) -> str:
         getattr(os, "SCHED_IDLE", -11): "SCHED_IDLE",
     }
     return names.get(policy, f"policy {policy}")
+
+
+BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def single_threaded_blas() -> None:
+    """One BLAS thread in this process: call before numpy is imported (a real-time process's first lines).
+
+    OpenBLAS keeps worker threads (SCHED_OTHER) that spin-wait for work; a SCHED_FIFO thread that hands them a
+    share of a matrix product and waits for it can wait until the scheduler finds a worker a free core: 80–100 ms
+    measured here (the daemon's cycle stalled, the drives' RPDO watchdogs fired, docs/PERFORMANCE.md). The cycle's
+    matrices are a few joints wide: one thread loses nothing. A value the user set is kept.
+    """
+    if "numpy" in sys.modules:
+        raise RuntimeError("single_threaded_blas() must run before numpy is imported")
+    for name in BLAS_THREAD_VARIABLES:
+        os.environ.setdefault(name, "1")

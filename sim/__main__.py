@@ -7,9 +7,14 @@ import json
 import sys
 from typing import Any
 
-import can
+from dragd.realtime import single_threaded_blas
 
-from dragd.config import ConfigError
+if "numpy" not in sys.modules:  # one BLAS thread before numpy loads: the sim's threads may run SCHED_FIFO
+    single_threaded_blas()
+
+import can  # noqa: E402
+
+from dragd.config import ConfigError  # noqa: E402
 
 
 def _text_summary(s: dict[str, Any]) -> str:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from typing import TYPE_CHECKING, Any
 
 from dragd.cli.common import DEFAULT_SOCKET, CliError, add_config, add_socket, emit, table
@@ -56,6 +57,10 @@ def with_telemetry_options(cfg: Any, args: argparse.Namespace) -> Any:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    from dragd.realtime import single_threaded_blas
+
+    if "numpy" not in sys.modules:  # (in a test's process it may be: the BLAS threads are then left as they are)
+        single_threaded_blas()
     import can
 
     from dragd.config import load_config

@@ -21,9 +21,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from dragd.control.breakout import BreakoutState, breakout_update
 from dragd.control.guard import GuardSettings, RunawayGuard
-from dragd.control.law import LawOutput, Workspace, compensate
+from dragd.control.fused import DragLaw
 from dragd.control.modes import MODE_NAMES, Mode
 from dragd.control.params import LawParams
 from dragd.control.safety import SafetyTerms
@@ -66,7 +65,7 @@ class Controller:
 
     def __init__(self, params: LawParams, safety: SafetyTerms, track_limits: TrackLimits, joint_names: list[str],
                  dt_s: float, hold_kp_Nm_per_rad: float, hold_kd_Nm_s_per_rad: float, mode_ramp_s: float,
-                 fresh_cycles_resume: int) -> None:
+                 fresh_cycles_resume: int, compiled_law: bool = True) -> None:
         n = self.n = params.n
         self.params = params
         self.safety = safety
@@ -90,9 +89,9 @@ class Controller:
         self.fresh_cycles = 0
         self.feedback_holds = 0
         self.drive_csp = False  # the drives run CSP (their position loops hold q_ref / q_hold), else CST
-        self.breakout = BreakoutState(n).configure(params)
-        self.law_out = LawOutput.zeros(n)
-        self.ws = Workspace(n)
+        # the drag law and its latch (compiled kernels, or the numpy reference with ``compiled_law`` false)
+        self.drag_law = DragLaw(params, compiled_law)
+        self.breakout, self.law_out, self.ws = self.drag_law.state, self.drag_law.out, self.drag_law.ws
         self.track = Track(n, dt_s, track_limits, joint_names)
         self.extra_A = np.zeros(n)  # safety terms this cycle
         self.cmd_A = np.zeros(n)
@@ -144,7 +143,7 @@ class Controller:
             output_max_Nm=per_joint(rc.position_output_limit_A) * kt,
             ramp_s=rc.ramp_s, monitor_cycles=rc.monitor_cycles, position_lo_rad=lim_lo, position_hi_rad=lim_hi)
         c = cls(params, safety, limits, cfg.joint_names, dt, s.hold_kp_Nm_per_rad, s.hold_kd_Nm_s_per_rad,
-                s.mode_ramp_s, cfg.loop.fresh_cycles_resume)
+                s.mode_ramp_s, cfg.loop.fresh_cycles_resume, cfg.loop.compiled_law)
         g = s.guard
         if g.runaway:
             c.guard = RunawayGuard(c.n, kt, dt, GuardSettings(
@@ -282,7 +281,7 @@ class Controller:
         if self.mode == Mode.HOLD:
             self._hold_step(est)
         if self.mode == Mode.DRAG and self.params.use_breakout and self.params.use_startup:
-            breakout_update(est.q_rad, est.dq_rad_s, t, self.params, self.breakout, est.tau_g_Nm)
+            self.drag_law.breakout(est.q_rad, est.dq_rad_s, t, self.params, est.tau_g_Nm)
         if self.track.active and self.mode == Mode.TRACK:
             res = self.track.step(t, est.q_rad, est.dq_rad_s, est.current_A, stale_max)
             if isinstance(res, Trip):
@@ -401,8 +400,7 @@ class Controller:
             return
         if mode == Mode.DRAG:
             self.extra_A += self.gravity_offset_A  # `mode drag --accept` (zero otherwise)
-            compensate(est.tau_g_Nm, est.dq_rad_s, self.t, self.params, self.law_out, self.ws, self.extra_A,
-                       self.breakout, est.q_rad)
+            self.drag_law.compensate(est.tau_g_Nm, est.dq_rad_s, self.t, self.params, self.extra_A, est.q_rad)
             out[:] = self.law_out.current_A
             return
         if mode == Mode.TRACK:

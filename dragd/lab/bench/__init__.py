@@ -39,11 +39,21 @@ def benchmark(name: str, unit: str) -> Callable[[Callable[[dict], Any]], Callabl
 
 @benchmark("compensation_us", "us")
 def compensation_us(opts: dict) -> float:
-    """Median wall time of one full 6-joint evaluation of the law including G(q) (Pinocchio) and the latch."""
+    """Median wall time of one full 6-joint evaluation of the law including G(q) (Pinocchio) and the latch: the
+    numpy reference functions (``loop.compiled_law: false``)."""
+    return _law_timing(opts, compiled=False)
+
+
+@benchmark("compensation_compiled_us", "us")
+def compensation_compiled_us(opts: dict) -> float:
+    """The same with the compiled kernels the daemon runs (dragd/control/fused.py)."""
+    return _law_timing(opts, compiled=True)
+
+
+def _law_timing(opts: dict, compiled: bool) -> float:
     from dragd.config import load_config
+    from dragd.control.fused import DragLaw
     from dragd.control.params import LawParams
-    from dragd.control.breakout import BreakoutState, breakout_update
-    from dragd.control.law import LawOutput, Workspace, compensate
     from dragd.model import RobotModel
 
     cfg = load_config(opts.get("config"))
@@ -53,14 +63,17 @@ def compensation_us(opts: dict) -> float:
     rng = np.random.default_rng(1)
     qs = rng.uniform(-np.pi, np.pi, (1000, n))
     dqs = rng.normal(0.0, 0.2, (1000, n))
-    out, ws, g, bo = LawOutput.zeros(n), Workspace(n), np.zeros(n), BreakoutState(n).configure(p)
+    law, g, extra = DragLaw(p, compiled), np.zeros(n), np.zeros(n)
+    if compiled and not law.compiled:
+        raise RuntimeError("compensation_compiled_us: numba is not available here")
+    law.state.reset(0.0)
     samples = np.empty(int(opts.get("iterations", 20000)))
     for k in range(samples.shape[0]):
         q, dq = qs[k % 1000], dqs[k % 1000]
         t0 = time.perf_counter_ns()
         model.gravity(q, g)
-        breakout_update(q, dq, k * 1e-3, p, bo)
-        compensate(g, dq, k * 1e-3, p, out, ws, None, bo)
+        law.breakout(q, dq, k * 1e-3, p, None)
+        law.compensate(g, dq, k * 1e-3, p, extra, q)
         samples[k] = time.perf_counter_ns() - t0
     return float(np.median(samples) / 1e3)
 
