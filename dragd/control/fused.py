@@ -249,7 +249,10 @@ class DragLaw:
         if kernels is not None:
             self._breakout_kernel, self._law_kernel = kernels["breakout"], kernels["law"]
         self._out_block = np.zeros((6, n))
-        self.out = LawOutput(*self._out_block, clamped=np.zeros(n, dtype=bool), effects_A=np.zeros(n))
+        rows = self._out_block
+        self.out = LawOutput(current_A=rows[O_CURRENT], gravity_A=rows[O_GRAVITY], friction_A=rows[O_FRICTION],
+                             startup_A=rows[O_STARTUP], back_emf_A=rows[O_BACK_EMF], damping_A=rows[O_DAMPING],
+                             clamped=np.zeros(n, dtype=bool), effects_A=np.zeros(n))
         self.state = BreakoutState(n)
         self._b_block = np.empty((11, n))
         for row, name in ((B_ANCHOR, "anchor_rad"), (B_STILL_REF, "still_ref_rad"), (B_STILL_SINCE, "still_since_s"),
