@@ -120,6 +120,8 @@ def test_the_kernels_match_the_numpy_reference(base: LawParams, variant: int) ->
     if p.gravity_uncertainty >= 0.5:
         assert suppressed > 0, f"{name}: no creep suppressed"
     assert worst < 1e-12
+    # one compiled signature each: the start-up's (n = 1) — the cycle's arrays never compile anything anew
+    assert [len(fused._KERNELS[k].signatures) for k in ("breakout", "law")] == [1, 1]
 
 
 def test_effects_use_the_numpy_path(base: LawParams) -> None:

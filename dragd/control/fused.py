@@ -15,6 +15,7 @@ from numba's cache in ~0.1 s), never on the first cycle.
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Callable
 from typing import Any
 
@@ -48,8 +49,16 @@ _KERNELS: dict[str, Any] = {}
 
 
 def _compiled() -> dict[str, Any] | None:
-    """The jitted kernels (built once per process), or None where numba cannot be imported."""
-    if not _KERNELS:
+    """The jitted kernels (built and compiled once per process), or None where numba cannot be imported."""
+    if _KERNELS:
+        return None if "missing" in _KERNELS else _KERNELS
+    # numba imports scipy to check its version and, when it first compiles, scipy.linalg for its BLAS support; the
+    # kernels use neither and the daemon never loads scipy (its trajectories are planned in another process,
+    # tests/test_daemon_track.py), so where scipy is not loaded yet numba is set up and compiles without it
+    hide = "scipy" not in sys.modules
+    if hide:
+        sys.modules["scipy"] = None  # type: ignore[assignment]  # (an import of it raises ImportError)
+    try:
         try:
             import numba
         except ImportError:  # pragma: no cover - only where numba is missing
@@ -67,8 +76,18 @@ def _compiled() -> dict[str, Any] | None:
         g = globals()
         for name in ("_maximum", "_minimum", "_fmax", "_fmin", "_sign"):  # the kernels' helpers, as they call them
             g[name] = jit(g[name])
-        _KERNELS.update(breakout=jit(_breakout_kernel), law=jit(_law_kernel))
-    return None if "missing" in _KERNELS else _KERNELS
+        breakout, law = jit(_breakout_kernel), jit(_law_kernel)
+        # compiled (or loaded from the cache) now, with the argument types of the cycle: never in a cycle
+        z, rows = np.zeros(1), np.ones((N_PARAM_ROWS, 1))
+        breakout(z, z, 0.0, 0.0, True, rows, np.zeros((11, 1)), np.zeros(1, dtype=bool), np.zeros((2, 1), dtype=np.int64),
+                 z, True, 0.0)
+        law(z, z, 0.0, rows, np.zeros(9, dtype=np.int64), np.ones(4), np.zeros((11, 1)), True, z, np.zeros((6, 1)),
+            np.zeros(1, dtype=bool))
+        _KERNELS.update(breakout=breakout, law=law)
+        return _KERNELS
+    finally:
+        if hide:
+            del sys.modules["scipy"]
 
 
 def pack_params(p: LawParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -84,6 +103,8 @@ def pack_params(p: LawParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
                       p.startup_square, p.startup_abrupt, p.use_breakout], dtype=np.int64)
     scalars = np.array([p.friction_scale, p.smoothing_rad_s, p.deadband_rad_s, p.gravity_uncertainty])
     return rows, flags, scalars
+
+
 
 
 def _maximum(a: float, b: float) -> float:  # np.maximum: NaN propagates
@@ -266,23 +287,12 @@ class DragLaw:
         self.ws = Workspace(n)
         self._params: LawParams | None = None
         self.configure(params)
-        if self.compiled:
-            self._warm_up()
 
     def configure(self, params: LawParams) -> None:
         """Use ``params`` (the latch's thresholds and the packed rows follow them)."""
         self._params = params
         self.state.configure(params)
         self._P, self._flags, self._S = pack_params(params)
-
-    def _warm_up(self) -> None:
-        """Compile (or load from the cache) before the first cycle, on scratch copies of the state."""
-        n = self._P.shape[1]
-        z = np.zeros(n)
-        self._breakout_kernel(z, z, 0.0, 0.0, True, self._P, self._b_block.copy(), np.zeros(n, dtype=bool),
-                         self._counts.copy(), z, True, 0.0)
-        self._law_kernel(z, z, 0.0, self._P, self._flags, self._S, self._b_block.copy(), True, z, self._out_block.copy(),
-                    np.zeros(n, dtype=bool))
 
     def breakout(self, q: np.ndarray, dq: np.ndarray, t: float, params: LawParams, tau_g: np.ndarray | None) -> None:
         """``breakout_update`` of the arm's latch."""
