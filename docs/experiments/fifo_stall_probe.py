@@ -11,6 +11,7 @@ most runs; without the operator or with the daemon SCHED_OTHER at most 5 ms.
 from __future__ import annotations
 
 import argparse
+import subprocess
 import time
 
 from dragd.lab.rig import Rig
@@ -21,12 +22,18 @@ def main() -> None:
     ap.add_argument("--operator", action="store_true")
     ap.add_argument("--daemon-prio", type=int, default=70)
     ap.add_argument("--sim-prio", type=int, default=60)
+    ap.add_argument("--spy", help="py-spy the daemon into this file (raw collapsed stacks)")
     a = ap.parse_args()
     d_args = ["--realtime-priority", str(a.daemon_prio)]
     s_args = ["--realtime-priority", str(a.sim_prio)] if a.sim_prio else []
     with Rig("probe", daemon_args=d_args, sim_args=s_args) as rig:
         rig.start_sim()
         rig.start_daemon()
+        spy = None
+        if a.spy:
+            spy = subprocess.Popen(["py-spy", "record", "-r", "1000", "-d", "3", "-f", "raw", "-o", a.spy, "--nonblocking",
+                                    "-p", str(rig.daemon.proc.pid)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            time.sleep(0.5)
         rig.must("start")
         time.sleep(0.5)
         rig.must("mode", mode="drag")
@@ -35,6 +42,9 @@ def main() -> None:
         time.sleep(1.0)
         st = rig.must("status")
         print({k: st.get(k) for k in ("mode", "period_max_us", "missed_cycles", "scheduler")})
+        print({k: v for k, v in st.items() if "max" in k or "p99" in k})
+        if spy is not None:
+            spy.wait(30)
 
 
 if __name__ == "__main__":

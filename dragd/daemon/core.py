@@ -271,6 +271,20 @@ class Daemon:
                     f"{est.tau_g_Nm[j]:+.1f} N·m at {est.q_rad[j]:+.3f} rad, above its current_limit_A "
                     f"{c.params.current_limit_A[j]:.2f} A (check the URDF's masses, the payload, torque_constant)")
 
+    def _warm_up(self) -> None:
+        """Run the cycle's rare paths once before the first cycle, after the memory is locked.
+
+        The runaway guard's decision path solves a least-squares problem (LAPACK): OpenBLAS allocates its work
+        buffers on its first call, and with the memory locked (mlockall MCL_FUTURE) every page of them is faulted in
+        right then — 10–100 ms measured in the cycle thread the first time a hand pushed the arm in drag (the drives'
+        RPDO watchdogs fired: docs/PERFORMANCE.md, session 11). Here that happens before the loop runs.
+        """
+        import numpy as np
+
+        q = np.zeros(self.n)
+        self._explain_residual(q, np.ones(self.n))
+        self.model.momentum(q, q, np.zeros(self.n))
+
     def _explain_residual(self, q: Any, r: Any) -> tuple[float, float]:
         """The runaway guard's rare path: the fraction of residual r no flange load explains at q, and that load's
         mass [kg] (least squares on the payload regressor)."""
@@ -556,6 +570,7 @@ class Daemon:
                 self._log_at(f"warning: memory not locked: {lock.get('reason')}", LOG_WARNING)
             for sig in (signal.SIGTERM, signal.SIGINT):
                 loop.add_signal_handler(sig, self.request_exit)
+            self._warm_up()
             # everything built so far lives for the whole run: out of the cyclic collector's way, so its
             # occasional full collections (a heap of Pinocchio/scipy/numpy objects) cannot stall a cycle for ms
             gc.collect()
