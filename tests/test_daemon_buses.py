@@ -51,3 +51,38 @@ def test_two_classic_buses_compact_layout(tmp_path):
     assert end["requested_mode"] == "drag" and end["faults"] == []
     assert end["mode"] == "drag" or end["feedback_hold"]
     assert np.degrees(np.abs(q1 - q0)).max() < 0.5  # gravity held on both buses: the arm does not sag
+
+
+def test_twelve_joints_two_arms_on_two_buses(tmp_path):
+    """Two seed cobots on one table (config/dual_arm.yaml, 12 joints, one CAN FD bus per arm): the model is the
+    single arm's twice (gravity per arm equal), the daemon enables all twelve drives, holds both arms in drag, and
+    the hand pushing the right arm's flange moves the right arm only."""
+    from dragd.config import load_config
+    from dragd.model import RobotModel
+
+    cfg = load_config(REPO / "config/dual_arm.yaml")
+    dual = RobotModel.from_config(cfg)
+    single = RobotModel.from_config(load_config(REPO / "config/default.yaml"))
+    assert list(dual.joint_names) == cfg.joint_names and len(cfg.joint_names) == 12
+    q = np.array([0.2, -0.7, 1.1, -0.4, 0.9, 0.3])
+    np.testing.assert_allclose(dual.gravity(np.concatenate([q, -q])), np.concatenate([single.gravity(q),
+                                                                                     single.gravity(-q)]), atol=1e-9)
+    with Rig("dual", workdir=tmp_path, config=REPO / "config/dual_arm.yaml",
+             sim_config=REPO / "sim/config/dual_arm.yaml") as rig:
+        rig.bus = f"udp_multicast:{multicast_group('dual0')},udp_multicast:{multicast_group('dual1')}"
+        rig.start_sim()
+        rig.start_daemon()
+        rig.must("start")
+        status = rig.must("status")
+        assert status["drives_enabled"] and set(status["bus_load_pct"]) == {"left", "right"}
+        rig.must("mode", mode="drag")
+        q0 = np.array(rig.sim_call("state")["q_rad"])
+        rig.sim_call("operator", scenario="flange_drag")  # the wrench goes to the last joint's frame: the right arm
+        time.sleep(2.0)
+        q1 = np.array(rig.sim_call("state")["q_rad"])
+        end = rig.must("status")
+        rig.must("stop")
+    assert end["requested_mode"] == "drag" and end["faults"] == []
+    moved = np.degrees(np.abs(q1 - q0))
+    assert moved[:6].max() < 0.5, f"the left arm moved {moved[:6].max():.2f}°: gravity not held on its bus"
+    assert moved[6:].max() > 2.0, f"the right arm did not follow the hand ({moved[6:].max():.2f}°)"
