@@ -274,9 +274,10 @@ class LoopConfig(_Strict):
     # permitted: LimitMEMLOCK=infinity in the unit; 'dragd status' memory_locked says whether it applied)
     lock_memory: bool = True
     cpus: list[Annotated[int, Field(ge=0)]] | None = None
-    # the drag law and its break-out latch by compiled kernels (numba; dragd/control/fused.py); false: the numpy
-    # reference functions (the same results to the last bits of exp/tanh/sin)
-    compiled_law: bool = True
+    # the cycle's arithmetic by compiled kernels (numba: the drag law and its latch, dragd/control/fused.py; the
+    # estimate and output steps, dragd/daemon/kernels.py); false: the numpy reference functions (the same results
+    # to the last bits of exp/tanh/sin)
+    compiled: bool = True
 
 
 class GuardConfig(_Strict):

@@ -143,7 +143,7 @@ class Controller:
             output_max_Nm=per_joint(rc.position_output_limit_A) * kt,
             ramp_s=rc.ramp_s, monitor_cycles=rc.monitor_cycles, position_lo_rad=lim_lo, position_hi_rad=lim_hi)
         c = cls(params, safety, limits, cfg.joint_names, dt, s.hold_kp_Nm_per_rad, s.hold_kd_Nm_s_per_rad,
-                s.mode_ramp_s, cfg.loop.fresh_cycles_resume, cfg.loop.compiled_law)
+                s.mode_ramp_s, cfg.loop.fresh_cycles_resume, cfg.loop.compiled)
         g = s.guard
         if g.runaway:
             c.guard = RunawayGuard(c.n, kt, dt, GuardSettings(

@@ -10,6 +10,7 @@ averages down. A late or missed sample is handled by passing the real Δt (and t
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -33,6 +34,12 @@ class VelocityEstimator:
         self._uniform = True  # every joint's last sample was fresh: ages all zero
         self._k = np.full(n, -2.0 * math.pi * self.cutoff_Hz)
         self._primed = False
+        self._all_fresh = np.ones(n, dtype=bool)
+        self._kernel: Any = None
+
+    def use_kernel(self, kernel: Any) -> None:
+        """``update`` by a compiled kernel (dragd/daemon/kernels.py; this class's numpy code is its reference)."""
+        self._kernel = kernel
 
     def delay_s(self, dt_s: float) -> float:
         """Low-frequency delay of the estimate."""
@@ -56,6 +63,12 @@ class VelocityEstimator:
         """
         if not self._primed or dt_s <= 0.0:
             self.reset(counts)
+            return self.velocity_rad_s
+        if self._kernel is not None:
+            gain = 1.0 - math.exp(-2.0 * math.pi * self.cutoff_Hz * dt_s)
+            self._uniform = self._kernel(counts, self._all_fresh if fresh is None else fresh, self._last,
+                                         self.velocity_rad_s, self._age, self.rad_per_count, self._k, dt_s, gain,
+                                         self._uniform)
             return self.velocity_rad_s
         all_fresh = fresh is None or np.count_nonzero(fresh) == fresh.shape[0]
         self._counts_to_rad(counts)

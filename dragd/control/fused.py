@@ -15,8 +15,6 @@ from numba's cache in ~0.1 s), never on the first cycle.
 from __future__ import annotations
 
 import math
-import sys
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -24,6 +22,7 @@ import numpy as np
 from dragd.control.breakout import BREAKOUT_RAMP_S, REST_WEIGHT_STEP, BreakoutState
 from dragd.control.law import LawOutput, Workspace, compensate
 from dragd.control.params import LawParams
+from dragd.jit import compile_kernels
 
 
 # rows of the packed per-joint parameters
@@ -50,44 +49,15 @@ _KERNELS: dict[str, Any] = {}
 
 def _compiled() -> dict[str, Any] | None:
     """The jitted kernels (built and compiled once per process), or None where numba cannot be imported."""
-    if _KERNELS:
-        return None if "missing" in _KERNELS else _KERNELS
-    # numba imports scipy to check its version and, when it first compiles, scipy.linalg for its BLAS support; the
-    # kernels use neither and the daemon never loads scipy (its trajectories are planned in another process,
-    # tests/test_daemon_track.py), so where scipy is not loaded yet numba is set up and compiles without it
-    hide = "scipy" not in sys.modules
-    if hide:
-        sys.modules["scipy"] = None  # type: ignore[assignment]  # (an import of it raises ImportError)
-    try:
-        try:
-            import numba
-        except ImportError:  # pragma: no cover - only where numba is missing
-            _KERNELS["missing"] = True
-            return None
-
-        def jit(f: Callable[..., Any]) -> Any:
-            # cached on disk where numba finds a writable directory (NUMBA_CACHE_DIR, the package's __pycache__, the
-            # user's cache); compiled in each process where none is
-            try:
-                return numba.njit(cache=True, nogil=True, error_model="numpy")(f)
-            except RuntimeError:  # "cannot cache function ...: no locator available"
-                return numba.njit(cache=False, nogil=True, error_model="numpy")(f)
-
-        g = globals()
-        for name in ("_maximum", "_minimum", "_fmax", "_fmin", "_sign"):  # the kernels' helpers, as they call them
-            g[name] = jit(g[name])
-        breakout, law = jit(_breakout_kernel), jit(_law_kernel)
-        # compiled (or loaded from the cache) now, with the argument types of the cycle: never in a cycle
+    if not _KERNELS:
         z, rows = np.zeros(1), np.ones((N_PARAM_ROWS, 1))
-        breakout(z, z, 0.0, 0.0, True, rows, np.zeros((11, 1)), np.zeros(1, dtype=bool), np.zeros((2, 1), dtype=np.int64),
-                 z, True, 0.0)
-        law(z, z, 0.0, rows, np.zeros(9, dtype=np.int64), np.ones(4), np.zeros((11, 1)), True, z, np.zeros((6, 1)),
-            np.zeros(1, dtype=bool))
-        _KERNELS.update(breakout=breakout, law=law)
-        return _KERNELS
-    finally:
-        if hide:
-            del sys.modules["scipy"]
+        kernels = compile_kernels(globals(), ("_maximum", "_minimum", "_fmax", "_fmin", "_sign"), {
+            "breakout": (_breakout_kernel, (z, z, 0.0, 0.0, True, rows, np.zeros((11, 1)), np.zeros(1, dtype=bool),
+                                            np.zeros((2, 1), dtype=np.int64), z, True, 0.0)),
+            "law": (_law_kernel, (z, z, 0.0, rows, np.zeros(9, dtype=np.int64), np.ones(4), np.zeros((11, 1)), True,
+                                  z, np.zeros((6, 1)), np.zeros(1, dtype=bool)))})
+        _KERNELS.update(kernels if kernels is not None else {"missing": True})
+    return None if "missing" in _KERNELS else _KERNELS
 
 
 def pack_params(p: LawParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

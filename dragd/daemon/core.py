@@ -181,7 +181,7 @@ class Daemon:
                            self.recorder, rate_Hz=cfg.loop.rate_Hz, tpdo_deadline_us=cfg.loop.tpdo_deadline_us,
                            heartbeat_ms=cfg.master.heartbeat_ms, stale_cycles_hold=cfg.loop.stale_cycles_hold,
                            stale_cycles_disable=cfg.loop.stale_cycles_disable, node_ids=self.node_ids,
-                           plausible_speed_rad_s=cfg.safety.encoder_plausible_speed_rad_s)
+                           plausible_speed_rad_s=cfg.safety.encoder_plausible_speed_rad_s, compiled=cfg.loop.compiled)
         self.recorder.attach(self.controller, self.cycle.est, self.io.feedback)
         self.cycle.after_cycle = [self.record_events, self.teaching.add]
 

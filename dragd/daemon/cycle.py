@@ -23,6 +23,7 @@ import numpy as np
 from dragd.control.controller import Controller, Estimate
 from dragd.control.estimate import VelocityEstimator
 from dragd.control.modes import Mode
+from dragd.daemon.kernels import kernels
 from dragd.hardware.drives import DriveSupervisor, Target
 from dragd.hardware.io import BusIO, Feedback
 from dragd.hardware.scaling import Scaling
@@ -42,7 +43,7 @@ class Cycle:
     def __init__(self, io: BusIO, scaling: Scaling, model: RobotModel, controller: Controller,
                  supervisor: DriveSupervisor, velocity: VelocityEstimator, recorder: Recorder, *, rate_Hz: float,
                  tpdo_deadline_us: float, heartbeat_ms: float, stale_cycles_hold: int, stale_cycles_disable: int,
-                 node_ids: list[int], plausible_speed_rad_s: float = 6.0) -> None:
+                 node_ids: list[int], plausible_speed_rad_s: float = 6.0, compiled: bool = True) -> None:
         n = controller.n
         self.io, self.scaling, self.model = io, scaling, model
         self.controller, self.supervisor, self.velocity, self.recorder = controller, supervisor, velocity, recorder
@@ -78,6 +79,10 @@ class Cycle:
         self._jump_lim = np.zeros(n)
         self._jump_mask = np.zeros(n, dtype=bool)
         self._jump_run = np.zeros(n, dtype=np.int64)
+        # the estimate and output steps by compiled kernels (dragd/daemon/kernels.py), the numpy below their reference
+        self._k = kernels() if compiled else None
+        if self._k is not None:
+            velocity.use_kernel(self._k["velocity"])
 
     def tick(self, period_us: float, expirations: int) -> None:
         """A tick: the cycle's time advances (a late tick samples later and counts the ticks it missed)."""
@@ -98,13 +103,23 @@ class Cycle:
             self.velocity.reset(fb.counts)
             self._prev_counts[:] = fb.counts
             self.primed = True
-        self._plausible(fb)
+        k, sc = self._k, self.scaling
+        if k is None:
+            self._plausible(fb)
+        elif k["plausible"](fb.counts, fb.rx, self._prev_counts, self._since, self._jump_run, self.jump_step_counts,
+                            self._jump_mask):
+            self._reject(fb, self._jump_mask)  # the rare path (and the bookkeeping the kernel left to it)
+            self._remember(fb)
         worst, j = fb.worst_stale()
         c.feedback(worst, j, self.node_ids[j], est.q_rad, self.hold_after, self.disable_after)
         # estimate
-        self.scaling.position_rad(fb.counts, est.q_rad, self._tmp)
+        if k is None:
+            sc.position_rad(fb.counts, est.q_rad, self._tmp)
+            sc.current_A(fb.current_permille, est.current_A)
+        else:
+            k["inputs"](fb.counts, sc.offset_counts, sc.rad_per_count, est.q_rad, fb.current_permille,
+                        sc.A_per_permille, est.current_A)
         self.velocity.update(fb.counts, self.sample_dt_s, fb.rx)
-        self.scaling.current_A(fb.current_permille, est.current_A)
         self.model.gravity_at(est.q_rad, self.t, est.tau_g_Nm)  # (blended while a payload change ramps in)
         if c.mode == Mode.DRAG and c.guard is not None:
             self.model.momentum(est.q_rad, est.dq_rad_s, est.p_Nms)  # the runaway guard's observer
@@ -114,8 +129,12 @@ class Cycle:
         if fault is not None:
             c.fault(*fault)
         c.compute(est, self.supervisor.enabled)
-        self.scaling.torque_permille(c.cmd_A, self.torque_permille, self._tmp)
-        self.scaling.target_counts(c.ref_rad, self.target_counts, self._tmp)
+        if k is None:
+            sc.torque_permille(c.cmd_A, self.torque_permille, self._tmp)
+            sc.target_counts(c.ref_rad, self.target_counts, self._tmp)
+        else:
+            k["outputs"](c.cmd_A, sc.permille_per_A, self.torque_permille, c.ref_rad, sc.counts_per_rad,
+                         sc.offset_counts, self.target_counts)
         # write
         io.write(self.supervisor.cw, self.target_counts, self.torque_permille, self.t)
         # the master heartbeat by time as well as by count: a loaded host's missed ticks must not stretch it past
@@ -135,7 +154,12 @@ class Cycle:
         mask &= fb.rx
         if np.count_nonzero(mask):
             self._reject(fb, mask)
-        np.copyto(prev, fb.counts, where=fb.rx)
+        self._remember(fb)
+
+    def _remember(self, fb: Feedback) -> None:
+        """The accepted samples are the next cycle's reference; the others age."""
+        since = self._since
+        np.copyto(self._prev_counts, fb.counts, where=fb.rx)
         since += 1.0
         np.copyto(since, 1.0, where=fb.rx)
         np.copyto(self._jump_run, 0, where=fb.rx)
