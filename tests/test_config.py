@@ -27,8 +27,12 @@ def base() -> dict:
 
 @pytest.mark.parametrize("path", sorted((REPO / "config").glob("*.yaml")))
 def test_shipped_configs_load(path):
+    """Every shipped config loads and names its robot's joints, in the URDF's order (config/dual_arm.yaml: two arms,
+    ``left_joint1`` … ``right_joint6``)."""
+    from dragd.model import RobotModel
+
     cfg = load_config(path)
-    assert cfg.joint_names == [f"joint{i}" for i in range(1, len(cfg.joints) + 1)]
+    assert cfg.joint_names == list(RobotModel.from_config(cfg).joint_names)
 
 
 def test_bad_value_names_file_key_and_expectation(tmp_path, base):

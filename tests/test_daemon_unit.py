@@ -142,3 +142,59 @@ def test_gravity_beyond_a_current_limit_is_refused_not_clamped(tmp_path) -> None
     with pytest.raises(ValueError, match=r"start: joint2 needs \d+\.\d+ A to hold .* above its current_limit_A 1\.00 A"):
         arm.d.start()
     assert arm.c.mode.name == "IDLE" and not arm.d.faults
+
+
+@pytest.mark.parametrize("batch", [True, False])
+def test_command_frames_ride_with_the_next_sync_on_a_batching_bus(batch: bool) -> None:
+    """udp_multicast with batch_frames: the cycle's command RPDO leaves with the next SYNC, ahead of it, in one
+    datagram, carrying what was written (the drives apply it at that SYNC either way); without batching it leaves
+    at once. A stopping cycle flushes what waits."""
+    import asyncio
+    import time
+
+    from dragd.hardware.bus import open_bus, parse_bus
+
+    group = f"239.74.201.{11 if batch else 12}"
+    d = Daemon(load_config(DEFAULT_CONFIG), bus_override=f"udp_multicast:{group}", log=lambda msg: None)
+    spec = parse_bus(f"udp_multicast:{group}", fd=True)
+    bus, peer = open_bus(spec, batch_frames=batch), open_bus(spec)
+    try:
+        d.attach({"arm": bus})
+        (cmd_cob,) = [fr.cob_id for fr in d.layouts["arm"].frames if fr.direction == "rpdo"]
+
+        def datagrams() -> list[list[tuple[int, bytes]]]:
+            out = []
+            while True:
+                got: list[tuple[int, bytes]] = []
+                if not peer.drain(lambda cob, data, got=got: not got.append((cob, bytes(data))), lambda m: None,
+                                  limit=1):
+                    return out
+                out.append(got)
+
+        permille = np.array([10, -20, 30, -40, 50, -60])
+        d.io.write(np.full(6, 0x0F), np.arange(6) * 1000, permille, 0.001)
+        time.sleep(0.05)
+        early = datagrams()
+
+        async def one_read() -> None:
+            await d.io.read(asyncio.get_running_loop(), 0.002)
+
+        asyncio.run(one_read())
+        time.sleep(0.05)
+        late = datagrams()
+        if batch:
+            assert early == [], "the command frame left before the next SYNC"
+            assert len(late) == 1 and [cob for cob, _ in late[0]] == [cmd_cob, 0x080]
+            command = late[0][0][1]
+        else:
+            assert len(early) == 1 and [cob for cob, _ in early[0]] == [cmd_cob]
+            assert late == [[(0x080, b"")]]
+            command = early[0][0][1]
+        assert command == bytes(d.io._commands[0][2].buffer)  # what write() packed
+        d.io.write(np.full(6, 0x0F), np.zeros(6), permille, 0.002)
+        d.io.flush()
+        time.sleep(0.05)
+        assert [[cob for cob, _ in dg] for dg in datagrams()] == [[cmd_cob]]  # (batching: by flush; else at once)
+    finally:
+        bus.shutdown()
+        peer.shutdown()

@@ -73,7 +73,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     cfg = with_telemetry_options(cfg, args)
     try:
         daemon = Daemon(cfg, bus_override=args.bus, socket_path=args.socket, telemetry_path=args.telemetry,
-                        rerun=args.rerun, allow_dirs=args.allow_dir)
+                        rerun=args.rerun, allow_dirs=args.allow_dir, batch_frames=args.batch_frames)
     except (BusBudgetError, ValueError) as exc:
         raise CliError(str(exc)) from None
     try:
@@ -153,6 +153,10 @@ def register(sub: Any) -> None:
     r.add_argument("--realtime-priority", type=int, default=None, metavar="N",
                    help="SCHED_FIFO priority 1..99 of the cycle thread, when permitted (0: none); overrides loop.realtime_priority")
     r.add_argument("--rerun", action="store_true", help="live view in rerun (needs the optional extra dragd[rerun])")
+    r.add_argument("--batch-frames", action="store_true",
+                   help="udp_multicast: send each cycle's command frames with the next SYNC in one datagram (the "
+                        "simulator with --batch-frames reads it; python-can's own udp_multicast tools do not: leave it "
+                        "off for them); no effect on other buses")
     r.set_defaults(func=cmd_run)
 
     for name, fn, helptext in (("start", cmd_start, "enable the drives and hold the pose"),

@@ -119,10 +119,11 @@ class Daemon:
 
     def __init__(self, cfg: Config, *, bus_override: str | None = None, socket_path: str | None = None,
                  telemetry_path: str | None = None, rerun: bool = False, allow_dirs: list[str] | None = None,
-                 log: Callable[[str], None] | None = None) -> None:
+                 log: Callable[[str], None] | None = None, batch_frames: bool = False) -> None:
         from dragd.daemon.paths import PathPolicy, allowed_dirs, spool_dir
 
         self.cfg = cfg
+        self.batch_frames = batch_frames  # udp_multicast: a cycle's command frames leave with the next SYNC
         self.paths = PathPolicy(allowed_dirs(cfg, telemetry_path, allow_dirs))  # where requests may read/write
         self.spool_dir = spool_dir(cfg)  # where clients leave trajectory files (status: spool_dir)
         self.log = log or _print_log  # log(text) or log(text, priority)
@@ -543,7 +544,7 @@ class Daemon:
         buses = {}
         try:
             for name, spec in self.bus_specs.items():
-                buses[name] = open_bus(spec)
+                buses[name] = open_bus(spec, batch_frames=self.batch_frames)
                 # CANopen uses 11-bit ids only: 29-bit frames (whose ids can equal a COB-ID) never reach the stack
                 buses[name].set_filters([{"can_id": 0, "can_mask": 0, "extended": False}])
         except BaseException:

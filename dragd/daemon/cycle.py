@@ -211,3 +211,4 @@ class Cycle:
                     fn()  # type: ignore[operator]
         finally:
             ticker.close()
+            self.io.flush()

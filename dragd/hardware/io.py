@@ -45,6 +45,8 @@ class BusIO:
 
     def __init__(self, layouts: dict[str, BusLayout], buses: dict[str, can.BusABC], node_ids: list[int],
                  master_node_id: int, on_emcy: Callable[[int, int, int], None]) -> None:
+        """A bus opened with ``batch_frames`` (udp_multicast) carries a cycle's cyclic command frames in one datagram
+        with the next SYNC (see ``write``)."""
         n = self.n = len(node_ids)
         self.feedback = Feedback(n)
         self.layouts = layouts
@@ -58,6 +60,7 @@ class BusIO:
         self._commands: list[tuple[can.BusABC, can.Message, RpdoEncoder]] = []
         self._sync: list[tuple[can.BusABC, can.Message]] = []
         self._heartbeat: list[tuple[can.BusABC, can.Message]] = []
+        self._deferred: list[tuple[can.BusABC, can.Message]] = []  # cyclic command frames leaving with the next SYNC
         for name, layout in layouts.items():
             bus = buses[name]
             fd = layout.fd
@@ -156,7 +159,10 @@ class BusIO:
         """Send SYNC and wait until every joint's position TPDO arrived (True) or ``deadline_s`` passed (False)."""
         self.begin_cycle()
         self._waiter = waiter = loop.create_future()
-        self._send(self._sync)
+        if self._deferred:
+            self._send_with_sync()
+        else:
+            self._send(self._sync)
         handle = loop.call_at(loop.time() + deadline_s, self._deadline)
         await waiter
         handle.cancel()
@@ -170,7 +176,13 @@ class BusIO:
     # ------------------------------------------------------------------------------------------ write
 
     def write(self, cw_array: np.ndarray, counts_array: np.ndarray, permille_array: np.ndarray, t: float) -> None:
-        """Pack every command frame and send the ones due (cyclic frames always; event frames on change)."""
+        """Pack every command frame and send the ones due (cyclic frames always; event frames on change).
+
+        On a bus that batches (udp_multicast with ``batch_frames``) the cyclic frames leave with the next cycle's
+        SYNC, in one datagram ahead of it: a synchronous RPDO is applied at the next SYNC wherever it arrives in the
+        cycle (CiA 301; no synchronous window, 1007h, is configured), so the drives apply the same command at the same
+        SYNC, and the cycle makes one send (and wakes the drives once) instead of two. Event-driven frames leave at
+        once, as on any other bus."""
         # one conversion per array (numpy scalars per element cost ~18 object creations a cycle)
         cw, target_counts, torque_permille = cw_array.tolist(), counts_array.tolist(), permille_array.tolist()
         for bus, msg, enc in self._commands:
@@ -184,9 +196,31 @@ class BusIO:
                     codec.pack_into(buf, off, int(cw[j]))
             if not enc.due(t):
                 continue
+            if enc.cyclic and getattr(bus, "batch_frames", False):
+                self._deferred.append((bus, msg))  # (its buffer is packed again only after the next read)
+                enc.sent(t)
+                continue
             try:
                 bus.send(msg, timeout=0)
                 enc.sent(t)
+            except can.CanError:
+                self.tx_errors += 1
+
+    def flush(self) -> None:
+        """Send command frames still waiting for a SYNC (the cycle stops: they must not be lost)."""
+        frames, self._deferred = self._deferred, []
+        self._send(frames)
+
+    def _send_with_sync(self) -> None:
+        """Each bus's waiting command frames and its SYNC, in that order, as one datagram."""
+        frames, self._deferred = self._deferred, []
+        for bus, sync in self._sync:
+            try:
+                with bus.batch():  # type: ignore[attr-defined]
+                    for b, msg in frames:
+                        if b is bus:
+                            bus.send(msg, timeout=0)
+                    bus.send(sync, timeout=0)
             except can.CanError:
                 self.tx_errors += 1
 

@@ -134,6 +134,8 @@ class Rig:
 
     def start_daemon(self, timeout_s: float = 30.0) -> None:
         argv = [sys.executable, "-m", "dragd", "run", "--bus", self.bus, "--socket", self.socket, *self.daemon_args]
+        if self.bus.startswith("udp_multicast:") and "--batch-frames" not in argv:
+            argv.append("--batch-frames")  # the cycle's command frames ride with the next SYNC (the sim batches too)
         for d in self.allow_dirs:
             argv += ["--allow-dir", str(Path(d).absolute())]
         if self.config is not None:

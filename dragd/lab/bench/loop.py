@@ -239,7 +239,8 @@ def loop_missed_ratio(opts: dict) -> float:
 
 @benchmark("loop_compute_us", "us")
 def loop_compute_us(opts: dict) -> float:
-    """Median time from the last TPDO (or the deadline) to the RPDOs sent: estimate + compute + write."""
+    """Median time from the last TPDO (or the deadline) to the RPDOs written (sent; on a batching udp_multicast bus
+    queued to leave with the next SYNC): estimate + compute + write."""
     return float(_session(*_opts(opts))["compute_p50_us"])
 
 
