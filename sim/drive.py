@@ -198,11 +198,14 @@ class SimDrive:
     routes_generation = 0  # renewed by every drive whose COB-ID routing changes (SimNetwork rebuilds its tables)
 
     def __init__(self, params: DriveParams, io: AxisIO, send: Callable[[can.Message], None],
-                 eds_path: str | Path = DEFAULT_EDS_PATH) -> None:
+                 eds_path: str | Path = DEFAULT_EDS_PATH,
+                 send_data: Callable[[int, bytes, bool], None] | None = None) -> None:
+        """``send`` transmits a frame; ``send_data(cob_id, data, fd)``, when given, the PDOs (no ``can.Message``)."""
         self.params = params
         self.io = io
         self.node_id = params.node_id
         self._send = send
+        self._send_data = send_data
         self.counters = DriveCounters()
         self._lock = threading.RLock()
         self.store = ObjectStore.from_eds(eds_path, params.node_id)
@@ -972,8 +975,14 @@ class SimDrive:
     def _send_pdo(self, ch: PdoChannel, data: bytes) -> None:
         ch.last_data = data
         self.counters.tpdos_sent += 1
-        self._tx(can.Message(arbitration_id=ch.cob_id, data=data, is_extended_id=False, is_fd=ch.is_fd,
-                             bitrate_switch=ch.is_fd, check=False))
+        if self._send_data is None:
+            self._tx(can.Message(arbitration_id=ch.cob_id, data=data, is_extended_id=False, is_fd=ch.is_fd,
+                                 bitrate_switch=ch.is_fd, check=False))
+            return
+        try:
+            self._send_data(ch.cob_id, data, ch.is_fd)
+        except can.CanError:
+            self.counters.send_errors += 1
 
     def _poll_event_tpdos(self, now: float) -> None:
         cells = self.store.cells

@@ -70,6 +70,21 @@ class FaultInjector:
 
         return tx
 
+    def data_sender(self, node_id: int) -> Callable[[int, bytes, bool], None]:
+        """The transmit function of one drive's plain data frames (its PDOs): without a ``can.Message`` where the bus
+        has ``send_data`` and no fault is armed; otherwise through ``sender``'s path."""
+        send_data = getattr(self.bus, "send_data", None)
+        tx = self.sender(node_id)
+
+        def tx_data(cob: int, data: bytes, fd: bool) -> None:
+            if send_data is not None and not self.active:
+                send_data(cob, data, fd)
+            else:
+                tx(can.Message(arbitration_id=cob, data=data, is_extended_id=False, is_fd=fd, bitrate_switch=fd,
+                               check=False))
+
+        return tx_data
+
     def rx_muted(self) -> bool:
         """True while the link is down (the reader drops what it receives)."""
         return self.down_until != 0.0 and self._down()

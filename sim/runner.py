@@ -170,7 +170,8 @@ class SimProcess:
             self.injectors = [FaultInjector(bus) for bus in self.buses]
             for j, ax in zip(self.truth.joints, self.axes):
                 spec, inj = self.specs[j.bus_index], self.injectors[j.bus_index]
-                self.drives.append(SimDrive(drive_params(j, spec.fd), ax, inj.sender(drive_params(j, spec.fd).node_id)))
+                node = drive_params(j, spec.fd).node_id
+                self.drives.append(SimDrive(drive_params(j, spec.fd), ax, inj.sender(node), send_data=inj.data_sender(node)))
             self.networks = [SimNetwork(bus, [d for d, j in zip(self.drives, self.truth.joints) if j.bus_index == k])
                              for k, bus in enumerate(self.buses)]
             for net, inj in zip(self.networks, self.injectors):

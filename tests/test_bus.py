@@ -483,3 +483,36 @@ def test_socketcan_vcan_roundtrip() -> None:
     finally:
         a.shutdown()
         b.shutdown()
+
+
+def test_udp_multicast_send_data_is_send_without_a_message(request: pytest.FixtureRequest) -> None:
+    """``send_data`` (the simulated drives' PDOs) puts the same bytes on the wire as ``send`` of the equivalent
+    ``can.Message`` — classic and FD, empty to 64 bytes, alone and inside a batch — and a classic bus refuses FD."""
+    spec = parse_bus(f"udp_multicast:{unique_group(request.node.name)}", fd=True)
+    tx, rx = open_bus(spec, batch_frames=True), open_bus(spec)
+    try:
+        for cob, n, fd in ((0x181, 8, False), (0x281, 0, False), (0x381, 12, True), (0x481, 64, True)):
+            data = bytes((7 * i + cob) & 0xFF for i in range(n))
+            msg = can.Message(arbitration_id=cob, data=data, is_extended_id=False, is_fd=fd, bitrate_switch=fd)
+            head, tail = tx._template(cob, n, fd)
+            assert head + data + tail == bytes(tx._pack(msg)), (cob, n, fd)
+        frames = [(0x181 + i, bytes([i] * 8)) for i in range(6)]
+        with tx.batch():
+            for cob, data in frames:
+                tx.send_data(cob, data)
+        tx.send_data(0x381, bytes(range(12)), fd=True)
+        got = drain(rx, 0.3)
+        assert [(m.arbitration_id, bytes(m.data), m.is_fd) for m in got] == \
+            [(c, d, False) for c, d in frames] + [(0x381, bytes(range(12)), True)]
+        assert all(not m.is_extended_id and not m.is_remote_frame and m.bitrate_switch == m.is_fd for m in got)
+        c = tx.counters()
+        assert c.frames_sent == 7 and c.datagrams_sent == 2 and rx.counters().gaps == 0
+    finally:
+        tx.shutdown()
+        rx.shutdown()
+    classic = open_bus(parse_bus(f"udp_multicast:{unique_group(request.node.name + 'c')}"))
+    try:
+        with pytest.raises(can.CanOperationError, match="CAN FD"):
+            classic.send_data(0x181, bytes(8), fd=True)
+    finally:
+        classic.shutdown()

@@ -35,8 +35,11 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+
+from dragd.jit import compile_kernels
 
 
 @dataclass(frozen=True)
@@ -65,6 +68,88 @@ class Trip:
 
 
 Explain = Callable[[np.ndarray, np.ndarray], tuple[float, float]]  # (q, r) → (unexplained fraction, flange kg)
+
+
+def _guard_kernel(dt: float, alpha: float, settled: bool, tau: np.ndarray, p: np.ndarray, dq: np.ndarray,
+                  p0: np.ndarray, integ: np.ndarray, r: np.ndarray, r_f: np.ndarray, v_f: np.ndarray,
+                  run_s: np.ndarray, peak: np.ndarray, sign: np.ndarray, hand: np.ndarray, kt: np.ndarray,
+                  due: np.ndarray, k_o: float, dt_nominal: float, speed: float, keep: float, residual: float,
+                  confirm_s: float, run_max_s: float, retest: bool, running: bool) -> tuple[int, bool]:
+    """``RunawayGuard.update``'s arithmetic (the numpy below is its reference): (0 nothing | 1 the fast path's
+    test is due | 2 the slow path's, with ``due`` marking the joints; the new ``running``)."""
+    n = tau.shape[0]
+    for j in range(n):
+        a = tau[j] + r[j]
+        a *= dt
+        integ[j] += a
+        a = p[j] - p0[j]
+        a -= integ[j]
+        r[j] = a * k_o
+    for j in range(n):
+        a = r[j] - r_f[j]
+        a *= alpha
+        r_f[j] += a
+        a = dq[j] - v_f[j]
+        a *= alpha
+        v_f[j] += a
+    if not settled:
+        return 0, running
+    top = abs(v_f[0])
+    for j in range(1, n):
+        a = abs(v_f[j])
+        top = a if (a >= top or a != a) else top  # (np.max: NaN wins)
+    if top <= speed:
+        if running:
+            for j in range(n):
+                run_s[j] = 0.0
+                peak[j] = 0.0
+                hand[j] = False
+        return 0, False
+    for j in range(n):
+        a = abs(v_f[j])
+        m = a > speed and r_f[j] * v_f[j] > 0.0
+        sg = 1.0 if v_f[j] > 0.0 else (-1.0 if v_f[j] < 0.0 else v_f[j])  # np.sign
+        b = peak[j] if (peak[j] >= a or peak[j] != peak[j]) else a  # np.maximum
+        if sg != sign[j]:  # direction changed: the peak restarts
+            b = a
+        peak[j] = b
+        m = m and a >= peak[j] * keep
+        sign[j] = sg
+        run_s[j] += dt_nominal
+        run_s[j] *= 1.0 if m else 0.0
+        if not m:
+            hand[j] = False
+            peak[j] = 0.0
+    count = 0
+    for j in range(n):
+        b = abs(r_f[j] / kt[j])
+        x = b > residual and not hand[j] and run_s[j] >= confirm_s
+        due[j] = x
+        count += 1 if x else 0
+    if count:
+        return 1, True
+    for j in range(n):
+        b = abs(r_f[j] / kt[j])
+        x = run_s[j] >= run_max_s and b > residual / 3.0
+        due[j] = x
+        count += 1 if x else 0
+    if count and retest:
+        return 2, True
+    return 0, True
+
+
+_KERNEL: list[Any] = []
+
+
+def guard_kernel() -> Any:
+    """The compiled ``_guard_kernel`` (once per process), or None where numba cannot be imported."""
+    if not _KERNEL:
+        f1, b1 = np.zeros(1), np.zeros(1, dtype=bool)
+        k = compile_kernels(globals(), (), {"guard": (_guard_kernel, (
+            1e-3, 0.05, True, f1, f1, f1, f1.copy(), f1.copy(), f1.copy(), f1.copy(), f1.copy(), f1.copy(), f1.copy(),
+            f1.copy(), b1, np.ones(1), b1.copy(), 60.0, 1e-3, 0.03, 0.85, 0.3, 0.03, 0.5, True, True))})
+        _KERNEL.append(None if k is None else k["guard"])
+    return _KERNEL[0]
 
 
 class RunawayGuard:
@@ -96,6 +181,11 @@ class RunawayGuard:
         self._m3 = np.zeros(n, dtype=bool)
         self.retest_at = 0.0
         self.running = False
+        self._kernel: Any = None
+
+    def use_kernel(self, kernel: Any) -> None:
+        """``update`` by the compiled kernel (``guard_kernel()``; the numpy in ``update`` is its reference)."""
+        self._kernel = kernel
 
     def arm(self, p_Nms: np.ndarray, t_s: float) -> None:
         """Start watching (the drag law is fully in): the observer starts from the present momentum."""
@@ -126,6 +216,19 @@ class RunawayGuard:
         # the true elapsed time since the last update (a late cycle missed periods); bounded against clock steps
         dt = min(max(t_s - self._t_last, 0.0), 0.05) if t_s > self._t_last else self.dt
         self._t_last = t_s
+        if self._kernel is not None:
+            code, self.running = self._kernel(
+                dt, 1.0 - math.exp(-2.0 * math.pi * s.decide_Hz * dt), t_s - self.armed_at >= s.settle_s, tau_in_Nm,
+                p_Nms, dq, self.p0, self.integ, self.r, self.r_f, self.v_f, self.run_s, self.peak, self.sign,
+                self.hand, self.kt, m2, self.k_o, self.dt, s.speed_rad_s, s.keep_speed, s.residual_A, s.confirm_s,
+                s.run_max_s, t_s >= self.retest_at, self.running)
+            if code == 1:
+                return self._decide(q, self.v_f, m2)
+            if code == 2:
+                self.retest_at = t_s + s.run_max_s
+                self.hand &= ~m2
+                return self._decide(q, self.v_f, m2)
+            return None
         # observer: integ += (τ_in + r)·dt;  r = K_o·(p − p₀ − integ)
         np.add(tau_in_Nm, self.r, out=a)
         a *= dt

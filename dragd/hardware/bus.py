@@ -216,6 +216,7 @@ class UdpMulticastCanBus(can.BusABC):
         self.batch_frames = batch_frames
         self._local = threading.local()  # .held: this thread's open batch() block (other threads' frames go at once)
         self._pending: deque[can.Message] = deque()  # recv(): the rest of a batched datagram
+        self._templates: dict[tuple[int, int, bool], tuple[bytes, bytes]] = {}  # send_data(): packed map around data
         self._c = dict(frames_sent=0, frames_received=0, own_echoes_dropped=0, duplicates_dropped=0, gaps=0,
                        reordered=0, too_late_dropped=0, kernel_drops=0, foreign_frames=0, fd_frames_dropped=0,
                        undecodable=0, datagrams_sent=0)
@@ -288,6 +289,35 @@ class UdpMulticastCanBus(can.BusABC):
             return
         with self._tx_lock:
             self._sendto(self._stamp(self._pack(msg)), 1)
+
+    def send_data(self, arbitration_id: int, data: bytes | bytearray, fd: bool = False) -> None:
+        """``send`` of a plain data frame (11-bit id, not remote, not an error frame; CAN FD with bit-rate switch when
+        ``fd``) without a ``can.Message``: the same bytes on the wire, from a template per id and length."""
+        if fd and self._can_protocol is not can.CanProtocol.CAN_FD:
+            raise can.CanOperationError(f"{self.channel_info}: cannot send a CAN FD frame on a classic-CAN bus")
+        key = (arbitration_id, len(data), fd)
+        parts = self._templates.get(key)
+        if parts is None:
+            parts = self._templates[key] = self._template(arbitration_id, len(data), fd)
+        packed = bytearray(parts[0])
+        packed += data
+        packed += parts[1]
+        held = getattr(self._local, "held", None)
+        if held is not None:
+            held.append(packed)
+            return
+        with self._tx_lock:
+            self._sendto(self._stamp(packed), 1)
+
+    def _template(self, arbitration_id: int, length: int, fd: bool) -> tuple[bytes, bytes]:
+        """The packed map of such a frame around its data bytes (as ``_pack`` writes it for a fresh ``can.Message``)."""
+        marker = bytes(range(1, length + 1)) if length else b""
+        packed = bytes(self._pack(can.Message(arbitration_id=arbitration_id, data=marker, is_extended_id=False,
+                                              is_fd=fd, bitrate_switch=fd, check=False)))
+        data_key = self._packer.pack("data")
+        at = packed.index(data_key) + len(data_key)
+        head = packed[:at] + self._packer.pack(marker)[:-length or None]  # the bin header of ``length`` bytes
+        return head, packed[len(head) + length:]
 
     @contextmanager
     def batch(self) -> Iterator[None]:
