@@ -25,7 +25,7 @@ from dragd.control.guard import GuardSettings, RunawayGuard, guard_kernel
 from dragd.control.fused import DragLaw
 from dragd.control.modes import MODE_NAMES, Mode
 from dragd.control.params import LawParams
-from dragd.control.safety import SafetyTerms
+from dragd.control.safety import SafetyTerms, safety_kernel
 from dragd.control.track import Track, TrackLimits, Trip
 from dragd.control.trajectory import Trajectory
 
@@ -142,6 +142,8 @@ class Controller:
             integral_max_Nm=per_joint(rc.position_integral_limit_A) * kt,
             output_max_Nm=per_joint(rc.position_output_limit_A) * kt,
             ramp_s=rc.ramp_s, monitor_cycles=rc.monitor_cycles, position_lo_rad=lim_lo, position_hi_rad=lim_hi)
+        if cfg.loop.compiled and (kernel := safety_kernel()) is not None:
+            safety.use_kernel(kernel)
         c = cls(params, safety, limits, cfg.joint_names, dt, s.hold_kp_Nm_per_rad, s.hold_kd_Nm_s_per_rad,
                 s.mode_ramp_s, cfg.loop.fresh_cycles_resume, cfg.loop.compiled)
         g = s.guard

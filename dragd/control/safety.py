@@ -11,8 +11,59 @@ usual cycle (no joint near a wall, none above its cap) costs five ufuncs.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
+
+from dragd.jit import compile_kernels
+
+
+def _safety_kernel(q: np.ndarray, dq: np.ndarray, speed_cap: bool, out: np.ndarray, lim_lo: np.ndarray,
+                   lim_hi: np.ndarray, wall_lo: np.ndarray, wall_hi: np.ndarray, cap: np.ndarray, kt: np.ndarray,
+                   margin: float, k_hi: float, k_lo: float, c: float, b: float) -> None:
+    """``SafetyTerms.compute`` joint by joint (its numpy is the reference); ``k_hi``/``k_lo``: ±wall stiffness."""
+    n = q.shape[0]
+    near = False
+    fast = False
+    for j in range(n):
+        out[j] = 0.0
+        near = near or q[j] > wall_hi[j] or q[j] < wall_lo[j]
+        fast = fast or (speed_cap and abs(dq[j]) > cap[j])
+    if not (near or fast):
+        return
+    for j in range(n):
+        if near:
+            for lo in (False, True):
+                pen = lim_lo[j] - q[j] if lo else q[j] - lim_hi[j]
+                v = dq[j] if (lo and (dq[j] <= 0.0 or dq[j] != dq[j])) or (not lo and (dq[j] >= 0.0 or dq[j] != dq[j])) \
+                    else 0.0  # np.minimum(dq, 0) / np.maximum(dq, 0)
+                pen += margin
+                pen = pen if (pen >= 0.0 or pen != pen) else 0.0
+                v *= 1.0 if pen > 0.0 else 0.0
+                pen *= k_lo if lo else k_hi
+                v *= c
+                out[j] -= pen
+                out[j] -= v
+        if fast:
+            x = abs(dq[j]) - cap[j]
+            x = x if (x >= 0.0 or x != x) else 0.0
+            x *= 1.0 if dq[j] > 0.0 else (-1.0 if dq[j] < 0.0 else dq[j])  # np.sign
+            x *= b
+            out[j] -= x
+        out[j] /= kt[j]
+
+
+_KERNEL: list[Any] = []
+
+
+def safety_kernel() -> Any:
+    """The compiled ``_safety_kernel`` (once per process), or None where numba cannot be imported."""
+    if not _KERNEL:
+        f1 = np.zeros(1)
+        k = compile_kernels(globals(), (), {"safety": (_safety_kernel, (
+            f1, f1, True, f1.copy(), f1, f1, f1, f1, f1, np.ones(1), 0.1, 1.0, -1.0, 1.0, 1.0))})
+        _KERNEL.append(None if k is None else k["safety"])
+    return _KERNEL[0]
 
 
 @dataclass
@@ -37,9 +88,20 @@ class SafetyTerms:
         self._p = np.zeros(n)
         self._v = np.zeros(n)
         self._m = np.zeros(n, dtype=bool)
+        self._kernel: Any = None
+
+    def use_kernel(self, kernel: Any) -> None:
+        """``compute`` by the compiled kernel (``safety_kernel()``; the numpy below is its reference)."""
+        self._kernel = kernel
 
     def compute(self, q: np.ndarray, dq: np.ndarray, speed_cap: bool, out: np.ndarray) -> None:
         """``out`` ← wall currents (+ the speed cap's when ``speed_cap``) [A]."""
+        if self._kernel is not None:
+            k = self.wall_stiffness_Nm_per_rad
+            self._kernel(q, dq, speed_cap, out, self.lim_lo_rad, self.lim_hi_rad, self.wall_lo_rad, self.wall_hi_rad,
+                         self.speed_cap_rad_s, self.kt_Nm_per_A, self.margin_rad, 1.0 * k, -1.0 * k,
+                         self.wall_damping_Nm_s_per_rad, self.speed_cap_damping_Nm_s_per_rad)
+            return
         p, v, m = self._p, self._v, self._m
         out.fill(0.0)
         np.greater(q, self.wall_hi_rad, out=m)
