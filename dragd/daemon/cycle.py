@@ -124,7 +124,7 @@ class Cycle:
         if c.mode == Mode.DRAG and c.guard is not None:
             self.model.momentum(est.q_rad, est.dq_rad_s, est.p_Nms)  # the runaway guard's observer
         # compute
-        c.advance(est, int(fb.stale.max()))
+        c.advance(est, worst)  # (the stalest joint's count: fb.stale.max(), 0 when every TPDO arrived)
         fault = self.supervisor.update(fb.statusword, _TARGETS.get(c.mode, Target.ENABLED), self.t)
         if fault is not None:
             c.fault(*fault)
