@@ -65,7 +65,7 @@ class Controller:
 
     def __init__(self, params: LawParams, safety: SafetyTerms, track_limits: TrackLimits, joint_names: list[str],
                  dt_s: float, hold_kp_Nm_per_rad: float, hold_kd_Nm_s_per_rad: float, mode_ramp_s: float,
-                 fresh_cycles_resume: int, compiled_law: bool = True) -> None:
+                 fresh_cycles_resume: int, compiled: bool = True) -> None:
         n = self.n = params.n
         self.params = params
         self.safety = safety
@@ -89,8 +89,8 @@ class Controller:
         self.fresh_cycles = 0
         self.feedback_holds = 0
         self.drive_csp = False  # the drives run CSP (their position loops hold q_ref / q_hold), else CST
-        # the drag law and its latch (compiled kernels, or the numpy reference with ``compiled_law`` false)
-        self.drag_law = DragLaw(params, compiled_law)
+        # the drag law and its latch (compiled kernels, or the numpy reference with ``compiled`` false)
+        self.drag_law = DragLaw(params, compiled)
         self.breakout, self.law_out, self.ws = self.drag_law.state, self.drag_law.out, self.drag_law.ws
         self.track = Track(n, dt_s, track_limits, joint_names)
         self.extra_A = np.zeros(n)  # safety terms this cycle

@@ -40,7 +40,7 @@ def benchmark(name: str, unit: str) -> Callable[[Callable[[dict], Any]], Callabl
 @benchmark("compensation_us", "us")
 def compensation_us(opts: dict) -> float:
     """Median wall time of one full 6-joint evaluation of the law including G(q) (Pinocchio) and the latch: the
-    numpy reference functions (``loop.compiled_law: false``)."""
+    numpy reference functions (``loop.compiled: false``)."""
     return _law_timing(opts, compiled=False)
 
 
