@@ -1,4 +1,4 @@
-"""numba for the cycle's compiled kernels (dragd/control/fused.py, dragd/daemon/kernels.py).
+"""numba for the cycle's compiled kernels (dragd/control/fused.py, guard.py, safety.py; dragd/daemon/kernels.py).
 
 Set up once per process and compiled ahead — or loaded from numba's on-disk cache — before the first cycle, with the
 cycle's argument types (a kernel meeting new types would compile inside a cycle: tests check one signature each).
@@ -13,16 +13,23 @@ import sys
 from collections.abc import Callable
 from typing import Any
 
-_MISSING: list[bool] = []
+_COMPILED: dict[str, dict[str, Any] | None] = {}  # module name → its kernels (None: numba missing)
 
 
 def compile_kernels(namespace: dict[str, Any], helpers: tuple[str, ...],
                     kernels: dict[str, tuple[Callable[..., Any], tuple[Any, ...]]]) -> dict[str, Any] | None:
     """Jit ``helpers`` (names in ``namespace``, replaced there: the kernels call them as globals) and ``kernels``
     (name → (function, warm-up arguments of the cycle's types)); call each kernel once with its warm-up arguments.
-    None where numba cannot be imported (the callers keep their numpy reference paths)."""
-    if _MISSING:
-        return None
+    Once per module (``namespace``'s): later calls return the same kernels. None where numba cannot be imported
+    (the callers keep their numpy reference paths)."""
+    module = namespace["__name__"]
+    if module not in _COMPILED:
+        _COMPILED[module] = _compile(namespace, helpers, kernels)
+    return _COMPILED[module]
+
+
+def _compile(namespace: dict[str, Any], helpers: tuple[str, ...],
+             kernels: dict[str, tuple[Callable[..., Any], tuple[Any, ...]]]) -> dict[str, Any] | None:
     hide = "scipy" not in sys.modules
     if hide:
         sys.modules["scipy"] = None  # type: ignore[assignment]  # (an import of it raises ImportError)
@@ -30,7 +37,6 @@ def compile_kernels(namespace: dict[str, Any], helpers: tuple[str, ...],
         try:
             import numba
         except ImportError:  # pragma: no cover - only where numba is missing
-            _MISSING.append(True)
             return None
 
         # (not nogil: a kernel that dropped the GIL for its few µs would hand it to any other thread of the daemon,
@@ -44,8 +50,7 @@ def compile_kernels(namespace: dict[str, Any], helpers: tuple[str, ...],
                 return numba.njit(cache=False, error_model="numpy")(f)
 
         for name in helpers:
-            if not hasattr(namespace[name], "py_func"):  # (not jitted yet)
-                namespace[name] = jit(namespace[name])
+            namespace[name] = jit(namespace[name])
         out = {}
         for name, (f, args) in kernels.items():
             k = jit(f)

@@ -16,6 +16,15 @@ from conftest import REPO, run_cli
 pytestmark = pytest.mark.rig
 
 
+def _enabled_on_two_groups(rig: Rig, tag: str) -> dict:
+    """Simulator and daemon on two private multicast groups (one per bus), the drives enabled: the daemon's status."""
+    rig.bus = f"udp_multicast:{multicast_group(tag + '0')},udp_multicast:{multicast_group(tag + '1')}"
+    rig.start_sim()
+    rig.start_daemon()
+    rig.must("start")
+    return rig.must("status")
+
+
 def test_two_classic_buses_compact_layout(tmp_path):
     truth = yaml.safe_load((REPO / "sim/config/seed_cobot.yaml").read_text())
     truth["bus"]["fd"] = False
@@ -31,11 +40,7 @@ def test_two_classic_buses_compact_layout(tmp_path):
     assert '"bus_load"' in budget and float(budget.split('"value": ')[1].split(",")[0]) < 70.0
 
     with Rig("buses", workdir=tmp_path, config=dcfg, sim_config=sim_cfg) as rig:
-        rig.bus = f"udp_multicast:{multicast_group('bus0')},udp_multicast:{multicast_group('bus1')}"
-        rig.start_sim()
-        rig.start_daemon()
-        rig.must("start")
-        status = rig.must("status")
+        status = _enabled_on_two_groups(rig, "bus")
         assert status["drives_enabled"] and set(status["bus_load_pct"]) == {"can0", "can1"}
         assert all(v < 70.0 for v in status["bus_load_pct"].values())
         rig.must("mode", mode="drag")
@@ -69,11 +74,7 @@ def test_twelve_joints_two_arms_on_two_buses(tmp_path):
                                                                                      single.gravity(-q)]), atol=1e-9)
     with Rig("dual", workdir=tmp_path, config=REPO / "config/dual_arm.yaml",
              sim_config=REPO / "sim/config/dual_arm.yaml") as rig:
-        rig.bus = f"udp_multicast:{multicast_group('dual0')},udp_multicast:{multicast_group('dual1')}"
-        rig.start_sim()
-        rig.start_daemon()
-        rig.must("start")
-        status = rig.must("status")
+        status = _enabled_on_two_groups(rig, "dual")
         assert status["drives_enabled"] and set(status["bus_load_pct"]) == {"left", "right"}
         rig.must("mode", mode="drag")
         q0 = np.array(rig.sim_call("state")["q_rad"])

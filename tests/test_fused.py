@@ -121,7 +121,7 @@ def test_the_kernels_match_the_numpy_reference(base: LawParams, variant: int) ->
         assert suppressed > 0, f"{name}: no creep suppressed"
     assert worst < 1e-12
     # one compiled signature each: the start-up's (n = 1) — the cycle's arrays never compile anything anew
-    assert [len(fused._KERNELS[k].signatures) for k in ("breakout", "law")] == [1, 1]
+    assert [len(fused._compiled()[k].signatures) for k in ("breakout", "law")] == [1, 1]  # type: ignore[index]
 
 
 def test_effects_use_the_numpy_path(base: LawParams) -> None:

@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import argparse
 import subprocess
+import sys
 import time
+from pathlib import Path
 
 from dragd.lab.rig import Rig
 
@@ -31,7 +33,7 @@ def main() -> None:
         rig.start_daemon()
         spy = None
         if a.spy:
-            spy = subprocess.Popen(["py-spy", "record", "-r", "1000", "-d", "3", "-f", "raw", "-o", a.spy, "--nonblocking",
+            spy = subprocess.Popen([str(Path(sys.executable).with_name("py-spy")), "record", "-r", "1000", "-d", "3", "-f", "raw", "-o", a.spy, "--nonblocking",
                                     "-p", str(rig.daemon.proc.pid)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
             time.sleep(0.5)
         rig.must("start")

@@ -152,8 +152,7 @@ class Controller:
                 observer_Hz=g.observer_Hz, speed_rad_s=g.speed_rad_s, residual_A=g.residual_A, confirm_s=g.confirm_s,
                 keep_speed=g.keep_speed, unexplained_max=g.unexplained_max, decide_Hz=g.decide_Hz,
                 drive_share=g.drive_share), None, cfg.joint_names)
-            kernel = guard_kernel() if cfg.loop.compiled else None
-            if kernel is not None:
+            if cfg.loop.compiled and (kernel := guard_kernel()) is not None:
                 c.guard.use_kernel(kernel)
         c.guard_hold_ramp_s = g.hold_ramp_s
         return c

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from dragd.control.breakout import BREAKOUT_RAMP_S, REST_WEIGHT_STEP, BreakoutState
+from dragd.control.breakout import BREAKOUT_RAMP_S, REST_WEIGHT_STEP, BreakoutState, breakout_update
 from dragd.control.law import LawOutput, Workspace, compensate
 from dragd.control.params import LawParams
 from dragd.jit import compile_kernels
@@ -44,20 +44,14 @@ def available() -> bool:
     return _compiled() is not None
 
 
-_KERNELS: dict[str, Any] = {}
-
-
 def _compiled() -> dict[str, Any] | None:
-    """The jitted kernels (built and compiled once per process), or None where numba cannot be imported."""
-    if not _KERNELS:
-        z, rows = np.zeros(1), np.ones((N_PARAM_ROWS, 1))
-        kernels = compile_kernels(globals(), ("_maximum", "_minimum", "_fmax", "_fmin", "_sign"), {
-            "breakout": (_breakout_kernel, (z, z, 0.0, 0.0, True, rows, np.zeros((11, 1)), np.zeros(1, dtype=bool),
-                                            np.zeros((2, 1), dtype=np.int64), z, True, 0.0)),
-            "law": (_law_kernel, (z, z, 0.0, rows, np.zeros(9, dtype=np.int64), np.ones(4), np.zeros((11, 1)), True,
-                                  z, np.zeros((6, 1)), np.zeros(1, dtype=bool)))})
-        _KERNELS.update(kernels if kernels is not None else {"missing": True})
-    return None if "missing" in _KERNELS else _KERNELS
+    """The jitted kernels (compiled once per process), or None where numba cannot be imported."""
+    z, rows = np.zeros(1), np.ones((N_PARAM_ROWS, 1))
+    return compile_kernels(globals(), ("_maximum", "_minimum", "_fmax", "_fmin", "_sign"), {
+        "breakout": (_breakout_kernel, (z, z, 0.0, 0.0, True, rows, np.zeros((11, 1)), np.zeros(1, dtype=bool),
+                                        np.zeros((2, 1), dtype=np.int64), z, True, 0.0)),
+        "law": (_law_kernel, (z, z, 0.0, rows, np.zeros(9, dtype=np.int64), np.ones(4), np.zeros((11, 1)), z,
+                              np.zeros((6, 1)), np.zeros(1, dtype=bool)))})
 
 
 def pack_params(p: LawParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -168,7 +162,7 @@ def _breakout_kernel(q: np.ndarray, dq: np.ndarray, t: float, t_prev: float, act
 
 
 def _law_kernel(tau_g: np.ndarray, dq: np.ndarray, t: float, P: np.ndarray, flags: np.ndarray, S: np.ndarray,
-                B: np.ndarray, use_breakout_state: bool, extra: np.ndarray, out: np.ndarray, clamped: np.ndarray) -> None:
+                B: np.ndarray, extra: np.ndarray, out: np.ndarray, clamped: np.ndarray) -> None:
     """``compensate`` (dragd/control/law.py) without model-gap effects, for every joint."""
     friction_scale, smoothing, deadband = S[0], S[1], S[2]
     two_pi_t = 2.0 * math.pi * t
@@ -186,13 +180,13 @@ def _law_kernel(tau_g: np.ndarray, dq: np.ndarray, t: float, P: np.ndarray, flag
                 x = (speed - P[REST_THR, j]) / P[FADE_W, j]
                 x = _minimum(_maximum(x, 0.0), 1.0)
                 r = (x * 2.0 - 3.0) * x * x + 1.0
-                if use_breakout_state:  # the slew limit of the faded hand-over
-                    r = _fmin(_fmax(r, B[B_REST, j] - REST_WEIGHT_STEP), B[B_REST, j] + REST_WEIGHT_STEP)
-                    B[B_REST, j] = r
+                # the slew limit of the faded hand-over
+                r = _fmin(_fmax(r, B[B_REST, j] - REST_WEIGHT_STEP), B[B_REST, j] + REST_WEIGHT_STEP)
+                B[B_REST, j] = r
             s = math.sin(P[FREQ, j] * two_pi_t)
             if flags[F_SQUARE]:
                 s = _sign(s)
-            if use_breakout_state and flags[F_BREAKOUT]:
+            if flags[F_BREAKOUT]:
                 s += (B[B_HELD, j] - s) * B[B_WEIGHT, j]
             amp = P[AMP_POS, j] if s >= 0.0 else P[AMP_NEG, j]
             startup = amp * s * r
@@ -270,12 +264,11 @@ class DragLaw:
             self.configure(params)
         st = self.state
         if not self.compiled:
-            from dragd.control.breakout import breakout_update
             breakout_update(q, dq, t, params, st, tau_g)
             return
         t_prev, st.t_prev_s = st.t_prev_s, t
         st.active = self._breakout_kernel(q, dq, t, t_prev, st.active, self._P, self._b_block, st.armed, self._counts,
-                                     q if tau_g is None else tau_g, tau_g is not None, params.gravity_uncertainty)
+                                          q if tau_g is None else tau_g, tau_g is not None, params.gravity_uncertainty)
 
     def compensate(self, tau_g: np.ndarray, dq: np.ndarray, t: float, params: LawParams, extra: np.ndarray,
                    q: np.ndarray) -> LawOutput:
@@ -284,6 +277,6 @@ class DragLaw:
             self.configure(params)
         if not self.compiled or params.effects is not None:
             return compensate(tau_g, dq, t, params, self.out, self.ws, extra, self.state, q)
-        self._law_kernel(tau_g, dq, t, self._P, self._flags, self._S, self._b_block, True, extra, self._out_block,
-                    self.out.clamped)
+        self._law_kernel(tau_g, dq, t, self._P, self._flags, self._S, self._b_block, extra, self._out_block,
+                         self.out.clamped)
         return self.out

@@ -138,18 +138,13 @@ def _guard_kernel(dt: float, alpha: float, settled: bool, tau: np.ndarray, p: np
     return 0, True
 
 
-_KERNEL: list[Any] = []
-
-
 def guard_kernel() -> Any:
     """The compiled ``_guard_kernel`` (once per process), or None where numba cannot be imported."""
-    if not _KERNEL:
-        f1, b1 = np.zeros(1), np.zeros(1, dtype=bool)
-        k = compile_kernels(globals(), (), {"guard": (_guard_kernel, (
-            1e-3, 0.05, True, f1, f1, f1, f1.copy(), f1.copy(), f1.copy(), f1.copy(), f1.copy(), f1.copy(), f1.copy(),
-            f1.copy(), b1, np.ones(1), b1.copy(), 60.0, 1e-3, 0.03, 0.85, 0.3, 0.03, 0.5, True, True))})
-        _KERNEL.append(None if k is None else k["guard"])
-    return _KERNEL[0]
+    f1, b1 = np.zeros(1), np.zeros(1, dtype=bool)
+    k = compile_kernels(globals(), (), {"guard": (_guard_kernel, (
+        1e-3, 0.05, True, f1, f1, f1, f1.copy(), f1.copy(), f1.copy(), f1.copy(), f1.copy(), f1.copy(), f1.copy(),
+        f1.copy(), b1, np.ones(1), b1.copy(), 60.0, 1e-3, 0.03, 0.85, 0.3, 0.03, 0.5, True, True))})
+    return None if k is None else k["guard"]
 
 
 class RunawayGuard:

@@ -53,17 +53,12 @@ def _safety_kernel(q: np.ndarray, dq: np.ndarray, speed_cap: bool, out: np.ndarr
         out[j] /= kt[j]
 
 
-_KERNEL: list[Any] = []
-
-
 def safety_kernel() -> Any:
     """The compiled ``_safety_kernel`` (once per process), or None where numba cannot be imported."""
-    if not _KERNEL:
-        f1 = np.zeros(1)
-        k = compile_kernels(globals(), (), {"safety": (_safety_kernel, (
-            f1, f1, True, f1.copy(), f1, f1, f1, f1, f1, np.ones(1), 0.1, 1.0, -1.0, 1.0, 1.0))})
-        _KERNEL.append(None if k is None else k["safety"])
-    return _KERNEL[0]
+    f1 = np.zeros(1)
+    k = compile_kernels(globals(), (), {"safety": (_safety_kernel, (
+        f1, f1, True, f1.copy(), f1, f1, f1, f1, f1, np.ones(1), 0.1, 1.0, -1.0, 1.0, 1.0))})
+    return None if k is None else k["safety"]
 
 
 @dataclass

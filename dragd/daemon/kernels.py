@@ -87,17 +87,11 @@ def _outputs_kernel(current: np.ndarray, permille_per_A: np.ndarray, torque: np.
         target[j] = np.int64(np.rint(q_ref[j] * counts_per_rad[j])) + offset[j]
 
 
-_KERNELS: dict[str, Any] = {}
-
-
 def kernels() -> dict[str, Any] | None:
     """The compiled kernels (once per process), or None where numba cannot be imported."""
-    if not _KERNELS:
-        i1, f1, b1 = np.zeros(1, dtype=np.int64), np.zeros(1), np.zeros(1, dtype=bool)
-        compiled = compile_kernels(globals(), (), {
-            "plausible": (_plausible_kernel, (i1, b1, i1.copy(), f1, i1.copy(), f1, b1.copy())),
-            "inputs": (_inputs_kernel, (i1, i1, f1, f1.copy(), f1, f1, f1.copy())),
-            "velocity": (_velocity_kernel, (i1, b1, i1.copy(), f1, f1.copy(), f1, f1, 1e-3, 0.2, True)),
-            "outputs": (_outputs_kernel, (f1, f1, i1, f1, f1, i1, i1.copy()))})
-        _KERNELS.update(compiled if compiled is not None else {"missing": True})
-    return None if "missing" in _KERNELS else _KERNELS
+    i1, f1, b1 = np.zeros(1, dtype=np.int64), np.zeros(1), np.zeros(1, dtype=bool)
+    return compile_kernels(globals(), (), {
+        "plausible": (_plausible_kernel, (i1, b1, i1.copy(), f1, i1.copy(), f1, b1.copy())),
+        "inputs": (_inputs_kernel, (i1, i1, f1, f1.copy(), f1, f1, f1.copy())),
+        "velocity": (_velocity_kernel, (i1, b1, i1.copy(), f1, f1.copy(), f1, f1, 1e-3, 0.2, True)),
+        "outputs": (_outputs_kernel, (f1, f1, i1, f1, f1, i1, i1.copy()))})

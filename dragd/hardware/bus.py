@@ -281,20 +281,13 @@ class UdpMulticastCanBus(can.BusABC):
 
     # --- send --------------------------------------------------------------------------------------------
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        if msg.is_fd and self._can_protocol is not can.CanProtocol.CAN_FD:
-            raise can.CanOperationError(f"{self.channel_info}: cannot send a CAN FD frame on a classic-CAN bus")
-        held = getattr(self._local, "held", None)
-        if held is not None:
-            held.append(self._pack(msg))  # packed now (the caller may reuse msg), stamped when the batch leaves
-            return
-        with self._tx_lock:
-            self._sendto(self._stamp(self._pack(msg)), 1)
+        self._check_fd(msg.is_fd)
+        self._emit(self._pack(msg))  # packed now (the caller may reuse msg)
 
     def send_data(self, arbitration_id: int, data: bytes | bytearray, fd: bool = False) -> None:
         """``send`` of a plain data frame (11-bit id, not remote, not an error frame; CAN FD with bit-rate switch when
         ``fd``) without a ``can.Message``: the same bytes on the wire, from a template per id and length."""
-        if fd and self._can_protocol is not can.CanProtocol.CAN_FD:
-            raise can.CanOperationError(f"{self.channel_info}: cannot send a CAN FD frame on a classic-CAN bus")
+        self._check_fd(fd)
         key = (arbitration_id, len(data), fd)
         parts = self._templates.get(key)
         if parts is None:
@@ -302,6 +295,14 @@ class UdpMulticastCanBus(can.BusABC):
         packed = bytearray(parts[0])
         packed += data
         packed += parts[1]
+        self._emit(packed)
+
+    def _check_fd(self, fd: bool) -> None:
+        if fd and self._can_protocol is not can.CanProtocol.CAN_FD:
+            raise can.CanOperationError(f"{self.channel_info}: cannot send a CAN FD frame on a classic-CAN bus")
+
+    def _emit(self, packed: bytearray) -> None:
+        """A packed frame leaves now, or with this thread's open ``batch()`` (stamped when it leaves)."""
         held = getattr(self._local, "held", None)
         if held is not None:
             held.append(packed)
@@ -310,14 +311,14 @@ class UdpMulticastCanBus(can.BusABC):
             self._sendto(self._stamp(packed), 1)
 
     def _template(self, arbitration_id: int, length: int, fd: bool) -> tuple[bytes, bytes]:
-        """The packed map of such a frame around its data bytes (as ``_pack`` writes it for a fresh ``can.Message``)."""
-        marker = bytes(range(1, length + 1)) if length else b""
+        """The packed map of such a frame before and after its data bytes (as ``_pack`` writes it for a fresh
+        ``can.Message``): found by packing one with marker data."""
+        marker = bytes(range(1, length + 1))
         packed = bytes(self._pack(can.Message(arbitration_id=arbitration_id, data=marker, is_extended_id=False,
                                               is_fd=fd, bitrate_switch=fd, check=False)))
-        data_key = self._packer.pack("data")
-        at = packed.index(data_key) + len(data_key)
-        head = packed[:at] + self._packer.pack(marker)[:-length or None]  # the bin header of ``length`` bytes
-        return head, packed[len(head) + length:]
+        field = self._packer.pack("data") + self._packer.pack(marker)  # the key, the bin header, the marker
+        data_at = packed.index(field) + len(field) - length
+        return packed[:data_at], packed[data_at + length:]
 
     @contextmanager
     def batch(self) -> Iterator[None]:

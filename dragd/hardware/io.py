@@ -57,7 +57,8 @@ class BusIO:
         self.duplicate_tpdos = 0  # a joint's position TPDO a second time within one cycle
         self._waiter: asyncio.Future[bool] | None = None
         self._decoders: dict[str, dict[int, Decoder]] = {}
-        self._commands: list[tuple[can.BusABC, can.Message, RpdoEncoder]] = []
+        # (bus, frame, encoder, whether the frame waits for the next SYNC: cyclic on a batching bus)
+        self._commands: list[tuple[can.BusABC, can.Message, RpdoEncoder, bool]] = []
         self._sync: list[tuple[can.BusABC, can.Message]] = []
         self._heartbeat: list[tuple[can.BusABC, can.Message]] = []
         self._deferred: list[tuple[can.BusABC, can.Message]] = []  # cyclic command frames leaving with the next SYNC
@@ -73,7 +74,7 @@ class BusIO:
                     enc = RpdoEncoder(fr, fd, min_interval_s=1.0 / fr.max_rate_Hz)
                     msg = can.Message(arbitration_id=fr.cob_id, data=enc.buffer, is_extended_id=False,
                                       is_fd=fd, bitrate_switch=fd, dlc=len(enc.buffer))
-                    self._commands.append((bus, msg, enc))
+                    self._commands.append((bus, msg, enc, enc.cyclic and getattr(bus, "batch_frames", False)))
             self._sync.append((bus, can.Message(arbitration_id=SYNC_COB_ID, data=b"", is_extended_id=False)))
             self._heartbeat.append((bus, can.Message(arbitration_id=HEARTBEAT_BASE + master_node_id, data=b"\x05",
                                                      is_extended_id=False)))
@@ -185,7 +186,7 @@ class BusIO:
         once, as on any other bus."""
         # one conversion per array (numpy scalars per element cost ~18 object creations a cycle)
         cw, target_counts, torque_permille = cw_array.tolist(), counts_array.tolist(), permille_array.tolist()
-        for bus, msg, enc in self._commands:
+        for bus, msg, enc, with_sync in self._commands:
             buf = enc.buffer
             for j, off, codec, fields in enc.slots:
                 if len(fields) == 3:
@@ -196,7 +197,7 @@ class BusIO:
                     codec.pack_into(buf, off, int(cw[j]))
             if not enc.due(t):
                 continue
-            if enc.cyclic and getattr(bus, "batch_frames", False):
+            if with_sync:
                 self._deferred.append((bus, msg))  # (its buffer is packed again only after the next read)
                 enc.sent(t)
                 continue
