@@ -25,7 +25,7 @@ import sys
 import time
 from typing import Any
 
-__all__ = ["Ticker", "set_realtime", "scheduler_label", "demote_current_thread"]
+__all__ = ["Ticker", "set_realtime", "scheduler_label", "demote_current_thread", "HELPER_PRIORITY"]
 
 _CLOCK_MONOTONIC = 1
 _TFD_NONBLOCK = os.O_NONBLOCK
@@ -337,20 +337,37 @@ def scheduler_label(info: dict[str, Any], priority: int | None) -> str:
     return policy if priority is None else f"{policy} (SCHED_FIFO {priority} refused: {sched.get('reason')})"
 
 
-def demote_current_thread(avoid_cpus: set[int] | None = None) -> dict[str, Any]:
-    """Return the calling thread to SCHED_OTHER and, if possible, off ``avoid_cpus``.
+HELPER_PRIORITY = 1  # SCHED_FIFO priority of a real-time process's helper threads: below every cycle thread
 
-    For helper threads (telemetry writer, executors) started after `set_realtime`,
-    which would otherwise inherit SCHED_FIFO and the real-time CPU set. Never raises.
+
+def demote_current_thread(avoid_cpus: set[int] | None = None) -> dict[str, Any]:
+    """Put the calling helper thread (telemetry writer, executors, control socket) below the cycle and, if possible,
+    off ``avoid_cpus``.
+
+    For threads started after `set_realtime`, which would otherwise inherit the cycle's SCHED_FIFO priority and CPU
+    set. In a real-time process a helper runs SCHED_FIFO at the lowest priority (``HELPER_PRIORITY``), not
+    SCHED_OTHER: every cycle thread preempts it, and no normal task does — a SCHED_OTHER helper preempted by the
+    host's other work *while it holds the GIL* would stall the cycle thread waiting for the GIL for as long as the
+    scheduler keeps it off a CPU (milliseconds; the RPDO watchdogs fault the arm at 50). The policy carries
+    SCHED_RESET_ON_FORK: processes the helper starts (the telemetry encoder, the planner) run SCHED_OTHER. Elsewhere
+    (a process not real-time) the thread stays as it is. Never raises.
     """
     out: dict[str, Any] = {"policy": None, "cpus": None, "reason": None}
     reasons: list[str] = []
     try:
-        if os.sched_getscheduler(0) != os.SCHED_OTHER:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-        out["policy"] = _policy_name(os.sched_getscheduler(0))
+        policy = os.sched_getscheduler(0) & ~getattr(os, "SCHED_RESET_ON_FORK", 0)
+        if policy in (os.SCHED_FIFO, os.SCHED_RR):
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0),
+                                      os.sched_param(HELPER_PRIORITY))
+            except OSError as e:  # (lowering is always permitted; a kernel without RESET_ON_FORK: plain SCHED_OTHER)
+                reasons.append(f"sched_setscheduler(SCHED_FIFO {HELPER_PRIORITY}) failed: {e.strerror}")
+                os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        out["policy"] = _policy_name(os.sched_getscheduler(0) & ~getattr(os, "SCHED_RESET_ON_FORK", 0))
+        if out["policy"] == "SCHED_FIFO":
+            out["policy"] = f"SCHED_FIFO {os.sched_getparam(0).sched_priority}"
     except OSError as e:
-        reasons.append(f"sched_setscheduler(SCHED_OTHER) failed: {e.strerror}")
+        reasons.append(f"sched_getscheduler/sched_setscheduler failed: {e.strerror}")
     try:
         allowed = os.sched_getaffinity(0)
         if avoid_cpus:

@@ -160,6 +160,7 @@ class DriveCounters:
     rpdo_timeouts: int = 0
     heartbeat_losses: int = 0
     stop_timeouts: int = 0
+    watchdog_deferrals: int = 0  # reception deadlines judged later: the reader thread had frames in hand or queued
 
 
 class _Regime(IntEnum):
@@ -219,6 +220,9 @@ class SimDrive:
         self.tpdos = [PdoChannel(n, False, 0x1800 + n - 1, 0x1A00 + n - 1) for n in range(1, 5)]
         self._install_hooks()
         self._consumers: dict[int, _Consumer] = {}
+        # set by the SimNetwork: whether frames that reached this process still wait for its reader thread
+        # (the reception watchdogs then wait for them: a stall of the simulator is not a silent bus)
+        self.rx_backlog: Callable[[], bool] | None = None
         self.nmt_state = NmtState.INITIALISING
         self._sim_t = 0.0
         self.encoder_offset_counts = 0  # an injected encoder jump (sim/faults.py), added to 6064h
@@ -376,7 +380,7 @@ class SimDrive:
                 self._heartbeat_received(cob - HEARTBEAT_BASE, consumer, now)
 
     def on_sync(self, t: float | None = None) -> None:
-        """SYNC: send the synchronous TPDOs with the latest sampled values, then apply latched RPDOs.
+        """SYNC: sample the axis, send the synchronous TPDOs, then apply latched RPDOs.
 
         `t` is the SYNC's reception time on the `time.monotonic()` clock (default: now); it times the
         event-driven TPDOs that a controlword applied here may trigger.
@@ -385,6 +389,7 @@ class SimDrive:
             return
         with self._lock:
             self.counters.syncs += 1
+            self._sample(self.io)  # the encoder and the current as they are at the SYNC
             cells = self.store.cells
             for ch in self._sync_tpdos:
                 ch.sync_count += 1
@@ -1010,19 +1015,35 @@ class SimDrive:
                 return
             if self._hb_period_s > 0.0 and now >= self._next_hb_s:
                 self._send_heartbeat(now)
+            backlog = None  # asked once, only when a reception deadline has passed
             for node, consumer in self._consumers.items():
                 if consumer.last_rx_s is not None and not consumer.expired \
                         and now - consumer.last_rx_s > consumer.timeout_s:
-                    consumer.expired = True
-                    self._heartbeat_lost(node)
+                    if backlog is None:
+                        backlog = self._rx_behind()
+                    if not backlog:
+                        consumer.expired = True
+                        self._heartbeat_lost(node)
             if self.nmt_state is not NmtState.OPERATIONAL:
                 return
             for ch in self._deadline_rpdos:
                 if ch.last_rx_s is not None and not ch.timed_out and now - ch.last_rx_s > ch.event_s:
-                    ch.timed_out = True
-                    self._rpdo_timeout(ch)
+                    if backlog is None:
+                        backlog = self._rx_behind()
+                    if not backlog:
+                        ch.timed_out = True
+                        self._rpdo_timeout(ch)
             if self._event_tpdos:
                 self._poll_event_tpdos(now)
+
+    def _rx_behind(self) -> bool:
+        """Whether received frames wait for the reader thread: a real drive's controller takes each frame off the
+        wire as it comes, so a deadline passed while this process was not scheduled is judged once they are read."""
+        behind = self.rx_backlog
+        if behind is None or not behind():
+            return False
+        self.counters.watchdog_deferrals += 1
+        return True
 
     def _schedule_heartbeat(self, now: float) -> None:
         self._hb_period_s = self.store.get(0x1017) * 1e-3

@@ -11,12 +11,14 @@ The network does not own the bus: the caller opens it before and shuts it down a
 from __future__ import annotations
 
 import logging
+import select
 import sys
 import threading
 import time
 from collections.abc import Callable
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
+from typing import Any
 
 import can
 
@@ -26,6 +28,7 @@ log = logging.getLogger(__name__)
 
 # the reader thread must win the GIL quickly from the physics thread when a SYNC arrives
 SWITCH_INTERVAL_S = 0.0005
+MAX_SYNC_AGE_S = 0.05  # a SYNC's reception stamp further back than this is not believed (clock step, bad stamp)
 
 
 @dataclass
@@ -39,6 +42,27 @@ class NetworkCounters:
     max_sync_latency_s: float = 0.0
     handler_errors: int = 0
     error_frames: int = 0  # CAN error frames received (dropped)
+
+
+def _rx_queued(bus: can.BusABC) -> Callable[[], bool]:
+    """How to ask whether received frames wait in ``bus`` (a kernel socket's queue, or python-can's in-process one)."""
+    pending = getattr(bus, "rx_pending", None)  # dragd's udp_multicast bus: its batch remainder and socket
+    if callable(pending):
+        return pending  # type: ignore[no-any-return]
+    queue = getattr(bus, "queue", None)  # python-can's virtual bus
+    if queue is not None and hasattr(queue, "qsize"):
+        return lambda: queue.qsize() > 0  # type: ignore[no-any-return]
+    try:
+        fd = bus.fileno()  # socketcan and other socket interfaces
+    except (NotImplementedError, AttributeError, OSError):
+        return lambda: False  # nothing to ask: deadlines judged as they fall
+
+    def readable() -> bool:
+        try:
+            return bool(select.select([fd], [], [], 0)[0])
+        except (OSError, ValueError):
+            return False
+    return readable
 
 
 class SimNetwork:
@@ -57,11 +81,18 @@ class SimNetwork:
         self.rx_muted: Callable[[], bool] | None = None  # an injected link-down (sim/faults.py): drop what arrives
         # the TPDOs a SYNC triggers leave in one datagram where the bus batches (udp_multicast, batch_frames)
         self._batch: Callable[[], AbstractContextManager[None]] = getattr(bus, "batch", nullcontext)
+        # held around each SYNC's handling, given its arrival (time.monotonic()): the simulator's physics brought
+        # to the SYNC's instant (sim/runner.py)
+        self.sync_guard: Callable[[float], AbstractContextManager[Any]] = lambda arrival_s: nullcontext()
         self._routes: dict[int, tuple[SimDrive, ...]] = {}
         self._sync_routes: dict[int, tuple[SimDrive, ...]] = {}
         self._epoch = -1
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._queued = _rx_queued(bus)
+        self._in_hand = False  # the reader thread holds a frame it has not handed to the drives yet
+        for drive in self.drives:
+            drive.rx_backlog = self.backlog
 
     def start(self, boot: bool = True) -> None:
         """Start the reader thread, then (by default) boot every drive (boot-up frames)."""
@@ -94,6 +125,11 @@ class SimNetwork:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
+    def backlog(self) -> bool:
+        """Whether frames that reached this process still wait for the reader thread (in its hand, or queued in the
+        bus). The drives' reception watchdogs wait for them: this process not being scheduled is not a silent bus."""
+        return self._in_hand or self._queued()
+
     def _run(self) -> None:
         recv, timeout = self.bus.recv, self.recv_timeout_s
         while not self._stop.is_set():
@@ -105,9 +141,13 @@ class SimNetwork:
                 time.sleep(timeout)
                 continue
             if msg is not None:
-                if self.rx_muted is not None and self.rx_muted():
-                    continue
-                self.dispatch(msg)
+                self._in_hand = True
+                try:
+                    if self.rx_muted is not None and self.rx_muted():
+                        continue
+                    self.dispatch(msg)
+                finally:
+                    self._in_hand = False
 
     def dispatch(self, msg: can.Message) -> None:
         """Hand one frame to the drives that consume it (also usable without the thread); error frames are dropped."""
@@ -139,7 +179,10 @@ class SimNetwork:
 
     def _on_sync(self, msg: can.Message, drives: tuple[SimDrive, ...]) -> None:
         now = time.monotonic()
-        with self._batch():
+        arrival = now
+        if msg.timestamp:  # the kernel's reception stamp (wall clock): when the SYNC was on the bus
+            arrival = min(now, max(now - MAX_SYNC_AGE_S, msg.timestamp - (time.time() - now)))
+        with self.sync_guard(arrival), self._batch():
             for drive in drives:
                 drive.on_sync(now)
         counters = self.counters

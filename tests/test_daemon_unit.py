@@ -90,15 +90,19 @@ def test_run_realtime_priority_override_goes_through_the_schema() -> None:
 
 
 _REALTIME_PROBE = """
-import asyncio, json, os, threading
+import asyncio, json, os, subprocess, sys, threading
 from dragd.daemon.core import go_realtime
 
+RESET = os.SCHED_RESET_ON_FORK
 
 async def main():
     loop = asyncio.get_running_loop()
     label = go_realtime(loop, 10, None)
     def probe():
-        return os.sched_getscheduler(0), threading.current_thread().name
+        p = os.sched_getscheduler(0)
+        child = subprocess.run([sys.executable, "-c", "import os; print(os.sched_getscheduler(0))"],
+                               capture_output=True, text=True, check=True).stdout
+        return p & ~RESET, bool(p & RESET), os.sched_getparam(0).sched_priority, threading.current_thread().name, int(child)
     pool = await loop.run_in_executor(None, probe)
     thread = await asyncio.to_thread(probe)
     print(json.dumps({"label": label, "cycle": os.sched_getscheduler(0), "pool": pool, "to_thread": thread,
@@ -108,9 +112,11 @@ asyncio.run(main())
 """
 
 
-def test_realtime_cycle_thread_leaves_helper_threads_normal() -> None:
+def test_realtime_cycle_thread_puts_helper_threads_below_it() -> None:
     """After go_realtime the cycle thread is SCHED_FIFO (where permitted) and the loop's executor threads — which
-    would inherit it — run SCHED_OTHER: a long resampling job in a FIFO helper would starve the cycle."""
+    would inherit it — run SCHED_FIFO 1: below the cycle (a long resampling job at the cycle's priority would starve
+    it), above every normal task (a SCHED_OTHER helper preempted while holding the GIL stalls the cycle); and the
+    processes they start (the planner, the telemetry encoder) run SCHED_OTHER (SCHED_RESET_ON_FORK)."""
     import json
     import subprocess
     import sys
@@ -121,8 +127,11 @@ def test_realtime_cycle_thread_leaves_helper_threads_normal() -> None:
         assert "refused" in r["label"], r  # not permitted here: said so, nothing else changes
         pytest.skip(f"SCHED_FIFO not permitted: {r['label']}")
     assert r["label"] == "SCHED_FIFO 10"
-    assert r["pool"][0] == r["other"] and r["pool"][1].startswith("dragd-exec")
-    assert r["to_thread"][0] == r["other"]
+    for helper in (r["pool"], r["to_thread"]):
+        policy, reset_on_fork, priority, name, child = helper
+        assert (policy, reset_on_fork, priority) == (r["fifo"], True, 1), r
+        assert child == r["other"], r
+    assert r["pool"][3].startswith("dragd-exec")
 
 
 def test_gravity_beyond_a_current_limit_is_refused_not_clamped(tmp_path) -> None:

@@ -76,7 +76,8 @@ def go_realtime(loop: asyncio.AbstractEventLoop, priority: int | None, cpus: lis
 
     Threads started afterwards inherit policy and CPU set, so first the loop's default executor (``run_in_executor
     (None, ...)``, ``asyncio.to_thread``: trajectory resampling, program writes, telemetry open/close) gets threads
-    that return to SCHED_OTHER off the cycle's CPUs: a FIFO helper doing seconds of Python would starve the cycle.
+    that go below the cycle (SCHED_FIFO 1, off the cycle's CPUs; `demote_current_thread`): a helper at the cycle's
+    priority doing seconds of Python would starve it, one at SCHED_OTHER could be preempted holding the GIL.
     With ``lock_memory`` (and a priority) the process's memory is locked (mlockall) where permitted; ``applied``
     receives what set_realtime reports.
     """
