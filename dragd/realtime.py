@@ -287,6 +287,8 @@ def set_realtime(
             raise ValueError(f"SCHED_FIFO priority must be an integer in {lo}..{hi}; got {priority!r}")
         try:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+            global _REALTIME_PRIORITY
+            _REALTIME_PRIORITY = priority
             result["scheduler"] = {
                 "requested_priority": priority,
                 "applied": True,
@@ -338,6 +340,7 @@ def scheduler_label(info: dict[str, Any], priority: int | None) -> str:
 
 
 HELPER_PRIORITY = 1  # SCHED_FIFO priority of a real-time process's helper threads: below every cycle thread
+_REALTIME_PRIORITY: int | None = None  # the SCHED_FIFO priority set_realtime applied in this process (None: none)
 
 
 def demote_current_thread(avoid_cpus: set[int] | None = None) -> dict[str, Any]:
@@ -349,21 +352,23 @@ def demote_current_thread(avoid_cpus: set[int] | None = None) -> dict[str, Any]:
     SCHED_OTHER: every cycle thread preempts it, and no normal task does — a SCHED_OTHER helper preempted by the
     host's other work *while it holds the GIL* would stall the cycle thread waiting for the GIL for as long as the
     scheduler keeps it off a CPU (milliseconds; the RPDO watchdogs fault the arm at 50). The policy carries
-    SCHED_RESET_ON_FORK: processes the helper starts (the telemetry encoder, the planner) run SCHED_OTHER. Elsewhere
-    (a process not real-time) the thread stays as it is. Never raises.
+    SCHED_RESET_ON_FORK: processes the helper starts (the telemetry encoder, the planner) run SCHED_OTHER — and so do
+    threads it starts, which call this in turn. A cycle at priority ``HELPER_PRIORITY`` or below has SCHED_OTHER
+    helpers (never beside it), and so has a process `set_realtime` did not make real-time. Never raises.
     """
     out: dict[str, Any] = {"policy": None, "cpus": None, "reason": None}
     reasons: list[str] = []
+    reset = getattr(os, "SCHED_RESET_ON_FORK", 0)
     try:
-        policy = os.sched_getscheduler(0) & ~getattr(os, "SCHED_RESET_ON_FORK", 0)
-        if policy in (os.SCHED_FIFO, os.SCHED_RR):
+        if _REALTIME_PRIORITY is not None and _REALTIME_PRIORITY > HELPER_PRIORITY:
             try:
-                os.sched_setscheduler(0, os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0),
-                                      os.sched_param(HELPER_PRIORITY))
-            except OSError as e:  # (lowering is always permitted; a kernel without RESET_ON_FORK: plain SCHED_OTHER)
+                os.sched_setscheduler(0, os.SCHED_FIFO | reset, os.sched_param(HELPER_PRIORITY))
+            except OSError as e:  # (RLIMIT_RTPRIO lowered since, a kernel without RESET_ON_FORK): SCHED_OTHER
                 reasons.append(f"sched_setscheduler(SCHED_FIFO {HELPER_PRIORITY}) failed: {e.strerror}")
                 os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-        out["policy"] = _policy_name(os.sched_getscheduler(0) & ~getattr(os, "SCHED_RESET_ON_FORK", 0))
+        elif os.sched_getscheduler(0) & ~reset != os.SCHED_OTHER:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        out["policy"] = _policy_name(os.sched_getscheduler(0) & ~reset)
         if out["policy"] == "SCHED_FIFO":
             out["policy"] = f"SCHED_FIFO {os.sched_getparam(0).sched_priority}"
     except OSError as e:

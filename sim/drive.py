@@ -160,7 +160,7 @@ class DriveCounters:
     rpdo_timeouts: int = 0
     heartbeat_losses: int = 0
     stop_timeouts: int = 0
-    watchdog_deferrals: int = 0  # reception deadlines judged later: the reader thread had frames in hand or queued
+    watchdog_waits: int = 0  # reception deadlines past by the clock, not yet by what the reader has read (stalled sim)
 
 
 class _Regime(IntEnum):
@@ -220,9 +220,10 @@ class SimDrive:
         self.tpdos = [PdoChannel(n, False, 0x1800 + n - 1, 0x1A00 + n - 1) for n in range(1, 5)]
         self._install_hooks()
         self._consumers: dict[int, _Consumer] = {}
-        # set by the SimNetwork: whether frames that reached this process still wait for its reader thread
-        # (the reception watchdogs then wait for them: a stall of the simulator is not a silent bus)
-        self.rx_backlog: Callable[[], bool] | None = None
+        # set by the SimNetwork: the time (monotonic) up to which every frame that reached this process has been
+        # handed to the drives, given now — the reception watchdogs judge against it: a stall of the simulator's
+        # reader is not a silent bus
+        self.rx_caught_up: Callable[[float], float] | None = None
         self.nmt_state = NmtState.INITIALISING
         self._sim_t = 0.0
         self.encoder_offset_counts = 0  # an injected encoder jump (sim/faults.py), added to 6064h
@@ -353,11 +354,14 @@ class SimDrive:
         """Handle one received frame (NMT, SYNC, SDO request, RPDO, heartbeat); ignores the rest."""
         if msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame:
             return
-        cob = msg.arbitration_id
+        self.on_data(msg.arbitration_id, msg.data)
+
+    def on_data(self, cob: int, data: bytes | bytearray) -> None:
+        """`on_message` for a plain data frame (11-bit id, not remote): its COB-ID and payload."""
         now = time.monotonic()
         with self._lock:
             if cob == 0x000:
-                self._on_nmt(msg.data)
+                self._on_nmt(data)
                 return
             nmt = self.nmt_state
             if nmt is NmtState.INITIALISING:
@@ -367,13 +371,13 @@ class SimDrive:
                 return
             if cob == self._sdo_rx_cob:
                 if nmt is not NmtState.STOPPED:
-                    self.sdo.on_request(msg.data)
+                    self.sdo.on_request(data)
                 return
             channels = self._rpdo_by_cob.get(cob)
             if channels is not None:
                 if nmt is NmtState.OPERATIONAL:
                     for ch in channels:
-                        self._receive_rpdo(ch, msg.data, now)
+                        self._receive_rpdo(ch, data, now)
                 return
             consumer = self._consumers.get(cob - HEARTBEAT_BASE)
             if consumer is not None and 0x701 <= cob <= 0x77F:
@@ -1015,35 +1019,36 @@ class SimDrive:
                 return
             if self._hb_period_s > 0.0 and now >= self._next_hb_s:
                 self._send_heartbeat(now)
-            backlog = None  # asked once, only when a reception deadline has passed
+            read_to = -1.0  # asked only when a deadline has passed by the clock
             for node, consumer in self._consumers.items():
                 if consumer.last_rx_s is not None and not consumer.expired \
                         and now - consumer.last_rx_s > consumer.timeout_s:
-                    if backlog is None:
-                        backlog = self._rx_behind()
-                    if not backlog:
+                    if read_to < 0.0:
+                        read_to = self._read_to(now)
+                    if read_to - consumer.last_rx_s > consumer.timeout_s:
                         consumer.expired = True
                         self._heartbeat_lost(node)
+                    else:
+                        self.counters.watchdog_waits += 1
             if self.nmt_state is not NmtState.OPERATIONAL:
                 return
             for ch in self._deadline_rpdos:
                 if ch.last_rx_s is not None and not ch.timed_out and now - ch.last_rx_s > ch.event_s:
-                    if backlog is None:
-                        backlog = self._rx_behind()
-                    if not backlog:
+                    if read_to < 0.0:
+                        read_to = self._read_to(now)
+                    if read_to - ch.last_rx_s > ch.event_s:
                         ch.timed_out = True
                         self._rpdo_timeout(ch)
+                    else:
+                        self.counters.watchdog_waits += 1
             if self._event_tpdos:
                 self._poll_event_tpdos(now)
 
-    def _rx_behind(self) -> bool:
-        """Whether received frames wait for the reader thread: a real drive's controller takes each frame off the
-        wire as it comes, so a deadline passed while this process was not scheduled is judged once they are read."""
-        behind = self.rx_backlog
-        if behind is None or not behind():
-            return False
-        self.counters.watchdog_deferrals += 1
-        return True
+    def _read_to(self, now: float) -> float:
+        """The time up to which received frames have been handed over (a real drive's controller takes each frame
+        off the wire as it comes; this process may not have been scheduled to read them yet)."""
+        caught_up = self.rx_caught_up
+        return now if caught_up is None else min(now, caught_up(now))
 
     def _schedule_heartbeat(self, now: float) -> None:
         self._hb_period_s = self.store.get(0x1017) * 1e-3

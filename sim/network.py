@@ -28,6 +28,7 @@ log = logging.getLogger(__name__)
 
 # the reader thread must win the GIL quickly from the physics thread when a SYNC arrives
 SWITCH_INTERVAL_S = 0.0005
+DRAIN_LIMIT = 64  # datagrams per drain (a flood cannot hold the reader from its stop flag)
 MAX_SYNC_AGE_S = 0.05  # a SYNC's reception stamp further back than this is not believed (clock step, bad stamp)
 
 
@@ -90,9 +91,13 @@ class SimNetwork:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._queued = _rx_queued(bus)
-        self._in_hand = False  # the reader thread holds a frame it has not handed to the drives yet
+        # what the reader has read: every frame that reached the socket before _caught_up_s has been handed to the
+        # drives; while _idle it waits on an empty socket (caught up as of now); a reader not _running reads nothing
+        self._caught_up_s = 0.0
+        self._idle = False
+        self._running = False
         for drive in self.drives:
-            drive.rx_backlog = self.backlog
+            drive.rx_caught_up = self.caught_up
 
     def start(self, boot: bool = True) -> None:
         """Start the reader thread, then (by default) boot every drive (boot-up frames)."""
@@ -125,44 +130,103 @@ class SimNetwork:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
-    def backlog(self) -> bool:
-        """Whether frames that reached this process still wait for the reader thread (in its hand, or queued in the
-        bus). The drives' reception watchdogs wait for them: this process not being scheduled is not a silent bus."""
-        return self._in_hand or self._queued()
+    def caught_up(self, now: float) -> float:
+        """The time (monotonic) up to which every frame that reached this process has been handed to the drives:
+        ``now`` while the reader waits on an empty socket (or is not running: then nothing will be read), else when
+        it last found the socket empty. The drives' reception watchdogs judge against it."""
+        return now if self._idle or not self._running else self._caught_up_s
+
+    def behind(self) -> bool:
+        """Whether the reader thread is at work on (or owes) received frames rather than waiting for the next one."""
+        return self._running and not self._idle
 
     def _run(self) -> None:
-        recv, timeout = self.bus.recv, self.recv_timeout_s
+        self._caught_up_s, self._running = time.monotonic(), True
+        try:
+            drain = getattr(self.bus, "drain", None)
+            if drain is not None:
+                self._run_draining(drain)
+            else:
+                self._run_receiving()
+        finally:
+            self._running = False
+
+    def _run_receiving(self) -> None:
+        recv, timeout, queued = self.bus.recv, self.recv_timeout_s, self._queued
         while not self._stop.is_set():
+            t0 = time.monotonic()
+            if not queued():
+                self._caught_up_s, self._idle = t0, True
             try:
                 msg = recv(timeout)
             except can.CanError as exc:
+                self._idle = False
+                if getattr(self.bus, "_is_shutdown", False):
+                    return
                 log.error("sim bus receive failed: %s", exc)
                 self.counters.handler_errors += 1
                 time.sleep(timeout)
                 continue
-            if msg is not None:
-                self._in_hand = True
+            self._idle = False
+            if msg is not None and (self.rx_muted is None or not self.rx_muted()):
+                self.dispatch(msg)
+
+    def _run_draining(self, drain: Callable[..., int]) -> None:
+        """The reader on a bus with ``drain`` (dragd's udp_multicast): every datagram already queued in one go, plain
+        data frames (SYNC, RPDOs, SDO requests, NMT) handed over without a ``can.Message`` each."""
+        fd, timeout, bus = self.bus.fileno(), self.recv_timeout_s, self.bus
+        while not self._stop.is_set():
+            t0 = time.monotonic()
+            try:
+                n = drain(self._on_data, self._on_message, DRAIN_LIMIT)
+            except can.CanError as exc:
+                if getattr(bus, "_is_shutdown", False):
+                    return
+                log.error("sim bus receive failed: %s", exc)
+                self.counters.handler_errors += 1
+                time.sleep(timeout)
+                continue
+            if n == 0:  # the socket was empty at t0: everything before it has been handed over
+                self._caught_up_s, self._idle = t0, True
                 try:
-                    if self.rx_muted is not None and self.rx_muted():
-                        continue
-                    self.dispatch(msg)
+                    select.select([fd], [], [], timeout)
+                except (OSError, ValueError):  # the bus was shut down under us
+                    if getattr(bus, "_is_shutdown", False):
+                        return
+                    raise
                 finally:
-                    self._in_hand = False
+                    self._idle = False
+
+    def _on_data(self, cob: int, data: bytes | bytearray) -> bool:
+        if self.rx_muted is None or not self.rx_muted():
+            self.dispatch_data(cob, data, getattr(self.bus, "rx_timestamp", 0.0))
+        return True
+
+    def _on_message(self, msg: can.Message) -> None:
+        if self.rx_muted is None or not self.rx_muted():
+            self.dispatch(msg)
 
     def dispatch(self, msg: can.Message) -> None:
         """Hand one frame to the drives that consume it (also usable without the thread); error frames are dropped."""
-        counters = self.counters
         if msg.is_error_frame:  # class bits 0x080 would otherwise act as a SYNC
-            counters.error_frames += 1
+            self.counters.error_frames += 1
             return
+        if msg.is_extended_id or msg.is_remote_frame:  # (no drive consumes them)
+            self.counters.frames += 1
+            self.counters.unrouted += 1
+            return
+        self.dispatch_data(msg.arbitration_id, msg.data, msg.timestamp)
+
+    def dispatch_data(self, cob: int, data: bytes | bytearray, timestamp: float = 0.0) -> None:
+        """`dispatch` for a plain data frame: its COB-ID, payload and reception time (wall clock; 0: unknown)."""
+        counters = self.counters
         counters.frames += 1
         if SimDrive.routes_generation != self._epoch:
             self._rebuild_routes()
-        cob = msg.arbitration_id
         try:
             sync_drives = self._sync_routes.get(cob)
-            if sync_drives is not None and not msg.is_extended_id:
-                self._on_sync(msg, sync_drives)
+            if sync_drives is not None:
+                self._on_sync(timestamp, sync_drives)
                 others = self._routes.get(cob)
                 if others is None:
                     return
@@ -172,23 +236,23 @@ class SimNetwork:
                     counters.unrouted += 1
                     return
             for drive in others:
-                drive.on_message(msg)
+                drive.on_data(cob, data)
         except Exception:
             counters.handler_errors += 1
-            log.exception("sim drive failed on frame 0x%03X %s", cob, bytes(msg.data).hex())
+            log.exception("sim drive failed on frame 0x%03X %s", cob, bytes(data).hex())
 
-    def _on_sync(self, msg: can.Message, drives: tuple[SimDrive, ...]) -> None:
+    def _on_sync(self, timestamp: float, drives: tuple[SimDrive, ...]) -> None:
         now = time.monotonic()
         arrival = now
-        if msg.timestamp:  # the kernel's reception stamp (wall clock): when the SYNC was on the bus
-            arrival = min(now, max(now - MAX_SYNC_AGE_S, msg.timestamp - (time.time() - now)))
+        if timestamp:  # the kernel's reception stamp (wall clock): when the SYNC was on the bus
+            arrival = min(now, max(now - MAX_SYNC_AGE_S, timestamp - (time.time() - now)))
         with self.sync_guard(arrival), self._batch():
             for drive in drives:
                 drive.on_sync(now)
         counters = self.counters
         counters.syncs += 1
-        if msg.timestamp:
-            latency = time.time() - msg.timestamp
+        if timestamp:
+            latency = time.time() - timestamp
             if latency > counters.max_sync_latency_s:
                 counters.max_sync_latency_s = latency
             if latency > self.late_threshold_s:

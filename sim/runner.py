@@ -51,6 +51,8 @@ from sim.truth import Truth, drive_params
 TICK_NS = 1_000_000
 SYNC_GUARD_NS = 300_000  # the physics thread stops this long before the next SYNC is due (its handler runs the rest)
 SYNC_PERIOD_MIN_NS = 100_000
+SYNC_PERIOD_MAX_NS = 20_000_000
+MAX_SYNC_LAG_NS = 50_000_000  # the physics waits for a late reader's SYNCs at most this long behind real time
 MAX_CATCHUP_TICKS = 100  # a wake-up later than this (100 ms) drops the excess steps instead of catching up
 LATENCY_RING = 1 << 16
 
@@ -191,6 +193,7 @@ class SimProcess:
         self._limit_steps: int | None = None
         self._sync_ns = 0  # arrival of the last SYNC (monotonic ns; 0: none yet)
         self._sync_period_ns = TICK_NS  # the SYNC period, as observed
+        self._sync_relearn = 0  # SYNC gaps in a row that did not fit the period (a master at another rate: relearn)
         self.syncs_behind = 0  # SYNCs that arrived while the physics was past them already (applied late)
 
     # ------------------------------------------------------------------------------------------- lifecycle
@@ -267,14 +270,13 @@ class SimProcess:
                     self.late_steps += (min(n, MAX_CATCHUP_TICKS) - 1) * substeps
                 with self.lock:
                     now_ns = timer.deadline_ns
-                    due = self._due_steps(now_ns)
-                    if due > MAX_CATCHUP_TICKS * substeps:  # hopelessly late: the sim falls behind real time
-                        dropped = due - MAX_CATCHUP_TICKS * substeps
-                        self.dropped_steps += dropped
-                        self._base_ns += dropped * self._step_ns
-                    if self._sync_ns and now_ns - self._sync_ns < 2 * self._sync_period_ns:
-                        # SYNCs flow: not past the next one's arrival (less a guard), which then runs the rest
-                        now_ns = min(now_ns, self._sync_ns + self._sync_period_ns - SYNC_GUARD_NS)
+                    if self._sync_ns and now_ns - self._sync_ns < MAX_SYNC_LAG_NS and (
+                            now_ns - self._sync_ns < 2 * self._sync_period_ns or self._reader_behind()):
+                        # SYNCs flow (or a late reader owes some): not past the next one's arrival, less a guard —
+                        # its handler runs the rest; at most MAX_SYNC_LAG_NS behind real time
+                        guard = min(SYNC_GUARD_NS, self._sync_period_ns // 3)
+                        now_ns = min(now_ns, max(self._sync_ns + self._sync_period_ns - guard,
+                                                 now_ns - MAX_SYNC_LAG_NS))
                     self._advance(now_ns)
                 busy = time.monotonic_ns() - wake
                 self.busy_ns += busy
@@ -283,10 +285,17 @@ class SimProcess:
                 if self._limit_steps is not None and physics.steps >= self._limit_steps:
                     break
         finally:
+            with self.lock:
+                self._ticking = False  # (SYNCs no longer move the physics)
             self._wall_end = time.monotonic()
             self._cpu_end = time.process_time()
             self._thread_cpu_ns = time.thread_time_ns() - thread_cpu0
             timer.close()
+
+    def _reader_behind(self) -> bool:
+        """Whether a bus reader thread is at work on received frames (a SYNC among them would find the physics past
+        it) rather than waiting for the next."""
+        return any(net.behind() for net in self.networks)
 
     def _due_steps(self, now_ns: int) -> int:
         """Physics steps due by the wall time ``now_ns`` and not run yet (the lock held)."""
@@ -302,15 +311,29 @@ class SimProcess:
         self._advance(arrival_ns)
         if self._sync_ns:
             gap = arrival_ns - self._sync_ns
-            if SYNC_PERIOD_MIN_NS <= gap <= 2 * self._sync_period_ns:
+            if SYNC_PERIOD_MIN_NS <= gap <= self._sync_period_ns * 3 // 2:
                 self._sync_period_ns += (gap - self._sync_period_ns) // 8
-        self._sync_ns = arrival_ns
+                self._sync_relearn = 0
+            elif SYNC_PERIOD_MIN_NS <= gap <= SYNC_PERIOD_MAX_NS:  # (a missed SYNC, or a master at another rate)
+                self._sync_relearn += 1
+                if self._sync_relearn >= 8:
+                    self._sync_period_ns, self._sync_relearn = gap, 0
+        if arrival_ns > self._sync_ns:
+            self._sync_ns = arrival_ns
 
     def _advance(self, now_ns: int) -> None:
-        """Run the physics steps due by ``now_ns`` (the lock held): each, every drive's ``update``, then the arm's."""
+        """Run the physics steps due by ``now_ns`` (the lock held): each, every drive's ``update``, then the arm's.
+        Hopelessly late (more than ``MAX_CATCHUP_TICKS`` of steps due), the excess is dropped: the sim falls behind
+        real time."""
         physics, drives = self.physics, self.drives
         dt = physics.dt_s
-        for _ in range(self._due_steps(now_ns)):
+        due = self._due_steps(now_ns)
+        cap = MAX_CATCHUP_TICKS * self.substeps
+        if due > cap:
+            self.dropped_steps += due - cap
+            self._base_ns += (due - cap) * self._step_ns
+            due = cap
+        for _ in range(due):
             t = physics.t_s
             for d in drives:
                 d.update(t, dt)

@@ -92,6 +92,7 @@ def test_run_realtime_priority_override_goes_through_the_schema() -> None:
 _REALTIME_PROBE = """
 import asyncio, json, os, subprocess, sys, threading
 from dragd.daemon.core import go_realtime
+from dragd.realtime import demote_current_thread
 
 RESET = os.SCHED_RESET_ON_FORK
 
@@ -102,7 +103,15 @@ async def main():
         p = os.sched_getscheduler(0)
         child = subprocess.run([sys.executable, "-c", "import os; print(os.sched_getscheduler(0))"],
                                capture_output=True, text=True, check=True).stdout
-        return p & ~RESET, bool(p & RESET), os.sched_getparam(0).sched_priority, threading.current_thread().name, int(child)
+        got = []
+        def helper_of_helper():  # (a thread started by a helper, e.g. the telemetry writer's: it demotes itself)
+            demote_current_thread()
+            got.append((os.sched_getscheduler(0) & ~RESET, os.sched_getparam(0).sched_priority))
+        t = threading.Thread(target=helper_of_helper)
+        t.start()
+        t.join()
+        return (p & ~RESET, bool(p & RESET), os.sched_getparam(0).sched_priority, threading.current_thread().name,
+                int(child), got[0])
     pool = await loop.run_in_executor(None, probe)
     thread = await asyncio.to_thread(probe)
     print(json.dumps({"label": label, "cycle": os.sched_getscheduler(0), "pool": pool, "to_thread": thread,
@@ -128,9 +137,10 @@ def test_realtime_cycle_thread_puts_helper_threads_below_it() -> None:
         pytest.skip(f"SCHED_FIFO not permitted: {r['label']}")
     assert r["label"] == "SCHED_FIFO 10"
     for helper in (r["pool"], r["to_thread"]):
-        policy, reset_on_fork, priority, name, child = helper
+        policy, reset_on_fork, priority, name, child, grandchild_thread = helper
         assert (policy, reset_on_fork, priority) == (r["fifo"], True, 1), r
         assert child == r["other"], r
+        assert grandchild_thread == [r["fifo"], 1], r
     assert r["pool"][3].startswith("dragd-exec")
 
 

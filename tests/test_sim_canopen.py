@@ -687,8 +687,9 @@ def test_sync_answer_leaves_in_one_datagram_with_batch_frames(request: pytest.Fi
 
 def test_rpdo_watchdog_waits_for_frames_the_reader_has_not_read(request: pytest.FixtureRequest) -> None:
     """A real drive takes each frame off the wire as it comes; the simulated one reads them in a thread of a process
-    the OS may not schedule. A deadline that passes while RPDOs wait in the socket or in a batch's remainder is judged
-    once they are read (no false EMCY 8250 from a stalled simulator); silence on the bus still faults it."""
+    the OS may not schedule. A deadline that passes while RPDOs wait for the reader is judged by what it has read up
+    to then (no false EMCY 8250 from a stalled simulator); silence on the bus still faults the drive, and so does a
+    reader that is gone."""
     from sim.axis import AxisIO
     from sim.drive import SimDrive
     from sim.network import SimNetwork
@@ -705,46 +706,47 @@ def test_rpdo_watchdog_waits_for_frames_the_reader_has_not_read(request: pytest.
 
     drive = SimDrive(drive_params(TRUTH.joints[0], fd=False), AxisIO(), tx)
     node = drive.node_id
-    net = SimNetwork(sim_bus, [drive])  # its reader thread not started: the test reads for it (net.dispatch)
-
-    def read_all() -> int:
-        n = 0
-        while (msg := sim_bus.recv(0.05)) is not None:
-            net.dispatch(msg)
-            n += 1
-        return n
+    net = SimNetwork(sim_bus, [drive])
 
     def emcys() -> list[bytes]:
         return [bytes(m.data) for m in sent if m.arbitration_id == 0x80 + node and bytes(m.data[:2]) == b"\x50\x82"]
 
+    def wait_for(cond: Callable[[], bool], what: str) -> None:
+        end = time.monotonic() + 2.0
+        while not cond():
+            assert time.monotonic() < end, what
+            time.sleep(0.002)
+
+    rpdo = can.Message(arbitration_id=0x200 + node, data=struct.pack("<Hh", 0x06, 0), is_extended_id=False)
     try:
-        drive.boot()
+        net.start(boot=True)
         drive.store.sdo_write(0x1400, 5, struct.pack("<H", 50))  # RPDO1 deadline 50 ms
         master.send(can.Message(arbitration_id=0x000, data=bytes((0x01, node)), is_extended_id=False))
-        read_all()
-        rpdo = can.Message(arbitration_id=0x200 + node, data=struct.pack("<Hh", 0x06, 0), is_extended_id=False)
+        wait_for(lambda: drive.nmt_state.name == "OPERATIONAL", "NMT start")
         master.send(rpdo)
-        assert read_all() == 1 and drive.rpdos[0].last_rx_s is not None
-        # the simulator "stalls": three RPDOs and a SYNC arrive in one datagram and wait in its socket
-        with master.batch():
-            for _ in range(3):
-                master.send(rpdo)
-            master.send(can.Message(arbitration_id=0x080, data=b"", is_extended_id=False))
-        time.sleep(0.02)
-        late = time.monotonic() + 1.0  # the physics thread wakes first, a second past the deadline
-        drive._comm_tick(late)
-        assert not emcys() and drive.counters.rpdo_timeouts == 0 and drive.counters.watchdog_deferrals == 1
-        # the reader has taken the datagram but handed over one frame only: the rest waits in the bus
-        net.dispatch(sim_bus.recv(1.0))
-        drive._comm_tick(late)
-        assert not emcys() and drive.counters.watchdog_deferrals == 2
-        assert read_all() == 3
+        wait_for(lambda: drive.rpdos[0].last_rx_s is not None, "the first RPDO")
+        wait_for(lambda: net.caught_up(-1.0) == -1.0, "the reader waiting again")  # (idle: caught up as of now)
+        first = drive.rpdos[0].last_rx_s
+        # the simulator "stalls": its reader is held up (here: on the drive's lock) while three RPDOs and a SYNC
+        # arrive in one datagram; the physics thread's comm tick then runs a second past the deadline
+        with drive._lock:
+            with master.batch():
+                for _ in range(3):
+                    master.send(rpdo)
+                master.send(can.Message(arbitration_id=0x080, data=b"", is_extended_id=False))
+            wait_for(lambda: net.caught_up(-1.0) != -1.0, "the reader taking the datagram")
+            drive._comm_tick(first + 1.0)
+            assert not emcys() and drive.counters.rpdo_timeouts == 0 and drive.counters.watchdog_waits == 1
+        wait_for(lambda: drive.counters.rpdos_received == 4, "the held-up RPDOs")
         drive._comm_tick(drive.rpdos[0].last_rx_s + 0.01)  # read: within the deadline
         assert not emcys() and drive.counters.rpdo_timeouts == 0
         # nothing waits and nothing came for a second: the bus is silent, the watchdog fires
-        drive._comm_tick(time.monotonic() + 1.0)
+        wait_for(lambda: net.caught_up(-1.0) == -1.0, "the reader waiting again")
+        drive._comm_tick(drive.rpdos[0].last_rx_s + 1.0)
         assert drive.counters.rpdo_timeouts == 1 and len(emcys()) == 1 and emcys()[0][3] == 1
-        assert drive.counters.watchdog_deferrals == 2
+        # a reader that has stopped reads nothing more: its drives judge by the clock
+        net.stop()
+        assert net.caught_up(123.0) == 123.0
     finally:
         sim_bus.shutdown()
         master.shutdown()

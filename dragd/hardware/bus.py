@@ -216,6 +216,7 @@ class UdpMulticastCanBus(can.BusABC):
         self.batch_frames = batch_frames
         self._local = threading.local()  # .held: this thread's open batch() block (other threads' frames go at once)
         self._pending: deque[can.Message] = deque()  # recv(): the rest of a batched datagram
+        self.rx_timestamp = 0.0  # drain(): the kernel's reception time of the datagram whose frames it hands over
         self._templates: dict[tuple[int, int, bool], tuple[bytes, bytes]] = {}  # send_data(): packed map around data
         self._c = dict(frames_sent=0, frames_received=0, own_echoes_dropped=0, duplicates_dropped=0, gaps=0,
                        reordered=0, too_late_dropped=0, kernel_drops=0, foreign_frames=0, fd_frames_dropped=0,
@@ -504,6 +505,7 @@ class UdpMulticastCanBus(can.BusABC):
         data)``; when that returns True it is consumed without a ``can.Message`` (the 1 kHz cycle's TPDOs).
         Every other accepted frame that passes the bus's filters (``set_filters``: e.g. no 29-bit ids) goes to
         ``on_message`` as a ``can.Message``. Echo, duplicate and loss handling and the counters are those of ``recv``.
+        Inside the callbacks ``rx_timestamp`` is the kernel's reception time of the frame's datagram (wall clock).
         """
         recvmsg, size, anc_size, c = self._sock.recvmsg, DATAGRAM_MAX, self._ancillary_size, self._c
         pending = self._pending
@@ -523,6 +525,7 @@ class UdpMulticastCanBus(can.BusABC):
             messages: list[can.Message] = []
             with self._rx_lock:
                 frames, timestamp = self._frames(raw, ancillary, flags)
+                self.rx_timestamp = timestamp
                 for fields, own in frames:
                     try:
                         plain = not (own or fields["is_extended_id"] or fields["is_remote_frame"]
