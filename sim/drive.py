@@ -1,7 +1,9 @@
 """One simulated CiA 301 / CiA 402 joint drive: NMT, SDO server, PDOs, 402 state machine, watchdogs, EMCY.
 
-Threads: `on_message` / `on_sync` run in the network's reader thread, `update` in the physics thread.
-Both take the drive's re-entrant lock for their (short) work. Only `update` writes the AxisIO outputs.
+Threads: `on_message` / `on_data` / `on_sync` run in the network's reader thread; `update` in the physics thread,
+or in the reader thread when a SYNC first brings the physics up to its arrival (sim/runner.py; under the physics
+lock either way). All take the drive's re-entrant lock for their (short) work. Only `update` writes the AxisIO
+outputs. Reception deadlines are judged against the time up to which the reader has handed frames over.
 
 Clocks: communication timing (heartbeats, RPDO deadlines, inhibit times, event timers) uses
 `time.monotonic()` because it concerns the real bus; motion timing (brake release, stop ramps, torque

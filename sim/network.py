@@ -1,9 +1,12 @@
 """The simulated drives' side of one CAN bus: a reader thread that dispatches frames to the drives.
 
-SYNC frames take a fast path: every drive's `on_sync` runs right away so that all synchronous TPDOs
-leave within a few hundred microseconds of the SYNC. Other frames go to the drives that consume their
-COB-ID (NMT to all; SDO requests, RPDOs — also a COB-ID shared by several drives — and consumed
-heartbeats by routing table). The routing table is rebuilt whenever a drive's COB-IDs change.
+SYNC frames take a fast path: inside ``sync_guard`` (the simulator's physics run up to the SYNC's arrival, usually
+one step) every drive's `on_sync` runs right away, so that all synchronous TPDOs leave within a few hundred
+microseconds of the SYNC. Other frames go to the drives that consume their COB-ID (NMT to all; SDO requests,
+RPDOs — also a COB-ID shared by several drives — and consumed heartbeats by routing table). The routing table is
+rebuilt whenever a drive's COB-IDs change. On dragd's udp_multicast bus the reader drains whole datagrams and hands
+plain data frames over as (COB-ID, payload), without a ``can.Message`` each. It keeps the time up to which it has
+handed over everything that arrived (`caught_up`): the drives' reception watchdogs judge against it.
 
 The network does not own the bus: the caller opens it before and shuts it down after `stop()`.
 """

@@ -7,8 +7,9 @@ by its deadline (``physics_rate_Hz`` steps per second of wall time; each step: e
 SYNC it first runs the steps due by the SYNC's arrival (the kernel's reception stamp), so the drives sample the arm
 at the SYNC and its targets act from it on, as on drives whose servo loops are locked to SYNC — not at whatever phase
 the tick has, nor as late as the host lets the reader run. While SYNCs flow the tick stops short of the next one's
-expected arrival (``SYNC_GUARD_NS``); a SYNC the physics had already passed is applied late and counted
-(``syncs_behind``). The control socket (JSON lines, dragd's protocol) runs in its own asyncio thread, below the
+expected arrival (``SYNC_GUARD_NS``, at most a third of the period), and holds back while a reader still owes
+frames (at most ``MAX_SYNC_LAG_NS`` behind real time); a SYNC the physics had already passed is applied late and
+counted (``syncs_behind``). Dropped steps are counted wherever the physics catches up. The control socket (JSON lines, dragd's protocol) runs in its own asyncio thread, below the
 physics (``demote_current_thread``). The physics lock is held for each batch of steps.
 
 Control commands: ``state``, ``operator`` (scenario dict or file, starting now), ``operator_events``,
