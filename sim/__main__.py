@@ -21,8 +21,7 @@ def _text_summary(s: dict[str, Any]) -> str:
     lines = [
         f"sim: {s['robot']} on {s['bus']}: {s['sim_time_s']:.3f} s simulated in {s['wall_time_s']:.3f} s "
         f"(rtf {s['rtf']:.4f}), {s['steps']} steps at {s['physics_rate_Hz']} Hz",
-        f"  late ticks {s['late_ticks']}, late steps {s['late_steps']}, dropped steps {s['dropped_steps']}, "
-        f"SYNCs the physics had passed {s['syncs_behind']}; "
+        f"  late ticks {s['late_ticks']}, late steps {s['late_steps']}, dropped steps {s['dropped_steps']}; "
         f"wake latency p50 {s['wake_latency_us']['p50']:.0f} us, p99 {s['wake_latency_us']['p99']:.0f} us, "
         f"max {s['wake_latency_us']['max']:.0f} us; tick busy mean {s['tick_busy_us']['mean']:.0f} us, "
         f"max {s['tick_busy_us']['max']:.0f} us; CPU {s['cpu_pct']:.1f} %",

@@ -1,9 +1,8 @@
 """One simulated CiA 301 / CiA 402 joint drive: NMT, SDO server, PDOs, 402 state machine, watchdogs, EMCY.
 
-Threads: `on_message` / `on_data` / `on_sync` run in the network's reader thread; `update` in the physics thread,
-or in the reader thread when a SYNC first brings the physics up to its arrival (sim/runner.py; under the physics
-lock either way). All take the drive's re-entrant lock for their (short) work. Only `update` writes the AxisIO
-outputs. Reception deadlines are judged against the time up to which the reader has handed frames over.
+Threads: `on_message` / `on_data` / `on_sync` run in the network's reader thread, `update` in the physics thread.
+All take the drive's re-entrant lock for their (short) work. Only `update` writes the AxisIO outputs. Reception
+deadlines are judged against the time up to which the reader has handed frames over.
 
 Clocks: communication timing (heartbeats, RPDO deadlines, inhibit times, event timers) uses
 `time.monotonic()` because it concerns the real bus; motion timing (brake release, stop ramps, torque
@@ -386,7 +385,7 @@ class SimDrive:
                 self._heartbeat_received(cob - HEARTBEAT_BASE, consumer, now)
 
     def on_sync(self, t: float | None = None) -> None:
-        """SYNC: sample the axis, send the synchronous TPDOs, then apply latched RPDOs.
+        """SYNC: send the synchronous TPDOs with the latest sampled values, then apply latched RPDOs.
 
         `t` is the SYNC's reception time on the `time.monotonic()` clock (default: now); it times the
         event-driven TPDOs that a controlword applied here may trigger.
@@ -395,7 +394,6 @@ class SimDrive:
             return
         with self._lock:
             self.counters.syncs += 1
-            self._sample(self.io)  # the encoder and the current as they are at the SYNC
             cells = self.store.cells
             for ch in self._sync_tpdos:
                 ch.sync_count += 1

@@ -1,8 +1,7 @@
 """The simulated drives' side of one CAN bus: a reader thread that dispatches frames to the drives.
 
-SYNC frames take a fast path: inside ``sync_guard`` (the simulator's physics run up to the SYNC's arrival, usually
-one step) every drive's `on_sync` runs right away, so that all synchronous TPDOs leave within a few hundred
-microseconds of the SYNC. Other frames go to the drives that consume their COB-ID (NMT to all; SDO requests,
+SYNC frames take a fast path: every drive's `on_sync` runs right away, so that all synchronous TPDOs leave within a
+few hundred microseconds of the SYNC. Other frames go to the drives that consume their COB-ID (NMT to all; SDO requests,
 RPDOs — also a COB-ID shared by several drives — and consumed heartbeats by routing table). The routing table is
 rebuilt whenever a drive's COB-IDs change. On dragd's udp_multicast bus the reader drains whole datagrams and hands
 plain data frames over as (COB-ID, payload), without a ``can.Message`` each. It keeps the time up to which it has
@@ -21,7 +20,6 @@ import time
 from collections.abc import Callable
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
-from typing import Any
 
 import can
 
@@ -32,7 +30,6 @@ log = logging.getLogger(__name__)
 # the reader thread must win the GIL quickly from the physics thread when a SYNC arrives
 SWITCH_INTERVAL_S = 0.0005
 DRAIN_LIMIT = 64  # datagrams per drain (a flood cannot hold the reader from its stop flag)
-MAX_SYNC_AGE_S = 0.05  # a SYNC's reception stamp further back than this is not believed (clock step, bad stamp)
 
 
 @dataclass
@@ -46,27 +43,6 @@ class NetworkCounters:
     max_sync_latency_s: float = 0.0
     handler_errors: int = 0
     error_frames: int = 0  # CAN error frames received (dropped)
-
-
-def _rx_queued(bus: can.BusABC) -> Callable[[], bool]:
-    """How to ask whether received frames wait in ``bus`` (a kernel socket's queue, or python-can's in-process one)."""
-    pending = getattr(bus, "rx_pending", None)  # dragd's udp_multicast bus: its batch remainder and socket
-    if callable(pending):
-        return pending  # type: ignore[no-any-return]
-    queue = getattr(bus, "queue", None)  # python-can's virtual bus
-    if queue is not None and hasattr(queue, "qsize"):
-        return lambda: queue.qsize() > 0  # type: ignore[no-any-return]
-    try:
-        fd = bus.fileno()  # socketcan and other socket interfaces
-    except (NotImplementedError, AttributeError, OSError):
-        return lambda: False  # nothing to ask: deadlines judged as they fall
-
-    def readable() -> bool:
-        try:
-            return bool(select.select([fd], [], [], 0)[0])
-        except (OSError, ValueError):
-            return False
-    return readable
 
 
 class SimNetwork:
@@ -85,15 +61,11 @@ class SimNetwork:
         self.rx_muted: Callable[[], bool] | None = None  # an injected link-down (sim/faults.py): drop what arrives
         # the TPDOs a SYNC triggers leave in one datagram where the bus batches (udp_multicast, batch_frames)
         self._batch: Callable[[], AbstractContextManager[None]] = getattr(bus, "batch", nullcontext)
-        # held around each SYNC's handling, given its arrival (time.monotonic()): the simulator's physics brought
-        # to the SYNC's instant (sim/runner.py)
-        self.sync_guard: Callable[[float], AbstractContextManager[Any]] = lambda arrival_s: nullcontext()
         self._routes: dict[int, tuple[SimDrive, ...]] = {}
         self._sync_routes: dict[int, tuple[SimDrive, ...]] = {}
         self._epoch = -1
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._queued = _rx_queued(bus)
         # what the reader has read: every frame that reached the socket before _caught_up_s has been handed to the
         # drives; while _idle it waits on an empty socket (caught up as of now); a reader not _running reads nothing
         self._caught_up_s = 0.0
@@ -155,22 +127,25 @@ class SimNetwork:
             self._running = False
 
     def _run_receiving(self) -> None:
-        recv, timeout, queued = self.bus.recv, self.recv_timeout_s, self._queued
+        """The reader on any other python-can bus (socketcan, virtual): frame by frame."""
+        recv, timeout = self.bus.recv, self.recv_timeout_s
         while not self._stop.is_set():
             t0 = time.monotonic()
-            if not queued():
-                self._caught_up_s, self._idle = t0, True
             try:
-                msg = recv(timeout)
+                msg = recv(0.0)
+                if msg is None:  # nothing queued at t0: everything before it has been handed over
+                    self._caught_up_s, self._idle = t0, True
+                    try:
+                        msg = recv(timeout)
+                    finally:
+                        self._idle = False
             except can.CanError as exc:
-                self._idle = False
                 if getattr(self.bus, "_is_shutdown", False):
                     return
                 log.error("sim bus receive failed: %s", exc)
                 self.counters.handler_errors += 1
                 time.sleep(timeout)
                 continue
-            self._idle = False
             if msg is not None and (self.rx_muted is None or not self.rx_muted()):
                 self.dispatch(msg)
 
@@ -246,10 +221,7 @@ class SimNetwork:
 
     def _on_sync(self, timestamp: float, drives: tuple[SimDrive, ...]) -> None:
         now = time.monotonic()
-        arrival = now
-        if timestamp:  # the kernel's reception stamp (wall clock): when the SYNC was on the bus
-            arrival = min(now, max(now - MAX_SYNC_AGE_S, timestamp - (time.time() - now)))
-        with self.sync_guard(arrival), self._batch():
+        with self._batch():
             for drive in drives:
                 drive.on_sync(now)
         counters = self.counters

@@ -1,16 +1,10 @@
 """The simulated robot's process: drives on a CAN bus plus arm physics in real time, a control socket, a report.
 
-Threads: the main thread runs the physics on an absolute-deadline 1 ms timerfd grid: each tick runs the steps due
-by its deadline (``physics_rate_Hz`` steps per second of wall time; each step: every drive's ``update``, then
-``ArmPhysics.step``); a tick that wakes late catches up (``late_steps``), one that is hopelessly late drops steps
-(``dropped_steps``, the sim then runs behind real time: rtf < 1). The SimNetwork reader thread answers the bus; on a
-SYNC it first runs the steps due by the SYNC's arrival (the kernel's reception stamp), so the drives sample the arm
-at the SYNC and its targets act from it on, as on drives whose servo loops are locked to SYNC — not at whatever phase
-the tick has, nor as late as the host lets the reader run. While SYNCs flow the tick stops short of the next one's
-expected arrival (``SYNC_GUARD_NS``, at most a third of the period), and holds back while a reader still owes
-frames (at most ``MAX_SYNC_LAG_NS`` behind real time); a SYNC the physics had already passed is applied late and
-counted (``syncs_behind``). Dropped steps are counted wherever the physics catches up. The control socket (JSON lines, dragd's protocol) runs in its own asyncio thread, below the
-physics (``demote_current_thread``). The physics lock is held for each batch of steps.
+Threads: the main thread runs the physics on an absolute-deadline 1 ms timerfd grid and executes
+``physics_rate_Hz / 1000`` steps per tick (each step: every drive's ``update``, then ``ArmPhysics.step``);
+a tick that wakes late catches up (``late_steps``), one that is hopelessly late drops steps (``dropped_steps``,
+the sim then runs behind real time: rtf < 1). The SimNetwork reader thread answers the bus; the control socket
+(JSON lines, dragd's protocol) runs in its own asyncio thread. The physics lock is held for one tick's batch.
 
 Control commands: ``state``, ``operator`` (scenario dict or file, starting now), ``operator_events``,
 ``set_q`` (teleport, only while every drive's power stage is off), ``drives``, ``fault`` (inject a
@@ -50,10 +44,6 @@ from sim.scenario_payload import PayloadSchedule, set_flange_payload
 from sim.truth import Truth, drive_params
 
 TICK_NS = 1_000_000
-SYNC_GUARD_NS = 300_000  # the physics thread stops this long before the next SYNC is due (its handler runs the rest)
-SYNC_PERIOD_MIN_NS = 100_000
-SYNC_PERIOD_MAX_NS = 20_000_000
-MAX_SYNC_LAG_NS = 50_000_000  # the physics waits for a late reader's SYNCs at most this long behind real time
 MAX_CATCHUP_TICKS = 100  # a wake-up later than this (100 ms) drops the excess steps instead of catching up
 LATENCY_RING = 1 << 16
 
@@ -109,33 +99,6 @@ class TimerFd:
             self.fd = -1
 
 
-class _AtSync:
-    """Held around a SYNC's handling by a bus reader thread: the physics lock, with the physics first run up to the
-    SYNC's arrival on the bus — so the drives sample the arm as it was then and the targets the SYNC applies act from
-    then on, as on drives whose servo loops are locked to SYNC, however late this process's threads run."""
-
-    def __init__(self, sim: SimProcess) -> None:
-        self._sim = sim
-        self._arrival_ns = 0
-
-    def __call__(self, arrival_s: float) -> _AtSync:
-        self._arrival_ns = int(arrival_s * 1e9)
-        return self
-
-    def __enter__(self) -> None:
-        sim = self._sim
-        sim.lock.acquire()
-        try:
-            if sim._ticking:
-                sim._at_sync(self._arrival_ns)
-        except BaseException:
-            sim.lock.release()
-            raise
-
-    def __exit__(self, *exc: object) -> None:
-        self._sim.lock.release()
-
-
 class SimProcess:
     """Drives + network + physics + control socket of one simulated arm on one bus."""
 
@@ -188,14 +151,6 @@ class SimProcess:
         self._control_thread: threading.Thread | None = None
         self._control_ready = threading.Event()
         self._control_error: BaseException | None = None
-        self._ticking = False  # the real-time loop runs (SYNCs then move the physics too)
-        self._base_ns = 0  # ... the wall time (monotonic ns) of physics step 0's start
-        self._step_ns = 0
-        self._limit_steps: int | None = None
-        self._sync_ns = 0  # arrival of the last SYNC (monotonic ns; 0: none yet)
-        self._sync_period_ns = TICK_NS  # the SYNC period, as observed
-        self._sync_relearn = 0  # SYNC gaps in a row that did not fit the period (a master at another rate: relearn)
-        self.syncs_behind = 0  # SYNCs that arrived while the physics was past them already (applied late)
 
     # ------------------------------------------------------------------------------------------- lifecycle
 
@@ -219,8 +174,6 @@ class SimProcess:
                 self.drives.append(SimDrive(drive_params(j, spec.fd), ax, inj.sender(node), send_data=inj.data_sender(node)))
             self.networks = [SimNetwork(bus, [d for d, j in zip(self.drives, self.truth.joints) if j.bus_index == k])
                              for k, bus in enumerate(self.buses)]
-            for net in self.networks:
-                net.sync_guard = _AtSync(self)  # one per reader thread
             for net, inj in zip(self.networks, self.injectors):
                 net.rx_muted = inj.rx_muted
             if self.control_path is not None:
@@ -245,19 +198,16 @@ class SimProcess:
         return self.summary()
 
     def _loop(self) -> None:
-        physics, substeps = self.physics, self.substeps
+        physics, drives, substeps = self.physics, self.drives, self.substeps
+        dt = physics.dt_s
         timer = TimerFd(TICK_NS)
         lat, ring = self._latency_us, LATENCY_RING
         stop = self._stop
-        self._limit_steps = None if self.seconds is None else physics.steps + int(round(self.seconds / physics.dt_s))
+        limit_steps = None if self.seconds is None else int(round(self.seconds / dt))
         self._wall_start = time.monotonic()
         self._cpu_start = time.process_time()
         thread_cpu0 = time.thread_time_ns()
         timer.start()
-        with self.lock:
-            self._step_ns = int(round(physics.dt_s * 1e9))
-            self._base_ns = timer.deadline_ns - physics.steps * self._step_ns  # the wall time of step 0's start
-            self._ticking = True
         try:
             while not stop.is_set():
                 n = timer.wait()
@@ -268,79 +218,32 @@ class SimProcess:
                     self.late_ticks += 1
                     if len(self.late_tick_times) < 20:
                         self.late_tick_times.append(round(physics.t_s, 4))
-                    self.late_steps += (min(n, MAX_CATCHUP_TICKS) - 1) * substeps
+                    if n > MAX_CATCHUP_TICKS:
+                        self.dropped_steps += (n - MAX_CATCHUP_TICKS) * substeps
+                        n = MAX_CATCHUP_TICKS
+                    self.late_steps += (n - 1) * substeps
+                steps = n * substeps
+                if limit_steps is not None:
+                    steps = min(steps, limit_steps - physics.steps)
                 with self.lock:
-                    now_ns = timer.deadline_ns
-                    if self._sync_ns and now_ns - self._sync_ns < MAX_SYNC_LAG_NS and (
-                            now_ns - self._sync_ns < 2 * self._sync_period_ns or self._reader_behind()):
-                        # SYNCs flow (or a late reader owes some): not past the next one's arrival, less a guard —
-                        # its handler runs the rest; at most MAX_SYNC_LAG_NS behind real time
-                        guard = min(SYNC_GUARD_NS, self._sync_period_ns // 3)
-                        now_ns = min(now_ns, max(self._sync_ns + self._sync_period_ns - guard,
-                                                 now_ns - MAX_SYNC_LAG_NS))
-                    self._advance(now_ns)
+                    for _ in range(steps):
+                        t = physics.t_s
+                        for d in drives:
+                            d.update(t, dt)
+                        physics.step()
+                    if self.payloads.pending:
+                        self.payloads.apply_due(physics)
                 busy = time.monotonic_ns() - wake
                 self.busy_ns += busy
                 if busy > self.max_busy_ns:
                     self.max_busy_ns = busy
-                if self._limit_steps is not None and physics.steps >= self._limit_steps:
+                if limit_steps is not None and physics.steps >= limit_steps:
                     break
         finally:
-            with self.lock:
-                self._ticking = False  # (SYNCs no longer move the physics)
             self._wall_end = time.monotonic()
             self._cpu_end = time.process_time()
             self._thread_cpu_ns = time.thread_time_ns() - thread_cpu0
             timer.close()
-
-    def _reader_behind(self) -> bool:
-        """Whether a bus reader thread is at work on received frames (a SYNC among them would find the physics past
-        it) rather than waiting for the next."""
-        return any(net.behind() for net in self.networks)
-
-    def _due_steps(self, now_ns: int) -> int:
-        """Physics steps due by the wall time ``now_ns`` and not run yet (the lock held)."""
-        due = (now_ns - self._base_ns) // self._step_ns - self.physics.steps
-        if self._limit_steps is not None:
-            due = min(due, self._limit_steps - self.physics.steps)
-        return max(0, due)
-
-    def _at_sync(self, arrival_ns: int) -> None:
-        """A SYNC arrived at ``arrival_ns`` (the lock held): the physics run up to it; the SYNC period observed."""
-        if (arrival_ns - self._base_ns) // self._step_ns < self.physics.steps:
-            self.syncs_behind += 1  # the physics thread ran past it before this reader thread got to it
-        self._advance(arrival_ns)
-        if self._sync_ns:
-            gap = arrival_ns - self._sync_ns
-            if SYNC_PERIOD_MIN_NS <= gap <= self._sync_period_ns * 3 // 2:
-                self._sync_period_ns += (gap - self._sync_period_ns) // 8
-                self._sync_relearn = 0
-            elif SYNC_PERIOD_MIN_NS <= gap <= SYNC_PERIOD_MAX_NS:  # (a missed SYNC, or a master at another rate)
-                self._sync_relearn += 1
-                if self._sync_relearn >= 8:
-                    self._sync_period_ns, self._sync_relearn = gap, 0
-        if arrival_ns > self._sync_ns:
-            self._sync_ns = arrival_ns
-
-    def _advance(self, now_ns: int) -> None:
-        """Run the physics steps due by ``now_ns`` (the lock held): each, every drive's ``update``, then the arm's.
-        Hopelessly late (more than ``MAX_CATCHUP_TICKS`` of steps due), the excess is dropped: the sim falls behind
-        real time."""
-        physics, drives = self.physics, self.drives
-        dt = physics.dt_s
-        due = self._due_steps(now_ns)
-        cap = MAX_CATCHUP_TICKS * self.substeps
-        if due > cap:
-            self.dropped_steps += due - cap
-            self._base_ns += (due - cap) * self._step_ns
-            due = cap
-        for _ in range(due):
-            t = physics.t_s
-            for d in drives:
-                d.update(t, dt)
-            physics.step()
-        if self.payloads.pending:
-            self.payloads.apply_due(physics)
 
     # ------------------------------------------------------------------------------------------- reports
 
@@ -360,8 +263,7 @@ class SimProcess:
             "current_measured_A": snap["current_measured_A"], "current_demand_A": snap["current_demand_A"],
             "tau_motor_Nm": snap["tau_motor_Nm"], "tau_friction_Nm": snap["tau_friction_Nm"],
             "power_on": snap["power_on"], "stuck": snap["stuck"], "temperature_C": snap["temperature_C"],
-            "dropped_steps": self.dropped_steps, "syncs_behind": self.syncs_behind, "operator": op_info,
-            "scheduler": self._scheduler(),
+            "dropped_steps": self.dropped_steps, "operator": op_info, "scheduler": self._scheduler(),
         }
 
     def _scheduler(self) -> str:
@@ -393,7 +295,6 @@ class SimProcess:
             "late_ticks": self.late_ticks,
             "late_steps": self.late_steps,
             "dropped_steps": self.dropped_steps,
-            "syncs_behind": self.syncs_behind,
             "wake_latency_us": {"p50": float(lat[int(0.5 * (len(lat) - 1))]), "p99": float(lat[int(0.99 * (len(lat) - 1))]),
                                 "max": float(lat[-1])},
             "tick_busy_us": {"mean": self.busy_ns / self.ticks / 1e3 if self.ticks else 0.0, "max": self.max_busy_ns / 1e3},
