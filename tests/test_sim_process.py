@@ -354,4 +354,3 @@ def test_released_joint_swings_with_urdf_period_over_the_bus(tmp_path: Path) -> 
     assert len(crossings) >= 3, q_arr
     period = float(np.mean(np.diff(crossings)))
     assert abs(period - expected) / expected < 0.02, (period, expected)
-

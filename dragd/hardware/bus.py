@@ -581,15 +581,6 @@ class UdpMulticastCanBus(can.BusABC):
     def fileno(self) -> int:
         return self._sock.fileno()
 
-    def rx_pending(self) -> bool:
-        """Whether received frames wait to be read: the rest of a batched datagram, or a datagram in the socket."""
-        if self._pending:
-            return True
-        try:
-            return bool(select.select([self._sock], [], [], 0)[0])
-        except (OSError, ValueError):  # closed
-            return False
-
     def shutdown(self) -> None:
         if self._is_shutdown:
             return
