@@ -1019,36 +1019,31 @@ class SimDrive:
                 return
             if self._hb_period_s > 0.0 and now >= self._next_hb_s:
                 self._send_heartbeat(now)
-            read_to = -1.0  # asked only when a deadline has passed by the clock
             for node, consumer in self._consumers.items():
                 if consumer.last_rx_s is not None and not consumer.expired \
-                        and now - consumer.last_rx_s > consumer.timeout_s:
-                    if read_to < 0.0:
-                        read_to = self._read_to(now)
-                    if read_to - consumer.last_rx_s > consumer.timeout_s:
-                        consumer.expired = True
-                        self._heartbeat_lost(node)
-                    else:
-                        self.counters.watchdog_waits += 1
+                        and self._deadline_passed(consumer.last_rx_s, consumer.timeout_s, now):
+                    consumer.expired = True
+                    self._heartbeat_lost(node)
             if self.nmt_state is not NmtState.OPERATIONAL:
                 return
             for ch in self._deadline_rpdos:
-                if ch.last_rx_s is not None and not ch.timed_out and now - ch.last_rx_s > ch.event_s:
-                    if read_to < 0.0:
-                        read_to = self._read_to(now)
-                    if read_to - ch.last_rx_s > ch.event_s:
-                        ch.timed_out = True
-                        self._rpdo_timeout(ch)
-                    else:
-                        self.counters.watchdog_waits += 1
+                if ch.last_rx_s is not None and not ch.timed_out and self._deadline_passed(ch.last_rx_s, ch.event_s, now):
+                    ch.timed_out = True
+                    self._rpdo_timeout(ch)
             if self._event_tpdos:
                 self._poll_event_tpdos(now)
 
-    def _read_to(self, now: float) -> float:
-        """The time up to which received frames have been handed over (a real drive's controller takes each frame
-        off the wire as it comes; this process may not have been scheduled to read them yet)."""
+    def _deadline_passed(self, last_rx_s: float, timeout_s: float, now: float) -> bool:
+        """Whether a reception deadline has passed — by the clock, and by what the reader has handed over: a real
+        drive's controller takes each frame off the wire as it comes, this process may not have been scheduled to
+        read them yet (counted in ``watchdog_waits``)."""
+        if now - last_rx_s <= timeout_s:
+            return False
         caught_up = self.rx_caught_up
-        return now if caught_up is None else min(now, caught_up(now))
+        if caught_up is None or min(now, caught_up(now)) - last_rx_s > timeout_s:
+            return True
+        self.counters.watchdog_waits += 1
+        return False
 
     def _schedule_heartbeat(self, now: float) -> None:
         self._hb_period_s = self.store.get(0x1017) * 1e-3

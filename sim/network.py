@@ -111,10 +111,6 @@ class SimNetwork:
         it last found the socket empty. The drives' reception watchdogs judge against it."""
         return now if self._idle or not self._running else self._caught_up_s
 
-    def behind(self) -> bool:
-        """Whether the reader thread is at work on (or owes) received frames rather than waiting for the next one."""
-        return self._running and not self._idle
-
     def _run(self) -> None:
         self._caught_up_s, self._running = time.monotonic(), True
         try:
