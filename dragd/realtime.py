@@ -23,6 +23,7 @@ import platform
 import resource
 import sys
 import time
+from collections.abc import Callable
 from typing import Any
 
 __all__ = ["Ticker", "set_realtime", "scheduler_label", "demote_current_thread", "HELPER_PRIORITY"]
@@ -71,7 +72,8 @@ def _oserror(call: str) -> OSError:
 
 
 class Ticker:
-    """Drift-free periodic tick: ``n = await ticker.wait()`` once per period.
+    """Drift-free periodic tick: ``n = await ticker.wait()`` once per period, or ``on_tick(n)`` called by the loop
+    (``call_each``: the 1 kHz cycle's way, no future and no task wake-up per tick).
 
     The timer is armed on the first `wait` (first deadline one period later) or
     explicitly with `start`. ``wait`` returns the number of periods elapsed since
@@ -146,6 +148,30 @@ class Ticker:
     def _on_readable(self) -> None:
         if self._drain() and self._waiter is not None and not self._waiter.done():
             self._waiter.set_result(None)
+
+    def call_each(self, loop: asyncio.AbstractEventLoop, on_tick: Callable[[int], None]) -> None:
+        """Call ``on_tick(n)`` from ``loop`` at each tick (n: periods since the previous call; >1 after missed
+        ticks), until `close`. Arms the timer if `start` was not called. The loop runs its other ready callbacks
+        between two calls however late the ticks are."""
+        if self._fd < 0:
+            raise RuntimeError("Ticker is closed")
+        if self._reader_loop is not None:
+            raise RuntimeError("Ticker already delivers its ticks (wait or call_each)")
+        fd = self._fd
+
+        def on_readable() -> None:
+            try:
+                n = int.from_bytes(os.read(fd, 8), sys.byteorder)
+            except BlockingIOError:
+                return
+            self.ticks += n
+            self.missed += n - 1
+            on_tick(n)
+
+        if not self._armed:
+            self.start()
+        loop.add_reader(fd, on_readable)
+        self._reader_loop = loop
 
     def _register(self) -> asyncio.AbstractEventLoop:
         running = asyncio.get_running_loop()

@@ -369,6 +369,55 @@ def test_udp_multicast_batch_leaves_as_one_datagram_and_arrives_as_frames(reques
             b.shutdown()
 
 
+def test_udp_multicast_prepared_batch_is_the_batch_on_the_wire(request: pytest.FixtureRequest) -> None:
+    """A prepared datagram (the daemon's command frames + SYNC) carries what ``send`` inside ``batch()`` would: the
+    same bytes but the stamps, which go on counting (no gap, no duplicate at the receiver); payloads as written
+    before each send; a batch larger than one datagram is refused."""
+    from dragd.hardware.bus import DATAGRAM_MAX
+
+    spec = parse_bus(f"udp_multicast:{unique_group(request.node.name)}")
+    tx, rx = open_bus(spec, batch_frames=True), open_bus(spec)
+    try:
+        frames = [can.Message(arbitration_id=0x201 + i, data=bytes([i, 2 * i, 0xA5]), is_extended_id=False)
+                  for i in range(3)] + [can.Message(arbitration_id=0x080, data=b"", is_extended_id=False)]
+        prepared = tx.prepare([(m.arbitration_id, len(m.data), False) for m in frames])
+        assert [len(v) for v in prepared.data] == [3, 3, 3, 0]
+        with tx.batch():
+            for m in frames:
+                tx.send(m)
+        for k in range(2):
+            for i in range(3):
+                prepared.data[i][:] = bytes([i, 2 * i + k, 0xA5])
+            tx.send_prepared(prepared)
+        got = drain(rx, 0.3)
+        sent = [(m.arbitration_id, bytes(m.data)) for m in frames]
+        again = [(0x201 + i, bytes([i, 2 * i + 1, 0xA5])) for i in range(3)] + [(0x080, b"")]
+        assert [(m.arbitration_id, bytes(m.data)) for m in got] == sent + sent + again
+        c = rx.counters()
+        assert c.frames_received == 12 and c.gaps == 0 and c.duplicates_dropped == 0 and c.undecodable == 0
+        assert tx.counters().frames_sent == 12 and tx.counters().datagrams_sent == 3
+        # byte for byte, the sequence numbers aside: the datagram ``batch()`` packs
+        for i in range(3):
+            prepared.data[i][:] = frames[i].data
+        with tx.batch():
+            for m in frames:
+                tx.send(m)
+            held = b"".join(tx._local.held)  # packed, stamped only when the block ends
+
+        def without_seq(datagram: bytes | bytearray) -> bytes:
+            out = bytearray(datagram)
+            for at in prepared.stamps:
+                out[at + 4:at + 8] = bytes(4)  # (the token, the high half, stays)
+            return bytes(out)
+
+        assert without_seq(prepared.datagram) == without_seq(held)
+        with pytest.raises(ValueError, match="fit one datagram"):
+            tx.prepare([(0x201, 64, False)] * (DATAGRAM_MAX // 64 + 1))
+    finally:
+        tx.shutdown()
+        rx.shutdown()
+
+
 def test_udp_multicast_batch_is_off_by_default_and_per_thread(request: pytest.FixtureRequest) -> None:
     """Without batch_frames a batch block changes nothing (python-can's tools read every datagram); with it,
     a frame another thread sends during the block leaves at once, before the batch."""

@@ -58,10 +58,17 @@ def test_tpdo_wait_ends_when_every_joint_has_reported_once(daemon: Daemon) -> No
         await asyncio.sleep(0)
         for k in range(6):  # node 1 six times (a late frame and repeats): still one joint
             rx.on_message_received(tpdo(1, 100 + k))
+        daemon.io.after_frames()  # (the bus reader's call once a wake-up's frames are decoded)
         await asyncio.sleep(0)
         assert fb.rx_count == 1 and not read.done() and fb.counts[0] == 105
-        for node in range(2, 7):
+        for node in range(2, 6):
             rx.on_message_received(tpdo(node, node))
+        daemon.io.after_frames()
+        await asyncio.sleep(0)
+        assert fb.rx_count == 5 and not read.done()
+        rx.on_message_received(tpdo(6, 6))
+        assert not read.done()  # the step ends after the wake-up's frames, not inside their decoding
+        daemon.io.after_frames()
         assert await asyncio.wait_for(read, 0.5) is True
         assert fb.rx_count == 6 and fb.rx.all() and list(fb.counts[1:]) == [2, 3, 4, 5, 6]
 
@@ -74,6 +81,69 @@ def test_tpdo_wait_ends_when_every_joint_has_reported_once(daemon: Daemon) -> No
     c = daemon.controller
     c.feedback(12, 2, 3, np.zeros(6), 10, 50)
     assert c.fresh_cycles == 0
+
+
+def test_cycle_runs_as_loop_callbacks_and_raises_what_stops_it(daemon: Daemon) -> None:
+    """The cycle as a chain of loop callbacks (tick → SYNC; the reader's wake-up → step): a peer answering each SYNC
+    with every TPDO completes the reads; ``exit_requested`` ends ``run``; an exception in a cycle ends ``run`` with
+    it (the loop must not swallow it) and leaves no read step open."""
+    import asyncio
+    import struct
+    import threading
+
+    from dragd.hardware.reader import DrainingNotifier
+
+    codec = struct.Struct("<HiH")
+    peer = can.Bus(interface="virtual", channel="unit-daemon")
+    stop = threading.Event()
+
+    def answer() -> None:
+        k = 0
+        while not stop.is_set():
+            m = peer.recv(0.05)
+            if m is not None and m.arbitration_id == 0x080:
+                k += 1
+                for node in range(1, 7):
+                    peer.send(can.Message(arbitration_id=0x180 + node, data=codec.pack(0x0637, 1000 * node + k, 0),
+                                          is_extended_id=False))
+
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        io, cycle = daemon.io, daemon.cycle
+        notifier = DrainingNotifier(daemon.buses["arm"], [io.listener("arm")], loop=loop, timeout=0.05,
+                                    on_data=io.tpdo_decoder("arm"), after=io.after_frames, until=io.read_done)
+        try:
+            run = loop.create_task(cycle.run())
+            for _ in range(500):
+                await asyncio.sleep(0.01)
+                if cycle.cycles >= 20:
+                    break
+            assert cycle.cycles >= 20, "no complete read reached the step"
+            cycle.exit_requested = True
+            await asyncio.wait_for(run, 2.0)
+            fb = io.feedback
+            assert fb.rx.all() and all(c // 1000 == node for node, c in enumerate(fb.counts.tolist(), 1))
+            assert not io.reading
+
+            def boom(complete: bool) -> bool:
+                raise RuntimeError("boom in the step")
+
+            cycle.exit_requested = False
+            cycle.step = boom  # type: ignore[method-assign]
+            with pytest.raises(RuntimeError, match="boom in the step"):
+                await asyncio.wait_for(cycle.run(), 2.0)
+            assert not io.reading and cycle.exit_requested
+        finally:
+            notifier.stop()
+
+    worker = threading.Thread(target=answer, daemon=True)
+    worker.start()
+    try:
+        asyncio.run(main())
+    finally:
+        stop.set()
+        worker.join()
+        peer.shutdown()
 
 
 def test_run_realtime_priority_override_goes_through_the_schema() -> None:

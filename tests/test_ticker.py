@@ -97,6 +97,48 @@ def test_overdue_wait_still_yields_to_other_tasks():
     assert missed >= 5
 
 
+def test_call_each_delivers_every_tick_and_counts_the_missed_ones():
+    """The callback form (the daemon's cycle): one call per tick with the periods elapsed, the ticks a blocked loop
+    slept through counted, other ready callbacks run between two calls however late, nothing after ``close``."""
+    async def main():
+        loop = asyncio.get_running_loop()
+        t = Ticker(0.001)
+        calls: list[int] = []
+        others = 0
+
+        def other() -> None:
+            nonlocal others
+            others += 1
+            if t.fileno >= 0:
+                loop.call_soon(other)
+
+        def on_tick(n: int) -> None:
+            calls.append(n)
+            if len(calls) == 5:
+                time.sleep(0.005)  # one overrun: ~5 periods pass inside this call
+            elif 5 < len(calls) <= 25:
+                time.sleep(0.0015)  # every cycle overruns
+
+        t.call_each(loop, on_tick)
+        with pytest.raises(RuntimeError, match="already delivers"):
+            t.call_each(loop, on_tick)
+        loop.call_soon(other)
+        for _ in range(500):
+            await asyncio.sleep(0.01)
+            if len(calls) >= 40:
+                break
+        t.close()
+        seen = len(calls)
+        await asyncio.sleep(0.01)
+        return calls, seen, others, t
+
+    calls, seen, others, t = run(main())
+    assert len(calls) == seen >= 40, "a call after close, or too few ticks"
+    assert calls[5] >= 4, "the ticks slept through are counted in the next call"
+    assert t.ticks == sum(calls[:seen]) and t.missed == sum(c - 1 for c in calls[:seen])
+    assert others >= 25, "the overrunning cycle starved the loop's other callbacks"
+
+
 def test_close_is_idempotent_and_wait_after_close_fails():
     async def main():
         t = Ticker(0.002)

@@ -556,7 +556,8 @@ class Daemon:
         assert self.io is not None
         self.master = Master(self.cfg, self.buses, self.layouts, loop,
                              {name: [self.io.listener(name)] for name in self.buses}, log=self.log,
-                             on_data={name: self.io.tpdo_decoder(name) for name in self.buses})
+                             on_data={name: self.io.tpdo_decoder(name) for name in self.buses},
+                             after_frames=self.io.after_frames, read_done=self.io.read_done)
         self.master.on_heartbeat = self.comms.on_heartbeat
         server = None
         comms: asyncio.Task[None] | None = None

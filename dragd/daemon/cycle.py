@@ -69,6 +69,9 @@ class Cycle:
         self.compute_hist = Histogram(0.0, 5_000.0, 2.0)
         self.rx_hist = Histogram(0.0, 5_000.0, 5.0)
         self.after_cycle: list[object] = []  # callables run after each cycle (the daemon records events)
+        self._last_tick: float | None = None  # perf_counter at the previous tick's callback
+        self._t_tick = 0.0  # ... at this cycle's
+        self._period_us = self.dt * 1e6  # between the two
         # encoder plausibility: a sample further from the last accepted one than plausible_speed allows is rejected
         # (treated as a missing TPDO); rejected for stale_cycles_hold cycles in a row, it is an encoder fault
         self.jump_step_counts = plausible_speed_rad_s * self.dt * scaling.counts_per_rev / (2.0 * np.pi) + 2.0
@@ -184,31 +187,69 @@ class Cycle:
             fb.stale[j] = int(self._since[j])
 
     async def run(self) -> None:
-        """The loop: tick → read → step → log, until ``exit_requested``."""
+        """The loop until ``exit_requested``: tick → read → step → log as one chain of loop callbacks.
+
+        The timerfd's callback (``_on_tick``) sends the SYNC; the bus reader's callback ends the read step once the
+        wake-up's frames are decoded, or the deadline timer does, and calls ``_on_read`` (step, log): two loop
+        wake-ups a cycle and no future or task between them. An exception in either ends the loop and is raised
+        here; cancelling this coroutine stops the loop."""
         loop = asyncio.get_running_loop()
+        self._loop = loop
+        self._done: asyncio.Future[None] = loop.create_future()
+        done = self._done
+        self._last_tick = None
         ticker = Ticker(self.dt, loop)
-        ticker.start()
-        last_tick = None
         try:
-            while not self.exit_requested:
-                expirations = await ticker.wait()
-                t_tick = time.perf_counter()
-                period_us = (t_tick - last_tick) * 1e6 if last_tick is not None else self.dt * 1e6
-                last_tick = t_tick
-                self.tick(period_us, expirations)
-                complete = await self.io.read(loop, self.deadline_s)
-                t_rx = time.perf_counter()
-                self.rx_hist.add((t_rx - t_tick) * 1e6)
-                if not self.step(complete):
-                    continue
-                compute_us = (time.perf_counter() - t_rx) * 1e6
-                self.compute_hist.add(compute_us)
-                if self.cycles > 0:
-                    self.period_hist.add(period_us)
-                self.cycles += 1
-                self.recorder.log_row(period_us, compute_us)
-                for fn in self.after_cycle:
-                    fn()  # type: ignore[operator]
+            ticker.call_each(loop, self._on_tick)
+            await done
         finally:
             ticker.close()
+            self.io.abandon_read()
             self.io.flush()
+
+    def _on_tick(self, expirations: int) -> None:
+        try:
+            if self.io.reading:  # the previous read is still open (its deadline was not served before this tick)
+                self.io.end_read_step()
+            if self.exit_requested:
+                self._finish(None)
+                return
+            t_tick = time.perf_counter()
+            last = self._last_tick
+            period_us = (t_tick - last) * 1e6 if last is not None else self.dt * 1e6
+            self._last_tick = self._t_tick = t_tick
+            self._period_us = period_us
+            self.tick(period_us, expirations)
+            self.io.start_read(self._loop, self.deadline_s, self._on_read)
+        except Exception as exc:  # the loop must not swallow it: the daemon stops the arm
+            self._finish(exc)
+
+    def _on_read(self, complete: bool) -> None:
+        try:
+            t_rx = time.perf_counter()
+            self.rx_hist.add((t_rx - self._t_tick) * 1e6)
+            if not self.step(complete):
+                return
+            compute_us = (time.perf_counter() - t_rx) * 1e6
+            self.compute_hist.add(compute_us)
+            period_us = self._period_us
+            if self.cycles > 0:
+                self.period_hist.add(period_us)
+            self.cycles += 1
+            self.recorder.log_row(period_us, compute_us)
+            for fn in self.after_cycle:
+                fn()  # type: ignore[operator]
+            if self.exit_requested:
+                self._finish(None)
+        except Exception as exc:
+            self._finish(exc)
+
+    def _finish(self, exc: Exception | None) -> None:
+        """End ``run``: no further tick or read step is served."""
+        self.exit_requested = True
+        done = self._done
+        if not done.done():
+            if exc is None:
+                done.set_result(None)
+            else:
+                done.set_exception(exc)

@@ -67,6 +67,7 @@ _LOOPBACK = "127.0.0.1"
 _IP_MULTICAST_ALL = getattr(socket, "IP_MULTICAST_ALL", 49)  # Linux value; absent from Python's socket module
 _SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)
 _SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
+_MSG_TRUNC = int(socket.MSG_TRUNC)  # (a plain int: ``&`` with the IntFlag costs an enum call per datagram)
 _SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)
 _SO_ATTACH_FILTER = getattr(socket, "SO_ATTACH_FILTER", 26)
 _UDP_HEADER = 8  # a UDP socket's filter sees the datagram from its UDP header on
@@ -76,6 +77,7 @@ _WINDOW = 64
 DATAGRAM_MAX = 4096  # bytes read per datagram; a batch longer than this leaves in several datagrams
 _STAMP = slice(10, 18)  # a packed frame's sender stamp (after the map header, "channel" and the uint64 marker)
 _WINDOW_MASK = (1 << _WINDOW) - 1
+_STAMP_CODEC = struct.Struct(">II")  # the stamp as (token, sequence)
 
 
 @dataclass(frozen=True)
@@ -193,6 +195,16 @@ class UdpBusCounters:
     rcvbuf_bytes: int  # receive buffer the kernel granted
 
 
+@dataclass
+class PreparedBatch:
+    """Plain data frames that always leave together, as one datagram packed once (``UdpMulticastCanBus.prepare``):
+    the caller writes each frame's payload into ``data[i]``; ``send_prepared`` stamps the frames and sends."""
+
+    datagram: bytearray
+    stamps: list[int]  # offset of each frame's stamp in the datagram
+    data: list[memoryview]  # each frame's payload bytes, in the datagram
+
+
 class UdpMulticastCanBus(can.BusABC):
     """Host-local CAN-over-UDP-multicast bus with echo and duplicate suppression and loss counters."""
 
@@ -297,6 +309,39 @@ class UdpMulticastCanBus(can.BusABC):
         packed += data
         packed += parts[1]
         self._emit(packed)
+
+    def prepare(self, frames: list[tuple[int, int, bool]]) -> PreparedBatch:
+        """A datagram of plain data frames ``(arbitration_id, length, fd)``, in order, packed once: the 1 kHz path
+        sends it with ``send_prepared`` and neither packs a map nor makes an object per frame (the same bytes on
+        the wire as ``send`` of each frame inside ``batch()``)."""
+        datagram, stamps, spans = bytearray(), [], []
+        for arbitration_id, length, fd in frames:
+            self._check_fd(fd)
+            key = (arbitration_id, length, fd)
+            parts = self._templates.get(key)
+            if parts is None:
+                parts = self._templates[key] = self._template(arbitration_id, length, fd)
+            stamps.append(len(datagram) + _STAMP.start)
+            datagram += parts[0]
+            spans.append((len(datagram), length))
+            datagram += bytes(length)
+            datagram += parts[1]
+        if not frames or len(datagram) > DATAGRAM_MAX:
+            raise ValueError(f"{self.channel_info}: a prepared batch must hold at least one frame and fit one datagram "
+                             f"({DATAGRAM_MAX} bytes); got {len(frames)} frames, {len(datagram)} bytes")
+        view = memoryview(datagram)
+        return PreparedBatch(datagram, stamps, [view[at:at + n] for at, n in spans])
+
+    def send_prepared(self, batch: PreparedBatch) -> None:
+        """Send a prepared datagram with the payloads its ``data`` holds now (each frame stamped in turn)."""
+        buf, token, pack_into = batch.datagram, self._token, _STAMP_CODEC.pack_into
+        with self._tx_lock:
+            seq = self._seq
+            for at in batch.stamps:
+                seq = (seq + 1) & 0xFFFFFFFF
+                pack_into(buf, at, token, seq)
+            self._seq = seq
+            self._sendto(buf, len(batch.stamps))
 
     def _check_fd(self, fd: bool) -> None:
         if fd and self._can_protocol is not can.CanProtocol.CAN_FD:
@@ -455,22 +500,27 @@ class UdpMulticastCanBus(can.BusABC):
             elif level == socket.SOL_SOCKET and kind == _SO_RXQ_OVFL and len(payload) >= _U32.size:
                 # the kernel's drops include the echoes our filter took
                 c["kernel_drops"] = max(0, _U32.unpack_from(payload)[0] - self._filtered)
-        if flags & socket.MSG_TRUNC or not raw:  # longer than DATAGRAM_MAX (cut: nobody of ours sends that), or empty
+        if flags & _MSG_TRUNC or not raw:  # longer than DATAGRAM_MAX (cut: nobody of ours sends that), or empty
             c["undecodable"] += 1
             return [], timestamp
         if not self.receive_own_messages and raw.startswith(self._own_prefix):
             c["own_echoes_dropped"] += raw.count(self._own_prefix)  # our own datagram, looped back: not decoded
             return [], timestamp
         frames: list[tuple[dict[str, Any], bool]] = []
-        rest: bytes | None = raw
-        while rest:
+        unpacker = msgpack.Unpacker(raw=False, max_buffer_size=DATAGRAM_MAX)  # a batch: maps back to back
+        unpacker.feed(raw)
+        end = 0
+        while True:
             try:
-                fields, rest = msgpack.unpackb(rest, raw=False), None
-            except msgpack.ExtraData as more:  # a batch: the next frame follows
-                fields, rest = more.unpacked, more.extra
+                fields = unpacker.unpack()
+            except msgpack.OutOfData:
+                if end < len(raw):  # a map cut short
+                    c["undecodable"] += 1
+                break
             except (ValueError, TypeError, msgpack.UnpackException):
                 c["undecodable"] += 1  # nothing after a broken map can be read
                 break
+            end = unpacker.tell()
             if not isinstance(fields, dict):  # not a frame: the rest of the datagram is not ours to guess at
                 c["undecodable"] += 1
                 break
@@ -498,8 +548,9 @@ class UdpMulticastCanBus(can.BusABC):
         return frames, timestamp
 
     def drain(self, on_data: Callable[[int, bytes | bytearray], bool], on_message: Callable[[can.Message], None],
-              limit: int = 64) -> int:
-        """Take every datagram already queued (at most ``limit``) without waiting; returns how many were read.
+              limit: int = 64, until: Callable[[], bool] | None = None) -> int:
+        """Take every datagram already queued (at most ``limit``; none after one that makes ``until()`` true) without
+        waiting; returns how many were read.
 
         A plain data frame (standard id, not remote, not an error frame) is first offered to ``on_data(cob_id,
         data)``; when that returns True it is consumed without a ``can.Message`` (the 1 kHz cycle's TPDOs).
@@ -542,6 +593,8 @@ class UdpMulticastCanBus(can.BusABC):
             for msg in messages:
                 if self._matches_filters(msg):  # the bus's can_filters, as recv() applies them
                     on_message(msg)
+            if until is not None and until():
+                break  # (what is still queued keeps the socket readable: the loop calls again)
         return n
 
     def _accept(self, token: int, seq: int) -> bool:

@@ -3,8 +3,10 @@
 Frames are read by each bus's notifier in the asyncio loop's thread (hardware/reader.py; ``tpdo_decoder`` takes
 the TPDOs before any ``can.Message`` is made, ``listener`` the rest): TPDOs are decoded with
 precompiled ``struct`` codecs straight into the feedback arrays, EMCYs go to ``on_emcy``; the read step of a
-cycle ends when every joint's position TPDO arrived after the SYNC, or at the deadline. ``write`` packs the
-controlwords, target positions and torque offsets into each command frame's preallocated buffer.
+cycle (``start_read``) ends when every joint's position TPDO arrived after the SYNC (checked by ``after_frames``
+once a wake-up's frames are all decoded) or at the deadline, and hands over by a plain call (``on_read``): no
+future, no task wake-up. ``write`` packs the controlwords, target positions and torque offsets into each command
+frame's preallocated buffer.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import can
 import numpy as np
 
 from dragd.hardware.cia301 import EMCY_BASE, HEARTBEAT_BASE, SYNC_COB_ID
+from dragd.hardware.bus import PreparedBatch
 from dragd.hardware.pdo import BusLayout, RpdoEncoder
 
 Decoder = tuple[int, struct.Struct, tuple[str, ...]]  # joint, codec, fields
@@ -55,13 +58,18 @@ class BusIO:
         self.error_frames = 0
         self.rejected_frames = 0  # 29-bit ids, RTR, TPDOs shorter than their mapping: dropped, never decoded
         self.duplicate_tpdos = 0  # a joint's position TPDO a second time within one cycle
-        self._waiter: asyncio.Future[bool] | None = None
+        self.reading = False  # a read step is open: SYNC sent, waiting for TPDOs or the deadline
+        self._on_read: Callable[[bool], None] = lambda complete: None
+        self._deadline_handle: asyncio.TimerHandle | None = None
         self._decoders: dict[str, dict[int, Decoder]] = {}
         # (bus, frame, encoder, whether the frame waits for the next SYNC: cyclic on a batching bus)
         self._commands: list[tuple[can.BusABC, can.Message, RpdoEncoder, bool]] = []
         self._sync: list[tuple[can.BusABC, can.Message]] = []
         self._heartbeat: list[tuple[can.BusABC, can.Message]] = []
-        self._deferred: list[tuple[can.BusABC, can.Message]] = []  # cyclic command frames leaving with the next SYNC
+        # per batching bus: its cyclic command frames and SYNC as one prepared datagram (each frame's payload copied
+        # from its encoder's buffer when it leaves), and the frames themselves (``flush``)
+        self._batched: dict[can.BusABC, tuple[PreparedBatch, list[tuple[memoryview, bytearray]], list[can.Message]]] = {}
+        self._commands_wait = False  # write() left cyclic command frames for the next SYNC
         for name, layout in layouts.items():
             bus = buses[name]
             fd = layout.fd
@@ -74,8 +82,15 @@ class BusIO:
                     enc = RpdoEncoder(fr, fd, min_interval_s=1.0 / fr.max_rate_Hz)
                     msg = can.Message(arbitration_id=fr.cob_id, data=enc.buffer, is_extended_id=False,
                                       is_fd=fd, bitrate_switch=fd, dlc=len(enc.buffer))
-                    self._commands.append((bus, msg, enc, enc.cyclic and getattr(bus, "batch_frames", False)))
+                    with_sync = enc.cyclic and getattr(bus, "batch_frames", False) and hasattr(bus, "prepare")
+                    self._commands.append((bus, msg, enc, with_sync))
             self._sync.append((bus, can.Message(arbitration_id=SYNC_COB_ID, data=b"", is_extended_id=False)))
+            synced = [(msg, enc) for b, msg, enc, with_sync in self._commands if b is bus and with_sync]
+            if synced:
+                frames = [(msg.arbitration_id, len(enc.buffer), fd) for msg, enc in synced] + [(SYNC_COB_ID, 0, False)]
+                batch = bus.prepare(frames)  # type: ignore[attr-defined]
+                self._batched[bus] = (batch, [(view, enc.buffer) for view, (_, enc) in zip(batch.data, synced)],
+                                      [msg for msg, _ in synced])
             self._heartbeat.append((bus, can.Message(arbitration_id=HEARTBEAT_BASE + master_node_id, data=b"\x05",
                                                      is_extended_id=False)))
         self._emcy = {EMCY_BASE + node: i for i, node in enumerate(node_ids)}
@@ -140,8 +155,6 @@ class BusIO:
         if "position" in fields and not fb.rx[j]:
             fb.rx[j] = True
             fb.rx_count += 1
-            if fb.rx_count >= self.n and self._waiter is not None and not self._waiter.done():
-                self._waiter.set_result(True)
         return True
 
     def begin_cycle(self) -> None:
@@ -156,23 +169,52 @@ class BusIO:
         np.copyto(fb.stale, 0, where=fb.rx)  # (a boolean-mask assignment would allocate)
         return fb.rx_count >= self.n
 
-    async def read(self, loop: asyncio.AbstractEventLoop, deadline_s: float) -> bool:
-        """Send SYNC and wait until every joint's position TPDO arrived (True) or ``deadline_s`` passed (False)."""
+    def start_read(self, loop: asyncio.AbstractEventLoop, deadline_s: float, on_read: Callable[[bool], None]) -> None:
+        """Send SYNC and open the read step: ``on_read(complete)`` is called once, in the loop's thread, when every
+        joint's position TPDO arrived (True) or ``deadline_s`` passed (False)."""
         self.begin_cycle()
-        self._waiter = waiter = loop.create_future()
-        if self._deferred:
+        self._on_read = on_read
+        self.reading = True
+        if self._commands_wait:
             self._send_with_sync()
         else:
             self._send(self._sync)
-        handle = loop.call_at(loop.time() + deadline_s, self._deadline)
-        await waiter
-        handle.cancel()
-        self._waiter = None
-        return self.end_read()
+        self._deadline_handle = loop.call_at(loop.time() + deadline_s, self.end_read_step)
 
-    def _deadline(self) -> None:
-        if self._waiter is not None and not self._waiter.done():
-            self._waiter.set_result(False)
+    def read_done(self) -> bool:
+        """The open read step has every joint's position TPDO (the reader need not look for more now)."""
+        return self.reading and self.feedback.rx_count >= self.n
+
+    def after_frames(self) -> None:
+        """A wake-up's frames are all decoded: the read step ends if every joint has reported."""
+        if self.reading and self.feedback.rx_count >= self.n:
+            self.end_read_step()
+
+    def end_read_step(self) -> None:
+        """End the open read step now (the deadline; a tick that finds it still open): ``on_read`` runs."""
+        if not self.reading:
+            return
+        self.reading = False
+        if self._deadline_handle is not None:
+            self._deadline_handle.cancel()
+            self._deadline_handle = None
+        self._on_read(self.end_read())
+
+    def abandon_read(self) -> None:
+        """Close an open read step without ``on_read`` (the cycle is stopping)."""
+        self.reading = False
+        if self._deadline_handle is not None:
+            self._deadline_handle.cancel()
+            self._deadline_handle = None
+
+    async def read(self, loop: asyncio.AbstractEventLoop, deadline_s: float) -> bool:
+        """``start_read`` awaited: True when every joint's position TPDO arrived, False at the deadline."""
+        done: asyncio.Future[bool] = loop.create_future()
+        self.start_read(loop, deadline_s, done.set_result)
+        try:
+            return await done
+        finally:
+            self.abandon_read()
 
     # ------------------------------------------------------------------------------------------ write
 
@@ -198,7 +240,7 @@ class BusIO:
             if not enc.due(t):
                 continue
             if with_sync:
-                self._deferred.append((bus, msg))  # (its buffer is packed again only after the next read)
+                self._commands_wait = True  # (its buffer is packed again only after the next read)
                 enc.sent(t)
                 continue
             try:
@@ -209,19 +251,24 @@ class BusIO:
 
     def flush(self) -> None:
         """Send command frames still waiting for a SYNC (the cycle stops: they must not be lost)."""
-        frames, self._deferred = self._deferred, []
-        self._send(frames)
+        if not self._commands_wait:
+            return
+        self._commands_wait = False
+        self._send([(bus, msg) for bus, (_, _, msgs) in self._batched.items() for msg in msgs])
 
     def _send_with_sync(self) -> None:
-        """Each bus's waiting command frames and its SYNC, in that order, as one datagram."""
-        frames, self._deferred = self._deferred, []
+        """Each bus's waiting command frames and its SYNC, in that order, as one (prepared) datagram."""
+        self._commands_wait = False
         for bus, sync in self._sync:
+            entry = self._batched.get(bus)
             try:
-                with bus.batch():  # type: ignore[attr-defined]
-                    for b, msg in frames:
-                        if b is bus:
-                            bus.send(msg, timeout=0)
+                if entry is None:
                     bus.send(sync, timeout=0)
+                    continue
+                batch, payloads, _ = entry
+                for view, buffer in payloads:
+                    view[:] = buffer
+                bus.send_prepared(batch)  # type: ignore[attr-defined]
             except can.CanError:
                 self.tx_errors += 1
 

@@ -79,7 +79,11 @@ class Master:
     def __init__(self, cfg: Config, buses: dict[str, can.BusABC], layouts: dict[str, BusLayout],
                  loop: asyncio.AbstractEventLoop, listeners: dict[str, list[can.Listener]],
                  log: Callable[[str], None] = print,
-                 on_data: dict[str, Callable[[int, bytes | bytearray], bool]] | None = None) -> None:
+                 on_data: dict[str, Callable[[int, bytes | bytearray], bool]] | None = None,
+                 after_frames: Callable[[], None] | None = None, read_done: Callable[[], bool] | None = None) -> None:
+        """``on_data`` (per bus) claims the cyclic TPDOs before any ``can.Message``; ``after_frames`` runs after each
+        wake-up's frames of any bus (the cycle's read step ends there); ``read_done()`` true ends a wake-up's
+        reading early (the cycle has every TPDO it waits for)."""
         self.cfg = cfg
         self.loop = loop
         self.log = log
@@ -107,7 +111,8 @@ class Master:
             net.subscribe(HEARTBEAT_BASE + cfg.master.node_id, self._foreign_cb(name, f"heartbeat of node "
                                                                                   f"{cfg.master.node_id}"))
             rt.notifier = DrainingNotifier(bus, [*net.listeners, *listeners.get(name, [])], timeout=0.5, loop=loop,
-                                           on_data=(on_data or {}).get(name))
+                                           on_data=(on_data or {}).get(name), after=after_frames,
+                                           until=read_done)
             net.notifier = rt.notifier
             self.runtimes[name] = rt
 

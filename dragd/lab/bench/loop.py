@@ -121,9 +121,9 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
             before = rig.must("status")
             sim0, w0 = rig.sim_call("state"), time.monotonic()
             spies = _py_spy(profile, seconds, {"daemon": pids[0], "sim": pids[1]})
-            cpu0 = [process_cpu_s(p) for p in pids]
+            cpu0, c0 = [process_cpu_s(p) for p in pids], time.monotonic()
             time.sleep(seconds)
-            cpu1 = [process_cpu_s(p) for p in pids]
+            cpu1, c1 = [process_cpu_s(p) for p in pids], time.monotonic()
             if viewer is not None:
                 _viewer_done(viewer, tmp / "view.rrd")
         finally:  # (whatever failed above: the viewer does not outlive the session)
@@ -162,7 +162,7 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
             print(summary, file=sys.stderr)
     cycles = after["cycles"] - before["cycles"]
     missed = after["missed_cycles"] - before["missed_cycles"]
-    wall = w1 - w0
+    wall = c1 - c0  # the window the CPU times were read over
     d_cpu, s_cpu = cpu1[0] - cpu0[0], cpu1[1] - cpu0[1]
     ticks = max(1, cycles + missed)
     return {
