@@ -106,6 +106,26 @@ def test_plausible_motion_is_never_rejected() -> None:
     assert ip.cy.encoder_rejects == 0
 
 
+def test_motion_across_missed_ticks_is_judged_by_the_time_elapsed() -> None:
+    """A host that stalls the cycle for 50 periods while a hand moves the arm at 3 rad/s: the next sample is 0.15 rad
+    on, plausible for 50 ms (counted as one step it would be a 150 rad/s "jump", then a fault). A jump as fast
+    after the same stall is still rejected."""
+    ip = InProcess(load_config(DEFAULT_CONFIG))
+    q = np.zeros(6)
+    ip.hold(q)
+    for k in range(20):
+        ip.feed(q + 3.0 * 0.001 * k)
+        ip.cycle()
+    q1 = q + 3.0 * 0.001 * 19
+    ip.feed(q1 + 3.0 * 0.050)
+    ip.cycle(ticks=50)
+    assert ip.cy.encoder_rejects == 0 and ip.d.faults == []
+    assert ip.cy.est.q_rad[0] == pytest.approx(q1[0] + 0.15, abs=1e-3)
+    ip.feed(q1 + 3.0 * 0.050 + 0.6)  # 0.6 rad within 50 ms: 12 rad/s, beyond the 6 rad/s bound
+    ip.cycle(ticks=50)
+    assert ip.cy.encoder_rejects == 6
+
+
 def _bus_pair(name: str) -> tuple[can.BusABC, can.BusABC]:
     return can.Bus(interface="virtual", channel=name), can.Bus(interface="virtual", channel=name)
 

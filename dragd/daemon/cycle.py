@@ -77,7 +77,7 @@ class Cycle:
         self.jump_step_counts = plausible_speed_rad_s * self.dt * scaling.counts_per_rev / (2.0 * np.pi) + 2.0
         self.encoder_rejects = 0
         self._prev_counts = np.zeros(n, dtype=np.int64)
-        self._since = np.ones(n)  # cycles since the last accepted sample (+1)
+        self._since = np.ones(n)  # periods since the last accepted sample (+1), missed ticks included
         self._jump_d = np.zeros(n)
         self._jump_lim = np.zeros(n)
         self._jump_mask = np.zeros(n, dtype=bool)
@@ -91,6 +91,9 @@ class Cycle:
         """A tick: the cycle's time advances (a late tick samples later and counts the ticks it missed)."""
         if expirations > 1:
             self.missed += expirations - 1
+            # the encoder plausibility bound grows with the time since each joint's last accepted sample: the
+            # periods this tick slept through count (a stalled host must not make real motion look like a jump)
+            np.add(self._since, expirations - 1, out=self._since)
         self.sample_dt_s = period_us * 1e-6  # SYNC goes out right after the tick: the sampling interval
         self.t += self.dt * expirations
         self.controller.t = self.t  # (commands during the read see the cycle's time)
@@ -105,6 +108,7 @@ class Cycle:
                 return False  # wait for a first full set of positions before computing anything
             self.velocity.reset(fb.counts)
             self._prev_counts[:] = fb.counts
+            self._since.fill(1.0)
             self.primed = True
         k, sc = self._k, self.scaling
         if k is None:
