@@ -108,8 +108,25 @@ class SimNetwork:
     def caught_up(self, now: float) -> float:
         """The time (monotonic) up to which every frame that reached this process has been handed to the drives:
         ``now`` while the reader waits on an empty socket (or is not running: then nothing will be read), else when
-        it last found the socket empty. The drives' reception watchdogs judge against it."""
-        return now if self._idle or not self._running else self._caught_up_s
+        it last found the socket empty. The drives' reception watchdogs judge against it (only once a deadline has
+        passed by the clock: the rare path). A reader waiting while frames are queued has been woken but not run yet
+        (another thread of this process holds the GIL, e.g. physics catching up): not caught up."""
+        if not self._running:
+            return now
+        if self._idle and not self._frames_waiting():
+            return now
+        return self._caught_up_s
+
+    def _frames_waiting(self) -> bool:
+        """Whether the bus's socket holds frames the reader has not taken (False for a bus without a descriptor)."""
+        try:
+            fd = self.bus.fileno()
+            if fd < 0:
+                return False
+            ready, _, _ = select.select([fd], [], [], 0)
+        except (NotImplementedError, OSError, ValueError):
+            return False
+        return bool(ready)
 
     def _run(self) -> None:
         self._caught_up_s, self._running = time.monotonic(), True

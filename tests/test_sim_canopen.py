@@ -685,6 +685,30 @@ def test_sync_answer_leaves_in_one_datagram_with_batch_frames(request: pytest.Fi
         master.shutdown()
 
 
+def test_a_reader_woken_but_not_yet_run_is_not_caught_up(request: pytest.FixtureRequest) -> None:
+    """The reader waits on its socket (idle) when frames arrive, and another thread of the process holds the GIL
+    (physics catching up): those frames are not handed over, so the watchdogs must not judge by the clock."""
+    from sim.network import SimNetwork
+
+    h = int.from_bytes(hashlib.sha256(f"{request.node.name}:{os.getpid()}".encode()).digest()[:2], "big")
+    spec = parse_bus(f"udp_multicast:239.76.{h % 250}.{1 + (h >> 8) % 250}")
+    sim_bus, master = open_bus(spec), open_bus(spec)
+    try:
+        net = SimNetwork(sim_bus, [])
+        net._running, net._idle, net._caught_up_s = True, True, 5.0  # (the state of a reader waiting in select)
+        assert net.caught_up(9.0) == 9.0  # nothing queued: caught up as of now
+        master.send(can.Message(arbitration_id=0x201, data=b"\x06\x00", is_extended_id=False))
+        end = time.monotonic() + 2.0
+        while net.caught_up(9.0) != 5.0:
+            assert time.monotonic() < end, "a queued frame left the reader counted as caught up"
+            time.sleep(0.002)
+        assert sim_bus.recv(1.0) is not None
+        assert net.caught_up(9.0) == 9.0
+    finally:
+        sim_bus.shutdown()
+        master.shutdown()
+
+
 def test_rpdo_watchdog_waits_for_frames_the_reader_has_not_read(request: pytest.FixtureRequest) -> None:
     """A real drive takes each frame off the wire as it comes; the simulated one reads them in a thread of a process
     the OS may not schedule. A deadline that passes while RPDOs wait for the reader is judged by what it has read up
