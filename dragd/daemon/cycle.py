@@ -69,9 +69,8 @@ class Cycle:
         self.compute_hist = Histogram(0.0, 5_000.0, 2.0)
         self.rx_hist = Histogram(0.0, 5_000.0, 5.0)
         self.after_cycle: list[object] = []  # callables run after each cycle (the daemon records events)
-        self._last_tick: float | None = None  # perf_counter at the previous tick's callback
-        self._t_tick = 0.0  # ... at this cycle's
-        self._period_us = self.dt * 1e6  # between the two
+        self._t_tick = -1.0  # perf_counter at this cycle's tick callback (-1: none yet in this run)
+        self._period_us = self.dt * 1e6  # since the previous one
         # encoder plausibility: a sample further from the last accepted one than plausible_speed allows is rejected
         # (treated as a missing TPDO); rejected for stale_cycles_hold cycles in a row, it is an encoder fault
         self.jump_step_counts = plausible_speed_rad_s * self.dt * scaling.counts_per_rev / (2.0 * np.pi) + 2.0
@@ -201,7 +200,7 @@ class Cycle:
         self._loop = loop
         self._done: asyncio.Future[None] = loop.create_future()
         done = self._done
-        self._last_tick = None
+        self._t_tick = -1.0
         ticker = Ticker(self.dt, loop)
         try:
             ticker.call_each(loop, self._on_tick)
@@ -219,9 +218,8 @@ class Cycle:
                 self._finish(None)
                 return
             t_tick = time.perf_counter()
-            last = self._last_tick
-            period_us = (t_tick - last) * 1e6 if last is not None else self.dt * 1e6
-            self._last_tick = self._t_tick = t_tick
+            period_us = (t_tick - self._t_tick) * 1e6 if self._t_tick >= 0.0 else self.dt * 1e6
+            self._t_tick = t_tick
             self._period_us = period_us
             self.tick(period_us, expirations)
             self.io.start_read(self._loop, self.deadline_s, self._on_read)

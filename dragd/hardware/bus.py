@@ -301,10 +301,7 @@ class UdpMulticastCanBus(can.BusABC):
         """``send`` of a plain data frame (11-bit id, not remote, not an error frame; CAN FD with bit-rate switch when
         ``fd``) without a ``can.Message``: the same bytes on the wire, from a template per id and length."""
         self._check_fd(fd)
-        key = (arbitration_id, len(data), fd)
-        parts = self._templates.get(key)
-        if parts is None:
-            parts = self._templates[key] = self._template(arbitration_id, len(data), fd)
+        parts = self._parts(arbitration_id, len(data), fd)
         packed = bytearray(parts[0])
         packed += data
         packed += parts[1]
@@ -317,10 +314,7 @@ class UdpMulticastCanBus(can.BusABC):
         datagram, stamps, spans = bytearray(), [], []
         for arbitration_id, length, fd in frames:
             self._check_fd(fd)
-            key = (arbitration_id, length, fd)
-            parts = self._templates.get(key)
-            if parts is None:
-                parts = self._templates[key] = self._template(arbitration_id, length, fd)
+            parts = self._parts(arbitration_id, length, fd)
             stamps.append(len(datagram) + _STAMP.start)
             datagram += parts[0]
             spans.append((len(datagram), length))
@@ -355,6 +349,14 @@ class UdpMulticastCanBus(can.BusABC):
             return
         with self._tx_lock:
             self._sendto(self._stamp(packed), 1)
+
+    def _parts(self, arbitration_id: int, length: int, fd: bool) -> tuple[bytes, bytes]:
+        """``_template``, made once per id, length and kind."""
+        key = (arbitration_id, length, fd)
+        parts = self._templates.get(key)
+        if parts is None:
+            parts = self._templates[key] = self._template(arbitration_id, length, fd)
+        return parts
 
     def _template(self, arbitration_id: int, length: int, fd: bool) -> tuple[bytes, bytes]:
         """The packed map of such a frame before and after its data bytes (as ``_pack`` writes it for a fresh

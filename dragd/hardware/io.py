@@ -187,17 +187,14 @@ class BusIO:
 
     def after_frames(self) -> None:
         """A wake-up's frames are all decoded: the read step ends if every joint has reported."""
-        if self.reading and self.feedback.rx_count >= self.n:
+        if self.read_done():
             self.end_read_step()
 
     def end_read_step(self) -> None:
         """End the open read step now (the deadline; a tick that finds it still open): ``on_read`` runs."""
         if not self.reading:
             return
-        self.reading = False
-        if self._deadline_handle is not None:
-            self._deadline_handle.cancel()
-            self._deadline_handle = None
+        self.abandon_read()
         self._on_read(self.end_read())
 
     def abandon_read(self) -> None:
