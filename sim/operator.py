@@ -22,6 +22,7 @@ From YAML (``sim/scenarios/*.yaml``, schema-validated) or Python (:func:`load_sc
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal, Union
 
@@ -452,7 +453,8 @@ class Operator:
         wrench = np.zeros(6)
         assert self._target_M is not None
         f = seg.stiffness * (self._target_M.translation - now.translation) - seg.damping * twist[:3]
-        norm = float(np.linalg.norm(f))
+        fx, fy, fz = f.tolist()
+        norm = math.sqrt(fx * fx + fy * fy + fz * fz)  # (np.linalg.norm costs ~4 µs a call: a tenth of the step)
         if norm > seg.max_load:
             f *= seg.max_load / norm
         wrench[:3] = f

@@ -31,6 +31,7 @@ import numpy as np
 import pinocchio as pin
 
 from sim.axis import AxisIO
+from sim.kernels import hold_kernel
 from sim.truth import Truth, TruthError
 
 if TYPE_CHECKING:
@@ -79,7 +80,7 @@ class ArmPhysics:
     ``tau_friction_Nm``, ``tau_stop_Nm``, ``stuck``, ``brakes``, ``temperature_C`` (fresh arrays), ``t_s``, ``steps``.
     """
 
-    def __init__(self, truth: Truth, model: RobotModel | pin.Model, axes: list[AxisIO]) -> None:
+    def __init__(self, truth: Truth, model: RobotModel | pin.Model, axes: list[AxisIO], *, compiled: bool = True) -> None:
         src = getattr(model, "model", model)
         names = tuple(src.names[1:])
         truth.check_model(names)
@@ -206,6 +207,15 @@ class ArmPhysics:
         self._fric = [0.0] * nf  # torque friction/brake exert on each DOF (stiction included)
         self._lim_pos = [0.0] * nf
         self._lim_neg = [0.0] * nf
+        # the compiled holding kernel and its arrays (None: the Python reference, numba missing or not asked for)
+        self._hold_stuck = hold_kernel() if compiled else None
+        minv0 = np.zeros((nf, nf))
+        for r in range(nb):
+            minv0[n + r, n + r] = 1.0 / self._rotor_inertia[r]
+        self._hold_work = {"minv": minv0, "a": np.zeros(nf), "stuck": np.zeros(nf, dtype=np.bool_),
+                           "lim_pos": np.zeros(nf), "lim_neg": np.zeros(nf), "fric": np.zeros(nf),
+                           "dirs": np.zeros(nf), "idx": np.zeros(nf, dtype=np.int64),
+                           "rows": np.zeros((nf, nf + 1)), "lam": np.zeros(nf)}
 
         self.t_s = 0.0
         self.steps = 0
@@ -515,6 +525,8 @@ class ArmPhysics:
                 fric[:] = lam
                 return [0.0] * nf
         a = self._free_acceleration(F)
+        if self._hold_stuck is not None:
+            return self._hold_compiled(a)
         minv = self._inverse_inertia()
         S = [k for k in range(nf) if stuck[k]]
         lam = []
@@ -545,6 +557,24 @@ class ArmPhysics:
         for k in S:
             a[k] = 0.0
         return a
+
+    def _hold_compiled(self, a: list[float]) -> list[float]:
+        """:meth:`_constrained_acceleration`'s holding and break-away by the compiled kernel (sim/kernels.py)."""
+        n, w = self.n, self._hold_work
+        minv = w["minv"]
+        minv[:n, :n] = pin.computeMinverse(self.model, self.data, self.q_rad)  # (the rotors' block is constant)
+        acc, stuck, fric, dirs = w["a"], w["stuck"], w["fric"], w["dirs"]
+        acc[:] = a
+        stuck[:] = self._stuck
+        w["lim_pos"][:] = self._lim_pos
+        w["lim_neg"][:] = self._lim_neg
+        fric[:] = self._fric
+        dirs[:] = self._dir
+        self._hold_stuck(minv, acc, stuck, w["lim_pos"], w["lim_neg"], fric, dirs, w["idx"], w["rows"], w["lam"])
+        self._stuck[:] = stuck.tolist()
+        self._fric[:] = fric.tolist()
+        self._dir[:] = dirs.tolist()
+        return acc.tolist()
 
     def _heat(self) -> None:
         """First-order joint temperature from friction power and copper loss."""
