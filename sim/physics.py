@@ -78,6 +78,7 @@ class ArmPhysics:
     Truth state: ``q_rad``, ``dq_rad_s`` (numpy views, current), ``tau_ext_Nm`` (numpy, the operator's — write
     it directly when no ``operator`` is set), ``current_A``, ``current_measured_A``, ``tau_motor_Nm``,
     ``tau_friction_Nm``, ``tau_stop_Nm``, ``stuck``, ``brakes``, ``temperature_C`` (fresh arrays), ``t_s``, ``steps``.
+    ``compiled=False`` holds stuck DOFs with the Python reference instead of the compiled kernel (sim/kernels.py).
     """
 
     def __init__(self, truth: Truth, model: RobotModel | pin.Model, axes: list[AxisIO], *, compiled: bool = True) -> None:
@@ -208,7 +209,7 @@ class ArmPhysics:
         self._lim_pos = [0.0] * nf
         self._lim_neg = [0.0] * nf
         # the compiled holding kernel and its arrays (None: the Python reference, numba missing or not asked for)
-        self._hold_stuck = hold_kernel() if compiled else None
+        self._hold_stuck: Any = hold_kernel() if compiled else None
         minv0 = np.zeros((nf, nf))
         for r in range(nb):
             minv0[n + r, n + r] = 1.0 / self._rotor_inertia[r]

@@ -98,7 +98,7 @@ def test_the_arm_runs_the_same_with_the_kernel(backlash: bool) -> None:
         rng = np.random.default_rng(3)
         amp, w = rng.uniform(0.2, 1.5, phys.n), rng.uniform(1.0, 6.0, phys.n)
         rows, breakaways, partly = [], 0, 0
-        for step in range(16000):
+        for _ in range(16000):
             t = phys.t_s
             for j, ax in enumerate(axes):
                 ax.power_stage_on, ax.brake_engaged = True, False
