@@ -220,6 +220,7 @@ class SimDrive:
         self.rpdos = [PdoChannel(n, True, 0x1400 + n - 1, 0x1600 + n - 1) for n in range(1, 5)]
         self.tpdos = [PdoChannel(n, False, 0x1800 + n - 1, 0x1A00 + n - 1) for n in range(1, 5)]
         self._install_hooks()
+        self.store.written = self._unsteady
         self._consumers: dict[int, _Consumer] = {}
         # set by the SimNetwork: the time (monotonic) up to which every frame that reached this process has been
         # handed to the drives, given now — the reception watchdogs judge against it: a stall of the simulator's
@@ -227,6 +228,7 @@ class SimDrive:
         self.rx_caught_up: Callable[[float], float] | None = None
         self.nmt_state = NmtState.INITIALISING
         self._sim_t = 0.0
+        self._steady = False  # the last update's outputs hold until something reaches the drive (see ``update``)
         self.encoder_offset_counts = 0  # an injected encoder jump (sim/faults.py), added to 6064h
         self._reset_application_state()
         self._reset_communication_state()
@@ -334,6 +336,7 @@ class SimDrive:
     def boot(self) -> None:
         """Power-on: initialisation, boot-up frame, NMT pre-operational, 402 switch on disabled."""
         with self._lock:
+            self._steady = False
             self._enter_state(State.SWITCH_ON_DISABLED)
             self._send_bootup()
 
@@ -349,6 +352,7 @@ class SimDrive:
                      manufacturer: bytes = b"") -> None:
         """Raise a device fault (EMCY + fault reaction), e.g. from a sim scenario."""
         with self._lock:
+            self._steady = False
             self._fault(code, error_register_bits, manufacturer)
 
     def on_message(self, msg: can.Message) -> None:
@@ -361,6 +365,7 @@ class SimDrive:
         """`on_message` for a plain data frame (11-bit id, not remote): its COB-ID and payload."""
         now = time.monotonic()
         with self._lock:
+            self._steady = False  # (whatever the frame changes, the next physics step computes the outputs afresh)
             if cob == 0x000:
                 self._on_nmt(data)
                 return
@@ -372,6 +377,7 @@ class SimDrive:
                 return
             if cob == self._sdo_rx_cob:
                 if nmt is not NmtState.STOPPED:
+                    self._sample(self.io)  # an upload of an actual value reads it now
                     self.sdo.on_request(data)
                 return
             channels = self._rpdo_by_cob.get(cob)
@@ -393,7 +399,9 @@ class SimDrive:
         if self.nmt_state is not NmtState.OPERATIONAL:
             return
         with self._lock:
+            self._steady = False
             self.counters.syncs += 1
+            self._sample(self.io)  # the actual values as of this SYNC
             cells = self.store.cells
             for ch in self._sync_tpdos:
                 ch.sync_count += 1
@@ -415,7 +423,16 @@ class SimDrive:
                 self._poll_event_tpdos(time.monotonic() if t is None else t)
 
     def update(self, t: float, dt: float) -> None:
-        """One physics step: sample io, run the 402 timers and control law, write the io outputs."""
+        """One physics step: sample io, run the 402 timers and control law, write the io outputs.
+
+        A drive whose outputs cannot change by themselves (power stage off, or cyclic synchronous torque with the
+        brake released: the demand is the last applied command) skips the steps until something reaches it — a
+        frame, a SYNC, a fault, a watchdog (``_steady``). Actual values are sampled where they are read: a SYNC's
+        TPDOs, an SDO upload, an event TPDO, and each computed step (the CSP following error).
+        """
+        if self._steady:
+            self._sim_t = t
+            return
         io = self.io
         with self._lock:
             self._sim_t = t
@@ -438,7 +455,15 @@ class SimDrive:
                 io.power_stage_on = True
                 io.brake_engaged = not self._brake_released
             self._refresh_statusword()
-        now = time.monotonic()
+            self._steady = self._regime is _Regime.OFF or (
+                self._regime is _Regime.COMMAND and self._mode == Mode.CYCLIC_SYNC_TORQUE and self._brake_released)
+
+    def _unsteady(self) -> None:
+        self._steady = False
+
+    def comm(self, now: float) -> None:
+        """The communication side's timers (watchdogs, heartbeat, event TPDOs), due every ``COMM_TICK_S``; ``now`` on
+        the ``time.monotonic()`` clock. Called once per millisecond tick by the simulator's loop."""
         if now >= self._next_comm_s:
             self._comm_tick(now)
 
@@ -839,6 +864,7 @@ class SimDrive:
     def reset_node(self) -> None:
         """NMT reset node: application and communication objects back to defaults, boot-up."""
         with self._lock:
+            self._steady = False
             self.nmt_state = NmtState.INITIALISING
             self.store.reset()
             self._reset_application_state()
@@ -849,6 +875,7 @@ class SimDrive:
     def reset_communication(self) -> None:
         """NMT reset communication: 1000h-1FFFh back to defaults, boot-up (6007h reaction first)."""
         with self._lock:
+            self._steady = False
             self._abort_connection(EMCY_COMMUNICATION)
             self.nmt_state = NmtState.INITIALISING
             self.store.reset(COMM_RANGE)
@@ -994,6 +1021,7 @@ class SimDrive:
             self.counters.send_errors += 1
 
     def _poll_event_tpdos(self, now: float) -> None:
+        self._sample(self.io)
         cells = self.store.cells
         for ch in self._event_tpdos:
             data = ch.sample(cells)
@@ -1062,6 +1090,7 @@ class SimDrive:
             self._clear_error(EMCY_HEARTBEAT)
 
     def _heartbeat_lost(self, node: int) -> None:
+        self._steady = False
         self.counters.heartbeat_losses += 1
         self._raise_error(EMCY_HEARTBEAT, ERR_REG_COMMUNICATION, bytes((node,)))
         self._abort_connection(EMCY_HEARTBEAT)
@@ -1073,6 +1102,7 @@ class SimDrive:
         self._refresh_statusword()
 
     def _rpdo_timeout(self, ch: PdoChannel) -> None:
+        self._steady = False
         self.counters.rpdo_timeouts += 1
         self._raise_error(EMCY_RPDO_TIMEOUT, ERR_REG_COMMUNICATION, bytes((ch.number,)))
         self._abort_connection(EMCY_RPDO_TIMEOUT)

@@ -87,6 +87,7 @@ class ObjectStore:
         self.cells: list[Any] = list(self.defaults)
         self.before_write: dict[int, WriteHook] = {}
         self.after_write: dict[int, WriteHook] = {}
+        self.written: Callable[[], None] | None = None  # called after every checked write (an SDO download)
 
     @classmethod
     def from_eds(cls, eds_path: str | Path, node_id: int) -> ObjectStore:
@@ -187,6 +188,8 @@ class ObjectStore:
         after = self.after_write.get(var.index)
         if after is not None:
             after(var.subindex, value)
+        if self.written is not None:
+            self.written()
 
 
 def _initial_value(var: ODVariable) -> Any:

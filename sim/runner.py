@@ -233,6 +233,9 @@ class SimProcess:
                         physics.step()
                     if self.payloads.pending:
                         self.payloads.apply_due(physics)
+                now = time.monotonic()
+                for d in drives:
+                    d.comm(now)
                 busy = time.monotonic_ns() - wake
                 self.busy_ns += busy
                 if busy > self.max_busy_ns:
