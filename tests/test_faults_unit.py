@@ -126,6 +126,42 @@ def test_motion_across_missed_ticks_is_judged_by_the_time_elapsed() -> None:
     assert ip.cy.encoder_rejects == 6
 
 
+def _cycle_without(ip: InProcess, silent: int, ticks: int = 1) -> None:
+    """One cycle of ``ip`` in which joint ``silent``'s position TPDO does not arrive."""
+    cy, io, fb = ip.cy, ip.d.io, ip.fb
+    cy.tick(cy.dt * ticks * 1e6, ticks)
+    io.begin_cycle()
+    fb.rx[:] = True
+    fb.rx[silent] = False
+    fb.rx_count = fb.rx.shape[0] - 1
+    if cy.step(io.end_read()):
+        cy.cycles += 1
+        for fn in cy.after_cycle:
+            fn()  # type: ignore[operator]
+
+
+def test_lost_feedback_is_judged_by_the_time_elapsed_across_missed_ticks() -> None:
+    """A joint silent for 20 periods, then a 40-period host stall: it has been silent 60 ms, beyond the 50 of
+    stale_cycles_disable — a fault naming 60 cycles (counted as steps it would be 21, and the arm kept going blind).
+    The same stall with every joint reporting afterwards is no fault."""
+    cfg = load_config(DEFAULT_CONFIG)
+    assert (cfg.loop.stale_cycles_hold, cfg.loop.stale_cycles_disable) == (10, 50)
+    for silent_after_stall in (True, False):
+        ip = InProcess(cfg)
+        q = np.zeros(6)
+        ip.hold(q)
+        for _ in range(20):
+            _cycle_without(ip, 2)
+        assert ip.d.faults == [] and int(ip.fb.stale[2]) == 20
+        if silent_after_stall:
+            _cycle_without(ip, 2, ticks=40)
+            assert int(ip.fb.stale[2]) == 60
+            assert [f["text"] for f in ip.d.faults] == ["feedback lost: no TPDO from node 3 for 60 cycles"]
+        else:
+            ip.cycle(ticks=40)
+            assert ip.d.faults == [] and int(ip.fb.stale.max()) == 0
+
+
 def _bus_pair(name: str) -> tuple[can.BusABC, can.BusABC]:
     return can.Bus(interface="virtual", channel=name), can.Bus(interface="virtual", channel=name)
 

@@ -93,6 +93,10 @@ class Cycle:
             # the encoder plausibility bound grows with the time since each joint's last accepted sample: the
             # periods this tick slept through count (a stalled host must not make real motion look like a jump)
             np.add(self._since, expirations - 1, out=self._since)
+            # and the feedback's age: a joint already silent counts the periods it stayed silent, so the hold and
+            # fault thresholds (stale_cycles_hold / stale_cycles_disable) mean time, not steps (the read step resets
+            # every joint that reports this cycle)
+            np.add(self.io.feedback.stale, expirations - 1, out=self.io.feedback.stale)
         self.sample_dt_s = period_us * 1e-6  # SYNC goes out right after the tick: the sampling interval
         self.t += self.dt * expirations
         self.controller.t = self.t  # (commands during the read see the cycle's time)
