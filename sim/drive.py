@@ -420,7 +420,7 @@ class SimDrive:
                     self._apply_rpdo(ch, data)
                     applied = True
             if applied and self._event_tpdos:
-                self._poll_event_tpdos(time.monotonic() if t is None else t)
+                self._poll_event_tpdos(time.monotonic() if t is None else t, sampled=True)
 
     def update(self, t: float, dt: float) -> None:
         """One physics step: sample io, run the 402 timers and control law, write the io outputs.
@@ -1020,8 +1020,10 @@ class SimDrive:
         except can.CanError:
             self.counters.send_errors += 1
 
-    def _poll_event_tpdos(self, now: float) -> None:
-        self._sample(self.io)
+    def _poll_event_tpdos(self, now: float, sampled: bool = False) -> None:
+        """Send the event-driven TPDOs whose data changed (inhibit time kept); ``sampled``: actual values are current."""
+        if not sampled:
+            self._sample(self.io)
         cells = self.store.cells
         for ch in self._event_tpdos:
             data = ch.sample(cells)
