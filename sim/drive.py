@@ -596,6 +596,7 @@ class SimDrive:
             self._enter_state(st.then)
 
     def _power_off(self) -> None:
+        self._steady = False
         self._regime = _Regime.OFF
         self._brake_released = False
         self._internal_limit = False
@@ -605,6 +606,7 @@ class SimDrive:
     # CiA 402 state machine
     # ==================================================================================================
     def _enter_state(self, state: State) -> None:
+        self._steady = False
         self.state = state
         if state is not State.OPERATION_ENABLED and state not in (State.QUICK_STOP_ACTIVE,
                                                                   State.FAULT_REACTION_ACTIVE):
@@ -726,6 +728,7 @@ class SimDrive:
         return self.store.cells[slot] / self._counts_per_rad
 
     def _fault(self, code: int, register_bits: int, manufacturer: bytes = b"", emcy: bool = True) -> None:
+        self._steady = False
         if emcy:
             self._raise_error(code, register_bits, manufacturer)
         else:
@@ -751,6 +754,7 @@ class SimDrive:
         self._send_emcy(EMCY_NO_ERROR, b"")
 
     def _set_mode(self, mode: int) -> None:
+        self._steady = False
         if self._mode == mode:
             return
         self._mode = mode
@@ -785,6 +789,7 @@ class SimDrive:
     # errors and EMCY
     # ==================================================================================================
     def _raise_error(self, code: int, register_bits: int, manufacturer: bytes = b"") -> None:
+        self._steady = False
         self._active_errors[code] = register_bits
         self._update_error_register()
         self._push_error_history(code, manufacturer)
@@ -792,6 +797,7 @@ class SimDrive:
 
     def _clear_error(self, code: int) -> None:
         """A non-latched error condition went away; EMCY 0000h once no error remains."""
+        self._steady = False
         if code not in self._active_errors or self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
             return
         del self._active_errors[code]
@@ -845,6 +851,7 @@ class SimDrive:
             self.reset_communication()
 
     def _set_nmt(self, state: NmtState) -> None:
+        self._steady = False
         previous = self.nmt_state
         if state is previous:
             return
@@ -1043,7 +1050,9 @@ class SimDrive:
     # ==================================================================================================
     def _comm_tick(self, now: float) -> None:
         with self._lock:
-            self._next_comm_s = now + COMM_TICK_S
+            # on a COMM_TICK_S grid: called once per tick by the simulator's loop, a tick that comes a little early
+            # must not push the next one a whole period further (at most one period is made up after a stall)
+            self._next_comm_s = max(self._next_comm_s + COMM_TICK_S, now - COMM_TICK_S)
             nmt = self.nmt_state
             if nmt is NmtState.INITIALISING:
                 return

@@ -24,7 +24,6 @@ from pathlib import Path
 
 import can
 import canopen
-import numpy as np
 import pytest
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
@@ -618,96 +617,6 @@ def test_sdo_server_edge_cases(local: LocalDrive) -> None:
     mark = len(local.sent)
     local.drive.on_message(can.Message(arbitration_id=0x600 + node, data=b"\x40\x00\x10", is_extended_id=False))
     assert len(local.sent) == mark
-
-
-def _sdo_download(drive: object, index: int, sub: int, value: int, size: int) -> None:
-    """An expedited SDO download frame straight into a drive (signed little-endian value)."""
-    from sim.drive import SimDrive
-
-    assert isinstance(drive, SimDrive)
-    cs = {1: 0x2F, 2: 0x2B, 4: 0x23}[size]
-    data = struct.pack("<BHB", cs, index, sub) + value.to_bytes(size, "little", signed=True).ljust(4, b"\0")
-    drive.on_message(can.Message(arbitration_id=0x600 + drive.node_id, data=data, is_extended_id=False))
-
-
-def test_a_steady_drive_skips_physics_steps_and_computes_what_a_full_update_would() -> None:
-    """Power off, or CST with the brake released, the drive's outputs are the last command's: ``update`` skips until a
-    frame, SYNC, fault or watchdog reaches it. Against a twin forced to compute every step, under the same random SDO
-    commands (torque, offset, limits, controlwords, quick stops, fault resets, mode changes), injected faults and a
-    moving axis, the outputs and the statusword agree at every step — and the actual values read over SDO are those of
-    the moment they are read, not of the last computed step."""
-    from sim.axis import AxisIO
-    from sim.drive import SimDrive
-    from sim.truth import drive_params
-
-    params = drive_params(TRUTH.joints[1], fd=False)
-    drives = [SimDrive(params, AxisIO(), lambda m: None) for _ in range(2)]
-    skip, ref = drives
-    for d in drives:
-        d.boot()
-        d.on_data(0x000, bytes((0x01, d.node_id)))  # NMT start: RPDOs and SYNC count
-    rng = np.random.default_rng(5)
-    dt, skipped, t = 0.00025, 0, 0.0
-    words = [CMD_SHUTDOWN, CMD_SHUTDOWN | 0x1, CMD_ENABLE_OPERATION, CMD_QUICK_STOP, CMD_DISABLE_VOLTAGE,
-             CMD_FAULT_RESET]
-    for step in range(20_000):
-        t = step * dt
-        r = rng.random()
-        actions: list[Callable[[SimDrive], None]] = []
-        if r < 0.004:
-            w = int(rng.choice(words))
-            actions.append(lambda d, w=w: _sdo_download(d, 0x6040, 0, w, 2))
-        elif r < 0.010:
-            v = int(rng.integers(-1500, 1500))
-            actions.append(lambda d, v=v: _sdo_download(d, 0x6071, 0, v, 2))
-        elif r < 0.012:
-            v = int(rng.integers(-300, 300))
-            actions.append(lambda d, v=v: _sdo_download(d, 0x60B2, 0, v, 2))
-        elif r < 0.013:
-            v = int(rng.integers(200, 3000))
-            actions.append(lambda d, v=v: _sdo_download(d, 0x6072, 0, v, 2))
-        elif r < 0.0135:
-            m = int(rng.choice([10, 10, 10, 4]))  # mostly CST, sometimes profile torque (never steady)
-            actions.append(lambda d, m=m: _sdo_download(d, 0x6060, 0, m, 1))
-        elif r < 0.0137:
-            actions.append(lambda d: d.inject_fault(0x2310))
-        elif r < 0.030:  # RPDO1 (controlword, target torque) latched, applied by the next SYNC
-            v = int(rng.integers(-1500, 1500))
-            cw = CMD_ENABLE_OPERATION if rng.random() < 0.95 else int(rng.choice(words))
-            actions += [lambda d, v=v, cw=cw: d.on_data(0x200 + d.node_id, struct.pack("<Hh", cw, v))]
-            if rng.random() < 0.8:
-                actions.append(lambda d: d.on_data(0x080, b""))
-        elif step % 4000 == 100:  # regularly back to operation enabled in CST
-            actions += [lambda d: _sdo_download(d, 0x6060, 0, 10, 1)] + [
-                lambda d, w=w: _sdo_download(d, 0x6040, 0, w, 2)
-                for w in (CMD_DISABLE_VOLTAGE, CMD_FAULT_RESET, CMD_SHUTDOWN, CMD_SHUTDOWN | 0x1, CMD_ENABLE_OPERATION)]
-        q = 0.3 * math.sin(2.0 * t) + 1e-4 * step
-        for d in drives:
-            for act in actions:
-                act(d)
-            d.io.position_rad, d.io.velocity_rad_s, d.io.current_measured_A = q, 0.6 * math.cos(2.0 * t), 0.1 * q
-        skipped += skip._steady
-        ref._steady = False  # the twin computes every step
-        for d in drives:
-            d.update(t, dt)
-        assert (skip.io.current_demand_A, skip.io.power_stage_on, skip.io.brake_engaged) == \
-            (ref.io.current_demand_A, ref.io.power_stage_on, ref.io.brake_engaged), step
-        assert skip.store.get(0x6041) == ref.store.get(0x6041) and skip.state is ref.state, step
-        if step % 997 == 0:  # actual values over SDO: sampled when read, whatever the last computed step
-            for d in drives:
-                d.io.position_rad += 0.01
-            for d in drives:
-                _sdo_upload_6064(d)
-            assert skip.store.get(0x6064) == ref.store.get(0x6064) == round((q + 0.01) * skip._counts_per_rad), step
-    assert 5_000 < skipped < 19_000, skipped  # both paths ran: steady stretches and computed steps
-
-
-def _sdo_upload_6064(drive: object) -> None:
-    from sim.drive import SimDrive
-
-    assert isinstance(drive, SimDrive)
-    drive.on_message(can.Message(arbitration_id=0x600 + drive.node_id, data=bytes.fromhex("4064600000000000"),
-                                 is_extended_id=False))
 
 
 COMMANDABLE = (State.SWITCH_ON_DISABLED, State.READY_TO_SWITCH_ON, State.SWITCHED_ON, State.OPERATION_ENABLED)
