@@ -1,9 +1,9 @@
 """The simulated arm's compiled kernels (numba, through dragd.jit): stiction holding the stuck DOFs.
 
-``ArmPhysics._constrained_acceleration`` in Python (``_solve_spd`` and its break-away loop over lists) is the
-reference; :func:`hold_stuck` does the same arithmetic in the same order on arrays — one call instead of an
-O(m³) elimination in Python per step and per break-away (at 12 joints with most of them at rest that was the
-simulator's largest single cost, ~40 µs a step). tests/test_sim_kernels.py holds the two to each other.
+``sim.physics.hold_stuck`` (``_solve_spd`` and the break-away loop over lists) is the reference; :func:`_hold_kernel`
+does the same arithmetic in the same order on arrays — one call instead of an O(m³) elimination in Python per step
+and per break-away (at 12 joints with most of them at rest that was the simulator's largest single cost, ~40 µs a
+step). tests/test_sim_kernels.py holds the two to each other.
 """
 
 from __future__ import annotations

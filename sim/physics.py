@@ -72,6 +72,46 @@ def _solve_spd(a: list[list[float]], idx: list[int], rhs: list[float]) -> list[f
     return x
 
 
+
+def hold_stuck(minv: list[list[float]], a: list[float], stuck: list[bool], lim_pos: list[float],
+               lim_neg: list[float], fric: list[float], dirs: list[float]) -> None:
+    """Hold the stuck DOFs by stiction: ``a`` (free accelerations, in place) gets the holding torques' effect.
+
+    A stuck DOF whose holding torque exceeds its static level in the direction it would move breaks away (the worst
+    first, the rest re-solved): it is marked sliding in ``stuck``/``dirs`` with its static level as friction.
+    ``fric`` gets every stuck DOF's holding torque and each released one's friction; the held DOFs' ``a`` is 0.
+    The reference of sim/kernels.py's compiled kernel (the same operations in the same order).
+    """
+    nf = len(a)
+    S = [k for k in range(nf) if stuck[k]]
+    lam: list[float] = []
+    while S:
+        lam = _solve_spd(minv, S, [-a[k] for k in S])
+        worst, worst_excess = -1, 0.0
+        for i, k in enumerate(S):
+            lk = lam[i]
+            excess = lk - lim_neg[k] if lk > 0.0 else -lk - lim_pos[k]
+            if excess > worst_excess:
+                worst, worst_excess = i, excess
+        if worst < 0:
+            break
+        k = S.pop(worst)
+        d = -1.0 if lam[worst] > 0.0 else 1.0  # it moves against the torque that would have held it
+        f = -d * (lim_pos[k] if d > 0.0 else lim_neg[k])
+        for i in range(nf):
+            a[i] += minv[i][k] * f
+        fric[k] = f
+        stuck[k] = False
+        dirs[k] = d
+        lam = []
+    for i, k in enumerate(S):
+        lk = lam[i]
+        fric[k] = lk
+        for r in range(nf):
+            a[r] += minv[r][k] * lk
+    for k in S:
+        a[k] = 0.0
+
 class ArmPhysics:
     """The simulated arm: call :meth:`step` once per physics step after the drives' ``update``.
 
@@ -209,7 +249,7 @@ class ArmPhysics:
         self._lim_pos = [0.0] * nf
         self._lim_neg = [0.0] * nf
         # the compiled holding kernel and its arrays (None: the Python reference, numba missing or not asked for)
-        self._hold_stuck: Any = hold_kernel() if compiled else None
+        self._hold_kernel: Any = hold_kernel() if compiled else None
         minv0 = np.zeros((nf, nf))
         for r in range(nb):
             minv0[n + r, n + r] = 1.0 / self._rotor_inertia[r]
@@ -526,37 +566,9 @@ class ArmPhysics:
                 fric[:] = lam
                 return [0.0] * nf
         a = self._free_acceleration(F)
-        if self._hold_stuck is not None:
+        if self._hold_kernel is not None:
             return self._hold_compiled(a)
-        minv = self._inverse_inertia()
-        S = [k for k in range(nf) if stuck[k]]
-        lam = []
-        while S:
-            lam = _solve_spd(minv, S, [-a[k] for k in S])
-            worst, worst_excess = -1, 0.0
-            for i, k in enumerate(S):
-                lk = lam[i]
-                excess = lk - ln[k] if lk > 0.0 else -lk - lp[k]
-                if excess > worst_excess:
-                    worst, worst_excess = i, excess
-            if worst < 0:
-                break
-            k = S.pop(worst)
-            d = -1.0 if lam[worst] > 0.0 else 1.0  # it moves against the torque that would have held it
-            f = -d * (lp[k] if d > 0.0 else ln[k])
-            for i in range(nf):
-                a[i] += minv[i][k] * f
-            fric[k] = f
-            stuck[k] = False
-            dirs[k] = d
-            lam = []
-        for i, k in enumerate(S):
-            lk = lam[i]
-            fric[k] = lk
-            for r in range(nf):
-                a[r] += minv[r][k] * lk
-        for k in S:
-            a[k] = 0.0
+        hold_stuck(self._inverse_inertia(), a, stuck, lp, ln, fric, dirs)
         return a
 
     def _hold_compiled(self, a: list[float]) -> list[float]:
@@ -571,7 +583,7 @@ class ArmPhysics:
         w["lim_neg"][:] = self._lim_neg
         fric[:] = self._fric
         dirs[:] = self._dir
-        self._hold_stuck(minv, acc, stuck, w["lim_pos"], w["lim_neg"], fric, dirs, w["idx"], w["rows"], w["lam"])
+        self._hold_kernel(minv, acc, stuck, w["lim_pos"], w["lim_neg"], fric, dirs, w["idx"], w["rows"], w["lam"])
         self._stuck[:] = stuck.tolist()
         self._fric[:] = fric.tolist()
         self._dir[:] = dirs.tolist()

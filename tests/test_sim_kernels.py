@@ -15,7 +15,7 @@ import pytest
 
 from sim.axis import AxisIO
 from sim.kernels import hold_kernel
-from sim.physics import ArmPhysics, _solve_spd
+from sim.physics import ArmPhysics, hold_stuck
 from sim.truth import load_truth
 
 from conftest import REPO
@@ -25,36 +25,10 @@ pytestmark = [pytest.mark.unit, pytest.mark.skipif(hold_kernel() is None, reason
 
 def _reference(minv: np.ndarray, a: np.ndarray, stuck: np.ndarray, lp: np.ndarray, ln: np.ndarray,
                fric: np.ndarray, dirs: np.ndarray) -> tuple[list[float], list[bool], list[float], list[float]]:
-    """ArmPhysics._constrained_acceleration's holding loop, verbatim on lists."""
-    m, a, st, fr, dr = minv.tolist(), a.tolist(), stuck.tolist(), fric.tolist(), dirs.tolist()
-    lp, ln = lp.tolist(), ln.tolist()
-    nf = len(a)
-    S = [k for k in range(nf) if st[k]]
-    lam: list[float] = []
-    while S:
-        lam = _solve_spd(m, S, [-a[k] for k in S])
-        worst, worst_excess = -1, 0.0
-        for i, k in enumerate(S):
-            lk = lam[i]
-            excess = lk - ln[k] if lk > 0.0 else -lk - lp[k]
-            if excess > worst_excess:
-                worst, worst_excess = i, excess
-        if worst < 0:
-            break
-        k = S.pop(worst)
-        d = -1.0 if lam[worst] > 0.0 else 1.0
-        f = -d * (lp[k] if d > 0.0 else ln[k])
-        for i in range(nf):
-            a[i] += m[i][k] * f
-        fr[k], st[k], dr[k] = f, False, d
-        lam = []
-    for i, k in enumerate(S):
-        fr[k] = lam[i]
-        for r in range(nf):
-            a[r] += m[r][k] * lam[i]
-    for k in S:
-        a[k] = 0.0
-    return a, st, fr, dr
+    """The physics' Python holding (sim.physics.hold_stuck) on list copies of the arrays."""
+    out = a.tolist(), stuck.tolist(), fric.tolist(), dirs.tolist()
+    hold_stuck(minv.tolist(), out[0], out[1], lp.tolist(), ln.tolist(), out[2], out[3])
+    return out
 
 
 def test_hold_kernel_matches_the_reference_on_random_problems() -> None:
@@ -94,7 +68,7 @@ def test_the_arm_runs_the_same_with_the_kernel(backlash: bool) -> None:
     for compiled in (False, True):
         axes = [AxisIO() for _ in truth.joints]
         phys = ArmPhysics(truth, model, axes, compiled=compiled)
-        assert (phys._hold_stuck is not None) == compiled
+        assert (phys._hold_kernel is not None) == compiled
         rng = np.random.default_rng(3)
         amp, w = rng.uniform(0.2, 1.5, phys.n), rng.uniform(1.0, 6.0, phys.n)
         rows, breakaways, partly = [], 0, 0
