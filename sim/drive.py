@@ -228,6 +228,7 @@ class SimDrive:
         self.rx_caught_up: Callable[[float], float] | None = None
         self.nmt_state = NmtState.INITIALISING
         self._sim_t = 0.0
+        self._steady = False  # the last update's outputs hold until something reaches the drive (see ``update``)
         self.encoder_offset_counts = 0  # an injected encoder jump (sim/faults.py), added to 6064h
         self._reset_application_state()
         self._reset_communication_state()
@@ -303,7 +304,6 @@ class SimDrive:
 
     def _reset_application_state(self) -> None:
         """402 side back to power-on: no torque, brake engaged, no errors."""
-        self._steady = False  # the last update's outputs hold until something reaches the drive (see ``update``)
         self.state = State.NOT_READY_TO_SWITCH_ON
         self._regime = _Regime.OFF
         self._stop: _Stop | None = None
@@ -336,6 +336,7 @@ class SimDrive:
     def boot(self) -> None:
         """Power-on: initialisation, boot-up frame, NMT pre-operational, 402 switch on disabled."""
         with self._lock:
+            self._steady = False
             self._enter_state(State.SWITCH_ON_DISABLED)
             self._send_bootup()
 
@@ -351,6 +352,7 @@ class SimDrive:
                      manufacturer: bytes = b"") -> None:
         """Raise a device fault (EMCY + fault reaction), e.g. from a sim scenario."""
         with self._lock:
+            self._steady = False
             self._fault(code, error_register_bits, manufacturer)
 
     def on_message(self, msg: can.Message) -> None:
@@ -363,6 +365,7 @@ class SimDrive:
         """`on_message` for a plain data frame (11-bit id, not remote): its COB-ID and payload."""
         now = time.monotonic()
         with self._lock:
+            self._steady = False  # (whatever the frame changes, the next physics step computes the outputs afresh)
             if cob == 0x000:
                 self._on_nmt(data)
                 return
@@ -396,6 +399,7 @@ class SimDrive:
         if self.nmt_state is not NmtState.OPERATIONAL:
             return
         with self._lock:
+            self._steady = False
             self.counters.syncs += 1
             self._sample(self.io)  # the actual values as of this SYNC
             cells = self.store.cells
@@ -423,11 +427,8 @@ class SimDrive:
 
         A drive whose outputs cannot change by themselves (power stage off, or cyclic synchronous torque with the
         brake released: the demand is the last applied command) skips the steps until something reaches it — a
-        frame, a SYNC, a fault, a watchdog. ``_steady`` is cleared where what a step computes from can change: a PDO
-        or SDO write (``_apply_rpdo``, ``ObjectStore.written``), a state or regime change (``_enter_state``,
-        ``_enter_operation_enabled``, ``_start_stop``, ``_power_off``, ``_set_mode``, a reset), an error raised or
-        cleared (the statusword's warning bit). Actual values are sampled where they are read: a SYNC's TPDOs, an
-        SDO upload, an event TPDO, and each computed step (the CSP following error).
+        frame, a SYNC, a fault, a watchdog (``_steady``). Actual values are sampled where they are read: a SYNC's
+        TPDOs, an SDO upload, an event TPDO, and each computed step (the CSP following error).
         """
         if self._steady:
             self._sim_t = t
@@ -545,7 +546,6 @@ class SimDrive:
 
     def _start_stop(self, decel_rad_s2: float | None, then: State | None) -> None:
         """Begin a deceleration to rest with the drive's velocity loop (bumpless from the last demand)."""
-        self._steady = False
         self._stop = _Stop(decel_rad_s2=decel_rad_s2, then=then, v_ref_rad_s=self.io.velocity_rad_s,
                            integral_A=self.io.current_demand_A, started_s=self._sim_t)
         self._regime = _Regime.STOPPING
@@ -616,7 +616,6 @@ class SimDrive:
         self._refresh_statusword()
 
     def _enter_operation_enabled(self) -> None:
-        self._steady = False
         self._stop = None
         self._regime = _Regime.COMMAND
         self._enabled_at_s = self._sim_t
@@ -729,6 +728,7 @@ class SimDrive:
         return self.store.cells[slot] / self._counts_per_rad
 
     def _fault(self, code: int, register_bits: int, manufacturer: bytes = b"", emcy: bool = True) -> None:
+        self._steady = False
         if emcy:
             self._raise_error(code, register_bits, manufacturer)
         else:
@@ -851,6 +851,7 @@ class SimDrive:
             self.reset_communication()
 
     def _set_nmt(self, state: NmtState) -> None:
+        self._steady = False
         previous = self.nmt_state
         if state is previous:
             return
@@ -870,6 +871,7 @@ class SimDrive:
     def reset_node(self) -> None:
         """NMT reset node: application and communication objects back to defaults, boot-up."""
         with self._lock:
+            self._steady = False
             self.nmt_state = NmtState.INITIALISING
             self.store.reset()
             self._reset_application_state()
@@ -880,6 +882,7 @@ class SimDrive:
     def reset_communication(self) -> None:
         """NMT reset communication: 1000h-1FFFh back to defaults, boot-up (6007h reaction first)."""
         with self._lock:
+            self._steady = False
             self._abort_connection(EMCY_COMMUNICATION)
             self.nmt_state = NmtState.INITIALISING
             self.store.reset(COMM_RANGE)
@@ -1005,7 +1008,6 @@ class SimDrive:
                 self._poll_event_tpdos(now)
 
     def _apply_rpdo(self, ch: PdoChannel, data: bytes) -> None:
-        self._steady = False
         cells = self.store.cells
         for slot, value in zip(ch.slots, ch.layout.unpack_from(data)):
             cells[slot] = value
@@ -1099,6 +1101,7 @@ class SimDrive:
             self._clear_error(EMCY_HEARTBEAT)
 
     def _heartbeat_lost(self, node: int) -> None:
+        self._steady = False
         self.counters.heartbeat_losses += 1
         self._raise_error(EMCY_HEARTBEAT, ERR_REG_COMMUNICATION, bytes((node,)))
         self._abort_connection(EMCY_HEARTBEAT)
@@ -1110,6 +1113,7 @@ class SimDrive:
         self._refresh_statusword()
 
     def _rpdo_timeout(self, ch: PdoChannel) -> None:
+        self._steady = False
         self.counters.rpdo_timeouts += 1
         self._raise_error(EMCY_RPDO_TIMEOUT, ERR_REG_COMMUNICATION, bytes((ch.number,)))
         self._abort_connection(EMCY_RPDO_TIMEOUT)
