@@ -43,12 +43,7 @@ def _solve_into(minv: np.ndarray, idx: np.ndarray, m: int, a: np.ndarray, rows: 
 
 def _hold_kernel(minv: np.ndarray, a: np.ndarray, stuck: np.ndarray, lim_pos: np.ndarray, lim_neg: np.ndarray,
                  fric: np.ndarray, dirs: np.ndarray, idx: np.ndarray, rows: np.ndarray, lam: np.ndarray) -> None:
-    """Hold the stuck DOFs by stiction: ``a`` (free accelerations, in place) gets the holding torques' effect.
-
-    A stuck DOF whose holding torque exceeds its static level in the direction it would move breaks away (worst
-    first, the rest re-solved): it is marked sliding in ``stuck``/``dirs`` with its static level as friction.
-    ``fric`` gets every stuck DOF's holding torque and each released one's friction; the held DOFs' ``a`` is 0.
-    """
+    """``sim.physics.hold_stuck`` on arrays (``stuck`` bool; ``idx``, ``rows``, ``lam``: work arrays of the DOF count)."""
     nf = a.shape[0]
     m = 0
     for k in range(nf):
