@@ -8,12 +8,18 @@ that feeds the compensation runs first (plan, ``python -m sim log``, ``dragd ide
 from __future__ import annotations
 
 import json
+import os
+import signal
+import threading
+import time
 from pathlib import Path
 
 import pytest
 import yaml
 
 from dragd.config import load_params
+from dragd.lab.experiment import startup as startup_experiment
+from dragd.lab.experiment.bench import Bench
 
 from conftest import run_cli
 
@@ -48,7 +54,7 @@ def test_startup_identifies_first_and_cuts_the_starting_torque(startup):
 def test_sine_sweep_picks_a_frequency_writes_it_and_beats_the_published_hand_over(startup, tmp_path):
     work, _ = startup
     out = tmp_path / "params.yaml"
-    proc = run_cli("experiment", "sine-sweep", "--joint", "4", "--frequencies", "8,16", "--reps", "2", "--ramp-s", "4",
+    proc = run_cli("experiment", "sine-sweep", "--joint", "4", "--frequencies", "8,16", "--reps", "4", "--ramp-s", "4",
                    "--params", str(work / "identified.yaml"), "--out", str(out), "--work-dir", str(tmp_path / "w"),
                    "--json", timeout=600)
     data = json.loads(proc.stdout)
@@ -60,10 +66,50 @@ def test_sine_sweep_picks_a_frequency_writes_it_and_beats_the_published_hand_ove
     assert written.joints["joint4"].friction.static_pos_A is not None  # the identified params are kept
     c = data["comparisons"]
     assert set(c) == {"sine_fade", "square_fade", "sine_fade_no_breakout", "sine_abrupt"}
-    # the break-out latch needs less starting torque than seed 001's velocity switch (on this light joint with a
-    # short ramp both are good — 80-85 % below the static level — so the margin is ~15-25 %, docs/EXPERIMENTS.md)
-    assert c["sine_fade"]["starting_torque_Nm"] < 0.9 * c["sine_abrupt"]["starting_torque_Nm"], c
+    assert all(len(v["repetitions_Nm"]) == 4 and v["void_repetitions"] >= 0 for v in c.values()), c
+    # the break-out latch needs less starting torque than seed 001's velocity switch and than the fade alone. On
+    # this light joint with a short ramp all are good — 80-85 % below the static level — so the margins are small
+    # (clean runs of 2 repetitions: −13…−24 % and −21…−32 %), and which sine peak first meets the rising load is
+    # chance (±0.03 N·m a repetition at 8 Hz): 4 repetitions, margins 5 and 10 %
+    assert c["sine_fade"]["starting_torque_Nm"] < 0.95 * c["sine_abrupt"]["starting_torque_Nm"], c
     assert c["sine_fade"]["starting_torque_Nm"] < 0.9 * c["sine_fade_no_breakout"]["starting_torque_Nm"], c
+
+
+def test_a_repetition_the_daemon_held_the_arm_through_is_void_and_repeated(startup, tmp_path, monkeypatch):
+    """A host stall in the middle of a ramp (here: the simulator stopped for 25 ms, so no TPDO reaches the daemon
+    for 25 cycles) makes the daemon hold the arm: the start-up term is off meanwhile, and the load at breakaway
+    measures the host, not the law (CI: one such stall cost the latch its lead). That repetition is void and run
+    again, in the same direction."""
+    work, _ = startup
+    bench = Bench(tmp_path / "w", params=work / "identified.yaml", progress=False)
+    real_ramp, signs, stalls = startup_experiment.ramp_breakaway, [], []
+
+    def ramp_with_a_stall(rig, joint, sign, rate_Nm_s, timeout_s):
+        if not signs:  # the first ramp: 0.15 s after it starts (the breakaway comes after ~0.6 s), a 25 ms stall
+            pid = rig.sim.proc.pid
+
+            def stall() -> None:
+                os.kill(pid, signal.SIGSTOP)
+                try:
+                    time.sleep(0.025)
+                finally:
+                    os.kill(pid, signal.SIGCONT)
+                stalls.append(pid)
+
+            threading.Timer(0.15, stall).start()
+        signs.append(sign)
+        return real_ramp(rig, joint, sign, rate_Nm_s, timeout_s)
+
+    monkeypatch.setattr(startup_experiment, "ramp_breakaway", ramp_with_a_stall)
+    with bench.rig("void") as rig:
+        holds0 = rig.must("status")["feedback_holds"]
+        loads, _, void = startup_experiment._starting_torques(bench, rig, [3], 2, ramp_s=4.0)
+        st = rig.must("status")
+    assert stalls and st["feedback_holds"] > holds0  # the stall happened and the daemon held the arm for it
+    assert st["mode"] == "drag" and st["faults"] == []  # ... and went back to drag (no fault: 25 < 50 cycles)
+    assert void == {3: 1} and signs == [1, 1, -1]  # the held repetition repeated, in its direction
+    # the two kept repetitions are the law's: well below the static level (≈ 2.1 N·m), as the fixture's run
+    assert len(loads[3]) == 2 and max(loads[3]) < 0.5 * bench.static_Nm(3), loads
 
 
 def test_drag_quality_effort_and_drift(startup, tmp_path):

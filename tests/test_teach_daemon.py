@@ -130,8 +130,9 @@ def test_teach_by_hand_replay_linear_and_bumpless_drag_replay_drag(tmp_path):
     assert [w.name for w in prog.waypoints] == ["p1", "p2", "p3"]
     assert np.allclose(prog.waypoint_array(), [m["q_rad"] for m in marks], atol=1e-6)
     t, q = prog.path_arrays()
-    # one sample per 10 ms of the daemon's clock (a stall of the loop loses the samples it spans)
-    assert prog.recording.rate_Hz == 100.0 and 0.9 < len(t) / (100 * prog.recording.duration_s) <= 1.001
+    # one sample per 10 ms of the daemon's clock, both ends included (a stall of the loop loses the samples it spans)
+    n_grid = 100 * prog.recording.duration_s + 1
+    assert prog.recording.rate_Hz == 100.0 and 0.9 * n_grid < len(t) <= n_grid + 0.01, (len(t), n_grid)
     assert np.median(np.diff(t)) == pytest.approx(0.01, abs=1.5e-3) and q.shape[1] == 6
     assert np.abs(q[-1] - np.array(marks[2]["q_rad"])).max() < math.radians(0.5)
     raw = tmp_path / "programs" / prog.recording.mcap

@@ -163,6 +163,11 @@ def ramp_breakaway(rig: Rig, joint: str, sign: int, rate_Nm_s: float, timeout_s:
     return ev[-1]
 
 
+def feedback_holds(rig: Rig) -> int:
+    """How often the daemon has held the arm for lost feedback (a stalled host: the law was off meanwhile)."""
+    return int(rig.must("status")["feedback_holds"])
+
+
 def move_effort(rig: Rig, joint: str, velocity_rad_s: float, seconds: float) -> dict[str, Any]:
     """A hand moving one joint at a set speed; the mean torque it needed (the operator's force gauge)."""
     rig.sim_call("operator", scenario={"name": f"move_{joint}", "segments": [

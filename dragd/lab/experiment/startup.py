@@ -18,17 +18,23 @@ from typing import Any
 import numpy as np
 
 from dragd.config import ParamsFile, load_params, save_params
-from dragd.lab.experiment.bench import Bench, handover_step_A, oscillation_deg, ramp_breakaway, record, wait_rest
+from dragd.lab.experiment.bench import (Bench, feedback_holds, handover_step_A, oscillation_deg, ramp_breakaway, record,
+                                       wait_rest)
 
 OSCILLATION_LIMIT_DEG = 0.06  # seed 001: the oscillation range at the chosen frequency stays below it
 RAMP_S = 10.0  # seconds the load ramp takes to reach the believed static friction
 DEFAULT_FREQUENCIES_HZ = (2.0, 4.0, 8.0, 12.0, 16.0, 20.0, 25.0, 30.0, 40.0)
+VOID_RETRIES = 3  # a repetition the daemon did not drag through is repeated up to this many times
 
 
 def _starting_torques(bench: Bench, rig: Any, joints: list[int], reps: int, rows_path: Path | None = None,
-                      ramp_s: float | None = None) -> tuple[dict[int, list[float]], dict[str, np.ndarray] | None]:
-    """Ramp each joint ``reps`` times (alternating direction); the breakaway loads [N·m] per joint."""
+                      ramp_s: float | None = None) -> tuple[dict[int, list[float]], dict[str, np.ndarray] | None,
+                                                            dict[int, int]]:
+    """Ramp each joint ``reps`` times (alternating direction); the breakaway loads [N·m] per joint, and per joint
+    the repetitions voided because the daemon held the arm for lost feedback during the ramp (a host stall of
+    tens of ms: the start-up term was off and faded back in, so the load measured the host, not the law)."""
     out: dict[int, list[float]] = {}
+    void: dict[int, int] = {}
     if rows_path is not None:
         rig.must("record", action="start", path=str(rows_path), label=rows_path.stem)
     for j in joints:
@@ -37,16 +43,29 @@ def _starting_torques(bench: Bench, rig: Any, joints: list[int], reps: int, rows
         ramp = ramp_s or RAMP_S
         rate = fs / ramp  # a slow ramp (the seed adds weights one by one): ``ramp`` s to the believed static level
         loads = []
+        void[j] = 0
         for r in range(reps):
             sign = 1 if r % 2 == 0 else -1
-            # up to 3 × the believed level: an identified static friction that came out low (a log from a loaded
-            # host) must not end the experiment — the seed adds weights until the joint moves
-            ev = ramp_breakaway(rig, name, sign, rate, timeout_s=3.0 * ramp)
-            if ev["kind"] != "breakaway":
-                raise RuntimeError(f"{name}: no breakaway within the ramp ({ev['kind']}: {ev}); the daemon then: "
-                                   f"{_daemon_state(rig)}")
-            loads.append(abs(float(ev["torque_Nm"])))
-            wait_rest(rig)
+            for _ in range(VOID_RETRIES + 1):
+                holds = feedback_holds(rig)
+                # up to 3 × the believed level: an identified static friction that came out low (a log from a
+                # loaded host) must not end the experiment — the seed adds weights until the joint moves
+                ev = ramp_breakaway(rig, name, sign, rate, timeout_s=3.0 * ramp)
+                if ev["kind"] != "breakaway":
+                    raise RuntimeError(f"{name}: no breakaway within the ramp ({ev['kind']}: {ev}); the daemon then: "
+                                       f"{_daemon_state(rig)}")
+                held = feedback_holds(rig) - holds
+                wait_rest(rig)
+                if held == 0:
+                    loads.append(abs(float(ev["torque_Nm"])))
+                    break
+                void[j] += 1
+                bench.say(f"{name}: repetition {r + 1} void (the daemon held the arm {held}× for lost feedback "
+                          f"during the ramp: a stalled host); repeating")
+            else:
+                raise RuntimeError(f"{name}: repetition {r + 1} disturbed {VOID_RETRIES + 1} times in a row (the "
+                                   f"daemon held the arm for lost feedback during each ramp): the host is too loaded "
+                                   f"for this experiment; the daemon then: {_daemon_state(rig)}")
         out[j] = loads
     rows = None
     if rows_path is not None:
@@ -54,7 +73,7 @@ def _starting_torques(bench: Bench, rig: Any, joints: list[int], reps: int, rows
         from dragd.telemetry.reader import read_rows
 
         rows = read_rows(rows_path)
-    return out, rows
+    return out, rows, void
 
 
 def _daemon_state(rig: Any) -> str:
@@ -75,12 +94,12 @@ def run_startup(bench: Bench, joints: list[int], reps: int = 2, rest_s: float = 
     """Table XI of seed 001: starting torque without/with the start-up term, reduction, oscillation at rest."""
     bench.say(f"without start-up compensation: ramping joints {', '.join(str(j + 1) for j in joints)} ...")
     with bench.rig("startup-off", {("law", "startup"): False}) as rig:
-        without, _ = _starting_torques(bench, rig, joints, reps, ramp_s=ramp_s)
+        without, _, void_without = _starting_torques(bench, rig, joints, reps, ramp_s=ramp_s)
     bench.say("with start-up compensation: oscillation at rest, then the same ramps ...")
     with bench.rig("startup-on", {("law", "startup"): True}) as rig:
         rest = record(rig, bench.workdir / "rest.mcap", rest_s)
         osc = oscillation_deg(rest)
-        with_, rows = _starting_torques(bench, rig, joints, reps, bench.workdir / "ramps_on.mcap", ramp_s)
+        with_, rows, void_with = _starting_torques(bench, rig, joints, reps, bench.workdir / "ramps_on.mcap", ramp_s)
     result: dict[str, Any] = {"joints": {}}
     reductions = []
     for j in joints:
@@ -95,6 +114,7 @@ def run_startup(bench: Bench, joints: list[int], reps: int = 2, rest_s: float = 
             "handover_step_A": round(handover_step_A(rows, j, bench.cfg.joints[j].startup.rest_threshold_rad_s), 4)
             if rows is not None else None,
             "repetitions": {"without_Nm": [round(x, 4) for x in without[j]], "with_Nm": [round(x, 4) for x in with_[j]]},
+            "void_repetitions": void_without[j] + void_with[j],
         }
     result["mean_reduction_pct"] = round(float(np.mean(reductions)), 2)
     result["max_oscillation_deg"] = round(float(max(osc[j] for j in joints)), 5)
@@ -112,9 +132,10 @@ def run_sweep(bench: Bench, joint: int, frequencies: list[float] | None = None, 
         bench.say(f"{name}: start-up sine at {f:g} Hz ...")
         with bench.rig(f"sweep-{f:g}", {("joints", joint, "startup", "frequency_Hz"): float(f)}) as rig:
             osc = oscillation_deg(record(rig, bench.workdir / f"rest-{f:g}.mcap", rest_s))[joint]
-            loads, _ = _starting_torques(bench, rig, [joint], reps, ramp_s=ramp_s)
+            loads, _, void = _starting_torques(bench, rig, [joint], reps, ramp_s=ramp_s)
         points.append({"frequency_Hz": f, "oscillation_deg": round(float(osc), 5),
-                       "starting_torque_Nm": round(float(np.mean(loads[joint])), 4)})
+                       "starting_torque_Nm": round(float(np.mean(loads[joint])), 4),
+                       "repetitions_Nm": [round(x, 4) for x in loads[joint]], "void_repetitions": void[joint]})
     ok = [p for p in points if p["oscillation_deg"] <= OSCILLATION_LIMIT_DEG]
     best = min(ok, key=lambda p: p["starting_torque_Nm"]) if ok else None
     f_best = best["frequency_Hz"] if best else max(freqs)
@@ -128,10 +149,12 @@ def run_sweep(bench: Bench, joint: int, frequencies: list[float] | None = None, 
         e = {("joints", joint, "startup", "frequency_Hz"): float(f_best), **edits}
         with bench.rig(f"compare-{label}", e) as rig:
             osc = oscillation_deg(record(rig, bench.workdir / f"rest-{label}.mcap", rest_s))[joint]
-            loads, rows = _starting_torques(bench, rig, [joint], reps, bench.workdir / f"ramps-{label}.mcap", ramp_s)
+            loads, rows, void = _starting_torques(bench, rig, [joint], reps, bench.workdir / f"ramps-{label}.mcap",
+                                                  ramp_s)
         comparisons[label] = {"oscillation_deg": round(float(osc), 5),
                               "starting_torque_Nm": round(float(np.mean(loads[joint])), 4),
-                              "handover_step_A": round(handover_step_A(rows, joint, phi), 4)}
+                              "handover_step_A": round(handover_step_A(rows, joint, phi), 4),
+                              "repetitions_Nm": [round(x, 4) for x in loads[joint]], "void_repetitions": void[joint]}
     return {"joint": name, "points": points, "best_frequency_Hz": best["frequency_Hz"] if best else None,
             "oscillation_limit_deg": OSCILLATION_LIMIT_DEG, "comparisons": comparisons}
 
