@@ -127,7 +127,7 @@ def run_sweep(bench: Bench, joint: int, frequencies: list[float] | None = None, 
     freqs = list(frequencies or DEFAULT_FREQUENCIES_HZ)
     name = bench.cfg.joints[joint].name
     phi = bench.cfg.joints[joint].startup.rest_threshold_rad_s
-    points = []
+    points: list[dict[str, Any]] = []
     for f in freqs:
         bench.say(f"{name}: start-up sine at {f:g} Hz ...")
         with bench.rig(f"sweep-{f:g}", {("joints", joint, "startup", "frequency_Hz"): float(f)}) as rig:
