@@ -259,3 +259,8 @@ class SimNetwork:
         self._routes = {cob: tuple(ds) for cob, ds in routes.items()}
         self._sync_routes = {cob: tuple(ds) for cob, ds in syncs.items()}
         self._epoch = epoch
+        expect = getattr(self.bus, "expect", None)
+        if expect is not None:  # (dragd's udp_multicast: SYNC and the RPDOs read by their template, without msgpack)
+            expect([(cob, 0, False) for cob in syncs]
+                   + [(ch.cob_id, ch.frame_len, kind) for drive in self.drives for ch in drive.rpdos if ch.valid
+                      for kind in {ch.is_fd, False}])

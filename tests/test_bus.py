@@ -565,3 +565,104 @@ def test_udp_multicast_send_data_is_send_without_a_message(request: pytest.Fixtu
             classic.send_data(0x181, bytes(8), fd=True)
     finally:
         classic.shutdown()
+
+
+def test_udp_multicast_expected_frames_are_read_as_the_msgpack_path_reads_them(request: pytest.FixtureRequest) -> None:
+    """``expect``: a datagram of expected frames is read by comparing bytes with the frames' templates, anything
+    else by unpacking maps — a bus that expects and one that does not, on the same datagrams (prepared batches,
+    single frames, wrong lengths, mixed and foreign datagrams, duplicates, reordering, gaps, a cut-short and a
+    broken datagram, FD on a classic bus, our own echo), hand over the same frames and count the same."""
+    import random
+
+    group = unique_group(request.node.name)
+    spec = parse_bus(f"udp_multicast:{group}")
+    tx, tx2 = open_bus(spec, batch_frames=True), open_bus(spec, batch_frames=True)
+    fd_tx = open_bus(parse_bus(f"udp_multicast:{group}", fd=True))
+    fast, plain = open_bus(spec), open_bus(spec)
+    fd_spec = parse_bus(f"udp_multicast:{group}", fd=True)
+    fast_fd, plain_fd = open_bus(fd_spec), open_bus(fd_spec)  # (an FD bus: both kinds of a TPDO expected)
+    raw = raw_sender()
+    tpdos = [(0x181 + i, 8) for i in range(6)]
+    others = [(0x80, 0, False), (0x201, 6, False), (0x381, 12, True)]
+    fast.expect([(cob, n, False) for cob, n in tpdos] + others)
+    fast_fd.expect([(cob, n, kind) for cob, n in tpdos for kind in (True, False)] + others)
+    rng = random.Random(7)
+    sent: list[bytes] = []  # every datagram the senders' sockets put on the wire, as it left (replayed below)
+    try:
+        for bus in (tx, tx2, fd_tx):
+            real = bus._sock.sendto
+            bus._sock = _Tap(bus._sock, sent)
+            assert bus._sock.sendto is not real
+        batch = tx.prepare([(cob, n, False) for cob, n in tpdos] + [(0x80, 0, False)])
+        for k in range(40):
+            for view in batch.data:
+                view[:] = bytes(rng.randrange(256) for _ in range(len(view)))
+            tx.send_prepared(batch)  # the expected datagram
+            tx2.send_data(0x201, bytes(rng.randrange(256) for _ in range(6)))  # another sender, expected
+            if k % 5 == 0:
+                tx.send_data(0x181, bytes(7))  # an expected id with another length: msgpack path
+                tx2.send(can.Message(arbitration_id=0x182, data=bytes(8), is_extended_id=False, timestamp=1.5))
+                with tx.batch():  # mixed: one expected and one other frame (0x701 heartbeat) in one datagram
+                    tx.send_data(0x183, bytes(8))
+                    tx.send_data(0x701, b"\x05")
+                fd_tx.send_data(0x381, bytes(range(12)), fd=True)  # FD on the classic receivers: dropped, counted
+                fd_tx.send_data(0x181, bytes(8), fd=True)  # ... also where it differs from a template after the data
+                tx.send(can.Message(arbitration_id=0x1ABCDEF, data=b"\x01", is_extended_id=True))
+        for d in (sent[3], sent[3], sent[10], sent[2]):  # duplicates and a late one (reordered / refilled gap)
+            raw.sendto(d, (group, DEFAULT_UDP_PORT))
+        raw.sendto(sent[0][:-3], (group, DEFAULT_UDP_PORT))  # cut short (a duplicate by its stamps, if whole)
+        raw.sendto(b"\x8b\xa7channel\xcf" + bytes(20), (group, DEFAULT_UDP_PORT))  # broken
+        raw.sendto(_raw_datagram(0x181, None, bytes(8)), (group, DEFAULT_UDP_PORT))  # a plain python-can peer
+        fast._sock.sendto(sent[1], (group, DEFAULT_UDP_PORT))  # a datagram of another sender sent by us (not echo)
+        time.sleep(0.3)
+
+        def read(bus: UdpMulticastCanBus) -> tuple[list[tuple[int, bytes]], list[tuple], dict]:
+            data, msgs = [], []
+
+            def on_data(cob: int, payload: bytes | bytearray) -> bool:
+                if cob in (0x183, 0x201):
+                    return False  # not claimed: becomes a can.Message
+                data.append((cob, bytes(payload)))
+                return True
+
+            def on_message(m: can.Message) -> None:
+                msgs.append((m.arbitration_id, bytes(m.data), m.dlc, m.is_extended_id, m.is_remote_frame,
+                             m.is_error_frame, m.is_fd, m.bitrate_switch, m.error_state_indicator, m.is_rx,
+                             m.channel))
+
+            while bus.drain(on_data, on_message, limit=7):
+                pass
+            return data, msgs, bus.counters().__dict__
+
+        got_fast, got_plain = read(fast), read(plain)
+        got_fast_fd, got_plain_fd = read(fast_fd), read(plain_fd)
+    finally:
+        raw.close()
+        for bus in (tx, tx2, fd_tx, fast, plain, fast_fd, plain_fd):
+            bus.shutdown()
+    templated = got_fast[2].pop("template_datagrams"), got_plain[2].pop("template_datagrams")
+    templated_fd = got_fast_fd[2].pop("template_datagrams"), got_plain_fd[2].pop("template_datagrams")
+    # 40 batches, 40 frames 0x201, the batch and the 0x201 replayed; on the FD bus also 8 FD 0x381 and 8 FD 0x181
+    assert templated == (82, 0) and templated_fd == (98, 0)
+    assert got_fast_fd == got_plain_fd
+    assert got_fast_fd[2]["fd_frames_dropped"] == 0 and (0x181, bytes(8)) in got_fast_fd[0]
+    assert got_fast == got_plain
+    data, msgs, counters = got_fast
+    assert len(data) > 40 * 6 and {cob for cob, _ in data} >= {0x80, 0x182, 0x701} and {m[0] for m in msgs} == \
+        {0x183, 0x201, 0x1ABCDEF}  # (0x183, 0x201 not claimed by on_data; the 29-bit frame never offered to it)
+    assert counters["duplicates_dropped"] >= 2 and counters["fd_frames_dropped"] == 16
+    assert counters["undecodable"] >= 2 and counters["foreign_frames"] == 1
+
+
+class _Tap:
+    """A socket whose sendto also keeps a copy of each datagram (what left, to replay it)."""
+
+    def __init__(self, sock: socket.socket, out: list[bytes]) -> None:
+        self._sock, self._out = sock, out
+
+    def sendto(self, data: bytes | bytearray, dest: tuple[str, int]) -> int:
+        self._out.append(bytes(data))
+        return self._sock.sendto(data, dest)
+
+    def __getattr__(self, name: str):  # noqa: ANN204
+        return getattr(self._sock, name)

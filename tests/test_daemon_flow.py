@@ -95,6 +95,15 @@ def test_start_holds_and_status_has_promised_keys(session):
     assert abs(st["current_A"][1]) > 2.0
 
 
+def test_the_cycles_tpdos_are_read_by_their_template(session):
+    """On the udp_multicast bus the simulator's SYNC answer (six TPDOs, one datagram) is read by comparing bytes
+    with the frames' templates, not by unpacking six maps (hardware/bus.py ``expect``): every cycle's."""
+    st = session["status_drag"]
+    bus = st["bus_counters"]["arm"]
+    assert bus["template_datagrams"] >= 0.95 * st["cycles"] > 0, (bus, st["cycles"])
+    assert bus["undecodable"] == bus["gaps"] == bus["duplicates_dropped"] == 0
+
+
 def test_drag_untouched_arm_stays(session):
     s0, s1, sim0, sim1 = session["untouched"]
     assert s0["mode"] == s1["mode"] == "drag"

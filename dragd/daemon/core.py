@@ -465,6 +465,8 @@ class Daemon:
             "encoder_rejects": cy.encoder_rejects,
             "comms": self.comms.status(),
             "error_frames": io.error_frames if io is not None else 0,
+            # the host-local udp_multicast bus's own counters (echoes, duplicates, gaps, kernel drops, ...)
+            "bus_counters": {name: vars(bus.counters()) for name, bus in self.buses.items() if hasattr(bus, "counters")},
             "clamp_cycles": c.clamp_cycles,
             "guard": {"armed": bool(c.guard is not None and c.guard.armed), "trips": c.guard_trips,
                       "hand_runs": c.guard.hand_runs if c.guard is not None else 0, "last_trip": c.last_trip,

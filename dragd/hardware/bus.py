@@ -51,7 +51,7 @@ import socket
 import struct
 import threading
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
@@ -78,6 +78,8 @@ DATAGRAM_MAX = 4096  # bytes read per datagram; a batch longer than this leaves 
 _STAMP = slice(10, 18)  # a packed frame's sender stamp (after the map header, "channel" and the uint64 marker)
 _WINDOW_MASK = (1 << _WINDOW) - 1
 _STAMP_CODEC = struct.Struct(">II")  # the stamp as (token, sequence)
+_U64_BE = struct.Struct(">Q")  # the stamp as one number (token << 32 | sequence)
+_MAP_HEAD = b"\x8b\xa7channel\xcf"  # how each of our packed frames starts: an 11-entry map, "channel", a uint64
 
 
 @dataclass(frozen=True)
@@ -192,6 +194,7 @@ class UdpBusCounters:
     fd_frames_dropped: int  # CAN FD frames received on a classic-CAN bus
     undecodable: int
     datagrams_sent: int  # fewer than frames_sent when frames were batched
+    template_datagrams: int  # datagrams of expected frames only, read by their templates (``expect``)
     rcvbuf_bytes: int  # receive buffer the kernel granted
 
 
@@ -221,7 +224,7 @@ class UdpMulticastCanBus(can.BusABC):
         self._packer = msgpack.Packer(use_bin_type=True)  # reused: packb would build one per frame
         # how our own datagrams start (an 11-entry map whose first key is "channel", a uint64 with our token on
         # top): the echo of a frame we sent is recognised by its first 14 bytes, without unpacking it
-        self._own_prefix = b"\x8b\xa7channel\xcf" + self._token.to_bytes(4, "big")
+        self._own_prefix = _MAP_HEAD + self._token.to_bytes(4, "big")
         self._tx_lock = threading.Lock()
         self._rx_lock = threading.Lock()
         self._senders: dict[int, list[int]] = {}
@@ -230,9 +233,14 @@ class UdpMulticastCanBus(can.BusABC):
         self._pending: deque[can.Message] = deque()  # recv(): the rest of a batched datagram
         self.rx_timestamp = 0.0  # drain(): the kernel's reception time of the datagram whose frames it hands over
         self._templates: dict[tuple[int, int, bool], tuple[bytes, bytes]] = {}  # send_data(): packed map around data
+        # expect(): frames read without msgpack — their packed map after the stamp up to the data → per kind of frame
+        # with that head (classic, FD): (arbitration id, length, the map after the data, the decoded fields for the
+        # rare can.Message); the head lengths in use
+        self._expected: dict[bytes, tuple[tuple[int, int, bytes, dict[str, Any]], ...]] = {}
+        self._expected_heads: tuple[int, ...] = ()
         self._c = dict(frames_sent=0, frames_received=0, own_echoes_dropped=0, duplicates_dropped=0, gaps=0,
                        reordered=0, too_late_dropped=0, kernel_drops=0, foreign_frames=0, fd_frames_dropped=0,
-                       undecodable=0, datagrams_sent=0)
+                       undecodable=0, datagrams_sent=0, template_datagrams=0)
         self._sock = self._open_socket(rcvbuf_bytes)
         # own echoes dropped in the kernel: each datagram we send is filtered once on our socket, and the kernel
         # counts filtered datagrams with its overflow drops (SO_RXQ_OVFL): ``_filtered`` is subtracted from those
@@ -368,6 +376,52 @@ class UdpMulticastCanBus(can.BusABC):
         data_at = packed.index(field) + len(field) - length
         return packed[:data_at], packed[data_at + length:]
 
+    def expect(self, frames: Iterable[tuple[int, int, bool]]) -> None:
+        """Plain data frames ``(arbitration_id, length, fd)`` this bus receives every cycle (the TPDOs of a master,
+        the SYNC and RPDOs of a drive): ``drain`` reads a datagram made only of such frames, as dragd's senders pack
+        them (``send_data``/``prepare``: the same template), by comparing bytes instead of unpacking maps — the
+        same frames, counters and sequence checks as the msgpack path, which takes every other datagram."""
+        if self.receive_own_messages:
+            return  # (own frames need can.Message objects: every datagram takes the msgpack path)
+        for arbitration_id, length, fd in frames:
+            if fd and self._can_protocol is not can.CanProtocol.CAN_FD:
+                continue  # (such a frame is dropped on this bus: the msgpack path counts it)
+            before, after = self._parts(arbitration_id, length, fd)
+            fields = msgpack.unpackb(before + bytes(length) + after, raw=False)
+            fields.pop("data")
+            entry = (arbitration_id, length, after, fields)
+            kinds = self._expected.get(before[_STAMP.stop:], ())
+            if all(k[2] != after for k in kinds):
+                self._expected[before[_STAMP.stop:]] = (*kinds, entry)
+        self._expected_heads = tuple(sorted({len(head) for head in self._expected}))
+
+    def _expected_frames(self, raw: bytes) -> list[tuple[int, int, bytes, dict[str, Any]]] | None:
+        """``(stamp, arbitration_id, data, fields)`` of each frame when ``raw`` holds expected frames only, else None."""
+        expected, heads, stamp_at, head_at = self._expected, self._expected_heads, _STAMP.start, _STAMP.stop
+        out = []
+        frame, end = 0, len(raw)
+        while frame < end:
+            if raw[frame:frame + stamp_at] != _MAP_HEAD:
+                return None
+            at = frame + head_at
+            for n in heads:
+                kinds = expected.get(raw[at:at + n])
+                if kinds is not None:
+                    break
+            else:
+                return None
+            at += n
+            for kind in kinds:  # (arbitration id, length, the map after the data, fields)
+                stop = at + kind[1]
+                nxt = stop + len(kind[2])
+                if nxt <= end and raw[stop:nxt] == kind[2]:
+                    break
+            else:
+                return None
+            out.append((_U64_BE.unpack_from(raw, frame + stamp_at)[0], kind[0], raw[at:stop], kind[3]))
+            frame = nxt
+        return out
+
     @contextmanager
     def batch(self) -> Iterator[None]:
         """Frames this thread sends inside the block leave together, as one datagram, when it ends.
@@ -493,6 +547,12 @@ class UdpMulticastCanBus(can.BusABC):
         A datagram holds one frame, or several back to back (a batch); own echoes, duplicates and broken frames
         are dropped and counted.
         """
+        timestamp, readable = self._receipt(raw, ancillary, flags)
+        return (self._unpacked(raw) if readable else []), timestamp
+
+    def _receipt(self, raw: bytes, ancillary: list[tuple[int, int, bytes]], flags: int) -> tuple[float, bool]:
+        """A datagram's reception time (and the kernel's drop count), and whether it holds frames to decode: not
+        cut short, not empty, not our own looped back."""
         c = self._c
         timestamp = 0.0
         for level, kind, payload in ancillary:
@@ -504,10 +564,15 @@ class UdpMulticastCanBus(can.BusABC):
                 c["kernel_drops"] = max(0, _U32.unpack_from(payload)[0] - self._filtered)
         if flags & _MSG_TRUNC or not raw:  # longer than DATAGRAM_MAX (cut: nobody of ours sends that), or empty
             c["undecodable"] += 1
-            return [], timestamp
+            return timestamp, False
         if not self.receive_own_messages and raw.startswith(self._own_prefix):
             c["own_echoes_dropped"] += raw.count(self._own_prefix)  # our own datagram, looped back: not decoded
-            return [], timestamp
+            return timestamp, False
+        return timestamp, True
+
+    def _unpacked(self, raw: bytes) -> list[tuple[dict[str, Any], bool]]:
+        """The frames of a datagram (maps back to back) with the sender checks: (fields, whether our own echo)."""
+        c = self._c
         frames: list[tuple[dict[str, Any], bool]] = []
         unpacker = msgpack.Unpacker(raw=False, max_buffer_size=DATAGRAM_MAX)  # a batch: maps back to back
         unpacker.feed(raw)
@@ -547,7 +612,7 @@ class UdpMulticastCanBus(can.BusABC):
                 c["undecodable"] += 1
                 continue
             frames.append((fields, own))
-        return frames, timestamp
+        return frames
 
     def drain(self, on_data: Callable[[int, bytes | bytearray], bool], on_message: Callable[[can.Message], None],
               limit: int = 64, until: Callable[[], bool] | None = None) -> int:
@@ -577,9 +642,13 @@ class UdpMulticastCanBus(can.BusABC):
             n += 1
             messages: list[can.Message] = []
             with self._rx_lock:
-                frames, timestamp = self._frames(raw, ancillary, flags)
+                timestamp, readable = self._receipt(raw, ancillary, flags)
                 self.rx_timestamp = timestamp
-                for fields, own in frames:
+                expected = self._expected_frames(raw) if readable and self._expected else None
+                if expected is not None:
+                    c["template_datagrams"] += 1
+                    self._take_expected(expected, timestamp, on_data, messages)
+                for fields, own in (self._unpacked(raw) if readable and expected is None else ()):
                     try:
                         plain = not (own or fields["is_extended_id"] or fields["is_remote_frame"]
                                      or fields["is_error_frame"])
@@ -598,6 +667,28 @@ class UdpMulticastCanBus(can.BusABC):
             if until is not None and until():
                 break  # (what is still queued keeps the socket readable: the loop calls again)
         return n
+
+    def _take_expected(self, frames: list[tuple[int, int, bytes, dict[str, Any]]], timestamp: float,
+                       on_data: Callable[[int, bytes | bytearray], bool], messages: list[can.Message]) -> None:
+        """``drain`` of expected frames: the sender checks and delivery of ``_unpacked`` and ``drain``'s loop, by the
+        stamp and the template's fields instead of a map per frame (plain data frames: ``on_data`` first)."""
+        c = self._c
+        for stamp, arbitration_id, data, fields in frames:
+            token = stamp >> 32
+            if token:
+                if token == self._token:
+                    c["own_echoes_dropped"] += 1
+                    continue  # (``expect`` is off with receive_own_messages)
+                if not self._accept(token, stamp & 0xFFFFFFFF):
+                    continue
+            else:
+                c["foreign_frames"] += 1
+            if on_data(arbitration_id, data):
+                c["frames_received"] += 1
+                continue
+            decoded = self._message({**fields, "channel": stamp, "data": data}, timestamp, False)
+            if decoded is not None:
+                messages.append(decoded)
 
     def _accept(self, token: int, seq: int) -> bool:
         """Sequence bookkeeping for one sender; False for a duplicate or a hopelessly late frame."""

@@ -93,6 +93,10 @@ class BusIO:
                                       [msg for msg, _ in synced])
             self._heartbeat.append((bus, can.Message(arbitration_id=HEARTBEAT_BASE + master_node_id, data=b"\x05",
                                                      is_extended_id=False)))
+            expect = getattr(bus, "expect", None)
+            if expect is not None:  # (udp_multicast: the TPDOs read by their template, without unpacking maps)
+                tpdos = [fr for fr in layout.frames if fr.direction == "tpdo"]  # (on an FD bus: FD or classic)
+                expect([(fr.cob_id, fr.data_bytes, kind) for fr in tpdos for kind in {fd, False}])
         self._emcy = {EMCY_BASE + node: i for i, node in enumerate(node_ids)}
 
     # ------------------------------------------------------------------------------------------ read
