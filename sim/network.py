@@ -261,6 +261,9 @@ class SimNetwork:
         self._epoch = epoch
         expect = getattr(self.bus, "expect", None)
         if expect is not None:  # (dragd's udp_multicast: SYNC and the RPDOs read by their template, without msgpack)
-            expect([(cob, 0, False) for cob in syncs]
-                   + [(ch.cob_id, ch.frame_len, kind) for drive in self.drives for ch in drive.rpdos if ch.valid
-                      for kind in {ch.is_fd, False}])
+            try:
+                expect([(cob, 0, False) for cob in syncs]
+                       + [(ch.cob_id, ch.frame_len, kind) for drive in self.drives for ch in drive.rpdos if ch.valid
+                          for kind in {ch.is_fd, False}])
+            except (ValueError, can.CanError):  # (a speed-up only: without it every datagram is unpacked)
+                log.exception("sim bus: the drives' frames could not be registered for reading by template")

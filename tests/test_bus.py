@@ -571,7 +571,9 @@ def test_udp_multicast_expected_frames_are_read_as_the_msgpack_path_reads_them(r
     """``expect``: a datagram of expected frames is read by comparing bytes with the frames' templates, anything
     else by unpacking maps — a bus that expects and one that does not, on the same datagrams (prepared batches,
     single frames, wrong lengths, mixed and foreign datagrams, duplicates, reordering, gaps, a cut-short and a
-    broken datagram, FD on a classic bus, our own echo), hand over the same frames and count the same."""
+    broken datagram, FD on a classic bus, another sender's gap, reorder and duplicate, a frame without a sender token,
+    our own frame inside another sender's datagram, a decoder that raises), hand over the same frames and count
+    the same."""
     import random
 
     group = unique_group(request.node.name)
@@ -579,6 +581,7 @@ def test_udp_multicast_expected_frames_are_read_as_the_msgpack_path_reads_them(r
     tx, tx2 = open_bus(spec, batch_frames=True), open_bus(spec, batch_frames=True)
     fd_tx = open_bus(parse_bus(f"udp_multicast:{group}", fd=True))
     fast, plain = open_bus(spec), open_bus(spec)
+    plain._token, plain._own_prefix = fast._token, fast._own_prefix  # (one token: our own echo inside a datagram)
     fd_spec = parse_bus(f"udp_multicast:{group}", fd=True)
     fast_fd, plain_fd = open_bus(fd_spec), open_bus(fd_spec)  # (an FD bus: both kinds of a TPDO expected)
     raw = raw_sender()
@@ -608,11 +611,22 @@ def test_udp_multicast_expected_frames_are_read_as_the_msgpack_path_reads_them(r
                 fd_tx.send_data(0x381, bytes(range(12)), fd=True)  # FD on the classic receivers: dropped, counted
                 fd_tx.send_data(0x181, bytes(8), fd=True)  # ... also where it differs from a template after the data
                 tx.send(can.Message(arbitration_id=0x1ABCDEF, data=b"\x01", is_extended_id=True))
-        for d in (sent[3], sent[3], sent[10], sent[2]):  # duplicates and a late one (reordered / refilled gap)
+        for d in (sent[3], sent[3], sent[10], sent[2]):  # replays (duplicates, too late by now)
             raw.sendto(d, (group, DEFAULT_UDP_PORT))
         raw.sendto(sent[0][:-3], (group, DEFAULT_UDP_PORT))  # cut short (a duplicate by its stamps, if whole)
         raw.sendto(b"\x8b\xa7channel\xcf" + bytes(20), (group, DEFAULT_UDP_PORT))  # broken
         raw.sendto(_raw_datagram(0x181, None, bytes(8)), (group, DEFAULT_UDP_PORT))  # a plain python-can peer
+
+        def framed(stamp: int, cob: int = 0x201, data: bytes = bytes(6)) -> bytes:  # a frame as our senders pack it
+            before, after = tx._parts(cob, len(data), False)
+            return before[:10] + stamp.to_bytes(8, "big") + before[18:] + data + after
+
+        z = 0x5EED0002 << 32
+        for seq in (1, 2, 4, 3, 3, 9, 30):  # another sender within the window: a gap, a reorder, a duplicate
+            raw.sendto(framed(z | seq, data=bytes([seq] * 6)), (group, DEFAULT_UDP_PORT))
+        raw.sendto(framed(0, 0x182, bytes(8)), (group, DEFAULT_UDP_PORT))  # no sender token: a foreign frame
+        # our own frame after another sender's in one datagram: dropped as our echo, the other delivered
+        raw.sendto(framed(z | 31) + framed(fast._token << 32 | 77), (group, DEFAULT_UDP_PORT))
         fast._sock.sendto(sent[1], (group, DEFAULT_UDP_PORT))  # a datagram of another sender sent by us (not echo)
         time.sleep(0.3)
 
@@ -622,6 +636,8 @@ def test_udp_multicast_expected_frames_are_read_as_the_msgpack_path_reads_them(r
             def on_data(cob: int, payload: bytes | bytearray) -> bool:
                 if cob in (0x183, 0x201):
                     return False  # not claimed: becomes a can.Message
+                if cob == 0x185:
+                    raise TypeError("a decoder that cannot take it")  # counted as undecodable, the rest goes on
                 data.append((cob, bytes(payload)))
                 return True
 
@@ -642,16 +658,19 @@ def test_udp_multicast_expected_frames_are_read_as_the_msgpack_path_reads_them(r
             bus.shutdown()
     templated = got_fast[2].pop("template_datagrams"), got_plain[2].pop("template_datagrams")
     templated_fd = got_fast_fd[2].pop("template_datagrams"), got_plain_fd[2].pop("template_datagrams")
-    # 40 batches, 40 frames 0x201, the batch and the 0x201 replayed; on the FD bus also 8 FD 0x381 and 8 FD 0x181
-    assert templated == (82, 0) and templated_fd == (98, 0)
+    # 40 batches, 40 frames 0x201, the batch and the 0x201 replayed, the 9 crafted datagrams; on the FD bus also 8 FD
+    # 0x381 and 8 FD 0x181
+    assert templated == (91, 0) and templated_fd == (107, 0)
     assert got_fast_fd == got_plain_fd
     assert got_fast_fd[2]["fd_frames_dropped"] == 0 and (0x181, bytes(8)) in got_fast_fd[0]
     assert got_fast == got_plain
     data, msgs, counters = got_fast
-    assert len(data) > 40 * 6 and {cob for cob, _ in data} >= {0x80, 0x182, 0x701} and {m[0] for m in msgs} == \
+    assert len(data) > 40 * 5 and {cob for cob, _ in data} >= {0x80, 0x182, 0x701} and {m[0] for m in msgs} == \
         {0x183, 0x201, 0x1ABCDEF}  # (0x183, 0x201 not claimed by on_data; the 29-bit frame never offered to it)
-    assert counters["duplicates_dropped"] >= 2 and counters["fd_frames_dropped"] == 16
-    assert counters["undecodable"] >= 2 and counters["foreign_frames"] == 1
+    assert counters["duplicates_dropped"] >= 3 and counters["fd_frames_dropped"] == 16
+    assert counters["reordered"] == 1 and counters["gaps"] == 4 + 20  # (5..8 and 10..29 of the crafted sender)
+    assert counters["undecodable"] >= 2 + 40 and counters["foreign_frames"] == 2
+    assert counters["own_echoes_dropped"] == 1 and (0x201, bytes([31] * 6)) not in data
 
 
 class _Tap:

@@ -383,17 +383,22 @@ class UdpMulticastCanBus(can.BusABC):
         same frames, counters and sequence checks as the msgpack path, which takes every other datagram."""
         if self.receive_own_messages:
             return  # (own frames need can.Message objects: every datagram takes the msgpack path)
+        # copied, then replaced: a reader in another thread sees the old table or the new one, never one mid-update
+        # (the simulator calls this from its reader, inside drain's callbacks; entries are only ever added)
+        expected = dict(self._expected)
         for arbitration_id, length, fd in frames:
             if fd and self._can_protocol is not can.CanProtocol.CAN_FD:
                 continue  # (such a frame is dropped on this bus: the msgpack path counts it)
             before, after = self._parts(arbitration_id, length, fd)
+            head = before[_STAMP.stop:]
+            kinds = expected.get(head, ())
+            if any(k[2] == after for k in kinds):
+                continue
             fields = msgpack.unpackb(before + bytes(length) + after, raw=False)
             fields.pop("data")
-            entry = (arbitration_id, length, after, fields)
-            kinds = self._expected.get(before[_STAMP.stop:], ())
-            if all(k[2] != after for k in kinds):
-                self._expected[before[_STAMP.stop:]] = (*kinds, entry)
-        self._expected_heads = tuple(sorted({len(head) for head in self._expected}))
+            expected[head] = (*kinds, (arbitration_id, length, after, fields))
+        self._expected = expected
+        self._expected_heads = tuple(sorted({len(head) for head in expected}))
 
     def _expected_frames(self, raw: bytes) -> list[tuple[int, int, bytes, dict[str, Any]]] | None:
         """``(stamp, arbitration_id, data, fields)`` of each frame when ``raw`` holds expected frames only, else None."""
@@ -401,7 +406,7 @@ class UdpMulticastCanBus(can.BusABC):
         out = []
         frame, end = 0, len(raw)
         while frame < end:
-            if raw[frame:frame + stamp_at] != _MAP_HEAD:
+            if not raw.startswith(_MAP_HEAD, frame):
                 return None
             at = frame + head_at
             for n in heads:
@@ -413,13 +418,12 @@ class UdpMulticastCanBus(can.BusABC):
             at += n
             for kind in kinds:  # (arbitration id, length, the map after the data, fields)
                 stop = at + kind[1]
-                nxt = stop + len(kind[2])
-                if nxt <= end and raw[stop:nxt] == kind[2]:
+                if raw.startswith(kind[2], stop):
                     break
             else:
                 return None
             out.append((_U64_BE.unpack_from(raw, frame + stamp_at)[0], kind[0], raw[at:stop], kind[3]))
-            frame = nxt
+            frame = stop + len(kind[2])
         return out
 
     @contextmanager
@@ -673,18 +677,25 @@ class UdpMulticastCanBus(can.BusABC):
         """``drain`` of expected frames: the sender checks and delivery of ``_unpacked`` and ``drain``'s loop, by the
         stamp and the template's fields instead of a map per frame (plain data frames: ``on_data`` first)."""
         c = self._c
-        for stamp, arbitration_id, data, fields in frames:
-            token = stamp >> 32
+        accepted = []
+        for frame in frames:  # every frame's sender checks before any delivery (as _unpacked before drain's loop)
+            token = frame[0] >> 32
             if token:
                 if token == self._token:
                     c["own_echoes_dropped"] += 1
                     continue  # (``expect`` is off with receive_own_messages)
-                if not self._accept(token, stamp & 0xFFFFFFFF):
+                if not self._accept(token, frame[0] & 0xFFFFFFFF):
                     continue
             else:
                 c["foreign_frames"] += 1
-            if on_data(arbitration_id, data):
-                c["frames_received"] += 1
+            accepted.append(frame)
+        for stamp, arbitration_id, data, fields in accepted:
+            try:
+                if on_data(arbitration_id, data):
+                    c["frames_received"] += 1
+                    continue
+            except (TypeError, KeyError):
+                c["undecodable"] += 1  # (as drain's loop counts what on_data could not take)
                 continue
             decoded = self._message({**fields, "channel": stamp, "data": data}, timestamp, False)
             if decoded is not None:
