@@ -379,3 +379,61 @@ def test_socket_paths_are_confined_to_the_daemons_folders(tmp_path) -> None:
     err = ask(cmd="track", file="/etc/passwd")
     assert "track: /etc/passwd is outside" in err and "root:" not in err  # refused before reading anything
     assert "control.allowed_dirs" in ask(cmd="teach", action="start", name="/root/prog.yaml", overwrite=True)
+
+
+@pytest.mark.parametrize("arrives", ["before the next SYNC", "with the next cycle's"])
+def test_a_drive_that_left_operation_enabled_in_a_late_tpdo_is_seen(arrives: str) -> None:
+    """Node 5 drops to switched on for one sample and the master's cyclic enable-operation brings it back at the
+    next SYNC. The TPDO that reports it comes late (after the cycle's deadline): it must not be overwritten by the
+    next one before a step has judged it — the supervisor sees switched on, then enabled again, in order."""
+    ip = InProcess(load_config(DEFAULT_CONFIG))
+    q0 = np.array([0.0, -0.5, 0.9, -0.4, 0.5, 0.1])
+    io, bus = ip.d.io, next(iter(ip.d.layouts))
+    rx, table = io.listener(bus), io._decoders[bus]
+
+    def report(joint: int, statusword: int) -> None:  # the joint's TPDO through the decoder
+        cob, (_, codec, fields) = next((c, e) for c, e in table.items() if e[0] == joint)
+        values = {"position": int(ip.counts(q0)[joint]), "current": 0, "statusword": statusword}
+        rx.on_message_received(can.Message(arbitration_id=cob, data=codec.pack(*(values[f] for f in fields)),
+                                           is_extended_id=False))
+
+    def step() -> None:  # the step after a read, and what the cycle runs after it (the daemon's fault list)
+        ip.cy.step(io.end_read())
+        for fn in ip.cy.after_cycle:
+            fn()
+
+    def read_step(late: dict[int, int] | None = None) -> None:  # one cycle; ``late``: reports after the deadline
+        ip.cy.tick(ip.cy.dt * 1e6, 1)
+        io.begin_cycle()
+        for j in range(6):
+            if late is None:
+                report(j, SW_ENABLED)
+        step()
+        for j, sw in (late or {}).items():
+            report(j, sw)
+
+    ip.hold(q0)
+    for _ in range(5):
+        read_step()
+    assert ip.c.mode == Mode.HOLD and ip.d.faults == []
+    # the cycle whose TPDOs come late: node 5 (joint 4) reports switched on after the deadline
+    late = {j: (SW_SWITCHED_ON if j == 4 else SW_ENABLED) for j in range(6)}
+    if arrives == "before the next SYNC":
+        read_step(late)  # decoded between the deadline's step and the next cycle
+        read_step()  # ... whose own TPDOs say enabled again
+    else:
+        ip.cy.tick(ip.cy.dt * 1e6, 1)
+        io.begin_cycle()
+        step()  # the deadline: nothing came
+        ip.cy.tick(ip.cy.dt * 1e6, 1)
+        io.begin_cycle()
+        for j, sw in late.items():  # the late ones inside the next cycle's read, then that cycle's own
+            report(j, sw)
+        for j in range(6):
+            report(j, SW_ENABLED)
+        step()
+    assert io.deferred_statuswords == 1
+    assert ip.c.mode == Mode.FAULT, ip.d.faults
+    assert any("node 5 left operation enabled" in f["text"] for f in ip.d.faults), ip.d.faults
+    read_step()  # the deferred report (enabled) is the next step's: nothing is held back any longer
+    assert int(ip.fb.statusword[4]) == SW_ENABLED and not io._sw_holding

@@ -462,6 +462,7 @@ class Daemon:
             "tx_errors": io.tx_errors if io is not None else 0,
             "rejected_frames": io.rejected_frames if io is not None else 0,
             "duplicate_tpdos": io.duplicate_tpdos if io is not None else 0,
+            "deferred_statuswords": io.deferred_statuswords if io is not None else 0,
             "encoder_rejects": cy.encoder_rejects,
             "comms": self.comms.status(),
             "error_frames": io.error_frames if io is not None else 0,

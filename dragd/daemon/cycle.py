@@ -136,6 +136,7 @@ class Cycle:
         # compute
         c.advance(est, worst)  # (the stalest joint's count: fb.stale.max(), 0 when every TPDO arrived)
         fault = self.supervisor.update(fb.statusword, _TARGETS.get(c.mode, Target.ENABLED), self.t)
+        io.statuswords_seen()
         if fault is not None:
             c.fault(*fault)
         c.compute(est, self.supervisor.enabled)

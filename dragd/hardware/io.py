@@ -58,6 +58,13 @@ class BusIO:
         self.error_frames = 0
         self.rejected_frames = 0  # 29-bit ids, RTR, TPDOs shorter than their mapping: dropped, never decoded
         self.duplicate_tpdos = 0  # a joint's position TPDO a second time within one cycle
+        # a statusword the step has not seen yet, and one that arrived after it, different, before the step (a late
+        # TPDO merged with the next): the step sees every reported state in order (``statuswords_seen``)
+        self._sw_unseen = np.zeros(n, dtype=bool)
+        self._sw_later = np.zeros(n, dtype=np.int64)
+        self._sw_held = np.zeros(n, dtype=bool)
+        self._sw_holding = False
+        self.deferred_statuswords = 0  # such statuswords, shown to the step one cycle later
         self.reading = False  # a read step is open: SYNC sent, waiting for TPDOs or the deadline
         self._on_read: Callable[[bool], None] = lambda complete: None
         self._deadline_handle: asyncio.TimerHandle | None = None
@@ -154,12 +161,32 @@ class BusIO:
                 fb.counts[j] = v
             elif f == "current":
                 fb.current_permille[j] = v
+            elif self._sw_unseen[j] and v != fb.statusword[j]:
+                # a second, different statusword before the step saw the first (the first came late): the first
+                # stays for this step (a drive that left operation enabled for one sample is not overwritten by its
+                # re-enabled next one); this one is the next step's
+                self._sw_later[j] = v
+                self._sw_held[j] = True
+                self._sw_holding = True
+                self.deferred_statuswords += 1
             else:
                 fb.statusword[j] = v
+                self._sw_unseen[j] = True
         if "position" in fields and not fb.rx[j]:
             fb.rx[j] = True
             fb.rx_count += 1
         return True
+
+    def statuswords_seen(self) -> None:
+        """The step has judged the statuswords: a deferred one becomes the next step's (the rare path)."""
+        unseen = self._sw_unseen
+        unseen.fill(False)
+        if self._sw_holding:
+            held = self._sw_held
+            np.copyto(self.feedback.statusword, self._sw_later, where=held)
+            np.copyto(unseen, held)
+            held.fill(False)
+            self._sw_holding = False
 
     def begin_cycle(self) -> None:
         """Before the SYNC: nothing has arrived for this cycle yet."""
