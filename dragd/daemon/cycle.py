@@ -108,6 +108,7 @@ class Cycle:
             self.late_tpdo += 1
         if not self.primed:
             if not complete:
+                io.statuswords_seen()  # (nothing judges them before the first full set: the newest stands)
                 return False  # wait for a first full set of positions before computing anything
             self.velocity.reset(fb.counts)
             self._prev_counts[:] = fb.counts
