@@ -392,7 +392,8 @@ def test_a_drive_that_left_operation_enabled_in_a_late_tpdo_is_seen(arrives: str
     rx, table = io.listener(bus), io._decoders[bus]
 
     def report(joint: int, statusword: int) -> None:  # the joint's TPDO through the decoder
-        cob, (_, codec, fields) = next((c, e) for c, e in table.items() if e[0] == joint)
+        cob, codec = next((c, e[1]) for c, e in table.items() if e[0] == joint)
+        fields = next(fr.slots[0].fields for fr in ip.d.layouts[bus].frames if fr.cob_id == cob)
         values = {"position": int(ip.counts(q0)[joint]), "current": 0, "statusword": statusword}
         rx.on_message_received(can.Message(arbitration_id=cob, data=codec.pack(*(values[f] for f in fields)),
                                            is_extended_id=False))

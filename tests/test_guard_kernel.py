@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dragd.control.guard import GuardSettings, RunawayGuard, guard_kernel
+from dragd.control.guard import GuardSettings, RunawayGuard, guard_command_kernel, guard_kernel
 
 pytestmark = [pytest.mark.unit, pytest.mark.skipif(guard_kernel() is None, reason="numba is not installed")]
 
@@ -24,14 +24,18 @@ def _explain(q: np.ndarray, r: np.ndarray) -> tuple[float, float]:
     return 1.0 - share, float(r[1]) / 10.0
 
 
-def test_the_guard_kernel_matches_the_numpy_update() -> None:
+@pytest.mark.parametrize("entry", ["update", "command", "command_effects"])
+def test_the_guard_kernel_matches_the_numpy_update(entry: str) -> None:
+    """``update`` (τ_in given) and ``update_from_command`` (τ_in from the command and the law's terms, fused into
+    the command kernel; with and without model-gap effects): the same states, decisions and τ_in."""
     rng = np.random.default_rng(11)
     kt = np.array([9.09, 9.09, 9.09, 4.545, 4.545, 4.545])
     names = [f"joint{i}" for i in range(1, N + 1)]
     ref = RunawayGuard(N, kt, 1e-3, GuardSettings(), _explain, names)
     got = RunawayGuard(N, kt, 1e-3, GuardSettings(), _explain, names)
-    got.use_kernel(guard_kernel())
+    got.use_kernel(guard_kernel(), guard_command_kernel())
     t, p = 0.0, np.zeros(N)
+    tau_ref, tau_got = np.zeros(N), np.zeros(N)
     q = rng.uniform(-1, 1, N)
     trips_ref: list[str] = []
     trips_got: list[str] = []
@@ -55,9 +59,16 @@ def test_the_guard_kernel_matches_the_numpy_update() -> None:
             dq = -dq  # direction changes
         q = q + dq * 1e-3
         p = p + (load + rng.normal(0.0, 0.2, N)) * 1e-3  # the momentum the missing torque builds
-        tau = rng.normal(0.0, 0.5, N)
-        a = ref.update(t, q, dq, p, tau)
-        b = got.update(t, q, dq, p, tau)
+        if entry == "update":
+            tau = rng.normal(0.0, 0.5, N)
+            a = ref.update(t, q, dq, p, tau)
+            b = got.update(t, q, dq, p, tau)
+        else:  # the command and the law's terms [A], K_t: τ_in ~ N(0, 0.5) N·m as above
+            cmd, grav, offset, fric, start = (rng.normal(0.0, 0.05, N) for _ in range(5))
+            effects = rng.normal(0.0, 0.02, N) if entry == "command_effects" else None
+            a = ref.update_from_command(t, q, dq, p, cmd, grav, offset, fric, start, effects, kt, tau_ref)
+            b = got.update_from_command(t, q, dq, p, cmd, grav, offset, fric, start, effects, kt, tau_got)
+            assert np.array_equal(tau_got, tau_ref), f"step {k}: tau_in"  # (the same operations in the same order)
         assert (a is None) == (b is None), f"step {k}: {a} vs {b}"
         if a is not None and b is not None:
             trips_ref.append(a.text)
@@ -77,3 +88,4 @@ def test_the_guard_kernel_matches_the_numpy_update() -> None:
     assert trips_got == trips_ref and len(trips_ref) >= 2, "the sequence must trip"
     assert ref.hand_runs >= 2, "the sequence must have hand runs"
     assert len(guard_kernel().signatures) == 1  # (compiled once, with the cycle's types)
+    assert len(guard_command_kernel().signatures) == 1

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from dragd.control.guard import GuardSettings, RunawayGuard, guard_kernel
+from dragd.control.guard import GuardSettings, RunawayGuard, guard_command_kernel, guard_kernel
 from dragd.control.fused import DragLaw
 from dragd.control.modes import MODE_NAMES, Mode
 from dragd.control.params import LawParams
@@ -153,7 +153,7 @@ class Controller:
                 keep_speed=g.keep_speed, unexplained_max=g.unexplained_max, decide_Hz=g.decide_Hz,
                 drive_share=g.drive_share), None, cfg.joint_names)
             if cfg.loop.compiled and (kernel := guard_kernel()) is not None:
-                c.guard.use_kernel(kernel)
+                c.guard.use_kernel(kernel, guard_command_kernel())
         c.guard_hold_ramp_s = g.hold_ramp_s
         return c
 
@@ -372,15 +372,11 @@ class Controller:
             if self.blend_t0 < 0.0:
                 g.arm(est.p_Nms, self.t)
             return
-        lo, tau = self.law_out, self._tau_in  # τ_in = K_t·(I − gravity − offset − friction − start-up − effects)
-        np.subtract(cmd, lo.gravity_A, out=tau)
-        tau -= self.gravity_offset_A
-        tau -= lo.friction_A
-        tau -= lo.startup_A
-        if self.params.effects is not None and lo.effects_A is not None:
-            tau -= lo.effects_A
-        tau *= self.kt
-        trip = g.update(self.t, est.q_rad, est.dq_rad_s, est.p_Nms, tau)
+        lo = self.law_out  # τ_in = K_t·(I − gravity − offset − friction − start-up − effects), into _tau_in
+        trip = g.update_from_command(self.t, est.q_rad, est.dq_rad_s, est.p_Nms, cmd, lo.gravity_A,
+                                     self.gravity_offset_A, lo.friction_A, lo.startup_A,
+                                     lo.effects_A if self.params.effects is not None else None, self.kt,
+                                     self._tau_in)
         if trip is None:
             return
         self.guard_trips += 1

@@ -138,13 +138,49 @@ def _guard_kernel(dt: float, alpha: float, settled: bool, tau: np.ndarray, p: np
     return 0, True
 
 
+def _guard_command_kernel(cmd: np.ndarray, gravity_A: np.ndarray, offset_A: np.ndarray, friction_A: np.ndarray,
+                          startup_A: np.ndarray, effects_A: np.ndarray, with_effects: bool, kt_tau: np.ndarray,
+                          dt: float, alpha: float, settled: bool, tau: np.ndarray, p: np.ndarray, dq: np.ndarray,
+                          p0: np.ndarray, integ: np.ndarray, r: np.ndarray, r_f: np.ndarray, v_f: np.ndarray,
+                          run_s: np.ndarray, peak: np.ndarray, sign: np.ndarray, hand: np.ndarray, kt: np.ndarray,
+                          due: np.ndarray, k_o: float, dt_nominal: float, speed: float, keep: float, residual: float,
+                          confirm_s: float, run_max_s: float, retest: bool, running: bool) -> tuple[int, bool]:
+    """``tau`` ← τ_in = K_t·(I − gravity − offset − friction − start-up [− effects]) (``update_from_command``'s
+    numpy, in its order), then ``_guard_kernel``."""
+    for j in range(tau.shape[0]):
+        a = cmd[j] - gravity_A[j]
+        a -= offset_A[j]
+        a -= friction_A[j]
+        a -= startup_A[j]
+        if with_effects:
+            a -= effects_A[j]
+        a *= kt_tau[j]
+        tau[j] = a
+    return _guard_kernel(dt, alpha, settled, tau, p, dq, p0, integ, r, r_f, v_f, run_s, peak, sign, hand, kt, due,
+                         k_o, dt_nominal, speed, keep, residual, confirm_s, run_max_s, retest, running)
+
+
+def _kernels() -> dict[str, Any] | None:
+    """Both compiled guard kernels (once per process), or None where numba cannot be imported."""
+    f1, b1 = np.zeros(1), np.zeros(1, dtype=bool)
+    state = (f1, f1, f1.copy(), f1.copy(), f1.copy(), f1.copy(), f1.copy(), f1.copy(), f1.copy(), f1.copy(), b1,
+             np.ones(1), b1.copy(), 60.0, 1e-3, 0.03, 0.85, 0.3, 0.03, 0.5, True, True)  # (p, dq, ... running)
+    return compile_kernels(globals(), ("_guard_kernel",), {
+        "guard": (_guard_kernel, (1e-3, 0.05, True, f1.copy(), *state)),
+        "guard_command": (_guard_command_kernel, (f1, f1, f1, f1, f1, f1, False, np.ones(1), 1e-3, 0.05, True,
+                                                  f1.copy(), *state))})
+
+
 def guard_kernel() -> Any:
     """The compiled ``_guard_kernel`` (once per process), or None where numba cannot be imported."""
-    f1, b1 = np.zeros(1), np.zeros(1, dtype=bool)
-    k = compile_kernels(globals(), (), {"guard": (_guard_kernel, (
-        1e-3, 0.05, True, f1, f1, f1, f1.copy(), f1.copy(), f1.copy(), f1.copy(), f1.copy(), f1.copy(), f1.copy(),
-        f1.copy(), b1, np.ones(1), b1.copy(), 60.0, 1e-3, 0.03, 0.85, 0.3, 0.03, 0.5, True, True))})
+    k = _kernels()
     return None if k is None else k["guard"]
+
+
+def guard_command_kernel() -> Any:
+    """The compiled ``_guard_command_kernel`` (``update_from_command``), or None where numba cannot be imported."""
+    k = _kernels()
+    return None if k is None else k["guard_command"]
 
 
 class RunawayGuard:
@@ -177,10 +213,13 @@ class RunawayGuard:
         self.retest_at = 0.0
         self.running = False
         self._kernel: Any = None
+        self._command_kernel: Any = None
 
-    def use_kernel(self, kernel: Any) -> None:
-        """``update`` by the compiled kernel (``guard_kernel()``; the numpy in ``update`` is its reference)."""
+    def use_kernel(self, kernel: Any, command_kernel: Any = None) -> None:
+        """``update`` by the compiled kernel (``guard_kernel()``; the numpy in ``update`` is its reference), and
+        ``update_from_command`` by ``guard_command_kernel()`` (τ_in fused into the same call)."""
         self._kernel = kernel
+        self._command_kernel = command_kernel
 
     def arm(self, p_Nms: np.ndarray, t_s: float) -> None:
         """Start watching (the drag law is fully in): the observer starts from the present momentum."""
@@ -203,27 +242,44 @@ class RunawayGuard:
     def armed(self) -> bool:
         return self.armed_at != math.inf
 
+    def update_from_command(self, t_s: float, q: np.ndarray, dq: np.ndarray, p_Nms: np.ndarray, cmd_A: np.ndarray,
+                            gravity_A: np.ndarray, offset_A: np.ndarray, friction_A: np.ndarray,
+                            startup_A: np.ndarray, effects_A: np.ndarray | None, kt_Nm_per_A: np.ndarray,
+                            tau_out: np.ndarray) -> Trip | None:
+        """``update`` with τ_in = K_t·(I_cmd − gravity − offset − friction − start-up [− effects]) computed into
+        ``tau_out`` first (by the command kernel in the same call, when it is in use)."""
+        if self._command_kernel is None or not self.armed:
+            np.subtract(cmd_A, gravity_A, out=tau_out)
+            tau_out -= offset_A
+            tau_out -= friction_A
+            tau_out -= startup_A
+            if effects_A is not None:
+                tau_out -= effects_A
+            tau_out *= kt_Nm_per_A
+            return self.update(t_s, q, dq, p_Nms, tau_out)
+        s = self.s
+        dt = self._elapsed(t_s)
+        code, self.running = self._command_kernel(
+            cmd_A, gravity_A, offset_A, friction_A, startup_A, cmd_A if effects_A is None else effects_A,
+            effects_A is not None, kt_Nm_per_A, dt, 1.0 - math.exp(-2.0 * math.pi * s.decide_Hz * dt),
+            t_s - self.armed_at >= s.settle_s, tau_out, p_Nms, dq, self.p0, self.integ, self.r, self.r_f, self.v_f,
+            self.run_s, self.peak, self.sign, self.hand, self.kt, self._m2, self.k_o, self.dt, s.speed_rad_s,
+            s.keep_speed, s.residual_A, s.confirm_s, s.run_max_s, t_s >= self.retest_at, self.running)
+        return self._decided(code, t_s, q)
+
     def update(self, t_s: float, q: np.ndarray, dq: np.ndarray, p_Nms: np.ndarray, tau_in_Nm: np.ndarray) -> Trip | None:
         """One cycle: advance the observer; a :class:`Trip` when a joint runs away."""
         if not self.armed:
             return None
         s, a, b, m, m2 = self.s, self._a, self._b, self._m, self._m2
-        # the true elapsed time since the last update (a late cycle missed periods); bounded against clock steps
-        dt = min(max(t_s - self._t_last, 0.0), 0.05) if t_s > self._t_last else self.dt
-        self._t_last = t_s
+        dt = self._elapsed(t_s)
         if self._kernel is not None:
             code, self.running = self._kernel(
                 dt, 1.0 - math.exp(-2.0 * math.pi * s.decide_Hz * dt), t_s - self.armed_at >= s.settle_s, tau_in_Nm,
                 p_Nms, dq, self.p0, self.integ, self.r, self.r_f, self.v_f, self.run_s, self.peak, self.sign,
                 self.hand, self.kt, m2, self.k_o, self.dt, s.speed_rad_s, s.keep_speed, s.residual_A, s.confirm_s,
                 s.run_max_s, t_s >= self.retest_at, self.running)
-            if code == 1:
-                return self._decide(q, self.v_f, m2)
-            if code == 2:
-                self.retest_at = t_s + s.run_max_s
-                self.hand &= ~m2
-                return self._decide(q, self.v_f, m2)
-            return None
+            return self._decided(code, t_s, q)
         # observer: integ += (τ_in + r)·dt;  r = K_o·(p − p₀ − integ)
         np.add(tau_in_Nm, self.r, out=a)
         a *= dt
@@ -287,6 +343,22 @@ class RunawayGuard:
             self.retest_at = t_s + s.run_max_s
             self.hand &= ~m2
             return self._decide(q, dq, m2)
+        return None
+
+    def _elapsed(self, t_s: float) -> float:
+        """The true elapsed time since the last update (a late cycle missed periods); bounded against clock steps."""
+        dt = min(max(t_s - self._t_last, 0.0), 0.05) if t_s > self._t_last else self.dt
+        self._t_last = t_s
+        return dt
+
+    def _decided(self, code: int, t_s: float, q: np.ndarray) -> Trip | None:
+        """After a kernel: the test it found due (1: the fast path's, 2: the slow path's; ``_m2`` marks the joints)."""
+        if code == 1:
+            return self._decide(q, self.v_f, self._m2)
+        if code == 2:
+            self.retest_at = t_s + self.s.run_max_s
+            self.hand &= ~self._m2
+            return self._decide(q, self.v_f, self._m2)
         return None
 
     def _decide(self, q: np.ndarray, dq: np.ndarray, due: np.ndarray) -> Trip | None:

@@ -22,7 +22,8 @@ from dragd.hardware.cia301 import EMCY_BASE, HEARTBEAT_BASE, SYNC_COB_ID
 from dragd.hardware.bus import PreparedBatch
 from dragd.hardware.pdo import BusLayout, RpdoEncoder
 
-Decoder = tuple[int, struct.Struct, tuple[str, ...]]  # joint, codec, fields
+# joint, codec, and where the codec's values hold the position, the statusword and the current (-1: not in the frame)
+Decoder = tuple[int, struct.Struct, int, int, int]
 
 
 class Feedback:
@@ -84,7 +85,9 @@ class BusIO:
             for fr in layout.frames:
                 if fr.direction == "tpdo":
                     (slot,) = fr.slots
-                    table[fr.cob_id] = (slot.joint, struct.Struct(slot.fmt), slot.fields)
+                    at = {f: i for i, f in enumerate(slot.fields)}
+                    table[fr.cob_id] = (slot.joint, struct.Struct(slot.fmt), at.get("position", -1),
+                                        at.get("statusword", -1), at.get("current", -1))
                 else:
                     enc = RpdoEncoder(fr, fd, min_interval_s=1.0 / fr.max_rate_Hz)
                     msg = can.Message(arbitration_id=fr.cob_id, data=enc.buffer, is_extended_id=False,
@@ -148,20 +151,21 @@ class BusIO:
         entry = table.get(cob)
         if entry is None:
             return False
-        j, codec, fields = entry
+        j, codec, at_position, at_statusword, at_current = entry
         if len(data) < codec.size:
             self.rejected_frames += 1
             return True
         fb = self.feedback
-        if fb.rx[j] and "position" in fields:
-            self.duplicate_tpdos += 1
         values = codec.unpack_from(data)
-        for f, v in zip(fields, values):
-            if f == "position":
-                fb.counts[j] = v
-            elif f == "current":
-                fb.current_permille[j] = v
-            elif self._sw_unseen[j] and v != fb.statusword[j]:
+        if at_position >= 0:
+            if fb.rx[j]:
+                self.duplicate_tpdos += 1
+            fb.counts[j] = values[at_position]
+        if at_current >= 0:
+            fb.current_permille[j] = values[at_current]
+        if at_statusword >= 0:
+            v = values[at_statusword]
+            if self._sw_unseen[j] and v != fb.statusword[j]:
                 # a second, different statusword before the step saw the first (the first came late): the first
                 # stays for this step (a drive that left operation enabled for one sample is not overwritten by its
                 # re-enabled next one); this one is the next step's
@@ -172,7 +176,7 @@ class BusIO:
             else:
                 fb.statusword[j] = v
                 self._sw_unseen[j] = True
-        if "position" in fields and not fb.rx[j]:
+        if at_position >= 0 and not fb.rx[j]:
             fb.rx[j] = True
             fb.rx_count += 1
         return True
@@ -196,9 +200,12 @@ class BusIO:
     def end_read(self) -> bool:
         """After the read step: age the joints that did not report; True when every joint reported."""
         fb = self.feedback
+        if fb.rx_count >= self.n:  # (the usual cycle: every joint reported)
+            fb.stale.fill(0)
+            return True
         np.add(fb.stale, 1, out=fb.stale)
         np.copyto(fb.stale, 0, where=fb.rx)  # (a boolean-mask assignment would allocate)
-        return fb.rx_count >= self.n
+        return False
 
     def start_read(self, loop: asyncio.AbstractEventLoop, deadline_s: float, on_read: Callable[[bool], None]) -> None:
         """Send SYNC and open the read step: ``on_read(complete)`` is called once, in the loop's thread, when every
