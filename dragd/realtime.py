@@ -18,15 +18,18 @@ from __future__ import annotations
 import asyncio
 import ctypes
 import ctypes.util
+import errno
 import os
 import platform
 import resource
+import struct
 import sys
 import time
 from collections.abc import Callable
 from typing import Any
 
-__all__ = ["Ticker", "set_realtime", "scheduler_label", "demote_current_thread", "HELPER_PRIORITY"]
+__all__ = ["Ticker", "set_realtime", "scheduler_label", "demote_current_thread", "HELPER_PRIORITY",
+           "CpuLatencyRequest"]
 
 _CLOCK_MONOTONIC = 1
 _TFD_NONBLOCK = os.O_NONBLOCK
@@ -353,6 +356,61 @@ def set_realtime(
             f"(RLIMIT_MEMLOCK {limit}; under systemd set LimitMEMLOCK=infinity)",
         }
     return result
+
+
+CPU_LATENCY_DEVICE = "/dev/cpu_dma_latency"
+_INT32 = struct.Struct("=i")
+
+
+class CpuLatencyRequest:
+    """A PM QoS request: every CPU wakes from idle within ``latency_us`` while this request is held (Linux
+    ``/dev/cpu_dma_latency``, as cyclictest makes it). 0 keeps idle CPUs in their polling state: no deep C-state to
+    leave, and in a virtual machine no halted vCPU for the host to wake, so a cycle's wake-ups start sooner and with
+    warm caches. The price is power: idle CPUs spin. Held while the descriptor is open: ``close`` withdraws it, and
+    the kernel does when the process ends, however it ends. Never raises for a missing device or permission:
+    ``info`` tells what applied and why not."""
+
+    def __init__(self, latency_us: int, device: str = CPU_LATENCY_DEVICE) -> None:
+        if not 0 <= latency_us <= 2_000_000_000:
+            raise ValueError(f"cpu latency: expected 0..2000000000 µs, got {latency_us}")
+        self.device = device
+        self._fd: int | None = None
+        self.info: dict[str, Any] = {"requested_us": int(latency_us), "applied": False, "reason": None}
+        try:
+            fd = os.open(device, os.O_RDWR | os.O_CLOEXEC)
+        except OSError as e:
+            self.info["reason"] = (f"open {device} failed: {e.strerror}" + (
+                "; under systemd install systemd/dragd-cpu-latency.conf and its tmpfiles snippet (docs/SYSTEMD.md)"
+                if e.errno in (errno.EACCES, errno.EPERM) else ""))
+            return
+        try:
+            os.write(fd, _INT32.pack(int(latency_us)))
+        except OSError as e:
+            os.close(fd)
+            self.info["reason"] = f"write {device} failed: {e.strerror}"
+            return
+        self._fd = fd
+        self.info["applied"] = True
+
+    def effective_us(self) -> int | None:
+        """The latency every CPU is held to now (the strictest request of all processes), or None without one."""
+        if self._fd is None:
+            return None
+        try:
+            raw = os.pread(self._fd, _INT32.size, 0)
+        except OSError:
+            return None
+        return _INT32.unpack(raw)[0] if len(raw) == _INT32.size else None
+
+    @property
+    def held(self) -> bool:
+        return self._fd is not None
+
+    def close(self) -> None:
+        """Withdraw the request."""
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
 
 
 def scheduler_label(info: dict[str, Any], priority: int | None) -> str:

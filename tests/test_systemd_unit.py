@@ -97,6 +97,17 @@ def test_hardening(unit):
     lab = parse_unit((ROOT / "systemd" / "dragd-lab-udp.conf").read_text())
     assert lab == {"Service": {"RestrictAddressFamilies": ["AF_INET"]}}  # a lab's drop-in adds IP (udp_multicast)
     assert one(s, "CapabilityBoundingSet") == ""
+    assert one(s, "PrivateDevices") == "yes"  # SocketCAN needs no device node
+    # the PM QoS drop-in (loop.cpu_latency_us) lets one device through, under the device cgroup instead
+    qos = parse_unit((ROOT / "systemd" / "dragd-cpu-latency.conf").read_text())
+    assert qos == {"Service": {"PrivateDevices": ["no"], "DevicePolicy": ["closed"],
+                               "DeviceAllow": ["/dev/cpu_dma_latency rw"]}}
+    snippet = [l.split() for l in (ROOT / "systemd" / "dragd-cpu-latency.tmpfiles.conf").read_text().splitlines()
+               if l and not l.startswith("#")]
+    assert snippet == [["z", "/dev/cpu_dma_latency", "0660", "root", "dragd", "-"]]
+    from dragd.realtime import CPU_LATENCY_DEVICE
+
+    assert CPU_LATENCY_DEVICE == "/dev/cpu_dma_latency"
 
 
 def test_bound_to_the_can_device(unit):

@@ -45,7 +45,7 @@ from dragd.hardware.master import Master
 from dragd.hardware.pdo import BusLayout, layout_for
 from dragd.hardware.scaling import Scaling
 from dragd.model import RobotModel
-from dragd.realtime import demote_current_thread, scheduler_label, set_realtime
+from dragd.realtime import CpuLatencyRequest, demote_current_thread, scheduler_label, set_realtime
 
 MAX_FAULTS = 100  # the fault list keeps the newest
 PAYLOAD_REACH_M = 0.3  # a flange load's centre of mass lies within this of the flange (the guard's plausibility test)
@@ -157,6 +157,7 @@ class Daemon:
         self.stop_requested = False
         self.scheduler = "not started"
         self.memory_locked = False  # mlockall applied (loop.lock_memory with loop.realtime_priority)
+        self.cpu_latency: CpuLatencyRequest | None = None  # loop.cpu_latency_us's PM QoS request, while held
         self.master: Master | None = None
         self.buses: dict[str, can.BusABC] = {}
         self.io: BusIO | None = None
@@ -448,6 +449,9 @@ class Daemon:
             "feedback_holds": c.feedback_holds,
             "scheduler": self.scheduler,
             "memory_locked": self.memory_locked,  # the cycle thread's policy (SCHED_FIFO when configured and permitted)
+            "cpu_latency": ({"requested_us": None, "applied": False, "reason": "not requested"}
+                            if self.cpu_latency is None else
+                            {**self.cpu_latency.info, "effective_us": self.cpu_latency.effective_us()}),
             "requested_mode": MODE_NAMES[c.resume_mode if c.feedback_hold else c.mode],
             "q_rad": cy.est.q_rad.tolist(),
             "dq_rad_s": cy.est.dq_rad_s.tolist(),
@@ -574,6 +578,11 @@ class Daemon:
             self.memory_locked = bool(lock.get("applied"))
             if lock.get("requested") and not lock.get("applied"):
                 self._log_at(f"warning: memory not locked: {lock.get('reason')}", LOG_WARNING)
+            if self.cfg.loop.realtime_priority is not None and self.cfg.loop.cpu_latency_us is not None:
+                self.cpu_latency = CpuLatencyRequest(self.cfg.loop.cpu_latency_us)
+                if not self.cpu_latency.held:
+                    self._log_at(f"warning: CPU wake-up latency not requested: {self.cpu_latency.info['reason']}",
+                                 LOG_WARNING)
             for sig in (signal.SIGTERM, signal.SIGINT):
                 loop.add_signal_handler(sig, self.request_exit)
             self._warm_up()
@@ -610,3 +619,5 @@ class Daemon:
             await self.recorder.close(self.cycle.cycles)
             for bus in self.buses.values():
                 bus.shutdown()
+            if self.cpu_latency is not None:
+                self.cpu_latency.close()

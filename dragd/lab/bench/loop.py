@@ -152,8 +152,10 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
               "daemon resumed drag by itself", file=sys.stderr)
     shutil.rmtree(tmp, ignore_errors=True)
     tel0, tel1 = before.get("telemetry") or {}, after.get("telemetry") or {}  # the writer's counters
-    print(f"bench: loop session {seconds:.0f} s, telemetry {telemetry}, daemon cycle thread {after.get('scheduler')}",
-          file=sys.stderr)
+    qos = after.get("cpu_latency") or {}
+    print(f"bench: loop session {seconds:.0f} s, telemetry {telemetry}, daemon cycle thread {after.get('scheduler')}, "
+          "CPU wake-up latency " + (f"held to {qos.get('effective_us')} µs" if qos.get("applied")
+                                    else f"not held ({qos.get('reason')})"), file=sys.stderr)
     for name in ("daemon", "sim") if profile else ():
         stacks = Path(profile) / f"{name}.txt"
         if stacks.exists():
