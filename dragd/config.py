@@ -276,8 +276,8 @@ class LoopConfig(_Strict):
     # with realtime_priority: every CPU's wake-up latency held to this many µs while the daemon runs (the kernel's
     # PM QoS, /dev/cpu_dma_latency); 0: idle CPUs poll instead of sleeping deeply, so the cycle's wake-ups start at
     # once with warm caches. Off (null) by default: idle CPUs then spin, and in a virtual machine a host may preempt
-    # the busy vCPUs (docs/PERFORMANCE.md "CPU wake-up latency"). 'dragd status' cpu_latency says whether it applied;
-    # under systemd: systemd/dragd-cpu-latency.conf (docs/SYSTEMD.md)
+    # the busy vCPUs (docs/PERFORMANCE.md "Session 16"). 'dragd status' cpu_latency says whether it applied;
+    # under systemd: systemd/dragd-cpu-latency.conf and systemd/70-dragd-cpu-latency.rules (docs/SYSTEMD.md)
     cpu_latency_us: Annotated[int, Field(ge=0, le=2_000_000_000)] | None = None
     cpus: list[Annotated[int, Field(ge=0)]] | None = None
     # the cycle's arithmetic by compiled kernels (numba: the drag law and its latch, dragd/control/fused.py; the

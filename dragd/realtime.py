@@ -379,15 +379,17 @@ class CpuLatencyRequest:
         try:
             fd = os.open(device, os.O_RDWR | os.O_CLOEXEC)
         except OSError as e:
+            # (ENOENT: the shipped unit's PrivateDevices=yes hides the device; EACCES: root's by default)
             self.info["reason"] = (f"open {device} failed: {e.strerror}" + (
-                "; under systemd install systemd/dragd-cpu-latency.conf and its tmpfiles snippet (docs/SYSTEMD.md)"
-                if e.errno in (errno.EACCES, errno.EPERM) else ""))
+                "; under systemd install the drop-in systemd/dragd-cpu-latency.conf and the udev rule "
+                "systemd/70-dragd-cpu-latency.rules (docs/SYSTEMD.md)"
+                if e.errno in (errno.EACCES, errno.EPERM, errno.ENOENT) else ""))
             return
         try:
             os.write(fd, _INT32.pack(int(latency_us)))
         except OSError as e:
             os.close(fd)
-            self.info["reason"] = f"write {device} failed: {e.strerror}"
+            self.info["reason"] = f"write {device} failed (a 4-byte int, {latency_us} µs): {e.strerror}"
             return
         self._fd = fd
         self.info["applied"] = True
@@ -411,6 +413,12 @@ class CpuLatencyRequest:
         if self._fd is not None:
             os.close(self._fd)
             self._fd = None
+            self.info["applied"] = False
+            self.info["reason"] = "withdrawn"
+
+    def status(self) -> dict[str, Any]:
+        """``info`` and the latency every CPU is held to now (``effective_us``, None without a request held)."""
+        return {**self.info, "effective_us": self.effective_us()}
 
 
 def scheduler_label(info: dict[str, Any], priority: int | None) -> str:

@@ -29,7 +29,8 @@ def shipped_configs() -> list[Path]:
 
 def systemd_path(name: str) -> Path:
     """A systemd file shipped with dragd: ``dragd.service``, ``dragd.sysusers.conf``, ``dragd.tmpfiles.conf``, the
-    drop-ins ``dragd-lab-udp.conf`` and ``dragd-cpu-latency.conf`` (with ``dragd-cpu-latency.tmpfiles.conf``)."""
+    drop-ins ``dragd-lab-udp.conf`` and ``dragd-cpu-latency.conf`` (with the udev rule
+    ``70-dragd-cpu-latency.rules``)."""
     return DATA_DIR / "systemd" / name
 
 

@@ -30,6 +30,7 @@ def _current_us() -> int:
 @writable
 @pytest.mark.unit
 def test_a_request_holds_every_cpu_to_its_latency_until_it_is_closed() -> None:
+    before = _current_us()
     req = CpuLatencyRequest(3)
     try:
         assert req.held and req.info == {"requested_us": 3, "applied": True, "reason": None}
@@ -38,6 +39,9 @@ def test_a_request_holds_every_cpu_to_its_latency_until_it_is_closed() -> None:
     finally:
         req.close()
     assert not req.held and req.effective_us() is None
+    assert req.status() == {"requested_us": 3, "applied": False, "reason": "withdrawn", "effective_us": None}
+    if before > 3:  # (another process may hold the CPUs at 3 µs or less itself)
+        assert _current_us() == before, "close did not withdraw the request"
     req.close()  # (idempotent)
 
 
@@ -62,7 +66,7 @@ def test_a_request_that_cannot_be_made_says_why(tmp_path) -> None:
     missing = CpuLatencyRequest(0, str(tmp_path / "no_such_device"))
     assert not missing.held and missing.effective_us() is None
     assert missing.info["applied"] is False and "no_such_device" in missing.info["reason"]
-    assert "No such file" in missing.info["reason"]
+    assert "No such file" in missing.info["reason"] and "systemd/dragd-cpu-latency.conf" in missing.info["reason"]
     directory = CpuLatencyRequest(0, str(tmp_path))
     assert not directory.held and str(tmp_path) in directory.info["reason"]
     with pytest.raises(ValueError, match="expected 0..2000000000"):
@@ -108,3 +112,24 @@ def test_a_daemon_that_asks_for_it_holds_the_request_while_it_runs(tmp_path) -> 
     assert codes["dragd"] == 0, codes
     if before > 0:  # (another process may hold the CPUs at 0 itself)
         assert _current_us() == before, "the daemon's request outlived it"
+
+
+@pytest.mark.rig
+def test_a_daemon_without_a_realtime_priority_says_it_did_not_apply_the_latency(tmp_path) -> None:
+    """The request goes with a real-time priority: asked for without one, it is not made, and status and log say
+    why (never silently ignored)."""
+    from dragd.lab.rig import Rig
+
+    data = yaml.safe_load((ROOT / "config" / "default.yaml").read_text())
+    data["loop"]["cpu_latency_us"] = 0
+    cfg = tmp_path / "qos.yaml"
+    cfg.write_text(yaml.safe_dump(data))
+    with Rig("qos-other", workdir=tmp_path / "rig", config=cfg) as rig:
+        rig.start_sim()
+        rig.start_daemon()
+        status = rig.must("status")
+        assert status["scheduler"] == "SCHED_OTHER", status["scheduler"]
+        qos = status["cpu_latency"]
+        assert qos["requested_us"] == 0 and qos["applied"] is False and qos["effective_us"] is None, qos
+        assert "real-time priority" in qos["reason"], qos
+        assert "loop.cpu_latency_us 0 not applied" in rig.daemon.tail(), rig.daemon.tail()

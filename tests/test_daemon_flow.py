@@ -91,7 +91,8 @@ def test_start_holds_and_status_has_promised_keys(session):
     assert st["drives_enabled"] is True and st["mode"] == "hold" and st["faults"] == []
     assert len(st["q_rad"]) == 6 and len(st["current_A"]) == 6
     assert st["scheduler"] == "SCHED_OTHER"  # the default config asks for no real-time priority
-    assert st["cpu_latency"] == {"requested_us": None, "applied": False, "reason": "not requested"}  # (nor PM QoS)
+    assert st["cpu_latency"] == {"requested_us": None, "applied": False, "reason": "not requested",
+                                 "effective_us": None}  # (nor PM QoS)
     # holding the arm against gravity: joint 2 carries tens of N·m, i.e. several amperes
     assert abs(st["current_A"][1]) > 2.0
 

@@ -45,5 +45,6 @@ def test_second_daemon_refuses_and_leaves_the_running_arm_alone(tmp_path):
     if os.geteuid() == 0 and status["scheduler"].startswith("SCHED_FIFO"):  # root may lock memory: the unit's claim
         assert status["memory_locked"] is True, status
     # PM QoS is opt-in (loop.cpu_latency_us), also as deployed: a default daemon leaves the CPUs' idle states alone
-    assert status["cpu_latency"] == {"requested_us": None, "applied": False, "reason": "not requested"}, \
+    assert status["cpu_latency"] == {"requested_us": None, "applied": False, "reason": "not requested",
+                                     "effective_us": None}, \
         status["cpu_latency"]

@@ -102,9 +102,9 @@ def test_hardening(unit):
     qos = parse_unit((ROOT / "systemd" / "dragd-cpu-latency.conf").read_text())
     assert qos == {"Service": {"PrivateDevices": ["no"], "DevicePolicy": ["closed"],
                                "DeviceAllow": ["/dev/cpu_dma_latency rw"]}}
-    snippet = [l.split() for l in (ROOT / "systemd" / "dragd-cpu-latency.tmpfiles.conf").read_text().splitlines()
-               if l and not l.startswith("#")]
-    assert snippet == [["z", "/dev/cpu_dma_latency", "0660", "root", "dragd", "-"]]
+    rules = [l for l in (ROOT / "systemd" / "70-dragd-cpu-latency.rules").read_text().splitlines()
+             if l and not l.startswith("#")]
+    assert rules == ['KERNEL=="cpu_dma_latency", SUBSYSTEM=="misc", GROUP="dragd", MODE="0660"']  # group dragd writes
     from dragd.realtime import CPU_LATENCY_DEVICE
 
     assert CPU_LATENCY_DEVICE == "/dev/cpu_dma_latency"

@@ -158,6 +158,8 @@ class Daemon:
         self.scheduler = "not started"
         self.memory_locked = False  # mlockall applied (loop.lock_memory with loop.realtime_priority)
         self.cpu_latency: CpuLatencyRequest | None = None  # loop.cpu_latency_us's PM QoS request, while held
+        self.cpu_latency_status: dict[str, Any] = {"requested_us": None, "applied": False, "reason": "not requested",
+                                                   "effective_us": None}  # (without a request object)
         self.master: Master | None = None
         self.buses: dict[str, can.BusABC] = {}
         self.io: BusIO | None = None
@@ -449,9 +451,7 @@ class Daemon:
             "feedback_holds": c.feedback_holds,
             "scheduler": self.scheduler,
             "memory_locked": self.memory_locked,  # the cycle thread's policy (SCHED_FIFO when configured and permitted)
-            "cpu_latency": ({"requested_us": None, "applied": False, "reason": "not requested"}
-                            if self.cpu_latency is None else
-                            {**self.cpu_latency.info, "effective_us": self.cpu_latency.effective_us()}),
+            "cpu_latency": self.cpu_latency_status if self.cpu_latency is None else self.cpu_latency.status(),
             "requested_mode": MODE_NAMES[c.resume_mode if c.feedback_hold else c.mode],
             "q_rad": cy.est.q_rad.tolist(),
             "dq_rad_s": cy.est.dq_rad_s.tolist(),
@@ -578,11 +578,18 @@ class Daemon:
             self.memory_locked = bool(lock.get("applied"))
             if lock.get("requested") and not lock.get("applied"):
                 self._log_at(f"warning: memory not locked: {lock.get('reason')}", LOG_WARNING)
-            if self.cfg.loop.realtime_priority is not None and self.cfg.loop.cpu_latency_us is not None:
-                self.cpu_latency = CpuLatencyRequest(self.cfg.loop.cpu_latency_us)
+            latency_us = self.cfg.loop.cpu_latency_us
+            if latency_us is not None and self.cfg.loop.realtime_priority is None:
+                self.cpu_latency_status["requested_us"] = latency_us
+                self.cpu_latency_status["reason"] = ("needs a real-time priority (loop.realtime_priority or "
+                                                     "--realtime-priority): the request goes with it")
+                self._log_at(f"warning: loop.cpu_latency_us {latency_us} not applied: "
+                             f"{self.cpu_latency_status['reason']}", LOG_WARNING)
+            elif latency_us is not None:
+                self.cpu_latency = CpuLatencyRequest(latency_us)
                 if not self.cpu_latency.held:
-                    self._log_at(f"warning: CPU wake-up latency not requested: {self.cpu_latency.info['reason']}",
-                                 LOG_WARNING)
+                    self._log_at(f"warning: loop.cpu_latency_us {latency_us} not applied: "
+                                 f"{self.cpu_latency.info['reason']}", LOG_WARNING)
             for sig in (signal.SIGTERM, signal.SIGINT):
                 loop.add_signal_handler(sig, self.request_exit)
             self._warm_up()
@@ -609,6 +616,8 @@ class Daemon:
             watchdog.cancel()
             return 0
         finally:
+            if self.cpu_latency is not None:  # first: the daemon is stopping, the CPUs need not poll through it
+                self.cpu_latency.close()
             if comms is not None:
                 comms.cancel()
             self.motions.planner.close()
@@ -619,5 +628,3 @@ class Daemon:
             await self.recorder.close(self.cycle.cycles)
             for bus in self.buses.values():
                 bus.shutdown()
-            if self.cpu_latency is not None:
-                self.cpu_latency.close()

@@ -45,7 +45,7 @@ def test_resources_name_the_shipped_files() -> None:
     assert resources.config_path().is_file()
     assert {p.name for p in resources.shipped_configs()} >= {"default.yaml"}
     for name in ("dragd.service", "dragd.sysusers.conf", "dragd.tmpfiles.conf", "dragd-lab-udp.conf",
-                 "dragd-cpu-latency.conf", "dragd-cpu-latency.tmpfiles.conf"):
+                 "dragd-cpu-latency.conf", "70-dragd-cpu-latency.rules"):
         assert resources.systemd_path(name).is_file(), name
     assert (resources.DATA_DIR / "docs" / "SYSTEMD.md").is_file()
 
