@@ -80,8 +80,8 @@ def test_the_guard_kernel_matches_the_numpy_update(entry: str) -> None:
                 assert np.allclose(y, x, rtol=1e-12, atol=1e-12), f"step {k}: {f}"
             else:
                 assert np.array_equal(x, y), f"step {k}: {f}"
-        assert (ref.running, ref.checks, ref.hand_runs, ref.retest_at, ref.armed) == \
-            (got.running, got.checks, got.hand_runs, got.retest_at, got.armed), f"step {k}"
+        assert (ref.running, ref.checks, ref.hand_runs, ref.stuck_retests, ref.retest_at, ref.armed) == \
+            (got.running, got.checks, got.hand_runs, got.stuck_retests, got.retest_at, got.armed), f"step {k}"
         if not ref.armed:  # after a trip: armed again, as the controller does when drag resumes
             for g in (ref, got):
                 g.arm(p, t)

@@ -13,6 +13,9 @@ them apart by where the torque acts and how it changes:
 * a joint is a candidate while it moves (|q̇| > ``speed_rad_s``), the residual drives it (r·q̇ > 0, |r|/K_t >
   ``residual_A``) and it does not slow down (|q̇| ≥ ``keep_speed``·the run's peak: an operator's hand brings the
   arm to a stop at its target; a released arm under a gravity error does not);
+* a joint at rest may hold its share of the load by static friction (its residual then reads ~0 until it breaks
+  away): while one is at rest, a "not payload-like" verdict is repeated every ``stuck_retest_s`` for ``stuck_wait_s``
+  after the first of a motion before the run is the hand's;
 * a run that goes on for ``run_max_s`` without slowing (a released arm at its terminal speed, where the residual
   is only the virtual damping's torque) is tested again every ``run_max_s`` with a residual above residual_A/3;
 * after ``confirm_s`` of candidacy the residual vector is tested once against what a load on the flange can
@@ -52,6 +55,8 @@ class GuardSettings:
     unexplained_max: float = 0.1  # a residual with more than this fraction outside span Y(q) is a hand's
     settle_s: float = 0.05  # after (re)arming: observer transient, no decision
     run_max_s: float = 0.5  # a run that goes on this long without slowing is tested again (with any residual)
+    stuck_wait_s: float = 0.06  # a verdict "not a load" with a joint at rest is final only this long after the first
+    stuck_retest_s: float = 0.01  # ... and tested again this often meanwhile (static friction may hide the load)
     decide_Hz: float = 8.0  # low-pass of the residual and speeds the decisions use (velocity noise)
     drive_share: float = 0.5  # a runaway's residual drives the arm: r·q̇ at least this share of Σ|r_j·q̇_j|
 
@@ -212,6 +217,10 @@ class RunawayGuard:
         self._m3 = np.zeros(n, dtype=bool)
         self.retest_at = 0.0
         self.running = False
+        self._stuck_open = False  # a test found a joint at rest that may hide the load (since _stuck_since)
+        self._stuck_since = 0.0
+        self._retest_stuck_at = -math.inf
+        self.stuck_retests = 0  # payload-likeness tests repeated for a joint at rest (static friction may hide the load)
         self._kernel: Any = None
         self._command_kernel: Any = None
 
@@ -233,6 +242,7 @@ class RunawayGuard:
         self.peak.fill(0.0)
         self.sign.fill(0.0)
         self.hand.fill(False)
+        self._end_stuck()
         self.armed_at = t_s
 
     def disarm(self) -> None:
@@ -306,6 +316,8 @@ class RunawayGuard:
                 self.peak.fill(0.0)
                 self.hand.fill(False)
                 self.running = False
+                if self._stuck_open:
+                    self._end_stuck()
             return None
         self.running = True
         np.greater(a, s.speed_rad_s, out=m)
@@ -333,7 +345,7 @@ class RunawayGuard:
         np.greater_equal(self.run_s, s.confirm_s, out=self._m3)
         m2 &= self._m3
         if np.count_nonzero(m2):
-            return self._decide(q, dq, m2)
+            return None if t_s < self._retest_stuck_at else self._decide(t_s, q, dq, m2)
         # slow path: a run that keeps going for run_max_s (at a terminal speed the residual is only the virtual
         # damping's torque) is tested again every run_max_s, with any residual
         np.greater_equal(self.run_s, s.run_max_s, out=m2)
@@ -342,7 +354,7 @@ class RunawayGuard:
         if np.count_nonzero(m2) and t_s >= self.retest_at:
             self.retest_at = t_s + s.run_max_s
             self.hand &= ~m2
-            return self._decide(q, dq, m2)
+            return self._decide(t_s, q, dq, m2)
         return None
 
     def _elapsed(self, t_s: float) -> float:
@@ -351,18 +363,29 @@ class RunawayGuard:
         self._t_last = t_s
         return dt
 
+    def _end_stuck(self) -> None:
+        self._stuck_open = False
+        self._retest_stuck_at = -math.inf
+
     def _decided(self, code: int, t_s: float, q: np.ndarray) -> Trip | None:
         """After a kernel: the test it found due (1: the fast path's, 2: the slow path's; ``_m2`` marks the joints)."""
+        if code == 0:
+            if self._stuck_open and not self.running:  # the arm came to rest: a new episode tests afresh
+                self._end_stuck()
+            return None
         if code == 1:
-            return self._decide(q, self.v_f, self._m2)
+            if t_s < self._retest_stuck_at:  # (a joint at rest may hide the load: tested again at _retest_stuck_at)
+                return None
+            return self._decide(t_s, q, self.v_f, self._m2)
         if code == 2:
             self.retest_at = t_s + self.s.run_max_s
             self.hand &= ~self._m2
-            return self._decide(q, self.v_f, self._m2)
+            return self._decide(t_s, q, self.v_f, self._m2)
         return None
 
-    def _decide(self, q: np.ndarray, dq: np.ndarray, due: np.ndarray) -> Trip | None:
-        """Rare path (once per candidate run): is the residual what a flange load would produce?"""
+    def _decide(self, t_s: float, q: np.ndarray, dq: np.ndarray, due: np.ndarray) -> Trip | None:
+        """Rare path (once per candidate run; repeated while a joint at rest may hide the load): is the residual what a
+        flange load would produce?"""
         self.checks += 1
         # a runaway is driven by what is missing: the residual does positive work on the arm as a whole. A hand that
         # brakes a moving arm (an upward pull on an arm moving down) can drive one joint while it brakes the others,
@@ -374,6 +397,14 @@ class RunawayGuard:
             return None
         unexplained, kg = self.explain(q, self.r_f) if self.explain is not None else (0.0, float("nan"))
         if unexplained > self.s.unexplained_max:
+            # a joint at rest may be holding its share of the load by static friction (its residual then reads ~0
+            # until it breaks away): not the hand's yet; tested again while that can last
+            if not self._stuck_open:
+                self._stuck_open, self._stuck_since = True, t_s
+            if t_s - self._stuck_since < self.s.stuck_wait_s and float(np.abs(dq).min()) <= self.s.speed_rad_s:
+                self._retest_stuck_at = t_s + self.s.stuck_retest_s
+                self.stuck_retests += 1
+                return None
             self.hand |= due
             self.hand_runs += 1
             return None
