@@ -188,6 +188,17 @@ class RobotModel:
             Y[:, 1 + k] = -J[3:].T @ np.cross(R[:, k], g)
         return Y
 
+    def load_free_joints(self, samples: int = 16) -> np.ndarray:
+        """Joints whose payload-regressor row is zero at every pose (a first axis parallel to gravity): no flange load
+        torques them. Checked at ``samples`` pseudo-random poses within the limits (a fixed seed: deterministic)."""
+        rng = np.random.default_rng(0)
+        lo, hi = self.position_limits_rad
+        lo, hi = np.maximum(lo, -np.pi), np.minimum(hi, np.pi)
+        top = np.zeros(self.model.nv)
+        for _ in range(samples):
+            np.maximum(top, np.abs(self.payload_regressor(rng.uniform(lo, hi))).max(axis=1), out=top)
+        return top < 1e-9
+
     @property
     def position_limits_rad(self) -> tuple[np.ndarray, np.ndarray]:
         return self.model.lowerPositionLimit.copy(), self.model.upperPositionLimit.copy()

@@ -80,12 +80,15 @@ def test_the_guard_kernel_matches_the_numpy_update(entry: str) -> None:
                 assert np.allclose(y, x, rtol=1e-12, atol=1e-12), f"step {k}: {f}"
             else:
                 assert np.array_equal(x, y), f"step {k}: {f}"
-        assert (ref.running, ref.checks, ref.hand_runs, ref.stuck_retests, ref.retest_at, ref.armed) == \
-            (got.running, got.checks, got.hand_runs, got.stuck_retests, got.retest_at, got.armed), f"step {k}"
+        assert (ref.running, ref.checks, ref.hand_runs, ref.stuck_deferrals, ref.retest_at, ref.armed) == \
+            (got.running, got.checks, got.hand_runs, got.stuck_deferrals, got.retest_at, got.armed), f"step {k}"
+        assert (ref._stuck_open, ref._stuck_since, ref._retest_stuck_at) == \
+            (got._stuck_open, got._stuck_since, got._retest_stuck_at), f"step {k}"
         if not ref.armed:  # after a trip: armed again, as the controller does when drag resumes
             for g in (ref, got):
                 g.arm(p, t)
     assert trips_got == trips_ref and len(trips_ref) >= 2, "the sequence must trip"
     assert ref.hand_runs >= 2, "the sequence must have hand runs"
+    assert ref.stuck_deferrals >= 1, "the sequence must defer a verdict (a joint at rest)"
     used = guard_kernel() if entry == "update" else guard_command_kernel()
     assert len(used.signatures) == 1  # (compiled once, at start, with the cycle's types: none mid-cycle)

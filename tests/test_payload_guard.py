@@ -89,12 +89,12 @@ def test_removed_payload_arm_rises_and_is_stopped():
     assert cl.phys.q_rad[1] < q0[1]  # joint 2 rose (towards −: the shoulder lifts the arm)
 
 
-def test_a_tool_taken_off_at_any_phase_of_the_start_up_sine_is_held_in_bounds():
+def test_a_tool_taken_off_while_the_shoulder_sticks_is_held_in_bounds():
     """The rig's tail (100 ms, 1.56°): taken off just as the start-up sine eased the shoulder's command, the shoulder
     stuck by static friction while elbow and wrist rose; its residual read ~0, the one payload-likeness test judged
     the run a hand's, and the trip waited for the shoulder's own run. A verdict "not a load" with a joint at rest is
-    tested again for a while. 0.5814 and 0.6406 s: two removal instants that drifted 1.74° and 1.53° before."""
-    retests = 0
+    tested again for a while. 0.5814 and 0.6406 s: two removal instants that drifted 1.74° and 1.53° before (instants
+    found by sweeping the removal over the sine's phases; they move with the law's start-up terms and the friction)."""
     for settle_s in (0.5, 0.5814, 0.6406):
         cl = ClosedLoop()
         cl.hang(2.0, (0.0, 0.0, 0.05))
@@ -107,8 +107,10 @@ def test_a_tool_taken_off_at_any_phase_of_the_start_up_sine_is_held_in_bounds():
         dt, drift = _until_trip(cl, q0, t0, 1.0)
         assert dt <= 0.150 and drift <= 1.5, (settle_s, dt, drift)
         assert cl.c.guard.hand_runs == 0, settle_s  # (judged a hand's, the run would wait for another joint's run)
-        retests += cl.c.guard.stuck_retests
-    assert retests >= 2  # the stuck shoulder was waited for, not found moving by chance
+        if settle_s != 0.5:  # the shoulder stuck: its verdict was deferred, not found moving by chance
+            assert cl.c.guard.stuck_deferrals >= 1, settle_s
+    # the daemon told its guard which joints no flange load reaches: the seed cobot's vertical first axis
+    assert cl.c.guard.load_free.tolist() == [True, False, False, False, False, False]
 
 
 def test_scripted_hand_guiding_never_trips():

@@ -137,7 +137,7 @@ def test_teach_by_hand_replay_linear_and_bumpless_drag_replay_drag(tmp_path):
     assert np.abs(q[-1] - np.array(marks[2]["q_rad"])).max() < math.radians(0.5)
     raw = tmp_path / "programs" / prog.recording.mcap
     assert raw.is_file() and [e["waypoint"] for e in _events(raw, "mark")] == ["p1", "p2", "p3"]
-    # accuracy: every taught waypoint reached within 0.1° on every joint (the daemon's encoders)
+    # accuracy: every taught waypoint reached within the bound below on every joint (the daemon's encoders)
     rows = read_rows(mcap, ("t_s", "mode", "q_rad", "q_ref_rad", "track_t_s", "rx", "current_command_A",
                             "current_measured_A", "dq_rad_s"))
     res = replay_errors(rows, t0, t1, resp["marks"], {m["name"]: m["q_rad"] for m in marks}, resp["move_to_start_s"])
@@ -145,7 +145,8 @@ def test_teach_by_hand_replay_linear_and_bumpless_drag_replay_drag(tmp_path):
     # poses are the ones the hand taught this run, and where a joint sticks at a stop varies with them and with the
     # approach: the integral is frozen at rest, and joint 2's static friction (10.6 N·m in the simulator) against the
     # drive's and the daemon's stiffness leaves a band of about ±0.3°. Measured over 18 runs on 2026-11-24:
-    # 0.05–0.106°, once 0.135° (p3, joint 2, the arm still for the whole dwell; no late cycle near the stops).
+    # 0.05–0.106°, once 0.135° (p3, joint 2, the arm still for the whole dwell; no late cycle near the stops). The
+    # bound is that measured spread with a margin, not the band: a stop anywhere in the band is physically possible.
     bound = 0.15 if strict else 0.6
     assert len(res["waypoints"]) == 3 and res["waypoint_error_deg_max"] < bound, (strict, res)
     assert res["path_error_deg_max"] < (0.6 if strict else 3.0), res
@@ -182,7 +183,8 @@ def test_teach_by_hand_replay_linear_and_bumpless_drag_replay_drag(tmp_path):
     last = tr[-1] + 1
     back = last + int(np.argmax(mode[last:] != "hold"))
     assert mode[back] == "drag" and back - last >= 5, (mode[back], back - last)
-    assert np.abs(np.diff(target[last:back], axis=0)).max() == 0.0  # the drives held the hold pose in CSP meanwhile
+    # the daemon's reference stayed at the hold pose all along (HOLD with the drives still in CSP, not yet back in CST)
+    assert np.abs(np.diff(target[last:back], axis=0)).max() == 0.0
     assert per_cycle(meas, slice(last, back + 1)).max() < 0.3
 
 

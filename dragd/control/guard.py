@@ -13,16 +13,17 @@ them apart by where the torque acts and how it changes:
 * a joint is a candidate while it moves (|q̇| > ``speed_rad_s``), the residual drives it (r·q̇ > 0, |r|/K_t >
   ``residual_A``) and it does not slow down (|q̇| ≥ ``keep_speed``·the run's peak: an operator's hand brings the
   arm to a stop at its target; a released arm under a gravity error does not);
-* a joint at rest may hold its share of the load by static friction (its residual then reads ~0 until it breaks
-  away): while one is at rest, a "not payload-like" verdict is repeated every ``stuck_retest_s`` for ``stuck_wait_s``
-  after the first of a motion before the run is the hand's;
 * a run that goes on for ``run_max_s`` without slowing (a released arm at its terminal speed, where the residual
   is only the virtual damping's torque) is tested again every ``run_max_s`` with a residual above residual_A/3;
-* after ``confirm_s`` of candidacy the residual vector is tested once against what a load on the flange can
-  produce at q (``explain``: the fraction of r outside span Y(q), the payload regressor): a hand pulling several
-  joints (or the vertical first axis, which gravity never loads) is not payload-like → that run is the hand's and
-  is not tripped again until it ends; a payload-like residual trips: HOLD where the arm is, the event names the
-  joint, the missing torque and the flange mass that would explain it.
+* after ``confirm_s`` of candidacy the residual vector is tested against what a load on the flange can produce at
+  q (``explain``: the fraction of r outside span Y(q), the payload regressor): a hand pulling several joints (or
+  the vertical first axis, which gravity never loads) is not payload-like → that run is the hand's and is not
+  tripped again until it ends; a payload-like residual trips: HOLD where the arm is, the event names the joint,
+  the missing torque and the flange mass that would explain it;
+* but a joint at rest that a load can reach may be holding its share of it by static friction (its residual reads
+  ~0 until it breaks away): while one is, a "not payload-like" verdict is deferred — tested again every
+  ``stuck_retest_s`` — until ``stuck_wait_s`` after the first verdict of the motion (the window opens again once the
+  arm has come to rest); only then is the run the hand's. A "brakes the arm" verdict (``drive_share``) is final.
 
 Decisions use the residual and the joint speeds low-passed at ``decide_Hz`` (first order): on a real controller the
 velocity estimate is noisy (encoder quantisation; on a loaded host late or repeated position samples), and K_o passes
@@ -30,7 +31,7 @@ that noise straight into r — unfiltered, a runaway's speed "drops" below ``kee
 and no run ever lasts ``confirm_s``. The observer integrates the true elapsed time (a late cycle counts the periods
 it missed). Time to trip after the arm starts moving ≈ observer lag (1/K_o) + decision filter lag (1/(2π·decide_Hz))
 + ``confirm_s``. Allocation-free per cycle; the test against Y(q) (Pinocchio, least squares) runs once per candidate
-run.
+run, or up to ``stuck_wait_s``/``stuck_retest_s`` + 1 times in a motion while a loaded joint rests.
 """
 
 from __future__ import annotations
@@ -208,7 +209,7 @@ class RunawayGuard:
         self.sign = np.zeros(n)  # the run's direction
         self.hand = np.zeros(n, dtype=bool)  # the run was judged a hand's
         self.armed_at = math.inf
-        self.checks = 0  # payload-likeness tests run (hand runs + trips)
+        self.checks = 0  # payload-likeness tests run (hand runs + deferred verdicts + trips)
         self.hand_runs = 0
         self._a = np.zeros(n)
         self._b = np.zeros(n)
@@ -217,10 +218,13 @@ class RunawayGuard:
         self._m3 = np.zeros(n, dtype=bool)
         self.retest_at = 0.0
         self.running = False
-        self._stuck_open = False  # a test found a joint at rest that may hide the load (since _stuck_since)
+        self._stuck_open = False  # a "not a load" verdict in this motion (the first at _stuck_since)
         self._stuck_since = 0.0
         self._retest_stuck_at = -math.inf
-        self.stuck_retests = 0  # payload-likeness tests repeated for a joint at rest (static friction may hide the load)
+        self.stuck_deferrals = 0  # "not a load" verdicts deferred: a loaded joint at rest (friction may hide the load)
+        # joints no flange load reaches at any pose (a vertical first axis): at rest they hide nothing (the daemon sets
+        # it from the model's payload regressor)
+        self.load_free = np.zeros(n, dtype=bool)
         self._kernel: Any = None
         self._command_kernel: Any = None
 
@@ -397,13 +401,15 @@ class RunawayGuard:
             return None
         unexplained, kg = self.explain(q, self.r_f) if self.explain is not None else (0.0, float("nan"))
         if unexplained > self.s.unexplained_max:
-            # a joint at rest may be holding its share of the load by static friction (its residual then reads ~0
-            # until it breaks away): not the hand's yet; tested again while that can last
+            # a joint at rest that a load reaches may be holding its share by static friction (its residual then reads
+            # ~0 until it breaks away): not the hand's yet; tested again while that can last
             if not self._stuck_open:
                 self._stuck_open, self._stuck_since = True, t_s
-            if t_s - self._stuck_since < self.s.stuck_wait_s and float(np.abs(dq).min()) <= self.s.speed_rad_s:
+            resting = np.abs(dq) <= self.s.speed_rad_s  # (rare path: allocates)
+            resting &= ~self.load_free
+            if t_s - self._stuck_since < self.s.stuck_wait_s and bool(resting.any()):
                 self._retest_stuck_at = t_s + self.s.stuck_retest_s
-                self.stuck_retests += 1
+                self.stuck_deferrals += 1
                 return None
             self.hand |= due
             self.hand_runs += 1

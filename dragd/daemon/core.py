@@ -142,6 +142,7 @@ class Daemon:
         self.controller = Controller.from_config(cfg, self.model.position_limits_rad)
         if self.controller.guard is not None:
             self.controller.guard.explain = self._explain_residual
+            self.controller.guard.load_free[:] = self.model.load_free_joints()
         self.supervisor = DriveSupervisor(self.node_ids, cfg.master.enable_timeout_s)
         self.velocity = VelocityEstimator(self.scaling.counts_per_rev, cfg.law.velocity_filter_Hz,
                                           self.scaling.direction)
@@ -475,7 +476,7 @@ class Daemon:
             "clamp_cycles": c.clamp_cycles,
             "guard": {"armed": bool(c.guard is not None and c.guard.armed), "trips": c.guard_trips,
                       "hand_runs": c.guard.hand_runs if c.guard is not None else 0,
-                      "stuck_retests": c.guard.stuck_retests if c.guard is not None else 0, "last_trip": c.last_trip,
+                      "stuck_deferrals": c.guard.stuck_deferrals if c.guard is not None else 0, "last_trip": c.last_trip,
                       "gravity_offset_A": c.gravity_offset_A.tolist(), "hold_rest_s": round(c.hold_rest_s, 3)},
             "payload": {"mass_kg": self.model.payload_mass_kg, "com_m": self.model.payload_com_m.tolist()},
             "telemetry": self.recorder.telemetry.stats() if self.recorder.telemetry is not None else None,
