@@ -75,16 +75,22 @@ def test_loaded_host_hung_on_tool_is_stopped_and_hand_guiding_never_trips():
         assert cl.runaway_stops()[-1]["joint"] in ("joint2", "joint3")
 
 
-def test_removed_payload_arm_rises_and_is_stopped():
+def _taken_off(settle_s: float) -> tuple[ClosedLoop, np.ndarray, float, float]:
+    """A 2 kg tool the model knows is taken off after ``settle_s`` of drag; (loop, q before, time to trip, drift)."""
     cl = ClosedLoop()
     cl.hang(2.0, (0.0, 0.0, 0.05))  # the tool is on, and the model knows it
     cl.d.model.set_payload(2.0, (0.0, 0.0, 0.05))
     cl.start(0.6)
     assert cl.mode("drag") == {"checked": True}
-    cl.run(0.5)
+    cl.run(settle_s)
     q0, t0 = cl.phys.q_rad.copy(), cl.t
     cl.hang(0.0)  # taken off: the model's extra gravity lifts the arm
     dt, drift = _until_trip(cl, q0, t0, 1.0)
+    return cl, q0, dt, drift
+
+
+def test_removed_payload_arm_rises_and_is_stopped():
+    cl, q0, dt, drift = _taken_off(0.5)
     assert dt <= 0.150 and drift <= 1.5
     assert cl.phys.q_rad[1] < q0[1]  # joint 2 rose (towards −: the shoulder lifts the arm)
 
@@ -96,15 +102,7 @@ def test_a_tool_taken_off_while_the_shoulder_sticks_is_held_in_bounds():
     tested again for a while. 0.5814 and 0.6406 s: two removal instants that drifted 1.74° and 1.53° before (instants
     found by sweeping the removal over the sine's phases; they move with the law's start-up terms and the friction)."""
     for settle_s in (0.5, 0.5814, 0.6406):
-        cl = ClosedLoop()
-        cl.hang(2.0, (0.0, 0.0, 0.05))
-        cl.d.model.set_payload(2.0, (0.0, 0.0, 0.05))
-        cl.start(0.6)
-        assert cl.mode("drag") == {"checked": True}
-        cl.run(settle_s)
-        q0, t0 = cl.phys.q_rad.copy(), cl.t
-        cl.hang(0.0)
-        dt, drift = _until_trip(cl, q0, t0, 1.0)
+        cl, _, dt, drift = _taken_off(settle_s)
         assert dt <= 0.150 and drift <= 1.5, (settle_s, dt, drift)
         assert cl.c.guard.hand_runs == 0, settle_s  # (judged a hand's, the run would wait for another joint's run)
         if settle_s != 0.5:  # the shoulder stuck: its verdict was deferred, not found moving by chance

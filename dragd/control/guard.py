@@ -349,7 +349,7 @@ class RunawayGuard:
         np.greater_equal(self.run_s, s.confirm_s, out=self._m3)
         m2 &= self._m3
         if np.count_nonzero(m2):
-            return None if t_s < self._retest_stuck_at else self._decide(t_s, q, dq, m2)
+            return self._fast_test(t_s, q, dq, m2)
         # slow path: a run that keeps going for run_max_s (at a terminal speed the residual is only the virtual
         # damping's torque) is tested again every run_max_s, with any residual
         np.greater_equal(self.run_s, s.run_max_s, out=m2)
@@ -378,14 +378,16 @@ class RunawayGuard:
                 self._end_stuck()
             return None
         if code == 1:
-            if t_s < self._retest_stuck_at:  # (a joint at rest may hide the load: tested again at _retest_stuck_at)
-                return None
-            return self._decide(t_s, q, self.v_f, self._m2)
+            return self._fast_test(t_s, q, self.v_f, self._m2)
         if code == 2:
             self.retest_at = t_s + self.s.run_max_s
             self.hand &= ~self._m2
             return self._decide(t_s, q, self.v_f, self._m2)
         return None
+
+    def _fast_test(self, t_s: float, q: np.ndarray, dq: np.ndarray, due: np.ndarray) -> Trip | None:
+        """The fast path's test, unless a deferred verdict's retest is not due yet (a joint at rest may hide the load)."""
+        return None if t_s < self._retest_stuck_at else self._decide(t_s, q, dq, due)
 
     def _decide(self, t_s: float, q: np.ndarray, dq: np.ndarray, due: np.ndarray) -> Trip | None:
         """Rare path (once per candidate run; repeated while a joint at rest may hide the load): is the residual what a
