@@ -349,6 +349,9 @@ class TelemetryConfig(_Strict):
     # Foxglove's well-known channels beside /dragd/cycle (joint states, link transforms, logs, the URDF)
     foxglove: bool = True
     foxglove_rate_Hz: Annotated[float, Field(gt=0, le=1000), Expect("a rate in (0, 1000] Hz")] = 30.0
+    # how often the daemon hands the ring's rows to its writer process: each hand-over takes the GIL from the cycle
+    # for a moment (at 50 Hz the demo's period p99 was 1090-1160 us, at 4 Hz 1040-1060 us; docs/PERFORMANCE.md)
+    forward_interval_s: Annotated[float, Field(gt=0, le=2.0), Expect("an interval in (0, 2] s")] = 0.25
 
 
 class ControlConfig(_Strict):
@@ -458,6 +461,11 @@ class Config(_Strict):
         if lp.tpdo_deadline_us >= period_ms * 1000.0:
             raise ValueError(f"loop.tpdo_deadline_us: expected below the cycle period {period_ms * 1000.0:g} us "
                              f"(loop.rate_Hz {lp.rate_Hz:g}), got {lp.tpdo_deadline_us}")
+        tc = self.telemetry
+        if tc.capacity_rows < 2 * lp.rate_Hz * tc.forward_interval_s:
+            raise ValueError(f"telemetry.capacity_rows: expected at least {math.ceil(2 * lp.rate_Hz * tc.forward_interval_s)} "
+                             f"(two hand-overs of telemetry.forward_interval_s {tc.forward_interval_s:g} s at "
+                             f"loop.rate_Hz {lp.rate_Hz:g}: fewer drop rows), got {tc.capacity_rows}")
         if m.drive_heartbeat_ms > 1000:
             raise ValueError(f"master.drive_heartbeat_ms: expected <= 1000 ms (the daemon consumes the drives' "
                              f"heartbeats: a silent drive must be noticed within seconds), got {m.drive_heartbeat_ms}")

@@ -140,3 +140,14 @@ def test_cli_reports_config_errors(tmp_path, base):
     proc = run_cli("config", "check", "--config", str(tmp_path / "missing.yaml"), check=False)
     assert proc.returncode == 2 and "missing.yaml: file not found" in proc.stderr
     assert run_cli("config", "check", "--config", str(DEFAULT_CONFIG)).returncode == 0
+
+
+def test_telemetry_ring_must_hold_two_hand_overs(tmp_path, base):
+    base["telemetry"]["capacity_rows"] = 400  # 1 kHz, rows handed to the writer process every 0.25 s
+    msg = str(pytest.raises(ConfigError, load_config, _write(tmp_path, base)).value)
+    assert "telemetry.capacity_rows: expected at least 500" in msg and "forward_interval_s 0.25" in msg
+    base["telemetry"]["forward_interval_s"] = 0.1
+    assert load_config(_write(tmp_path, base)).telemetry.forward_interval_s == 0.1
+    base["telemetry"]["forward_interval_s"] = 0
+    msg = str(pytest.raises(ConfigError, load_config, _write(tmp_path, base)).value)
+    assert "telemetry.forward_interval_s: expected an interval in (0, 2] s" in msg

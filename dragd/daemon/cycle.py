@@ -35,6 +35,7 @@ if TYPE_CHECKING:
     from dragd.daemon.recording import Recorder
 
 _TARGETS = {Mode.IDLE: Target.DISABLED, Mode.FAULT: Target.QUICK_STOP}
+MISSED_LOG = 32  # missed-tick episodes kept for `missed_recent` (status)
 
 
 class Cycle:
@@ -62,6 +63,10 @@ class Cycle:
         self.sample_dt_s = self.dt  # interval between this cycle's SYNC and the previous one
         self.cycles = 0
         self.missed = 0
+        # the last MISSED_LOG episodes of missed ticks: (CLOCK_MONOTONIC s of the late tick, ticks missed), so a
+        # bench can tell the machine's stalls from the daemon's own (dragd/lab/bench/stalls.py)
+        self._missed_log = np.zeros((MISSED_LOG, 2))
+        self.missed_episodes = 0
         self.late_tpdo = 0
         self.primed = False  # a first full set of positions arrived
         self.exit_requested = False
@@ -156,6 +161,12 @@ class Cycle:
             self._last_hb_t = self.t
         return True
 
+    def missed_recent(self) -> list[list[float]]:
+        """The last (up to MISSED_LOG) missed-tick episodes, oldest first: [CLOCK_MONOTONIC s, ticks missed]."""
+        n = self.missed_episodes
+        order = [k % MISSED_LOG for k in range(max(0, n - MISSED_LOG), n)]
+        return [[float(self._missed_log[k, 0]), int(self._missed_log[k, 1])] for k in order]
+
     def _plausible(self, fb: Feedback) -> None:
         """Reject position samples that moved further than physics allows since the last accepted one."""
         d, lim, mask, prev, since = self._jump_d, self._jump_lim, self._jump_mask, self._prev_counts, self._since
@@ -223,7 +234,12 @@ class Cycle:
             if self.exit_requested:
                 self._finish(None)
                 return
-            t_tick = time.perf_counter()
+            t_tick = time.perf_counter()  # (CLOCK_MONOTONIC on Linux)
+            if expirations > 1:
+                row = self._missed_log[self.missed_episodes % MISSED_LOG]
+                row[0] = t_tick
+                row[1] = expirations - 1
+                self.missed_episodes += 1
             period_us = (t_tick - self._t_tick) * 1e6 if self._t_tick >= 0.0 else self.dt * 1e6
             self._t_tick = t_tick
             self._period_us = period_us

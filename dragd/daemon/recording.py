@@ -121,6 +121,7 @@ class Recorder:
                                          sinks=sinks, max_bytes=tc.max_file_MiB * 2**20,
                                          keep_rotated=tc.keep_rotated, avoid_cpus=set(self.cfg.loop.cpus or ()),
                                          foxglove=foxglove, cycle_decimation=tc.cycle_decimation,
+                                         forward_interval_s=tc.forward_interval_s,
                                          process=not sinks,  # encoding in its own process (the live view: here)
                                          metadata={"config": self.cfg.source,
                                                    "cycle_decimation": str(tc.cycle_decimation)})
@@ -137,7 +138,7 @@ class Recorder:
         writer = await loop.run_in_executor(None, lambda: TelemetryWriter(
             path, self.layout, capacity=self.cfg.telemetry.capacity_rows, on_exists="error",
             metadata={"label": label, "config": self.cfg.source}, avoid_cpus=set(self.cfg.loop.cpus or ()),
-            process=True))
+            forward_interval_s=self.cfg.telemetry.forward_interval_s, process=True))
         self.recording, self.recording_path = writer, str(path)
         writer.event("record_start", label=label, joints=self.cfg.joint_names)
         self._writers = [w for w in (self.telemetry, self.recording) if w is not None]

@@ -20,12 +20,14 @@ stays full the rows are dropped and counted (``failing``, ``last_error``) and ev
 read up to its last complete chunk (dragd/telemetry/reader.py).
 
 ``process=True`` (the daemon's telemetry file and record windows) moves the encoding out of the daemon's process:
-the writer thread only forwards each drained batch of rows (one array) and the events through a pipe to a writer
-*process* (started by that thread, so it runs SCHED_OTHER off the real-time CPUs), which runs this same writer in
-thread mode and sends its counters back; `stats()` merges both sides. The cycle thread then never shares the GIL
-with the formatting (measured: the demo's missed ticks with the file written went from ~3× to ~1× those without
-it, docs/PERFORMANCE.md). The file's checks and rotation happen here, before the process starts, so a bad path
-still fails at once. If the process dies, its error is reported and the rows from then on are dropped and counted.
+the writer thread only forwards the drained rows (one array) and the events, every ``forward_interval_s`` (default
+``flush_interval_s``), through a pipe to a writer *process* (started by that thread, so it runs SCHED_OTHER off the
+real-time CPUs), which runs this same writer in thread mode and sends its counters back; `stats()` merges both
+sides. The cycle thread then never shares the GIL with the formatting (measured: the demo's missed ticks with the
+file written went from ~3× to ~1× those without it, docs/PERFORMANCE.md); each hand-over still takes the GIL for a
+moment, so the daemon hands over a few times a second (dragd/daemon/recording.py). The file's checks and rotation
+happen here, before the process starts, so a bad path still fails at once. If the process dies, its error is
+reported and the rows from then on are dropped and counted.
 A file object as ``path``, or sinks (the live view), keep the thread mode.
 
 MCAP ``sequence`` of a cycle message is the producer's row counter (``begin`` calls), so a gap in sequence
@@ -302,6 +304,7 @@ class TelemetryWriter:
         compression: Compression = "zstd",
         chunk_size: int = 64 * 1024,
         flush_interval_s: float = 0.02,
+        forward_interval_s: float | None = None,
         float_digits: int = 12,
         yield_every_rows: int = 8,
         on_exists: Literal["rotate", "overwrite", "error"] = "rotate",
@@ -347,6 +350,9 @@ class TelemetryWriter:
         self._compression, self.compression, self._compression_note = _pick_compression(compression)
         self._chunk_size = int(chunk_size)
         self._flush_interval_s = float(flush_interval_s)
+        self._forward_interval_s = float(flush_interval_s if forward_interval_s is None else forward_interval_s)
+        if not self._forward_interval_s > 0:
+            raise ValueError(f"forward_interval_s must be > 0; got {forward_interval_s!r}")
         self._keep_rotated = keep_rotated
         self._max_bytes = max_bytes
         self._retry_after_s = retry_after_s
@@ -552,7 +558,7 @@ class TelemetryWriter:
             self._start_child()
         except Exception as e:  # noqa: BLE001 - counted: the rows are dropped
             self._child_down(f"cannot start the telemetry writer process: {type(e).__name__}: {e}")
-        self._every_flush(self._forward)
+        self._every_flush(self._forward, self._forward_interval_s)
         self._finish_process()
 
     def _start_child(self) -> None:
@@ -970,9 +976,10 @@ class TelemetryWriter:
         with self._lock:
             self._sink_errors.append(f"{type(sink).__name__} disabled: {type(exc).__name__}: {exc}")
 
-    def _every_flush(self, step: Callable[[], None]) -> None:
-        """Run ``step`` every ``flush_interval_s`` until close(), and once more after it (the last rows)."""
-        while not self._stop.wait(self._flush_interval_s):
+    def _every_flush(self, step: Callable[[], None], interval_s: float | None = None) -> None:
+        """Run ``step`` every ``interval_s`` (``flush_interval_s``) until close(), and once more after it (the
+        last rows)."""
+        while not self._stop.wait(self._flush_interval_s if interval_s is None else interval_s):
             step()
         step()
 

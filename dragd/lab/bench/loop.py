@@ -25,6 +25,7 @@ from functools import lru_cache
 from pathlib import Path
 
 from dragd.lab.bench import BenchError, benchmark
+from dragd.lab.bench.stalls import PROBE_PRIORITY, StallProbe, attribute
 
 
 REALTIME_PRIORITY = 70  # the cycle thread's SCHED_FIFO priority as deployed (docs/SYSTEMD.md); the sim's is 10 below
@@ -93,7 +94,8 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
 
     rt = ["--realtime-priority", str(priority)] if priority else []
     sim_rt = ["--realtime-priority", str(max(1, priority - 10))] if priority else []
-    n_buses = len(load_config(config).buses)
+    cfg = load_config(config)
+    n_buses = len(cfg.buses)
     tel_args = TELEMETRY[telemetry]
     tmp = Path(tempfile.mkdtemp(prefix="dragd-bench-tel-"))
     tel_path = tmp / "telemetry.mcap" if tel_args is not None else None
@@ -116,7 +118,12 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
         rig.must("mode", mode="drag")
         rig.sim_call("operator", scenario="flange_drag")
         viewer = _viewer(rig.socket, tmp / "view.rrd", seconds, config) if telemetry == "view" else None
+        probe = StallProbe(min(99, max(PROBE_PRIORITY, priority + 10)))
         try:
+            try:  # the machine's own stalls in the same window (dragd/lab/bench/stalls.py)
+                probe.__enter__()
+            except OSError as e:
+                probe.errors.append(str(e))
             pids = (rig.daemon.proc.pid, rig.sim.proc.pid)
             before = rig.must("status")
             sim0, w0 = rig.sim_call("state"), time.monotonic()
@@ -124,15 +131,16 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
             cpu0, c0 = [process_cpu_s(p) for p in pids], time.monotonic()
             time.sleep(seconds)
             cpu1, c1 = [process_cpu_s(p) for p in pids], time.monotonic()
+            after = rig.must("status")
             if viewer is not None:
                 _viewer_done(viewer, tmp / "view.rrd")
-        finally:  # (whatever failed above: the viewer does not outlive the session)
+        finally:  # (whatever failed above: neither the probes nor the viewer outlive the session)
+            probe.__exit__(None, None, None)
             if viewer is not None and viewer.poll() is None:
                 _stop(viewer)
         for spy in spies:
             spy.wait(60)
         sim1, w1 = rig.sim_call("state"), time.monotonic()
-        after = rig.must("status")
         rig.must("stop")
     # a fault, a guard trip or a hold by request mid-session: the figures would not be of the drag loop. A feedback
     # hold (stale TPDOs on an overloaded host) is the daemon's own pause: it resumes drag by itself — counted, said
@@ -164,6 +172,15 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
             print(summary, file=sys.stderr)
     cycles = after["cycles"] - before["cycles"]
     missed = after["missed_cycles"] - before["missed_cycles"]
+    host, own = _missed_by_cause(before, after, probe, 1.0 / cfg.loop.rate_Hz)
+    if probe.results:
+        st = probe.summary()
+        print(f"bench: the machine's stalls (probes at SCHED_FIFO {probe.priority} on CPUs {probe.cpus}): "
+              f"{st['late_wakeups']} wake-ups over {probe.threshold_us} µs late, the longest {st['late_max_ms']:.1f} ms, "
+              f"{st['machine_wide_stalls']} on every CPU at once; the daemon's {missed} missed ticks: {host} during "
+              f"them, {own} its own", file=sys.stderr)
+    else:
+        print(f"bench: the machine's stalls not measured ({'; '.join(probe.errors)})", file=sys.stderr)
     wall = c1 - c0  # the window the CPU times were read over
     d_cpu, s_cpu = cpu1[0] - cpu0[0], cpu1[1] - cpu0[1]
     ticks = max(1, cycles + missed)
@@ -174,10 +191,25 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
         "sim_cpu_us_per_cycle": 1e6 * s_cpu / ticks,
         "period_p99_us": after["period_p99_us"],
         "missed_ratio": missed / max(1, cycles + missed),
+        # the ticks missed while no probe saw the machine stalled (None: the probes could not run)
+        "missed_ratio_own": own / max(1, cycles + missed) if probe.results else None,
+        "host_stall_max_ms": probe.summary()["late_max_ms"] if probe.results else None,
+        "probe_errors": probe.errors,
         "compute_p50_us": after["compute_p50_us"],
         "rtf": (sim1["t"] - sim0["t"]) / (w1 - w0),  # sim time over wall time, this session only
         "telemetry_dropped": tel1.get("dropped", 0) - tel0.get("dropped", 0) if tel1 else 0,
     }
+
+
+def _missed_by_cause(before: dict, after: dict, probe: StallProbe, dt_s: float) -> tuple[int, int]:
+    """The session's missed ticks: (while a probe saw the machine stalled, the daemon's own). Episodes older than
+    the daemon's `missed_recent` list reaches (more than it keeps in one session) count as the daemon's own."""
+    missed = after["missed_cycles"] - before["missed_cycles"]
+    n_new = after.get("missed_episodes", 0) - before.get("missed_episodes", 0)
+    recent = after.get("missed_recent") or []
+    episodes = recent[max(0, len(recent) - n_new):]
+    host, _ = attribute(episodes, probe.stalls, dt_s) if probe.results else (0, 0)
+    return host, missed - host
 
 
 def _viewer(socket: str, rrd: Path, seconds: float, config: str | None) -> subprocess.Popen:
@@ -237,6 +269,25 @@ def loop_period_p99_us(opts: dict) -> float:
 def loop_missed_ratio(opts: dict) -> float:
     """Missed ticks / ticks over the session (timerfd expirations > 1)."""
     return float(_session(*_opts(opts))["missed_ratio"])
+
+
+def _probed(opts: dict, key: str) -> float:
+    out = _session(*_opts(opts))
+    if out[key] is None:
+        raise BenchError(f"{key}: the machine's stalls were not measured ({'; '.join(out['probe_errors'])})")
+    return float(out[key])
+
+
+@benchmark("loop_missed_ratio_own", "ratio")
+def loop_missed_ratio_own(opts: dict) -> float:
+    """loop_missed_ratio without the ticks missed while the machine itself stalled (probes at SCHED_FIFO 80)."""
+    return _probed(opts, "missed_ratio_own")
+
+
+@benchmark("host_stall_max_ms", "ms")
+def host_stall_max_ms(opts: dict) -> float:
+    """The machine's longest stall in the loop session: the latest wake-up of a probe that does nothing else."""
+    return _probed(opts, "host_stall_max_ms")
 
 
 @benchmark("loop_compute_us", "us")
