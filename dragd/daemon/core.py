@@ -445,8 +445,7 @@ class Daemon:
             "compute_p50_us": pct(cy.compute_hist, 50),
             "compute_p99_us": pct(cy.compute_hist, 99),
             "missed_cycles": cy.missed,
-            "missed_episodes": cy.missed_episodes,  # late ticks that missed one or more (the last ones below)
-            "missed_recent": cy.missed_recent(),  # [CLOCK_MONOTONIC s of the late tick, ticks missed], oldest first
+            "missed_episodes": cy.missed_episodes,  # late ticks that missed one or more (`missed_ticks`: when)
             "late_tpdo_cycles": cy.late_tpdo,
             "tpdo_latency_p50_us": pct(cy.rx_hist, 50),
             "tpdo_latency_p99_us": pct(cy.rx_hist, 99),

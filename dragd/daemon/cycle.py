@@ -35,7 +35,7 @@ if TYPE_CHECKING:
     from dragd.daemon.recording import Recorder
 
 _TARGETS = {Mode.IDLE: Target.DISABLED, Mode.FAULT: Target.QUICK_STOP}
-MISSED_LOG = 32  # missed-tick episodes kept for `missed_recent` (status)
+MISSED_LOG = 512  # missed-tick episodes kept for the `missed_ticks` command (a storm of short stalls fits)
 
 
 class Cycle:
@@ -161,11 +161,14 @@ class Cycle:
             self._last_hb_t = self.t
         return True
 
-    def missed_recent(self) -> list[list[float]]:
-        """The last (up to MISSED_LOG) missed-tick episodes, oldest first: [CLOCK_MONOTONIC s, ticks missed]."""
+    def missed_since(self, since: int) -> tuple[list[list[float]], int]:
+        """The missed-tick episodes numbered ``since`` on that are still kept, oldest first, as [CLOCK_MONOTONIC s
+        of the late tick, ticks missed]; and how many of those numbers were overwritten (more than MISSED_LOG)."""
         n = self.missed_episodes
-        order = [k % MISSED_LOG for k in range(max(0, n - MISSED_LOG), n)]
-        return [[float(self._missed_log[k, 0]), int(self._missed_log[k, 1])] for k in order]
+        first = max(0, since, n - MISSED_LOG)
+        rows = [[float(self._missed_log[k % MISSED_LOG, 0]), int(self._missed_log[k % MISSED_LOG, 1])]
+                for k in range(first, n)]
+        return rows, first - max(0, min(since, n))
 
     def _plausible(self, fb: Feedback) -> None:
         """Reject position samples that moved further than physics allows since the last accepted one."""

@@ -9,6 +9,11 @@ daemon's configuration (several buses: one private multicast group each), ``--si
 samples both processes with py-spy over the session.
 ``bus_load`` is the worst-case load of the configured PDO layout (no session needed).
 
+Every session also measures the machine's own stalls in its window (dragd/lab/bench/stalls.py: a probe process per
+CPU at SCHED_FIFO 80, or 10 above ``--realtime-priority``): ``loop_missed_ratio_own`` counts only the missed ticks no
+probe's stall explains, ``host_stall_max_ms`` is the longest stall. The probes cost the daemon a few µs a cycle (their
+wake-ups preempt it), which weighs against its figures, never for them (docs/PERFORMANCE.md, session 18).
+
 The session runs as deployed (docs/SYSTEMD.md): the daemon's cycle thread SCHED_FIFO 70 and the simulator's
 threads 60, where the system permits it (`--realtime-priority 0`: both SCHED_OTHER). The policy in force is
 printed on stderr (``dragd status`` → ``scheduler``).
@@ -134,10 +139,15 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
             after = rig.must("status")
             if viewer is not None:
                 _viewer_done(viewer, tmp / "view.rrd")
+            missed_log = rig.must("missed_ticks", since=before["missed_episodes"])  # the window's episodes:
+            n_new = after["missed_episodes"] - before["missed_episodes"]
+            missed_log["episodes"] = missed_log["episodes"][:max(0, n_new - missed_log["lost"])]
         finally:  # (whatever failed above: neither the probes nor the viewer outlive the session)
-            probe.__exit__(None, None, None)
-            if viewer is not None and viewer.poll() is None:
-                _stop(viewer)
+            try:
+                probe.__exit__(None, None, None)
+            finally:
+                if viewer is not None and viewer.poll() is None:
+                    _stop(viewer)
         for spy in spies:
             spy.wait(60)
         sim1, w1 = rig.sim_call("state"), time.monotonic()
@@ -172,8 +182,8 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
             print(summary, file=sys.stderr)
     cycles = after["cycles"] - before["cycles"]
     missed = after["missed_cycles"] - before["missed_cycles"]
-    host, own = _missed_by_cause(before, after, probe, 1.0 / cfg.loop.rate_Hz)
-    if probe.results:
+    host, own = _missed_by_cause(missed, missed_log, probe, 1.0 / cfg.loop.rate_Hz)
+    if probe.complete:
         st = probe.summary()
         print(f"bench: the machine's stalls (probes at SCHED_FIFO {probe.priority} on CPUs {probe.cpus}): "
               f"{st['late_wakeups']} wake-ups over {probe.threshold_us} µs late, the longest {st['late_max_ms']:.1f} ms, "
@@ -192,8 +202,8 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
         "period_p99_us": after["period_p99_us"],
         "missed_ratio": missed / max(1, cycles + missed),
         # the ticks missed while no probe saw the machine stalled (None: the probes could not run)
-        "missed_ratio_own": own / max(1, cycles + missed) if probe.results else None,
-        "host_stall_max_ms": probe.summary()["late_max_ms"] if probe.results else None,
+        "missed_ratio_own": own / max(1, cycles + missed) if probe.complete else None,
+        "host_stall_max_ms": probe.summary()["late_max_ms"] if probe.complete else None,
         "probe_errors": probe.errors,
         "compute_p50_us": after["compute_p50_us"],
         "rtf": (sim1["t"] - sim0["t"]) / (w1 - w0),  # sim time over wall time, this session only
@@ -201,14 +211,14 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
     }
 
 
-def _missed_by_cause(before: dict, after: dict, probe: StallProbe, dt_s: float) -> tuple[int, int]:
-    """The session's missed ticks: (while a probe saw the machine stalled, the daemon's own). Episodes older than
-    the daemon's `missed_recent` list reaches (more than it keeps in one session) count as the daemon's own."""
-    missed = after["missed_cycles"] - before["missed_cycles"]
-    n_new = after.get("missed_episodes", 0) - before.get("missed_episodes", 0)
-    recent = after.get("missed_recent") or []
-    episodes = recent[max(0, len(recent) - n_new):]
-    host, _ = attribute(episodes, probe.stalls, dt_s) if probe.results else (0, 0)
+def _missed_by_cause(missed: int, log: dict, probe: StallProbe, dt_s: float) -> tuple[int, int]:
+    """The session's ``missed`` ticks: (while a probe saw the machine stalled, the daemon's own), from the daemon's
+    episodes of the session (`missed_ticks`). Episodes it no longer keeps (``lost``) count as its own."""
+    if log.get("lost"):
+        print(f"bench: {log['lost']} missed-tick episodes of the session were no longer kept by the daemon: counted "
+              "as its own", file=sys.stderr)
+    host, _ = attribute(log.get("episodes") or [], probe.stalls, dt_s) if probe.complete else (0, 0)
+    host = min(host, missed)
     return host, missed - host
 
 
@@ -280,7 +290,7 @@ def _probed(opts: dict, key: str) -> float:
 
 @benchmark("loop_missed_ratio_own", "ratio")
 def loop_missed_ratio_own(opts: dict) -> float:
-    """loop_missed_ratio without the ticks missed while the machine itself stalled (probes at SCHED_FIFO 80)."""
+    """loop_missed_ratio without the ticks missed while the machine itself stalled (a probe per CPU, SCHED_FIFO 80)."""
     return _probed(opts, "missed_ratio_own")
 
 

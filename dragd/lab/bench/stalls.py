@@ -1,21 +1,22 @@
 """The machine's own stalls beside a loop session, and which of the daemon's missed ticks they explain.
 
 A virtual machine's host can stop all of its vCPUs for milliseconds (here, idle, measured with rt-tests'
-cyclictest at SCHED_FIFO 80: 34 of 300,000 wake-ups over 1 ms late on each CPU, at the same instants, up to
-11.7 ms; docs/PERFORMANCE.md). No code in the guest can tick through that, so a missed-tick figure mixes the
+cyclictest at SCHED_FIFO 80: 34 of 300,000 wake-ups over 1 ms late on each CPU, up to 11.7 ms; the long ones on
+both CPUs at the same instant; docs/PERFORMANCE.md). No code in the guest can tick through that, so a missed-tick figure mixes the
 machine's stalls with the daemon's own. `StallProbe` measures the machine in the same window: one probe process
 per CPU, pinned, SCHED_FIFO above the daemon's cycle thread, waking on an absolute 1 kHz timerfd and noting every
 wake-up later than ``threshold_us`` (its deadline on CLOCK_MONOTONIC and how late). The probe does nothing else, so
-a late wake-up is the machine's (the hypervisor, or the kernel's own work at a higher priority), never the load.
+a wake-up that late is the machine's: the hypervisor, or kernel work (the load's own system calls take tens of µs).
 
-`attribute` splits the daemon's missed-tick episodes (``dragd status`` → ``missed_recent``: the tick's
-CLOCK_MONOTONIC time and the ticks it missed) into those during which a probe saw the machine stalled and the rest,
-the daemon's own.
+`attribute` splits the daemon's missed-tick episodes (the control socket's ``missed_ticks``: the late tick's
+CLOCK_MONOTONIC time and the ticks it missed) into the ticks a probe's stall covers (the machine's, in whole periods)
+and the rest, the daemon's own.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import select
 import subprocess
@@ -28,6 +29,7 @@ PROBE_PRIORITY = 80  # above the cycle thread's 70 (docs/SYSTEMD.md) and the sim
 PERIOD_US = 1000
 THRESHOLD_US = 250  # idle here, 99.95 % of cyclictest's wake-ups are within 150 µs
 MARGIN_S = 0.5e-3  # slack when matching a daemon episode to a probe's stall (the two clocks are one; ticks are not)
+START_TIMEOUT_S = 10.0
 
 
 class StallProbe:
@@ -42,35 +44,53 @@ class StallProbe:
         self.errors: list[str] = []
 
     def __enter__(self) -> StallProbe:
-        for cpu in self.cpus:
-            self._procs.append(subprocess.Popen(
-                [sys.executable, "-c", "from dragd.lab.bench.stalls import probe_main; probe_main()", str(cpu),
-                 str(self.priority), str(self.period_us), str(self.threshold_us)],
-                stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
-        for p in self._procs:  # each says it runs (or why not) before the window opens
-            line = p.stdout.readline() if p.stdout is not None else ""
-            if not line.startswith("ready"):
-                err = p.stderr.read() if p.stderr is not None else ""
-                self._stop()
-                raise OSError(f"stall probe: {(line + err).strip() or f'exit {p.poll()}'}")
+        if self._procs:
+            raise RuntimeError("StallProbe: already running")
+        try:
+            for cpu in self.cpus:
+                self._procs.append(subprocess.Popen(
+                    [sys.executable, "-c", "from dragd.lab.bench.stalls import probe_main; probe_main()", str(cpu),
+                     str(self.priority), str(self.period_us), str(self.threshold_us)],
+                    stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
+            for p in self._procs:  # each says it runs (or why not) before the window opens
+                assert p.stdout is not None
+                ready, _, _ = select.select([p.stdout], [], [], START_TIMEOUT_S)
+                line = p.stdout.readline() if ready else ""
+                if not line.startswith("ready"):
+                    said = line.strip() or ("" if ready else f"no answer in {START_TIMEOUT_S:g} s")
+                    self._stop()
+                    raise OSError("stall probe: " + "; ".join([said] * bool(said) + self.errors))
+        except BaseException:
+            self._stop()
+            self.results.clear()  # a partial set is no measurement of the machine
+            raise
         return self
 
     def __exit__(self, *exc: object) -> None:
         self._stop()
 
     def _stop(self) -> None:
-        for p in self._procs:
+        procs, self._procs = self._procs, []
+        for p in procs:
             try:
                 out, err = p.communicate("", timeout=10)  # EOF on stdin: the probe reports and exits
-            except subprocess.TimeoutExpired:
+            except (subprocess.TimeoutExpired, OSError, ValueError):
                 p.kill()
                 out, err = p.communicate()
-            lines = [ln for ln in out.splitlines() if ln.startswith("{")]
-            if p.returncode == 0 and lines:
-                self.results.append(json.loads(lines[-1]))
-            else:
-                self.errors.append(f"stall probe exit {p.returncode}: {err.strip()[-300:]}")
-        self._procs = []
+            lines = [ln for ln in (out or "").splitlines() if ln.startswith("{")]
+            try:
+                if p.returncode == 0 and lines:
+                    self.results.append(json.loads(lines[-1]))
+                    continue
+            except ValueError:
+                pass
+            said = " ".join(ln for ln in (out or "").splitlines() if not ln.startswith(("{", "ready")))
+            self.errors.append(f"stall probe exit {p.returncode}: {(said + ' ' + (err or '')).strip()[-300:]}")
+
+    @property
+    def complete(self) -> bool:
+        """Every CPU's probe ran through and reported."""
+        return len(self.results) == len(self.cpus) and not self.errors
 
     @property
     def stalls(self) -> list[list[tuple[float, float]]]:
@@ -89,7 +109,13 @@ class StallProbe:
 
 
 def _overlaps(t0: float, t1: float, stalls: Sequence[tuple[float, float]], margin_s: float) -> bool:
-    return any(d - margin_s <= t1 and t0 <= d + late + margin_s for d, late in stalls)
+    return _overlap_s(t0, t1, stalls, margin_s) > 0.0
+
+
+def _overlap_s(t0: float, t1: float, stalls: Sequence[tuple[float, float]], margin_s: float) -> float:
+    """How long the probe's late wake-ups (deadline, lateness) cover of [t0, t1], widened by ``margin_s``."""
+    a, b = t0 - margin_s, t1 + margin_s
+    return sum(max(0.0, min(b, d + late) - max(a, d)) for d, late in stalls)
 
 
 def attribute(missed: Sequence[Sequence[float]], stalls: Sequence[Sequence[tuple[float, float]]], dt_s: float,
@@ -97,15 +123,17 @@ def attribute(missed: Sequence[Sequence[float]], stalls: Sequence[Sequence[tuple
     """(ticks the daemon missed while a probe saw the machine stalled, the others).
 
     ``missed``: (CLOCK_MONOTONIC s of the late tick, ticks it missed) per episode; the cycle thread was kept from
-    running somewhere in the ``ticks + 1`` periods before that tick. ``stalls``: per probe, (deadline, lateness)."""
+    running somewhere in the ``ticks + 1`` periods before that tick. ``stalls``: per probe, (deadline, lateness).
+    An episode's ticks are the machine's as far as a probe's stall covers its window (the longest cover over the
+    probes, in whole periods rounded up, at most the episode's ticks); the rest are the daemon's own."""
     host = own = 0
     for t_tick, ticks in missed:
         n = int(ticks)
         t0 = t_tick - (n + 1) * dt_s
-        if any(_overlaps(t0, t_tick, s, margin_s) for s in stalls):
-            host += n
-        else:
-            own += n
+        cover = max((_overlap_s(t0, t_tick, s, margin_s) for s in stalls), default=0.0)
+        k = min(n, math.ceil(cover / dt_s - 1e-9))
+        host += k
+        own += n - k
     return host, own
 
 
@@ -114,15 +142,14 @@ def probe_main() -> None:
     one JSON line: wake-ups, late wake-ups (deadline s, lateness s), the policy it ran under."""
     import gc
 
-    from dragd.realtime import Ticker
+    from dragd.realtime import Ticker, set_realtime  # (imported before the priority is raised)
 
     cpu, priority, period_us, threshold_us = (int(a) for a in sys.argv[1:5])
-    try:
-        os.sched_setaffinity(0, {cpu})
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-    except OSError as e:
-        print(f"cannot run the probe on CPU {cpu} at SCHED_FIFO {priority}: {e.strerror} (needs root or "
-              f"RLIMIT_RTPRIO >= {priority}): the machine's stalls are not measured", flush=True)
+    rt = set_realtime(priority, {cpu})
+    bad = [v["reason"] for v in (rt["affinity"], rt["scheduler"]) if not v["applied"]]
+    if bad:
+        print(f"cannot run the probe on CPU {cpu} at SCHED_FIFO {priority}: {'; '.join(bad)}: the machine's stalls "
+              "are not measured", flush=True)
         sys.exit(3)
     gc.disable()
     period_ns, threshold_ns = period_us * 1000, threshold_us * 1000
