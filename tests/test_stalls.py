@@ -121,3 +121,23 @@ def test_the_daemons_missed_ticks_are_split_into_its_own_and_the_machines(tmp_pa
     covered = max((late for s in probe.stalls for d, late in s if own0 - 0.002 <= d <= own1 + 0.002), default=0.0)
     assert host + own == n and host <= covered / DT + 1, (host, own, covered)
     assert sum(ticks for _, ticks in episodes) >= after["missed_cycles"] - before["missed_cycles"]
+
+
+@pytest.mark.unit
+def test_the_daemon_keeps_its_last_episodes_and_counts_those_it_lost() -> None:
+    import types
+
+    import numpy as np
+
+    from dragd.daemon.cycle import MISSED_LOG, Cycle
+
+    n = MISSED_LOG + 40
+    log = np.zeros((MISSED_LOG, 2))
+    for k in range(n):  # as the tick writes them: episode k in row k % MISSED_LOG
+        log[k % MISSED_LOG] = (100.0 + k, 1 + k % 3)
+    cy = types.SimpleNamespace(missed_episodes=n, _missed_log=log)
+    rows, lost = Cycle.missed_since(cy, 0)  # type: ignore[arg-type]
+    assert lost == 40 and len(rows) == MISSED_LOG and rows[0] == [140.0, 1 + 40 % 3] and rows[-1][0] == 100.0 + n - 1
+    rows, lost = Cycle.missed_since(cy, n - 5)  # type: ignore[arg-type]
+    assert lost == 0 and [r[0] for r in rows] == [100.0 + k for k in range(n - 5, n)]
+    assert Cycle.missed_since(cy, n) == ([], 0) and Cycle.missed_since(cy, n + 7) == ([], 0)  # type: ignore[arg-type]

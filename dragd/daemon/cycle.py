@@ -168,7 +168,7 @@ class Cycle:
         first = max(0, since, n - MISSED_LOG)
         rows = [[float(self._missed_log[k % MISSED_LOG, 0]), int(self._missed_log[k % MISSED_LOG, 1])]
                 for k in range(first, n)]
-        return rows, first - max(0, min(since, n))
+        return rows, max(0, n - MISSED_LOG - since)
 
     def _plausible(self, fb: Feedback) -> None:
         """Reject position samples that moved further than physics allows since the last accepted one."""
