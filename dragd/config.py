@@ -465,7 +465,7 @@ class Config(_Strict):
         if tc.capacity_rows < 2 * lp.rate_Hz * tc.forward_interval_s:
             raise ValueError(f"telemetry.capacity_rows: expected at least {math.ceil(2 * lp.rate_Hz * tc.forward_interval_s)} "
                              f"(two hand-overs of telemetry.forward_interval_s {tc.forward_interval_s:g} s at "
-                             f"loop.rate_Hz {lp.rate_Hz:g}: fewer drop rows), got {tc.capacity_rows}")
+                             f"loop.rate_Hz {lp.rate_Hz:g}: a smaller ring drops rows), got {tc.capacity_rows}")
         if m.drive_heartbeat_ms > 1000:
             raise ValueError(f"master.drive_heartbeat_ms: expected <= 1000 ms (the daemon consumes the drives' "
                              f"heartbeats: a silent drive must be noticed within seconds), got {m.drive_heartbeat_ms}")

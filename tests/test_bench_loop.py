@@ -61,3 +61,12 @@ def test_cpu_benchmarks_are_registered_beside_the_loop_figures() -> None:
                  "loop_period_p99_us", "loop_missed_ratio", "loop_compute_us"):
         assert name in names
     assert bench.REGISTRY["daemon_cpu_pct"].unit == "%" and bench.REGISTRY["sim_cpu_us_per_cycle"].unit == "us"
+
+
+def test_a_duration_that_is_not_positive_is_refused_before_any_session() -> None:
+    from conftest import run_cli
+
+    for value in ("-5", "0", "nan"):
+        p = run_cli("bench", "host_stall_max_ms", "--seconds", value, check=False)
+        assert p.returncode != 0 and "Traceback" not in p.stderr, p.stderr
+        assert f"--seconds: expected a duration > 0 s, got {float(value):g}" in p.stderr, p.stderr

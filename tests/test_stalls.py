@@ -71,7 +71,7 @@ def _probe() -> Iterator[StallProbe]:
 def test_a_stopped_probe_reports_when_and_how_long() -> None:
     with _probe() as probe:
         time.sleep(0.3)
-        t0, t1 = _stop_for([p.pid for p in probe._procs], 0.030)
+        t0, t1 = _stop_for(probe.pids, 0.030)
         time.sleep(0.3)
     assert probe.complete, probe.errors
     for r, stalls in zip(probe.results, probe.stalls, strict=True):
@@ -96,7 +96,7 @@ def test_the_daemons_missed_ticks_are_split_into_its_own_and_the_machines(tmp_pa
             before = rig.must("status")
             own0, own1 = _stop_for([daemon], 0.030)  # the daemon alone
             time.sleep(0.3)
-            host0, host1 = _stop_for([daemon] + [p.pid for p in probe._procs], 0.030)  # as the machine stalls
+            host0, host1 = _stop_for([daemon] + probe.pids, 0.030)  # as the machine stalls
             time.sleep(0.3)
             after = rig.must("status")
             log = rig.must("missed_ticks", since=before["missed_episodes"])

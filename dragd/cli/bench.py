@@ -19,6 +19,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
         return 0
     if args.realtime_priority is not None and not 0 <= args.realtime_priority <= 99:
         raise CliError(f"--realtime-priority: expected 0..99, got {args.realtime_priority}")
+    if args.seconds is not None and not args.seconds > 0:  # (a negative or NaN duration would fail mid-session)
+        raise CliError(f"--seconds: expected a duration > 0 s, got {args.seconds:g}")
     if args.jobs is not None and args.jobs < 1:
         raise CliError(f"--jobs: expected ≥ 1, got {args.jobs}")
     opts = {"config": absolute(args.config), "seconds": args.seconds, "realtime_priority": args.realtime_priority,

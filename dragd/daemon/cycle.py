@@ -239,9 +239,9 @@ class Cycle:
                 return
             t_tick = time.perf_counter()  # (CLOCK_MONOTONIC on Linux)
             if expirations > 1:
-                row = self._missed_log[self.missed_episodes % MISSED_LOG]
-                row[0] = t_tick
-                row[1] = expirations - 1
+                k = self.missed_episodes % MISSED_LOG
+                self._missed_log[k, 0] = t_tick
+                self._missed_log[k, 1] = expirations - 1
                 self.missed_episodes += 1
             period_us = (t_tick - self._t_tick) * 1e6 if self._t_tick >= 0.0 else self.dt * 1e6
             self._t_tick = t_tick

@@ -88,6 +88,11 @@ class StallProbe:
             self.errors.append(f"stall probe exit {p.returncode}: {(said + ' ' + (err or '')).strip()[-300:]}")
 
     @property
+    def pids(self) -> list[int]:
+        """The running probes' process ids."""
+        return [p.pid for p in self._procs]
+
+    @property
     def complete(self) -> bool:
         """Every CPU's probe ran through and reported."""
         return len(self.results) == len(self.cpus) and not self.errors
@@ -101,15 +106,11 @@ class StallProbe:
         """Wake-ups, late wake-ups per probe, the longest, and how many stalls every probe saw at once."""
         per = self.stalls
         wide = sum(1 for d, late in (per[0] if per else [])
-                   if all(_overlaps(d, d + late, other, 0.0) for other in per[1:]))
+                   if all(_overlap_s(d, d + late, other, 0.0) > 0.0 for other in per[1:]))
         return {"probes": len(per), "wakeups": sum(r["wakeups"] for r in self.results),
                 "late_wakeups": [len(s) for s in per],
                 "late_max_ms": max((late for s in per for _, late in s), default=0.0) * 1e3,
                 "machine_wide_stalls": wide, "threshold_us": self.threshold_us}
-
-
-def _overlaps(t0: float, t1: float, stalls: Sequence[tuple[float, float]], margin_s: float) -> bool:
-    return _overlap_s(t0, t1, stalls, margin_s) > 0.0
 
 
 def _overlap_s(t0: float, t1: float, stalls: Sequence[tuple[float, float]], margin_s: float) -> float:
