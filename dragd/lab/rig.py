@@ -179,6 +179,15 @@ class Rig:
             self.must("start")
             time.sleep(0.5)
 
+    # the rig's clock: tests say how long the arm runs through these, never through time.sleep
+    def sleep(self, seconds: float) -> None:
+        """Let the rig run for ``seconds`` of its clock (the wall clock today)."""
+        time.sleep(seconds)
+
+    def wait_for(self, cond: Callable[[], bool], timeout_s: float, what: str) -> None:
+        """Run the rig until ``cond()`` holds, at most ``timeout_s`` of its clock; ProcessError names ``what``."""
+        wait_until(cond, timeout_s, what, self.daemon or self.sim)
+
     def schedulers(self) -> dict[str, str]:
         """The scheduling policy each running process reports (e.g. "SCHED_FIFO 70", or SCHED_OTHER and why)."""
         got = {}
