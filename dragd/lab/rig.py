@@ -113,14 +113,15 @@ class Rig:
     ``as_deployed``: the daemon's cycle thread asks for SCHED_FIFO ``DEPLOYED_PRIORITY`` and the simulator's threads
     for 10 below, as the systemd unit runs it (docs/SYSTEMD.md); applied where the system permits it, otherwise
     both run SCHED_OTHER and ``schedulers()`` says why (no root assumed). ``lockstep``: both on the lockstep clock
-    (module doc); the simulator's period follows the configuration's loop.rate_Hz.
+    (module doc; None: as ``$DRAGD_RIG_CLOCK`` says, ``lockstep`` or ``wall``, the default; the test tiers set it);
+    the simulator's period follows the configuration's loop.rate_Hz.
     """
 
     def __init__(self, tag: str = "rig", workdir: Path | None = None, config: Path | None = None,
                  sim_config: Path | None = None, telemetry: Path | None = None, group: str | None = None,
                  sim_args: list[str] | None = None, daemon_args: list[str] | None = None,
                  env: dict[str, str] | None = None, bus: str | None = None,
-                 allow_dirs: list[Path] | None = None, as_deployed: bool = False, lockstep: bool = False) -> None:
+                 allow_dirs: list[Path] | None = None, as_deployed: bool = False, lockstep: bool | None = None) -> None:
         self.workdir = Path(workdir or tempfile.mkdtemp(prefix=f"dragd-{tag}-"))
         self.workdir.mkdir(parents=True, exist_ok=True)
         if bus is not None and group is not None:
@@ -139,6 +140,8 @@ class Rig:
                 self.daemon_args += ["--realtime-priority", str(DEPLOYED_PRIORITY)]
             if "--realtime-priority" not in self.sim_args:
                 self.sim_args += ["--realtime-priority", str(DEPLOYED_PRIORITY - 10)]
+        if lockstep is None:
+            lockstep = os.environ.get("DRAGD_RIG_CLOCK", "wall") == "lockstep"
         self.lockstep = lockstep
         if lockstep:
             if "--lockstep" not in self.sim_args:
