@@ -230,7 +230,7 @@ class LockstepClock(Clock):
                 fut.add_done_callback(self._offcycle_done)
             return fut
 
-        loop.run_in_executor = run_in_executor  # type: ignore[method-assign]
+        loop.run_in_executor = run_in_executor  # type: ignore[method-assign,assignment]
 
     @contextlib.contextmanager
     def untracked(self) -> Iterator[None]:

@@ -7,7 +7,6 @@ the controller's events before it answers (a fault or mode change it caused is i
 
 from __future__ import annotations
 
-import asyncio
 import functools
 from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any

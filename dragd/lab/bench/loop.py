@@ -369,7 +369,8 @@ def _lockstep_session(seconds: float, config: str | None, sim_config: str | None
         rig.must("mode", mode="drag")
         rig.sim_call("operator", scenario="flange_drag")
         rig.sleep(0.2)
-        pids = (rig.daemon.proc.pid, rig.sim.proc.pid)  # type: ignore[union-attr]
+        assert rig.daemon is not None and rig.sim is not None
+        pids = (rig.daemon.proc.pid, rig.sim.proc.pid)
         before = rig.must("status")
         cpu0, w0 = [process_cpu_s(p) for p in pids], time.monotonic()
         rig.sleep(seconds)
