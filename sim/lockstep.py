@@ -1,12 +1,14 @@
 """The simulator's side of the lockstep clock (``python -m sim run --lockstep``; dragd/clock.py is the daemon's).
 
-Each SYNC the master sends is one period of simulated time: the drives answer it at once (their TPDOs sample the
-arm as the SYNC finds it and latch the commands that came with it, as on the wall clock), then the physics thread
-runs the period (``physics_rate_Hz × period`` steps, every drive's ``update``, the operator, payload changes), the
-drives' communication timers at the period's end (``comm``: heartbeats, RPDO deadlines, event TPDOs, EMCYs), the
-faults due by then, and last a CANopen TIME frame (COB-ID 100h, TIME_OF_DAY of the sim time) on every bus: the
-master's sign that everything of that period has been sent. With several buses a period starts once the SYNC of
-every bus arrived. Nothing here reads the wall clock: the simulator waits for the next SYNC however long it takes.
+Each SYNC the master sends is one period of simulated time: the drives answer it as always (their TPDOs sample the
+arm as the SYNC finds it and the commands that came with it are applied, as on the wall clock), then the same
+thread runs the period (``physics_rate_Hz × period`` steps, every drive's ``update``, the operator, payload changes),
+the faults due by then and the drives' communication timers at the period's end (``comm``: heartbeats, RPDO
+deadlines, event TPDOs, EMCYs), and last a CANopen TIME frame (COB-ID 100h, TIME_OF_DAY of the sim time) on every
+bus: the master's sign that everything of that period has been sent. All of it leaves as one datagram per bus (where
+the bus batches): two trips between the processes per period, no thread hand-over. With several buses a period runs
+once the SYNC of every bus arrived. Nothing here reads the wall clock: the simulator waits for the next SYNC however
+long it takes.
 
 ``SimClock.now`` is the drives' communication clock (it reads the time of the last period's end). SimDrive reads
 ``time.monotonic()`` itself for a frame's reception time and its heartbeat schedule (sim/drive.py); until it takes a
@@ -41,8 +43,11 @@ class SimClock:
 
 
 class LockstepSync:
-    """A period per SYNC on every bus: the bus readers count SYNCs (``sync``), the physics thread waits for them
-    (``wait``) and ends each period with a TIME frame on every bus (``done``)."""
+    """A period per SYNC on every bus. The bus reader that receives a SYNC calls ``on_sync`` after its drives
+    answered it, inside its batch (one datagram per bus and period): the last bus's SYNC of a period runs it
+    (``run_period``, the simulator's steps and the drives' timers), the others wait for it; then each reader adds its
+    bus's TIME frame to its batch. The answer to a SYNC thus leaves at the period's end: its TPDOs (sampled as the
+    SYNC found the arm), what the period sent (heartbeats, EMCYs, delayed frames), the TIME frame last."""
 
     def __init__(self, buses: list[can.BusABC], period_s: float, physics_dt_s: float) -> None:
         steps = period_s / physics_dt_s
@@ -53,47 +58,34 @@ class LockstepSync:
         self.period_s = period_s
         self.steps = int(round(steps))
         self.clock = SimClock()
+        self.run_period: Callable[[int], object] = lambda steps: None  # set by the simulator (SimProcess._period)
         self.periods = 0  # periods run
+        self.period_cpu_ns = 0  # CPU time the periods took (in whichever reader ran them)
+        self.time_frames = 0
         self._syncs = [0] * len(buses)
         self._cv = threading.Condition()
-        self.time_frames = 0
 
-    def sync(self, bus_index: int) -> None:
-        """A SYNC arrived on bus ``bus_index`` (its drives have answered it)."""
+    def on_sync(self, bus_index: int) -> None:
+        """A SYNC arrived on bus ``bus_index`` and its drives answered (the caller's batch is open): run the period if
+        every bus has its SYNC, else wait until it ran; then this bus's TIME frame."""
         with self._cv:
             self._syncs[bus_index] += 1
-            if min(self._syncs) > self.periods:
-                self._cv.notify()
-
-    def wait(self, stop: threading.Event, poll_s: float = 0.1) -> bool:
-        """Block until a period is due (True) or ``stop`` is set (False)."""
-        with self._cv:
-            while min(self._syncs) <= self.periods:
-                if stop.is_set():
-                    return False
-                self._cv.wait(poll_s)
-        return True
-
-    def done(self, t_s: float, before: Iterable[Callable[[float], None]] = ()) -> None:
-        """The period ended at sim time ``t_s``: the drives' clock moves there, ``before`` run (the drives' ``comm``,
-        faults due), then the TIME frame goes out on every bus, with what ``before`` sent, as one datagram where the
-        bus batches."""
-        self.clock.t_s = t_s
-        self.periods += 1
-        data = encode_time_of_day(t_s)
-        batches = [getattr(bus, "batch", None) for bus in self.buses]
-        ctxs = [b() for b in batches if b is not None]
-        for c in ctxs:
-            c.__enter__()
-        try:
-            for fn in before:
-                fn(t_s)
-            for bus in self.buses:
-                bus.send(can.Message(arbitration_id=TIME_COB_ID, data=data, is_extended_id=False))
-                self.time_frames += 1
-        finally:
-            for c in reversed(ctxs):
-                c.__exit__(None, None, None)
+            due = self._syncs[bus_index]
+            if min(self._syncs) >= due and self.periods < due:
+                c0 = time.thread_time_ns()
+                try:
+                    self.run_period(self.steps)
+                finally:
+                    self.periods += 1
+                    self.period_cpu_ns += time.thread_time_ns() - c0
+                    self._cv.notify_all()
+            else:
+                while self.periods < due:
+                    self._cv.wait(1.0)
+            t = self.clock.t_s
+        self.buses[bus_index].send(can.Message(arbitration_id=TIME_COB_ID, data=encode_time_of_day(t),
+                                               is_extended_id=False))
+        self.time_frames += 1
 
 
 def drive_clock(clock: SimClock, classes: Iterable[type]) -> list[str]:

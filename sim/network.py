@@ -7,10 +7,10 @@ rebuilt whenever a drive's COB-IDs change. On dragd's udp_multicast bus the read
 plain data frames over as (COB-ID, payload), without a ``can.Message`` each. It keeps the time up to which it has
 handed over everything that arrived (`caught_up`): the drives' reception watchdogs judge against it.
 
-On the lockstep clock (sim/lockstep.py) a SYNC's reception time is the simulated time, the SYNC reaches the drives
-as always and then counts toward the next period (``LockstepSync.sync``) — also while an injected link-down mutes
-the bus (the fault is the drives' frames, not the clock) — and the reader is caught up by construction: a period
-runs only after its SYNC, and whatever the master sent before the SYNC came before it on the same bus.
+On the lockstep clock (sim/lockstep.py) a SYNC's reception time is the simulated time; the drives answer it as always,
+then, in the same batch, the period runs (``LockstepSync.on_sync``) and its TIME frame ends the answer — also while
+an injected link-down mutes the bus (the fault is the drives' frames, not the clock); the reader is caught up by
+construction: a period runs only after its SYNC, and whatever the master sent before the SYNC came before it.
 
 The network does not own the bus: the caller opens it before and shuts it down after `stop()`.
 """
@@ -205,14 +205,14 @@ class SimNetwork:
         if self.rx_muted is None or not self.rx_muted():
             self.dispatch_data(cob, data, getattr(self.bus, "rx_timestamp", 0.0))
         elif self.lockstep is not None and cob == self._sync_cob:
-            self.lockstep.sync(self.bus_index)
+            self._on_sync(0.0, ())  # (muted: the drives hear nothing; the period still runs)
         return True
 
     def _on_message(self, msg: can.Message) -> None:
         if self.rx_muted is None or not self.rx_muted():
             self.dispatch(msg)
         elif self.lockstep is not None and msg.arbitration_id == self._sync_cob and not msg.is_extended_id:
-            self.lockstep.sync(self.bus_index)
+            self._on_sync(0.0, ())
 
     def dispatch(self, msg: can.Message) -> None:
         """Hand one frame to the drives that consume it (also usable without the thread); error frames are dropped."""
@@ -233,6 +233,8 @@ class SimNetwork:
             self._rebuild_routes()
         try:
             sync_drives = self._sync_routes.get(cob)
+            if sync_drives is None and cob == self._sync_cob and self.lockstep is not None:
+                sync_drives = ()  # (no drive consumes it here: the period still runs)
             if sync_drives is not None:
                 self._on_sync(timestamp, sync_drives)
                 others = self._routes.get(cob)
@@ -248,15 +250,17 @@ class SimNetwork:
         except Exception:
             counters.handler_errors += 1
             log.exception("sim drive failed on frame 0x%03X %s", cob, bytes(data).hex())
-        finally:
-            if cob == self._sync_cob and self.lockstep is not None:  # (after the drives answered it)
-                self.lockstep.sync(self.bus_index)
 
     def _on_sync(self, timestamp: float, drives: tuple[SimDrive, ...]) -> None:
         now = self._now()
+        lockstep = self.lockstep
         with self._batch():
-            for drive in drives:
-                drive.on_sync(now)
+            try:
+                for drive in drives:
+                    drive.on_sync(now)
+            finally:
+                if lockstep is not None:  # the period, then its TIME frame: in the same datagram as the answer
+                    lockstep.on_sync(self.bus_index)
         counters = self.counters
         counters.syncs += 1
         if timestamp:

@@ -6,9 +6,9 @@ a tick that wakes late catches up (``late_steps``), one that is hopelessly late 
 the sim then runs behind real time: rtf < 1). The SimNetwork reader thread answers the bus; the control socket
 (JSON lines, dragd's protocol) runs in its own asyncio thread. The physics lock is held for one tick's batch.
 
-On the lockstep clock (``--lockstep``, sim/lockstep.py) the same loop waits for a SYNC on every bus instead of the
-timerfd, runs one period of steps for it and ends the period with a TIME frame; the drives' communication clock is
-the simulated time; ``rtf`` is then as fast as the two processes go.
+On the lockstep clock (``--lockstep``, sim/lockstep.py) the SYNC (of every bus) runs one period of the same steps
+(``_period``) in the bus reader's thread instead of the timerfd, and the period's answer ends with a TIME frame; the
+drives' communication clock is the simulated time; ``rtf`` is then as fast as the two processes go.
 
 Control commands: ``state``, ``operator`` (scenario dict or file, starting now), ``operator_events``,
 ``set_q`` (teleport, only while every drive's power stage is off), ``drives``, ``fault`` (inject a
@@ -154,6 +154,7 @@ class SimProcess:
         self._wall_end = 0.0
         self._cpu_start = 0.0
         self._cpu_end = 0.0
+        self._limit_steps: int | None = None
         self._control_loop: asyncio.AbstractEventLoop | None = None
         self._control_thread: threading.Thread | None = None
         self._control_ready = threading.Event()
@@ -177,6 +178,8 @@ class SimProcess:
             clock: Callable[[], float] = time.monotonic
             if self.lockstep_period_s is not None:
                 self.lockstep = LockstepSync(self.buses, self.lockstep_period_s, self.physics.dt_s)
+                self._limit_steps = None if self.seconds is None else int(round(self.seconds / self.physics.dt_s))
+                self.lockstep.run_period = self._period
                 clock = self.lockstep.clock.now
                 drive_clock(self.lockstep.clock, [SimDrive])
             self.injectors = [FaultInjector(bus, clock=clock, lockstep=self.lockstep is not None) for bus in self.buses]
@@ -211,72 +214,82 @@ class SimProcess:
         return self.summary()
 
     def _loop(self) -> None:
-        physics, drives, substeps = self.physics, self.drives, self.substeps
-        dt = physics.dt_s
+        """Real time: a tick of the timerfd runs the steps due (catching up after a late wake-up). On the lockstep
+        clock the SYNCs run the periods (``_period``, in the bus reader's thread); this thread waits for the end."""
+        physics, substeps = self.physics, self.substeps
         lockstep = self.lockstep
-        timer = TimerFd(TICK_NS) if lockstep is None else None
         lat, ring = self._latency_us, LATENCY_RING
         stop = self._stop
-        limit_steps = None if self.seconds is None else int(round(self.seconds / dt))
-        injectors = self.injectors
-        period_end = [d.comm for d in drives] + [inj.release_due for inj in injectors]
+        self._limit_steps = None if self.seconds is None else int(round(self.seconds / physics.dt_s))
         self._wall_start = time.monotonic()
         self._cpu_start = time.process_time()
         thread_cpu0 = time.thread_time_ns()
-        if timer is not None:
-            timer.start()
+        if lockstep is not None:
+            lockstep.run_period = self._period
+            try:
+                stop.wait()
+            finally:
+                self._wall_end = time.monotonic()
+                self._cpu_end = time.process_time()
+                self._thread_cpu_ns = lockstep.period_cpu_ns
+            return
+        timer = TimerFd(TICK_NS)
+        timer.start()
         try:
             while not stop.is_set():
-                if lockstep is not None:  # a period per SYNC (sim/lockstep.py), however long it takes to come
-                    if not lockstep.wait(stop):
-                        break
-                    wake = time.monotonic_ns()
-                    self.ticks += 1
-                    steps = lockstep.steps
-                else:
-                    assert timer is not None
-                    n = timer.wait()
-                    wake = time.monotonic_ns()
-                    lat[self.ticks % ring] = (wake - timer.deadline_ns) * 1e-3
-                    self.ticks += 1
-                    if n > 1:
-                        self.late_ticks += 1
-                        if len(self.late_tick_times) < 20:
-                            self.late_tick_times.append(round(physics.t_s, 4))
-                        if n > MAX_CATCHUP_TICKS:
-                            self.dropped_steps += (n - MAX_CATCHUP_TICKS) * substeps
-                            n = MAX_CATCHUP_TICKS
-                        self.late_steps += (n - 1) * substeps
-                    steps = n * substeps
-                if limit_steps is not None:
-                    steps = min(steps, limit_steps - physics.steps)
-                with self.lock:
-                    for _ in range(steps):
-                        t = physics.t_s
-                        for d in drives:
-                            d.update(t, dt)
-                        physics.step()
-                    if self.payloads.pending:
-                        self.payloads.apply_due(physics)
-                if lockstep is not None:  # the drives' timers at the period's end, then its TIME frame
-                    with self.lock:
-                        lockstep.done(physics.t_s, period_end)
-                else:
-                    now = time.monotonic()
-                    for d in drives:
-                        d.comm(now)
-                busy = time.monotonic_ns() - wake
-                self.busy_ns += busy
-                if busy > self.max_busy_ns:
-                    self.max_busy_ns = busy
-                if limit_steps is not None and physics.steps >= limit_steps:
+                n = timer.wait()
+                wake = time.monotonic_ns()
+                lat[self.ticks % ring] = (wake - timer.deadline_ns) * 1e-3
+                if n > 1:
+                    self.late_ticks += 1
+                    if len(self.late_tick_times) < 20:
+                        self.late_tick_times.append(round(physics.t_s, 4))
+                    if n > MAX_CATCHUP_TICKS:
+                        self.dropped_steps += (n - MAX_CATCHUP_TICKS) * substeps
+                        n = MAX_CATCHUP_TICKS
+                    self.late_steps += (n - 1) * substeps
+                if not self._period(n * substeps, wake):
                     break
         finally:
             self._wall_end = time.monotonic()
             self._cpu_end = time.process_time()
             self._thread_cpu_ns = time.thread_time_ns() - thread_cpu0
-            if timer is not None:
-                timer.close()
+            timer.close()
+
+    def _period(self, steps: int, wake_ns: int = 0) -> bool:
+        """``steps`` physics steps (every drive's ``update`` before each), payload changes due, then the drives'
+        communication timers at the end (wall: CLOCK_MONOTONIC; lockstep: the sim time the period ends at, and the
+        faults due by then); False once ``--seconds`` of sim time have run."""
+        physics, drives, dt = self.physics, self.drives, self.physics.dt_s
+        wake = wake_ns or time.monotonic_ns()
+        self.ticks += 1
+        limit = self._limit_steps
+        if limit is not None:
+            steps = max(0, min(steps, limit - physics.steps))
+        with self.lock:
+            for _ in range(steps):
+                t = physics.t_s
+                for d in drives:
+                    d.update(t, dt)
+                physics.step()
+            if self.payloads.pending:
+                self.payloads.apply_due(physics)
+            if self.lockstep is not None:
+                now = self.lockstep.clock.t_s = physics.t_s
+                for inj in self.injectors:
+                    inj.release_due(now)
+            else:
+                now = time.monotonic()
+        for d in drives:
+            d.comm(now)
+        busy = time.monotonic_ns() - wake
+        self.busy_ns += busy
+        if busy > self.max_busy_ns:
+            self.max_busy_ns = busy
+        if limit is not None and physics.steps >= limit:
+            self.request_stop()
+            return False
+        return True
 
     # ------------------------------------------------------------------------------------------- reports
 

@@ -171,3 +171,10 @@ def test_wall_clock_waits_on_the_wall() -> None:
 
     assert asyncio.run(body()) == (True, False)
     assert clock.lockstep is False and clock.stamp_ns() is None
+
+
+def test_the_cli_default_guard_is_the_clocks() -> None:
+    from dragd.cli.daemon import LOCKSTEP_GUARD_S
+    from dragd.clock import GUARD_S
+
+    assert LOCKSTEP_GUARD_S == GUARD_S

@@ -8,7 +8,8 @@ import sys
 from typing import TYPE_CHECKING, Any
 
 from dragd.cli.common import DEFAULT_SOCKET, CliError, add_config, add_socket, emit, table
-from dragd.clock import GUARD_S
+
+LOCKSTEP_GUARD_S = 10.0  # dragd.clock.GUARD_S (not imported here: socket commands load no asyncio)
 
 if TYPE_CHECKING:
     from dragd.config import Config
@@ -181,8 +182,9 @@ def register(sub: Any) -> None:
                    help="run on the lockstep clock against 'dragd sim --lockstep': simulated time, one period per "
                         "SYNC, advanced only when granted ('dragd clock advance|run') or waited for by a command; "
                         "for tests, demos and experiments (docs/LOCKSTEP.md)")
-    r.add_argument("--lockstep-guard-s", type=float, default=GUARD_S, metavar="S",
-                   help=f"lockstep: wall seconds without the simulator's answer before it is an error (default {GUARD_S:g})")
+    r.add_argument("--lockstep-guard-s", type=float, default=LOCKSTEP_GUARD_S, metavar="S",
+                   help="lockstep: wall seconds without the simulator's answer before it is an error (default "
+                        f"{LOCKSTEP_GUARD_S:g})")
     r.set_defaults(func=cmd_run)
 
     for name, fn, helptext in (("start", cmd_start, "enable the drives and hold the pose"),

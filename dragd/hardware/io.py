@@ -68,7 +68,9 @@ class BusIO:
         self._sw_holding = False
         self.deferred_statuswords = 0  # such statuswords, shown to the step one cycle later
         self.reading = False  # a read step is open: SYNC sent, waiting for TPDOs or the deadline
-        # the lockstep clock's TIME frames (bus name, data); set before the listeners are made (dragd/clock.py)
+        # the lockstep clock's TIME frames (bus name, data); set before the listeners are made (dragd/clock.py). On
+        # that clock the read step ends only when the simulator ended its period (every bus's TIME frame: then every
+        # frame of the period was decoded, whichever bus's datagram came first), never on the TPDOs alone
         self.on_time: Callable[[str, bytes | bytearray], None] | None = None
         self._on_read: Callable[[bool], None] = lambda complete: None
         self._deadline_handle: asyncio.TimerHandle | None = None
@@ -239,7 +241,7 @@ class BusIO:
 
     def read_done(self) -> bool:
         """The open read step has every joint's position TPDO (the reader need not look for more now)."""
-        return self.reading and self.feedback.rx_count >= self.n
+        return self.reading and self.feedback.rx_count >= self.n and self.on_time is None
 
     def after_frames(self) -> None:
         """A wake-up's frames are all decoded: the read step ends if every joint has reported."""
