@@ -198,6 +198,7 @@ class Daemon:
         self.recorder.attach(self.controller, self.cycle.est, self.io.feedback)
         if isinstance(self.clock, LockstepClock):
             self.io.on_time = self.clock.peer_time  # the simulator's TIME frames end its periods
+            self.io.expect_lockstep()
             self.recorder.stamp_ns = self.clock.stamp_ns  # telemetry carries the clock's time
             self.clock.gates.append(self.recorder.rings_have_room)  # a row is never dropped for a fast clock
         self.cycle.after_cycle = [self.record_events, self.teaching.add]

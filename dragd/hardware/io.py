@@ -113,6 +113,16 @@ class BusIO:
                 tpdos = [fr for fr in layout.frames if fr.direction == "tpdo"]  # (on an FD bus: FD or classic)
                 expect([(fr.cob_id, fr.data_bytes, kind) for fr in tpdos for kind in {fd, False}])
         self._emcy = {EMCY_BASE + node: i for i, node in enumerate(node_ids)}
+        self._node_ids = list(node_ids)
+        self._buses = [buses[name] for name in layouts]
+
+    def expect_lockstep(self) -> None:
+        """The lockstep clock: the simulator's datagram per period also carries its TIME frame and, when due, the
+        drives' heartbeats; a bus that reads by template (udp_multicast ``expect``) learns them too."""
+        for bus in self._buses:
+            expect = getattr(bus, "expect", None)
+            if expect is not None:
+                expect([(TIME_COB_ID, 6, False)] + [(HEARTBEAT_BASE + node, 1, False) for node in self._node_ids])
 
     # ------------------------------------------------------------------------------------------ read
 
