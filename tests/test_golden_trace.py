@@ -1,9 +1,11 @@
 """Behaviour kept: recorded golden traces (feedback in → commands out) replayed through today's daemon.
 
-The traces (tests/golden/*.npz, recorded by tests/golden/record.py in a closed loop with the simulated arm) cover
+The traces (tests/golden/*.npz, recorded by tests/golden/record.py in a closed loop with a plant) cover
 every mode, the blends between them, the start-up term and its latch, walls and speed cap, model-gap effects,
 feedback holds and loss, missed ticks, a protective stop, an EMCY, a drive fault, a refused enable and stop, on the
-shared CAN FD layout and the compact classic layout. Everything must match bit for bit — command frames, modes,
+shared CAN FD layout and the compact classic layout; 'lockstep' is recorded from the real simulator and daemon
+processes on the lockstep clock (tests/golden/live.py: a drag with pushes, hold, an EMCY and its recovery, stop), its
+telemetry as the daemon wrote it. Everything must match bit for bit — command frames, modes,
 every telemetry value — where the float arithmetic is the recording machine's (golden.trace.arithmetic); on a CPU
 whose numpy/BLAS kernels round differently the telemetry is held within 1e-9 and the test warns that it was. Any
 change in behaviour is a new recording with its reason in the commit.
@@ -16,12 +18,12 @@ import warnings
 import numpy as np
 import pytest
 
-from golden.trace import SCENARIOS, arithmetic, compare, coverage, replay
+from golden.trace import LIVE, SCENARIOS, arithmetic, compare, coverage, replay
 
 pytestmark = pytest.mark.unit
 
 
-@pytest.mark.parametrize("name", sorted(SCENARIOS))
+@pytest.mark.parametrize("name", sorted(SCENARIOS) + sorted(LIVE))
 def test_golden_trace_replays_unchanged(name: str, tmp_path) -> None:
     r = replay(name, tmp_path)
     problems = compare(r)

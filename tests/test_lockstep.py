@@ -1,7 +1,8 @@
 """The lockstep clock end to end: the daemon and the simulated arm as real processes over the real bus, their time
 simulated (dragd/clock.py, sim/lockstep.py). The same seed gives the same telemetry bit for bit, with two busy loops
 on the machine's cores beside it or without; another seed does not; a run reports its real-time factor; a silent
-simulator is an error after the guard, not a hang."""
+simulator is an error after the guard, not a hang; the golden trace recorded in lockstep is what the processes do
+today, bit for bit."""
 
 from __future__ import annotations
 
@@ -84,6 +85,23 @@ def test_same_seed_same_telemetry_bit_for_bit_loaded_or_quiet(tmp_path: Path) ->
     assert reseeded["telemetry"]["sha256"] != quiet["telemetry"]["sha256"]
     assert reseeded["status"]["cycles"] == s["cycles"]  # (the same script: only the noise differs)
     assert not np.allclose(reseeded["status"]["current_A"], s["current_A"], rtol=0, atol=1e-9)
+
+
+def test_the_lockstep_golden_trace_is_recorded_again_bit_for_bit(tmp_path: Path) -> None:
+    """tests/golden/lockstep.npz recorded again from the real processes: every frame on the bus, cycle by cycle, and
+    the daemon's telemetry equal the committed trace (its open-loop replay is tests/test_golden_trace.py). A change
+    of the simulator's or the daemon's behaviour shows here; on purpose, it is a new recording
+    (``python tests/golden/record.py lockstep``) with its reason in the commit."""
+    sys.path.insert(0, str(REPO / "tests"))
+    from golden.live import record_lockstep
+    from golden.trace import arithmetic, trace_path
+
+    with np.load(trace_path("lockstep")) as z:
+        if str(z["arithmetic"]) != arithmetic():
+            pytest.skip("this machine's float arithmetic is not the recording's: a closed loop amplifies the last bit")
+        now = record_lockstep(tmp_path)
+        differ = [k for k in z.files if not np.array_equal(np.asarray(now[k]), z[k])]
+    assert not differ, f"the lockstep golden trace differs in {differ}"
 
 
 def test_a_silent_simulator_is_an_error_not_a_hang(tmp_path: Path) -> None:

@@ -207,6 +207,9 @@ def trace_path(name: str) -> Path:
     return HERE / f"{name}.npz"
 
 
+LIVE = ("lockstep",)  # traces recorded from the real processes (golden/live.py), not from a scenario here
+
+
 def arithmetic() -> str:
     """A fingerprint of this machine's float arithmetic as the cycle uses it (none of dragd's code): numpy's
     transcendental ufuncs, small BLAS products and a least-squares solve, Pinocchio's gravity, and numba's compiled
@@ -359,8 +362,12 @@ async def _record(sc: Scenario, workdir: Path) -> dict[str, Any]:
 
 
 def record(name: str, workdir: Path) -> Path:
-    sc = SCENARIOS[name]()
-    data = asyncio.run(_record(sc, workdir))
+    if name in LIVE:
+        from golden.live import record_lockstep
+
+        data = record_lockstep(workdir / name)
+    else:
+        data = asyncio.run(_record(SCENARIOS[name](), workdir))
     path = trace_path(name)
     buf = io.BytesIO()
     np.savez_compressed(buf, **{k: (np.array(v) if isinstance(v, str) else v) for k, v in data.items()})
@@ -391,6 +398,14 @@ GUARD_OFF = {
                "at 3.4 rad/s in drag with ~0 A measured; the real sim holds it: tests/test_daemon_buses.py); the guard "
                "rightly holds that fall at cycle 529, which the pre-guard recording cannot show",
 }
+
+
+def _written_digits(n: int) -> dict[str, int]:
+    """The significant digits each float field of the cycle row is written with (dragd/telemetry/layout.py)."""
+    from dragd.telemetry.layout import RowLayout
+    from dragd.telemetry.schema import cycle_layout
+
+    return {c.name: c.digits for c in RowLayout(cycle_layout(n)).columns if c.kind == "float"}
 
 
 def _guard_off(cfg: Any, name: str) -> Any:
@@ -438,10 +453,13 @@ async def _replay(z: Any, workdir: Path, name: str = "") -> Replay:
         else:
             frames_out.append([])
     tele = {}
+    digits = _written_digits(ad.n) if "telemetry_as_written" in z.files else {}
     for key in z.files:
         if key.startswith("tele_"):
             name = key[5:]
             now = np.stack([r[name] for r in rows]) if rows and name in rows[0] else None
+            if now is not None and name in digits:  # (a recording from a telemetry file: its rows as written)
+                now = np.vectorize(lambda x, d=digits[name]: float(f"%.{d}g" % x))(now)
             tele[name] = (z[key], now)
     exact = "arithmetic" in z.files and str(z["arithmetic"]) == arithmetic()
     return Replay(str(z["config"])[:0] or "trace", cycles, computed, (z["mode"], mode), (z["drive_mode"], drive_mode),
