@@ -222,8 +222,9 @@ def arithmetic() -> str:
     rng = np.random.default_rng(20261127)
     x = rng.uniform(-3.0, 3.0, 4096)
     a, b = rng.normal(size=(6, 6)), rng.normal(size=(6, 10))
-    parts = [np.exp(x), np.log1p(np.abs(x)), np.sin(x), np.cos(x), np.tanh(x), np.arctan2(x, x[::-1]), np.sqrt(np.abs(x)),
-             np.power(np.abs(x), 0.7), a @ b, a.dot(b[:, 0]), np.linalg.lstsq(b.T, x[:10], rcond=None)[0]]
+    parts = [np.exp(x), np.log1p(np.abs(x)), np.sin(x), np.cos(x), np.tanh(x), np.arctan2(x, x[::-1]),
+             np.sqrt(np.abs(x)), np.power(np.abs(x), 0.7), a @ b, a.dot(b[:, 0]),
+             np.linalg.lstsq(b.T, x[:10], rcond=None)[0]]
     model = pin.buildSampleModelManipulator()
     data = model.createData()
     for k in range(8):
