@@ -82,7 +82,9 @@ def _feed_forward_config() -> Path:
     if urdf and not Path(urdf).is_absolute() and (src.parent / urdf).exists():
         data["robot"]["urdf"] = str((src.parent / urdf).resolve())
     out = TMP / "feed_forward.yaml"
-    out.write_text(yaml.safe_dump(data, sort_keys=False))
+    part = TMP / f"feed_forward.{os.getpid()}.yaml"  # (workers write the same text: each replaces it whole)
+    part.write_text(yaml.safe_dump(data, sort_keys=False))
+    os.replace(part, out)
     return out
 
 
