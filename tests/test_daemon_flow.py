@@ -75,7 +75,7 @@ def session(tmp_path_factory):
         out["status_stopped"] = rig.must("status")
         assert rig.cli("start").returncode == 0  # enabled again, then SIGTERM must ramp down and disable
         rig.sleep(0.5)
-        out["daemon_rc"] = rig.daemon.terminate()  # (its ramp down runs on the clock by itself)
+        out["daemon_rc"] = rig.daemon.terminate(120.0)  # (its ramp down runs on the clock, at the machine's pace)
         out["daemon_log"] = rig.daemon.output()
         out["sim_after_exit"] = rig.sim_call("state")
         out["drives_after_exit"] = rig.sim_call("drives")["drives"]

@@ -92,6 +92,8 @@ def wait_until(cond: Callable[[], bool], timeout_s: float, what: str, child: Chi
 
 
 DEPLOYED_PRIORITY = 70  # the cycle thread's SCHED_FIFO priority in the shipped unit (config loop.realtime_priority)
+START_GUARD_S = 120.0  # a process that has not come up (imports, boot) by then is hung; a loaded 2-core host takes 30+
+LOCKSTEP_CALL_S = 120.0  # the wall-clock guard of a daemon command (or SIGTERM's ramp down) on the lockstep clock
 LOCKSTEP_STEP_S = 0.01  # Rig.wait_for on the lockstep clock: the condition is looked at every 10 ms of arm time
 LOCKSTEP_WALL_S_PER_S = 20.0  # a grant's wall-clock guard: this much wall time per simulated second (+ 60 s)
 
@@ -154,7 +156,7 @@ class Rig:
         self.daemon: Child | None = None
 
     # processes
-    def start_sim(self, timeout_s: float = 30.0) -> None:
+    def start_sim(self, timeout_s: float = START_GUARD_S) -> None:
         argv = [sys.executable, "-m", "sim", "run", "--bus", self.bus, "--control", self.sim_socket, *self.sim_args]
         if self.bus.startswith("udp_multicast:") and "--batch-frames" not in argv:
             argv.append("--batch-frames")  # one datagram per SYNC answer: the rig's peers are dragd's own buses
@@ -163,7 +165,7 @@ class Rig:
         self.sim = Child("sim", argv, self.workdir, self.env)
         wait_until(lambda: "q_rad" in self.sim_call("state"), timeout_s, "the simulator's control socket", self.sim)
 
-    def start_daemon(self, timeout_s: float = 30.0) -> None:
+    def start_daemon(self, timeout_s: float = START_GUARD_S) -> None:
         argv = [sys.executable, "-m", "dragd", "run", "--bus", self.bus, "--socket", self.socket, *self.daemon_args]
         if self.bus.startswith("udp_multicast:") and "--batch-frames" not in argv:
             argv.append("--batch-frames")  # the cycle's command frames ride with the next SYNC (the sim batches too)
@@ -186,14 +188,18 @@ class Rig:
 
     def close(self) -> dict[str, int]:
         codes = {}
-        if self.daemon is not None:
-            codes["dragd"] = self.daemon.terminate()
+        if self.daemon is not None:  # (lockstep: its ramp down runs on the simulated clock, at the machine's pace)
+            codes["dragd"] = self.daemon.terminate(LOCKSTEP_CALL_S if self.lockstep else 10.0)
         if self.sim is not None:
             codes["sim"] = self.sim.terminate()
         return codes
 
     # control sockets
-    def call(self, cmd: str, timeout_s: float = 10.0, **args: Any) -> dict[str, Any]:
+    def call(self, cmd: str, timeout_s: float | None = None, **args: Any) -> dict[str, Any]:
+        """A daemon command; ``timeout_s`` of wall time (default 10 s; on the lockstep clock 120 s: a command that
+        waits for the arm runs its simulated time first, however fast the machine runs it)."""
+        if timeout_s is None:
+            timeout_s = LOCKSTEP_CALL_S if self.lockstep else 10.0
         return ControlClient(self.socket, timeout_s).call(cmd, **args)
 
     def sim_call(self, cmd: str, timeout_s: float = 5.0, **args: Any) -> dict[str, Any]:
