@@ -131,12 +131,16 @@ class StreamReference(Trajectory):
                                 else err)
                 if rem < self.min_rem_s:
                     self.min_rem_s = rem
+            # the rate moves toward its target at most alpha per second, and never above what can still stop
+            # within the samples there are (the braking envelope)
+            step = self.alpha * dtau
+            r = self.rate + step if target > self.rate + step else self.rate - step if target < self.rate - step \
+                else target
             brake = math.sqrt(2.0 * self.alpha * rem) if rem > 0.0 else 0.0
-            want = target if target < brake else brake
-            if brake < target and not self.ended:
-                self.dry_cycles += 1
-            r = self.rate + self.alpha * dtau
-            r = want if want < r else r
+            if r > brake:
+                r = brake
+                if not self.ended:
+                    self.dry_cycles += 1
             self.rate = r if r > 0.0 else 0.0
             self.p += self.rate * dtau
             if self.p > s_last:
