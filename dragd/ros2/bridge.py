@@ -1,11 +1,11 @@
 """The bridge's logic on its asyncio loop: the daemon's connections, the pollers, the command stream, the actions.
 
-Four connections to the daemon's control socket (``dragd.client``; the daemon answers a connection's requests in
+Five connections to the daemon's control socket (``dragd.client``; the daemon answers a connection's requests in
 order): ``poll`` (state and events at the joint states' rate), ``stream`` (the command topic's samples, never
-queued behind anything), ``act`` (the services: some take half a minute) and ``side`` (status for the
-diagnostics); the program list asks on a fifth (the daemon lists programs in its planner process, which it may
-have to start first: seconds). The bridge adds no safety of its own that the daemon would lack, and removes none: every limit, check
-and monitor is the daemon's; a refusal comes back with the daemon's reason and goes out on ``~/status``.
+queued behind anything), ``act`` (the services: some take half a minute), ``side`` (status for the diagnostics)
+and ``lists`` (the program list: the daemon lists programs in its planner process, which it may have to start
+first). The bridge adds no safety of its own that the daemon would lack, and removes none: every limit, check and
+monitor is the daemon's; a refusal comes back with the daemon's reason and goes out on ``~/status``.
 
 What needs a living client:
 
