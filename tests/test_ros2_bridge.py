@@ -269,3 +269,71 @@ def test_bridge_killed_mid_drag_ends_drag(tmp_path):
             bridge.terminate()
             p.close()
     assert mode == "hold", mode
+
+
+@pytest.mark.slow
+def test_bridge_services_teach_replay_payload_and_check(tmp_path):
+    from dragd.lab.demo import TEACH_STEPS_RAD, guide_and_settle
+
+    from daemon_helpers import derived_config
+
+    m = _msgs()
+    cfg = derived_config(tmp_path, "ros2", lambda d: d.__setitem__("replay", {**d.get("replay", {}),
+                                                                               "program_dir": str(tmp_path / "p")}))
+    with Rig("ros2-services", workdir=tmp_path, config=cfg) as rig:
+        rig.start_sim()
+        rig.start_daemon()
+        p = listening(m)
+        # arguments std_srvs cannot carry are the node's parameters (here given on the command line)
+        bridge = start_bridge(rig, "-p", "teach.name:=ros2prog", "-p", "payload.mass_kg:=0.5", "-p",
+                              "payload.com_m:=[0.0, 0.0, 0.05]", "-p", "payload.poses:=3", "-p",
+                              "check_model.step_rad:=0.1", "-p", "replay.speed:=0.5")
+        T = m["Trigger"]
+        got: dict[str, object] = {}
+        try:
+            assert p.call(T, "/dragd/start").success
+            keep = p.publisher(m["Empty"], "/dragd/drag_keepalive")
+            alive = p.every(0.05, lambda: keep.publish(m["Empty"]()))
+            rig.sleep(0.5)
+            # teach by hand: start (drag), three marks where the hand left the arm, stop (the program file)
+            got["teach_start"] = p.call(T, "/dragd/teach/start")
+            for i, step in enumerate(TEACH_STEPS_RAD):
+                guide_and_settle(rig, step, 2.5, f"p{i + 1}")
+                got[f"mark{i}"] = p.call(T, "/dragd/teach/mark")
+            got["teach_stop"] = p.call(T, "/dragd/teach/stop", timeout_s=60.0)
+            # replay by name: one service per taught program, appears after teach/stop
+            rig.wait_for(lambda: "/dragd/replay/ros2prog" in dict(p.node.get_service_names_and_types()), 15.0,
+                         "the program's replay service")
+            got["replay"] = p.call(T, "/dragd/replay/ros2prog", timeout_s=60.0)
+            replaying = rig.must("status")["replay"]
+            rig.sleep(0.5)
+            got["replay_stop"] = p.call(T, "/dragd/replay_stop")
+            rig.wait_for(lambda: mode_of(rig) == "hold" and rig.must("status")["drive_mode"] == "cst", 10.0,
+                         "hold after the replay's stop")
+            alive.stop()
+            got["set"] = p.call(T, "/dragd/payload/set")
+            got["payload_after_set"] = rig.must("payload", action="show")["mass_kg"]
+            got["clear"] = p.call(T, "/dragd/payload/clear")
+            got["payload_after_clear"] = rig.must("payload", action="show")["mass_kg"]
+            got["estimate"] = p.call(T, "/dragd/payload/estimate", timeout_s=170.0)
+            got["check"] = p.call(T, "/dragd/check_model", timeout_s=170.0)
+            got["stop"] = p.call(T, "/dragd/stop")
+            end = rig.must("status")
+        finally:
+            bridge.terminate()
+            p.close()
+    for k, v in got.items():
+        if hasattr(v, "success"):
+            assert v.success, (k, v.message)
+    assert '"mode": "drag"' in got["teach_start"].message and "ros2prog" in got["teach_start"].message
+    assert '"name": "p1"' in got["mark0"].message and '"name": "p3"' in got["mark2"].message
+    assert (tmp_path / "p" / "ros2prog.yaml").is_file() and '"waypoints": 3' in got["teach_stop"].message
+    assert replaying is not None and replaying["name"] == "ros2prog" and replaying["speed"] == 0.5, replaying
+    assert got["payload_after_set"] == 0.5 and got["payload_after_clear"] == 0.0
+    import json
+
+    est = json.loads(got["estimate"].message)
+    assert est["poses"] == 3 and abs(est["mass_kg"]) < 0.3, est  # no load on the simulated flange
+    verdicts = [j["verdict"] for j in json.loads(got["check"].message)["joints"]]
+    assert len(verdicts) == 6 and "ok" in verdicts and set(verdicts) <= {"ok", "not checkable here"}, verdicts
+    assert end["mode"] == "idle" and end["faults"] == [], end["faults"]

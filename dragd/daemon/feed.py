@@ -68,4 +68,4 @@ def robot(d: Daemon) -> dict[str, Any]:
             "position_limits_rad": np.column_stack([c.safety.lim_lo_rad, c.safety.lim_hi_rad]).tolist(),
             "velocity_limits_rad_s": [j.velocity_limit_rad_s for j in cfg.joints],
             "current_limit_A": c.params.current_limit_A.tolist(), "kt_Nm_per_A": c.kt.tolist(),
-            "stream": cfg.stream.model_dump()}
+            "stream": cfg.stream.model_dump(), "program_dir": str(cfg.program_dir)}

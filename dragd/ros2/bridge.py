@@ -3,9 +3,10 @@
 Five connections to the daemon's control socket (``dragd.client``; the daemon answers a connection's requests in
 order): ``poll`` (state and events at the joint states' rate), ``stream`` (the command topic's samples, never
 queued behind anything), ``act`` (the services: some take half a minute), ``side`` (status for the diagnostics)
-and ``lists`` (the program list: the daemon lists programs in its planner process, which it may have to start
-first). The bridge adds no safety of its own that the daemon would lack, and removes none: every limit, check and
-monitor is the daemon's; a refusal comes back with the daemon's reason and goes out on ``~/status``.
+and ``lists`` (the program list where the bridge cannot read the program folder: the daemon lists programs in
+its planner process, which it may have to start first). The bridge adds no safety of its own that the daemon
+would lack, and removes none: every limit, check and monitor is the daemon's; a refusal comes back with the
+daemon's reason and goes out on ``~/status``.
 
 What needs a living client:
 
@@ -23,6 +24,7 @@ from __future__ import annotations
 import asyncio
 import datetime
 import json
+import os
 import signal
 import time
 from collections.abc import Sequence
@@ -53,6 +55,7 @@ class Bridge:
         self.lists = Client(socket, timeout_s=60.0)
         self.node: Any = None
         self.joints: list[str] = []
+        self.program_dir = ""
         self.state: dict[str, Any] | None = None
         self.mode: str | None = None
         self.event_seq = 0
@@ -92,6 +95,7 @@ class Bridge:
         if robot is None:
             return 0
         self.joints = list(robot["joint_names"])
+        self.program_dir = str(robot.get("program_dir") or "")
         self.node = RosNode(self, loop, self.joints, robot.get("urdf"), self.ros_args, self.node_name)
         if self.rate_override is not None:
             self.node.set_parameter("joint_states_rate_Hz", float(self.rate_override))
@@ -209,20 +213,26 @@ class Bridge:
             await self._every("diagnostics_rate_Hz")
 
     async def _poll_programs(self) -> None:
-        """The taught programs (``~/replay/<name>``): at the start, after ``~/teach/stop`` and every 30 s."""
+        """The taught programs (``~/replay/<name>``): at the start, after ``~/teach/stop`` and every 5 s, from the
+        program folder's listing (the bridge runs beside the daemon; a folder it may not read: the daemon's ``teach
+        list``, which parses every program in the daemon's planner process)."""
         known: list[str] | None = None
         while True:
             try:
-                listed = (await self._call(self.lists, "teach", action="list"))["programs"]
-                programs = sorted(Path(p["path"]).stem for p in listed if "error" not in p)
+                folder = Path(self.program_dir)
+                if folder.is_dir() and os.access(folder, os.R_OK | os.X_OK):
+                    programs = sorted(f.stem for f in folder.glob("*.yaml"))
+                else:
+                    listed = (await self._call(self.lists, "teach", action="list"))["programs"]
+                    programs = sorted(Path(p["path"]).stem for p in listed if "error" not in p)
                 if programs != known:
                     self.node.set_programs(programs)
                     known = programs
-            except (DaemonUnavailable, CommandError, KeyError, TypeError):
+            except (DaemonUnavailable, CommandError, KeyError, TypeError, OSError):
                 pass
             self._programs_changed.clear()
             try:
-                await asyncio.wait_for(self._programs_changed.wait(), 30.0)
+                await asyncio.wait_for(self._programs_changed.wait(), 5.0)
             except TimeoutError:
                 pass
 
