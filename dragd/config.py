@@ -349,6 +349,9 @@ class TelemetryConfig(_Strict):
     # Foxglove's well-known channels beside /dragd/cycle (joint states, link transforms, logs, the URDF)
     foxglove: bool = True
     foxglove_rate_Hz: Annotated[float, Field(gt=0, le=1000), Expect("a rate in (0, 1000] Hz")] = 30.0
+    # their encoding: json (Foxglove's schemas) or ros2 (CDR, standard ROS 2 types: sensor_msgs/JointState, tf2_msgs,
+    # rcl_interfaces/Log on /rosout; docs/ROS2.md)
+    foxglove_encoding: Literal["json", "ros2"] = "json"
     # how often the daemon hands the ring's rows to its writer process: each hand-over takes the GIL from the cycle
     # for a moment (at 50 Hz the demo's period p99 was 1090-1160 us, at 4 Hz 1040-1060 us; docs/PERFORMANCE.md)
     forward_interval_s: Annotated[float, Field(gt=0, le=2.0), Expect("an interval in (0, 2] s")] = 0.25

@@ -111,8 +111,9 @@ class Recorder:
             from dragd.robots import resolve_urdf
             from dragd.telemetry.foxglove import FoxgloveSpec
 
+            kt = self._sources[0].kt.tolist() if self._sources is not None else None
             foxglove = FoxgloveSpec(self.cfg.joint_names, resolve_urdf(self.cfg.robot.urdf, self.cfg.base_dir),
-                                    rate_Hz=tc.foxglove_rate_Hz)
+                                    rate_Hz=tc.foxglove_rate_Hz, encoding=tc.foxglove_encoding, kt_Nm_per_A=kt)
         sinks = []
         if self.rerun:  # the live view (dragd/telemetry/sinks.py): 3D arm, currents and components, mode, faults
             from dragd.robots import resolve_urdf
