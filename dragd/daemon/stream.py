@@ -6,7 +6,8 @@ and the cycle plays the samples back (dragd/control/stream.py). Every sample is 
 ``track`` file is: finite, within the position limits and the drives' 32-bit encoding, the first one at the arm's
 pose, no faster than ``safety.encoder_plausible_speed_rad_s`` nor accelerating harder than
 ``safety.track_acceleration_limit_rad_s2`` between samples, and a rigid-body effort within every joint's
-``current_limit_A``. A refused sample ends the stream (the arm stops along the samples it has, then holds).
+``current_limit_A`` (accelerations over spans of at least 10 ms, so that stamp jitter at high rates is no step).
+A refused sample ends the stream (the arm stops along the samples it has, then holds).
 
 A client that dies, hangs or is cut off stops sending: after ``stream.timeout_s`` without a sample (the cycle's time)
 the stream ends the same way. No request keeps a stream alive but a valid sample: the deadline is the daemon's.
@@ -22,6 +23,9 @@ import numpy as np
 from dragd.control.modes import MODE_NAMES, Mode
 from dragd.control.stream import StreamReference
 from dragd.daemon.motion import START_TOLERANCE_RAD
+
+ACCEL_SPAN_S = 0.01  # a sample's acceleration is checked over velocities across at least this long
+ACCEL_SEARCH = 256  # ... looking at most this many samples back for them
 
 if TYPE_CHECKING:
     from dragd.daemon.core import Daemon
@@ -155,16 +159,12 @@ class Streams:
         if abs(v[j]) > vmax:
             raise ValueError(f"{names[j]} would move at {abs(v[j]):.2f} rad/s between samples at t_s {t_s:.6f} "
                              f"(a step in the target?), beyond safety.encoder_plausible_speed_rad_s {vmax:g}")
-        a = np.zeros(c.n)
-        older = ref.newest(1)
-        if older is not None:
-            s00, q00 = older
-            a = 2.0 * (v - (q0 - q00) / (s0 - s00)) / (s - s00)
-            amax = d.cfg.safety.track_acceleration_limit_rad_s2
-            j = int(np.argmax(np.abs(a)))
-            if abs(a[j]) > amax:
-                raise ValueError(f"{names[j]} would accelerate at {abs(a[j]):.1f} rad/s² at t_s {t_s:.6f}, beyond "
-                                 f"safety.track_acceleration_limit_rad_s2 {amax:g}")
+        a = self._acceleration(ref, s, q)
+        amax = d.cfg.safety.track_acceleration_limit_rad_s2
+        j = int(np.argmax(np.abs(a)))
+        if abs(a[j]) > amax:
+            raise ValueError(f"{names[j]} would accelerate at {abs(a[j]):.1f} rad/s² at t_s {t_s:.6f}, beyond "
+                             f"safety.track_acceleration_limit_rad_s2 {amax:g}")
         full, grav = self._effort(q, v, a)
         need = np.abs(full) / c.kt
         over = need - c.params.current_limit_A
@@ -173,6 +173,33 @@ class Streams:
             raise ValueError(f"{names[j]} would need {need[j]:.2f} A (rigid-body effort {full[j]:+.1f} N·m), beyond "
                              f"its current_limit_A {c.params.current_limit_A[j]:.2f} A: slow the motion down")
         return q, full - grav
+
+    @staticmethod
+    def _acceleration(ref: StreamReference, s: float, q: np.ndarray) -> np.ndarray:
+        """The acceleration the sample asks for, from velocities over spans of at least ``ACCEL_SPAN_S`` back to the
+        samples before it: at 500 Hz - 1 kHz a stamp taken 50 µs off its position would make the difference of
+        successive samples' velocities a noise of tens of rad/s² (a step still shows: in the speed check, per
+        segment, and here over the span)."""
+        def back_to(t: float, start: int) -> tuple[int, float, np.ndarray] | None:
+            """The newest sample from ``start`` back stamped at or before ``t``, else the oldest one kept."""
+            found = None
+            for k in range(start, start + ACCEL_SEARCH):
+                got = ref.newest(k)
+                if got is None:
+                    break
+                found = (k, got[0], got[1])
+                if got[0] <= t:
+                    break
+            return found
+
+        one = back_to(s - ACCEL_SPAN_S, 0)
+        assert one is not None  # (the seed at least)
+        k1, s1, q1 = one
+        two = back_to(s1 - ACCEL_SPAN_S, k1 + 1)
+        if two is None:  # only the seed before: the first sample
+            return np.zeros_like(q)
+        _k2, s2, q2 = two
+        return 2.0 * ((q - q1) / (s - s1) - (q1 - q2) / (s1 - s2)) / (s - s2)
 
     def _effort(self, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The rigid-body effort M q̈ + C q̇ + G and G alone [N·m] (the daemon's model, its own scratch data)."""

@@ -169,11 +169,16 @@ class Bridge:
 
     # ------------------------------------------------------------------------------------------ pollers
 
-    async def _every(self, rate_param: str) -> None:
+    async def _every(self, rate_param: str, due: list[float]) -> None:
+        """Sleep until the next period of the rate parameter (absolute deadlines; a late one is not caught up)."""
         rate = float(self.node.param(rate_param))
-        await asyncio.sleep(1.0 / rate if rate > 0 else 1.0)
+        period = 1.0 / rate if rate > 0 else 1.0
+        now = self.now()
+        due[0] = max(due[0] + period, now)
+        await asyncio.sleep(due[0] - now)
 
     async def _poll_state(self) -> None:
+        due = [self.now()]
         while True:
             try:
                 t_ns = self.node.now_ns()  # (the state is the newest cycle's as the request is answered)
@@ -192,7 +197,7 @@ class Bridge:
                 continue
             except CommandError as exc:
                 print(f"dragd ros2: state: {exc}", flush=True)
-            await self._every("joint_states_rate_Hz")
+            await self._every("joint_states_rate_Hz", due)
 
     async def _events(self) -> None:
         ev = await self._call(self.poll, "events", since=self.event_seq)
@@ -203,6 +208,7 @@ class Bridge:
         self.event_seq = ev["event_seq"] if not ev["events"] else max(e["seq"] for e in ev["events"])
 
     async def _poll_diagnostics(self) -> None:
+        due = [self.now()]
         while True:
             try:
                 status = await self._call(self.side, "status")
@@ -210,7 +216,7 @@ class Bridge:
                 status = {"mode": None}
                 self.connected = not isinstance(exc, DaemonUnavailable)
             self.node.publish_diagnostics(convert.diagnostics(status, self.summary()))
-            await self._every("diagnostics_rate_Hz")
+            await self._every("diagnostics_rate_Hz", due)
 
     async def _poll_programs(self) -> None:
         """The taught programs (``~/replay/<name>``): at the start, after ``~/teach/stop`` and every 5 s, from the
