@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 from typing import Any
 
 from dragd.cli.common import CliError, default_socket
@@ -22,7 +24,12 @@ def cmd_ros2(args: argparse.Namespace) -> int:
 
     bridge = Bridge(args.socket, ros_args=args.ros_args or [], node_name=args.node_name,
                     joint_states_rate_Hz=args.rate)
-    return asyncio.run(bridge.run())
+    code = asyncio.run(bridge.run())
+    # the middleware's own threads (DDS, the executor's pool) are joined at interpreter exit, and one blocked in a
+    # native wait would hold a SIGTERM'd bridge up: everything of ours is closed, so the process ends here
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 def register(sub: Any) -> None:

@@ -127,11 +127,17 @@ class RosNode:
             pass
 
     def close(self) -> None:
-        self.executor.shutdown(timeout_sec=2.0)
-        self.node.destroy_node()
-        if self.context.ok():
-            rclpy.shutdown(context=self.context)
-        self._thread.join(timeout=2.0)
+        """The context first (the executor's wait returns, its spin ends), then the executor and the node."""
+        try:
+            if self.context.ok():
+                rclpy.shutdown(context=self.context)
+        finally:
+            self._thread.join(timeout=3.0)
+            try:
+                self.executor.shutdown(timeout_sec=1.0)
+                self.node.destroy_node()
+            except Exception:  # noqa: BLE001 - the context is gone: nothing left to release cleanly
+                pass
 
     # ------------------------------------------------------------------------------------------ parameters
 
