@@ -244,6 +244,7 @@ def test_bridge_refuses_what_the_daemon_refuses_with_the_reason(tmp_path):
     assert np.degrees(np.abs(truth2 - q0)).max() < 0.1  # nothing refused moved the arm
 
 
+@pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="#30: the daemon has no drag lease yet; a bridge killed mid-drag leaves the "
                    "arm in drag until the lease lapses (docs/ROS2.md). With the lease, the bridge renews it per "
                    "keepalive (Bridge.renew_drag) and this passes")

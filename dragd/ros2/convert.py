@@ -92,10 +92,15 @@ def diagnostics(status: dict[str, Any], bridge: dict[str, Any]) -> list[tuple[in
     guard = status.get("guard") or {}
     fv["guard_trips"] = guard.get("trips")
     out.append((level, "dragd: faults", message, _kv(fv)))
+    comms = status.get("comms") or {}
     for name, load in (status.get("bus_load_pct") or {}).items():
         bv = {"worst_case_load_pct": load, "tx_errors": status.get("tx_errors"),
-              "error_frames": status.get("error_frames"), "rejected_frames": status.get("rejected_frames")}
-        out.append((OK, f"dragd: bus {name}", f"worst-case load {load:.1f} %", _kv(bv)))
+              "error_frames": status.get("error_frames"), "rejected_frames": status.get("rejected_frames"),
+              "duplicate_tpdos": status.get("duplicate_tpdos"), "late_tpdo_cycles": status.get("late_tpdo_cycles"),
+              "outages": comms.get("outages"), "drive_reboots": comms.get("reboots")}
+        level = ERROR if comms.get("outage") else WARN if status.get("tx_errors") or status.get("error_frames") else OK
+        out.append((level, f"dragd: bus {name}", f"worst-case load {load:.1f} % of the bit rate (the PDO layout's "
+                    "budget)" + ("; OUTAGE: no heartbeat from any drive" if comms.get("outage") else ""), _kv(bv)))
     drives = status.get("drives") or []
     bad = [d for d in drives if "FAULT" in str(d.get("state", "")).upper()]
     out.append((ERROR if bad else OK, "dragd: drives",
