@@ -44,7 +44,10 @@ def state(d: Daemon) -> dict[str, Any]:
     """The ``state`` command: the cycle's time, mode and joints, the effort K_t·I, what changed since (counters)."""
     c, cy = d.controller, d.cycle
     est = cy.est
-    return {"t_s": cy.t, "cycles": cy.cycles, "mode": MODE_NAMES[c.mode], "drives_enabled": d.supervisor.all_enabled,
+    return {"t_s": cy.t, "cycles": cy.cycles, "mode": MODE_NAMES[c.mode],
+            # what the operator asked for (a feedback hold shows hold, then returns to it by itself)
+            "requested_mode": MODE_NAMES[c.resume_mode if c.feedback_hold else c.mode],
+            "drives_enabled": d.supervisor.all_enabled,
             "q_rad": est.q_rad.tolist(), "dq_rad_s": est.dq_rad_s.tolist(), "current_A": est.current_A.tolist(),
             # the joint torque the drives' measured current gives through the model's torque constants
             "effort_Nm": (est.current_A * c.kt).tolist(), "command_A": c.cmd_A.tolist(),

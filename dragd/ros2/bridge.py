@@ -267,8 +267,10 @@ class Bridge:
     async def _watch_drag(self, st: dict[str, Any]) -> None:
         if not self.drag_by_bridge:
             return
-        if st["mode"] != "drag":
-            self.drag_by_bridge = False  # ended by someone else (hold, a guard trip, a fault, teach stop ...)
+        if st.get("requested_mode", st["mode"]) != "drag":
+            # ended by someone else (hold, a guard trip, a fault ...); a feedback hold (late TPDOs) is not an end: the
+            # daemon returns to drag by itself, so the keepalive is still watched
+            self.drag_by_bridge = False
             return
         if not self.keepalive_fresh():
             self.drag_by_bridge = False
@@ -278,7 +280,7 @@ class Bridge:
                 text = f"drag ended: no ~/drag_keepalive for {timeout:g} s; the arm holds"
             except (CommandError, DaemonUnavailable) as exc:
                 text = f"drag keepalive lapsed, but hold failed: {exc}"
-            self.node.publish_status(convert.WARN, "dragd/drag", text)
+            self._status(convert.WARN, "dragd/drag", text)
 
     # ------------------------------------------------------------------------------------------ the command stream
 
@@ -308,11 +310,11 @@ class Bridge:
             resp = await self._call(self.stream, "stream_open", label="ros2 joint_commands")
             self.stream_id = resp["stream"]
             self._stream_error_seen = None
-            self.node.publish_status(convert.OK, "dragd/stream", f"stream {self.stream_id} open: commands go to "
+            self._status(convert.OK, "dragd/stream", f"stream {self.stream_id} open: commands go to "
                                      f"the arm ({resp['delay_s']:g} s behind)")
         except CommandError as exc:
             self.open_refused_at = self.now()
-            self.node.publish_status(convert.WARN, "dragd/stream", f"commands not followed: {exc.error}")
+            self._status(convert.WARN, "dragd/stream", f"commands not followed: {exc.error}")
         except DaemonUnavailable:
             self.open_refused_at = self.now()
         finally:
@@ -332,7 +334,7 @@ class Bridge:
                 info = {}
             end = info.get("end") if info.get("stream") == sid else None
             if end in RESUMABLE:
-                self.node.publish_status(convert.WARN, "dragd/stream", f"stream {sid} ended ({info.get('outcome')}); "
+                self._status(convert.WARN, "dragd/stream", f"stream {sid} ended ({info.get('outcome')}); "
                                          "the next command opens a new one")
             else:
                 self.refused += 1
@@ -342,7 +344,7 @@ class Bridge:
 
     def _latch(self, reason: str) -> None:
         self.latched = reason
-        self.node.publish_status(convert.ERROR, "dragd/stream", f"commands not followed until ~/streaming true: "
+        self._status(convert.ERROR, "dragd/stream", f"commands not followed until ~/streaming true: "
                                  f"{reason}")
 
     async def _end_stream(self) -> None:
@@ -375,7 +377,7 @@ class Bridge:
         try:
             if not points:  # joint_trajectory_controller: an empty trajectory stops (hold)
                 await self._call(self.act, "replay_stop", wait=True)
-                self.node.publish_status(convert.OK, name, "empty trajectory: the motion stops, the arm holds")
+                self._status(convert.OK, name, "empty trajectory: the motion stops, the arm holds")
                 return
             q_now = self.state["q_rad"] if self.state else None
             t_s, q_rad = convert.trajectory_samples(names, points, self.joints, q_now)
@@ -386,13 +388,13 @@ class Bridge:
                 if wait > 0.0:
                     await asyncio.sleep(wait)
             resp = await self._call(self.act, "track", t_s=t_s, q_rad=q_rad, label="ros2 trajectory")
-            self.node.publish_status(convert.OK, name, f"trajectory accepted: {len(points)} points, "
+            self._status(convert.OK, name, f"trajectory accepted: {len(points)} points, "
                                      f"{resp.get('duration_s', t_s[-1]):g} s", {"points": len(points)})
         except (ValueError, CommandError) as exc:
             text = exc.error if isinstance(exc, CommandError) else str(exc)
-            self.node.publish_status(convert.ERROR, name, f"trajectory refused: {text}")
+            self._status(convert.ERROR, name, f"trajectory refused: {text}")
         except DaemonUnavailable as exc:
-            self.node.publish_status(convert.ERROR, name, f"trajectory refused: {exc}")
+            self._status(convert.ERROR, name, f"trajectory refused: {exc}")
 
     # ------------------------------------------------------------------------------------------ services
 
@@ -482,4 +484,9 @@ class Bridge:
         """An operator's action takes the arm: commands wait for ~/streaming true (a controller that keeps
         publishing must not take it back by itself)."""
         if self.latched is None:
-            self.latched = f"{why} (an operator's action)"
+            self._latch(f"{why} (an operator's action)")
+
+    def _status(self, level: int, name: str, message: str, values: dict[str, Any] | None = None) -> None:
+        """``~/status`` and the bridge's log (the journal under systemd) say the same."""
+        print(f"dragd ros2: {name}: {message}", flush=True)
+        self.node.publish_status(level, name, message, values)
