@@ -10,9 +10,10 @@ daemon's reason and goes out on ``~/status``.
 
 What needs a living client:
 
-- **streamed commands**: the bridge forwards each ``~/joint_commands`` message once, as it arrives, and never
-  repeats one; a silent controller, a dead bridge or a partitioned DDS all end in the daemon's stream deadline
-  (``stream.timeout_s``) and HOLD.
+- **streamed commands**: the bridge forwards each ``~/joint_commands`` message at most once, as it arrives, one in
+  flight at a time (a newer one replaces one not yet sent: no backlog), and never repeats one; a silent
+  controller, a dead bridge or a partitioned DDS all end in the daemon's stream deadline (``stream.timeout_s``)
+  and HOLD.
 - **drag**: ``~/drag`` and ``~/teach/start`` need ``~/drag_keepalive`` (std_msgs/Empty, at least every
   ``drag.keepalive_timeout_s``); when it lapses, the bridge holds the arm. The daemon's own drag lease (#30) does not
   exist yet: until it does, a bridge that dies mid-drag leaves the arm in drag (docs/ROS2.md says so). With the
@@ -66,7 +67,9 @@ class Bridge:
         self.opening = False
         self.open_refused_at = -1e9
         self.latched: str | None = None  # why commands are not forwarded until ~/streaming true
-        self.forwarded = self.dropped = self.refused = 0
+        self.forwarded = self.dropped = self.refused = self.coalesced = 0
+        self._pending: tuple[int, float, list[float]] | None = None  # the newest command not yet sent
+        self._command_ready = asyncio.Event()
         self._stream_error_seen: int | None = None
         # drag by the bridge
         self.drag_by_bridge = False
@@ -103,7 +106,7 @@ class Bridge:
         print(f"dragd ros2: bridging the daemon at {self.socket} as node {self.node.node.get_fully_qualified_name()} "
               f"({len(self.joints)} joints)", flush=True)
         tasks = [loop.create_task(self._forever(p)) for p in (self._poll_state, self._poll_diagnostics,
-                                                               self._poll_programs)]
+                                                               self._poll_programs, self._forward)]
         try:
             await self._stop.wait()
         finally:
@@ -249,6 +252,7 @@ class Bridge:
                                                       if not self.connected else latched or "ok"),
                 "stream_enabled": self.stream_enabled, "stream": self.stream_id, "stream_latched": latched,
                 "commands_forwarded": self.forwarded, "commands_dropped": self.dropped,
+                "commands_coalesced": self.coalesced,
                 "commands_refused": self.refused, "drag_by_bridge": self.drag_by_bridge}
 
     # ------------------------------------------------------------------------------------------ drag keepalive
@@ -302,8 +306,22 @@ class Bridge:
                 self.opening = True
                 self._spawn(self._open())
             return
-        self.forwarded += 1
-        self._spawn(self._sample(self.stream_id, t, q))
+        if self._pending is not None:
+            self.coalesced += 1  # a newer command before the last one left: only the newest goes
+        self._pending = (self.stream_id, t, q)
+        self._command_ready.set()
+
+    async def _forward(self) -> None:
+        """One sample in flight at a time, always the newest command (no backlog that could reach the arm late:
+        a command older than the newest is dropped, none is sent twice)."""
+        while True:
+            await self._command_ready.wait()
+            self._command_ready.clear()
+            pending, self._pending = self._pending, None
+            if pending is None or pending[0] != self.stream_id:
+                continue
+            self.forwarded += 1
+            await self._sample(*pending)
 
     async def _open(self) -> None:
         try:
