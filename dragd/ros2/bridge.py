@@ -191,6 +191,8 @@ class Bridge:
                 if st["mode"] != self.mode:
                     self.mode = st["mode"]
                     self.node.publish_mode(self.mode)
+                if st["event_seq"] < self.event_seq:  # a daemon that restarted numbers its events from 1 again
+                    self.event_seq = 0
                 if st["event_seq"] != self.event_seq:
                     await self._events()
                 await self._watch_drag(st)
