@@ -40,6 +40,7 @@ class Streams:
         self.id = 0  # the running (or last) stream's number; a sample names it
         self.opened = 0
         self.refused = 0  # samples refused (each ended its stream)
+        self.opening = False  # the drives are switching to CSP for a stream
         self._pin: Any = None
         self._model: Any = None  # the Pinocchio model the data below belongs to (a payload change replaces it)
         self._data: Any = None
@@ -77,8 +78,8 @@ class Streams:
             raise ValueError(f"stream_open: expected the arm held (hold), it is {MODE_NAMES[c.mode]}"
                              + (": a stream never takes the arm from the operator's hand; 'dragd mode hold' first"
                                 if c.mode == Mode.DRAG else ""))
-        if c.track.active or d.motions.planning or self.running():
-            raise ValueError("stream_open: a motion is running (or being planned); stop it first")
+        if c.track.active or d.motions.planning or self.running() or self.opening:
+            raise ValueError("stream_open: a motion is running (or being planned, or a stream opening); stop it first")
         compact = d.io.compact_buses if d.io is not None else []
         if compact:
             raise ValueError(f"stream_open: bus(es) {', '.join(compact)} use the 'compact' PDO layout, which carries "
@@ -86,7 +87,11 @@ class Streams:
         sc = d.cfg.stream
         ref = StreamReference(d.cycle.est.q_rad.copy(), d.cycle.dt, sc.delay_s, sc.timeout_s, sc.max_lead_s,
                               sc.catch_up, label=str(label))
-        await d.motions.track(ref)  # the track's checks, the CSP switch, TRACK
+        self.opening = True
+        try:
+            await d.motions.track(ref)  # the track's checks, the CSP switch, TRACK
+        finally:
+            self.opening = False
         self.id += 1
         self.opened += 1
         self.ref = ref
