@@ -71,9 +71,11 @@ def _session(seconds: float, config: Any) -> dict[str, Any]:
             # bridge CPU and the latency of /joint_states (100 Hz), the arm held
             with lock:
                 lat.clear()
+            m0 = rig.must("status")["missed_cycles"]
             c0, t0 = process_cpu_s(bridge.proc.pid), time.monotonic()
             rig.sleep(seconds)
             cpu = (process_cpu_s(bridge.proc.pid) - c0) / (time.monotonic() - t0) * 100.0
+            out["baseline_missed_cycles"] = rig.must("status")["missed_cycles"] - m0  # the same time, no stream
             with lock:
                 got = np.array(lat)
             out["bridge_cpu_pct"] = cpu
@@ -87,12 +89,14 @@ def _session(seconds: float, config: Any) -> dict[str, Any]:
                              and rig.must("status")["drive_mode"] == "cst", 10.0, "hold in CST")
                 q0 = np.array(rig.must("state")["q_rad"])
                 s0 = rig.must("status")
+                first = ((s0["stream"] or {}).get("opened") or 0) + 1
                 b0 = process_cpu_s(bridge.proc.pid)
                 sent = _stream(node, pub, names, q0, rate, seconds)
                 s1 = rig.must("status")
                 b1 = process_cpu_s(bridge.proc.pid)
                 stream = s1["stream"] or {}
                 rates.append({"rate_Hz": rate, "published": sent, "daemon_samples": stream.get("samples"),
+                              "streams_opened": (stream.get("opened") or 0) - first + 1,
                               "stream_end": stream.get("end"), "missed_cycles": s1["missed_cycles"] - s0["missed_cycles"],
                               "refused": stream.get("refused"), "dry_cycles": stream.get("dry_cycles"),
                               "period_max_us": s1["period_max_us"], "bridge_cpu_pct": (b1 - b0) / seconds * 100.0,
@@ -157,9 +161,11 @@ def ros2_state_latency_ms(opts: dict) -> tuple[float, dict[str, Any]]:
 
 @benchmark("ros2_stream_max_rate_Hz", "Hz")
 def ros2_stream_max_rate_Hz(opts: dict) -> tuple[float, dict[str, Any]]:
-    """The highest rate of ~/joint_commands (100, 250, 500, 1000 Hz tried) that the bridge forwarded into the
-    daemon's stream (>= 95 % of the published samples, none refused) without the daemon missing a cycle."""
-    rates = _session(*_opts(opts))["rates"]
-    ok = [r["rate_Hz"] for r in rates if r["missed_cycles"] == 0 and not r["refused"]
-          and (r["daemon_samples"] or 0) >= 0.95 * r["published"]]
-    return float(max(ok) if ok else 0.0), {"rates": rates}
+    """The highest rate of ~/joint_commands (100, 250, 500, 1000 Hz tried) that went into one daemon stream for the
+    whole run (none refused, none ended early; the bridge sends the newest command when the last one is answered,
+    so at high rates it forwards a share of them) without the daemon missing a cycle. The detail has each rate's
+    figures and the missed cycles of the same time with the arm held and no stream (the machine's own)."""
+    s = _session(*_opts(opts))
+    rates = s["rates"]
+    ok = [r["rate_Hz"] for r in rates if r["missed_cycles"] == 0 and not r["refused"] and r["streams_opened"] == 1]
+    return float(max(ok) if ok else 0.0), {"rates": rates, "baseline_missed_cycles": s["baseline_missed_cycles"]}
