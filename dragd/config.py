@@ -406,8 +406,9 @@ class StreamConfig(_Strict):
 
     # the playback lags the newest sample by this: the jitter a stream may have before the arm slows down
     delay_s: Annotated[float, Field(ge=0.005, le=1.0), Expect("seconds in [0.005, 1]")] = 0.05
-    # no sample for this long (the cycle's time): the stream ends, the arm holds at the last sample
-    timeout_s: Annotated[float, Field(gt=0, le=2.0), Expect("seconds in (0, 2]")] = 0.2
+    # no sample for this long (the cycle's time): the stream ends into HOLD at the last sample. The arm has stopped
+    # there already (running dry within delay_s); a stream whose samples pause for less resumes
+    timeout_s: Annotated[float, Field(gt=0, le=2.0), Expect("seconds in (0, 2]")] = 0.5
     # a sample further ahead of the playback than this is refused (a sender's clock that jumped)
     max_lead_s: Annotated[float, Field(gt=0, le=4.0), Expect("seconds in (0, 4]")] = 1.0
     # the playback rate stays within 1 ± this while it keeps delay_s (clock drift between sender and daemon)

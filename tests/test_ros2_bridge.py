@@ -203,7 +203,7 @@ def test_bridge_publishes_serves_follows_commands_and_trajectories(tmp_path):
             bridge.terminate()
             p.close()
     assert killed["stream"]["end"] == "timeout" and killed["faults"] == [], killed["stream"]
-    assert held_after_s < 1.5, held_after_s  # 0.2 s of the cycle's time + braking, with the polls' slack
+    assert held_after_s < 2.0, held_after_s  # stream.timeout_s 0.5 s of the cycle's time, with the polls' slack
     events = [e.data for e in p.messages("/dragd/events")]
     assert any('"name": "stream_open"' in e for e in events) and any('"name": "track_end"' in e for e in events)
 
