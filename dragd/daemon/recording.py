@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from dragd.control.modes import Mode
+from dragd.daemon.feed import EventLog
 from dragd.telemetry.schema import cycle_layout
 
 if TYPE_CHECKING:
@@ -46,6 +47,7 @@ class Recorder:
         self._sources: tuple[Controller, Estimate, Feedback] | None = None
         # the rows' and events' log time: None, the writer's CLOCK_REALTIME; on the lockstep clock the clock's own
         self.stamp_ns: Callable[[], int | None] | None = None
+        self.events = EventLog()  # every event, numbered, for clients (the `events` command; the ROS 2 bridge)
 
     def attach(self, controller: Controller, est: Estimate, feedback: Feedback) -> None:
         """The arrays a row is filled from."""
@@ -103,7 +105,8 @@ class Recorder:
         return None if self.stamp_ns is None else self.stamp_ns()
 
     def event(self, name: str, **fields: Any) -> None:
-        """An event in the telemetry file (not in a record window)."""
+        """An event in the telemetry file (not in a record window) and in the clients' event log."""
+        self.events.add(self._sources[0].t if self._sources is not None else 0.0, name, fields)
         if self.telemetry is not None:
             self.telemetry.event(name, stamp_ns=self.log_time_ns(), **fields)
 
@@ -120,8 +123,9 @@ class Recorder:
             from dragd.robots import resolve_urdf
             from dragd.telemetry.foxglove import FoxgloveSpec
 
+            kt = self._sources[0].kt.tolist() if self._sources is not None else None
             foxglove = FoxgloveSpec(self.cfg.joint_names, resolve_urdf(self.cfg.robot.urdf, self.cfg.base_dir),
-                                    rate_Hz=tc.foxglove_rate_Hz)
+                                    rate_Hz=tc.foxglove_rate_Hz, encoding=tc.foxglove_encoding, kt_Nm_per_A=kt)
         sinks = []
         if self.rerun:  # the live view (dragd/telemetry/sinks.py): 3D arm, currents and components, mode, faults
             from dragd.robots import resolve_urdf
