@@ -255,6 +255,7 @@ class LockstepClock(Clock):
         self.kick()
 
     def close(self) -> None:
+        """Stop ticking; a grant or a wait still open can no longer be served: it fails (LockstepError)."""
         self._closed = True
         self._on_tick = None
         for h in (self._guard_handle, self._gate_handle):
@@ -262,6 +263,12 @@ class LockstepClock(Clock):
                 h.cancel()
         self._guard_handle = self._gate_handle = None
         self._stop_wall()
+        stopped = LockstepError(f"lockstep: the cycle stopped at t = {self.now():.3f} s")
+        for fut in [g[2] for g in self._grants] + [w.future for w in self._waiters]:
+            if not fut.done():
+                fut.set_exception(stopped)
+        self._grants.clear()
+        self._waiters.clear()
 
     # ------------------------------------------------------------------------------------------ asking for time
 

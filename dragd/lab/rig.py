@@ -235,8 +235,12 @@ class Rig:
         try:
             resp = self.call("clock", timeout_s=guard, action="advance", seconds=seconds)
         except DaemonUnavailable as exc:
+            try:  # what held the clock: the peer (peer_time_s), a job off the cycle (offcycle), a gate (gate_waits)
+                held = f"; its clock: {self.call('clock', timeout_s=5.0).get('clock')}"
+            except DaemonUnavailable:
+                held = ""
             raise ProcessError(f"lockstep: the daemon did not finish a grant of {seconds:g} s within {guard:.0f} s "
-                               f"of wall time ({exc}):\n{self._tails()}") from None
+                               f"of wall time ({exc}){held}:\n{self._tails()}") from None
         if not resp.get("ok"):
             raise ProcessError(f"lockstep: clock advance {seconds:g} s refused: {resp.get('error')}\n{self._tails()}")
         return resp["clock"]
