@@ -68,6 +68,11 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         if tier(item) == "rig" and item.get_closest_marker("rig") is None:
             item.add_marker(pytest.mark.rig)
+        # xdist (./dev test: --dist loadgroup): a module whose tests share a module- or class-scoped fixture (a rig
+        # session, simulated logs) stays on one worker; every other test goes to whichever worker is free
+        defs = getattr(getattr(item, "_fixtureinfo", None), "name2fixturedefs", {})
+        if any(d.scope in ("module", "class", "package") for fds in defs.values() for d in fds):
+            item.add_marker(pytest.mark.xdist_group(item.module.__name__ if item.module else item.nodeid))
 
 
 @pytest.hookimpl(tryfirst=True)  # before the fixtures (a module-scoped rig is made in the first test's setup)
