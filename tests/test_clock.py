@@ -178,3 +178,25 @@ def test_the_cli_default_guard_is_the_clocks() -> None:
     from dragd.clock import GUARD_S
 
     assert LOCKSTEP_GUARD_S == GUARD_S
+
+
+def test_free_run_until_paused_and_close_fails_what_it_cannot_serve() -> None:
+    clock = LockstepClock(0.001, ["arm"])
+    peer = Peer(clock)
+
+    async def body(loop, errors):  # type: ignore[no-untyped-def]
+        clock.set_free_run(True)  # `clock run`: time goes on without a grant
+        await clock.wait_for(lambda: clock.ticks >= 50, 10.0)
+        clock.set_free_run(False)  # `clock pause`: it stops at the next settled tick
+        await asyncio.sleep(0.02)
+        at = clock.ticks
+        await asyncio.sleep(0.05)
+        assert clock.ticks == at >= 50
+        grant = clock.grant(10.0)
+        await asyncio.sleep(0.01)
+        clock.close()  # (the cycle stopped: the rest of the grant can never run)
+        with pytest.raises(LockstepError, match="the cycle stopped"):
+            await grant
+        return errors
+
+    assert run(body, clock, peer) == []
