@@ -130,7 +130,7 @@ def cmd_config_check(args: argparse.Namespace) -> int:
         for f in d["findings"]:
             lines.append(f"{f['level']}: {f['text']}")
             if f["at"]:
-                lines.append(f"    at {'; '.join(f['at'])}")
+                lines.append(f"    at {f['at']}")
         for b in d["bus_load"]:
             lines.append(f"bus '{b['name']}': {'CAN FD' if b['fd'] else 'classic CAN'}, layout {b['layout']}"
                          f"{'' if b['position_targets'] else ' (no position targets: drag only)'}, worst-case load "

@@ -95,8 +95,9 @@ class Finding:
         return self.text[len(self.where) + 2:] if self.where and self.text.startswith(self.where) else self.text
 
 
-def grouped(findings: list[Finding]) -> list[tuple[Finding, list[str]]]:
-    """Findings that say the same of several joints' drives, once, with every place they apply to."""
+def grouped(findings: list[Finding]) -> list[tuple[Finding, str]]:
+    """Findings that say the same of several joints' drives, once, with the joints they apply to (``where``:
+    ``FILE: joints[i] (NAME) node N on bus 'B'``, shortened to ``FILE: NAME (node N, bus B), ...``)."""
     groups: dict[tuple[str, str, str], tuple[Finding, list[str]]] = {}
     for f in findings:
         eds = f.where.split(":", 1)[0] if f.where else ""
@@ -105,7 +106,15 @@ def grouped(findings: list[Finding]) -> list[tuple[Finding, list[str]]]:
             groups[key][1].append(f.where)
         else:
             groups[key] = (f, [f.where] if f.where else [])
-    return list(groups.values())
+    out = []
+    for f, wheres in groups.values():
+        places = []
+        for w in wheres:
+            m = re.match(r"^(.*?): joints\[\d+\] \((.*?)\) node (\d+) on bus '(.*)'$", w)
+            places.append(f"{m.group(2)} (node {m.group(3)}, bus {m.group(4)})" if m else w)
+        eds = wheres[0].split(":", 1)[0] if wheres else ""
+        out.append((f, f"{eds}: {', '.join(places)}" if wheres else ""))
+    return out
 
 
 @dataclass(frozen=True)
@@ -387,8 +396,8 @@ class DriveProfile:
         standard = OD_MOTOR_RATED_CURRENT if which == "rated_current" else OD_MOTOR_RATED_TORQUE
         what = "the motor's rated current" if which == "rated_current" else "the motor's rated torque"
         if var is None:
-            fallback = (f"joints[{self.joint_index}].rated_current_A is used unverified" if which == "rated_current"
-                        else f"joints[{self.joint_index}].rated_torque_Nm (or K_m × rated current) is used unverified")
+            fallback = ("the joint's rated_current_A is used unverified" if which == "rated_current"
+                        else "the joint's rated_torque_Nm (or K_m × rated current) is used unverified")
             self.finding("error", index, sub, f"missing: {what} cannot be read",
                          f"set {key} to the drive's object, or null ({fallback})"
                          + (" — the drive has 6075h" if which == 'rated_current' and index != standard
@@ -482,7 +491,6 @@ class DriveProfile:
 
     def _check_optional(self) -> None:
         """Optional objects: each missing one with its fallback (and a status line at boot)."""
-        j = f"joints[{self.joint_index}]"
         if not self.has(OD_ABORT_CONNECTION_OPTION):
             self.finding("warning", OD_ABORT_CONNECTION_OPTION, 0, "missing: safety.abort_connection_option is not "
                          "written; the drive reacts to a lost master or command frame in its own way (check its "
@@ -491,8 +499,8 @@ class DriveProfile:
             self.finding("warning", OD_QUICK_STOP_OPTION, 0, "missing: safety.quick_stop_option is not written; "
                          "the drive's own quick stop reaction applies")
         if not self.has(OD_MAX_TORQUE):
-            self.finding("warning", OD_MAX_TORQUE, 0, f"missing: the drive does not limit the torque to "
-                         f"{j}.current_limit_A; dragd's command clamp is the only limit")
+            self.finding("warning", OD_MAX_TORQUE, 0, "missing: the drive does not limit the torque to the joint's "
+                         "current_limit_A; dragd's command clamp is the only limit")
         has_consumer = self.has(HEARTBEAT_CONSUMER, 1)
         deadline = any(5 in ch.comm_subs for ch in self.rpdos)
         if not has_consumer:

@@ -6,7 +6,7 @@ vendors' files (which are never committed):
 
     classic.eds            the bundled drive on classic CAN: the base of every other variant
     no_dummies.eds         [DummyUsage] all 0 (maxon EPOS4, Technosoft iPOS)
-    no_6075h.eds           no 6075h; the rated current in a vendor object 3001h:1 [mA] (EPOS4)
+    no_6075h.eds           no 6075h; the rated current in a vendor object 3001h:1 [mA]; 6076h writable, 0 (EPOS4)
     two_rpdos.eds          RPDO 1 and 2 only (Schunk PRL120)
     bit30_cobids.eds       TPDO COB-IDs with bit 30 set ("no RTR"), kept by the drive (Eyou)
     only_6077h.eds         no 6078h: the current from 6077h (per mille of 6076h) (Eyou, simco)
@@ -159,6 +159,8 @@ def no_dummies(eds: Eds) -> None:
 
 def no_6075h(eds: Eds) -> None:
     eds.remove_object(0x6075)
+    eds.set("6076", "AccessType", "rw")  # as EPOS4: 6076h writable, 0 until set
+    eds.set("6076", "DefaultValue", "0")
     eds.add_object(0x3001, record(0x3001, "Motor data", [
         (0, var("Highest sub-index supported", "ro", 0x5, "1", 0)),
         (1, var("Nominal current", "rw", 0x7, "1000", 0, ("LowLimit=1",))),
@@ -249,7 +251,7 @@ def _drop_default_mappings(eds: Eds, index: int) -> None:
 VARIANTS: dict[str, tuple[str, Callable[[Eds], None] | None]] = {
     "classic": ("the bundled drive on classic CAN (8 mapping entries per PDO)", None),
     "no_dummies": ("no dummy mapping ([DummyUsage] all 0)", no_dummies),
-    "no_6075h": ("no 6075h; rated current in vendor object 3001h:1 (mA)", no_6075h),
+    "no_6075h": ("no 6075h; rated current in vendor object 3001h:1 (mA); 6076h rw, 0", no_6075h),
     "two_rpdos": ("two RPDOs only", two_rpdos),
     "bit30_cobids": ("TPDO COB-IDs keep bit 30 (no RTR)", bit30_cobids),
     "only_6077h": ("no 6078h; current from 6077h (per mille of 6076h)", only_6077h),
