@@ -460,3 +460,117 @@ def test_vendor_findings_without_overrides_match_the_issue() -> None:
         for e in errs:
             assert any(e in x for x in errors), (name, e, errors)
         assert len({x.split(": ", 2)[2] for x in errors}) == len(errs), (name, errors)  # the same for every joint
+
+
+# --------------------------------------------------------------------------------------------- process data
+
+
+class _Sent:
+    """A bus that keeps what is sent."""
+
+    def __init__(self) -> None:
+        self.frames: dict[int, bytes] = {}
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self.frames[msg.arbitration_id] = bytes(msg.data)
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("variant,drive,layout", [
+    ("vendor_current", {"current": {"object": "30D1h:2", "unit": "mA"}}, "per_node"),
+    ("only_6077h", {"current": {"object": "6077h"}, "torque_command": "6071h"}, "per_node"),
+    ("readonly_mapping", {}, "per_node"),
+    ("classic", {}, "shared"),
+])
+def test_frames_follow_the_eds_types_both_ways(variant: str, drive: dict, layout: str) -> None:
+    """Every TPDO decodes by its EDS types into the feedback arrays; every command frame packs controlword, target
+    and torque where the mapping puts them (checked with struct codes taken from the EDS, not from the layout)."""
+    import struct
+
+    import numpy as np
+
+    from dragd.hardware.io import BusIO
+    from dragd.hardware.profile import STRUCT_CODES
+
+    cfg = config(VARIANTS / f"{variant}.eds", drive, joints=3, layout=layout)
+    plan = plan_drives(cfg, budget_findings=False)
+    assert plan.errors == []
+    bus = _Sent()
+    io = BusIO(plan.layouts, {"arm": bus}, [1, 2, 3], 127, lambda *a: None)  # type: ignore[dict-item]
+    decode = io.tpdo_decoder("arm")
+    io.begin_cycle()
+    rng = np.random.default_rng(5)
+    expect = {}
+    for j, node in enumerate((1, 2, 3)):
+        p = plan.profiles[j]
+        values = {"statusword": 0x0027 + j, "position": int(rng.integers(-2**30, 2**30)),
+                  "current": int(rng.integers(-30000, 30000))}
+        expect[j] = values
+        for spec in plan.layouts["arm"].pdos[node]:
+            if spec.direction != "tpdo":
+                continue
+            codes = "".join(STRUCT_CODES[p.var(e.index, e.subindex).data_type] for e in spec.entries)
+            data = struct.pack("<" + codes, *(values[e.field] for e in spec.entries))
+            assert decode(spec.cob_id, data)
+    fb = io.feedback
+    assert fb.rx_count == 3
+    for j in range(3):
+        assert fb.counts[j] == expect[j]["position"] and fb.statusword[j] == expect[j]["statusword"]
+        assert fb.current_permille[j] == expect[j]["current"]
+    cw = np.array([0x0F, 0x07, 0x06], dtype=np.int64)
+    target = np.array([1000, -2000, 2**30], dtype=np.int64)
+    torque = np.array([-32768, 0, 1234], dtype=np.int64)
+    io.write(cw, target, torque, 0.0)
+    io.flush()
+    sources = {"controlword": cw, "target_position": target, "torque": torque}
+    for fr in plan.layouts["arm"].frames:
+        if fr.direction != "rpdo":
+            continue
+        data = bus.frames[fr.cob_id]
+        for slot in fr.slots:
+            p = plan.profiles[slot.joint]
+            off = slot.offset
+            for f in slot.fields:
+                obj = {"controlword": p.controlword, "target_position": p.target_position, "torque": p.command}[f]
+                code = STRUCT_CODES[p.var(obj.index, obj.sub).data_type]
+                (got,) = struct.unpack_from("<" + code, data, off)
+                assert got == sources[f][slot.joint], (fr.name, f)
+                off += struct.calcsize("<" + code)
+
+
+@pytest.mark.unit
+def test_a_fixed_mapping_in_an_order_of_its_own_packs_field_by_field() -> None:
+    import numpy as np
+
+    from dragd.hardware.io import BusIO
+    from dragd.hardware.pdo import BusLayout, FrameLayout, Slot
+
+    fr = FrameLayout("RPDO1 node 1", 0x201, 4, (Slot(0, 0, ("torque", "controlword"), ("h", "H")),), "rpdo", True,
+                     1000.0)
+    layout = BusLayout("arm", "per_node", False, False, (0,), (1,), {1: []}, [fr])
+    bus = _Sent()
+    io = BusIO({"arm": layout}, {"arm": bus}, [1], 127, lambda *a: None)  # type: ignore[dict-item]
+    io.write(np.array([0x0F], dtype=np.int64), np.array([5], dtype=np.int64), np.array([-300], dtype=np.int64), 0.0)
+    assert bus.frames[0x201] == (-300).to_bytes(2, "little", signed=True) + (0x0F).to_bytes(2, "little")
+
+
+@pytest.mark.unit
+def test_scaling_from_the_profile() -> None:
+    """Amperes per unit: 6078h per mille of the rated current; 6077h and the command per mille of the rated torque
+    (through K_m when rated_torque_Nm is set, else the rated current); a vendor object by its unit."""
+    from dragd.hardware.profile import load_profiles
+    from dragd.hardware.scaling import Scaling
+
+    cfg = config(VARIANTS / "vendor_current.eds", {"current": {"object": "30D1h:2", "unit": "mA"}}, joints=2)
+    sc = Scaling.from_config(cfg, load_profiles(cfg))
+    assert list(sc.A_per_permille) == [1e-3, 1e-3]
+    assert list(sc.permille_per_A) == [1000.0 / 4.0, 1000.0 / 4.0]
+    data = cfg.model_dump(mode="python")
+    data["joints"][0]["rated_torque_Nm"] = 0.5  # K_m = 9.09 / 101 = 0.09 N·m/A: 1000 per mille = 5.56 A
+    data["drives"]["d"]["current"] = {"object": "6077h"}
+    cfg2 = Config.model_validate({**data, "source": cfg.source})
+    sc = Scaling.from_config(cfg2, load_profiles(cfg2))
+    km = cfg2.joints[0].km_Nm_per_A
+    assert sc.A_per_permille[0] == pytest.approx(0.5 / (1000 * km))
+    assert sc.permille_per_A[0] == pytest.approx(1000 * km / 0.5)
+    assert sc.A_per_permille[1] == 4.0 / 1000.0  # rated_torque_Nm unset: per mille of the rated current
