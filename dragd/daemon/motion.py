@@ -209,6 +209,7 @@ class Motions:
     async def track_request(self, label: str, file: str | None, t_s: list[float] | None,
                             q_rad: list[list[float]] | None) -> dict[str, Any]:
         """The ``track`` command: a trajectory file or samples, built off the loop, then followed."""
+        self.check_csp("track")
         dt = self.d.cycle.dt
         if file is not None:
             traj = await self._trajectory(dt, label, file=str(self.d.paths.check("track", file)))
