@@ -747,6 +747,7 @@ def test_rpdo_watchdog_waits_for_frames_the_reader_has_not_read(request: pytest.
         drive.store.sdo_write(0x1400, 5, struct.pack("<H", 50))  # RPDO1 deadline 50 ms
         master.send(can.Message(arbitration_id=0x000, data=bytes((0x01, node)), is_extended_id=False))
         wait_for(lambda: drive.nmt_state.name == "OPERATIONAL", "NMT start")
+        drive.comm(time.monotonic())  # the drive's clock (the simulator's loop hands it in every tick)
         master.send(rpdo)
         wait_for(lambda: drive.rpdos[0].last_rx_s is not None, "the first RPDO")
         wait_for(lambda: net.caught_up(-1.0) == -1.0, "the reader waiting again")  # (idle: caught up as of now)
