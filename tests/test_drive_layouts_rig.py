@@ -15,7 +15,7 @@ import yaml
 from dragd.lab.rig import Rig, multicast_group
 
 from conftest import REPO
-from daemon_helpers import derived_config
+from daemon_helpers import AS_DEPLOYED, derived_config
 
 pytestmark = pytest.mark.rig
 
@@ -44,7 +44,7 @@ def test_per_node_on_two_classic_buses_drags_and_refuses_motions(tmp_path: Path)
     cfg = derived_config(tmp_path, "per_node", edit)
     bus = ",".join(f"udp_multicast:{multicast_group(f'per-node-{k}')}" for k in range(2))
     with Rig("per-node", workdir=tmp_path, config=cfg, sim_config=REPO / "sim" / "config" / "seed_cobot_two_buses.yaml",
-             bus=bus) as rig:
+             bus=bus, **AS_DEPLOYED) as rig:
         rig.start_sim()
         rig.start_daemon()
         log = rig.daemon.output()
@@ -76,7 +76,7 @@ def test_per_node_with_targets_on_can_fd_runs_an_identification(tmp_path: Path) 
 
     # (6 joints' 8-byte FD frames: 71.6 % worst case, above the default 70 % limit: a function test, not a budget)
     cfg = derived_config(tmp_path, "per_node_fd", lambda d: d["buses"][0].update(layout="per_node", load_limit_pct=80))
-    with Rig("per-node-fd", workdir=tmp_path, config=cfg) as rig:
+    with Rig("per-node-fd", workdir=tmp_path, config=cfg, **AS_DEPLOYED) as rig:
         rig.start_sim()
         rig.start_daemon()
         rig.must("start")

@@ -588,8 +588,15 @@ class _Boot:
                 permille = int(j.current_limit_A * p.command_per_A() + 0.5)
             var = p.var(OD_MAX_TORQUE)
             top = 0x7FFF if var is not None and var.data_type == 0x3 else 0xFFFF
-            self.write(OD_MAX_TORQUE, 0, min(top, permille), "max torque")
-            notes.append(f"6072h = {min(top, permille)} per mille")
+            if var is not None and isinstance(var.max, int) and 0 < var.max < top:
+                top = var.max  # the EDS's HighLimit
+            value = min(top, permille)
+            self.write(OD_MAX_TORQUE, 0, value, "max torque")
+            notes.append(f"6072h = {value} per mille")
+            if value < permille:
+                self.rep.status.append(f"warning: 6072h capped at {value} per mille (its range): the drive limits the "
+                                       f"current to {value / permille * j.current_limit_A:.3g} A, below "
+                                       f"{self.jkey}.current_limit_A {j.current_limit_A:g} A")
         else:
             notes.append(f"6072h absent: the drive does not limit the torque to {self.jkey}.current_limit_A "
                          "(dragd's command clamp only)")

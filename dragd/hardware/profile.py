@@ -501,6 +501,14 @@ class DriveProfile:
         if not self.has(OD_MAX_TORQUE):
             self.finding("warning", OD_MAX_TORQUE, 0, "missing: the drive does not limit the torque to the joint's "
                          "current_limit_A; dragd's command clamp is the only limit")
+        else:
+            var = self.var(OD_MAX_TORQUE)
+            want = 1000.0 * self.joint.current_limit_A / self.joint.rated_current_A
+            if var is not None and isinstance(var.max, int) and 0 < var.max < want:
+                self.finding("warning", OD_MAX_TORQUE, 0, f"its range ends at {var.max} per mille (HighLimit), below "
+                             f"the joint's current_limit_A / rated_current_A = {want:.0f} per mille: the drive "
+                             f"limits the current to {var.max / 1000 * self.joint.rated_current_A:.3g} A",
+                             f"check joints[{self.joint_index}].rated_current_A (the drive's rated current)")
         has_consumer = self.has(HEARTBEAT_CONSUMER, 1)
         deadline = any(5 in ch.comm_subs for ch in self.rpdos)
         if not has_consumer:

@@ -78,7 +78,8 @@ def io_cycle_us(opts: dict) -> tuple[float, dict[str, Any]]:
 
 # ------------------------------------------------------------------------------------------------ drive_profiles
 
-PUSH_NM = 7.0  # the operator's push on the shoulder (joint 2), as the daemon flow test pushes joint 1
+HAND_STEP_RAD = 0.15  # the operator's hand moves every joint by this much (the third the other way)
+HAND_MAX_LOAD_NM = 25.0  # ... pulling with at most this torque per joint (the demo's hand)
 DRIFT_WINDOW_S = 2.0  # after the arm came to rest: how far it creeps in this long
 
 
@@ -129,6 +130,13 @@ def _one_drive(eds: Any, opts: dict) -> dict[str, Any]:
     if init.returncode != 0:
         row["config_check"] = f"config init failed: {init.stderr.strip()}"
         return row
+    # the simulated robot's truth, generated from the URDF as config init sized it (bus per joint as configured)
+    truth_path = work / "truth.yaml"
+    err = _truth(robot, cfg_path, truth_path)
+    if err is not None:
+        row["boot"] = err
+        return row
+    row["datasheet"] = _datasheet(eds, cfg_path, truth_path)  # what the EDS cannot say, from the drive's manual
     check = _cli("config", "check", "--config", str(cfg_path), "--json")
     try:
         report = json.loads(check.stdout)
@@ -141,22 +149,11 @@ def _one_drive(eds: Any, opts: dict) -> dict[str, Any]:
         row["refused_reason"] = "; ".join(report["refused"])
     if not report["ok"]:
         return row
-    # the simulated robot: its truth generated from the URDF as config init sized it, every drive built from the EDS
-    truth = subprocess.run([sys.executable, "-m", "sim.truth", "--robot", robot], capture_output=True, text=True,
-                           timeout=120)
-    if truth.returncode != 0:
-        row["boot"] = f"no simulator truth for {robot}: {truth.stderr.strip()}"
-        return row
-    data = yaml.safe_load(truth.stdout)
     cfg = yaml.safe_load(cfg_path.read_text())
     bus_names = [b["name"] for b in cfg["buses"]]
-    for tj, cj in zip(data["joints"], cfg["joints"]):
-        tj["bus_index"] = bus_names.index(cj.get("bus", bus_names[0]))
-    truth_path = work / "truth.yaml"
-    truth_path.write_text(yaml.safe_dump(data, sort_keys=False))
     bus = ",".join(f"udp_multicast:{multicast_group(f'{eds.stem}-{k}')}" for k in range(len(bus_names)))
     rig = Rig(f"drive-{eds.stem}", workdir=work, config=cfg_path, sim_config=truth_path, bus=bus,
-              sim_args=["--eds", str(eds)])
+              sim_args=["--eds", str(eds)], as_deployed=True)  # SCHED_FIFO 70 / 60 where permitted, as deployed
     try:
         try:
             rig.start_sim(timeout_s=60.0)
@@ -171,6 +168,9 @@ def _one_drive(eds: Any, opts: dict) -> dict[str, Any]:
             return row
         row["drag_drift_deg"] = _drag_drift(rig)
         row["identify"] = _identify(rig, work)
+        st = rig.must("status")
+        row["loop"] = {k: st.get(k) for k in ("cycles", "missed_cycles", "late_tpdo_cycles", "feedback_holds",
+                                              "period_p99_us", "bus_load_pct")}
     except ProcessError as exc:
         if row["drag_drift_deg"] is None:
             row["drag_drift_deg"] = f"failed: {exc}"
@@ -181,8 +181,70 @@ def _one_drive(eds: Any, opts: dict) -> dict[str, Any]:
     return row
 
 
+def _truth(robot: str, cfg_path: Any, truth_path: Any) -> str | None:
+    """The simulator's truth for ``robot`` (``python -m sim.truth``: drives sized as config init sizes them), each
+    joint on the bus the configuration puts it on; None, or why not."""
+    import subprocess
+    import sys
+
+    import yaml
+
+    proc = subprocess.run([sys.executable, "-m", "sim.truth", "--robot", robot], capture_output=True, text=True,
+                          timeout=120)
+    if proc.returncode != 0:
+        return f"no simulator truth for {robot}: {proc.stderr.strip()}"
+    data = yaml.safe_load(proc.stdout)
+    cfg = yaml.safe_load(cfg_path.read_text())
+    names = [b["name"] for b in cfg["buses"]]
+    for tj, cj in zip(data["joints"], cfg["joints"]):
+        tj["bus_index"] = names.index(cj.get("bus", names[0]))
+    truth_path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return None
+
+
+def _datasheet(eds: Any, cfg_path: Any, truth_path: Any) -> dict[str, Any]:
+    """The integrator's step after ``config init`` (docs/DRIVES.md step 4): what the EDS cannot say, set from the
+    drive's documentation — for a simulated drive its datasheet, ``python -m sim drives --eds FILE --json``: the
+    rated current where the drive keeps it in no object dragd reads, the object and unit of the rated current and
+    torque. Returns what was set (nothing for a drive whose EDS says it all)."""
+    import json
+    import subprocess
+    import sys
+
+    import yaml
+
+    proc = subprocess.run([sys.executable, "-m", "sim", "drives", "--eds", str(eds), "--config", str(truth_path),
+                           "--json"], capture_output=True, text=True, timeout=120)
+    if proc.returncode != 0:
+        return {"error": proc.stderr.strip()}
+    sheet = json.loads(proc.stdout)
+    cfg = yaml.safe_load(cfg_path.read_text())
+    name = cfg["joints"][0]["drive"]
+    drive = cfg["drives"][name]
+    changed: dict[str, Any] = {}
+    first = next(iter(sheet.values()))
+    for key in ("rated_current", "rated_torque"):
+        obj = first["objects"][key]
+        have = drive.get(key, {}) or {}
+        if obj["object"] is not None and (have.get("object", "6075h" if key == "rated_current" else "6076h")
+                                          != obj["object"] or have.get("unit") not in (None, obj["unit"])):
+            drive[key] = {**have, "object": obj["object"], "unit": obj["unit"]}
+            changed[f"drives.{name}.{key}"] = drive[key]
+    for i, (j, (_, row)) in enumerate(zip(cfg["joints"], sheet.items())):
+        if first["objects"]["rated_current"]["object"] is None and j["rated_current_A"] != row["rated_current_A"]:
+            changed[f"joints[{i}].rated_current_A"] = row["rated_current_A"]
+            j["rated_current_A"] = row["rated_current_A"]
+    if changed:
+        text = cfg_path.read_text()
+        cfg_path.write_text(text.split("\nrobot:")[0] + "\n# values the EDS cannot give, set from the drive's "
+                            "datasheet (docs/DRIVES.md step 4)\n" + yaml.safe_dump(cfg, sort_keys=False))
+    return changed
+
+
 def _drag_drift(rig: Any) -> float:
-    """Start, drag, push the shoulder, let go: the largest joint motion [deg] over DRIFT_WINDOW_S after rest."""
+    """Start, drag, the operator's hand moves the arm and lets go: the largest joint motion [deg] over DRIFT_WINDOW_S
+    after the arm came to rest."""
+    from dragd.config import load_config
     from dragd.lab.rig import ProcessError
 
     rig.must("start")
@@ -193,13 +255,15 @@ def _drag_drift(rig: Any) -> float:
         raise ProcessError(f"mode drag refused: {p.stderr.strip()}")
     rig.sleep(0.5)
     before = np.array(rig.sim_call("state")["q_rad"])
-    from dragd.config import load_config
 
-    joint = load_config(rig.config).joint_names[1]
-    rig.sim_call("operator", scenario={"name": "push", "segments": [
-        {"kind": "push", "joint": joint, "torque_Nm": PUSH_NM, "duration_s": 0.6},
-        {"kind": "release", "duration_s": 0.0}]})
-    rig.sleep(0.7)
+    n = len(load_config(rig.config).joints)
+    step = [HAND_STEP_RAD * s for s in (1.0, 1.0, -1.0, 1.0, 1.0, 1.0)[:n]] + [0.0] * max(0, n - 6)
+    # the demo's hand (dragd/lab/demo.py): it pulls the joints by ``step`` and lets go
+    rig.sim_call("operator", scenario={"name": "hand", "segments": [
+        {"kind": "hand", "q_rad": step, "relative": True, "stiffness": 60.0, "damping": 12.0,
+         "max_load": HAND_MAX_LOAD_NM, "duration_s": 1.5},
+        {"kind": "release", "ramp_down_s": 0.1, "duration_s": 0.3}]})
+    rig.sleep(1.9)
     rig.wait_for(lambda: max(abs(v) for v in rig.sim_call("state")["dq_rad_s"]) < 1e-4, 15.0,
                  "the arm to come to rest after the push")
     rig.sleep(0.2)
@@ -209,13 +273,13 @@ def _drag_drift(rig: Any) -> float:
     if float(np.degrees(np.abs(rest - before)).max()) < 0.5:
         raise ProcessError(f"the push did not move the arm ({np.degrees(np.abs(rest - before)).max():.2f}°)")
     status = rig.must("status")
-    if status["mode"] != "drag":
+    if status["requested_mode"] != "drag" or status["faults"]:
         raise ProcessError(f"left drag after the push: {status['mode']}, faults {status['faults']}")
     return round(float(np.degrees(np.abs(later - rest)).max()), 4)
 
 
 def _identify(rig: Any, work: Any) -> str:
-    """``dragd identify run`` of a short plan (the shoulder lifted 0.3 rad and back at two speeds): "ok" or why not."""
+    """``dragd identify run`` of a short plan (the shoulder lifted 0.2 rad and back at two speeds): "ok" or why not."""
     import json
 
     from dragd.config import load_config
@@ -231,10 +295,10 @@ def _identify(rig: Any, work: Any) -> str:
     model = RobotModel.from_config(cfg)
     b = E.PlanBuilder(q0, E.Limits.from_model(model, cfg))
     lo = q0.copy()
-    lo[1] += 0.3 if q0[1] + 0.3 < model.position_limits_rad[1][1] - 0.1 else -0.3  # (upper limit of joint 2)
-    for v in (0.15, 0.3):
-        b.move(lo, speed=v, acceleration=0.8, kind="synchronous", joint=1)
-        b.move(q0, speed=v, acceleration=0.8, kind="synchronous", joint=1)
+    lo[1] += 0.2 if q0[1] + 0.2 < model.position_limits_rad[1][1] - 0.1 else -0.2  # (upper limit of joint 2)
+    for v in (0.1, 0.2):  # slow: a fresh configuration believes no friction (the drives' CSP loops meet all of it)
+        b.move(lo, speed=v, acceleration=0.5, kind="synchronous", joint=1)
+        b.move(q0, speed=v, acceleration=0.5, kind="synchronous", joint=1)
     plan = b.build("drive-profiles")
     pf = work / "plan.npz"
     plan.save(pf)
