@@ -51,6 +51,8 @@ def test_per_node_on_two_classic_buses_drags_and_refuses_motions(tmp_path: Path)
         assert "protection: RPDO deadline 50 ms on RPDO1 (1400h:05)" in log, log
         status = rig.must("status")
         assert max(status["bus_load_pct"].values()) < 70.0
+        assert any(line.startswith("protection: RPDO deadline 50 ms") for line in status["drives"][0]["boot"])
+        assert status["drives"][0]["eds"] == "joint_drive.eds"
         rig.must("start")
         rig.wait_for(lambda: rig.must("status")["mode"] == "hold", 5.0, "hold")
         rig.sleep(0.5)

@@ -438,12 +438,20 @@ class Daemon:
         return {name: (getattr(out, name).tolist() if drag and getattr(out, name, None) is not None else zero)
                 for name in ("gravity_A", "friction_A", "startup_A", "damping_A", "back_emf_A", "effects_A")}
 
+    def _boot_status(self) -> dict[tuple[str, int], list[str]]:
+        """Each drive's boot status lines (the protection in force, fallbacks, warnings: hardware/master.py)."""
+        if self.master is None:
+            return {}
+        return {(rt.name, n): list(info.status) for rt in self.master.runtimes.values() for n, info in rt.nodes.items()}
+
     def status(self) -> dict[str, Any]:
         c, cy, sup, io = self.controller, self.cycle, self.supervisor, self.io
         fb = io.feedback if io is not None else None
+        boot = self._boot_status()
         drives = [{"joint": j.name, "node_id": j.node_id, "state": STATE_NAMES[sup.states[i]],
                    "statusword": int(fb.statusword[i]) if fb is not None else 0,
-                   "stale_cycles": int(fb.stale[i]) if fb is not None else 0}
+                   "stale_cycles": int(fb.stale[i]) if fb is not None else 0,
+                   "eds": self.drives.profiles[i].eds_path.name, "boot": boot.get((j.bus, j.node_id), [])}
                   for i, j in enumerate(self.cfg.joints)]
 
         def pct(h: Any, p: float) -> float | None:
