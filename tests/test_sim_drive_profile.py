@@ -274,3 +274,13 @@ def test_profile_errors_name_the_eds_file(tmp_path: Path) -> None:
     broken.write_text("[1000]\nParameterName=x\nDataType=zz\n")
     with pytest.raises((TruthError, ProfileError), match="broken.eds"):
         drive_profiles(with_eds(TRUTH, broken))
+
+
+def test_joints_spread_over_several_buses_as_config_init_splits_them() -> None:
+    from sim.truth import spread_over_buses
+
+    assert [j.bus_index for j in spread_over_buses(TRUTH, "udp_multicast:239.1.1.1,udp_multicast:239.1.1.2,"
+                                                          "udp_multicast:239.1.1.3").joints] == [0, 0, 1, 1, 2, 2]
+    assert spread_over_buses(TRUTH, "udp_multicast:239.1.1.1") is TRUTH
+    two = load_truth(REPO / "sim/config/seed_cobot_two_buses.yaml")  # a truth that places its joints keeps them
+    assert spread_over_buses(two, "a,b,c") is two
