@@ -45,7 +45,9 @@ def main(argv: list[str] | None = None) -> int:
                        help="build every joint's drive from this EDS: its objects, access and mapping flags, PDOs, "
                             "COB-IDs, dummy usage and 6502h; vendor objects from sim/config/drives/ (matched by the "
                             "EDS's [DeviceInfo]); per joint: drive.eds in the truth file (docs/SIM_DRIVES.md)")
-    run_p.add_argument("--bus", help="INTERFACE:CHANNEL, e.g. udp_multicast:239.74.163.2 (default: the truth's bus.channel)")
+    run_p.add_argument("--bus", help="INTERFACE:CHANNEL, e.g. udp_multicast:239.74.163.2 (default: the truth's bus.channel); "
+                                     "A,B,C: several buses (a truth that puts every joint on bus 0 is spread: joint i "
+                                     "of n on bus i*k//n of the k buses, as dragd config init splits them)")
     run_p.add_argument("--scenario", help="operator scenario file (or a name in sim/scenarios) started at t = 0")
     run_p.add_argument("--control", help="Unix socket path for the JSON-lines control protocol")
     run_p.add_argument("--seconds", type=float, help="stop after this much simulated time")
@@ -90,12 +92,13 @@ def main(argv: list[str] | None = None) -> int:
         return _cmd_drives(args)
 
     from sim.runner import run
-    from sim.truth import drive_profiles, load_truth, with_eds
+    from sim.truth import drive_profiles, load_truth, spread_over_buses, with_eds
 
     try:
         truth = _truth_with_model(load_truth(args.config), args.model)
         if args.eds:
             truth = with_eds(truth, args.eds)
+        truth = spread_over_buses(truth, args.bus)
         profiles = drive_profiles(truth)  # every joint's EDS and profile checked before any frame
     except ConfigError as exc:
         print(f"sim: {exc}", file=sys.stderr)

@@ -272,6 +272,9 @@ class SimDrive:
             max_torque=bound("max_torque", 0xFFFF),
             max_current=bound("max_current", round(1000.0 * hw.max_current_A / hw.rated_current_A)),
         )
+        watchdog = b["rpdo_watchdog"]
+        s.rpdo_watchdog = None if watchdog.index is None else st.slot(watchdog.index, watchdog.subindex)
+        s.rpdo_watchdog_s_per_unit = 1.0 / (watchdog.per_si or 1000.0)
         s.position_range = _range(st, s.position)
         s.current_range = _range(st, s.current_actual)
         s.torque_range = _range(st, s.torque_actual)
@@ -568,7 +571,13 @@ class SimDrive:
             for ch in pdo.deadline_rpdos:
                 if ch.last_rx_s is not None and not ch.timed_out and self._deadline_passed(ch.last_rx_s, ch.event_s, now):
                     ch.timed_out = True
-                    self._rpdo_timeout(ch)
+                    self._rpdo_timeout(ch.number)
+            watchdog = self.s.rpdo_watchdog
+            if watchdog is not None and pdo.last_rx_s is not None and not pdo.watchdog_expired:
+                limit_s = self.store.cells[watchdog] * self.s.rpdo_watchdog_s_per_unit
+                if limit_s > 0.0 and self._deadline_passed(pdo.last_rx_s, limit_s, now):
+                    pdo.watchdog_expired = True
+                    self._rpdo_timeout(0)
             if pdo.event_tpdos:
                 pdo.poll_event_tpdos(now)
 
@@ -594,10 +603,11 @@ class SimDrive:
             self._set_nmt(state)
         self.control.refresh_statusword()
 
-    def _rpdo_timeout(self, ch: PdoChannel) -> None:
+    def _rpdo_timeout(self, number: int) -> None:
+        """An RPDO deadline passed (``number``: the RPDO's; 0: the vendor's watchdog over all RPDOs)."""
         self._steady = False
         self.counters.rpdo_timeouts += 1
-        self._raise_error(EMCY_RPDO_TIMEOUT, ERR_REG_COMMUNICATION, bytes((ch.number,)))
+        self._raise_error(EMCY_RPDO_TIMEOUT, ERR_REG_COMMUNICATION, bytes((number,)))
         self.control.abort_connection(EMCY_RPDO_TIMEOUT)
         self.control.refresh_statusword()
 

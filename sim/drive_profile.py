@@ -11,6 +11,7 @@ Object addresses are written ``30D1h:2`` (index hex, sub-index decimal; ``0x30D1
 
 from __future__ import annotations
 
+import configparser
 import functools
 import math
 import re
@@ -52,6 +53,7 @@ UNITS: dict[str, dict[str, float | None]] = {
     "current": {"permille": None, "mA": 1000.0, "cA": 100.0, "A": 1.0},
     "torque": {"permille": None, "mNm": 1000.0, "uNm": 1e6, "Nm": 1.0},
     "torque_constant": {"mNm_per_A": 1000.0, "uNm_per_A": 1e6, "Nm_per_A": 1.0},
+    "time": {"ms": 1000.0, "s": 1.0},
 }
 
 
@@ -79,6 +81,8 @@ QUANTITIES: dict[str, Quantity] = {q.name: q for q in (
     Quantity("rated_torque", 0x6076, "torque", "mNm", "parameter", "base of the torque per-mille values"),
     Quantity("torque_constant", None, "torque_constant", "mNm_per_A", "parameter",
              "the firmware's motor torque constant (torque command -> current)"),
+    Quantity("rpdo_watchdog", None, "time", "ms", "parameter",
+             "a vendor's reception watchdog: no RPDO for this long (0: off) is an RPDO timeout (EMCY 8250h, 6007h)"),
 )}
 
 
@@ -152,7 +156,7 @@ class CatalogEntry:
     match: Mapping[str, Any]
     objects: Mapping[str, Mapping[str, Any]]
     values: Mapping[str, int]
-    can_fd: bool
+    can_fd: bool | None
     notes: str
 
     @property
@@ -229,7 +233,8 @@ def load_catalog(directory: Path = DRIVES_DIR) -> tuple[CatalogEntry, ...]:
                             f"(the EDS's [DeviceInfo]), got {match!r}")
         entries.append(CatalogEntry(name=path.stem, path=path, match=match if isinstance(match, dict) else {},
                                     objects=data.get("objects") or {}, values=data.get("values") or {},
-                                    can_fd=bool(data.get("can_fd", False)), notes=str(data.get("notes", ""))))
+                                    can_fd=None if data.get("can_fd") is None else bool(data["can_fd"]),
+                                    notes=str(data.get("notes", ""))))
     if problems:
         raise ProfileError("\n".join(problems))
     return tuple(entries)
@@ -257,6 +262,24 @@ def import_eds(path: str | Path, node_id: int) -> canopen.ObjectDictionary:
         raise ProfileError(f"{path}: EDS file not found") from None
     except Exception as exc:  # (python-canopen raises what configparser and int() raise on a broken file)
         raise ProfileError(f"{path}: not a readable EDS ({type(exc).__name__}: {exc})") from None
+
+
+@functools.lru_cache(maxsize=64)
+def _device_info_fd(path: str, mtime_ns: int) -> bool | None:
+    parser = configparser.ConfigParser(strict=False, interpolation=None)
+    parser.optionxform = str  # type: ignore[assignment,method-assign]
+    try:
+        parser.read(path, encoding="latin-1")
+        value = parser.get("DeviceInfo", "CANopenFD", fallback=None)
+    except configparser.Error:
+        return None
+    return None if value is None else value.strip() not in ("0", "")
+
+
+def eds_declares_fd(path: str | Path) -> bool | None:
+    """``[DeviceInfo] CANopenFD`` (dragd's marker; EDS 4.0 has no standard key): True/False, None if absent."""
+    p = Path(path)
+    return _device_info_fd(str(p.resolve()), p.stat().st_mtime_ns) if p.is_file() else None
 
 
 def _variable(od: canopen.ObjectDictionary, index: int, subindex: int) -> ODVariable | None:
@@ -301,7 +324,13 @@ def build_profile(spec: ProfileSpec, hw: Hardware, base_dir: Path | None = None)
         raise ProfileError(f"{where}.eds: {exc}") from None
     catalog = _catalog_entry(spec, od, problems)
     bundled = eds.resolve() == bundled_eds_path().resolve()
-    can_fd = spec.can_fd if spec.can_fd is not None else (catalog.can_fd if catalog else bundled)
+    declared = eds_declares_fd(eds)
+    if spec.can_fd is not None:
+        can_fd = spec.can_fd
+    elif catalog is not None and catalog.can_fd is not None:
+        can_fd = catalog.can_fd
+    else:
+        can_fd = declared if declared is not None else bundled
 
     def var_of(index: int, sub: int) -> ODVariable | None:
         return _variable(od, index, sub)
@@ -365,6 +394,10 @@ def build_profile(spec: ProfileSpec, hw: Hardware, base_dir: Path | None = None)
                 problems.append(f"{source}.{key}: the EDS ({eds}) has no object {format_address(index, sub)}")
             elif isinstance(value, bool) or not isinstance(value, int) or var.data_type not in _INTEGER_TYPES:
                 problems.append(f"{source}.{key}: expected an integer for an integer object, got {value!r}")
+            elif not _type_range(var)[0] <= value <= _type_range(var)[1]:
+                lo, hi = _type_range(var)
+                problems.append(f"{source}.{key}: {value} does not fit {format_address(index, sub)} ({var.name}), "
+                                f"an integer of {lo}..{hi}")
             else:
                 commissioned[(index, sub)] = value
     for (index, sub), value in commissioned.items():
@@ -427,6 +460,14 @@ def _catalog_entry(spec: ProfileSpec, od: canopen.ObjectDictionary, problems: li
                             f"(sim/config/drives/), got {spec.profile!r}")
         return found
     return next((e for e in catalog if _matches(e, od)), None)
+
+
+def _type_range(var: ODVariable) -> tuple[int, int]:
+    bits = {datatypes.INTEGER8: 8, datatypes.INTEGER16: 16, datatypes.INTEGER32: 32, datatypes.INTEGER64: 64,
+            datatypes.UNSIGNED8: 8, datatypes.UNSIGNED16: 16, datatypes.UNSIGNED32: 32, datatypes.UNSIGNED64: 64}
+    n = bits[int(var.data_type or 0)]
+    signed = var.data_type in (datatypes.INTEGER8, datatypes.INTEGER16, datatypes.INTEGER32, datatypes.INTEGER64)
+    return (-(1 << (n - 1)), (1 << (n - 1)) - 1) if signed else (0, (1 << n) - 1)
 
 
 def _binding(name: str, entry: Any, source: str, od: canopen.ObjectDictionary, problems: list[str]) -> Binding | None:

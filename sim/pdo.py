@@ -221,6 +221,8 @@ class PdoService:
         self.sync_tpdos: list[PdoChannel] = []
         self.event_tpdos: list[PdoChannel] = []
         self.deadline_rpdos: list[PdoChannel] = []
+        self.last_rx_s: float | None = None  # the last RPDO of any channel (a vendor's reception watchdog)
+        self.watchdog_expired = False
         before, after = store.before_write, store.after_write
         for ch in self.rpdos + self.tpdos:
             before[ch.comm_index] = self._make_comm_check(ch)
@@ -334,6 +336,8 @@ class PdoService:
                 ch.latched = None
                 ch.last_rx_s = None
                 ch.timed_out = False
+            self.last_rx_s = None
+            self.watchdog_expired = False
         if state is NmtState.OPERATIONAL:
             for ch in self.tpdos:
                 ch.sync_count = 0
@@ -354,9 +358,12 @@ class PdoService:
         if ch.length_error:
             ch.length_error = False
             self._clear_error(EMCY_PDO_LENGTH)
-        ch.last_rx_s = now
+        ch.last_rx_s = self.last_rx_s = now
         if ch.timed_out:
             ch.timed_out = False
+            self._clear_error(EMCY_RPDO_TIMEOUT)
+        if self.watchdog_expired:
+            self.watchdog_expired = False
             self._clear_error(EMCY_RPDO_TIMEOUT)
         if ch.synchronous:
             ch.latched = bytes(data)

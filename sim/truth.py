@@ -350,6 +350,16 @@ def drive_profiles(truth: Truth) -> list[DriveProfile]:
     return profiles
 
 
+def spread_over_buses(truth: Truth, bus: str | None) -> Truth:
+    """With several buses (``--bus A,B,C``) and a truth whose joints all sit on bus 0: joint i of n on bus i*k//n of
+    the k buses (as ``dragd config init`` splits joints over buses); otherwise the truth unchanged."""
+    k = len([b for b in (bus or truth.bus.channel).split(",") if b])
+    if k <= 1 or any(j.bus_index for j in truth.joints):
+        return truth
+    n = len(truth.joints)
+    return truth.with_updates(joints={i: {"bus_index": i * k // n} for i in range(n)})
+
+
 def with_eds(truth: Truth, eds: str | Path) -> Truth:
     """The truth with every joint's drive built from ``eds`` (``python -m sim run --eds FILE``): its catalog entry
     (sim/config/drives/, matched by the EDS's [DeviceInfo]) replaces the joints' own objects, values and profile."""

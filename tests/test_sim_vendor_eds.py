@@ -1,7 +1,7 @@
 """The simulated drive built from a vendor's EDS answers as that drive's object dictionary does.
 
 For each EDS (the vendors' files in ``$DRAGD_EDS_DIR``, default /work/eds, skipped without them; and the in-repo
-variants of tests/eds/), ``python -m sim run --eds FILE`` runs as its own process on a multicast group of its own, and
+variants of tests/data/eds/), ``python -m sim run --eds FILE`` runs as its own process on a multicast group of its own, and
 the tests talk to it with python-canopen (RemoteNode, SdoClient, PDO maps) over a real python-can bus. What the
 drive should do comes from the EDS file read here with configparser (not python-canopen's parser, which the simulator
 uses) and from CiA 301: every object present answers an upload, absent objects and sub-indices abort (0602 0000,
@@ -40,7 +40,7 @@ pytestmark = [pytest.mark.rig, pytest.mark.timeout(300)]
 
 EDS_DIR = Path(os.environ.get("DRAGD_EDS_DIR", "/work/eds"))
 VENDOR_FILES = ("maxon_epos4", "zeroerr_erob", "eyou_euservo", "wittenstein_simco", "technosoft_ipos", "schunk_prl120")
-VARIANT_DIR = REPO / "tests" / "eds"
+VARIANT_DIR = REPO / "tests" / "data" / "eds"  # in-repo variants (make_variants.py), one vendor property each
 NODE = 1  # the base joint: a vertical axis, no gravity torque
 ABORT_WRITE_READ_ONLY = 0x06010002
 ABORT_READ_WRITE_ONLY = 0x06010001
@@ -306,8 +306,28 @@ def _tpdo_entry(index: int, sub: int, bits: int) -> int:
     return index << 16 | sub << 8 | bits
 
 
+def _remappable(eds: RawEds, comm_base: int, map_base: int) -> tuple[int, int]:
+    """The first PDO whose mapping the EDS lets a master change (sub 0 writable)."""
+    for k in range(512):
+        sub0 = eds.get(map_base + k, 0)
+        if sub0 is not None and sub0.writable and eds.get(comm_base + k, 1) is not None:
+            return comm_base + k, map_base + k
+    raise AssertionError(f"no PDO at {map_base:04X}h.. with a writable mapping")
+
+
+def test_fixed_mappings_refuse_writes(r: Rig) -> None:
+    fixed = [(i, e) for (i, sub), e in r.eds.entries.items() if 0x1600 <= i <= 0x1BFF and sub == 0 and not e.writable]
+    for index, e in fixed:
+        count = int.from_bytes(r.upload(index, 0), "little")
+        assert count == e.default_value(NODE)
+        assert r.refused_write(index, 0, b"\x00") == ABORT_WRITE_READ_ONLY
+    if not fixed:
+        pytest.skip(f"{r.path.name}: every PDO mapping is writable")
+
+
 def test_mapping_follows_the_eds_flags_length_and_dummy_usage(r: Rig) -> None:
-    eds, comm, mapping = r.eds, 0x1800, 0x1A00
+    eds = r.eds
+    comm, mapping = _remappable(eds, 0x1800, 0x1A00)
     r.download(comm, 1, struct.pack("<I", int.from_bytes(r.upload(comm, 1), "little") | 0x80000000))
     r.download(mapping, 0, b"\x00")
     bits = {0x2: 8, 0x3: 16, 0x4: 32, 0x5: 8, 0x6: 16, 0x7: 32}
@@ -319,15 +339,16 @@ def test_mapping_follows_the_eds_flags_length_and_dummy_usage(r: Rig) -> None:
         assert r.refused_write(mapping, 1, struct.pack("<I", word)) == ABORT_CANNOT_MAP, unmappable.name
     read_only = next(e for e in eds.entries.values() if e.index == 0x6041)
     if read_only.mappable:
-        r.download(0x1400, 1, struct.pack("<I", int.from_bytes(r.upload(0x1400, 1), "little") | 0x80000000))
-        r.download(0x1600, 0, b"\x00")
+        rcomm, rmap = _remappable(eds, 0x1400, 0x1600)
+        r.download(rcomm, 1, struct.pack("<I", int.from_bytes(r.upload(rcomm, 1), "little") | 0x80000000))
+        r.download(rmap, 0, b"\x00")
         word = _tpdo_entry(0x6041, 0, 16)
-        assert r.refused_write(0x1600, 1, struct.pack("<I", word)) == ABORT_CANNOT_MAP
+        assert r.refused_write(rmap, 1, struct.pack("<I", word)) == ABORT_CANNOT_MAP
         dummy = _tpdo_entry(0x0007, 0, 32)
         if 7 in eds.dummies:
-            r.download(0x1600, 1, struct.pack("<I", dummy))
+            r.download(rmap, 1, struct.pack("<I", dummy))
         else:
-            assert r.refused_write(0x1600, 1, struct.pack("<I", dummy)) == ABORT_CANNOT_MAP
+            assert r.refused_write(rmap, 1, struct.pack("<I", dummy)) == ABORT_CANNOT_MAP
     # three 32-bit actual values: 12 bytes, beyond a classic CAN frame
     longs = [e for e in eds.entries.values() if 0x6000 <= e.index < 0x7000 and e.readable and e.mappable
              and bits.get(e.data_type) == 32][:3]
@@ -342,23 +363,24 @@ def test_mapping_follows_the_eds_flags_length_and_dummy_usage(r: Rig) -> None:
 def test_tpdo_keeps_the_eds_rtr_bit_and_python_canopen_reads_it_back(r: Rig) -> None:
     """TPDO1 remapped in CiA 301's order (invalid, entries, count, valid) with bit 30 written clear; python-canopen's
     PDO classes read back the mapping, and a COB-ID whose EDS default says "no RTR" keeps bit 30."""
-    default = r.eds.get(0x1800, 1)
+    comm, mapping = _remappable(r.eds, 0x1800, 0x1A00)
+    default = r.eds.get(comm, 1)
     assert default is not None
     want = default.default_value(NODE)
     assert want is not None
-    cob = 0x180 + NODE
-    r.download(0x1800, 1, struct.pack("<I", cob | 0x80000000))
-    r.download(0x1800, 2, b"\x01")
-    r.download(0x1A00, 0, b"\x00")
-    r.download(0x1A00, 1, struct.pack("<I", _tpdo_entry(0x6041, 0, 16)))
-    r.download(0x1A00, 2, struct.pack("<I", _tpdo_entry(0x6064, 0, 32)))
-    r.download(0x1A00, 0, b"\x02")
-    r.download(0x1800, 1, struct.pack("<I", cob))
+    cob = (0x180 + 0x100 * (comm - 0x1800) + NODE) if comm < 0x1804 else 0x680 + NODE
+    r.download(comm, 1, struct.pack("<I", cob | 0x80000000))
+    r.download(comm, 2, b"\x01")
+    r.download(mapping, 0, b"\x00")
+    r.download(mapping, 1, struct.pack("<I", _tpdo_entry(0x6041, 0, 16)))
+    r.download(mapping, 2, struct.pack("<I", _tpdo_entry(0x6064, 0, 32)))
+    r.download(mapping, 0, b"\x02")
+    r.download(comm, 1, struct.pack("<I", cob))
     r.node.tpdo.read()
-    tpdo = r.node.tpdo[1]
+    tpdo = r.node.tpdo[comm - 0x1800 + 1]
     assert [(v.index, v.subindex) for v in tpdo.map] == [(0x6041, 0), (0x6064, 0)]
     assert tpdo.enabled and tpdo.cob_id == cob and tpdo.trans_type == 1
-    assert tpdo.rtr_allowed == (not want & 0x40000000), f"1800h:1 default 0x{want:08X}, RTR allowed {tpdo.rtr_allowed}"
+    assert tpdo.rtr_allowed == (not want & 0x40000000), f"{comm:04X}h:1 default 0x{want:08X}, RTR allowed {tpdo.rtr_allowed}"
 
 
 # ======================================================================================================
