@@ -340,49 +340,18 @@ def plan_bus(bus: str, joints: list[int], profiles: list[DriveProfile], *, fd: b
                     pdos[p.node_id].append(spec)
                     tpdo_frame(j, p.node_id, spec, "")
         slot_bits = [sum(e.bits for e in s) if s is not None else 64 for s in slot_entries]
-        groups: list[list[int]] = []
+        groups = []
         for i in range(len(joints)):  # up to 8 slots per frame on CAN FD (64 bytes), one on classic CAN
             if groups and fd and len(groups[-1]) < 8 and sum(slot_bits[g] for g in groups[-1]) + slot_bits[i] <= 512:
                 groups[-1].append(i)
             else:
                 groups.append([i])
-        for k, group in enumerate(groups):
-            cob = SHARED_RPDO_BASE + 0x80 * k
-            slots, offset, complete = [], 0, True
-            for gi in group:
-                own = slot_entries[gi]
-                p = profiles[gi]
-                if own is None:
-                    complete = False
-                    continue
-                entries: list[MapEntry] = []
-                for other in group:
-                    if other == gi:
-                        entries.extend(own)
-                        continue
-                    cover = _dummies(slot_bits[other], p.dummies)
-                    if cover is None:
-                        pl.error(p, f"layout 'shared' puts {len(group)} joints in command frame 0x{cob:03X}: this drive "
-                                    f"must map dummy entries over the others' {slot_bits[other]} bits, and its EDS "
-                                    f"[DummyUsage] allows {', '.join(f'{d:04X}h' for d in sorted(p.dummies)) or 'none'}",
-                                 f"set {bus_key}.layout: per_node")
-                        complete = False
-                        break
-                    entries.extend(cover)
-                else:
-                    for spec in pl.assign(p, [_Role("rpdo", tuple(entries), True, 4, cob, f"command frame 0x{cob:03X}")]):
-                        pdos[p.node_id].append(spec)
-                slots.append(_slot(joints[gi], offset, own))
-                offset += slot_bits[gi] // 8
-            if complete:
-                frames.append(FrameLayout(f"command RPDO 0x{cob:03X}", cob, offset, tuple(slots), "rpdo", True, rate_Hz))
+        _shared_frames(pl, "shared", "command", joints, profiles, slot_entries, groups, SHARED_RPDO_BASE, rate_Hz,
+                       pdos, frames)
     elif kind == "compact":
-        tq_bits = []
         for j, p in zip(joints, profiles):
             pc, sw, cw = (pl.entries(p, ("position", "current")), pl.entries(p, ("statusword",)),
                           pl.entries(p, ("controlword",)))
-            tq = pl.entries(p, ("torque",))
-            tq_bits.append(sum(e.bits for e in tq) if tq is not None else 16)
             if pc is None or sw is None or cw is None:
                 continue
             used: set[tuple[str, int]] = set()
@@ -397,37 +366,9 @@ def plan_bus(bus: str, joints: list[int], profiles: list[DriveProfile], *, fd: b
                     frames.append(FrameLayout(f"{spec.name} node {p.node_id}", spec.cob_id, spec.data_bytes,
                                               (_slot(j, 0, spec.entries),), "rpdo", False, ev_hz))
         groups = [list(range(i, min(i + 4, len(joints)))) for i in range(0, len(joints), 4)]
-        for k, group in enumerate(groups):
-            cob = SHARED_RPDO_BASE + 0x100 + 0x80 * k  # 0x300, 0x380: PDO COB-IDs of node 0, unused
-            slots, offset, complete = [], 0, True
-            for gi in group:
-                p = profiles[gi]
-                own = pl.entries(p, ("torque",))
-                if own is None:
-                    complete = False
-                    continue
-                entries = []
-                for other in group:
-                    if other == gi:
-                        entries.extend(own)
-                        continue
-                    cover = _dummies(tq_bits[other], p.dummies)
-                    if cover is None:
-                        pl.error(p, f"layout 'compact' shares torque frame 0x{cob:03X} among {len(group)} joints: this "
-                                    f"drive must map dummy entries, and its EDS [DummyUsage] allows "
-                                    f"{', '.join(f'{d:04X}h' for d in sorted(p.dummies)) or 'none'}",
-                                 f"set {bus_key}.layout: per_node")
-                        complete = False
-                        break
-                    entries.extend(cover)
-                else:
-                    for spec in pl.assign(p, [_Role("rpdo", tuple(entries), True, 4, cob, f"torque frame 0x{cob:03X}")],
-                                          {(s.direction, s.number) for s in pdos[p.node_id]}):
-                        pdos[p.node_id].append(spec)
-                slots.append(_slot(joints[gi], offset, own))
-                offset += tq_bits[gi] // 8
-            if complete:
-                frames.append(FrameLayout(f"torque RPDO 0x{cob:03X}", cob, offset, tuple(slots), "rpdo", True, rate_Hz))
+        # 0x300, 0x380: PDO COB-IDs of node 0, unused
+        _shared_frames(pl, "compact", "torque", joints, profiles, [pl.entries(p, ("torque",)) for p in profiles], groups,
+                       SHARED_RPDO_BASE + 0x100, rate_Hz, pdos, frames)
     else:  # per_node
         for j, p in zip(joints, profiles):
             cmd_fields: tuple[Field, ...] = ("target_position", "torque") if targets else ("torque",)
@@ -459,6 +400,41 @@ def plan_bus(bus: str, joints: list[int], profiles: list[DriveProfile], *, fd: b
     layout = BusLayout(bus, kind, fd, fd, tuple(joints), tuple(node_ids), pdos, frames,  # type: ignore[arg-type]
                        position_targets=targets)
     return layout, pl.findings
+
+
+def _shared_frames(pl: _Planner, kind: str, what: str, joints: list[int], profiles: list[DriveProfile],
+                   own: list[tuple[MapEntry, ...] | None], groups: list[list[int]], cob_base: int, rate_Hz: float,
+                   pdos: dict[int, list[PdoSpec]], frames: list[FrameLayout]) -> None:
+    """Frames that several joints share (RPDO 4 of each drive, COB-ID ``cob_base`` + 0x80·k): each drive maps its own
+    slot and dummy entries over the others' (the drive's [DummyUsage] must allow them)."""
+    bits = [sum(e.bits for e in s) if s is not None else 0 for s in own]
+    for k, group in enumerate(groups):
+        cob = cob_base + 0x80 * k
+        slots, offset, complete = [], 0, True
+        for gi in group:
+            mine, p = own[gi], profiles[gi]
+            if mine is None:
+                complete = False
+                continue
+            entries: list[MapEntry] = []
+            for other in group:
+                cover = list(mine) if other == gi else _dummies(bits[other], p.dummies)
+                if cover is None:
+                    pl.error(p, f"layout '{kind}' puts {len(group)} joints in {what} frame 0x{cob:03X}: this drive must "
+                                f"map dummy entries over the others' {bits[other]} bits, and its EDS [DummyUsage] "
+                                f"allows {', '.join(f'{d:04X}h' for d in sorted(p.dummies)) or 'none'}",
+                             f"set {pl.bus_key}.layout: per_node")
+                    complete = False
+                    break
+                entries.extend(cover)
+            else:
+                placed = {(s.direction, s.number) for s in pdos[p.node_id]}
+                pdos[p.node_id].extend(pl.assign(p, [_Role("rpdo", tuple(entries), True, 4, cob,
+                                                           f"{what} frame 0x{cob:03X}")], placed) or [])
+            slots.append(_slot(joints[gi], offset, mine))
+            offset += bits[gi] // 8
+        if complete:
+            frames.append(FrameLayout(f"{what} RPDO 0x{cob:03X}", cob, offset, tuple(slots), "rpdo", True, rate_Hz))
 
 
 def layout_for(bus: str, joints: list[int], node_ids: list[int], *, fd: bool, kind: str | None = None,

@@ -79,8 +79,14 @@ def starting_config(robot: str | Path, base_dir: Path | None = None,
     ]
     for i, s in enumerate(sizes):
         lines += _joint_lines(i, s)
-    lines += [
-        "",
+    lines += ["", *_replay_lines(peaks)]
+    text = "\n".join(lines)
+    Config.model_validate(yaml.safe_load(text))  # a generated file that does not load is a bug here, not the user's
+    return text
+
+
+def _replay_lines(peaks: list[float]) -> list[str]:
+    return [
         "# teach and replay: the daemon's position loop per joint, scaled with each joint's peak torque",
         "replay:",
         f"  position_kp_Nm_per_rad: {_flow([round(12.0 * p) for p in peaks])}",
@@ -88,9 +94,6 @@ def starting_config(robot: str | Path, base_dir: Path | None = None,
         f"  position_ki_Nm_per_rad_s: {_flow([round(24.0 * p) for p in peaks])}",
         "",
     ]
-    text = "\n".join(lines)
-    Config.model_validate(yaml.safe_load(text))  # a generated file that does not load is a bug here, not the user's
-    return text
 
 
 # ------------------------------------------------------------------------------------------------ from a vendor EDS
@@ -271,15 +274,7 @@ def _eds_config(ref: str, model: RobotModel, sizes: list[JointSizing], gravity: 
         lines.append(f"    drive: {name}")
         if nb > 1:
             lines.append(f"    bus: {cfg.joints[i].bus}")
-    lines += ["", "loop:", f"  rate_Hz: {hz:g}", ""]
-    lines += [
-        "# teach and replay: the daemon's position loop per joint, scaled with each joint's peak torque",
-        "replay:",
-        f"  position_kp_Nm_per_rad: {_flow([round(12.0 * p) for p in peaks])}",
-        f"  position_kd_Nm_s_per_rad: {_flow([round(0.2 * p, 1) for p in peaks])}",
-        f"  position_ki_Nm_per_rad_s: {_flow([round(24.0 * p) for p in peaks])}",
-        "",
-    ]
+    lines += ["", "loop:", f"  rate_Hz: {hz:g}", "", *_replay_lines(peaks)]
     text = "\n".join(lines)
     data = yaml.safe_load(text)
     data["drives"][name]["eds"] = str(eds_abs)
