@@ -58,8 +58,9 @@ class BusConfig(_Strict):
     data_bitrate: PosInt | None = None
     load_limit_pct: Annotated[float, Field(gt=0, le=100), Expect("a percentage in (0, 100]")] = 70.0
     # PDO layout (dragd/hardware/pdo.py): shared (a command frame shared by up to 8 joints on CAN FD), compact
-    # (classic CAN, drag only, a shared torque frame), per_node (one SYNC RPDO per drive, no dummy entries)
-    layout: Literal["shared", "compact", "per_node"] = "shared"
+    # (classic CAN, drag only, a shared torque frame), per_node (one SYNC RPDO per drive, no dummy entries), auto
+    # (shared on CAN FD where every drive maps dummy entries, else per_node)
+    layout: Literal["shared", "compact", "per_node", "auto"] = "shared"
     # per_node: the SYNC RPDO carries 607Ah target positions (CSP: identify run, replay, track); false: drag only
     position_targets: bool = True
 

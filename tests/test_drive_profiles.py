@@ -574,3 +574,11 @@ def test_scaling_from_the_profile() -> None:
     assert sc.A_per_permille[0] == pytest.approx(0.5 / (1000 * km))
     assert sc.permille_per_A[0] == pytest.approx(1000 * km / 0.5)
     assert sc.A_per_permille[1] == 4.0 / 1000.0  # rated_torque_Nm unset: per mille of the rated current
+
+
+@pytest.mark.unit
+def test_layout_auto_chooses_from_what_the_drives_support() -> None:
+    plan = plan_drives(config(None, layout="auto", fd=True, rate_Hz=1000.0))
+    assert plan.layouts["arm"].kind == "shared"  # dragd's own drive: CAN FD, dummy entries
+    plan = plan_drives(config(VARIANTS / "no_dummies.eds", layout="auto", fd=False), budget_findings=False)
+    assert plan.layouts["arm"].kind == "per_node" and plan.errors == []

@@ -114,7 +114,8 @@ def cmd_config_check(args: argparse.Namespace) -> int:
                                                           "unit": p.current_unit},
                "torque_command": None if p.command is None else f"{p.command.index:04X}h", "csp": p.csp}
               for p in plan.profiles.profiles]
-    buses = [{"name": b.name, "fd": b.fd, "layout": b.layout, "position_targets": plan.layouts[b.name].position_targets,
+    buses = [{"name": b.name, "fd": b.fd, "layout": plan.layouts[b.name].kind,
+              "position_targets": plan.layouts[b.name].position_targets,
               "load_pct": round(plan.budget[b.name]["load_pct"], 2),
               "load_min_pct": round(plan.budget[b.name]["load_min_pct"], 2), "limit_pct": b.load_limit_pct}
              for b in cfg.buses]

@@ -123,7 +123,7 @@ def check_bus_budget(cfg: Config, layouts: dict[str, BusLayout]) -> dict[str, An
             raise BusBudgetError(
                 f"{cfg.source}: buses[{cfg.buses.index(b)}] '{b.name}': worst-case bus load {r.percent:.1f} % exceeds "
                 f"load_limit_pct {b.load_limit_pct:.0f} % at {cfg.loop.rate_Hz:.0f} Hz "
-                f"({'CAN FD' if b.fd else 'classic CAN'} {b.bitrate / 1e6:g} Mbit/s, layout '{b.layout}'):\n{r.table()}\n"
+                f"({'CAN FD' if b.fd else 'classic CAN'} {b.bitrate / 1e6:g} Mbit/s, layout '{layouts[b.name].kind}'):\n{r.table()}\n"
                 "Use CAN FD, layout 'compact', fewer joints per bus (split buses) or a lower loop.rate_Hz.")
     return report
 

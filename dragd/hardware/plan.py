@@ -54,7 +54,10 @@ def plan_drives(cfg: Config, profiles: Profiles | None = None, *, budget_finding
                     findings.append(Finding("error", f"{p.where}: the drive is classic CAN (its EDS declares no "
                                                      f"CANopenFD=1) on CAN FD bus '{b.name}'; set {key}.fd: false",
                                             where=p.where))
-        layout, found = plan_bus(b.name, idx, bus_profiles, fd=b.fd, kind=b.layout, rate_Hz=cfg.loop.rate_Hz,
+        kind = b.layout
+        if kind == "auto":  # what the drives support: a shared FD frame needs dummy entries in every drive
+            kind = "shared" if b.fd and all(0x0007 in p.dummies for p in bus_profiles) else "per_node"
+        layout, found = plan_bus(b.name, idx, bus_profiles, fd=b.fd, kind=kind, rate_Hz=cfg.loop.rate_Hz,
                                  position_targets=b.position_targets, bus_key=key)
         findings += found
         layouts[b.name] = layout
@@ -74,8 +77,8 @@ def plan_drives(cfg: Config, profiles: Profiles | None = None, *, budget_finding
                                              f"(no stuff bits: {r.percent_min:.1f} %) exceeds load_limit_pct "
                                              f"{b.load_limit_pct:.0f} % at {cfg.loop.rate_Hz:.0f} Hz "
                                              f"({'CAN FD' if b.fd else 'classic CAN'} {b.bitrate / 1e6:g} Mbit/s, "
-                                             f"{len(idx)} joints, layout '{b.layout}'); use CAN FD, fewer joints per "
+                                             f"{len(idx)} joints, layout '{kind}'); use CAN FD, fewer joints per "
                                              "bus (split buses), a lower loop.rate_Hz"
                                              + (", or position_targets: false (drag only)"
-                                                if b.layout == "per_node" and b.position_targets else "")))
+                                                if kind == "per_node" and b.position_targets else "")))
     return DrivePlan(profiles, layouts, budget, findings)
