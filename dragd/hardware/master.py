@@ -37,8 +37,7 @@ from dragd.hardware.cia301 import HEARTBEAT_BASE, NMT_COB_ID, SYNC_COB_ID, NmtCo
 from dragd.hardware.reader import DrainingNotifier
 from dragd.hardware.cia402 import (MODE_CSP, MODE_CST, OD_ABORT_CONNECTION_OPTION, OD_CONTROLWORD, OD_MAX_TORQUE,
                                    OD_MODES_OF_OPERATION, OD_MODES_OF_OPERATION_DISPLAY, OD_QUICK_STOP_OPTION,
-                                   OD_STATUSWORD, OD_SUPPORTED_DRIVE_MODES, OD_TARGET_TORQUE, OD_TORQUE_OFFSET, State,
-                                   VOLTAGE_ENABLED_STATES, decode_statusword)
+                                   OD_STATUSWORD, OD_SUPPORTED_DRIVE_MODES, OD_TARGET_TORQUE, OD_TORQUE_OFFSET, VOLTAGE_ENABLED_STATES, decode_statusword)
 from dragd.config import Config, JointConfig
 from dragd.hardware.pdo import BusLayout, PdoSpec
 from dragd.hardware.profile import (CURRENT_UNITS_A, DEVICE_TYPE_402, TORQUE_UNITS_NM, DriveProfile, Profiles,

@@ -257,7 +257,7 @@ class _Planner:
                        f"[{', '.join(f'{w:08X}h' for w in ch.default_words)}]")
         return None
 
-    def assign(self, p: DriveProfile, roles: list[_Role], used: set[tuple[str, int]] | None = None,
+    def assign(self, p: DriveProfile, roles: list[_Role], used: set[tuple[str, int]] | None = None,  # noqa: C901
                dry: bool = False) -> list[PdoSpec] | None:
         """Every role on a PDO of the drive, or (``dry``) None when one cannot be placed; without ``dry`` each role
         that cannot be placed is a finding and the others are returned."""
@@ -336,11 +336,11 @@ def plan_bus(bus: str, joints: list[int], profiles: list[DriveProfile], *, fd: b
             tp = pl.entries(p, ("statusword", "position", "current"))
             slot_entries.append(pl.entries(p, slot_fields))
             if tp is not None:
-                for spec in pl.assign(p, [_Role("tpdo", tp, True, 1, None, "the cyclic feedback")]):
+                for spec in pl.assign(p, [_Role("tpdo", tp, True, 1, None, "the cyclic feedback")]) or []:
                     pdos[p.node_id].append(spec)
                     tpdo_frame(j, p.node_id, spec, "")
         slot_bits = [sum(e.bits for e in s) if s is not None else 64 for s in slot_entries]
-        groups = []
+        groups: list[list[int]] = []
         for i in range(len(joints)):  # up to 8 slots per frame on CAN FD (64 bytes), one on classic CAN
             if groups and fd and len(groups[-1]) < 8 and sum(slot_bits[g] for g in groups[-1]) + slot_bits[i] <= 512:
                 groups[-1].append(i)
@@ -357,7 +357,7 @@ def plan_bus(bus: str, joints: list[int], profiles: list[DriveProfile], *, fd: b
             used: set[tuple[str, int]] = set()
             specs = pl.assign(p, [_Role("tpdo", pc, True, 1, None, "position and current"),
                                   _Role("tpdo", sw, False, 2, None, "the statusword (event)", needs_inhibit=True),
-                                  _Role("rpdo", cw, False, 1, None, "the controlword (event)")], used)
+                                  _Role("rpdo", cw, False, 1, None, "the controlword (event)")], used) or []
             for spec in specs:
                 pdos[p.node_id].append(spec)
                 if spec.direction == "tpdo":
@@ -372,10 +372,10 @@ def plan_bus(bus: str, joints: list[int], profiles: list[DriveProfile], *, fd: b
     else:  # per_node
         for j, p in zip(joints, profiles):
             cmd_fields: tuple[Field, ...] = ("target_position", "torque") if targets else ("torque",)
-            got = [pl.entries(p, f) for f in (("position", "current"), ("statusword",), ("controlword",), cmd_fields)]
-            if any(g is None for g in got):
+            pc, sw = pl.entries(p, ("position", "current")), pl.entries(p, ("statusword",))
+            cw, cmd = pl.entries(p, ("controlword",)), pl.entries(p, cmd_fields)
+            if pc is None or sw is None or cw is None or cmd is None:
                 continue
-            pc, sw, cw, cmd = got  # type: ignore[misc]
             sync_fb = _Role("tpdo", sw + pc, True, 1, None, "the cyclic feedback")
             split_fb = [_Role("tpdo", pc, True, 1, None, "position and current"),
                         _Role("tpdo", sw, False, 2, None, "the statusword (event)", needs_inhibit=True)]
@@ -387,8 +387,8 @@ def plan_bus(bus: str, joints: list[int], profiles: list[DriveProfile], *, fd: b
             # classic CAN: the statusword and controlword by event where the drive can (bus load); CAN FD: all cyclic
             fb_options = [split_fb, [sync_fb], two_sync_fb] if not fd else [[sync_fb], two_sync_fb]
             cmd_options = [split_cmd, [sync_cmd]] if not fd else [[sync_cmd], split_cmd]
-            used: set[tuple[str, int]] = set()
-            specs = pl.first_fit(p, fb_options, used) + pl.first_fit(p, cmd_options, used)
+            placed: set[tuple[str, int]] = set()
+            specs = pl.first_fit(p, fb_options, placed) + pl.first_fit(p, cmd_options, placed)
             for spec in specs:
                 pdos[p.node_id].append(spec)
                 if spec.direction == "tpdo":
@@ -428,7 +428,7 @@ def _shared_frames(pl: _Planner, kind: str, what: str, joints: list[int], profil
                     break
                 entries.extend(cover)
             else:
-                placed = {(s.direction, s.number) for s in pdos[p.node_id]}
+                placed: set[tuple[str, int]] = {(s.direction, s.number) for s in pdos[p.node_id]}
                 pdos[p.node_id].extend(pl.assign(p, [_Role("rpdo", tuple(entries), True, 4, cob,
                                                            f"{what} frame 0x{cob:03X}")], placed) or [])
             slots.append(_slot(joints[gi], offset, mine))

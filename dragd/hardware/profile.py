@@ -47,6 +47,11 @@ STRUCT_CODES = {datatypes.BOOLEAN: "?", datatypes.INTEGER8: "b", datatypes.INTEG
                 datatypes.UNSIGNED32: "I", datatypes.UNSIGNED64: "Q", datatypes.REAL32: "f", datatypes.REAL64: "d"}
 TYPE_NAMES = {v: k for k, v in vars(datatypes).items() if k.isupper() and isinstance(v, int) and v < 0x20}
 
+
+def type_name(data_type: int | None) -> str:
+    """``INTEGER16`` for an EDS data type (its number in hex where CiA 301 names none)."""
+    return "no type" if data_type is None else TYPE_NAMES.get(data_type, f"0x{data_type:04X}")
+
 CURRENT_UNITS_A = {"A": 1.0, "dA": 0.1, "cA": 0.01, "mA": 1e-3, "uA": 1e-6}
 TORQUE_UNITS_NM = {"Nm": 1.0, "mNm": 1e-3, "uNm": 1e-6}
 CURRENT_UNITS = {"permille_rated_current": "per mille of the rated current",
@@ -206,6 +211,17 @@ def eds_says_fd(path: Path) -> bool:
         return False
 
 
+def od_var(od: canopen.ObjectDictionary, index: int, sub: int = 0) -> ODVariable | None:
+    """An object dictionary's entry for index:sub, or None."""
+    obj = od.get(index)
+    if obj is None:
+        return None
+    if isinstance(obj, ODVariable):
+        return obj if sub == 0 else None
+    var: ODVariable | None = obj.subindices.get(sub)
+    return var
+
+
 def _int_default(var: ODVariable) -> int | None:
     v = var.default
     return v if isinstance(v, int) and not isinstance(v, bool) else None
@@ -273,12 +289,7 @@ class DriveProfile:
 
     def var(self, index: int, sub: int = 0) -> ODVariable | None:
         """The EDS's entry for index:sub, or None."""
-        obj = self.od.get(index)
-        if obj is None:
-            return None
-        if isinstance(obj, ODVariable):
-            return obj if sub == 0 else None
-        return obj.subindices.get(sub)
+        return od_var(self.od, index, sub)
 
     def has(self, index: int, sub: int = 0) -> bool:
         return self.var(index, sub) is not None
@@ -329,9 +340,9 @@ class DriveProfile:
             problems.append("not PDO-mappable (PDOMapping=0)")
         if not access_ok:
             problems.append(f"AccessType={var.access_type}: not {'readable' if direction == 'tpdo' else 'writable'}")
-        code = STRUCT_CODES.get(var.data_type)
+        code = STRUCT_CODES.get(var.data_type) if var.data_type is not None else None
         if code is None:
-            problems.append(f"data type {TYPE_NAMES.get(var.data_type, hex(var.data_type))} cannot be decoded")
+            problems.append(f"data type {type_name(var.data_type)} cannot be decoded")
         if problems:
             if not quiet:
                 self.finding("error", index, sub, f"{what} in a {direction.upper()}: {'; '.join(problems)}", fix)
@@ -377,7 +388,7 @@ class DriveProfile:
             return None
         obj = self._process("torque", index, 0, "rpdo", "the torque command", key=key)
         if obj is not None and obj.code != "h":
-            self.finding("error", index, 0, f"the torque command is {TYPE_NAMES.get(self.var(index).data_type)}; "
+            self.finding("error", index, 0, f"the torque command is {type_name(getattr(self.var(index), 'data_type', None))}; "
                          "CiA 402 defines it INTEGER16 (per mille of the rated torque)", f"set {key}")
             return None
         return obj
@@ -405,7 +416,7 @@ class DriveProfile:
             return None
         if not var.readable or var.data_type not in datatypes.NUMBER_TYPES:
             self.finding("error", index, sub, f"{what}: AccessType={var.access_type}, "
-                         f"{TYPE_NAMES.get(var.data_type, hex(var.data_type))}: not a readable number", f"set {key}")
+                         f"{type_name(var.data_type)}: not a readable number", f"set {key}")
             return None
         if which == "rated_torque" and self.drive.rated_torque.write and not var.writable:
             self.finding("error", index, sub, f"{self.key}.rated_torque.write is true but the object is "
@@ -425,7 +436,7 @@ class DriveProfile:
         var = self.var(index, sub)
         if var is None or not var.writable or var.data_type not in datatypes.INTEGER_TYPES:
             what = "missing" if var is None else f"AccessType={var.access_type}, " \
-                f"{TYPE_NAMES.get(var.data_type, hex(var.data_type))}: not a writable integer"
+                f"{type_name(var.data_type)}: not a writable integer"
             self.finding("error", index, sub, f"the vendor watchdog object: {what}", f"set {key}")
             return None
         return index, sub
@@ -516,7 +527,7 @@ class DriveProfile:
         if not deadline and self.watchdog_object is None:
             if has_consumer:
                 self.finding("warning", RPDO_COMM, 5, "missing on every RPDO: no RPDO deadline; the drive stops on "
-                             f"a lost master heartbeat only (1016h, master.heartbeat_consumer_ms)",
+                             "a lost master heartbeat only (1016h, master.heartbeat_consumer_ms)",
                              f"name the vendor's command watchdog in {self.key}.rpdo_watchdog if the drive has one")
             else:
                 self.finding("error", RPDO_COMM, 5, "missing on every RPDO, and no 1016h heartbeat consumer: "

@@ -10,12 +10,16 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import yaml
 
 from dragd.model import RobotModel
 from dragd.robots import urdf_reference
 from dragd.robots.sizing import ENCODER_COUNTS_PER_REV, GEAR_RATIO, JointSizing, size_joints
+
+if TYPE_CHECKING:
+    from canopen.objectdictionary import ODVariable
 
 
 def _flow(value: object) -> str:
@@ -106,7 +110,7 @@ def _candidates(od: object, any_of: tuple[str, ...], all_of: tuple[str, ...] = (
     """Vendor objects (2000h-5FFFh) whose EDS name contains one of ``any_of`` and all of ``all_of``: suggestions."""
     from canopen.objectdictionary import ODVariable
 
-    from dragd.hardware.profile import TYPE_NAMES, address
+    from dragd.hardware.profile import address, type_name
 
     out = []
     for obj in od.values():  # type: ignore[attr-defined]
@@ -116,40 +120,43 @@ def _candidates(od: object, any_of: tuple[str, ...], all_of: tuple[str, ...] = (
             name = var.name if isinstance(obj, ODVariable) else f"{obj.name}/{var.name}"
             low = name.lower()
             if any(w in low for w in any_of) and all(w in low for w in all_of):
-                out.append(f"{address(var.index, var.subindex)} '{name}' {TYPE_NAMES.get(var.data_type, '?')}"
+                out.append(f"{address(var.index, var.subindex)} '{name}' {type_name(var.data_type)}"
                            f"{', PDO-mappable' if var.pdo_mappable else ''}")
     return out
 
 
-def drive_section(eds: Path, node_id: int = 1) -> tuple[dict[str, object], list[str]]:
+def drive_section(eds: Path, node_id: int = 1) -> tuple[dict[str, object], list[str]]:  # noqa: C901
     """The ``drives`` entry for an EDS (what the EDS lets dragd use) and comment lines on what it lacks."""
-    from dragd.hardware.cia402 import (OD_CURRENT_ACTUAL, OD_MOTOR_RATED_CURRENT, OD_MOTOR_RATED_TORQUE,
-                                       OD_TORQUE_ACTUAL, OD_TORQUE_OFFSET)
-    from dragd.hardware.profile import import_eds
+    from dragd.hardware.cia402 import (
+        OD_CURRENT_ACTUAL,
+        OD_MOTOR_RATED_CURRENT,
+        OD_MOTOR_RATED_TORQUE,
+        OD_TORQUE_ACTUAL,
+        OD_TORQUE_OFFSET,
+    )
+    from dragd.hardware.profile import import_eds, od_var
 
     od = import_eds(eds, node_id)
 
-    def var(index: int, sub: int = 0) -> object:
-        obj = od.get(index)
-        if obj is None:
-            return None
-        return obj if not hasattr(obj, "subindices") else obj.subindices.get(sub)  # type: ignore[attr-defined]
+    def var(index: int) -> ODVariable | None:
+        return od_var(od, index)
 
     drive: dict[str, object] = {"eds": str(eds)}
     notes: list[str] = []
     cur, tq = var(OD_CURRENT_ACTUAL), var(OD_TORQUE_ACTUAL)
-    if cur is not None and cur.pdo_mappable and cur.readable:  # type: ignore[attr-defined]
+    if cur is not None and cur.pdo_mappable and cur.readable:
         drive["current"] = {"object": "6078h"}
-    elif tq is not None and tq.pdo_mappable and tq.readable:  # type: ignore[attr-defined]
+    elif tq is not None and tq.pdo_mappable and tq.readable:
         drive["current"] = {"object": "6077h"}
         notes.append(f"6078h {'not PDO-mappable' if cur is not None else 'absent'}: the current from 6077h (per mille "
                      "of the rated torque, through K_m)")
     else:
         drive["current"] = {"object": "6078h"}
-        notes.append("no mappable 6078h or 6077h: name the drive's current object and unit in current (vendor "
-                     "candidates: " + ("; ".join(_candidates(od, ("current",), ("actual",))) or "none found by name") + ")")
+        found = "; ".join(_candidates(od, ("current",), ("actual",))) or "none found by name"
+        notes.append(f"no mappable 6078h or 6077h: name the drive's current object and unit in current (vendor "
+                     f"candidates: {found})")
     offset = var(OD_TORQUE_OFFSET)
-    drive["torque_command"] = "60B2h" if offset is not None and offset.pdo_mappable and offset.writable else "6071h"  # type: ignore[attr-defined]
+    drive["torque_command"] = "60B2h" if offset is not None and offset.pdo_mappable and offset.writable else "6071h"
     if var(OD_MOTOR_RATED_CURRENT) is None:
         drive["rated_current"] = {"object": None}
         cands = _candidates(od, ("nominal current", "rated current", "continuous current"))
@@ -159,7 +166,7 @@ def drive_section(eds: Path, node_id: int = 1) -> tuple[dict[str, object], list[
     if rated is None:
         drive["rated_torque"] = {"object": None}
         notes.append("6076h absent: the rated torque is K_m × rated_current_A (or rated_torque_Nm), unverified")
-    elif rated.writable and not rated.default:  # type: ignore[attr-defined]
+    elif rated.writable and not rated.default:
         drive["rated_torque"] = {"object": "6076h", "unit": "mNm", "write": True}
         notes.append("6076h writable with no default: dragd writes K_m × rated current at boot when it reads 0 (check "
                      "its unit in the drive's manual: rated_torque.unit)")
@@ -185,8 +192,8 @@ def _eds_config(ref: str, model: RobotModel, sizes: list[JointSizing], gravity: 
     n = len(sizes)
     joints = [{"name": s.name, "node_id": i + 1, "gear_ratio": GEAR_RATIO, "torque_constant_Nm_per_A": s.kt_Nm_per_A,
                "current_limit_A": float(s.current_limit_A), "rated_current_A": float(s.rated_current_A),
-               "encoder_counts_per_rev": ENCODER_COUNTS_PER_REV, "velocity_limit_rad_s": round(s.velocity_limit_rad_s, 3),
-               "drive": name} for i, s in enumerate(sizes)]
+               "encoder_counts_per_rev": ENCODER_COUNTS_PER_REV,
+               "velocity_limit_rad_s": round(s.velocity_limit_rad_s, 3), "drive": name} for i, s in enumerate(sizes)]
 
     def trial(nb: int, hz: float, layout: str, targets: bool) -> tuple[Config, object]:
         bus_list = [{"name": "arm" if nb == 1 else f"can{k}", "interface": "socketcan", "channel": f"can{k}",
@@ -262,8 +269,8 @@ def _eds_config(ref: str, model: RobotModel, sizes: list[JointSizing], gravity: 
                      f"fd: {'true' if b.fd else 'false'}{extra},")
         lines.append(f"     load_limit_pct: {b.load_limit_pct:g}, layout: {b.layout}, position_targets: "
                      f"{'true' if b.position_targets else 'false'}}}")
-    lines += ["", f"drives:   # what dragd uses of each drive (docs/DRIVES.md); `dragd config check` lists what it lacks",
-              f"  {name}:"]
+    lines += ["", "drives:   # what dragd uses of each drive (docs/DRIVES.md); `dragd config check` lists what it "
+                  "lacks", f"  {name}:"]
     for note in notes:
         lines.append(f"    # {note}")
     for key, value in drive.items():

@@ -42,7 +42,7 @@ def io_cycle_us(opts: dict) -> tuple[float, dict[str, Any]]:
     layouts = bus_layouts(cfg)
     buses = {name: _NullBus() for name in layouts}
     n = len(cfg.joints)
-    io = BusIO(layouts, buses, [j.node_id for j in cfg.joints], cfg.master.node_id, lambda *a: None)  # type: ignore[arg-type]
+    io = BusIO(layouts, buses, [j.node_id for j in cfg.joints], cfg.master.node_id, lambda *a: None)
     decoders = {name: io.tpdo_decoder(name) for name in layouts}
     rng = np.random.default_rng(3)
     frames = []
@@ -111,8 +111,6 @@ def _cli(*args: str, timeout_s: float = 120.0) -> Any:
 
 def _one_drive(eds: Any, opts: dict) -> dict[str, Any]:
     import json
-    import subprocess
-    import sys
     import tempfile
     from pathlib import Path
 
