@@ -559,7 +559,8 @@ class SimDrive:
             nmt = self.nmt
             if nmt.state is NmtState.INITIALISING:
                 return
-            nmt.tick(now)
+            if nmt.period_s > 0.0 and now >= nmt.next_s:
+                nmt.tick(now)
             for node, consumer in self.consumers.by_node.items():
                 if consumer.last_rx_s is not None and not consumer.expired \
                         and self._deadline_passed(consumer.last_rx_s, consumer.timeout_s, now):

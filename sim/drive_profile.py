@@ -43,6 +43,8 @@ from dragd.resources import eds_path as bundled_eds_path
 
 DRIVES_DIR = Path(__file__).resolve().parent / "config" / "drives"
 OD_IDENTITY = 0x1018
+OD_DEVICE_TYPE = 0x1000
+DEVICE_TYPE_402_SERVO = 0x00020192  # CiA 402 (0192h), additional information 0002h: servo drive
 
 _INTEGER_TYPES = frozenset({datatypes.INTEGER8, datatypes.INTEGER16, datatypes.INTEGER32, datatypes.INTEGER64,
                             datatypes.UNSIGNED8, datatypes.UNSIGNED16, datatypes.UNSIGNED32, datatypes.UNSIGNED64})
@@ -415,6 +417,12 @@ def build_profile(spec: ProfileSpec, hw: Hardware, base_dir: Path | None = None)
             commissioned.setdefault((OD_IDENTITY, sub), value)
     if var_of(OD_IDENTITY, 4) is not None:
         commissioned.setdefault((OD_IDENTITY, 4), hw.node_id)
+    device_type = var_of(OD_DEVICE_TYPE, 0)
+    if device_type is not None and device_type.default is None and device_type.value is None \
+            and (OD_DEVICE_TYPE, 0) not in commissioned:
+        commissioned[(OD_DEVICE_TYPE, 0)] = DEVICE_TYPE_402_SERVO
+        assumptions.append(f"1000h (device type) has no value in the EDS: 0x{DEVICE_TYPE_402_SERVO:08X} (CiA 402, servo "
+                           f"drive)")
     modes = _supported_modes(var_of, commissioned, assumptions)
     for index, sub in ((0x1017, 0), (0x1029, 1)):
         var = var_of(index, sub)

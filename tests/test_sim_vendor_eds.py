@@ -34,7 +34,7 @@ from dragd.hardware.bus import open_bus, parse_bus
 from dragd.hardware.cia402 import State, decode_statusword, next_controlword
 
 from conftest import REPO
-from test_sim_canopen import unique_group
+from test_sim_canopen import sim_process, unique_group
 
 pytestmark = [pytest.mark.rig, pytest.mark.timeout(300)]
 
@@ -217,27 +217,12 @@ def rig(request: pytest.FixtureRequest) -> Iterator[Rig]:
     node = canopen.RemoteNode(NODE, str(path))
     node.sdo.RESPONSE_TIMEOUT = 2.0
     net.add_node(node)
-    proc = subprocess.Popen([sys.executable, "-m", "sim", "run", "--eds", str(path), "--bus", f"udp_multicast:{group}"],
-                            cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    said: list[str] = []
     try:
-        assert proc.stderr is not None
-        for line in proc.stderr:
-            said.append(line)
-            if line.startswith("sim: running"):
-                break
-        assert proc.poll() is None, f"the sim process exited ({proc.returncode}):\n{''.join(said)}"
-        threading.Thread(target=lambda: said.extend(proc.stderr), daemon=True).start()  # keep the pipe drained
-        rig = Rig(path, RawEds(path), net, node, responses)
-        rig.reset()
-        yield rig
+        with sim_process(["--eds", str(path), "--bus", f"udp_multicast:{group}"]):
+            rig = Rig(path, RawEds(path), net, node, responses)
+            rig.reset()
+            yield rig
     finally:
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(5)
         net.disconnect()
 
 
@@ -296,7 +281,8 @@ def test_communication_defaults_are_the_eds(r: Rig) -> None:
             f"{index:04X}:{sub} ({e.name}): 0x{got:X}, the EDS says 0x{want:X}"
         checked += 1
     assert checked >= 8
-    modes = int.from_bytes(r.upload(0x6502, 0), "little")
+    assert int.from_bytes(r.upload(0x1000, 0), "little") & 0xFFFF == 0x0192  # a CiA 402 device (EPOS4: no value in
+    modes = int.from_bytes(r.upload(0x6502, 0), "little")  # its EDS, docs/SIM_DRIVES.md's assumption)
     given = r.eds.get(0x6502)
     if given is not None and given.default_value(NODE) is not None:
         assert modes == given.default_value(NODE)
