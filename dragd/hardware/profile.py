@@ -386,6 +386,10 @@ class DriveProfile:
         index = OD_TORQUE_OFFSET if choice == "60B2h" else OD_TARGET_TORQUE
         if index == OD_TARGET_TORQUE and not self.has(OD_TARGET_TORQUE):
             return None
+        if index == OD_TARGET_TORQUE and self.target_position_mappable():
+            self.finding("warning", OD_TORQUE_OFFSET, 0, "missing or not RPDO-mappable: the torque command is 6071h, "
+                         "which CiA 402 CSP ignores; in CSP motions (identify run, replay, track) no torque "
+                         "feed-forward reaches the drive: its own position loop carries gravity and friction")
         obj = self._process("torque", index, 0, "rpdo", "the torque command", key=key)
         if obj is not None and obj.code != "h":
             self.finding("error", index, 0, f"the torque command is {type_name(getattr(self.var(index), 'data_type', None))}; "
@@ -459,6 +463,10 @@ class DriveProfile:
                          "synchronous torque (CST, bit 9): the drive cannot do torque drag",
                          "use a drive with CST (dragd drags in torque mode only)",
                          refusal=f"no CST: 6502h supported modes 0x{modes:08X} lack cyclic synchronous torque")
+
+    def target_position_mappable(self) -> bool:
+        v = self.var(OD_TARGET_POSITION)
+        return v is not None and v.pdo_mappable and v.writable
 
     @property
     def csp(self) -> bool | None:
