@@ -164,8 +164,12 @@ def _one_drive(eds: Any, opts: dict) -> dict[str, Any]:
         except ProcessError as exc:
             row["boot"] = str(exc)
             return row
-        row["drag_drift_deg"] = _drag_drift(rig)
-        row["identify"] = _identify(rig, work)
+        try:
+            row["drag_drift_deg"] = _drag_drift(rig)
+            row["identify"] = _identify(rig, work)
+        finally:  # the daemon's longest stalls (a fault from a missed deadline is the machine's or the daemon's)
+            eps = rig.call("missed_ticks").get("episodes") or []
+            row["longest_missed_ticks"] = sorted((int(n) for _, n in eps), reverse=True)[:3]
         st = rig.must("status")
         row["loop"] = {k: st.get(k) for k in ("cycles", "missed_cycles", "late_tpdo_cycles", "feedback_holds",
                                               "period_p99_us", "bus_load_pct")}
