@@ -271,7 +271,7 @@ RULES: list[Rule] = [
     Rule(r"^dragd demo\b", "run", "sim + daemon", extra="--seconds 8", slow=True),
     Rule(r"^dragd bench --list$", "run", "offline"),
     Rule(r"^dragd bench (compensation_us|bus_load|io_cycle_us)( |$)", "run", "offline"),
-    Rule(r"^dragd bench drive_profiles", "run", "sim + daemon per EDS file (two in-repo variants here)", slow=True),
+    Rule(r"^dragd bench drive_profiles\b", "run", "sim + daemon per EDS file (two in-repo variants here)", slow=True),
     Rule(r"^dragd bench ros2_", "run", "sim + daemon + the ROS 2 bridge", extra="--seconds 2", slow=True),
     Rule(r"^dragd bench fault_matrix\b", "run", "sim + daemon: every injectable fault in turn", slow=True),
     Rule(r"^dragd bench (loop_|--json$)", "run", "sim + daemon (every benchmark: the case matrix cut to two cases)",
