@@ -10,26 +10,21 @@ the bus batches): two trips between the processes per period, no thread hand-ove
 once the SYNC of every bus arrived. Nothing here reads the wall clock: the simulator waits for the next SYNC however
 long it takes.
 
-``SimClock.now`` is the drives' communication clock (it reads the time of the last period's end). SimDrive reads
-``time.monotonic()`` itself for a frame's reception time and its heartbeat schedule (sim/drive.py); until it takes a
-clock, ``drive_clock`` points the ``time`` those modules see at this clock in the simulator's process (lockstep
-only, where the process is the simulator alone).
+``SimClock.now`` is the drives' communication clock: the time of the last period's end, which the network hands to
+``on_sync`` and the runner to ``comm`` (the drives read no clock of their own: sim/drive.py), and the fault injector's.
 """
 
 from __future__ import annotations
 
-import sys
 import threading
 import time
-import types
-from collections.abc import Callable, Iterable
-from typing import Any
+from collections.abc import Callable
 
 import can
 
 from dragd.clock import TIME_COB_ID, encode_time_of_day
 
-__all__ = ["SimClock", "LockstepSync", "drive_clock"]
+__all__ = ["SimClock", "LockstepSync"]
 
 
 class SimClock:
@@ -86,21 +81,3 @@ class LockstepSync:
         self.buses[bus_index].send(can.Message(arbitration_id=TIME_COB_ID, data=encode_time_of_day(t),
                                                is_extended_id=False))
         self.time_frames += 1
-
-
-def drive_clock(clock: SimClock, classes: Iterable[type]) -> list[str]:
-    """Point ``time`` in the modules defining ``classes`` (SimDrive and its bases) at ``clock``: their
-    ``time.monotonic()`` reads simulated time. Returns the modules changed. For the simulator's process in lockstep
-    only (see the module doc); every other name of ``time`` is the real one."""
-    shim = types.ModuleType("time")
-    shim.__dict__.update({k: v for k, v in vars(time).items() if not k.startswith("__")})
-    shim.monotonic = clock.now  # type: ignore[attr-defined]
-    changed = []
-    for cls in classes:
-        for base in cls.__mro__:
-            mod: Any = sys.modules.get(base.__module__)
-            if mod is None or not base.__module__.startswith("sim.") or getattr(mod, "time", None) is not time:
-                continue
-            mod.time = shim
-            changed.append(base.__module__)
-    return sorted(set(changed))

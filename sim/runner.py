@@ -41,7 +41,7 @@ from dragd.realtime import demote_current_thread, scheduler_label, set_realtime
 from sim.axis import AxisIO
 from sim.drive import SimDrive
 from sim.faults import FaultError, FaultInjector
-from sim.lockstep import LockstepSync, drive_clock
+from sim.lockstep import LockstepSync
 from sim.network import SimNetwork
 from sim.operator import Operator, ScenarioError, load_scenario, validate_scenario
 from sim.physics import ArmPhysics
@@ -181,7 +181,6 @@ class SimProcess:
                 self._limit_steps = None if self.seconds is None else int(round(self.seconds / self.physics.dt_s))
                 self.lockstep.run_period = self._period
                 clock = self.lockstep.clock.now
-                drive_clock(self.lockstep.clock, [SimDrive])
             self.injectors = [FaultInjector(bus, clock=clock, lockstep=self.lockstep is not None) for bus in self.buses]
             for j, ax in zip(self.truth.joints, self.axes):
                 spec, inj = self.specs[j.bus_index], self.injectors[j.bus_index]
