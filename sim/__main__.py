@@ -62,6 +62,11 @@ def main(argv: list[str] | None = None) -> int:
     run_p.add_argument("--physics-rate-Hz", type=int, metavar="HZ", dest="physics_rate_Hz",
                        help="override the truth's physics_rate_Hz: a multiple of 1000 in [1000, 50000]; below the "
                             "truth's 4000 Hz minimum only for machines too slow for it (the vcan test guest)")
+    run_p.add_argument("--lockstep", action="store_true",
+                       help="the lockstep clock: one period of simulated time per SYNC (answered, then run, then ended "
+                            "with a TIME frame), no real time; for 'dragd run --lockstep' (docs/LOCKSTEP.md)")
+    run_p.add_argument("--period-ms", type=float, default=1.0, metavar="MS",
+                       help="--lockstep: simulated time per SYNC (the daemon's 1000 / loop.rate_Hz; default 1)")
     truth_p = sub.add_parser("truth", help="print the truth per joint in dragd's units (K_t, friction in A, noise)")
     truth_p.add_argument("--config", help="truth file (default: sim/config/seed_cobot.yaml)")
     truth_p.add_argument("--json", action="store_true", help="print one JSON object")
@@ -112,6 +117,9 @@ def main(argv: list[str] | None = None) -> int:
                   file=sys.stderr)
             return 2
         truth = truth.model_copy(update={"physics_rate_Hz": args.physics_rate_Hz})  # the stability check still applies
+    if not 0 < args.period_ms <= 1000:
+        print(f"sim: --period-ms: expected a period in (0, 1000] ms, got {args.period_ms}", file=sys.stderr)
+        return 2
     if args.seconds is not None and not args.seconds > 0:
         print(f"sim: --seconds: expected a positive number, got {args.seconds}", file=sys.stderr)
         return 2
@@ -126,7 +134,8 @@ def main(argv: list[str] | None = None) -> int:
 
     def ready(proc: Any) -> None:
         where = f", control at {proc.control_path}" if proc.control_path else ""
-        print(f"sim: running {truth.robot} ({len(proc.drives)} drives, {truth.physics_rate_Hz} Hz physics) "
+        clock = (f"lockstep, {args.period_ms:g} ms per SYNC" if args.lockstep else "real time")
+        print(f"sim: running {truth.robot} ({len(proc.drives)} drives, {truth.physics_rate_Hz} Hz physics, {clock}) "
               f"on {','.join(map(str, proc.specs))}{where}", file=sys.stderr, flush=True)
         for what, item in (proc.realtime or {}).items():
             if item.get("requested") is not None or item.get("requested_priority") is not None:
@@ -136,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         summary = run(truth, args.bus, scenario=args.scenario, control_path=args.control, seconds=args.seconds,
                       realtime_priority=args.realtime_priority, cpus=cpus, batch_frames=args.batch_frames,
-                      ready=ready)
+                      ready=ready, lockstep=args.lockstep, period_s=args.period_ms * 1e-3)
     except (ConfigError, ValueError, OSError, can.CanError) as exc:
         print(f"sim: {exc}", file=sys.stderr)
         return 2

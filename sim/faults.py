@@ -42,8 +42,13 @@ class FaultError(ValueError):
 class FaultInjector:
     """Faults on one bus: a gate on the drives' transmit path and on the reader's receive path."""
 
-    def __init__(self, bus: can.BusABC) -> None:
+    def __init__(self, bus: can.BusABC, *, clock: Callable[[], float] = time.monotonic, lockstep: bool = False) -> None:
+        """``clock``: the time fault windows are measured on (the simulated time on the lockstep clock, where
+        delayed frames and timed ends are released by ``release_due`` at each period's end, not by threads)."""
         self.bus = bus
+        self.clock = clock
+        self.lockstep = lockstep
+        self._due: list[tuple[float, Callable[[], None]]] = []  # lockstep: timed ends (encoder_jump seconds)
         self.active = False  # any transmit-side fault armed (the fast path tests only this)
         self.silent_until: dict[int, float] = {}
         self.drop_frames = 0
@@ -90,14 +95,14 @@ class FaultInjector:
         return self.down_until != 0.0 and self._down()
 
     def _down(self) -> bool:
-        if time.monotonic() < self.down_until:
+        if self.clock() < self.down_until:
             return True
         self.down_until = 0.0
         self._rearm()
         return False
 
     def _tx_faulty(self, node_id: int, msg: can.Message) -> None:
-        now = time.monotonic()
+        now = self.clock()
         c = self.counters
         if self.down_until and self._down():
             c["lost_link_down"] += 1
@@ -135,6 +140,27 @@ class FaultInjector:
         self.active = bool(self.silent_until or self.drop_frames or self.dup_frames or self.late_until
                            or self.down_until)
 
+    def release_due(self, now: float) -> None:
+        """Lockstep: at a period's end (sim time ``now``), send the delayed frames due by then and end what is due."""
+        if self._late:
+            batch = []
+            with self._late_cv:
+                while self._late and self._late[0][0] <= now + 1e-9:
+                    batch.append(self._late.popleft()[1])
+            for msg in batch:
+                try:
+                    self.bus.send(msg)
+                except can.CanError:
+                    self.counters["late_send_errors"] += 1
+        if self._due:
+            keep = []
+            for due, fn in self._due:
+                if due <= now + 1e-9:
+                    fn()
+                else:
+                    keep.append((due, fn))
+            self._due = keep
+
     def _late_sender(self) -> None:
         """Sends the delayed frames in batches (every frame due by now, then sleep until the next is due): one
         wake-up per millisecond at most, off the real-time policy, so the bus reader answering SYNCs never waits."""
@@ -164,8 +190,8 @@ class FaultInjector:
         """Arm one fault now; returns what was done with ``t_mono`` (CLOCK_MONOTONIC, s) of the injection."""
         if kind not in KINDS:
             raise FaultError(f"inject: kind: expected one of {', '.join(KINDS)}, got {kind!r}")
-        now = time.monotonic()
-        done: dict[str, Any] = {"kind": kind, "t_mono": now}
+        now = self.clock()
+        done: dict[str, Any] = {"kind": kind, "t_mono": now}  # (lockstep: the simulated time)
 
         def number(name: str, default: float | None, lo: float, hi: float) -> float:
             v = args.get(name, default)
@@ -191,7 +217,7 @@ class FaultInjector:
         elif kind == "late_tpdo":
             self.late_s = number("delay_ms", 3.0, 0.1, 1000.0) * 1e-3
             self.late_until = now + number("seconds", 0.2, 0.001, 600.0)
-            if self._late_thread is None:
+            if self._late_thread is None and not self.lockstep:
                 self._late_thread = threading.Thread(target=self._late_sender, name="sim-late-tpdo", daemon=True)
                 self._late_thread.start()
         elif kind == "bus_off":
@@ -223,7 +249,9 @@ class FaultInjector:
                     rad = number("rad", 0.2, -100.0, 100.0)
                     seconds = number("seconds", 0.0, 0.0, 600.0)
                     d.encoder_offset_counts = round(rad * d.params.encoder_counts_per_rev / (2.0 * 3.141592653589793))
-                    if seconds > 0:
+                    if seconds > 0 and self.lockstep:
+                        self._due.append((now + seconds, lambda: setattr(d, "encoder_offset_counts", 0)))
+                    elif seconds > 0:
                         threading.Timer(seconds, lambda: setattr(d, "encoder_offset_counts", 0)).start()
         self._rearm()
         return done

@@ -7,6 +7,11 @@ rebuilt whenever a drive's COB-IDs change. On dragd's udp_multicast bus the read
 plain data frames over as (COB-ID, payload), without a ``can.Message`` each. It keeps the time up to which it has
 handed over everything that arrived (`caught_up`): the drives' reception watchdogs judge against it.
 
+On the lockstep clock (sim/lockstep.py) a SYNC's reception time is the simulated time; the drives answer it as always,
+then, in the same batch, the period runs (``LockstepSync.on_sync``) and its TIME frame ends the answer — also while
+an injected link-down mutes the bus (the fault is the drives' frames, not the clock); the reader is caught up by
+construction: a period runs only after its SYNC, and whatever the master sent before the SYNC came before it.
+
 The network does not own the bus: the caller opens it before and shuts it down after `stop()`.
 """
 
@@ -20,10 +25,14 @@ import time
 from collections.abc import Callable
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import can
 
 from sim.drive import SimDrive
+
+if TYPE_CHECKING:
+    from sim.lockstep import LockstepSync
 
 log = logging.getLogger(__name__)
 
@@ -49,7 +58,7 @@ class SimNetwork:
     """Reader thread for a set of drives sharing one bus."""
 
     def __init__(self, bus: can.BusABC, drives: list[SimDrive], *, late_threshold_s: float = 0.0005,
-                 recv_timeout_s: float = 0.05) -> None:
+                 recv_timeout_s: float = 0.05, lockstep: LockstepSync | None = None, bus_index: int = 0) -> None:
         ids = [d.node_id for d in drives]
         if len(set(ids)) != len(ids):
             raise ValueError(f"SimNetwork: node ids must be unique on one bus, got {ids}")
@@ -58,6 +67,10 @@ class SimNetwork:
         self.late_threshold_s = late_threshold_s
         self.recv_timeout_s = recv_timeout_s
         self.counters = NetworkCounters()
+        self.lockstep = lockstep
+        self.bus_index = bus_index
+        self._now: Callable[[], float] = time.monotonic if lockstep is None else lockstep.clock.now
+        self._sync_cob = 0x080  # (lockstep: a SYNC counts toward the period even while the link is muted)
         self.rx_muted: Callable[[], bool] | None = None  # an injected link-down (sim/faults.py): drop what arrives
         # the TPDOs a SYNC triggers leave in one datagram where the bus batches (udp_multicast, batch_frames)
         self._batch: Callable[[], AbstractContextManager[None]] = getattr(bus, "batch", nullcontext)
@@ -111,7 +124,7 @@ class SimNetwork:
         it last found the socket empty. The drives' reception watchdogs judge against it (only once a deadline has
         passed by the clock: the rare path). A reader waiting while frames are queued has been woken but not run yet
         (another thread of this process holds the GIL, e.g. physics catching up): not caught up."""
-        if not self._running:
+        if not self._running or self.lockstep is not None:
             return now
         if self._idle and not self._frames_waiting():
             return now
@@ -159,8 +172,8 @@ class SimNetwork:
                 self.counters.handler_errors += 1
                 time.sleep(timeout)
                 continue
-            if msg is not None and (self.rx_muted is None or not self.rx_muted()):
-                self.dispatch(msg)
+            if msg is not None:
+                self._on_message(msg)
 
     def _run_draining(self, drain: Callable[..., int]) -> None:
         """The reader on a bus with ``drain`` (dragd's udp_multicast): every datagram already queued in one go, plain
@@ -191,11 +204,15 @@ class SimNetwork:
     def _on_data(self, cob: int, data: bytes | bytearray) -> bool:
         if self.rx_muted is None or not self.rx_muted():
             self.dispatch_data(cob, data, getattr(self.bus, "rx_timestamp", 0.0))
+        elif self.lockstep is not None and cob == self._sync_cob:
+            self._on_sync(0.0, ())  # (muted: the drives hear nothing; the period still runs)
         return True
 
     def _on_message(self, msg: can.Message) -> None:
         if self.rx_muted is None or not self.rx_muted():
             self.dispatch(msg)
+        elif self.lockstep is not None and msg.arbitration_id == self._sync_cob and not msg.is_extended_id:
+            self._on_sync(0.0, ())
 
     def dispatch(self, msg: can.Message) -> None:
         """Hand one frame to the drives that consume it (also usable without the thread); error frames are dropped."""
@@ -216,6 +233,8 @@ class SimNetwork:
             self._rebuild_routes()
         try:
             sync_drives = self._sync_routes.get(cob)
+            if sync_drives is None and cob == self._sync_cob and self.lockstep is not None:
+                sync_drives = ()  # (no drive consumes it here: the period still runs)
             if sync_drives is not None:
                 self._on_sync(timestamp, sync_drives)
                 others = self._routes.get(cob)
@@ -233,10 +252,15 @@ class SimNetwork:
             log.exception("sim drive failed on frame 0x%03X %s", cob, bytes(data).hex())
 
     def _on_sync(self, timestamp: float, drives: tuple[SimDrive, ...]) -> None:
-        now = time.monotonic()
+        now = self._now()
+        lockstep = self.lockstep
         with self._batch():
-            for drive in drives:
-                drive.on_sync(now)
+            try:
+                for drive in drives:
+                    drive.on_sync(now)
+            finally:
+                if lockstep is not None:  # the period, then its TIME frame: in the same datagram as the answer
+                    lockstep.on_sync(self.bus_index)
         counters = self.counters
         counters.syncs += 1
         if timestamp:

@@ -6,6 +6,10 @@ a tick that wakes late catches up (``late_steps``), one that is hopelessly late 
 the sim then runs behind real time: rtf < 1). The SimNetwork reader thread answers the bus; the control socket
 (JSON lines, dragd's protocol) runs in its own asyncio thread. The physics lock is held for one tick's batch.
 
+On the lockstep clock (``--lockstep``, sim/lockstep.py) the SYNC (of every bus) runs one period of the same steps
+(``_period``) in the bus reader's thread instead of the timerfd, and the period's answer ends with a TIME frame; the
+drives' communication clock is the simulated time; ``rtf`` is then as fast as the two processes go.
+
 Control commands: ``state``, ``operator`` (scenario dict or file, starting now), ``operator_events``,
 ``set_q`` (teleport, only while every drive's power stage is off), ``drives``, ``fault`` (inject a
 device fault into one drive), ``inject`` (a bus or node fault: sim/faults.py), ``stop``.
@@ -37,6 +41,7 @@ from dragd.realtime import demote_current_thread, scheduler_label, set_realtime
 from sim.axis import AxisIO
 from sim.drive import SimDrive
 from sim.faults import FaultError, FaultInjector
+from sim.lockstep import LockstepSync
 from sim.network import SimNetwork
 from sim.operator import Operator, ScenarioError, load_scenario, validate_scenario
 from sim.physics import ArmPhysics
@@ -105,8 +110,10 @@ class SimProcess:
     def __init__(self, truth: Truth, bus: str | None = None, *, scenario: str | Path | dict[str, Any] | None = None,
                  control_path: str | Path | None = None, seconds: float | None = None,
                  realtime_priority: int | None = None, cpus: set[int] | None = None,
-                 batch_frames: bool = False) -> None:
+                 batch_frames: bool = False, lockstep: bool = False, period_s: float = 0.001) -> None:
         self.truth = truth
+        self.lockstep_period_s = period_s if lockstep else None
+        self.lockstep: LockstepSync | None = None
         self.batch_frames = batch_frames
         self.realtime_priority = realtime_priority
         self.cpus = cpus
@@ -147,6 +154,7 @@ class SimProcess:
         self._wall_end = 0.0
         self._cpu_start = 0.0
         self._cpu_end = 0.0
+        self._limit_steps: int | None = None
         self._control_loop: asyncio.AbstractEventLoop | None = None
         self._control_thread: threading.Thread | None = None
         self._control_ready = threading.Event()
@@ -167,12 +175,19 @@ class SimProcess:
             self.realtime = set_realtime(self.realtime_priority, self.cpus)
         try:
             self.buses = [open_bus(spec, batch_frames=self.batch_frames) for spec in self.specs]
-            self.injectors = [FaultInjector(bus) for bus in self.buses]
+            clock: Callable[[], float] = time.monotonic
+            if self.lockstep_period_s is not None:
+                self.lockstep = LockstepSync(self.buses, self.lockstep_period_s, self.physics.dt_s)
+                self._limit_steps = None if self.seconds is None else int(round(self.seconds / self.physics.dt_s))
+                self.lockstep.run_period = self._period
+                clock = self.lockstep.clock.now
+            self.injectors = [FaultInjector(bus, clock=clock, lockstep=self.lockstep is not None) for bus in self.buses]
             for j, ax in zip(self.truth.joints, self.axes):
                 spec, inj = self.specs[j.bus_index], self.injectors[j.bus_index]
                 node = drive_params(j, spec.fd).node_id
                 self.drives.append(SimDrive(drive_params(j, spec.fd), ax, inj.sender(node), send_data=inj.data_sender(node)))
-            self.networks = [SimNetwork(bus, [d for d, j in zip(self.drives, self.truth.joints) if j.bus_index == k])
+            self.networks = [SimNetwork(bus, [d for d, j in zip(self.drives, self.truth.joints) if j.bus_index == k],
+                                        lockstep=self.lockstep, bus_index=k)
                              for k, bus in enumerate(self.buses)]
             for net, inj in zip(self.networks, self.injectors):
                 net.rx_muted = inj.rx_muted
@@ -198,22 +213,32 @@ class SimProcess:
         return self.summary()
 
     def _loop(self) -> None:
-        physics, drives, substeps = self.physics, self.drives, self.substeps
-        dt = physics.dt_s
-        timer = TimerFd(TICK_NS)
+        """Real time: a tick of the timerfd runs the steps due (catching up after a late wake-up). On the lockstep
+        clock the SYNCs run the periods (``_period``, in the bus reader's thread); this thread waits for the end."""
+        physics, substeps = self.physics, self.substeps
+        lockstep = self.lockstep
         lat, ring = self._latency_us, LATENCY_RING
         stop = self._stop
-        limit_steps = None if self.seconds is None else int(round(self.seconds / dt))
+        self._limit_steps = None if self.seconds is None else int(round(self.seconds / physics.dt_s))
         self._wall_start = time.monotonic()
         self._cpu_start = time.process_time()
         thread_cpu0 = time.thread_time_ns()
+        if lockstep is not None:
+            lockstep.run_period = self._period
+            try:
+                stop.wait()
+            finally:
+                self._wall_end = time.monotonic()
+                self._cpu_end = time.process_time()
+                self._thread_cpu_ns = lockstep.period_cpu_ns
+            return
+        timer = TimerFd(TICK_NS)
         timer.start()
         try:
             while not stop.is_set():
                 n = timer.wait()
                 wake = time.monotonic_ns()
                 lat[self.ticks % ring] = (wake - timer.deadline_ns) * 1e-3
-                self.ticks += 1
                 if n > 1:
                     self.late_ticks += 1
                     if len(self.late_tick_times) < 20:
@@ -222,31 +247,48 @@ class SimProcess:
                         self.dropped_steps += (n - MAX_CATCHUP_TICKS) * substeps
                         n = MAX_CATCHUP_TICKS
                     self.late_steps += (n - 1) * substeps
-                steps = n * substeps
-                if limit_steps is not None:
-                    steps = min(steps, limit_steps - physics.steps)
-                with self.lock:
-                    for _ in range(steps):
-                        t = physics.t_s
-                        for d in drives:
-                            d.update(t, dt)
-                        physics.step()
-                    if self.payloads.pending:
-                        self.payloads.apply_due(physics)
-                now = time.monotonic()
-                for d in drives:
-                    d.comm(now)
-                busy = time.monotonic_ns() - wake
-                self.busy_ns += busy
-                if busy > self.max_busy_ns:
-                    self.max_busy_ns = busy
-                if limit_steps is not None and physics.steps >= limit_steps:
+                if not self._period(n * substeps, wake):
                     break
         finally:
             self._wall_end = time.monotonic()
             self._cpu_end = time.process_time()
             self._thread_cpu_ns = time.thread_time_ns() - thread_cpu0
             timer.close()
+
+    def _period(self, steps: int, wake_ns: int = 0) -> bool:
+        """``steps`` physics steps (every drive's ``update`` before each), payload changes due, then the drives'
+        communication timers at the end (wall: CLOCK_MONOTONIC; lockstep: the sim time the period ends at, and the
+        faults due by then); False once ``--seconds`` of sim time have run."""
+        physics, drives, dt = self.physics, self.drives, self.physics.dt_s
+        wake = wake_ns or time.monotonic_ns()
+        self.ticks += 1
+        limit = self._limit_steps
+        if limit is not None:
+            steps = max(0, min(steps, limit - physics.steps))
+        with self.lock:
+            for _ in range(steps):
+                t = physics.t_s
+                for d in drives:
+                    d.update(t, dt)
+                physics.step()
+            if self.payloads.pending:
+                self.payloads.apply_due(physics)
+            if self.lockstep is not None:
+                now = self.lockstep.clock.t_s = physics.t_s
+                for inj in self.injectors:
+                    inj.release_due(now)
+            else:
+                now = time.monotonic()
+        for d in drives:
+            d.comm(now)
+        busy = time.monotonic_ns() - wake
+        self.busy_ns += busy
+        if busy > self.max_busy_ns:
+            self.max_busy_ns = busy
+        if limit is not None and physics.steps >= limit:
+            self.request_stop()
+            return False
+        return True
 
     # ------------------------------------------------------------------------------------------- reports
 
@@ -469,10 +511,13 @@ class SimProcess:
 def run(truth: Truth, bus: str | None = None, *, scenario: str | Path | dict[str, Any] | None = None,
         control_path: str | Path | None = None, seconds: float | None = None,
         realtime_priority: int | None = None, cpus: set[int] | None = None, batch_frames: bool = False,
-        ready: Callable[[SimProcess], None] | None = None) -> dict[str, Any]:
-    """Run the sim process in this (main) thread until SIGTERM/SIGINT, ``stop`` or ``seconds``; the summary."""
+        ready: Callable[[SimProcess], None] | None = None, lockstep: bool = False,
+        period_s: float = 0.001) -> dict[str, Any]:
+    """Run the sim process in this (main) thread until SIGTERM/SIGINT, ``stop`` or ``seconds``; the summary.
+    ``lockstep``: a period of ``period_s`` per SYNC instead of real time (sim/lockstep.py)."""
     proc = SimProcess(truth, bus, scenario=scenario, control_path=control_path, seconds=seconds,
-                      realtime_priority=realtime_priority, cpus=cpus, batch_frames=batch_frames)
+                      realtime_priority=realtime_priority, cpus=cpus, batch_frames=batch_frames, lockstep=lockstep,
+                      period_s=period_s)
     previous = {sig: signal.signal(sig, lambda *_: proc.request_stop()) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
         return proc.run(ready)

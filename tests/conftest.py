@@ -4,11 +4,16 @@ Tiers (markers registered in pyproject.toml; ``./dev test`` selects them):
 
 - ``unit``: no simulator/daemon processes, no wall-clock timing (a ``dragd`` CLI subprocess that only computes is
   fine): runs in parallel (pytest-xdist);
-- ``rig``: the simulator and/or daemon as processes, or wall-clock timing, or fixed sockets/groups: runs serially;
+- ``lockstep``: the simulator and the daemon as processes on the lockstep clock: every ``Rig`` the test makes runs
+  there (``DRAGD_RIG_CLOCK=lockstep``, set here per test), its time passes only through ``Rig.sleep`` /
+  ``Rig.wait_for``: the verdict does not depend on scheduling, so these run in parallel too;
+- ``rig``: processes on the wall clock (real-time behaviour itself: missed ticks, host stalls, scheduling policy,
+  stall probes, a late TPDO as timing, a daemon killed under the drives), or fixed sockets/groups: runs serially;
 - ``slow``: more than ~30 s: only with ``./dev test --all`` (CI).
 
-A test marked neither ``unit`` nor ``rig`` counts as ``rig`` (the safe choice: serial), and rig tests refuse to
-run on more than one xdist worker.
+A test marked none of ``unit``, ``lockstep``, ``rig`` counts as ``rig`` (the safe choice: serial, wall clock); rig
+tests refuse to run on more than one xdist worker. One tier per module (``-m`` selects by every marker a test
+carries): a wall-clock test of a lockstep subject lives in a ``rig`` module of its own.
 """
 
 from __future__ import annotations
@@ -47,17 +52,37 @@ def default_config_path() -> Path:
 # --------------------------------------------------------------------------------------------- tiers
 
 
+TIERS = ("unit", "lockstep", "rig")
+
+
+def tier(item: pytest.Item) -> str:
+    """The closest of the tier markers (function, then class, then module)."""
+    for m in item.iter_markers():
+        if m.name in TIERS:
+            return m.name
+    return "rig"
+
+
 @pytest.hookimpl(tryfirst=True)  # before -m deselects: an unmarked test is selected by -m rig, never by -m unit
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     for item in items:
-        if item.get_closest_marker("unit") is None and item.get_closest_marker("rig") is None:
+        if tier(item) == "rig" and item.get_closest_marker("rig") is None:
             item.add_marker(pytest.mark.rig)
+        # xdist (./dev test: --dist loadgroup): a module whose tests share a module- or class-scoped fixture (a rig
+        # session, simulated logs) stays on one worker; every other test goes to whichever worker is free
+        defs = getattr(getattr(item, "_fixtureinfo", None), "name2fixturedefs", {})
+        if any(d.scope in ("module", "class", "package") for fds in defs.values() for d in fds):
+            item.add_marker(pytest.mark.xdist_group(item.module.__name__ if item.module else item.nodeid))
 
 
+@pytest.hookimpl(tryfirst=True)  # before the fixtures (a module-scoped rig is made in the first test's setup)
 def pytest_runtest_setup(item: pytest.Item) -> None:
-    """A rig test fails at once when pytest-xdist runs more than one worker (DRAGD_PARALLEL_RIG=1 overrides)."""
+    """The rig clock for this test's tier (lockstep or wall); a rig test fails at once when pytest-xdist runs more
+    than one worker (DRAGD_PARALLEL_RIG=1 overrides)."""
+    t = tier(item)
+    os.environ["DRAGD_RIG_CLOCK"] = "lockstep" if t == "lockstep" else "wall"
     workers = int(getattr(item.config, "workerinput", {}).get("workercount", 1))
-    if workers > 1 and item.get_closest_marker("rig") is not None and os.environ.get("DRAGD_PARALLEL_RIG") != "1":
+    if workers > 1 and t == "rig" and os.environ.get("DRAGD_PARALLEL_RIG") != "1":
         pytest.fail(f"a rig test (or one without a unit/rig marker) on {workers} xdist workers: rig tests start "
                     "processes and depend on timing, so they run serially (./dev test runs unit tests with -n, rig "
                     "tests without; select -m unit for -n)", pytrace=False)

@@ -1,8 +1,11 @@
-"""Shared data for the identification tests: short plans run offline on the sim (generated once per session)."""
+"""Shared data for the identification tests: short plans run offline on the sim (generated once per test run, for
+every xdist worker of it: the first worker that needs a log generates it under a lock, the others read it)."""
 
 from __future__ import annotations
 
+import fcntl
 import functools
+import os
 import tempfile
 from pathlib import Path
 
@@ -13,7 +16,11 @@ from dragd.identify import excitation as E
 from dragd.model import RobotModel
 
 START = np.array([0.0, -0.6, 1.2, -0.6, 1.5708, 0.0])
-TMP = Path(tempfile.mkdtemp(prefix="dragd-identify-tests-"))
+# one folder per test run, shared by its xdist workers (PYTEST_XDIST_TESTRUNUID: the same in every worker of a run)
+_RUN = os.environ.get("PYTEST_XDIST_TESTRUNUID")
+TMP = (Path(tempfile.gettempdir()) / f"dragd-identify-tests-{_RUN}" if _RUN
+       else Path(tempfile.mkdtemp(prefix="dragd-identify-tests-")))
+TMP.mkdir(exist_ok=True)
 
 
 @functools.lru_cache(maxsize=None)
@@ -40,17 +47,23 @@ def _generate(plan: E.Plan, name: str, seed: int, fmt: str = "mcap", interp: boo
     from sim.offline import generate, write_log
     from sim.truth import load_truth
 
-    out = TMP / f"{name}-{seed}-{'i' if interp else 'n'}.{fmt}"
-    if not out.exists():
-        key = (name, seed, interp)
-        if key not in _DATA:  # one run serves both formats
-            _DATA[key] = generate(plan.t_s, plan.q_rad, load_truth(), seed=seed, csp_interpolation=interp,
-                                  config=_feed_forward_config())
-        write_log(out, _DATA[key])
+    stem = f"{name}-{seed}-{'i' if interp else 'n'}"
+    out = TMP / f"{stem}.{fmt}"
+    with open(TMP / f"{stem}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # (another worker generating it: wait for its file)
+        if not out.exists():
+            raw = TMP / f"{stem}.npz"
+            if raw.exists():  # one run serves both formats
+                with np.load(raw) as z:
+                    data = {k: z[k] for k in z.files}
+            else:
+                data = generate(plan.t_s, plan.q_rad, load_truth(), seed=seed, csp_interpolation=interp,
+                                config=_feed_forward_config())
+                np.savez(TMP / f"{stem}.tmp.npz", **data)
+                os.replace(TMP / f"{stem}.tmp.npz", raw)
+            write_log(TMP / f"{stem}.tmp.{fmt}", data)
+            os.replace(TMP / f"{stem}.tmp.{fmt}", out)
     return out
-
-
-_DATA: dict = {}
 
 
 @functools.lru_cache(maxsize=None)
@@ -69,7 +82,9 @@ def _feed_forward_config() -> Path:
     if urdf and not Path(urdf).is_absolute() and (src.parent / urdf).exists():
         data["robot"]["urdf"] = str((src.parent / urdf).resolve())
     out = TMP / "feed_forward.yaml"
-    out.write_text(yaml.safe_dump(data, sort_keys=False))
+    part = TMP / f"feed_forward.{os.getpid()}.yaml"  # (workers write the same text: each replaces it whole)
+    part.write_text(yaml.safe_dump(data, sort_keys=False))
+    os.replace(part, out)
     return out
 
 

@@ -3,7 +3,6 @@ statusword and controlword): the daemon boots, enables and drags on both buses; 
 
 from __future__ import annotations
 
-import time
 
 import numpy as np
 import pytest
@@ -13,7 +12,7 @@ from dragd.lab.rig import Rig, multicast_group
 
 from conftest import REPO, run_cli
 
-pytestmark = pytest.mark.rig
+pytestmark = pytest.mark.lockstep
 
 
 def _enabled_on_two_groups(rig: Rig, tag: str) -> dict:
@@ -45,11 +44,11 @@ def test_two_classic_buses_compact_layout(tmp_path):
         assert all(v < 70.0 for v in status["bus_load_pct"].values())
         rig.must("mode", mode="drag")
         q0 = np.array(rig.sim_call("state")["q_rad"])
-        time.sleep(1.5)
+        rig.sleep(1.5)
         q1 = np.array(rig.sim_call("state")["q_rad"])
         end = rig.must("status")
         rig.must("stop")
-        time.sleep(0.2)
+        rig.sleep(0.2)
         assert all(rig.sim_call("state")["brakes"])
     # the operator's drag stands; a feedback hold (a multicast burst drop on this loaded host) is the
     # daemon's correct reaction to late TPDOs and resumes drag by itself, so it is the requested mode
@@ -79,7 +78,7 @@ def test_twelve_joints_two_arms_on_two_buses(tmp_path):
         rig.must("mode", mode="drag")
         q0 = np.array(rig.sim_call("state")["q_rad"])
         rig.sim_call("operator", scenario="flange_drag")  # the wrench goes to the last joint's frame: the right arm
-        time.sleep(2.0)
+        rig.sleep(2.0)
         q1 = np.array(rig.sim_call("state")["q_rad"])
         end = rig.must("status")
         rig.must("stop")

@@ -1,23 +1,23 @@
 """The daemon as a product: CLI flow start → drag → status → stop → SIGTERM against the simulated robot.
 
-Real processes (``python -m sim run`` and ``python -m dragd run``) over udp_multicast on a private group; the
-CLI is the real ``dragd`` entry point. Physical truth (brakes, power stages) is read from the simulator.
+Real processes (``python -m sim run`` and ``python -m dragd run``) over udp_multicast on a private group, on the
+lockstep clock (the arm's time passes only through ``rig.sleep`` / ``rig.wait_for``); the CLI is the real ``dragd``
+entry point. Physical truth (brakes, power stages) is read from the simulator.
 """
 
 from __future__ import annotations
 
 import json
 import math
-import time
 
 import numpy as np
 import pytest
 
 from dragd.lab.rig import Rig
 
-from daemon_helpers import cycle_rows, wait_for
+from daemon_helpers import cycle_rows
 
-pytestmark = pytest.mark.rig
+pytestmark = pytest.mark.lockstep
 
 STATUS_KEYS = {"mode", "drives_enabled", "cycles", "period_p99_us", "missed_cycles", "q_rad", "current_A", "faults"}
 
@@ -35,14 +35,15 @@ def session(tmp_path_factory):
         p = rig.cli("start", "--json")
         assert p.returncode == 0, p.stderr
         out["start"] = json.loads(p.stdout)
+        rig.sleep(0.3)  # (start answers once the drives are enabled; the hold current builds up after the brakes)
         out["status_hold"] = json.loads(rig.cli("status", "--json").stdout)
-        time.sleep(0.5)
+        rig.sleep(0.2)
         p = rig.cli("mode", "drag")
         assert p.returncode == 0, (p.stderr, rig.daemon.tail())
-        time.sleep(0.5)
+        rig.sleep(0.5)
         s0 = rig.must("status")
         sim0 = rig.sim_call("state")
-        time.sleep(4.0)  # nobody touching
+        rig.sleep(4.0)  # nobody touching
         s1 = rig.must("status")
         sim1 = rig.sim_call("state")
         out["untouched"] = (s0, s1, sim0, sim1)
@@ -50,33 +51,32 @@ def session(tmp_path_factory):
         rig.sim_call("operator", scenario={"name": "push_j1", "segments": [
             {"kind": "push", "joint": "joint1", "torque_Nm": 7.0, "duration_s": 0.6},
             {"kind": "release", "duration_s": 0.0}]})
-        time.sleep(0.7)
+        rig.sleep(0.7)
         # let go: the virtual damping brings the joint to rest, friction then holds it
-        wait_for(lambda: max(abs(v) for v in rig.sim_call("state")["dq_rad_s"]) < 1e-4, 8.0, "the arm to come to rest")
-        time.sleep(0.2)
+        rig.wait_for(lambda: max(abs(v) for v in rig.sim_call("state")["dq_rad_s"]) < 1e-4, 8.0, "the arm to come to rest")
+        rig.sleep(0.2)
         rel = rig.sim_call("state")
-        time.sleep(2.0)
+        rig.sleep(2.0)
         rel2 = rig.sim_call("state")
         out["push"] = (sim1, rel, rel2)
         out["status_drag"] = json.loads(rig.cli("status", "--json").stdout)
         # mode switches both ways, then stop
         p = rig.cli("mode", "hold")
         assert p.returncode == 0, (p.stderr, rig.daemon.tail())
-        time.sleep(0.6)
+        rig.sleep(0.6)
         p = rig.cli("mode", "drag")
         assert p.returncode == 0, (p.stderr, rig.daemon.tail())
-        time.sleep(0.6)
+        rig.sleep(0.6)
         p = rig.cli("stop", "--json")
         assert p.returncode == 0, p.stderr
         out["stop"] = json.loads(p.stdout)
-        time.sleep(0.2)
+        rig.sleep(0.2)
         out["sim_after_stop"] = rig.sim_call("state")
         out["status_stopped"] = rig.must("status")
         assert rig.cli("start").returncode == 0  # enabled again, then SIGTERM must ramp down and disable
-        time.sleep(0.5)
-        out["daemon_rc"] = rig.daemon.terminate()
+        rig.sleep(0.5)
+        out["daemon_rc"] = rig.daemon.terminate(120.0)  # (its ramp down runs on the clock, at the machine's pace)
         out["daemon_log"] = rig.daemon.output()
-        time.sleep(0.3)
         out["sim_after_exit"] = rig.sim_call("state")
         out["drives_after_exit"] = rig.sim_call("drives")["drives"]
         yield out

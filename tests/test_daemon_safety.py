@@ -1,15 +1,14 @@
 """Safety reactions of the daemon, each against the real simulated robot in its own processes.
 
 Soft-limit walls, speed cap and current clamp in drag; an EMCY/fault on one drive takes every axis to a safe
-state; lost feedback holds, then disables within a bounded number of cycles; a killed daemon leaves the drives
-safe through their own watchdogs; an over-full bus layout is refused; a full telemetry disk never stalls control.
+state; lost feedback holds, then disables within a bounded number of cycles; an over-full bus layout is refused; a
+full telemetry disk never stalls control. On the lockstep clock (a killed daemon under the drives, which stops the
+lockstep clock with it, is tests/test_daemon_killed.py, on the wall clock).
 """
 
 from __future__ import annotations
 
 import json
-import signal
-import time
 
 import can
 import numpy as np
@@ -19,18 +18,18 @@ from dragd.hardware.bus import open_bus, parse_bus
 from dragd.lab.rig import Rig
 
 from conftest import run_cli
-from daemon_helpers import cycle_rows, derived_config, wait_for
+from daemon_helpers import cycle_rows, derived_config
 
-pytestmark = pytest.mark.rig
+pytestmark = pytest.mark.lockstep
 
 
 def _drag(rig: Rig) -> None:
     rig.start_sim()
     rig.start_daemon()
     rig.must("start")
-    time.sleep(0.3)
+    rig.sleep(0.3)
     rig.must("mode", mode="drag")
-    time.sleep(0.3)
+    rig.sleep(0.3)
 
 
 def test_soft_limit_wall_speed_cap_and_current_clamp(tmp_path):
@@ -51,10 +50,9 @@ def test_soft_limit_wall_speed_cap_and_current_clamp(tmp_path):
         rig.sim_call("operator", scenario={"name": "shove", "segments": [
             {"kind": "push", "joint": "joint1", "torque_Nm": push, "duration_s": 4.0}]})
         qmax = 0.0
-        end = time.monotonic() + 4.0
-        while time.monotonic() < end:
+        for _ in range(200):
+            rig.sleep(0.02)
             qmax = max(qmax, rig.sim_call("state")["q_rad"][0])
-            time.sleep(0.02)
         status = rig.must("status")
         rig.must("stop")
     assert 0.35 < qmax < limit, qmax  # reached the wall region, never the limit
@@ -82,10 +80,10 @@ def test_emcy_fault_takes_every_axis_to_safe_state_and_start_recovers(tmp_path):
         _drag(rig)
         q0 = np.array(rig.sim_call("state")["q_rad"])
         rig.sim_call("fault", node_id=3, code=0x2310)
-        wait_for(lambda: rig.must("status")["mode"] == "fault", 1.0, "the daemon's fault reaction")
+        rig.wait_for(lambda: rig.must("status")["mode"] == "fault", 1.0, "the daemon's fault reaction")
         status = rig.must("status")
         assert any("EMCY 0x2310" in f["text"] and f["node_id"] == 3 for f in status["faults"]), status["faults"]
-        wait_for(lambda: all(rig.sim_call("state")["brakes"]), 3.0, "every brake engaged")
+        rig.wait_for(lambda: all(rig.sim_call("state")["brakes"]), 3.0, "every brake engaged")
         drives = rig.sim_call("drives")["drives"]
         assert all(d["state"] != "OPERATION_ENABLED" for d in drives.values()), drives
         q1 = np.array(rig.sim_call("state")["q_rad"])
@@ -104,7 +102,7 @@ def test_lost_feedback_holds_then_disables_within_bounded_cycles(tmp_path):
             bus.send(can.Message(arbitration_id=0x000, data=bytes([0x02, 4]), is_extended_id=False))  # NMT stop node 4
         finally:
             bus.shutdown()
-        wait_for(lambda: rig.must("status")["mode"] == "fault", 2.0, "the feedback-loss fault")
+        rig.wait_for(lambda: rig.must("status")["mode"] == "fault", 2.0, "the feedback-loss fault")
         status = rig.must("status")
         text = status["faults"][0]["text"]
         # the stale count holds at 10 cycles and faults at 50, unless node 4's heartbeat (consumed by the daemon,
@@ -114,30 +112,7 @@ def test_lost_feedback_holds_then_disables_within_bounded_cycles(tmp_path):
         else:
             assert status["feedback_holds"] >= 1  # it held first
             assert "feedback lost" in text and "node 4" in text and "for 50 cycles" in text, text
-        wait_for(lambda: all(rig.sim_call("state")["brakes"]), 3.0, "every brake engaged")
-
-
-def test_killed_daemon_leaves_drives_safe(tmp_path):
-    with Rig("kill", workdir=tmp_path) as rig:
-        _drag(rig)
-        q0 = np.array(rig.sim_call("state")["q_rad"])
-        listener = open_bus(parse_bus(rig.bus, fd=True))
-        try:
-            rig.daemon.proc.send_signal(signal.SIGKILL)
-            emcy: set[tuple[int, int]] = set()
-            end = time.monotonic() + 2.0
-            while time.monotonic() < end:
-                msg = listener.recv(0.05)
-                if msg is not None and 0x81 <= msg.arbitration_id <= 0x86 and len(msg.data) >= 2:
-                    emcy.add((msg.arbitration_id - 0x80, msg.data[0] | msg.data[1] << 8))
-        finally:
-            listener.shutdown()
-        assert {n for n, code in emcy if code == 0x8250} == set(range(1, 7)), emcy  # RPDO timeout on every drive
-        wait_for(lambda: all(rig.sim_call("state")["brakes"]), 3.0, "every brake engaged")
-        drives = rig.sim_call("drives")["drives"]
-        assert all(d["state"] != "OPERATION_ENABLED" for d in drives.values())
-        q1 = np.array(rig.sim_call("state")["q_rad"])
-        assert np.degrees(np.abs(q1 - q0)).max() < 1.0
+        rig.wait_for(lambda: all(rig.sim_call("state")["brakes"]), 3.0, "every brake engaged")
 
 
 def test_over_full_bus_layout_is_refused(tmp_path):
@@ -160,14 +135,13 @@ def test_over_full_bus_layout_is_refused(tmp_path):
 def test_full_telemetry_disk_never_stalls_control(tmp_path):
     with Rig("diskfull", workdir=tmp_path, telemetry=tmp_path / "x.mcap") as rig:
         rig.telemetry = None
-        rig.daemon_args = ["--telemetry", "/dev/full"]
+        rig.daemon_args += ["--telemetry", "/dev/full"]
         _drag(rig)
         s0 = rig.must("status")
-        time.sleep(2.0)
+        rig.sleep(2.0)
         s1 = rig.must("status")
-    # the loop kept running (a write blocked on the full disk would stop it for good); not a rate check: on a
-    # loaded host a share of the 2000 ticks is missed, which the loop benchmarks measure, not this test
-    assert s1["cycles"] - s0["cycles"] > 1000
+    # the loop kept running (a write blocked on the full disk would stop it for good): every one of the 2000 cycles
+    assert s1["cycles"] - s0["cycles"] == 2000
     assert s1["mode"] == "drag" and s1["faults"] == []
     tel = s1["telemetry"]
     assert tel["errors"] >= 1 and tel["dropped"] > 0 and "ENOSPC" in (tel["first_error"] or ""), tel

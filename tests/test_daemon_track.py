@@ -1,8 +1,8 @@
-"""TRACK: the CSP entry point that identification runs and replay use — switch to CSP, follow, back to CST."""
+"""TRACK: the CSP entry point that identification runs and replay use — switch to CSP, follow, back to CST (on the
+lockstep clock)."""
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
@@ -10,9 +10,9 @@ import pytest
 
 from dragd.lab.rig import Rig
 
-from daemon_helpers import cycle_rows, wait_for
+from daemon_helpers import cycle_rows
 
-pytestmark = pytest.mark.rig
+pytestmark = pytest.mark.lockstep
 
 
 def test_track_follows_trajectory_in_csp_and_returns_to_hold(tmp_path):
@@ -21,7 +21,7 @@ def test_track_follows_trajectory_in_csp_and_returns_to_hold(tmp_path):
         rig.start_sim()
         rig.start_daemon()
         rig.must("start")
-        time.sleep(0.3)
+        rig.sleep(0.3)
         q0 = np.array(rig.must("status")["q_rad"])
         t = np.linspace(0.0, 3.0, 31)
         step = np.array([0.2, 0.1, -0.1, 0.15, 0.1, 0.2])
@@ -39,10 +39,10 @@ def test_track_follows_trajectory_in_csp_and_returns_to_hold(tmp_path):
         assert resp["mode"] == "track" and resp["duration_s"] == 3.0
         s = rig.must("status")
         assert s["drive_mode"] == "csp" and s["trajectory"]["label"] == "identify"
-        wait_for(lambda: rig.must("status")["mode"] == "hold", 6.0, "the end of the motion")
+        rig.wait_for(lambda: rig.must("status")["mode"] == "hold", 6.0, "the end of the motion")
         assert "/scipy/" not in Path(f"/proc/{rig.daemon.proc.pid}/maps").read_text()  # (numpy.libs: scipy_openblas)
-        wait_for(lambda: rig.must("status")["drive_mode"] == "cst", 2.0, "the drives back in CST")
-        time.sleep(0.3)
+        rig.wait_for(lambda: rig.must("status")["drive_mode"] == "cst", 2.0, "the drives back in CST")
+        rig.sleep(0.3)
         end = rig.must("status")
         sim = np.array(rig.sim_call("state")["q_rad"])
         rig.must("stop")
@@ -62,10 +62,10 @@ def test_record_window_to_separate_mcap(tmp_path):
         assert rig.must("record", action="start", path=str(path), label="unit")["recording"] == str(path)
         again = rig.call("record", action="start", path=str(tmp_path / "other.mcap"))
         assert not again["ok"] and "already recording" in again["error"]
-        time.sleep(0.5)
+        rig.sleep(0.5)
         stats = rig.must("record", action="stop")
         assert not rig.call("record", action="stop")["ok"]
         rig.must("stop")
     rows = cycle_rows(path)
-    assert 400 < len(rows["t_s"]) < 700 and stats["written"] == len(rows["t_s"])
+    assert len(rows["t_s"]) == 500 and stats["written"] == 500  # the window's cycles, every one
     assert set(rows["mode"]) == {"hold"}

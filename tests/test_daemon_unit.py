@@ -83,18 +83,23 @@ def test_tpdo_wait_ends_when_every_joint_has_reported_once(daemon: Daemon) -> No
     assert c.fresh_cycles == 0
 
 
-def test_cycle_runs_as_loop_callbacks_and_raises_what_stops_it(daemon: Daemon) -> None:
-    """The cycle as a chain of loop callbacks (tick → SYNC; the reader's wake-up → step): a peer answering each SYNC
-    with every TPDO completes the reads; ``exit_requested`` ends ``run``; an exception in a cycle ends ``run`` with
-    it (the loop must not swallow it) and leaves no read step open."""
+def test_cycle_runs_as_loop_callbacks_and_raises_what_stops_it() -> None:
+    """The cycle as a chain of loop callbacks (tick → SYNC; the reader's wake-up → step), on the lockstep clock: a
+    peer answering each SYNC with every TPDO and a TIME frame runs exactly the granted cycles; ``request_exit`` ends
+    ``run``; an exception in a cycle ends ``run`` with it (the loop must not swallow it) and leaves no read step
+    open."""
     import asyncio
     import struct
     import threading
 
+    from dragd.clock import TIME_COB_ID, LockstepClock, encode_time_of_day
     from dragd.hardware.reader import DrainingNotifier
 
+    d = Daemon(load_config(DEFAULT_CONFIG), bus_override="udp_multicast:239.74.200.1", log=lambda msg: None,
+               lockstep=True)
+    d.attach({"arm": can.Bus(interface="virtual", channel="unit-daemon-cycle")})
     codec = struct.Struct("<HiH")
-    peer = can.Bus(interface="virtual", channel="unit-daemon")
+    peer = can.Bus(interface="virtual", channel="unit-daemon-cycle")
     stop = threading.Event()
 
     def answer() -> None:
@@ -106,33 +111,37 @@ def test_cycle_runs_as_loop_callbacks_and_raises_what_stops_it(daemon: Daemon) -
                 for node in range(1, 7):
                     peer.send(can.Message(arbitration_id=0x180 + node, data=codec.pack(0x0637, 1000 * node + k, 0),
                                           is_extended_id=False))
+                peer.send(can.Message(arbitration_id=TIME_COB_ID, data=encode_time_of_day(k * 1e-3),
+                                      is_extended_id=False))
 
     async def main() -> None:
         loop = asyncio.get_running_loop()
-        io, cycle = daemon.io, daemon.cycle
-        notifier = DrainingNotifier(daemon.buses["arm"], [io.listener("arm")], loop=loop, timeout=0.05,
+        io, cycle, clock = d.io, d.cycle, d.clock
+        assert isinstance(clock, LockstepClock)
+        clock.attach(loop)
+        notifier = DrainingNotifier(d.buses["arm"], [io.listener("arm")], loop=loop, timeout=0.05,
                                     on_data=io.tpdo_decoder("arm"), after=io.after_frames, until=io.read_done)
         try:
             run = loop.create_task(cycle.run())
-            for _ in range(500):
-                await asyncio.sleep(0.01)
-                if cycle.cycles >= 20:
-                    break
-            assert cycle.cycles >= 20, "no complete read reached the step"
-            cycle.exit_requested = True
-            await asyncio.wait_for(run, 2.0)
+            assert await clock.grant(0.02) == 20
+            assert cycle.cycles == 20 and cycle.late_tpdo == 0 and not io.reading  # (exactly: nothing ran ahead)
+            cycle.request_exit()
+            await asyncio.wait_for(run, 10.0)  # (a guard only: it ends at once)
             fb = io.feedback
-            assert fb.rx.all() and all(c // 1000 == node for node, c in enumerate(fb.counts.tolist(), 1))
-            assert not io.reading
+            assert fb.rx.all() and [c // 1000 for c in fb.counts.tolist()] == [1, 2, 3, 4, 5, 6]
+            assert [c % 1000 for c in fb.counts.tolist()] == [20] * 6
 
             def boom(complete: bool) -> bool:
                 raise RuntimeError("boom in the step")
 
             cycle.exit_requested = False
             cycle.step = boom  # type: ignore[method-assign]
+            run = loop.create_task(cycle.run())
+            grant = clock.grant(0.01)
             with pytest.raises(RuntimeError, match="boom in the step"):
-                await asyncio.wait_for(cycle.run(), 2.0)
+                await asyncio.wait_for(run, 10.0)
             assert not io.reading and cycle.exit_requested
+            grant.cancel()
         finally:
             notifier.stop()
 

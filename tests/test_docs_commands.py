@@ -227,6 +227,7 @@ RULES: list[Rule] = [
     Rule(r"^dragd ros2\b", "service", "the ROS 2 bridge runs until stopped (beside the docs' daemon)", rig=True,
          ready="dragd ros2: bridging the daemon"),
     # the daemon's clients, against the rig
+    Rule(r"^dragd clock\b", "run", "the lockstep clock's control (docs/LOCKSTEP.md)", before=("lockstep",), rig=True),
     Rule(r"^dragd start\b", "run", "a session's first step: no motion running", before=("no_replay",), rig=True),
     Rule(r"^dragd (status|stop)\b", "run", "control socket", rig=True),
     Rule(r"^dragd mode ", "run", "control socket", before=("enabled", "no_replay"), rig=True),
@@ -272,6 +273,10 @@ RULES: list[Rule] = [
     Rule(r"^dragd bench --list$", "run", "offline"),
     Rule(r"^dragd bench (compensation_us|bus_load|io_cycle_us)( |$)", "run", "offline"),
     Rule(r"^dragd bench drive_profiles\b", "run", "sim + daemon per EDS file (two in-repo variants here)", slow=True),
+    Rule(r"^dragd bench yardstick_us --json$", "run", "offline"),
+    Rule(r"^dragd bench (daemon_cpu_us_per_cycle|yardstick_us (compensation_us )?lockstep_)", "run",
+         "sim + daemon (wall or lockstep clock)",
+         extra="--seconds 3", slow=True),
     Rule(r"^dragd bench ros2_", "run", "sim + daemon + the ROS 2 bridge", extra="--seconds 2", slow=True),
     Rule(r"^dragd bench fault_matrix\b", "run", "sim + daemon: every injectable fault in turn", slow=True),
     Rule(r"^dragd bench (loop_|--json$)", "run", "sim + daemon (every benchmark: the case matrix cut to two cases)",
@@ -440,11 +445,13 @@ class Env:
             self.shell(line, self.fixtures, check=True, timeout=900)
 
     # the rig
-    def start_rig(self) -> Rig:
-        if self.rig is None or not (self.rig.daemon and self.rig.daemon.alive()):
+    def start_rig(self, lockstep: bool = False) -> Rig:
+        """The docs rig, on the wall clock, or on the lockstep clock for the commands of docs/LOCKSTEP.md."""
+        if self.rig is None or not (self.rig.daemon and self.rig.daemon.alive()) or self.rig.lockstep != lockstep:
             if self.rig is not None:
                 self.rig.close()
-            self.rig = Rig("docs", workdir=self.root / f"rig{time.monotonic_ns()}", config=self.config)
+            self.rig = Rig("docs", workdir=self.root / f"rig{time.monotonic_ns()}", config=self.config,
+                           lockstep=lockstep)
             self.rig.start_sim()
             self.rig.start_daemon()
         return self.rig
@@ -458,7 +465,7 @@ class Env:
 
     def prepare(self, before: tuple[str, ...], line: str = "", work: Path | None = None) -> None:
         """Bring the rig into the state a documented command expects (what the document's previous lines did)."""
-        rig = self.start_rig()
+        rig = self.start_rig(lockstep="lockstep" in before)
         for what in before:
             if what == "fresh_out":  # a run's --out is a new file (it refuses to overwrite)
                 out = Path(shlex.split(line)[shlex.split(line).index("--out") + 1])

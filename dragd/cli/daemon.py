@@ -1,4 +1,4 @@
-"""The daemon: ``dragd run`` (the foreground daemon), ``dragd start|stop|mode|status`` (its control socket)."""
+"""The daemon: ``dragd run`` (the foreground daemon), ``dragd start|stop|mode|status|clock`` (its control socket)."""
 
 from __future__ import annotations
 
@@ -8,6 +8,8 @@ import sys
 from typing import TYPE_CHECKING, Any
 
 from dragd.cli.common import DEFAULT_SOCKET, CliError, add_config, add_socket, emit, table
+
+LOCKSTEP_GUARD_S = 10.0  # dragd.clock.GUARD_S (not imported here: socket commands load no asyncio)
 
 if TYPE_CHECKING:
     from dragd.config import Config
@@ -65,6 +67,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         single_threaded_blas()
     import can
 
+    from dragd.clock import LockstepError
     from dragd.config import load_config
     from dragd.daemon.core import BusBudgetError, Daemon
     from dragd.hardware.master import DriveError
@@ -75,7 +78,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     cfg = with_telemetry_options(cfg, args)
     try:
         daemon = Daemon(cfg, bus_override=args.bus, socket_path=args.socket, telemetry_path=args.telemetry,
-                        rerun=args.rerun, allow_dirs=args.allow_dir, batch_frames=args.batch_frames)
+                        rerun=args.rerun, allow_dirs=args.allow_dir, batch_frames=args.batch_frames,
+                        lockstep=args.lockstep, lockstep_guard_s=args.lockstep_guard_s)
     except (BusBudgetError, ValueError) as exc:
         raise CliError(str(exc)) from None
     try:
@@ -87,6 +91,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     except can.CanError as exc:  # e.g. socketcan:can0 on a machine without that interface
         raise CliError(str(exc), status=1) from None
     except ValueError as exc:  # e.g. another dragd holds the run lock
+        raise CliError(str(exc), status=1) from None
+    except LockstepError as exc:  # the simulator stopped answering, or runs another period
         raise CliError(str(exc), status=1) from None
 
 
@@ -128,6 +134,21 @@ def _status_text(d: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def cmd_clock(args: argparse.Namespace) -> int:
+    kw: dict[str, Any] = {"action": args.action}
+    if args.action == "advance":
+        if args.seconds is None:
+            raise CliError("clock advance: expected SECONDS (simulated time to let the arm run)")
+        kw["seconds"] = args.seconds
+        args.timeout = max(args.timeout, 60.0 + 10.0 * args.seconds)  # (a slow machine runs below real time)
+    resp = call_daemon(args, "clock", **kw)
+    c = resp["clock"]
+    emit(args, resp, lambda d: (f"lockstep clock at {c['t_s']:.3f} s ({c['ticks']} periods of {c['period_s'] * 1e3:g} "
+                                f"ms), real-time factor {c['rtf']}{', running' if c['free_run'] else ''}"
+                                if c["lockstep"] else f"wall clock (CLOCK_MONOTONIC {c['t_s']:.3f} s)"))
+    return 0
+
+
 def cmd_status(args: argparse.Namespace) -> int:
     resp = call_daemon(args, "status")
     resp.pop("ok", None)
@@ -162,6 +183,13 @@ def register(sub: Any) -> None:
                    help="udp_multicast: send each cycle's command frames with the next SYNC in one datagram (the "
                         "simulator with --batch-frames reads it; python-can's own udp_multicast tools do not: leave it "
                         "off for them); no effect on other buses")
+    r.add_argument("--lockstep", action="store_true",
+                   help="run on the lockstep clock against 'dragd sim --lockstep': simulated time, one period per "
+                        "SYNC, advanced only when granted ('dragd clock advance|run') or waited for by a command; "
+                        "for tests, demos and experiments (docs/LOCKSTEP.md)")
+    r.add_argument("--lockstep-guard-s", type=float, default=LOCKSTEP_GUARD_S, metavar="S",
+                   help="lockstep: wall seconds without the simulator's answer before it is an error (default "
+                        f"{LOCKSTEP_GUARD_S:g})")
     r.set_defaults(func=cmd_run)
 
     for name, fn, helptext in (("start", cmd_start, "enable the drives and hold the pose"),
@@ -176,6 +204,11 @@ def register(sub: Any) -> None:
                    "become the gravity offset around this pose (docs/PAYLOAD.md)")
     add_socket(m)
     m.set_defaults(func=cmd_mode)
+    k = sub.add_parser("clock", help="the cycle's clock: status; on a --lockstep daemon advance SECONDS, run, pause")
+    k.add_argument("action", nargs="?", default="status", choices=["status", "advance", "run", "pause"])
+    k.add_argument("seconds", nargs="?", type=float, help="advance: simulated seconds to let the arm run")
+    add_socket(k)
+    k.set_defaults(func=cmd_clock)
     s = sub.add_parser("status", help="the daemon's state, timing and faults")
     add_socket(s)
     s.set_defaults(func=cmd_status)

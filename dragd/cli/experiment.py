@@ -29,7 +29,8 @@ def _bench(args: argparse.Namespace, joints_arg: str | None):  # noqa: ANN202
     if args.ramp_s is not None and not 1.0 <= args.ramp_s <= 120.0:
         raise CliError(f"--ramp-s: expected seconds in [1, 120], got {args.ramp_s}")
     work = Path(args.work_dir) if args.work_dir else Path(tempfile.mkdtemp(prefix="dragd-experiment-"))
-    bench = Bench(work, config=absolute(args.config), params=absolute(args.params), progress=not args.json)
+    bench = Bench(work, config=absolute(args.config), params=absolute(args.params), progress=not args.json,
+                  lockstep=args.lockstep or None)
     joints = _joints(joints_arg, len(bench.cfg.joints))
     if args.params is None:  # the compensation runs on identified parameters only (never the sim's truth)
         bench.identify_on_sim(joints)
@@ -130,6 +131,9 @@ def register(sub: Any) -> None:
         p.add_argument("--work-dir", help="keep the rigs' logs and MCAP recordings here (default: a temp folder)")
         p.add_argument("--ramp-s", type=float, default=None,
                        help="seconds the load ramp takes to the believed static friction (default 10)")
+        p.add_argument("--lockstep", action="store_true",
+                       help="run the simulated robot and the daemon on the lockstep clock: simulated time, so a loaded "
+                            "machine cannot disturb (or void) a repetition, and the same run gives the same figures")
         p.add_argument("--json", action="store_true", help="print JSON")
 
     s = esub.add_parser("startup", help="starting torque without/with start-up compensation (seed 001 Table XI)")

@@ -23,7 +23,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     try:
         result = run_demo(seconds=args.seconds, config=absolute(args.config), out=args.out, scenario=args.scenario,
-                          progress=not args.json)
+                          progress=not args.json, lockstep=args.lockstep)
     except DemoError as exc:
         raise CliError(str(exc), status=1) from None
     emit(args, result, lambda d: "\n".join(f"{k:28s} {v}" for k, v in d.items()))
@@ -44,5 +44,8 @@ def register(sub: Any) -> None:
     d.add_argument("--scenario", default="drag", help="demo scenario (default: drag)")
     d.add_argument("--out", type=Path, default=None, help="output folder for the MCAP log (default ./out)")
     add_config(d, params=False)
+    d.add_argument("--lockstep", action="store_true",
+                   help="both processes on the lockstep clock: simulated time, as fast as they go, the same telemetry "
+                        "on every run (its digest and the real-time factor are reported); default: the wall clock")
     d.add_argument("--json", action="store_true", help="print the summary as JSON")
     d.set_defaults(func=cmd_demo)

@@ -7,7 +7,6 @@ the controller's events before it answers (a fault or mode change it caused is i
 
 from __future__ import annotations
 
-import asyncio
 import functools
 from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any
@@ -89,10 +88,8 @@ def command_table(d: Daemon) -> CommandTable:
         arm has rested in HOLD long enough for its hold current to be measured; an arm that keeps moving is refused
         by the check itself."""
         g = d.cfg.safety.guard
-        end = asyncio.get_running_loop().time() + g.check_settle_s + HOLD_WAIT_S
-        while (g.check and c.mode == Mode.HOLD and c.hold_rest_s < g.check_settle_s
-               and asyncio.get_running_loop().time() < end):
-            await asyncio.sleep(0.02)
+        await d.wait_for(lambda: not (g.check and c.mode == Mode.HOLD and c.hold_rest_s < g.check_settle_s),
+                         g.check_settle_s + HOLD_WAIT_S)
 
     @command("track")
     async def track(file: str | None = None, t_s: list[float] | None = None, q_rad: list[list[float]] | None = None,
@@ -203,6 +200,29 @@ def command_table(d: Daemon) -> CommandTable:
         from dragd.daemon.modelcheck import check_model as run_check
 
         return await run_check(d, float(step_rad))
+
+    @command("clock")
+    async def clock(action: str = "status", seconds: float | None = None) -> dict[str, Any]:
+        """The cycle's clock (dragd/clock.py): ``status``; on the lockstep clock also ``advance`` (let the arm run
+        ``seconds`` of simulated time and answer when they have passed), ``run`` (time runs without grants, as fast
+        as the daemon and the simulator can) and ``pause``."""
+        from dragd.clock import LockstepClock
+
+        clk = d.clock
+        if action == "status":
+            return {"clock": clk.status(), "cycles": d.cycle.cycles}
+        if action not in ("advance", "run", "pause"):
+            raise ValueError(f"clock: action: expected status, advance, run or pause, got {action!r}")
+        if not isinstance(clk, LockstepClock):
+            raise ValueError(f"clock {action}: this daemon runs on the wall clock; only a daemon started with "
+                             "--lockstep (against 'dragd sim --lockstep') lets its time be granted")
+        if action == "advance":
+            if seconds is None or not isinstance(seconds, (int, float)) or not 0 <= seconds < 1e6:
+                raise ValueError(f"clock advance: seconds: expected a number of seconds in [0, 1e6), got {seconds!r}")
+            await clk.grant(float(seconds))
+        else:
+            clk.set_free_run(action == "run")
+        return {"clock": clk.status(), "cycles": d.cycle.cycles}
 
     @command("shutdown")
     async def shutdown() -> dict[str, Any]:

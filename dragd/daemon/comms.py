@@ -1,7 +1,7 @@
 """The drives' heartbeats consumed while the daemon runs: silent drives, bus outages, reboots, NMT states.
 
 Master hands every heartbeat (bus, node, NMT state) to ``on_heartbeat`` in the loop's thread; ``run`` checks every
-10 ms, outside the cycle (docs/SAFETY.md):
+10 ms of the cycle's clock (dragd/clock.py), outside the cycle (docs/SAFETY.md):
 
     boot-up (a reboot)     fault (every drive quick-stops, brakes on) → the node is reconfigured over SDO and
                            started → rejoins in HOLD once every drive reports, if the arm was enabled
@@ -14,7 +14,6 @@ Master hands every heartbeat (bus, node, NMT state) to ``on_heartbeat`` in the l
 from __future__ import annotations
 
 import asyncio
-import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -57,7 +56,8 @@ class CommsMonitor:
         cfg = daemon.cfg
         self.period_s = cfg.master.drive_heartbeat_ms * 1e-3
         self.timeout_s = max(0.05, 3.0 * self.period_s)
-        now = time.monotonic()
+        self.clock = daemon.clock
+        now = self.clock.now()
         self.nodes = {(j.bus, j.node_id): NodeComms(i, j.bus, j.node_id, now) for i, j in enumerate(cfg.joints)}
         self.outage = False
         self.rejoin = False  # enable into HOLD once communication is whole again
@@ -73,7 +73,7 @@ class CommsMonitor:
         if n is None:
             return
         self.heartbeats += 1
-        n.last_hb = time.monotonic()
+        n.last_hb = self.clock.now()
         n.state = state
         if state == NmtState.OPERATIONAL:
             n.confirmed = True
@@ -81,15 +81,16 @@ class CommsMonitor:
             n.booted = True
 
     async def run(self) -> None:
-        now = time.monotonic()
+        clock = self.clock
+        now = clock.now()
         for n in self.nodes.values():
             n.last_hb = now
             n.booted = False  # the boot-ups of the daemon's own NMT reset at start
             n.state = NmtState.OPERATIONAL  # just started by the master (its next heartbeat says so)
             n.confirmed, n.started_at = False, now  # a pre-operational heartbeat in flight is not a foreign NMT
         while True:
-            await asyncio.sleep(CHECK_S)
-            self.check(time.monotonic())
+            await clock.sleep(CHECK_S)
+            self.check(clock.now())
 
     # ------------------------------------------------------------------------------------------ the check
 
@@ -183,7 +184,7 @@ class CommsMonitor:
             await m.run_sdo(m.configure_node, m.runtimes[n.bus], n.node_id)
             m.nmt(NmtCommand.START, n.node_id, bus=n.bus)
             n.state = NmtState.OPERATIONAL  # (its next heartbeat says so; not a foreign NMT command meanwhile)
-            n.confirmed, n.started_at = False, time.monotonic()
+            n.confirmed, n.started_at = False, self.clock.now()
             d.log(f"node {n.node_id}: reconfigured after its reboot and started")
         except DriveError as exc:
             self.rejoin = False

@@ -19,7 +19,6 @@ import gc
 import os
 import signal
 import sys
-import time
 from collections.abc import Callable
 from pathlib import Path
 from concurrent.futures import ThreadPoolExecutor
@@ -47,6 +46,7 @@ from dragd.hardware.pdo import BusLayout
 from dragd.hardware.plan import DrivePlan, plan_drives
 from dragd.hardware.scaling import Scaling
 from dragd.model import RobotModel
+from dragd.clock import GUARD_S, Clock, LockstepClock, WallClock
 from dragd.realtime import CpuLatencyRequest, demote_current_thread, scheduler_label, set_realtime
 
 MAX_FAULTS = 100  # the fault list keeps the newest
@@ -134,7 +134,10 @@ class Daemon:
 
     def __init__(self, cfg: Config, *, bus_override: str | None = None, socket_path: str | None = None,
                  telemetry_path: str | None = None, rerun: bool = False, allow_dirs: list[str] | None = None,
-                 log: Callable[[str], None] | None = None, batch_frames: bool = False) -> None:
+                 log: Callable[[str], None] | None = None, batch_frames: bool = False, lockstep: bool = False,
+                 lockstep_guard_s: float = GUARD_S) -> None:
+        """``lockstep``: the cycle runs on the lockstep clock (dragd/clock.py) against ``dragd sim --lockstep``:
+        simulated time, advanced by grants (the ``clock`` command) and by the commands that wait for the arm."""
         from dragd.daemon.paths import PathPolicy, allowed_dirs, spool_dir
 
         self.cfg = cfg
@@ -153,6 +156,9 @@ class Daemon:
                              f"got {', '.join(cfg.joint_names)}")
         self.n = len(cfg.joints)
         self.node_ids = [j.node_id for j in cfg.joints]
+        period_s = 1.0 / cfg.loop.rate_Hz
+        self.clock: Clock = (LockstepClock(period_s, [b.name for b in cfg.buses], guard_s=lockstep_guard_s)
+                             if lockstep else WallClock(period_s))
         self.scaling = Scaling.from_config(cfg, self.drives.profiles)
         self.controller = Controller.from_config(cfg, self.model.position_limits_rad)
         if self.controller.guard is not None:
@@ -203,8 +209,14 @@ class Daemon:
                            self.recorder, rate_Hz=cfg.loop.rate_Hz, tpdo_deadline_us=cfg.loop.tpdo_deadline_us,
                            heartbeat_ms=cfg.master.heartbeat_ms, stale_cycles_hold=cfg.loop.stale_cycles_hold,
                            stale_cycles_disable=cfg.loop.stale_cycles_disable, node_ids=self.node_ids,
-                           plausible_speed_rad_s=cfg.safety.encoder_plausible_speed_rad_s, compiled=cfg.loop.compiled)
+                           plausible_speed_rad_s=cfg.safety.encoder_plausible_speed_rad_s, compiled=cfg.loop.compiled,
+                           clock=self.clock)
         self.recorder.attach(self.controller, self.cycle.est, self.io.feedback)
+        if isinstance(self.clock, LockstepClock):
+            self.io.on_time = self.clock.peer_time  # the simulator's TIME frames end its periods
+            self.io.expect_lockstep()
+            self.recorder.stamp_ns = self.clock.stamp_ns  # telemetry carries the clock's time
+            self.clock.gates.append(self.recorder.rings_have_room)  # a row is never dropped for a fast clock
         self.cycle.after_cycle = [self.record_events, self.teaching.add]
 
     # ------------------------------------------------------------------------------------------ faults, events
@@ -422,12 +434,8 @@ class Daemon:
         return check
 
     async def wait_for(self, cond: Callable[[], bool], timeout_s: float) -> bool:
-        end = time.monotonic() + timeout_s
-        while time.monotonic() < end:
-            if cond():
-                return True
-            await asyncio.sleep(0.01)
-        return cond()
+        """Run the arm until ``cond()`` holds or ``timeout_s`` passed on the cycle's clock; ``cond()`` at the end."""
+        return await self.clock.wait_for(cond, timeout_s)
 
     # ------------------------------------------------------------------------------------------ status
 
@@ -508,6 +516,7 @@ class Daemon:
             "telemetry": self.recorder.telemetry.stats() if self.recorder.telemetry is not None else None,
             "recording": self.recorder.recording_path,
             "t_s": cy.t,
+            "clock": self.clock.status(),
             "spool_dir": self.spool_dir,
             "teach": self.teaching.recorder.status() if self.teaching.recorder is not None else None,
         }
@@ -529,7 +538,7 @@ class Daemon:
             self.stop()
             await self.wait_for(lambda: c.mode in (Mode.IDLE, Mode.FAULT), self.cfg.safety.mode_ramp_s + 1.0)
         await self.wait_for(lambda: not self.supervisor.enabled.any(), 0.5)
-        self.cycle.exit_requested = True
+        self.cycle.request_exit()
 
     async def _watchdog(self) -> None:
         period = sdnotify.watchdog_period_s()
@@ -568,6 +577,7 @@ class Daemon:
         from dragd.daemon.server import ControlServer
 
         loop = asyncio.get_running_loop()
+        self.clock.attach(loop)  # (lockstep: the loop's executor jobs hold the clock)
         # a busy helper thread (SDO worker, telemetry encoder) would hold the GIL for the default 5 ms
         sys.setswitchinterval(5e-4)
         if self.recorder.rerun:

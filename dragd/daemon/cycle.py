@@ -1,4 +1,4 @@
-"""The 1 kHz cycle, ticked by a timerfd at absolute deadlines:
+"""The 1 kHz cycle, ticked by its clock (dragd/clock.py: a timerfd at absolute deadlines, or the lockstep clock):
 
     read      SYNC → every drive's TPDO until all arrived or SYNC + tpdo_deadline_us   (hardware/io.py)
     estimate  q from counts, q̇ by filtered differentiation, measured current, G(q)     (here; control/estimate.py)
@@ -7,7 +7,9 @@
     write     controlwords, torque offsets, CSP targets in the command RPDOs           (hardware/io.py)
     log       one telemetry row to the MCAP writer's ring; timing into histograms      (daemon/recording.py)
 
-``step`` is the synchronous part after the read (what the golden traces replay); ``run`` is the loop. Nothing in
+``step`` is the synchronous part after the read (what the golden traces replay); ``run`` is the loop. On the
+lockstep clock the read step has no wall deadline: it ends when every TPDO arrived or the simulator's TIME frame
+ended the period (what did not arrive by then is late, as a deadline would have judged it). Nothing in
 a cycle allocates per cycle on the usual paths, logs, blocks or calls SDO: decisions the cycle makes (faults, mode
 changes, the end of a motion) are queued as events and recorded by the daemon after the cycle.
 """
@@ -28,7 +30,7 @@ from dragd.hardware.drives import DriveSupervisor, Target
 from dragd.hardware.io import BusIO, Feedback
 from dragd.hardware.scaling import Scaling
 from dragd.model import RobotModel
-from dragd.realtime import Ticker
+from dragd.clock import Clock, WallClock
 from dragd.stats import Histogram
 
 if TYPE_CHECKING:
@@ -44,11 +46,14 @@ class Cycle:
     def __init__(self, io: BusIO, scaling: Scaling, model: RobotModel, controller: Controller,
                  supervisor: DriveSupervisor, velocity: VelocityEstimator, recorder: Recorder, *, rate_Hz: float,
                  tpdo_deadline_us: float, heartbeat_ms: float, stale_cycles_hold: int, stale_cycles_disable: int,
-                 node_ids: list[int], plausible_speed_rad_s: float = 6.0, compiled: bool = True) -> None:
+                 node_ids: list[int], plausible_speed_rad_s: float = 6.0, compiled: bool = True,
+                 clock: Clock | None = None) -> None:
         n = controller.n
         self.io, self.scaling, self.model = io, scaling, model
         self.controller, self.supervisor, self.velocity, self.recorder = controller, supervisor, velocity, recorder
         self.dt = 1.0 / rate_Hz
+        self.clock = clock if clock is not None else WallClock(self.dt)
+        self._lockstep = self.clock.lockstep
         self.deadline_s = tpdo_deadline_us * 1e-6
         self.heartbeat_every = max(1, round(heartbeat_ms * 1e-3 / self.dt))
         self._hb_period_s = self.heartbeat_every * self.dt
@@ -60,7 +65,7 @@ class Cycle:
         self.torque_permille = np.zeros(n, dtype=np.int64)
         self._tmp = np.zeros(n)
         self.t = 0.0
-        self.sample_dt_s = self.dt  # interval between this cycle's SYNC and the previous one
+        self.sample_dt_s = self.dt  # interval between this cycle's SYNC and the previous one (the clock's)
         self.cycles = 0
         self.missed = 0
         # the last MISSED_LOG episodes of missed ticks: (CLOCK_MONOTONIC s of the late tick, ticks missed), so a
@@ -75,7 +80,8 @@ class Cycle:
         self.rx_hist = Histogram(0.0, 5_000.0, 5.0)
         self.after_cycle: list[object] = []  # callables run after each cycle (the daemon records events)
         self._t_tick = -1.0  # perf_counter at this cycle's tick callback (-1: none yet in this run)
-        self._period_us = self.dt * 1e6  # since the previous one
+        self._period_us = self.dt * 1e6  # since the previous one (wall: the status histogram)
+        self._row_period_us = self.dt * 1e6  # ... as the telemetry row records it (lockstep: the clock's period)
         # encoder plausibility: a sample further from the last accepted one than plausible_speed allows is rejected
         # (treated as a missing TPDO); rejected for stale_cycles_hold cycles in a row, it is an encoder fault
         self.jump_step_counts = plausible_speed_rad_s * self.dt * scaling.counts_per_rev / (2.0 * np.pi) + 2.0
@@ -221,14 +227,25 @@ class Cycle:
         self._done: asyncio.Future[None] = loop.create_future()
         done = self._done
         self._t_tick = -1.0
-        ticker = Ticker(self.dt, loop)
+        clock = self.clock
         try:
-            ticker.call_each(loop, self._on_tick)
+            if self._lockstep:
+                clock.on_peer_done = self.io.end_read_step  # type: ignore[attr-defined]
+                clock.call_each(loop, self._on_tick, self._finish)  # type: ignore[call-arg]
+            else:
+                clock.call_each(loop, self._on_tick)
             await done
         finally:
-            ticker.close()
+            clock.close()
             self.io.abandon_read()
             self.io.flush()
+
+    def request_exit(self) -> None:
+        """End ``run`` after the cycle in progress (at the next tick; on the lockstep clock, which ticks only when
+        asked, at once when no read step is open)."""
+        self.exit_requested = True
+        if self._lockstep and not self.io.reading and getattr(self, "_done", None) is not None:
+            self._finish(None)
 
     def _on_tick(self, expirations: int) -> None:
         try:
@@ -246,6 +263,11 @@ class Cycle:
             period_us = (t_tick - self._t_tick) * 1e6 if self._t_tick >= 0.0 else self.dt * 1e6
             self._t_tick = t_tick
             self._period_us = period_us
+            if self._lockstep:  # the sample interval is the clock's; no wall deadline (the TIME frame ends the read)
+                self.tick(self._row_period_us, expirations)
+                self.io.start_read(self._loop, None, self._on_read)
+                return
+            self._row_period_us = period_us
             self.tick(period_us, expirations)
             self.io.start_read(self._loop, self.deadline_s, self._on_read)
         except Exception as exc:  # the loop must not swallow it: the daemon stops the arm
@@ -263,7 +285,7 @@ class Cycle:
             if self.cycles > 0:
                 self.period_hist.add(period_us)
             self.cycles += 1
-            self.recorder.log_row(period_us, compute_us)
+            self.recorder.log_row(self._row_period_us, 0.0 if self._lockstep else compute_us)
             for fn in self.after_cycle:
                 fn()  # type: ignore[operator]
             if self.exit_requested:

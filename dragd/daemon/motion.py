@@ -26,6 +26,7 @@ from dragd.teach.request import INTERPS, SOURCES, ReplayRequest, limits_from_con
 
 if TYPE_CHECKING:
     from dragd.daemon.core import Daemon
+    from dragd.clock import Clock
 
 START_TOLERANCE_RAD = 0.02  # a track must start this close to where the arm is
 
@@ -33,12 +34,17 @@ START_TOLERANCE_RAD = 0.02  # a track must start this close to where the arm is
 class Planner:
     """The planner process (started on first use) and the normal-priority thread that talks to it."""
 
-    def __init__(self, avoid_cpus: set[int]) -> None:
+    def __init__(self, avoid_cpus: set[int], clock: Clock | None = None) -> None:
         self.avoid_cpus = avoid_cpus
+        self.clock = clock
         self._helper: ThreadPoolExecutor | None = None
         self._worker: Any = None
 
     async def call(self, name: str, *args: Any, **kwargs: Any) -> Any:
+        """``name(*args, **kwargs)`` in the planner process (on the lockstep clock its time stands still meanwhile)."""
+        return await self._submit(True, name, *args, **kwargs)
+
+    async def _submit(self, track: bool, name: str, *args: Any, **kwargs: Any) -> Any:
         if self._helper is None:
             from dragd.teach.worker import Worker
 
@@ -46,10 +52,16 @@ class Planner:
                                               initargs=(self.avoid_cpus or None,))
             self._worker = Worker(self.avoid_cpus)
         call = functools.partial(self._worker.call, name, *args, **kwargs)
-        return await asyncio.get_running_loop().run_in_executor(self._helper, call)
+        loop = asyncio.get_running_loop()
+        if track or self.clock is None:
+            return await loop.run_in_executor(self._helper, call)
+        with self.clock.untracked():
+            fut = loop.run_in_executor(self._helper, call)
+        return await fut
 
     def warm(self) -> None:
-        task = asyncio.get_running_loop().create_task(self.call("warm_up"))
+        # nothing waits for the warm-up: it does not hold the lockstep clock (a call after it waits in line)
+        task = asyncio.get_running_loop().create_task(self._submit(False, "warm_up"))
         task.add_done_callback(lambda t: t.exception())  # a failure shows at the next real call
 
     def close(self) -> None:
@@ -64,7 +76,7 @@ class Motions:
 
     def __init__(self, daemon: Daemon) -> None:
         self.d = daemon
-        self.planner = Planner(set(daemon.cfg.loop.cpus or ()))
+        self.planner = Planner(set(daemon.cfg.loop.cpus or ()), daemon.clock)
         self.drive_mode = MODE_CST
         self.switch_pending = False
         self.planning = False  # a replay is being planned (the arm held in CSP meanwhile)

@@ -8,6 +8,7 @@ writer for a time span.
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -44,6 +45,8 @@ class Recorder:
         self.cols = cols
         self.width = k
         self._sources: tuple[Controller, Estimate, Feedback] | None = None
+        # the rows' and events' log time: None, the writer's CLOCK_REALTIME; on the lockstep clock the clock's own
+        self.stamp_ns: Callable[[], int | None] | None = None
         self.events = EventLog()  # every event, numbered, for clients (the `events` command; the ROS 2 bridge)
 
     def attach(self, controller: Controller, est: Estimate, feedback: Feedback) -> None:
@@ -53,11 +56,16 @@ class Recorder:
     # ------------------------------------------------------------------------------------------ the log step
 
     def log_row(self, period_us: float, compute_us: float) -> None:
+        stamp = self.stamp_ns
         for tw in self._writers:
             row = tw.begin()
             if row is not None:
                 self.fill_row(row, period_us, compute_us)
-                tw.commit()
+                tw.commit(None if stamp is None else stamp())
+
+    def rings_have_room(self) -> bool:
+        """Every open writer's ring is less than half full (the lockstep clock waits for this: no row dropped)."""
+        return all(tw.pending_rows() * 2 < tw.capacity for tw in self._writers)
 
     def fill_row(self, row: np.ndarray, period_us: float, compute_us: float) -> None:
         """Every field of the cycle's row (slots are reused: each is written every cycle)."""
@@ -92,11 +100,15 @@ class Recorder:
         row[cols["track_t_s"]] = c.track.tau if track else -1.0
         row[cols["residual_A"]] = c.track.residual_A if track else 0.0
 
+    def log_time_ns(self) -> int | None:
+        """An event's log time: None (the writer's CLOCK_REALTIME), or the lockstep clock's."""
+        return None if self.stamp_ns is None else self.stamp_ns()
+
     def event(self, name: str, **fields: Any) -> None:
         """An event in the telemetry file (not in a record window) and in the clients' event log."""
         self.events.add(self._sources[0].t if self._sources is not None else 0.0, name, fields)
         if self.telemetry is not None:
-            self.telemetry.event(name, **fields)
+            self.telemetry.event(name, stamp_ns=self.log_time_ns(), **fields)
 
     # ------------------------------------------------------------------------------------------ files
 
@@ -130,7 +142,7 @@ class Recorder:
                                          metadata={"config": self.cfg.source,
                                                    "cycle_decimation": str(tc.cycle_decimation)})
         self._writers = [w for w in (self.telemetry, self.recording) if w is not None]
-        self.telemetry.event("start", config=self.cfg.source, joints=self.cfg.joint_names)
+        self.event("start", config=self.cfg.source, joints=self.cfg.joint_names)
 
     async def start_recording(self, path: str, label: str = "") -> str:
         """Record every cycle to a separate MCAP file until ``stop_recording`` (identification runs, teach)."""
@@ -144,7 +156,7 @@ class Recorder:
             metadata={"label": label, "config": self.cfg.source}, avoid_cpus=set(self.cfg.loop.cpus or ()),
             forward_interval_s=self.cfg.telemetry.forward_interval_s, process=True))
         self.recording, self.recording_path = writer, str(path)
-        writer.event("record_start", label=label, joints=self.cfg.joint_names)
+        writer.event("record_start", stamp_ns=self.log_time_ns(), label=label, joints=self.cfg.joint_names)
         self._writers = [w for w in (self.telemetry, self.recording) if w is not None]
         return self.recording_path
 
@@ -154,7 +166,7 @@ class Recorder:
         writer, path = self.recording, self.recording_path
         self.recording, self.recording_path = None, None
         self._writers = [w for w in (self.telemetry,) if w is not None]
-        writer.event("record_stop")
+        writer.event("record_stop", stamp_ns=self.log_time_ns())
         await writer.aclose()
         return {"path": path, **writer.stats()}
 
@@ -162,5 +174,5 @@ class Recorder:
         if self.recording is not None:
             await self.stop_recording()
         if self.telemetry is not None:
-            self.telemetry.event("stop", cycles=cycles)
+            self.event("stop", cycles=cycles)
             await self.telemetry.aclose()

@@ -65,7 +65,7 @@ class Teaching:
         # the recording is the autosave: this event says how to rebuild the program if the session is cut short
         # (dragd teach recover)
         assert d.recorder.recording is not None  # (opened just above)
-        d.recorder.recording.event("teach_start", session=self.recorder.autosave_info(
+        d.recorder.recording.event("teach_start", stamp_ns=d.recorder.log_time_ns(), session=self.recorder.autosave_info(
             str(d.cfg.robot.urdf), d.cfg.replay.frame, d.cfg.source))
         motions.planner.warm()
         if c.mode == Mode.HOLD and not c.feedback_hold:
@@ -89,7 +89,7 @@ class Teaching:
         m = self.recorder.mark(d.cycle.t, d.cycle.est.q_rad, name)
         ev = {"waypoint": m["name"], "t_s": m["t_s"], "q_rad": m["q_rad"]}
         if d.recorder.recording is not None:
-            d.recorder.recording.event("mark", **ev)
+            d.recorder.recording.event("mark", stamp_ns=d.recorder.log_time_ns(), **ev)
         d.recorder.event("mark", program=self.recorder.name, **ev)
         return {"program": self.recorder.name, "index": len(self.recorder.marks), **m,
                 "q_deg": [round(math.degrees(x), 4) for x in m["q_rad"]]}

@@ -19,6 +19,7 @@ from collections.abc import Callable
 import can
 import numpy as np
 
+from dragd.clock import TIME_COB_ID
 from dragd.hardware.cia301 import EMCY_BASE, HEARTBEAT_BASE, SYNC_COB_ID
 from dragd.hardware.bus import PreparedBatch
 from dragd.hardware.pdo import BusLayout, RpdoEncoder
@@ -68,6 +69,10 @@ class BusIO:
         self._sw_holding = False
         self.deferred_statuswords = 0  # such statuswords, shown to the step one cycle later
         self.reading = False  # a read step is open: SYNC sent, waiting for TPDOs or the deadline
+        # the lockstep clock's TIME frames (bus name, data); set before the listeners are made (dragd/clock.py). On
+        # that clock the read step ends only when the simulator ended its period (every bus's TIME frame: then every
+        # frame of the period was decoded, whichever bus's datagram came first), never on the TPDOs alone
+        self.on_time: Callable[[str, bytes | bytearray], None] | None = None
         self._on_read: Callable[[bool], None] = lambda complete: None
         self._deadline_handle: asyncio.TimerHandle | None = None
         self._decoders: dict[str, dict[int, Decoder]] = {}
@@ -109,18 +114,39 @@ class BusIO:
                 tpdos = [fr for fr in layout.frames if fr.direction == "tpdo"]  # (on an FD bus: FD or classic)
                 expect([(fr.cob_id, fr.data_bytes, kind) for fr in tpdos for kind in {fd, False}])
         self._emcy = {EMCY_BASE + node: i for i, node in enumerate(node_ids)}
+        self._node_ids = list(node_ids)
+        self._buses = [buses[name] for name in layouts]
+
+    def expect_lockstep(self) -> None:
+        """The lockstep clock: the simulator's datagram per period also carries its TIME frame and, when due, the
+        drives' heartbeats; a bus that reads by template (udp_multicast ``expect``) learns them too."""
+        for bus in self._buses:
+            expect = getattr(bus, "expect", None)
+            if expect is not None:
+                expect([(TIME_COB_ID, 6, False)] + [(HEARTBEAT_BASE + node, 1, False) for node in self._node_ids])
 
     # ------------------------------------------------------------------------------------------ read
 
     def listener(self, bus_name: str) -> can.Listener:
         """The Notifier listener of one bus (runs in the loop's thread)."""
-        on_frame, table = self.on_frame, self._decoders.setdefault(bus_name, {})
+        on_frame, table, on_time = self.on_frame, self._decoders.setdefault(bus_name, {}), self.on_time
 
         class _Rx(can.Listener):
             def on_message_received(self, msg: can.Message) -> None:
                 on_frame(msg, table)
 
-        return _Rx()
+        if on_time is None:
+            return _Rx()
+
+        class _RxTime(can.Listener):  # the lockstep clock: the simulator's TIME frame ends its period
+            def on_message_received(self, msg: can.Message) -> None:
+                if msg.arbitration_id == TIME_COB_ID and not (msg.is_extended_id or msg.is_remote_frame
+                                                              or msg.is_error_frame):
+                    on_time(bus_name, msg.data)  # type: ignore[misc]
+                    return
+                on_frame(msg, table)
+
+        return _RxTime()
 
     def on_frame(self, msg: can.Message, table: dict[int, Decoder]) -> None:
         """Decode a TPDO into the feedback arrays, or report an EMCY.
@@ -208,9 +234,12 @@ class BusIO:
         np.copyto(fb.stale, 0, where=fb.rx)  # (a boolean-mask assignment would allocate)
         return False
 
-    def start_read(self, loop: asyncio.AbstractEventLoop, deadline_s: float, on_read: Callable[[bool], None]) -> None:
+    def start_read(self, loop: asyncio.AbstractEventLoop, deadline_s: float | None,
+                   on_read: Callable[[bool], None]) -> None:
         """Send SYNC and open the read step: ``on_read(complete)`` is called once, in the loop's thread, when every
-        joint's position TPDO arrived (True) or ``deadline_s`` passed (False)."""
+        joint's position TPDO arrived (True) or ``deadline_s`` passed (False). Without a deadline (the lockstep
+        clock) the read step ends when the TPDOs are complete or someone calls ``end_read_step`` (the simulator's
+        TIME frame)."""
         self.begin_cycle()
         self._on_read = on_read
         self.reading = True
@@ -218,11 +247,12 @@ class BusIO:
             self._send_with_sync()
         else:
             self._send(self._sync)
-        self._deadline_handle = loop.call_at(loop.time() + deadline_s, self.end_read_step)
+        if deadline_s is not None:
+            self._deadline_handle = loop.call_at(loop.time() + deadline_s, self.end_read_step)
 
     def read_done(self) -> bool:
         """The open read step has every joint's position TPDO (the reader need not look for more now)."""
-        return self.reading and self.feedback.rx_count >= self.n
+        return self.reading and self.feedback.rx_count >= self.n and self.on_time is None
 
     def after_frames(self) -> None:
         """A wake-up's frames are all decoded: the read step ends if every joint has reported."""

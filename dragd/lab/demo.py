@@ -7,14 +7,16 @@ Scenario ``teach`` (seed 000 §5): ``teach start`` → the operator's hand drags
 marked (absolute encoders) → ``teach stop`` writes the program → replayed linearly (point-to-point) and circularly
 (the Cartesian circle through p1, p2, p3) in CSP → how close every taught waypoint was passed, on every joint.
 
-All figures come from the daemon (its encoders and timing), as they would on a real robot.
+All figures come from the daemon (its encoders and timing), as they would on a real robot. On the wall clock the
+drag session's missed cycles are split into the machine's (a stall probe per CPU saw the host stall then:
+dragd/lab/bench/stalls.py) and the daemon's own. ``lockstep``: both processes on the lockstep clock (simulated
+time, as fast as they go; the same run gives the same telemetry, whose digest is reported with the real-time factor).
 """
 
 from __future__ import annotations
 
 import math
 import sys
-import time
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -39,14 +41,14 @@ def _max_deg(a: list[float], b: list[float]) -> float:
 
 
 def run_demo(seconds: float = 20.0, config: Path | None = None, out: Path | None = None, scenario: str = "drag",
-             progress: bool = True) -> dict[str, Any]:
+             progress: bool = True, lockstep: bool = False) -> dict[str, Any]:
     if scenario == "teach":
-        return run_teach_demo(seconds, config, out, progress)
+        return run_teach_demo(seconds, config, out, progress, lockstep)
     if scenario == "payload":
         from dragd.lab.demo_payload import PayloadDemoError, run_payload_demo
 
         try:
-            return run_payload_demo(config, out, progress)
+            return run_payload_demo(config, out, progress, lockstep)
         except PayloadDemoError as exc:
             raise DemoError(str(exc)) from None
     if scenario != "drag":
@@ -56,19 +58,22 @@ def run_demo(seconds: float = 20.0, config: Path | None = None, out: Path | None
     out = Path(out) if out is not None else Path.cwd() / "out"
     out.mkdir(parents=True, exist_ok=True)
     mcap = out / f"demo-{datetime.now().strftime('%Y%m%d-%H%M%S')}.mcap"
-    rig = Rig("demo", config=config, telemetry=mcap, as_deployed=True)
+    rig = Rig("demo", config=config, telemetry=mcap, as_deployed=not lockstep, lockstep=lockstep)
+    probe = None
     try:
-        _say(progress, f"starting the simulated robot on {rig.bus} ...")
+        _say(progress, f"starting the simulated robot on {rig.bus}{' (lockstep clock)' if lockstep else ''} ...")
         rig.start_sim()
         _say(progress, "starting the daemon (NMT reset, SDO configuration, 402 walk) ...")
         rig.start_daemon()
         rig.must("start")
-        time.sleep(0.5)
+        rig.sleep(0.5)
         rig.must("mode", mode="drag")
         _say(progress, "drag mode; nobody touching the arm ...")
         untouched_s = 2.0
-        q0 = rig.must("status")["q_rad"]
-        time.sleep(untouched_s)
+        before = rig.must("status")
+        q0 = before["q_rad"]
+        probe = None if lockstep else _start_probe(before)
+        rig.sleep(untouched_s)
         q1 = rig.must("status")["q_rad"]
         hand_s = 3.0
         _say(progress, "the operator's hand pulls joints 1-4, then lets go ...")
@@ -76,14 +81,15 @@ def run_demo(seconds: float = 20.0, config: Path | None = None, out: Path | None
             {"kind": "hand", "q_rad": HAND_TARGET_RAD, "relative": True, "stiffness": 60.0, "damping": 12.0,
              "max_load": 25.0, "duration_s": hand_s},
             {"kind": "release", "ramp_down_s": 0.1, "duration_s": 0.0}]})
-        time.sleep(hand_s + 0.1)
+        rig.sleep(hand_s + 0.1)
         settle_s = 0.5
-        time.sleep(settle_s)
+        rig.sleep(settle_s)
         q_release = rig.must("status")["q_rad"]
         observe_s = max(2.0, seconds - untouched_s - hand_s - settle_s - 0.6)
-        time.sleep(observe_s)
+        rig.sleep(observe_s)
         status = rig.must("status")
         q_end = status["q_rad"]
+        stalls = _missed_by_cause(rig, before, status, probe) if probe is not None else None
         schedulers = rig.schedulers()
         _say(progress, "stopping: ramp to hold, disable, SIGTERM ...")
         rig.must("stop")
@@ -92,10 +98,7 @@ def run_demo(seconds: float = 20.0, config: Path | None = None, out: Path | None
             raise DemoError(f"the daemon exited with {codes.get('dragd')} on SIGTERM (expected 0):\n{rig.daemon.tail()}")
         return {
             "cycles": status["cycles"],
-            "period_p50_us": status["period_p50_us"],
-            "period_p99_us": status["period_p99_us"],
-            "missed_cycles": status["missed_cycles"],
-            "missed_ratio": round(status["missed_cycles"] / max(1, status["cycles"]), 6),
+            **_timing(status, stalls, lockstep, mcap),
             "scheduler": schedulers,  # as deployed where permitted (SCHED_FIFO), else SCHED_OTHER and why
             "drift_untouched_deg": round(_max_deg(q1, q0), 4),
             "moved_by_hand_deg": round(_max_deg(q_release, q1), 3),
@@ -109,7 +112,74 @@ def run_demo(seconds: float = 20.0, config: Path | None = None, out: Path | None
     except ProcessError as exc:
         raise DemoError(str(exc)) from None
     finally:
+        if probe is not None:
+            probe.__exit__(None, None, None)
         rig.close()
+
+
+def _start_probe(before: dict[str, Any]) -> Any:
+    """The machine's stall probes for the session (None where they cannot run: the demo says why)."""
+    from dragd.lab.bench.stalls import PROBE_PRIORITY, StallProbe
+
+    probe = StallProbe(PROBE_PRIORITY)
+    try:
+        probe.__enter__()
+    except OSError as e:
+        probe.errors.append(str(e))
+    probe.before = before  # type: ignore[attr-defined]
+    return probe
+
+
+def _missed_by_cause(rig: Rig, before: dict[str, Any], after: dict[str, Any], probe: Any) -> dict[str, Any]:
+    """The drag session's missed cycles: the machine's (a probe saw the host stall then) and the daemon's own."""
+    from dragd.lab.bench.stalls import attribute
+
+    probe.__exit__(None, None, None)
+    missed = after["missed_cycles"] - before["missed_cycles"]
+    ticks = max(1, after["cycles"] - before["cycles"] + missed)
+    if not probe.complete:
+        return {"missed": missed, "ticks": ticks, "measured": False, "reason": "; ".join(probe.errors)}
+    log = rig.must("missed_ticks", since=before["missed_episodes"])
+    n_new = after["missed_episodes"] - before["missed_episodes"]
+    episodes = log["episodes"][:max(0, n_new - log["lost"])]
+    host, _ = attribute(episodes, probe.stalls, 1.0 / rig_rate_Hz(rig))
+    host = min(host, missed)
+    st = probe.summary()
+    return {"missed": missed, "ticks": ticks, "measured": True, "host": host, "own": missed - host,
+            "host_stall_max_ms": round(st["late_max_ms"], 2), "host_late_wakeups": st["late_wakeups"]}
+
+
+def rig_rate_Hz(rig: Rig) -> float:
+    from dragd.lab.rig import config_rate_Hz
+
+    return config_rate_Hz(rig.config)
+
+
+def _timing(status: dict[str, Any], stalls: dict[str, Any] | None, lockstep: bool, mcap: Path) -> dict[str, Any]:
+    """The run's timing figures: wall clock (periods, missed cycles: the machine's and the daemon's own) or lockstep
+    (the real-time factor and the telemetry's digest: the same run gives the same)."""
+    if lockstep:
+        from dragd.telemetry.digest import digest
+
+        clock = status["clock"]
+        return {"clock": "lockstep", "sim_time_s": round(clock["t_s"], 3), "rtf": clock["rtf"],
+                "late_tpdo_cycles": status["late_tpdo_cycles"], "telemetry_sha256": digest(mcap)["sha256"]}
+    out: dict[str, Any] = {
+        "clock": "wall",
+        "period_p50_us": status["period_p50_us"],
+        "period_p99_us": status["period_p99_us"],
+        "missed_cycles": status["missed_cycles"],
+        "missed_ratio": round(status["missed_cycles"] / max(1, status["cycles"]), 6),
+    }
+    if stalls is not None:  # the drag session's: how many of its missed cycles the machine's own stalls explain
+        if stalls["measured"]:
+            out.update({"session_missed_cycles": stalls["missed"], "session_missed_host": stalls["host"],
+                        "session_missed_own": stalls["own"],
+                        "missed_ratio_own": round(stalls["own"] / stalls["ticks"], 6),
+                        "host_stall_max_ms": stalls["host_stall_max_ms"]})
+        else:
+            out["host_stalls"] = f"not measured ({stalls['reason']})"
+    return out
 
 
 # relative joint-space pulls of the operator's hand to p1, p2, p3 (from the sim's start pose): three tool points
@@ -126,39 +196,42 @@ def guide_and_settle(rig: Rig, step: list[float], hand_s: float, name: str = "ha
         {"kind": "hand", "q_rad": list(step), "relative": True, "stiffness": 60.0, "damping": 12.0,
          "max_load": 25.0, "duration_s": hand_s},
         {"kind": "release", "ramp_down_s": 0.1, "duration_s": 0.3}]})
-    end = time.monotonic() + timeout_s
-    time.sleep(hand_s)
-    while time.monotonic() < end:
-        if rig.sim_call("operator_events")["done"]:
-            dq = rig.must("status")["dq_rad_s"]
-            if max(abs(v) for v in dq) < 0.002:
-                return
-        time.sleep(0.05)
-    raise DemoError(f"the operator's hand did not finish within {timeout_s:.0f} s")
+    rig.sleep(hand_s)
+
+    def done() -> bool:
+        return bool(rig.sim_call("operator_events")["done"]) and max(abs(v) for v in rig.must("status")["dq_rad_s"]) < 0.002
+
+    try:
+        rig.wait_for(done, timeout_s, "the operator's hand to finish and the arm to rest")
+    except ProcessError:
+        raise DemoError(f"the operator's hand did not finish within {timeout_s:.0f} s") from None
 
 
 def _wait_fresh(rig: Rig, timeout_s: float = 20.0) -> None:
     """A feedback hold (late TPDOs under machine load) must be over before a replay is asked for."""
-    end = time.monotonic() + timeout_s
-    while rig.must("status")["feedback_hold"]:
-        if time.monotonic() > end:
-            raise DemoError(f"the arm stayed in a feedback hold (late TPDOs) for {timeout_s:.0f} s")
-        time.sleep(0.05)
+    try:
+        rig.wait_for(lambda: not rig.must("status")["feedback_hold"], timeout_s, "the end of a feedback hold")
+    except ProcessError:
+        raise DemoError(f"the arm stayed in a feedback hold (late TPDOs) for {timeout_s:.0f} s") from None
 
 
 def _wait_replay(rig: Rig, timeout_s: float) -> dict[str, Any]:
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        st = rig.must("status")
-        r = st.get("replay") or {}
-        if r.get("outcome"):
-            return st
-        time.sleep(0.1)
-    raise DemoError(f"the replay did not end within {timeout_s:.0f} s:\n{rig.daemon.tail() if rig.daemon else ''}")
+    got: list[dict[str, Any]] = []
+
+    def ended() -> bool:
+        got[:] = [rig.must("status")]
+        return bool((got[0].get("replay") or {}).get("outcome"))
+
+    try:
+        rig.wait_for(ended, timeout_s, "the end of the replay")
+    except ProcessError:
+        raise DemoError(f"the replay did not end within {timeout_s:.0f} s:\n{rig.daemon.tail() if rig.daemon else ''}") \
+            from None
+    return got[0]
 
 
 def run_teach_demo(seconds: float = 20.0, config: Path | None = None, out: Path | None = None,
-                   progress: bool = True) -> dict[str, Any]:
+                   progress: bool = True, lockstep: bool = False) -> dict[str, Any]:
     """Teach p1, p2, p3 by hand, replay them linearly and circularly; waypoint and path errors [deg]."""
     from dragd.teach.analysis import replay_errors
     from dragd.telemetry.reader import read_rows
@@ -172,14 +245,15 @@ def run_teach_demo(seconds: float = 20.0, config: Path | None = None, out: Path 
     program = out / "programs" / f"teach-{stamp}.yaml"
     per_point = seconds / len(TEACH_STEPS_RAD)
     hand_s = max(1.5, per_point - 0.5)
-    rig = Rig("demo-teach", config=config, telemetry=mcap, allow_dirs=[out], as_deployed=True)
+    rig = Rig("demo-teach", config=config, telemetry=mcap, allow_dirs=[out], as_deployed=not lockstep,
+              lockstep=lockstep)
     try:
         _say(progress, f"starting the simulated robot on {rig.bus} ...")
         rig.start_sim()
         _say(progress, "starting the daemon ...")
         rig.start_daemon()
         rig.must("start")
-        time.sleep(0.3)
+        rig.sleep(0.3)
         rig.must("teach", action="start", name=str(program))
         _say(progress, f"teaching {program.name}: the arm is in drag mode")
         marks = []
@@ -202,9 +276,9 @@ def run_teach_demo(seconds: float = 20.0, config: Path | None = None, out: Path 
                             "outcome": st["replay"]["outcome"], "duration_s": resp["duration_s"]}
             if st["replay"]["outcome"] != "done":
                 raise DemoError(f"the {interp} replay ended with: {st['replay']['outcome']}")
-            time.sleep(0.3)
+            rig.sleep(0.3)
         rig.must("mode", mode="drag")  # back to the hand
-        time.sleep(0.5)
+        rig.sleep(0.5)
         status = rig.must("status")
         _say(progress, "stopping: ramp to hold, disable, SIGTERM ...")
         rig.must("stop")

@@ -15,7 +15,6 @@ All figures from the daemon (its encoders, its clock), as on a real robot.
 from __future__ import annotations
 
 import math
-import time
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -44,21 +43,25 @@ def _max_deg(a: list[float], b: list[float]) -> float:
 
 
 def _wait_trip(rig: Rig, trips_before: int, timeout_s: float) -> dict[str, Any]:
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        st = rig.must("status")
-        if st["guard"]["trips"] > trips_before:
-            return st
-        time.sleep(0.01)
-    raise PayloadDemoError(f"the runaway guard did not hold the arm within {timeout_s:.0f} s:\n{rig.daemon.tail() if rig.daemon else ''}")
+    got: list[dict[str, Any]] = []
+
+    def tripped() -> bool:
+        got[:] = [rig.must("status")]
+        return bool(got[0]["guard"]["trips"] > trips_before)
+
+    try:
+        rig.wait_for(tripped, timeout_s, "the runaway guard's hold")
+    except ProcessError:
+        raise PayloadDemoError(f"the runaway guard did not hold the arm within {timeout_s:.0f} s:\n"
+                               f"{rig.daemon.tail() if rig.daemon else ''}") from None
+    return got[0]
 
 
 def _rest(rig: Rig, timeout_s: float = 10.0) -> None:
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if max(abs(v) for v in rig.must("status")["dq_rad_s"]) < 0.002:
-            return
-        time.sleep(0.05)
+    try:
+        rig.wait_for(lambda: max(abs(v) for v in rig.must("status")["dq_rad_s"]) < 0.002, timeout_s, "the arm at rest")
+    except ProcessError:
+        pass  # (the next step judges the arm as it is)
 
 
 def _payload_event(rig: Rig, mass_kg: float, what: str) -> dict[str, Any]:
@@ -68,7 +71,7 @@ def _payload_event(rig: Rig, mass_kg: float, what: str) -> dict[str, Any]:
     rig.sim_call("payload", mass_kg=mass_kg, com_m=PAYLOAD_COM_M)
     st = _wait_trip(rig, trips, 5.0)
     trip = st["guard"]["last_trip"]
-    time.sleep(1.0)
+    rig.sleep(1.0)
     q_held = rig.must("status")["q_rad"]
     return {"what": what, "guard_trip_ms": round((trip["t_s"] - t0) * 1000.0, 1),
             "drift_before_guard_deg": round(_max_deg(trip["q_rad"], q0), 3),
@@ -76,7 +79,8 @@ def _payload_event(rig: Rig, mass_kg: float, what: str) -> dict[str, Any]:
             "missing_torque_Nm": trip["residual_Nm"], "guard_payload_kg": trip["payload_kg"]}
 
 
-def run_payload_demo(config: Path | None = None, out: Path | None = None, progress: bool = True) -> dict[str, Any]:
+def run_payload_demo(config: Path | None = None, out: Path | None = None, progress: bool = True,
+                     lockstep: bool = False) -> dict[str, Any]:
     out = Path(out) if out is not None else Path.cwd() / "out"
     out.mkdir(parents=True, exist_ok=True)
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
@@ -93,21 +97,21 @@ def run_payload_demo(config: Path | None = None, out: Path | None = None, progre
     cfg_path = out / f"payload-config-{stamp}.yaml"
     cfg_path.write_text(yaml.safe_dump(data, sort_keys=False))
     mcap = out / f"demo-payload-{stamp}.mcap"
-    rig = Rig("demo-payload", config=cfg_path, telemetry=mcap, as_deployed=True)
+    rig = Rig("demo-payload", config=cfg_path, telemetry=mcap, as_deployed=not lockstep, lockstep=lockstep)
     try:
         _say(progress, f"starting the simulated robot on {rig.bus} and the daemon ...")
         rig.start_sim()
         rig.start_daemon()
         rig.must("start")
-        time.sleep(0.6)
+        rig.sleep(0.6)
         rig.must("mode", mode="drag")
-        time.sleep(0.5)
+        rig.sleep(0.5)
         _say(progress, "hand guiding: the operator's hand pulls the arm and lets go, twice ...")
         for i, step in enumerate(HAND_STEPS_RAD):
             rig.sim_call("operator", scenario={"name": f"hand{i}", "segments": [
                 {"kind": "hand", "q_rad": step, "relative": True, "stiffness": 60.0, "damping": 12.0, "max_load": 25.0,
                  "duration_s": 3.0}, {"kind": "release", "ramp_down_s": 0.1, "duration_s": 0.3}]})
-            time.sleep(3.5)
+            rig.sleep(3.5)
         _rest(rig)
         st = rig.must("status")
         false_trips = st["guard"]["trips"]
@@ -117,20 +121,20 @@ def run_payload_demo(config: Path | None = None, out: Path | None = None, progre
                                    + "); on a loaded machine missed cycles lose the drives' heartbeat: rerun it quieter")
         if st["mode"] != "drag":
             rig.must("mode", mode="drag")  # (a false trip held it: counted; drag again for the rest)
-            time.sleep(0.5)
+            rig.sleep(0.5)
         _say(progress, f"hanging a {PAYLOAD_KG:g} kg tool on the released arm ...")
         hang = _payload_event(rig, PAYLOAD_KG, "hung on")
         _say(progress, f"held after {hang['guard_trip_ms']} ms, {hang['drift_before_guard_deg']} deg; "
                        "payload estimate --apply ...")
         rig.must("mode", mode="hold")
-        time.sleep(0.5)
+        rig.sleep(0.5)
         est = rig.must("payload", action="estimate", poses=6, apply=True, timeout_s=300.0)
-        time.sleep(1.0)
+        rig.sleep(1.0)
         _say(progress, f"estimated {est['mass_kg']:.3f} kg; drag again ...")
         rig.must("mode", mode="drag")
-        time.sleep(0.5)
+        rig.sleep(0.5)
         q0 = rig.must("status")["q_rad"]
-        time.sleep(3.0)
+        rig.sleep(3.0)
         st = rig.must("status")
         drift_apply = _max_deg(st["q_rad"], q0)
         trips_after_apply = st["guard"]["trips"] - false_trips - 1

@@ -2,11 +2,20 @@
 
 dragd never imports ``sim``: the simulator is started as ``python -m sim run`` and driven through its
 control socket.
+
+The rig owns the arm's time: ``Rig.sleep(s)`` lets the arm run ``s`` seconds, ``Rig.wait_for(cond, timeout_s, what)``
+runs it until ``cond()`` holds. On the wall clock (``lockstep=False``) that is real time. On the lockstep clock
+(``lockstep=True``: both processes with ``--lockstep``, dragd/clock.py, sim/lockstep.py) the arm's time stands still
+between the rig's calls: ``sleep`` grants exactly ``s`` of simulated time (``round(s / period)`` cycles) and returns
+once they ran, ``wait_for`` grants ``LOCKSTEP_STEP_S`` at a time and looks at ``cond`` after each; what the test does
+in between (a sim ``operator`` scenario, an injected fault, a daemon command) happens at a cycle the run determines,
+so a test's verdict does not depend on how the host schedules the two processes.
 """
 
 from __future__ import annotations
 
 import hashlib
+import math
 import os
 import signal
 import subprocess
@@ -83,6 +92,20 @@ def wait_until(cond: Callable[[], bool], timeout_s: float, what: str, child: Chi
 
 
 DEPLOYED_PRIORITY = 70  # the cycle thread's SCHED_FIFO priority in the shipped unit (config loop.realtime_priority)
+START_GUARD_S = 120.0  # a process that has not come up (imports, boot) by then is hung; a loaded 2-core host takes 30+
+LOCKSTEP_CALL_S = 120.0  # the wall-clock guard of a daemon command (or SIGTERM's ramp down) on the lockstep clock
+LOCKSTEP_STEP_S = 0.01  # Rig.wait_for on the lockstep clock: the condition is looked at every 10 ms of arm time
+LOCKSTEP_WALL_S_PER_S = 20.0  # a grant's wall-clock guard: this much wall time per simulated second (+ 60 s)
+
+
+def config_rate_Hz(config: Path | None) -> float:
+    """The loop rate of a dragd configuration file (its loop.rate_Hz; 1000 when it names none)."""
+    if config is None:
+        return 1000.0
+    import yaml
+
+    data = yaml.safe_load(Path(config).read_text()) or {}
+    return float((data.get("loop") or {}).get("rate_Hz", 1000.0))
 
 
 class Rig:
@@ -91,14 +114,16 @@ class Rig:
     ``bus`` ("INTERFACE:CHANNEL", e.g. ``socketcan:vcan0``) puts both on that bus instead of a multicast group.
     ``as_deployed``: the daemon's cycle thread asks for SCHED_FIFO ``DEPLOYED_PRIORITY`` and the simulator's threads
     for 10 below, as the systemd unit runs it (docs/SYSTEMD.md); applied where the system permits it, otherwise
-    both run SCHED_OTHER and ``schedulers()`` says why (no root assumed).
+    both run SCHED_OTHER and ``schedulers()`` says why (no root assumed). ``lockstep``: both on the lockstep clock
+    (module doc; None: as ``$DRAGD_RIG_CLOCK`` says, ``lockstep`` or ``wall``, the default; the test tiers set it);
+    the simulator's period follows the configuration's loop.rate_Hz.
     """
 
     def __init__(self, tag: str = "rig", workdir: Path | None = None, config: Path | None = None,
                  sim_config: Path | None = None, telemetry: Path | None = None, group: str | None = None,
                  sim_args: list[str] | None = None, daemon_args: list[str] | None = None,
                  env: dict[str, str] | None = None, bus: str | None = None,
-                 allow_dirs: list[Path] | None = None, as_deployed: bool = False) -> None:
+                 allow_dirs: list[Path] | None = None, as_deployed: bool = False, lockstep: bool | None = None) -> None:
         self.workdir = Path(workdir or tempfile.mkdtemp(prefix=f"dragd-{tag}-"))
         self.workdir.mkdir(parents=True, exist_ok=True)
         if bus is not None and group is not None:
@@ -117,13 +142,21 @@ class Rig:
                 self.daemon_args += ["--realtime-priority", str(DEPLOYED_PRIORITY)]
             if "--realtime-priority" not in self.sim_args:
                 self.sim_args += ["--realtime-priority", str(DEPLOYED_PRIORITY - 10)]
+        if lockstep is None:
+            lockstep = os.environ.get("DRAGD_RIG_CLOCK", "wall") == "lockstep"
+        self.lockstep = lockstep
+        if lockstep:
+            if "--lockstep" not in self.sim_args:
+                self.sim_args += ["--lockstep", "--period-ms", f"{1000.0 / config_rate_Hz(config):g}"]
+            if "--lockstep" not in self.daemon_args:
+                self.daemon_args.append("--lockstep")
         self.allow_dirs = [self.workdir, *(allow_dirs or [])]  # where the daemon may write what the rig asks
         self.env = env
         self.sim: Child | None = None
         self.daemon: Child | None = None
 
     # processes
-    def start_sim(self, timeout_s: float = 30.0) -> None:
+    def start_sim(self, timeout_s: float = START_GUARD_S) -> None:
         argv = [sys.executable, "-m", "sim", "run", "--bus", self.bus, "--control", self.sim_socket, *self.sim_args]
         if self.bus.startswith("udp_multicast:") and "--batch-frames" not in argv:
             argv.append("--batch-frames")  # one datagram per SYNC answer: the rig's peers are dragd's own buses
@@ -132,7 +165,7 @@ class Rig:
         self.sim = Child("sim", argv, self.workdir, self.env)
         wait_until(lambda: "q_rad" in self.sim_call("state"), timeout_s, "the simulator's control socket", self.sim)
 
-    def start_daemon(self, timeout_s: float = 30.0) -> None:
+    def start_daemon(self, timeout_s: float = START_GUARD_S) -> None:
         argv = [sys.executable, "-m", "dragd", "run", "--bus", self.bus, "--socket", self.socket, *self.daemon_args]
         if self.bus.startswith("udp_multicast:") and "--batch-frames" not in argv:
             argv.append("--batch-frames")  # the cycle's command frames ride with the next SYNC (the sim batches too)
@@ -143,7 +176,9 @@ class Rig:
         if self.telemetry is not None:
             argv += ["--telemetry", str(self.telemetry)]
         self.daemon = Child("dragd", argv, self.workdir, self.env)
-        wait_until(lambda: self.call("status").get("cycles", 0) > 10, timeout_s, "the daemon's first cycles", self.daemon)
+        if self.lockstep:  # up (booted, socket open), then the first cycles on the arm's time
+            wait_until(lambda: "clock" in self.call("status"), timeout_s, "the daemon's control socket", self.daemon)
+        self.wait_for(lambda: self.call("status").get("cycles", 0) > 10, timeout_s, "the daemon's first cycles")
 
     def __enter__(self) -> Rig:
         return self
@@ -153,14 +188,18 @@ class Rig:
 
     def close(self) -> dict[str, int]:
         codes = {}
-        if self.daemon is not None:
-            codes["dragd"] = self.daemon.terminate()
+        if self.daemon is not None:  # (lockstep: its ramp down runs on the simulated clock, at the machine's pace)
+            codes["dragd"] = self.daemon.terminate(LOCKSTEP_CALL_S if self.lockstep else 10.0)
         if self.sim is not None:
             codes["sim"] = self.sim.terminate()
         return codes
 
     # control sockets
-    def call(self, cmd: str, timeout_s: float = 10.0, **args: Any) -> dict[str, Any]:
+    def call(self, cmd: str, timeout_s: float | None = None, **args: Any) -> dict[str, Any]:
+        """A daemon command; ``timeout_s`` of wall time (default 10 s; on the lockstep clock 120 s: a command that
+        waits for the arm runs its simulated time first, however fast the machine runs it)."""
+        if timeout_s is None:
+            timeout_s = LOCKSTEP_CALL_S if self.lockstep else 10.0
         return ControlClient(self.socket, timeout_s).call(cmd, **args)
 
     def sim_call(self, cmd: str, timeout_s: float = 5.0, **args: Any) -> dict[str, Any]:
@@ -177,16 +216,57 @@ class Rig:
             if self.must("status")["mode"] == "hold":
                 return
             self.must("start")
-            time.sleep(0.5)
+            self.sleep(0.5)
 
     # the rig's clock: tests say how long the arm runs through these, never through time.sleep
     def sleep(self, seconds: float) -> None:
-        """Let the rig run for ``seconds`` of its clock (the wall clock today)."""
-        time.sleep(seconds)
+        """Let the arm run for ``seconds`` of the rig's clock (lockstep: exactly that much simulated time)."""
+        if not self.lockstep:
+            time.sleep(seconds)
+            return
+        if self.daemon is None:
+            raise ProcessError("Rig.sleep on the lockstep clock needs the daemon (its SYNCs are the arm's time); "
+                               "start_daemon first, or use lockstep=False")
+        self.advance(seconds)
+
+    def advance(self, seconds: float) -> dict[str, Any]:
+        """Lockstep: grant ``seconds`` of simulated time and wait until they ran; the daemon's clock status."""
+        guard = 60.0 + LOCKSTEP_WALL_S_PER_S * seconds
+        try:
+            resp = self.call("clock", timeout_s=guard, action="advance", seconds=seconds)
+        except DaemonUnavailable as exc:
+            try:  # what held the clock: the peer (peer_time_s), a job off the cycle (offcycle), a gate (gate_waits)
+                held = f"; its clock: {self.call('clock', timeout_s=5.0).get('clock')}"
+            except DaemonUnavailable:
+                held = ""
+            raise ProcessError(f"lockstep: the daemon did not finish a grant of {seconds:g} s within {guard:.0f} s "
+                               f"of wall time ({exc}){held}:\n{self._tails()}") from None
+        if not resp.get("ok"):
+            raise ProcessError(f"lockstep: clock advance {seconds:g} s refused: {resp.get('error')}\n{self._tails()}")
+        return resp["clock"]
 
     def wait_for(self, cond: Callable[[], bool], timeout_s: float, what: str) -> None:
         """Run the rig until ``cond()`` holds, at most ``timeout_s`` of its clock; ProcessError names ``what``."""
-        wait_until(cond, timeout_s, what, self.daemon or self.sim)
+        if not self.lockstep or self.daemon is None:
+            wait_until(cond, timeout_s, what, self.daemon or self.sim)
+            return
+        steps = max(1, math.ceil(timeout_s / LOCKSTEP_STEP_S - 1e-9))
+        for _ in range(steps + 1):
+            for child in (self.daemon, self.sim):
+                if child is not None and not child.alive():
+                    raise ProcessError(f"{child.name} exited ({child.proc.returncode}) while waiting for {what}:\n"
+                                       f"{child.tail()}")
+            try:
+                if cond():
+                    return
+            except DaemonUnavailable:
+                pass
+            if _ < steps:
+                self.advance(LOCKSTEP_STEP_S)
+        raise ProcessError(f"timed out after {timeout_s:g} s of simulated time waiting for {what}:\n{self._tails()}")
+
+    def _tails(self) -> str:
+        return "\n".join(f"--- {c.name}:\n{c.tail()}" for c in (self.daemon, self.sim) if c is not None)
 
     def schedulers(self) -> dict[str, str]:
         """The scheduling policy each running process reports (e.g. "SCHED_FIFO 70", or SCHED_OTHER and why)."""

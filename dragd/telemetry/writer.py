@@ -465,13 +465,18 @@ class TelemetryWriter:
         self._head += 1
 
     # -- rare events (may allocate; not for the cycle) --------------------------------------
-    def event(self, name: str, **fields: Any) -> None:
-        """Queue an event (mode change, fault, ...) for ``events_topic``."""
+    def event(self, name: str, stamp_ns: int | None = None, **fields: Any) -> None:
+        """Queue an event (mode change, fault, ...) for ``events_topic`` (log time: now, CLOCK_REALTIME ns, unless
+        ``stamp_ns`` is given: the lockstep clock's)."""
         if self._closed or len(self._events) >= self._max_pending_events:
             with self._lock:
                 self._events_dropped += 1
             return
-        self._events.append((time.time_ns(), str(name), fields))
+        self._events.append((time.time_ns() if stamp_ns is None else stamp_ns, str(name), fields))
+
+    def pending_rows(self) -> int:
+        """Rows committed and not yet taken by the writer thread."""
+        return self._head - self._tail
 
     # -- status -----------------------------------------------------------------------------
     def stats(self) -> dict[str, Any]:

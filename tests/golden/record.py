@@ -12,10 +12,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from golden.trace import SCENARIOS, record  # noqa: E402
+from golden.trace import LIVE, SCENARIOS, record  # noqa: E402
 
 if __name__ == "__main__":
-    names = sys.argv[1:] or list(SCENARIOS)
+    names = sys.argv[1:] or [*SCENARIOS, *LIVE]
     with tempfile.TemporaryDirectory() as tmp:
         for name in names:
             path = record(name, Path(tmp))

@@ -3,7 +3,10 @@
 A trace holds everything that went *into* the daemon — the configuration text, per cycle the frames that arrived
 (TPDOs, EMCYs), the tick period and expirations, the operator's requests with their literal arguments — and what
 came *out*: per cycle the command frames, the mode, the drive mode and the telemetry row. Replaying the inputs
-through today's daemon must give the same outputs: frames bit for bit, telemetry within float tolerance.
+through today's daemon must give the same outputs bit for bit: frames, modes and every telemetry value. Bit for bit
+holds where the float arithmetic is the recording machine's (``arithmetic``: numpy's vectorised transcendental
+functions and BLAS pick their kernels by CPU, and differ in the last bit between CPUs); elsewhere the telemetry is
+compared within 1e-9 (relative and absolute) and the test says so.
 
 Scenarios (``SCENARIOS``) script one run each: every mode (idle, hold, drag, track, replay, fault), the blends
 between them, the start-up term and its latch, the soft-limit wall and speed cap, feedback holds and loss, missed
@@ -204,6 +207,46 @@ def trace_path(name: str) -> Path:
     return HERE / f"{name}.npz"
 
 
+LIVE = ("lockstep",)  # traces recorded from the real processes (golden/live.py), not from a scenario here
+
+
+def arithmetic() -> str:
+    """A fingerprint of this machine's float arithmetic as the cycle uses it (none of dragd's code): numpy's
+    transcendental ufuncs, small BLAS products and a least-squares solve, Pinocchio's gravity, and numba's compiled
+    arithmetic, on fixed inputs. Equal fingerprints: a replay must match a recording bit for bit."""
+    import hashlib
+
+    import numba
+    import pinocchio as pin
+
+    rng = np.random.default_rng(20261127)
+    x = rng.uniform(-3.0, 3.0, 4096)
+    a, b = rng.normal(size=(6, 6)), rng.normal(size=(6, 10))
+    parts = [np.exp(x), np.log1p(np.abs(x)), np.sin(x), np.cos(x), np.tanh(x), np.arctan2(x, x[::-1]),
+             np.sqrt(np.abs(x)), np.power(np.abs(x), 0.7), a @ b, a.dot(b[:, 0]),
+             np.linalg.lstsq(b.T, x[:10], rcond=None)[0]]
+    model = pin.buildSampleModelManipulator()
+    data = model.createData()
+    for k in range(8):
+        q = np.ascontiguousarray(x[model.nq * k:model.nq * (k + 1)])
+        parts.append(np.array(pin.computeGeneralizedGravity(model, data, q)))
+
+    @numba.njit(cache=False)
+    def mix(v: np.ndarray) -> np.ndarray:  # (what the cycle's kernels do: products, sums, rint, tanh, sqrt)
+        out = np.empty_like(v)
+        acc = 0.0
+        for i in range(v.shape[0]):
+            acc = acc * 0.999 + v[i] * 1.0001
+            out[i] = np.rint(acc * 1000.0) + np.tanh(v[i]) * np.sqrt(abs(acc)) + np.exp(-abs(v[i]))
+        return out
+
+    parts.append(mix(x))
+    h = hashlib.sha256()
+    for p in parts:
+        h.update(np.ascontiguousarray(p, dtype=np.float64).tobytes())
+    return h.hexdigest()[:16]
+
+
 # ----------------------------------------------------------------------------------------------- files
 
 
@@ -264,7 +307,7 @@ async def _record(sc: Scenario, workdir: Path) -> dict[str, Any]:
     from golden.plant import Plant
 
     text = config_text(sc)
-    cfg = load_config_text(text, workdir)
+    cfg = _guard_off(load_config_text(text, workdir), sc.name)  # (recorded as it is replayed)
     ad = DaemonAdapter(cfg)
     buses = list(ad.d.layouts)
     plant = Plant(ad.d.layouts, [j.node_id for j in cfg.joints], [j.encoder_offset_counts for j in cfg.joints],
@@ -311,7 +354,8 @@ async def _record(sc: Scenario, workdir: Path) -> dict[str, Any]:
             frames_out.append([])
         plant.step_1ms()
     tele = {f"tele_{k}": np.stack([r[k] for r in rows]) for k in rows[0]}
-    return {"config": text, "buses": json.dumps(buses), "events": json.dumps(events), "period_us": period,
+    return {"config": text, "arithmetic": arithmetic(), "buses": json.dumps(buses), "events": json.dumps(events),
+            "period_us": period,
             "expirations": exp, "mode": mode, "drive_mode": drive_mode, "computed": computed,
             "faults": json.dumps([f["text"] for f in ad.faults]), "log": json.dumps(ad.log),
             **{f"in_{k}": v for k, v in _pack_frames(frames_in, buses).items()},
@@ -319,8 +363,12 @@ async def _record(sc: Scenario, workdir: Path) -> dict[str, Any]:
 
 
 def record(name: str, workdir: Path) -> Path:
-    sc = SCENARIOS[name]()
-    data = asyncio.run(_record(sc, workdir))
+    if name in LIVE:
+        from golden.live import record_lockstep
+
+        data = record_lockstep(workdir / name)
+    else:
+        data = asyncio.run(_record(SCENARIOS[name](), workdir))
     path = trace_path(name)
     buf = io.BytesIO()
     np.savez_compressed(buf, **{k: (np.array(v) if isinstance(v, str) else v) for k, v in data.items()})
@@ -341,6 +389,7 @@ class Replay:
     telemetry: dict[str, tuple[np.ndarray, np.ndarray]]
     events: tuple[list[str | None], list[str | None]]
     faults: tuple[list[str], list[str]]
+    exact: bool = True  # the recording machine's float arithmetic (``arithmetic``): bit for bit is the verdict
 
 
 # Traces replayed with the runaway guard off, and why. The others run with it on (all were recorded before it
@@ -352,13 +401,25 @@ GUARD_OFF = {
 }
 
 
+def _written_digits(n: int) -> dict[str, int]:
+    """The significant digits each float field of the cycle row is written with (dragd/telemetry/layout.py)."""
+    from dragd.telemetry.layout import RowLayout
+    from dragd.telemetry.schema import cycle_layout
+
+    return {c.name: c.digits for c in RowLayout(cycle_layout(n)).columns if c.kind == "float"}
+
+
+def _guard_off(cfg: Any, name: str) -> Any:
+    if name not in GUARD_OFF:
+        return cfg
+    g = cfg.safety.guard.model_copy(update={"runaway": False})
+    return cfg.model_copy(update={"safety": cfg.safety.model_copy(update={"guard": g})})
+
+
 async def _replay(z: Any, workdir: Path, name: str = "") -> Replay:
     from golden.adapter import DaemonAdapter
 
-    cfg = load_config_text(str(z["config"]), workdir)
-    if name in GUARD_OFF:
-        g = cfg.safety.guard.model_copy(update={"runaway": False})
-        cfg = cfg.model_copy(update={"safety": cfg.safety.model_copy(update={"guard": g})})
+    cfg = _guard_off(load_config_text(str(z["config"]), workdir), name)
     ad = DaemonAdapter(cfg)
     buses = json.loads(str(z["buses"]))
     period, exp = z["period_us"], z["expirations"]
@@ -393,14 +454,18 @@ async def _replay(z: Any, workdir: Path, name: str = "") -> Replay:
         else:
             frames_out.append([])
     tele = {}
+    digits = _written_digits(ad.n) if "telemetry_as_written" in z.files else {}
     for key in z.files:
         if key.startswith("tele_"):
             name = key[5:]
             now = np.stack([r[name] for r in rows]) if rows and name in rows[0] else None
+            if now is not None and name in digits:  # (a recording from a telemetry file: its rows as written)
+                now = np.vectorize(lambda x, d=digits[name]: float(f"%.{d}g" % x))(now)
             tele[name] = (z[key], now)
+    exact = "arithmetic" in z.files and str(z["arithmetic"]) == arithmetic()
     return Replay(str(z["config"])[:0] or "trace", cycles, computed, (z["mode"], mode), (z["drive_mode"], drive_mode),
                   (frames_rec, frames_out), tele, (errors_rec, errors_now),
-                  (json.loads(str(z["faults"])), [f["text"] for f in ad.faults]))
+                  (json.loads(str(z["faults"])), [f["text"] for f in ad.faults]), exact)
 
 
 def replay(name: str, workdir: Path) -> Replay:
@@ -408,8 +473,13 @@ def replay(name: str, workdir: Path) -> Replay:
         return asyncio.run(_replay(z, workdir, name))
 
 
-def compare(r: Replay, rtol: float = 1e-9, atol: float = 1e-9) -> list[str]:
-    """Every difference between the recorded outputs and today's, as readable lines (empty: identical)."""
+def compare(r: Replay, rtol: float | None = None, atol: float | None = None) -> list[str]:
+    """Every difference between the recorded outputs and today's, as readable lines (empty: identical). The
+    telemetry bit for bit where the arithmetic is the recording's (``r.exact``), else within 1e-9."""
+    if rtol is None:
+        rtol = 0.0 if r.exact else 1e-9
+    if atol is None:
+        atol = 0.0 if r.exact else 1e-9
     problems: list[str] = []
     for what, (rec, now) in (("mode", r.mode), ("drive mode", r.drive_mode)):
         bad = np.flatnonzero(rec != now)
@@ -430,7 +500,8 @@ def compare(r: Replay, rtol: float = 1e-9, atol: float = 1e-9) -> list[str]:
         if rec.shape != now.shape:
             problems.append(f"telemetry field {name}: shape {rec.shape} now {now.shape}")
             continue
-        close = np.isclose(rec, now, rtol=rtol, atol=atol, equal_nan=True)
+        close = (np.isclose(rec, now, rtol=rtol, atol=atol, equal_nan=True) if rtol or atol
+                 else (rec == now) | (np.isnan(rec) & np.isnan(now)))
         if not close.all():
             k = int(np.flatnonzero(~close.all(axis=1))[0])
             problems.append(f"telemetry {name} differs in {int((~close.all(axis=1)).sum())} rows, first row {k}: "

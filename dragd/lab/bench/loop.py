@@ -17,6 +17,12 @@ wake-ups preempt it), which weighs against its figures, never for them (docs/PER
 The session runs as deployed (docs/SYSTEMD.md): the daemon's cycle thread SCHED_FIFO 70 and the simulator's
 threads 60, where the system permits it (`--realtime-priority 0`: both SCHED_OTHER). The policy in force is
 printed on stderr (``dragd status`` → ``scheduler``).
+
+The lockstep session (``lockstep_rtf``, ``lockstep_daemon_cpu_us_per_cycle``, ``lockstep_sim_cpu_us_per_cycle``)
+runs the same drag on the lockstep clock (dragd/clock.py): ``--seconds`` of simulated time granted at once, as fast
+as both processes go; the real-time factor and the CPU each process spent per cycle. Every CPU-per-cycle figure
+carries the run's yardstick (dragd/lab/bench/yardstick.py) in its ``detail``: the figure in yardsticks compares
+across machines.
 """
 
 from __future__ import annotations
@@ -31,6 +37,7 @@ from pathlib import Path
 
 from dragd.lab.bench import BenchError, benchmark
 from dragd.lab.bench.stalls import PROBE_PRIORITY, StallProbe, attribute
+from dragd.lab.bench.yardstick import yardstick_us_once
 
 
 REALTIME_PRIORITY = 70  # the cycle thread's SCHED_FIFO priority as deployed (docs/SYSTEMD.md); the sim's is 10 below
@@ -97,6 +104,7 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
     from dragd.config import load_config
     from dragd.lab.rig import Rig, multicast_group
 
+    yardstick_us_once()  # (measured before the session's processes start: the same run, a quiet moment of it)
     rt = ["--realtime-priority", str(priority)] if priority else []
     sim_rt = ["--realtime-priority", str(max(1, priority - 10))] if priority else []
     cfg = load_config(config)
@@ -325,16 +333,82 @@ def sim_cpu_pct(opts: dict) -> float:
     return float(_session(*_opts(opts))["sim_cpu_pct"])
 
 
+def _in_yardsticks(us: float) -> tuple[float, dict[str, float]]:
+    y = yardstick_us_once()
+    return us, {"yardstick_us": round(y, 3), "yardsticks": round(us / y, 4)}
+
+
 @benchmark("daemon_cpu_us_per_cycle", "us")
-def daemon_cpu_us_per_cycle(opts: dict) -> float:
+def daemon_cpu_us_per_cycle(opts: dict) -> tuple[float, dict[str, float]]:
     """The daemon's CPU time per cycle over the loop session (all threads; less load-sensitive than latency)."""
-    return float(_session(*_opts(opts))["daemon_cpu_us_per_cycle"])
+    return _in_yardsticks(float(_session(*_opts(opts))["daemon_cpu_us_per_cycle"]))
 
 
 @benchmark("sim_cpu_us_per_cycle", "us")
-def sim_cpu_us_per_cycle(opts: dict) -> float:
+def sim_cpu_us_per_cycle(opts: dict) -> tuple[float, dict[str, float]]:
     """The simulator's CPU time per daemon cycle over the loop session (4 physics steps + SYNC answers each)."""
-    return float(_session(*_opts(opts))["sim_cpu_us_per_cycle"])
+    return _in_yardsticks(float(_session(*_opts(opts))["sim_cpu_us_per_cycle"]))
+
+
+@lru_cache(maxsize=4)
+def _lockstep_session(seconds: float, config: str | None, sim_config: str | None) -> dict:
+    """The drag session on the lockstep clock: ``seconds`` of simulated time granted at once."""
+    from dragd.config import load_config
+    from dragd.lab.rig import Rig, multicast_group
+
+    yardstick_us_once()
+    cfg = load_config(config)
+    with Rig("bench-lockstep", config=Path(config) if config else None,
+             sim_config=Path(sim_config) if sim_config else None, lockstep=True) as rig:
+        if len(cfg.buses) > 1:
+            rig.bus = ",".join(f"udp_multicast:{multicast_group(f'bench{k}')}" for k in range(len(cfg.buses)))
+        rig.start_sim()
+        rig.start_daemon()
+        rig.must("start")
+        rig.sleep(0.5)
+        rig.must("mode", mode="drag")
+        rig.sim_call("operator", scenario="flange_drag")
+        rig.sleep(0.2)
+        assert rig.daemon is not None and rig.sim is not None
+        pids = (rig.daemon.proc.pid, rig.sim.proc.pid)
+        before = rig.must("status")
+        cpu0, w0 = [process_cpu_s(p) for p in pids], time.monotonic()
+        rig.sleep(seconds)
+        cpu1, w1 = [process_cpu_s(p) for p in pids], time.monotonic()
+        after = rig.must("status")
+        rig.must("stop")
+    if after.get("mode") != "drag":
+        raise BenchError(f"lockstep loop benchmark: the daemon left drag (mode {after.get('mode')!r}, last fault "
+                         f"{(after.get('faults') or ['none'])[-1]})")
+    cycles = max(1, after["cycles"] - before["cycles"])
+    wall = w1 - w0
+    print(f"bench: lockstep session {seconds:g} s of simulated time in {wall:.2f} s of wall time ({cycles} cycles)",
+          file=sys.stderr)
+    return {"rtf": seconds / wall, "daemon_cpu_us_per_cycle": 1e6 * (cpu1[0] - cpu0[0]) / cycles,
+            "sim_cpu_us_per_cycle": 1e6 * (cpu1[1] - cpu0[1]) / cycles}
+
+
+def _lockstep_opts(opts: dict) -> tuple[float, str | None, str | None]:
+    seconds, config, _prio, _profile, sim_config = _opts(opts)
+    return seconds, config, sim_config
+
+
+@benchmark("lockstep_rtf", "ratio")
+def lockstep_rtf(opts: dict) -> float:
+    """Simulated time over wall time of the drag session on the lockstep clock (as fast as both processes go)."""
+    return float(_lockstep_session(*_lockstep_opts(opts))["rtf"])
+
+
+@benchmark("lockstep_daemon_cpu_us_per_cycle", "us")
+def lockstep_daemon_cpu_us_per_cycle(opts: dict) -> tuple[float, dict[str, float]]:
+    """The daemon's CPU time per cycle on the lockstep clock (all threads; the clock's bookkeeping included)."""
+    return _in_yardsticks(float(_lockstep_session(*_lockstep_opts(opts))["daemon_cpu_us_per_cycle"]))
+
+
+@benchmark("lockstep_sim_cpu_us_per_cycle", "us")
+def lockstep_sim_cpu_us_per_cycle(opts: dict) -> tuple[float, dict[str, float]]:
+    """The simulator's CPU time per cycle on the lockstep clock (a period's physics, the SYNC answer, TIME)."""
+    return _in_yardsticks(float(_lockstep_session(*_lockstep_opts(opts))["sim_cpu_us_per_cycle"]))
 
 
 @benchmark("bus_load", "%")

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -15,7 +14,7 @@ import numpy as np
 import yaml
 
 from dragd.config import Config, default_config_path, load_config
-from dragd.lab.rig import Rig, wait_until
+from dragd.lab.rig import Rig
 from dragd.telemetry.reader import read_rows
 
 BREAKAWAY_THRESHOLD_RAD = 0.002  # a joint that moved this far has started (0.11°)
@@ -23,12 +22,14 @@ BREAKAWAY_THRESHOLD_RAD = 0.002  # a joint that moved this far has started (0.11
 
 @dataclass
 class Bench:
-    """Where the experiment runs: the user's config (+ identified params), a work folder, the rigs it started."""
+    """Where the experiment runs: the user's config (+ identified params), a work folder, the rigs it started;
+    ``lockstep``: the rigs on the lockstep clock (a loaded machine cannot disturb the measurement)."""
 
     workdir: Path
     config: Path | None = None
     params: Path | None = None
     progress: bool = True
+    lockstep: bool | None = None  # (None: as $DRAGD_RIG_CLOCK says; the test tiers set it)
     _count: int = field(default=0, init=False)
 
     def __post_init__(self) -> None:
@@ -68,14 +69,14 @@ class Bench:
         cfg = self.derived_config(tag, edits or {})
         args = ["--params", str(self.params)] if self.params else []
         rig = Rig(tag, workdir=self.workdir / f"{tag}-{self._count}", config=cfg, daemon_args=args,
-                  allow_dirs=[self.workdir])
+                  allow_dirs=[self.workdir], lockstep=self.lockstep)
         try:
             rig.start_sim()
             rig.start_daemon()
             rig.must("start")
-            time.sleep(0.3)
+            rig.sleep(0.3)
             rig.must("mode", mode="drag")
-            time.sleep(0.5)
+            rig.sleep(0.5)
             yield rig
         finally:
             try:
@@ -122,7 +123,7 @@ class Bench:
 def record(rig: Rig, path: Path, seconds: float) -> dict[str, np.ndarray]:
     """Every cycle of the daemon for ``seconds`` (encoders, commands) via its `record` window."""
     rig.must("record", action="start", path=str(path), label=path.stem)
-    time.sleep(seconds)
+    rig.sleep(seconds)
     rig.must("record", action="stop")
     return read_rows(path)
 
@@ -134,18 +135,18 @@ def oscillation_deg(rows: dict[str, np.ndarray]) -> np.ndarray:
 
 
 def wait_rest(rig: Rig, timeout_s: float = 8.0) -> None:
-    """Until the daemon's encoders show every joint at rest for 0.2 s."""
+    """Until the daemon's encoders show every joint at rest for 0.2 s (of the daemon's clock)."""
     still_since: list[float] = []
 
     def rest() -> bool:
-        moving = max(abs(v) for v in rig.must("status")["dq_rad_s"]) > 1e-3
-        if moving:
+        st = rig.must("status")
+        if max(abs(v) for v in st["dq_rad_s"]) > 1e-3:
             still_since.clear()
             return False
-        still_since.append(time.monotonic())
+        still_since.append(st["t_s"])
         return still_since[-1] - still_since[0] >= 0.2
 
-    wait_until(rest, timeout_s, "the arm at rest", rig.daemon)
+    rig.wait_for(rest, timeout_s, "the arm at rest")
 
 
 def ramp_breakaway(rig: Rig, joint: str, sign: int, rate_Nm_s: float, timeout_s: float) -> dict[str, Any]:
@@ -158,7 +159,7 @@ def ramp_breakaway(rig: Rig, joint: str, sign: int, rate_Nm_s: float, timeout_s:
         ev = rig.sim_call("operator_events").get("events") or []
         return any(e["kind"] in ("breakaway", "ramp_timeout", "ramp_limit") for e in ev)
 
-    wait_until(finished, timeout_s + 5.0, f"the ramp on {joint}", rig.sim)
+    rig.wait_for(finished, timeout_s + 5.0, f"the ramp on {joint}")
     ev = [e for e in rig.sim_call("operator_events")["events"] if e["kind"] in ("breakaway", "ramp_timeout", "ramp_limit")]
     return ev[-1]
 
@@ -177,7 +178,7 @@ def move_effort(rig: Rig, joint: str, velocity_rad_s: float, seconds: float) -> 
     def finished() -> bool:
         return any(e["kind"] == "move" for e in rig.sim_call("operator_events").get("events") or [])
 
-    wait_until(finished, seconds + 5.0, f"the move of {joint}", rig.sim)
+    rig.wait_for(finished, seconds + 5.0, f"the move of {joint}")
     return [e for e in rig.sim_call("operator_events")["events"] if e["kind"] == "move"][-1]
 
 

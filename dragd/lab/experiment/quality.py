@@ -3,12 +3,10 @@
 from __future__ import annotations
 
 import math
-import time
 from typing import Any
 
 import numpy as np
 
-from dragd.lab.rig import wait_until
 from dragd.lab.experiment.bench import Bench, move_effort, wait_rest
 
 SPEED_RAD_S = math.radians(10.0)
@@ -42,9 +40,9 @@ def run_quality(bench: Bench, joints: list[int], move_s: float = 2.0, observe_s:
                 {"kind": "move", "joint": name, "velocity_rad_s": SPEED_RAD_S, "duration_s": 1.0},
                 {"kind": "move", "joint": name, "velocity_rad_s": 0.0, "duration_s": 0.6},
                 {"kind": "release", "duration_s": 0.0}]})
-            wait_until(lambda: rig.sim_call("operator_events").get("done", False), 10.0, f"{name} placed", rig.sim)
+            rig.wait_for(lambda: rig.sim_call("operator_events").get("done", False), 10.0, f"{name} placed")
             q0 = np.array(rig.must("status")["q_rad"])
-            time.sleep(observe_s)
+            rig.sleep(observe_s)
             q1 = np.array(rig.must("status")["q_rad"])
             drift[j] = float(np.degrees(np.abs(q1 - q0)).max())
         guard_trips = int(rig.must("status")["guard"]["trips"])  # the hand's moves are not runaways: 0 expected

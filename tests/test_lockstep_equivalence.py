@@ -1,0 +1,81 @@
+"""The lockstep clock simulates what the wall clock runs: the same drag scenario on both agrees within a stated
+tolerance.
+
+What may differ, physically: on the wall clock the simulator's 1 ms physics grid and the daemon's SYNC grid have an
+arbitrary phase (a TPDO samples the arm up to one physics tick before the SYNC; a command starts at the next tick),
+the cycle's period jitters (the velocity estimate divides by the measured period), a loaded host misses a tick now
+and then (the command held two periods), and the operator's push starts when the simulator gets the request, up to
+a period off the daemon's cycle; in lockstep the grids are one and every period is exact.
+
+So, aligned at the push's onset: while the hand pushes, the path is forced and agrees within ``PUSH_TOLERANCE`` (1 %
+of the motion); after the release the arm coasts weightless, braked only by the law's damping, and the small
+differences above grow: within ``COAST_TOLERANCE`` (8 %) 1.5 s after the release. Measured on this 2-core VM with
+other jobs running (load 3–6), five wall runs against lockstep: the push within 0.1 %; the coast 0.3, 1.9, 5.3, 0.4
+and 1.9 % (the wall clock's runs differ from each other as much). Only a wall-clock run whose daemon did not hold the
+arm for lost feedback (a host stall) is a reference; otherwise the test says so instead of judging.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from dragd.lab.rig import Rig
+from dragd.telemetry.reader import read_rows
+
+pytestmark = pytest.mark.rig  # (one run of it on the wall clock: serial)
+
+PUSH_S, COAST_S = 0.5, 1.5  # the push; how long the coast after the release is compared
+PUSH_TOLERANCE, COAST_TOLERANCE = 0.01, 0.08  # of the motion's extent
+RESOLUTION_RAD = 2.0 * math.pi / 524288 * 10  # a few encoder counts (524288 per revolution)
+PUSH = {"name": "push", "segments": [{"kind": "push", "joint": "joint1", "torque_Nm": 6.0, "duration_s": PUSH_S},
+                                     {"kind": "release", "duration_s": 0.0}]}
+
+
+def run(tmp: Path, lockstep: bool) -> dict[str, Any]:
+    mcap = tmp / "run.mcap"
+    with Rig("equivalence", workdir=tmp, telemetry=mcap, lockstep=lockstep, as_deployed=not lockstep) as rig:
+        rig.start_sim()
+        rig.start_daemon()
+        rig.must("start")
+        rig.sleep(0.5)
+        rig.must("mode", mode="drag")
+        rig.sleep(0.3)
+        rig.sim_call("operator", scenario=PUSH)
+        rig.sleep(2.0)
+        status = rig.must("status")
+        rig.must("stop")
+    rows = read_rows(mcap)
+    mode = np.asarray(rows["mode"])
+    q = np.asarray(rows["q_rad"], dtype=float)[:, 0]
+    dq = np.asarray(rows["dq_rad_s"], dtype=float)[:, 0]
+    k0 = int(np.flatnonzero(mode == "drag")[0])
+    onset = k0 + int(np.flatnonzero(np.abs(q[k0:] - q[k0]) > 10 * RESOLUTION_RAD)[0])
+    a = onset - 20
+    return {"q": q[a:a + 2000] - q[a], "dq": dq[a:a + 2000], "status": status}
+
+
+def test_wall_clock_and_lockstep_agree(tmp_path: Path) -> None:
+    lock = run(tmp_path / "lockstep", True)
+    wall = run(tmp_path / "wall", False)
+    st = wall["status"]
+    if st["feedback_holds"] or st["faults"]:
+        pytest.skip(f"the wall-clock run is no reference on this machine now: {st['feedback_holds']} feedback "
+                    f"hold(s), faults {st['faults'][-1:]} ({st['missed_cycles']} missed ticks): run it on a quiet one")
+    n = min(len(lock["q"]), len(wall["q"]))
+    ql, qw = lock["q"][:n], wall["q"][:n]
+    extent = float(np.abs(ql).max())
+    assert extent > 0.3 and float(np.abs(lock["dq"][:n]).max()) > 0.2  # the push moved the joint: something to compare
+    off = np.abs(qw - ql) / extent
+    pushed = int(PUSH_S * 1000) + 20  # samples (1 ms) from 20 before the onset to the release
+    for name, window, tol in (("push", slice(0, pushed), PUSH_TOLERANCE),
+                              ("coast", slice(pushed, pushed + int(COAST_S * 1000)), COAST_TOLERANCE)):
+        k = window.start + int(off[window].argmax())
+        assert off[k] <= tol + RESOLUTION_RAD / extent, (
+            f"{name}: the wall clock's path is {100 * off[k]:.2f} % of the motion off the lockstep path {k - 20} ms "
+            f"after the onset ({qw[k]:.4f} against {ql[k]:.4f} rad; allowed {100 * tol:g} %; the wall run: "
+            f"{st['missed_cycles']} missed ticks, {st['late_tpdo_cycles']} cycles with late TPDOs)")
