@@ -28,7 +28,8 @@ METHODS = ("lowspeed", "symmetric", "synchronous", "full", "auto")
 PRIOR_REL = 0.05  # full dynamics: prior std of a base parameter relative to its URDF value (CAD masses)
 ARMATURE_PRIOR_KGM2 = 1.0  # ... and of a rotor inertia (not in a URDF), reflected to the joint
 PRIOR_GRAVITY_REL = 0.01  # ... and of a gravity parameter (the K_t reference; see fit_full)
-RESOLUTION_A = 0.05  # a friction term whose uncertainty moves the current by more than this over the data is null
+RESOLUTION_A = 0.05  # a friction term whose uncertainty moves the current by more than this over the data is null ...
+DETERMINED_REL = 0.2  # ... unless it is determined to this fraction of its value (a 5σ estimate on noisy real logs)
 KT_MAX_REL_STD = 0.05  # a torque constant not determined to 5 % is null
 MIN_ROWS = 20
 
@@ -180,7 +181,7 @@ def _set_friction_from_fit(jr: JointResult, fit: LinearFit, vmax: float, reason_
         v, s = fit.value(key), fit.std(key)
         if v is None:
             jr.set(key, None, reason=reason_prefix + fit.dropped.get(key, "not in the model"))
-        elif s is not None and s > RESOLUTION_A:
+        elif s is not None and s > RESOLUTION_A and s > DETERMINED_REL * abs(v):
             jr.set(key, None, reason=f"{reason_prefix}not determined: {v:.4f} ± {s:.4f} A")
         else:
             jr.set(key, v, s)
@@ -191,7 +192,7 @@ def _set_friction_from_fit(jr: JointResult, fit: LinearFit, vmax: float, reason_
         v, s = fit.value(key), fit.std(key)
         if v is None:
             jr.set(key, None, reason=reason_prefix + fit.dropped.get(key, "not in the model"))
-        elif s is not None and s * vmax > RESOLUTION_A:
+        elif s is not None and s * vmax > RESOLUTION_A and s > DETERMINED_REL * abs(v):
             jr.set(key, None, reason=f"{reason_prefix}not determined: {v:.4f} ± {s:.4f} A·s/rad over speeds up to "
                                      f"{vmax:.3f} rad/s")
         else:
