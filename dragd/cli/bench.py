@@ -69,7 +69,7 @@ def register(sub: Any) -> None:
                    help="loop benchmarks: the simulator's truth file (default: the bundled seed cobot's); with a "
                         "daemon configuration of several buses its joints' bus_index must match")
     b.add_argument("--data", type=Path, default=None, metavar="DIR",
-                   help="ident_real: the UR10e dataset, a checkout of github:shamilmamedov/dynamic_calibration "
+                   help="ident_real, contact_real: the UR10e dataset, a git checkout of github:shamilmamedov/dynamic_calibration "
                         "(default: $DRAGD_UR10E_DATA)")
     add_config(b, params=False)
     b.add_argument("--json", action="store_true", help="print JSON")

@@ -83,7 +83,8 @@ def _load_plugins() -> None:
     import importlib
 
     for mod in ("dragd.lab.bench.loop", "dragd.lab.bench.identify", "dragd.lab.bench.gap",
-                "dragd.lab.bench.gap_confusion", "dragd.lab.bench.ident_real", "dragd.lab.bench.faults",
+                "dragd.lab.bench.gap_confusion", "dragd.lab.bench.ident_real", "dragd.lab.bench.contact_real",
+                "dragd.lab.bench.faults",
                 "dragd.lab.bench.telemetry"):
         try:
             importlib.import_module(mod)
