@@ -25,7 +25,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
         raise CliError(f"--jobs: expected ≥ 1, got {args.jobs}")
     opts = {"config": absolute(args.config), "seconds": args.seconds, "realtime_priority": args.realtime_priority,
             "jobs": args.jobs, "cases": args.cases, "out": absolute(args.out), "profile": absolute(args.profile),
-            "sim_config": absolute(args.sim_config), "data": absolute(args.data)}
+            "sim_config": absolute(args.sim_config), "data": absolute(args.data), "train": args.train,
+            "valid": args.valid}
     try:
         result = bench.run(args.names, {k: v for k, v in opts.items() if v is not None})
     except KeyError as exc:
@@ -71,6 +72,12 @@ def register(sub: Any) -> None:
     b.add_argument("--data", type=Path, default=None, metavar="DIR",
                    help="ident_real, contact_real: the UR10e dataset, a git checkout of github:shamilmamedov/dynamic_calibration "
                         "(default: $DRAGD_UR10E_DATA)")
+    b.add_argument("--train", action="append", default=None, metavar="LOG[+LOG]",
+                   help="ident_real: a training set of the dataset's logs by name, '+' joining several (repeat: "
+                        "several sets; default: the 50 s 12-harmonic run, and the 50 s 14-harmonic run)")
+    b.add_argument("--valid", action="append", default=None, metavar="LOG[,LOG]",
+                   help="ident_real: validation logs by name, each validated against every training set it is not "
+                        "part of (default: the 20 s 5/7/8/10-, 50 s 12/14/15-harmonic runs)")
     add_config(b, params=False)
     b.add_argument("--json", action="store_true", help="print JSON")
     b.set_defaults(func=cmd_bench)

@@ -1,7 +1,9 @@
 """The identified model the contact detector's residual uses: one robot model (Pinocchio from the URDF + the params'
 link inertials and rotor inertias), the identified friction (dragd's law, unscaled) and K_t.
 
-    p = M̄(q)·q̇,   τ_in = K_t·(I − I_f(q̇)) − g(q) + Cᵀ(q, q̇)·q̇,   M̄ = M + diag(J_a)
+    p = M̄(q)·q̇,   τ_in = K_t·(I − I_f(q̇) − I_L(q, q̇)) − g(q) + Cᵀ(q, q̇)·q̇,   M̄ = M + diag(J_a)
+
+with I_L = w(q̇)·sign(q̇)·k_L·|g(q)|/K_t the load-dependent friction (params ``effects.load_friction_per_Nm``).
 
 ``terms`` evaluates them per sample into preallocated arrays (what the cycle does); ``log_terms`` over a whole log.
 """
@@ -28,6 +30,7 @@ class ContactModel:
     kt_source: str
     armature_kgm2: np.ndarray
     names: list[str]
+    load_friction_per_Nm: np.ndarray | None = None  # k_L per joint (None: none)
 
     @classmethod
     def from_files(cls, robot: str | Path, params: Any, params_name: str = "params",
@@ -70,25 +73,37 @@ class ContactModel:
                                         "or fit with them (dragd identify fit --torque-constants)")
             src = f"{params_name} (torque_constant_Nm_per_A)"
         law = law.replace(kt_Nm_per_A=kt)
-        return cls(rm, law, kt, src, arm, names)
+        k_load = np.array([float(jp.effects.load_friction_per_Nm) if (jp := params.joints.get(nm)) is not None else 0.0
+                           for nm in names])
+        return cls(rm, law, kt, src, arm, names, k_load if k_load.any() else None)
 
     def workspace(self) -> dict[str, np.ndarray]:
         from dragd.control.law import Workspace
 
         n = len(self.names)
-        return {"fr": np.zeros(n), "ws": Workspace(n), "zero": np.zeros(n)}  # type: ignore[dict-item]
+        return {"fr": np.zeros(n), "ws": Workspace(n), "w": np.zeros(n), "tmp": np.zeros(n)}  # type: ignore[dict-item]
 
     def terms(self, q: np.ndarray, dq: np.ndarray, i_A: np.ndarray, p_out: np.ndarray, tau_out: np.ndarray,
               ws: dict[str, Any]) -> None:
         """p = M̄q̇ and τ_in = K_t·(I − I_f) − g + Cᵀq̇ at one sample, into the given arrays."""
-        from dragd.control.law import friction_current
+        from dragd.control.law import _sliding_weight, friction_current
 
         m, d = self.robot.model, self.robot.data
         self.robot.momentum(q, dq, p_out)  # RNEA of a gravity-free copy at q̈ = q̇ (rotor inertias included)
         g = pin.computeGeneralizedGravity(m, d, q)
         C = pin.computeCoriolisMatrix(m, d, q, dq)
-        friction_current(dq, self.law, ws["fr"], ws["ws"])
-        np.subtract(i_A, ws["fr"], out=tau_out)
+        fr = friction_current(dq, self.law, ws["fr"], ws["ws"])
+        if self.load_friction_per_Nm is not None:  # w·sign(q̇)·k_L·|g|/K_t
+            w = ws["w"]
+            np.abs(dq, out=w)
+            _sliding_weight(w, self.law, w, ws["tmp"], None)
+            np.abs(g, out=ws["tmp"])
+            w *= ws["tmp"]
+            w *= self.load_friction_per_Nm
+            w /= self.kt_Nm_per_A
+            np.copysign(w, dq, out=w)
+            fr += w
+        np.subtract(i_A, fr, out=tau_out)
         tau_out *= self.kt_Nm_per_A
         tau_out -= g
         tau_out += C.T @ dq

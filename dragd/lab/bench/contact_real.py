@@ -9,8 +9,8 @@ are never read. ``data_ur10`` is the same arm as ``dataset_ur10e`` (the identifi
 folders are byte-identical); collision_2link.csv has 25 columns, t, q, q̇, i and six columns that are not the
 target current (uncorrelated with i, no gravity level) — read with ``--columns q,dq,i,-``.
 
-1. **Identification**: ``dragd identify fit --method full --torque-constants <drvGains>`` on the two 12-harmonic
-   runs (ident_real's training logs).
+1. **Identification**: ``dragd identify fit --method full --torque-constants <drvGains> --load-friction`` on the two
+   12-harmonic runs (ident_real's training logs).
 2. **Calibration**: ``dragd contact calibrate`` (margin 1.5) on free-motion logs of the same arm that are neither
    the fit's nor contact logs: the 20 s 5/7/8/10-harmonic runs, the 40 s 12-harmonic run, the 50 s 14/15-harmonic
    runs, the 19-12-23 free run, the 20-01-31 unloaded run, the six jointwise runs and the ten held poses p1..p10.
@@ -140,6 +140,7 @@ def _run(ds: Any, root: Path, tmp: Path, train_spec: Any, Reference: Any, filter
     t0 = time.perf_counter()
     o = Options()
     o.torque_constants = [float(g) for g in ds.gains]
+    o.load_friction = True  # --load-friction
     _, params, _ = fit_params(stack_logs(list(train.values())), RobotModel.from_urdf(ds.urdf), "full", o)
     pfile = tmp / "fitted.yaml"
     save_params(params, pfile)
@@ -246,7 +247,7 @@ def _run(ds: Any, root: Path, tmp: Path, train_spec: Any, Reference: Any, filter
         "dragd": {"total": total, "logs": per_log, "bands": cal.report,
                   "free_motion_max_ratio_collision_2link": free_ratio, "held_out_free_motion": held_out,
                   "commands": ["dragd identify fit --robot URDF --log TRAIN1 --log TRAIN2 --method full "
-                               "--torque-constants GAINS --out fitted.yaml",
+                               "--torque-constants GAINS --load-friction --out fitted.yaml",
                                "dragd contact calibrate --robot URDF --params fitted.yaml --log FREE1 ... --log FREEn "
                                "--margin 1.5 --out contact.yaml",
                                "dragd contact detect --robot URDF --params contact.yaml --log LOG [--columns "
