@@ -83,10 +83,17 @@ class TextbookDetector:
         return out
 
     def calibrate(self, residuals: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
-        """Thresholds: 1.2 × the largest |residual| per joint over (residual, usable-sample mask) pairs."""
+        """Thresholds: 1.2 × the largest |residual| per joint over (residual, usable-sample mask) pairs;
+        ``self.set_by`` names, per joint, the pair index and sample that set it."""
         top = np.zeros(self.n)
-        for r, ok in residuals:
-            np.maximum(top, np.abs(r[ok]).max(axis=0), out=top)
+        self.set_by: list[tuple[int, int]] = [(-1, -1)] * self.n
+        for idx, (r, ok) in enumerate(residuals):
+            a = np.where(ok[:, None], np.abs(r), 0.0)
+            k = np.argmax(a, axis=0)
+            for j in range(self.n):
+                if a[k[j], j] > top[j]:
+                    top[j] = a[k[j], j]
+                    self.set_by[j] = (idx, int(k[j]))
         self.thresholds_A = THRESHOLD_FACTOR * top
         return self.thresholds_A
 

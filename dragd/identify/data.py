@@ -334,7 +334,8 @@ def _headerless_columns(path: Path, ncols: int, n_joints: int | None,
                 return names(kinds, n_joints)
         raise LogError(f"{path}: headerless CSV with {ncols} columns does not fit the robot's {n_joints} joints: "
                        f"expected {1 + 5 * n_joints} (UR RTDE t,q,qd,i,i_target,tau_target), {1 + 3 * n_joints} "
-                       f"(t,q,dq,i) or {1 + 2 * n_joints} (t,q,i) columns, or a header line t,q1..qN,i1..iN")
+                       f"(t,q,dq,i) or {1 + 2 * n_joints} (t,q,i) columns, or a header line t,q1..qN,i1..iN "
+                       "(dragd contact also takes the layout as --columns, e.g. q,dq,i,-)")
     if ncols > 1 and (ncols - 1) % 5 == 0:
         return names(_UR_LAYOUT, (ncols - 1) // 5)
     raise LogError(f"{path}: headerless CSV with {ncols} columns: the layout is ambiguous without the robot's joint "

@@ -216,6 +216,9 @@ def _run(ds: Any, root: Path, tmp: Path, train_spec: Any, Reference: Any, filter
         pp, tau = tb.terms(lg.q, lg.dq, lg.i)
         ref_res.append((tb.residual(lg.t, pp, tau), usable(r, settings)[0]))
     tb.calibrate(ref_res)
+    set_by = {nm: {"log": runs[i][0], "t_s": round(float(cal_logs[runs[i][0]].t[k] - cal_logs[runs[i][0]].t[0]), 2),
+                   "speed_rad_s": round(float(abs(cal_logs[runs[i][0]].dq[k, j])), 3)}
+              for j, (nm, (i, k)) in enumerate(zip(names, tb.set_by))}
     ref_scores = []
     ref_logs: dict[str, Any] = {}
     for name, lg in contact_logs.items():
@@ -253,7 +256,7 @@ def _run(ds: Any, root: Path, tmp: Path, train_spec: Any, Reference: Any, filter
                                "dragd contact detect --robot URDF --params contact.yaml --log LOG [--columns "
                                "q,dq,i,-] --json"]},
         "reference": {"total": ref_total, "logs": ref_logs,
-                      "thresholds_A": [round(float(x), 4) for x in tb.thresholds_A],
+                      "thresholds_A": [round(float(x), 4) for x in tb.thresholds_A], "thresholds_set_by": set_by,
                       "model": "OLS base rigid-body + viscous/Coulomb/offset (ident_real's reference, scripts' rows)",
                       "observer_gain_per_s": tb.gain, "threshold": "1.2 × the largest free-motion |residual|"},
         "targets": {"every_contact_of_1A_found": True, "false_alarms": 0, "free_motion_ratio_max": TARGET_FREE_RATIO,
