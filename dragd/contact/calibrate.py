@@ -18,7 +18,6 @@ detector while it commands a stop itself.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any
 

@@ -90,7 +90,7 @@ def periodic_labels(t: np.ndarray, q: np.ndarray, dq: np.ndarray, i_A: np.ndarra
     level = np.maximum(k_sigma * sigma, floor_A)
     hot = np.flatnonzero((np.abs(dev) > level).any(axis=1))
     segs: list[list[int]] = []
-    for s in hot:
+    for s in (int(x) for x in hot):
         if segs and t[s] - t[segs[-1][1]] < merge_s:
             segs[-1][1] = s
         else:

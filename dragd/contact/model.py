@@ -66,11 +66,11 @@ class ContactModel:
         else:
             kt = np.array([np.nan if (jp := params.joints.get(nm)) is None or jp.torque_constant_Nm_per_A is None
                            else float(jp.torque_constant_Nm_per_A) for nm in names])
-            missing = [nm for nm, k in zip(names, kt) if not np.isfinite(k)]
+            missing = [nm for nm, k in zip(names, kt, strict=True) if not np.isfinite(k)]
             if missing:
                 raise ContactModelError(f"{params_name}: torque_constant_Nm_per_A is null for {', '.join(missing)}: "
-                                        "the residual is a torque; give --torque-constants K1,..,KN (joint side, N·m/A) "
-                                        "or fit with them (dragd identify fit --torque-constants)")
+                                        "the residual is a torque; give --torque-constants K1,..,KN (joint side, "
+                                        "N·m/A) or fit with them (dragd identify fit --torque-constants)")
             src = f"{params_name} (torque_constant_Nm_per_A)"
         law = law.replace(kt_Nm_per_A=kt)
         k_load = np.array([float(jp.effects.load_friction_per_Nm) if (jp := params.joints.get(nm)) is not None else 0.0

@@ -196,12 +196,12 @@ def _run(ds: Any, root: Path, tmp: Path, train_spec: Any, Reference: Any, filter
         except CalibrationError as exc:
             held_out[name] = {"skipped": str(exc)}
             continue
-        rr = run_log(model, b, settings, cal_logs[name], terms=terms[name])
-        ok, cut = usable(rr, settings)
-        ratio = np.where(ok[:, None], rr.ratio(), np.nan)
-        evs = [(e.t_start_s - rr.t[0]) for e in rr.events]
-        fa = [round(a, 2) for a in evs if not (cut and cut[0] <= a <= cut[1])]
-        held_out[name] = {"max_ratio": [round(float(x), 3) for x in np.nanmax(ratio, axis=0)],
+        held = run_log(model, b, settings, cal_logs[name], terms=terms[name])
+        ok, cut = usable(held, settings)
+        ho_ratio = np.where(ok[:, None], held.ratio(), np.nan)
+        starts = [(e.t_start_s - held.t[0]) for e in held.events]
+        fa = [round(a, 2) for a in starts if not (cut and cut[0] <= a <= cut[1])]
+        held_out[name] = {"max_ratio": [round(float(x), 3) for x in np.nanmax(ho_ratio, axis=0)],
                           "false_alarms_s": fa, "left_out_final_stop_s": [round(x, 2) for x in cut]}
     timing["held_out_s"] = time.perf_counter() - t0
 
@@ -227,6 +227,7 @@ def _run(ds: Any, root: Path, tmp: Path, train_spec: Any, Reference: Any, filter
         pp, tau = tb.terms(lg.q, lg.dq, lg.i)
         rr = tb.detect(lg.t, tb.residual(lg.t, pp, tau))
         evs = [(e.t_start_s - lg.t[0], e.t_end_s - lg.t[0], [names[j] for j in e.joints]) for e in rr.events]
+        assert tb.thresholds_A is not None
         sc = score(labels.contacts, evs)
         ref_scores.append(sc)
         with np.errstate(invalid="ignore", divide="ignore"):
