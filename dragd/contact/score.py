@@ -31,17 +31,19 @@ def score(contacts: list[Any], events: list[tuple[float, float, list[str]]], tol
                                "required": c.peak_A >= min_peak_A}
         if found:
             a, b, js = events[found[0]]
-            row.update({"found": True, "delay_ms": round((a - c.t_onset_s) * 1e3, 1), "event_s": [round(a, 3),
+            row.update({"found": True, "delay_ms": round((a - c.t_onset_s) * 1e3, 1),
+                        "delay_from_edge_ms": round((a - c.t_start_s) * 1e3, 1), "event_s": [round(a, 3),
                                                                                                   round(b, 3)],
                         "joints": js, "events_in_window": len(found)})
         else:
-            row.update({"found": False, "delay_ms": None})
+            row.update({"found": False, "delay_ms": None, "delay_from_edge_ms": None})
         rows.append(row)
     fa = [{"t_start_s": round(a, 3), "t_end_s": round(b, 3), "joints": js}
           for i, (a, b, js) in enumerate(events) if i not in used]
     req = [r for r in rows if r["required"]]
     delays = [r["delay_ms"] for r in req if r["found"] and r["impact"]]
-    return {"contacts": rows, "false_alarms": fa, "found": sum(r["found"] for r in rows), "total": len(rows),
+    edge = [r["delay_from_edge_ms"] for r in req if r["found"] and r["impact"]]
+    return {"median_impact_delay_from_edge_ms": None if not edge else round(float(np.median(edge)), 1),"contacts": rows, "false_alarms": fa, "found": sum(r["found"] for r in rows), "total": len(rows),
             "required_found": sum(r["found"] for r in req), "required": len(req),
             "impact_delays_ms": delays,
             "median_impact_delay_ms": None if not delays else round(float(np.median(delays)), 1)}
@@ -50,11 +52,13 @@ def score(contacts: list[Any], events: list[tuple[float, float, list[str]]], tol
 def combine(parts: list[dict[str, Any]]) -> dict[str, Any]:
     """Totals over several logs' scores."""
     delays = [d for p in parts for d in p["impact_delays_ms"]]
+    edge = [r["delay_from_edge_ms"] for p in parts for r in p["contacts"] if r["found"] and r["required"] and r["impact"]]
     all_delays = [r["delay_ms"] for p in parts for r in p["contacts"] if r["found"] and r["required"]]
     return {"found": sum(p["found"] for p in parts), "total": sum(p["total"] for p in parts),
             "required_found": sum(p["required_found"] for p in parts), "required": sum(p["required"] for p in parts),
             "false_alarms": sum(len(p["false_alarms"]) for p in parts),
             "median_impact_delay_ms": None if not delays else round(float(np.median(delays)), 1),
+            "median_impact_delay_from_edge_ms": None if not edge else round(float(np.median(edge)), 1),
             "median_delay_ms_all_required": None if not all_delays else round(float(np.median(all_delays)), 1),
             "impacts": len(delays)}
 
