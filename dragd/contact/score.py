@@ -43,16 +43,18 @@ def score(contacts: list[Any], events: list[tuple[float, float, list[str]]], tol
     req = [r for r in rows if r["required"]]
     delays = [r["delay_ms"] for r in req if r["found"] and r["impact"]]
     edge = [r["delay_from_edge_ms"] for r in req if r["found"] and r["impact"]]
-    return {"median_impact_delay_from_edge_ms": None if not edge else round(float(np.median(edge)), 1),"contacts": rows, "false_alarms": fa, "found": sum(r["found"] for r in rows), "total": len(rows),
+    return {"contacts": rows, "false_alarms": fa, "found": sum(r["found"] for r in rows), "total": len(rows),
             "required_found": sum(r["found"] for r in req), "required": len(req),
             "impact_delays_ms": delays,
-            "median_impact_delay_ms": None if not delays else round(float(np.median(delays)), 1)}
+            "median_impact_delay_ms": None if not delays else round(float(np.median(delays)), 1),
+            "median_impact_delay_from_edge_ms": None if not edge else round(float(np.median(edge)), 1)}
 
 
 def combine(parts: list[dict[str, Any]]) -> dict[str, Any]:
     """Totals over several logs' scores."""
     delays = [d for p in parts for d in p["impact_delays_ms"]]
-    edge = [r["delay_from_edge_ms"] for p in parts for r in p["contacts"] if r["found"] and r["required"] and r["impact"]]
+    edge = [r["delay_from_edge_ms"] for p in parts for r in p["contacts"]
+            if r["found"] and r["required"] and r["impact"]]
     all_delays = [r["delay_ms"] for p in parts for r in p["contacts"] if r["found"] and r["required"]]
     return {"found": sum(p["found"] for p in parts), "total": sum(p["total"] for p in parts),
             "required_found": sum(p["required_found"] for p in parts), "required": sum(p["required"] for p in parts),
