@@ -41,7 +41,13 @@ def main(argv: list[str] | None = None) -> int:
     run_p.add_argument("--config", help="truth file (default: sim/config/seed_cobot.yaml)")
     run_p.add_argument("--model", help="dragd params file (identify fit / gap --out): simulate that model (K_t, "
                                        "friction, model-gap effects) on top of the truth file")
-    run_p.add_argument("--bus", help="INTERFACE:CHANNEL, e.g. udp_multicast:239.74.163.2 (default: the truth's bus.channel)")
+    run_p.add_argument("--eds", metavar="FILE",
+                       help="build every joint's drive from this EDS: its objects, access and mapping flags, PDOs, "
+                            "COB-IDs, dummy usage and 6502h; vendor objects from sim/config/drives/ (matched by the "
+                            "EDS's [DeviceInfo]); per joint: drive.eds in the truth file (docs/SIM_DRIVES.md)")
+    run_p.add_argument("--bus", help="INTERFACE:CHANNEL, e.g. udp_multicast:239.74.163.2 (default: the truth's bus.channel); "
+                                     "A,B,C: several buses (a truth that puts every joint on bus 0 is spread: joint i "
+                                     "of n on bus i*k//n of the k buses, as dragd config init splits them)")
     run_p.add_argument("--scenario", help="operator scenario file (or a name in sim/scenarios) started at t = 0")
     run_p.add_argument("--control", help="Unix socket path for the JSON-lines control protocol")
     run_p.add_argument("--seconds", type=float, help="stop after this much simulated time")
@@ -59,6 +65,11 @@ def main(argv: list[str] | None = None) -> int:
     truth_p = sub.add_parser("truth", help="print the truth per joint in dragd's units (K_t, friction in A, noise)")
     truth_p.add_argument("--config", help="truth file (default: sim/config/seed_cobot.yaml)")
     truth_p.add_argument("--json", action="store_true", help="print one JSON object")
+    drives_p = sub.add_parser("drives", help="print each joint's simulated drive: EDS, where its firmware keeps each "
+                                             "quantity, commissioned values, assumptions")
+    drives_p.add_argument("--config", help="truth file (default: sim/config/seed_cobot.yaml)")
+    drives_p.add_argument("--eds", metavar="FILE", help="every joint's drive from this EDS (as run --eds)")
+    drives_p.add_argument("--json", action="store_true", help="print one JSON object")
     log_p = sub.add_parser("log", help="offline, faster than real time: follow a plan with drive-like CSP loops, "
                                        "write a daemon-format MCAP or a CSV log")
     log_p.add_argument("--plan", required=True, help="plan file (.npz with t_s, q_rad; from 'dragd identify plan')")
@@ -77,15 +88,24 @@ def main(argv: list[str] | None = None) -> int:
         return _cmd_truth(args)
     if args.command == "log":
         return _cmd_log(args)
+    if args.command == "drives":
+        return _cmd_drives(args)
 
     from sim.runner import run
-    from sim.truth import load_truth
+    from sim.truth import drive_profiles, load_truth, spread_over_buses, with_eds
 
     try:
         truth = _truth_with_model(load_truth(args.config), args.model)
+        if args.eds:
+            truth = with_eds(truth, args.eds)
+        truth = spread_over_buses(truth, args.bus)
+        profiles = drive_profiles(truth)  # every joint's EDS and profile checked before any frame
     except ConfigError as exc:
         print(f"sim: {exc}", file=sys.stderr)
         return 2
+    for profile in profiles:
+        if not profile.bundled:
+            print(f"sim: drive {profile.describe()}", file=sys.stderr, flush=True)
     if args.physics_rate_Hz is not None:
         if not 1000 <= args.physics_rate_Hz <= 50000 or args.physics_rate_Hz % 1000:
             print(f"sim: --physics-rate-Hz: expected a multiple of 1000 in [1000, 50000], got {args.physics_rate_Hz}",
@@ -155,6 +175,25 @@ def _cmd_truth(args: argparse.Namespace) -> int:
                   f"{f['coulomb_neg_A']:+.4f} A, static {f['static_pos_A']:+.4f}/{f['static_neg_A']:+.4f} A, "
                   f"viscous {f['viscous_pos_A_s_per_rad']:.4f}/{f['viscous_neg_A_s_per_rad']:.4f} A·s/rad, "
                   f"v_s {f['stribeck_velocity_rad_s']:.3f} rad/s, noise {j['current_noise_std_A'] * 1e3:.0f} mA")
+    return 0
+
+
+def _cmd_drives(args: argparse.Namespace) -> int:
+    from sim.truth import drive_profiles, load_truth, with_eds
+
+    try:
+        truth = load_truth(args.config)
+        if args.eds:
+            truth = with_eds(truth, args.eds)
+        profiles = drive_profiles(truth)
+    except ConfigError as exc:
+        print(f"sim: {exc}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps({j.name: p.summary() for j, p in zip(truth.joints, profiles)}))
+    else:
+        for j, p in zip(truth.joints, profiles):
+            print(f"{j.name}: {p.describe()}")
     return 0
 
 

@@ -212,15 +212,11 @@ class FaultInjector:
             d = node()
             with lock:
                 if kind == "emcy":
-                    code = int(number("code", 0x4210, 1, 0xFFFF))
-                    with d._lock:
-                        d._raise_error(code, ERR_REG_GENERIC)
-                        d._refresh_statusword()
+                    d.raise_error(int(number("code", 0x4210, 1, 0xFFFF)), ERR_REG_GENERIC)
                 elif kind == "drive_fault":
                     d.inject_fault(int(number("code", 0x2310, 1, 0xFFFF)))
-                elif kind == "switched_on":
-                    with d._lock:  # drops out on its own (power stage off, brake); a master's cyclic 0x0F would
-                        d._enter_state(State.SWITCHED_ON)  # enable it again on the next RPDO (transition 4)
+                elif kind == "switched_on":  # drops out on its own (power stage off, brake); a master's cyclic 0x0F
+                    d.force_state(State.SWITCHED_ON)  # would enable it again on the next RPDO (transition 4)
                 elif kind == "node_reboot":
                     d.reset_node()
                 elif kind == "encoder_jump":

@@ -80,8 +80,9 @@ class ObjectStore:
     def __init__(self, od: canopen.ObjectDictionary) -> None:
         self.od = od
         self.slots: dict[tuple[int, int], int] = {}
-        self.vars: list[ODVariable] = []
+        self.vars: list[ODVariable | None] = []  # None: an internal cell (see ``internal``)
         self.defaults: list[Any] = []
+        self.internal_names: dict[str, int] = {}
         self.dummy_indices: frozenset[int] = frozenset()
         self._build()
         self.cells: list[Any] = list(self.defaults)
@@ -115,6 +116,44 @@ class ObjectStore:
         self.vars.append(var)
         self.defaults.append(_initial_value(var))
 
+    def internal(self, name: str, value: Any) -> int:
+        """A cell for a value the device holds but its dictionary does not show (a quantity the EDS lacks, e.g. the
+        rated current of a drive without 6075h): no SDO access, not mappable, back to ``value`` on reset node."""
+        slot = self.internal_names.get(name)
+        if slot is None:
+            slot = self.internal_names[name] = len(self.vars)
+            self.vars.append(None)
+            self.defaults.append(value)
+            self.cells.append(value)
+        else:
+            self.defaults[slot] = self.cells[slot] = value
+        return slot
+
+    def hook_after(self, index: int, hook: WriteHook) -> None:
+        """Add a hook after writes to ``index`` (run after the hooks added before it)."""
+        first = self.after_write.get(index)
+        if first is None:
+            self.after_write[index] = hook
+            return
+
+        def both(sub: int, value: Any) -> None:
+            first(sub, value)
+            hook(sub, value)
+        self.after_write[index] = both
+
+    def slot_or_internal(self, index: int, subindex: int, name: str, value: Any) -> int:
+        """The object's slot, or an internal cell holding ``value`` where the dictionary lacks it."""
+        slot = self.slots.get((index, subindex))
+        return self.internal(name, value) if slot is None else slot
+
+    def has(self, index: int, subindex: int = 0) -> bool:
+        """Whether the dictionary holds the object."""
+        return (index, subindex) in self.slots
+
+    def subindices(self, index: int) -> list[int]:
+        """The sub-indices of an object that the dictionary holds (ascending), [] if it has none."""
+        return sorted(sub for (i, sub) in self.slots if i == index)
+
     # --- plain access (no SDO checks) -------------------------------------------------------------------
     def slot(self, index: int, subindex: int = 0) -> int:
         """Slot number of an object; KeyError naming the object if it is not in the dictionary."""
@@ -139,14 +178,14 @@ class ObjectStore:
     def reset(self, index_range: tuple[int, int] | None = None) -> None:
         """Restore defaults, for all objects or for those with index in [lo, hi]."""
         for slot, var in enumerate(self.vars):
-            if index_range is None or index_range[0] <= var.index <= index_range[1]:
+            if index_range is None or (var is not None and index_range[0] <= var.index <= index_range[1]):
                 self.cells[slot] = self.defaults[slot]
 
     def var(self, index: int, subindex: int) -> ODVariable:
         """The definition of an object, raising SdoAbort 0x06020000 / 0x06090011 if absent."""
         slot = self.slots.get((index, subindex))
         if slot is not None:
-            return self.vars[slot]
+            return self.vars[slot]  # type: ignore[return-value]  # (slots hold dictionary objects only)
         if index in self.od.indices and index > 0x0007:
             raise SdoAbort(ABORT_NO_SUBINDEX, index, subindex, "sub-index does not exist")
         raise SdoAbort(ABORT_NO_OBJECT, index, subindex, "object does not exist")
@@ -201,6 +240,12 @@ def _initial_value(var: ODVariable) -> Any:
         return b"" if value is None else bytes(value)
     if value is None:
         return 0.0 if var.data_type in (datatypes.REAL32, datatypes.REAL64) else 0
+    st = _STRUCTS.get(var.data_type)
+    if st is not None and isinstance(value, int) and not isinstance(value, bool) and st.format[-1] in "bhiqBHIQ":
+        bits = st.size * 8  # a default given as a bit pattern (0xFFFF for an INTEGER16: -1) or out of the type's range
+        value &= (1 << bits) - 1
+        if st.format[-1] in "bhiq" and value >= 1 << (bits - 1):
+            value -= 1 << bits
     return value
 
 

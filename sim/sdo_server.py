@@ -6,6 +6,7 @@ segmented transfer, as CiA 301 allows for servers without block support).
 
 from __future__ import annotations
 
+import logging
 import struct
 from collections.abc import Callable
 
@@ -18,6 +19,7 @@ from sim.od import (
     SdoAbort,
 )
 
+log = logging.getLogger(__name__)
 _HEADER = struct.Struct("<BHB")
 _ABORT = struct.Struct("<BHBI")
 _SIZE = struct.Struct("<I")
@@ -78,6 +80,10 @@ class SdoServer:
                                f"command specifier {ccs} not supported (block transfer is not offered)")
         except SdoAbort as exc:
             self._abort(exc.code, exc.index, exc.subindex)
+        except Exception:  # (a request must never go unanswered: a client would time out and retry)
+            log.exception("SDO request %s failed", bytes(data).hex())
+            _, index, subindex = _HEADER.unpack_from(data)
+            self._abort(ABORT_GENERAL, index, subindex)
 
     # --- download --------------------------------------------------------------------------------------
     def _initiate_download(self, data: bytes) -> None:

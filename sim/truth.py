@@ -26,6 +26,7 @@ from dragd.config import ConfigError, Expect, _read_yaml, format_validation_erro
 if TYPE_CHECKING:
     from dragd.model import RobotModel
     from sim.drive import DriveParams
+    from sim.drive_profile import DriveProfile, ProfileSpec
 
 CONFIG_DIR = Path(__file__).resolve().parent / "config"
 DEFAULT_TRUTH = CONFIG_DIR / "seed_cobot.yaml"
@@ -46,8 +47,19 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_default=True, frozen=True)
 
 
+class DriveObject(_Strict):
+    """Where the drive's firmware keeps one process quantity (what the vendor's manual says), e.g. EPOS4's current
+    actual value: ``{object: 30D1h:2, unit: mA}`` (sim/drive_profile.py lists the quantities and units)."""
+
+    object: Annotated[str, Expect("an object address like 30D1h:2")]
+    unit: str | None = None  # None: the quantity's CiA 402 unit
+
+
 class DriveHardware(_Strict):
-    """The integrated drive's hardware and built-in loops (what its object dictionary and firmware hold)."""
+    """The integrated drive's hardware and built-in loops (what its object dictionary and firmware hold).
+
+    ``eds``, ``profile``, ``objects``, ``values``, ``can_fd``: which drive model it is (sim/drive_profile.py,
+    docs/SIM_DRIVES.md) — by default the bundled canopen_eds/joint_drive.eds."""
 
     node_id: NodeId
     rated_current_A: PosFloat  # 6075h
@@ -61,6 +73,11 @@ class DriveHardware(_Strict):
     quickstop_decel_rad_s2: PosFloat = 10.0  # 6085h
     slowdown_decel_rad_s2: PosFloat = 4.0  # 6084h
     brake_release_delay_s: NonNegFloat = 0.05  # operation enabled -> brake released
+    eds: str | None = None  # the drive's EDS (relative to this file); None: the bundled canopen_eds/joint_drive.eds
+    profile: str | None = None  # an entry of sim/config/drives/; None: the entry matching the EDS's [DeviceInfo]
+    objects: dict[str, DriveObject] = Field(default_factory=dict)  # quantity -> object (overrides the entry's)
+    values: dict[str, int] = Field(default_factory=dict)  # "6502h" -> value the drive holds as delivered
+    can_fd: bool | None = None  # PDOs beyond 8 bytes on a CAN FD bus; None: the entry's, else only the bundled EDS
 
     @model_validator(mode="after")
     def _currents(self) -> DriveHardware:
@@ -297,9 +314,58 @@ def validate_truth(data: Any, source: str = "<memory>") -> Truth:
     if not isinstance(data, dict):
         raise TruthError(f"{source}: expected a mapping of keys (robot, joints, ...), got {type(data).__name__}")
     try:
-        return Truth.model_validate({**data, "source": source})
+        truth = Truth.model_validate({**data, "source": source})
     except ValidationError as exc:
         raise TruthError(format_validation_error(source, Truth, exc)) from None
+    return _absolute_eds(truth)
+
+
+def _absolute_eds(truth: Truth) -> Truth:
+    """The joints' ``drive.eds`` paths made absolute (relative to the truth file's folder)."""
+    joints = []
+    for j in truth.joints:
+        eds = j.drive.eds
+        if eds is not None and not Path(eds).expanduser().is_absolute():
+            eds = str((truth.base_dir / Path(eds).expanduser()).resolve())
+        elif eds is not None:
+            eds = str(Path(eds).expanduser())
+        joints.append(j if eds == j.drive.eds else j.model_copy(update={"drive": j.drive.model_copy(update={"eds": eds})}))
+    return truth.model_copy(update={"joints": joints}) if joints != list(truth.joints) else truth
+
+
+def drive_profiles(truth: Truth) -> list[DriveProfile]:
+    """Every joint's drive built from its EDS and profile (sim/drive_profile.py); a TruthError lists every problem of
+    every joint at once."""
+    from sim.drive_profile import ProfileError
+
+    profiles, problems = [], []
+    for i, j in enumerate(truth.joints):
+        params = drive_params(j, truth.bus.fd, where=f"{truth.source}: joints[{i}] ({j.name}).drive")
+        try:
+            profiles.append(params.build_profile())
+        except ProfileError as exc:
+            problems += [line for line in str(exc).splitlines() if line not in problems]  # (a catalog's once)
+    if problems:
+        raise TruthError("\n".join(problems))
+    return profiles
+
+
+def spread_over_buses(truth: Truth, bus: str | None) -> Truth:
+    """With several buses (``--bus A,B,C``) and a truth whose joints all sit on bus 0: joint i of n on bus i*k//n of
+    the k buses (as ``dragd config init`` splits joints over buses); otherwise the truth unchanged."""
+    k = len([b for b in (bus or truth.bus.channel).split(",") if b])
+    if k <= 1 or any(j.bus_index for j in truth.joints):
+        return truth
+    n = len(truth.joints)
+    return truth.with_updates(joints={i: {"bus_index": i * k // n} for i in range(n)})
+
+
+def with_eds(truth: Truth, eds: str | Path) -> Truth:
+    """The truth with every joint's drive built from ``eds`` (``python -m sim run --eds FILE``): its catalog entry
+    (sim/config/drives/, matched by the EDS's [DeviceInfo]) replaces the joints' own objects, values and profile."""
+    path = str(Path(eds).expanduser().resolve())
+    return truth.with_updates(joints={i: {"drive": {"eds": path, "profile": None, "objects": {}, "values": {},
+                                                    "can_fd": None}} for i in range(len(truth.joints))})
 
 
 def load_truth(path: str | Path | None = None) -> Truth:
@@ -320,12 +386,26 @@ def load_truth(path: str | Path | None = None) -> Truth:
     return validate_truth(data, str(path))
 
 
-def drive_params(joint: JointTruth, fd: bool) -> DriveParams:
-    """The simulated drive's parameters for one joint (what its object dictionary and firmware hold)."""
+def drive_spec(joint: JointTruth, where: str = "") -> ProfileSpec:
+    """The joint's drive model as sim/drive_profile.py reads it (errors name ``where``, the truth file and key)."""
+    from sim.drive_profile import ProfileSpec
+
+    hw = joint.drive
+    return ProfileSpec(eds=hw.eds, profile=hw.profile,
+                       objects={k: {"object": o.object, **({"unit": o.unit} if o.unit else {})}
+                                for k, o in hw.objects.items()},
+                       values=dict(hw.values), can_fd=hw.can_fd, where=where or f"joints.{joint.name}.drive")
+
+
+def drive_params(joint: JointTruth, fd: bool, base_dir: str | None = None, where: str = "") -> DriveParams:
+    """The simulated drive's parameters for one joint (what its object dictionary and firmware hold); ``base_dir``:
+    where a relative ``eds`` path starts (the truth file's folder)."""
     from sim.drive import DriveParams
 
     hw = joint.drive
     return DriveParams(
+        profile=drive_spec(joint, where),
+        base_dir=base_dir,
         node_id=hw.node_id,
         rated_current_A=hw.rated_current_A,
         rated_torque_Nm=hw.rated_torque_Nm,

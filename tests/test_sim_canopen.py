@@ -19,6 +19,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -192,7 +193,20 @@ def rig() -> Iterator[Rig]:
         net.add_node(node)
         nodes[n] = node
     boot_mark = log.mark()
-    proc = subprocess.Popen([sys.executable, "-m", "sim", "run", "--bus", f"udp_multicast:{group}"],
+    try:
+        with sim_process(["--bus", f"udp_multicast:{group}"]):
+            r = Rig(bus, net, nodes, log, boot_mark)
+            r.wait_bootups(boot_mark)
+            yield r
+    finally:
+        net.disconnect()
+
+
+@contextmanager
+def sim_process(args: list[str]) -> Iterator[list[str]]:
+    """``python -m sim run ARGS`` as a child process, up once it said "sim: running"; yields what it wrote to stderr
+    (kept drained), and ends it on exit."""
+    proc = subprocess.Popen([sys.executable, "-m", "sim", "run", *args],
                             cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     said: list[str] = []
     try:
@@ -203,9 +217,7 @@ def rig() -> Iterator[Rig]:
                 break
         assert proc.poll() is None, f"the sim process exited ({proc.returncode}):\n{''.join(said)}"
         threading.Thread(target=lambda: said.extend(proc.stderr), daemon=True).start()  # keep the pipe drained
-        r = Rig(bus, net, nodes, log, boot_mark)
-        r.wait_bootups(boot_mark)
-        yield r
+        yield said
     finally:
         proc.terminate()
         try:
@@ -213,7 +225,6 @@ def rig() -> Iterator[Rig]:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait(5)
-        net.disconnect()
 
 
 @pytest.fixture
@@ -747,6 +758,7 @@ def test_rpdo_watchdog_waits_for_frames_the_reader_has_not_read(request: pytest.
         drive.store.sdo_write(0x1400, 5, struct.pack("<H", 50))  # RPDO1 deadline 50 ms
         master.send(can.Message(arbitration_id=0x000, data=bytes((0x01, node)), is_extended_id=False))
         wait_for(lambda: drive.nmt_state.name == "OPERATIONAL", "NMT start")
+        drive.comm(time.monotonic())  # the drive's clock (the simulator's loop hands it in every tick)
         master.send(rpdo)
         wait_for(lambda: drive.rpdos[0].last_rx_s is not None, "the first RPDO")
         wait_for(lambda: net.caught_up(-1.0) == -1.0, "the reader waiting again")  # (idle: caught up as of now)

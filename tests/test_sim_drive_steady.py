@@ -12,7 +12,6 @@ import math
 import struct
 import threading
 from collections.abc import Callable
-from types import SimpleNamespace
 
 import can
 import numpy as np
@@ -49,11 +48,10 @@ def _frames(sent: list[can.Message]) -> list[tuple[int, bytes]]:
     return out
 
 
-def test_a_steady_drive_computes_what_a_full_update_would(monkeypatch: pytest.MonkeyPatch) -> None:
-    # one clock for both twins (the drives read time.monotonic for reception times, deadlines and inhibit times):
+def test_a_steady_drive_computes_what_a_full_update_would() -> None:
+    # one clock for both twins (handed to the drives by comm and on_sync: reception times, deadlines, inhibit times):
     # it advances with the physics steps, and jumps where the master falls silent
     clock = [1000.0]
-    monkeypatch.setattr("sim.drive.time", SimpleNamespace(monotonic=lambda: clock[0]))
     params = drive_params(TRUTH.joints[1], fd=False)
     sent: tuple[list[can.Message], list[can.Message]] = ([], [])
     skip, ref = (SimDrive(params, AxisIO(), out.append) for out in sent)

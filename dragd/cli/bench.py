@@ -26,7 +26,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     opts = {"config": absolute(args.config), "seconds": args.seconds, "realtime_priority": args.realtime_priority,
             "jobs": args.jobs, "cases": args.cases, "out": absolute(args.out), "profile": absolute(args.profile),
             "sim_config": absolute(args.sim_config), "data": absolute(args.data), "train": args.train,
-            "valid": args.valid}
+            "valid": args.valid, "eds_dir": absolute(args.eds_dir), "robot": args.robot}
     try:
         result = bench.run(args.names, {k: v for k, v in opts.items() if v is not None})
     except KeyError as exc:
@@ -42,6 +42,17 @@ def cmd_bench(args: argparse.Namespace) -> int:
                                   "rows_lost"],
                                  [(f, r["detected_ms"], r["reaction"], r["max_joint_speed_rad_s"], r["max_drift_deg"],
                                    r["recovered"], r["rows_lost"]) for f, r in v["faults"].items()]))
+            if "files" in v:
+                def short(x: Any) -> str:
+                    if x is None or isinstance(x, (int, float)):
+                        return "-" if x is None else str(x)
+                    if isinstance(x, list):
+                        return f"{len(x)} error(s)"
+                    return x if len(x) <= 40 else x[:37] + "..."
+
+                out.append(table([k, "config_check", "boot", "drag_drift_deg", "identify", "refused_reason"],
+                                 [(f, short(r["config_check"]), short(r["boot"]), short(r["drag_drift_deg"]),
+                                   short(r["identify"]), short(r["refused_reason"])) for f, r in v["files"].items()]))
         out += [f"{k}: details with --json" for k, v in d.items() if "detail" in v]
         return "\n".join(out)
 
@@ -70,14 +81,18 @@ def register(sub: Any) -> None:
                    help="loop benchmarks: the simulator's truth file (default: the bundled seed cobot's); with a "
                         "daemon configuration of several buses its joints' bus_index must match")
     b.add_argument("--data", type=Path, default=None, metavar="DIR",
-                   help="ident_real, contact_real: the UR10e dataset, a git checkout of github:shamilmamedov/dynamic_calibration "
-                        "(default: $DRAGD_UR10E_DATA)")
+                   help="ident_real, contact_real: the UR10e dataset, a git checkout of "
+                        "github:shamilmamedov/dynamic_calibration (default: $DRAGD_UR10E_DATA)")
     b.add_argument("--train", action="append", default=None, metavar="LOG[+LOG]",
                    help="ident_real: a training set of the dataset's logs by name, '+' joining several (repeat: "
                         "several sets; default: the 50 s 12-harmonic run, and the 50 s 14-harmonic run)")
     b.add_argument("--valid", action="append", default=None, metavar="LOG[,LOG]",
                    help="ident_real: validation logs by name, each validated against every training set it is not "
                         "part of (default: the 20 s 5/7/8/10-, 50 s 12/14/15-harmonic runs)")
+    b.add_argument("--eds-dir", type=Path, default=None, metavar="DIR",
+                   help="drive_profiles: the vendors' EDS files (docs/DRIVES.md)")
+    b.add_argument("--robot", default=None, metavar="URDF",
+                   help="drive_profiles: the robot (default: the seed cobot's URDF file)")
     add_config(b, params=False)
     b.add_argument("--json", action="store_true", help="print JSON")
     b.set_defaults(func=cmd_bench)

@@ -90,8 +90,9 @@ def _events(run: Any, names: list[str]) -> list[tuple[float, float, list[str]]]:
 
 @benchmark("contact_real", "ms")
 def contact_real(opts: dict) -> tuple[float, dict[str, Any]] | dict[str, Any]:
-    """Median contact-detection delay on a real UR10e's impacts, with hits, misses and false alarms against the
-    textbook reference (--data DIR)."""
+    """Median contact-detection delay on a real UR10e's impacts; hits, false alarms vs the textbook one (--data DIR).
+
+    Every contact, false alarm and band in ``detail``, the reference's beside them (see the module docstring)."""
     from dragd.lab.bench.ident_real import EXPECTED, TRAIN, Reference, filter_data, find_dataset
 
     data = opts.get("data") or os.environ.get("DRAGD_UR10E_DATA")

@@ -352,7 +352,9 @@ def _overall(rmse: np.ndarray, cnt: np.ndarray) -> float:
 
 @benchmark("ident_real", "ratio")
 def ident_real(opts: dict) -> tuple[float, dict[str, Any]] | dict[str, Any]:
-    """Held-out RMSE of dragd's full-dynamics fit on the real UR10e logs / the textbook LS reference's (--data DIR)."""
+    """Held-out RMSE of dragd's fit on a real UR10e's moving runs / the textbook LS reference's, worst pairing (--data DIR).
+
+    The static p1..p10 case (issue #13) in ``detail.with_gains``/``without_gains``; the pairings in ``detail.pairings``."""
     data = opts.get("data") or os.environ.get("DRAGD_UR10E_DATA")
     if not data and "ident_real" not in opts.get("selected", ["ident_real"]):  # `dragd bench` (all) without the data
         return {"skipped": "the UR10e dataset is not here (--data DIR or $DRAGD_UR10E_DATA); DIR = " + EXPECTED}
