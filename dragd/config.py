@@ -462,6 +462,29 @@ class ReplayConfig(_Strict):
     monitor_cycles: PosInt = 20  # a monitor must see its bound exceeded this many cycles in a row
 
 
+# --- contact detection (docs/CONTACT.md); the bands themselves are calibrated into the params file ------------------
+
+
+class ContactModeConfig(_Strict):
+    """Contact detection in one mode: how sensitive (the calibrated bands / sensitivity)."""
+
+    sensitivity: Annotated[float, Field(gt=0, le=4), Expect("a factor in (0, 4] (1: the calibrated bands; 2: half "
+                                                             "as wide)")] = 1.0
+
+
+class ContactConfig(_Strict):
+    """The model-based contact detector (dragd/control/contact.py) in the modes where the arm moves by itself or is
+    held; its per-joint bands come from ``dragd contact calibrate`` (the params file's ``contact``)."""
+
+    enabled: bool = True
+    hold: ContactModeConfig = ContactModeConfig()
+    track: ContactModeConfig = ContactModeConfig()  # replay, `dragd track`
+    identify: ContactModeConfig = ContactModeConfig()  # `dragd identify run`
+
+
+# --- end of contact detection --------------------------------------------------------------------------------------
+
+
 class StreamConfig(_Strict):
     """Position streams into TRACK (the control socket's ``stream`` commands, the ROS 2 bridge): docs/ROS2.md."""
 
@@ -492,6 +515,7 @@ class Config(_Strict):
     stream: StreamConfig = StreamConfig()
     payload: Payload | None = None  # flange payload not in the URDF (docs/GAP.md)
     inertials: dict[str, LinkInertial] | None = None  # identified link inertials over the URDF's (docs/MODEL.md)
+    contact: ContactConfig = ContactConfig()  # contact detection (docs/CONTACT.md)
     source: str = Field("<memory>", exclude=True)  # file it came from (not a YAML key)
 
     @model_validator(mode="after")
@@ -631,6 +655,28 @@ class JointParams(_Strict):
     effects: JointEffects = JointEffects()  # model-gap effects added by `dragd gap` (docs/GAP.md)
 
 
+class ContactJointBands(_Strict):
+    """One joint's contact-detection bands [A] (``dragd contact calibrate``; docs/CONTACT.md)."""
+
+    base_A: NonNegFloat
+    slow_A: NonNegFloat
+    speed_A_s_per_rad: NonNegFloat
+    accel_A_s2_per_rad: NonNegFloat
+    slow_speed_rad_s: PosFloat
+    settling_A: PosFloat
+    held_A: PosFloat
+    held_moving_A: NonNegFloat = 0.0
+
+
+class ContactParams(_Strict):
+    """The contact detector's calibration: the observer gain its bands hold for, the bands per joint, how."""
+
+    observer_gain_per_s: PosFloat
+    margin: PosFloat  # every calibration sample's deviation ≤ band / margin
+    joints: dict[str, ContactJointBands]
+    calibration: dict[str, Any] = Field(default_factory=dict)  # logs, left-out windows, per-joint maxima
+
+
 class ParamsFile(_Strict):
     version: Literal[1] = 1
     method: str | None = None
@@ -638,6 +684,7 @@ class ParamsFile(_Strict):
     joints: dict[str, JointParams] = Field(default_factory=dict)
     payload: Payload | None = None  # added by `dragd gap` (payload_mass)
     inertials: dict[str, LinkInertial] | None = None  # URDF link name → identified inertial (docs/MODEL.md)
+    contact: ContactParams | None = None  # contact-detection bands (`dragd contact calibrate`, docs/CONTACT.md)
     notes: dict[str, Any] = Field(default_factory=dict)
 
 

@@ -197,6 +197,12 @@ RULES: list[Rule] = [
     # the public UR10e dataset (no licence: not here): options checked; tests/test_ur10e_payload.py runs them with it
     Rule(r"\bDATA/", "mention", "a public dataset's files (tests/test_ur10e_payload.py, tests/test_ur10e_ident.py run "
                                "these when present)"),
+    Rule(r"^dragd bench contact_real$", "mention", "the real-data benchmark named in prose (needs --data DATA/: "
+                                                   "tests/test_ur10e_contact.py runs it when the dataset is present)"),
+    Rule(r"^dragd contact( calibrate| detect)?$", "mention", "a command named in prose"),
+    Rule(r"^dragd contact (calibrate|detect)\b", "help",
+         "an identified arm and free-motion logs of it: tests/test_contact.py runs both on generated logs, "
+         "tests/test_ur10e_contact.py on the real UR10e's"),
     Rule(r"^dragd bench ident_real$", "mention", "the real-data benchmark named in prose (needs --data DATA/: "
                                                  "tests/test_ur10e_ident.py runs it when the dataset is present)"),
     # not run here: root, a systemd host with dragd installed, QEMU or CAN hardware

@@ -25,8 +25,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
         raise CliError(f"--jobs: expected ≥ 1, got {args.jobs}")
     opts = {"config": absolute(args.config), "seconds": args.seconds, "realtime_priority": args.realtime_priority,
             "jobs": args.jobs, "cases": args.cases, "out": absolute(args.out), "profile": absolute(args.profile),
-            "sim_config": absolute(args.sim_config), "data": absolute(args.data), "eds_dir": absolute(args.eds_dir),
-            "robot": args.robot}
+            "sim_config": absolute(args.sim_config), "data": absolute(args.data), "train": args.train,
+            "valid": args.valid, "eds_dir": absolute(args.eds_dir), "robot": args.robot}
     try:
         result = bench.run(args.names, {k: v for k, v in opts.items() if v is not None})
     except KeyError as exc:
@@ -81,8 +81,14 @@ def register(sub: Any) -> None:
                    help="loop benchmarks: the simulator's truth file (default: the bundled seed cobot's); with a "
                         "daemon configuration of several buses its joints' bus_index must match")
     b.add_argument("--data", type=Path, default=None, metavar="DIR",
-                   help="ident_real: the UR10e dataset, a checkout of github:shamilmamedov/dynamic_calibration "
-                        "(default: $DRAGD_UR10E_DATA)")
+                   help="ident_real, contact_real: the UR10e dataset, a git checkout of "
+                        "github:shamilmamedov/dynamic_calibration (default: $DRAGD_UR10E_DATA)")
+    b.add_argument("--train", action="append", default=None, metavar="LOG[+LOG]",
+                   help="ident_real: a training set of the dataset's logs by name, '+' joining several (repeat: "
+                        "several sets; default: the 50 s 12-harmonic run, and the 50 s 14-harmonic run)")
+    b.add_argument("--valid", action="append", default=None, metavar="LOG[,LOG]",
+                   help="ident_real: validation logs by name, each validated against every training set it is not "
+                        "part of (default: the 20 s 5/7/8/10-, 50 s 12/14/15-harmonic runs)")
     b.add_argument("--eds-dir", type=Path, default=None, metavar="DIR",
                    help="drive_profiles: the vendors' EDS files (docs/DRIVES.md)")
     b.add_argument("--robot", default=None, metavar="URDF",

@@ -1,7 +1,8 @@
 """The runaway guard in DRAG: motion that nobody's hand explains falls back to HOLD (docs/PAYLOAD.md).
 
-A generalised-momentum observer (De Luca's residual, Coriolis term neglected at hand-guiding speeds) estimates
-the joint torque the model does not account for:
+A generalised-momentum observer (De Luca's residual, Coriolis term neglected at hand-guiding speeds; the arithmetic of
+dragd/control/observer.py, which the contact detector shares) estimates the joint torque the model does not account
+for:
 
     r = K_o·(p − p₀ − ∫(τ_in + r) dt),   p = M(q)·q̇,
     τ_in = K_t·(I_cmd − I_gravity − I_offset − I_friction − I_startup − I_effects)   (damping, walls, speed cap)
@@ -43,6 +44,7 @@ from typing import Any
 
 import numpy as np
 
+from dragd.control.observer import observer_step, observer_step_np
 from dragd.jit import compile_kernels
 
 
@@ -84,13 +86,7 @@ def _guard_kernel(dt: float, alpha: float, settled: bool, tau: np.ndarray, p: np
     """``RunawayGuard.update``'s arithmetic (the numpy below is its reference): (0 nothing | 1 the fast path's
     test is due | 2 the slow path's, with ``due`` marking the joints; the new ``running``)."""
     n = tau.shape[0]
-    for j in range(n):
-        a = tau[j] + r[j]
-        a *= dt
-        integ[j] += a
-        a = p[j] - p0[j]
-        a -= integ[j]
-        r[j] = a * k_o
+    observer_step(dt, k_o, tau, p, p0, integ, r)
     for j in range(n):
         a = r[j] - r_f[j]
         a *= alpha
@@ -171,7 +167,7 @@ def _kernels() -> dict[str, Any] | None:
     f1, b1 = np.zeros(1), np.zeros(1, dtype=bool)
     state = (f1, f1, f1.copy(), f1.copy(), f1.copy(), f1.copy(), f1.copy(), f1.copy(), f1.copy(), f1.copy(), b1,
              np.ones(1), b1.copy(), 60.0, 1e-3, 0.03, 0.85, 0.3, 0.03, 0.5, True, True)  # (p, dq, ... running)
-    return compile_kernels(globals(), ("_guard_kernel",), {
+    return compile_kernels(globals(), ("observer_step", "_guard_kernel"), {
         "guard": (_guard_kernel, (1e-3, 0.05, True, f1.copy(), *state)),
         "guard_command": (_guard_command_kernel, (f1, f1, f1, f1, f1, f1, False, np.ones(1), 1e-3, 0.05, True,
                                                   f1.copy(), *state))})
@@ -294,13 +290,8 @@ class RunawayGuard:
                 self.hand, self.kt, m2, self.k_o, self.dt, s.speed_rad_s, s.keep_speed, s.residual_A, s.confirm_s,
                 s.run_max_s, t_s >= self.retest_at, self.running)
             return self._decided(code, t_s, q)
-        # observer: integ += (τ_in + r)·dt;  r = K_o·(p − p₀ − integ)
-        np.add(tau_in_Nm, self.r, out=a)
-        a *= dt
-        self.integ += a
-        np.subtract(p_Nms, self.p0, out=a)
-        a -= self.integ
-        np.multiply(a, self.k_o, out=self.r)
+        # observer (dragd/control/observer.py): integ += (τ_in + r)·dt;  r = K_o·(p − p₀ − integ)
+        observer_step_np(dt, self.k_o, tau_in_Nm, p_Nms, self.p0, self.integ, self.r, a)
         # the decision signals: residual and speeds low-passed (first order, exact for the step dt)
         alpha = 1.0 - math.exp(-2.0 * math.pi * s.decide_Hz * dt)
         np.subtract(self.r, self.r_f, out=a)

@@ -144,6 +144,18 @@ def check(log: Log, robot: Any, params: Any, cfg: Any | None = None, terms: str 
     fr = np.empty_like(p.dq)
     friction_current(p.dq, law, fr, Workspace(p.dq.shape))  # the law's arrays broadcast over the samples
     armature = (getattr(params, "notes", {}) or {}).get("armature_kgm2") or {}
+    # load-dependent friction (effects.load_friction_per_Nm, identify fit --method full or dragd gap): the law's
+    # w·sign(q̇)·k_L·|G|/K_t with the same sliding weight as the Coulomb level
+    k_load = np.array([float(getattr(getattr(params.joints.get(nm), "effects", None), "load_friction_per_Nm", 0.0)
+                             or 0.0) if params.joints.get(nm) is not None else 0.0 for nm in names])
+    if k_load.any():
+        from dragd.control.law import _sliding_weight
+
+        w = np.empty_like(p.dq)
+        a_ = np.abs(p.dq)
+        _sliding_weight(a_, law, w, a_.copy(), None)
+        on = k_load != 0.0  # (a joint without K_t carries no load term: its friction stays as it is)
+        fr[:, on] += (w * np.sign(p.dq) * np.abs(rm.gravity(p.q)))[:, on] * (k_load / law.kt_Nm_per_A)[on]
     with np.errstate(invalid="ignore"):
         pred = tau / law.kt_Nm_per_A + fr
     for j, nm in enumerate(names):

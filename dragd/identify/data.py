@@ -129,11 +129,13 @@ _DEG_SPAN_RAD = 1.5 * 2.0 * np.pi  # a revolute joint's log beyond this span (or
 
 
 def load_log(path: str | Path, modes: tuple[str, ...] = ("track",), joints: tuple[str, ...] | list[str] | None = None,
-             robot: str = "robot", drop_bad_rows: bool = False) -> Log:
+             robot: str = "robot", drop_bad_rows: bool = False, layout: tuple[str, ...] | None = None) -> Log:
     """Read a daemon MCAP (rows in ``modes``) or a CSV log (header ``t,q1..`` or a headerless layout); validate.
 
     ``joints`` (the robot's joint names) picks the layout of a headerless CSV and checks the joint count;
-    ``drop_bad_rows`` skips NaN/inf, malformed and out-of-sequence rows with a warning naming them (else: error).
+    ``layout`` names a headerless CSV's blocks of N columns after t instead (``parse_layout``: e.g. q,dq,i,- where
+    ``-`` is a block that is not read); ``drop_bad_rows`` skips NaN/inf, malformed and out-of-sequence rows with a
+    warning naming them (else: error).
     """
     path = Path(path)
     found = ""
@@ -159,7 +161,7 @@ def load_log(path: str | Path, modes: tuple[str, ...] = ("track",), joints: tupl
             raise LogError(f"{path}: expected a .mcap (dragd telemetry) or .csv (t,q1..qN,i1..iN[,dq1..dqN]) file; "
                            "the content is neither")
     n_joints = None if joints is None else len(joints)
-    log = _load_mcap(path, modes) if kind == "mcap" else _load_csv(path, n_joints, drop_bad_rows)
+    log = _load_mcap(path, modes) if kind == "mcap" else _load_csv(path, n_joints, drop_bad_rows, layout)
     if found:
         log.warnings.insert(0, found)
     log = _validate(log, drop_bad_rows)
@@ -231,7 +233,26 @@ def _first(lines: np.ndarray, k: int = 5) -> str:
     return ", ".join(str(int(x)) for x in lines[:k]) + (" ..." if lines.size > k else "")
 
 
-def _load_csv(path: Path, n_joints: int | None, drop_bad_rows: bool) -> Log:
+LAYOUT_KINDS = ("q", "dq", "i", "i_target", "tau_target", "-")
+
+
+def parse_layout(text: str) -> tuple[str, ...]:
+    """``--columns q,dq,i,-`` → the blocks of a headerless CSV after t (each N columns; ``-`` not read)."""
+    kinds = tuple(k.strip() for k in text.split(",") if k.strip())
+    bad = [k for k in kinds if k not in LAYOUT_KINDS]
+    if bad or not kinds:
+        raise LogError(f"--columns: expected blocks among {', '.join(LAYOUT_KINDS)} ('-': N columns not read), "
+                       f"comma-separated after t, e.g. q,dq,i,-; got {text!r}")
+    for need in ("q", "i"):
+        if need not in kinds:
+            raise LogError(f"--columns: the layout needs a '{need}' block, got {text!r}")
+    twice = sorted({k for k in kinds if k != "-" and kinds.count(k) > 1})
+    if twice:
+        raise LogError(f"--columns: each block once (except '-'), got {', '.join(twice)} twice in {text!r}")
+    return kinds
+
+
+def _load_csv(path: Path, n_joints: int | None, drop_bad_rows: bool, layout: tuple[str, ...] | None = None) -> Log:
     raw = path.read_text(errors="replace").splitlines()
     numbered = [(k + 1, s.strip()) for k, s in enumerate(raw) if s.strip()]
     if not numbered:
@@ -240,7 +261,7 @@ def _load_csv(path: Path, n_joints: int | None, drop_bad_rows: bool) -> Log:
     warnings: list[str] = []
     if all(_is_number(c) for c in first):  # headerless: the layout follows from the column count
         ncols = len(first)
-        cols, kinds = _headerless_columns(path, ncols, n_joints)
+        cols, kinds = _headerless_columns(path, ncols, n_joints, layout)
         warnings.append(f"headerless {ncols} columns: read as " + (
             "UR RTDE layout t,q,qd,i,i_target,tau_target" if kinds == _UR_LAYOUT else ",".join(["t", *kinds]))
             + f" ({(ncols - 1) // len(kinds)} joints; s, rad, rad/s, A, N·m)")
@@ -289,10 +310,23 @@ def _load_csv(path: Path, n_joints: int | None, drop_bad_rows: bool) -> Log:
                i_target=take(opt["i_target"]), tau_target=take(opt["tau_target"]), columns=cols, lines=lines)
 
 
-def _headerless_columns(path: Path, ncols: int, n_joints: int | None) -> tuple[list[str], tuple[str, ...]]:
-    """Column names of a headerless CSV: 1+5n = UR RTDE, 1+3n = t,q,dq,i, 1+2n = t,q,i (n from the robot)."""
+def _headerless_columns(path: Path, ncols: int, n_joints: int | None,
+                        layout: tuple[str, ...] | None = None) -> tuple[list[str], tuple[str, ...]]:
+    """Column names of a headerless CSV: 1+5n = UR RTDE, 1+3n = t,q,dq,i, 1+2n = t,q,i (n from the robot), or the
+    given ``layout`` (blocks of n; a '-' block's columns are named skip1.. and not read)."""
     def names(kinds: tuple[str, ...], n: int) -> tuple[list[str], tuple[str, ...]]:
-        return ["t"] + [f"{k}{j}" for k in kinds for j in range(1, n + 1)], kinds
+        cols = ["t"]
+        for b, k in enumerate(kinds):
+            cols += [f"skip{b}_{j}" if k == "-" else f"{k}{j}" for j in range(1, n + 1)]
+        return cols, kinds
+
+    if layout is not None:
+        n = (ncols - 1) // len(layout)
+        if n * len(layout) + 1 != ncols or (n_joints is not None and n != n_joints):
+            want = f"{1 + len(layout) * n_joints}" if n_joints is not None else f"1 + {len(layout)}·N"
+            raise LogError(f"{path}: headerless CSV with {ncols} columns does not fit --columns {','.join(layout)}: "
+                           f"expected {want} (t + {len(layout)} blocks of one column per joint)")
+        return names(layout, n)
 
     if n_joints is not None:
         for k, kinds in _HEADERLESS.items():
@@ -300,7 +334,8 @@ def _headerless_columns(path: Path, ncols: int, n_joints: int | None) -> tuple[l
                 return names(kinds, n_joints)
         raise LogError(f"{path}: headerless CSV with {ncols} columns does not fit the robot's {n_joints} joints: "
                        f"expected {1 + 5 * n_joints} (UR RTDE t,q,qd,i,i_target,tau_target), {1 + 3 * n_joints} "
-                       f"(t,q,dq,i) or {1 + 2 * n_joints} (t,q,i) columns, or a header line t,q1..qN,i1..iN")
+                       f"(t,q,dq,i) or {1 + 2 * n_joints} (t,q,i) columns, or a header line t,q1..qN,i1..iN "
+                       "(dragd contact also takes the layout as --columns, e.g. q,dq,i,-)")
     if ncols > 1 and (ncols - 1) % 5 == 0:
         return names(_UR_LAYOUT, (ncols - 1) // 5)
     raise LogError(f"{path}: headerless CSV with {ncols} columns: the layout is ambiguous without the robot's joint "

@@ -28,7 +28,8 @@ METHODS = ("lowspeed", "symmetric", "synchronous", "full", "auto")
 PRIOR_REL = 0.05  # full dynamics: prior std of a base parameter relative to its URDF value (CAD masses)
 ARMATURE_PRIOR_KGM2 = 1.0  # ... and of a rotor inertia (not in a URDF), reflected to the joint
 PRIOR_GRAVITY_REL = 0.01  # ... and of a gravity parameter (the K_t reference; see fit_full)
-RESOLUTION_A = 0.05  # a friction term whose uncertainty moves the current by more than this over the data is null
+RESOLUTION_A = 0.05  # a friction term whose uncertainty moves the current by more than this over the data is null ...
+DETERMINED_REL = 0.2  # ... unless it is determined to this fraction of its value (a 5σ estimate on noisy real logs)
 KT_MAX_REL_STD = 0.05  # a torque constant not determined to 5 % is null
 MIN_ROWS = 20
 
@@ -47,6 +48,7 @@ class Options:
     pair_speed_tol: float = 0.15  # symmetric: |q̇_a + q̇_b| ≤ tol·|q̇_a|
     never_moves_rad: float = 0.5 * math.pi / 180  # a joint whose range stays below this never moves
     torque_constants: list[float | None] | None = None  # joint-side K_t known to the user (full method), per joint
+    load_friction: bool = False  # full method: also fit a load-dependent Coulomb term sign(q̇)·|G| where it helps
 
 
 # ------------------------------------------------------------------------------------------ context
@@ -180,7 +182,7 @@ def _set_friction_from_fit(jr: JointResult, fit: LinearFit, vmax: float, reason_
         v, s = fit.value(key), fit.std(key)
         if v is None:
             jr.set(key, None, reason=reason_prefix + fit.dropped.get(key, "not in the model"))
-        elif s is not None and s > RESOLUTION_A:
+        elif s is not None and s > RESOLUTION_A and s > DETERMINED_REL * abs(v):
             jr.set(key, None, reason=f"{reason_prefix}not determined: {v:.4f} ± {s:.4f} A")
         else:
             jr.set(key, v, s)
@@ -191,7 +193,7 @@ def _set_friction_from_fit(jr: JointResult, fit: LinearFit, vmax: float, reason_
         v, s = fit.value(key), fit.std(key)
         if v is None:
             jr.set(key, None, reason=reason_prefix + fit.dropped.get(key, "not in the model"))
-        elif s is not None and s * vmax > RESOLUTION_A:
+        elif s is not None and s * vmax > RESOLUTION_A and s > DETERMINED_REL * abs(v):
             jr.set(key, None, reason=f"{reason_prefix}not determined: {v:.4f} ± {s:.4f} A·s/rad over speeds up to "
                                      f"{vmax:.3f} rad/s")
         else:
@@ -820,11 +822,18 @@ def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
                 prior[names_rb[k]] = max(rel * c0 * abs(beta_urdf[k]), floor / colmax[k])
         y_sel = ctx.iH[sel, j] - (c0 * tauH[sel] if given else 0.0)  # K_t given: the URDF's current is known
 
-        def solve(stb: tuple[float, float] | None) -> LinearFit:
+        # load-dependent friction (harmonic drives: the Coulomb level grows with the transmitted torque): a column
+        # sign(q̇)·|G(q)| where the joint carries a changing gravity load; kept only when it lowers the residual
+        g_abs = np.abs(ctx.grav[:, j])
+        load_col = p.regfilter((np.sign(v) * g_abs)[:, None])[:, 0] if o.load_friction and np.ptp(g_abs[sel]) > 1.0 \
+            else None
+
+        def solve(stb: tuple[float, float] | None, load: bool = False) -> LinearFit:
             F, fnames = friction_columns(v, vs=None if stb is None else stb[0], delta=2.0 if stb is None else stb[1])
             FH = p.regfilter(F)
-            A = np.column_stack(([] if given else [tauH[sel]]) + [YfH[sel], FH[sel]])
-            nm = ([] if given else ["urdf"]) + names_rb + fnames
+            extra = [load_col[sel]] if load and load_col is not None else []
+            A = np.column_stack(([] if given else [tauH[sel]]) + [YfH[sel], FH[sel]] + extra)
+            nm = ([] if given else ["urdf"]) + names_rb + fnames + (["load_A_per_Nm"] if extra else [])
             f0 = prior_fit(A, y_sel, nm, prior)
             hi = np.abs(ctx.ddqH[sel, j]) > max(acc_level * 0.5, 0.05)
             w = np.ones(sel.size)
@@ -851,6 +860,13 @@ def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
                     if hump_ok and f2.sigma < best[0] * 0.95 and f2.value("dstatic_pos_A") > 0 > f2.value("dstatic_neg_A"):
                         best = (f2.sigma, (vs, dl), f2)
         fit, stb = best[2], best[1]
+        if load_col is not None:  # with the load-dependent term: kept when positive and 2 % better
+            f3 = solve(stb, load=True)
+            k3 = f3.value("load_A_per_Nm")
+            if k3 is not None and k3 > 0 and f3.sigma < 0.98 * fit.sigma:
+                fit = f3
+                jr.diagnostics["load_friction_A_per_Nm"] = k3
+                jr.diagnostics["load_friction_std_A_per_Nm"] = f3.std("load_A_per_Nm")
         vmax = float(np.abs(v[sel]).max())
         _set_friction_from_fit(jr, fit, vmax, v=v[sel])
         if stb is not None:

@@ -201,7 +201,7 @@ class FitResult:
 
     def to_params(self):  # noqa: ANN201
         """The params file (dragd.config.ParamsFile) the model, daemon and sim load."""
-        from dragd.config import FrictionParams, JointParams, ParamsFile
+        from dragd.config import FrictionParams, JointEffects, JointParams, ParamsFile
 
         joints = {}
         for j in self.joints:
@@ -209,8 +209,12 @@ class FitResult:
             std = {k: float(v) for k, v in j.std.items()}
             if j.reasons:
                 std["null_reasons"] = dict(j.reasons)
+            effects = JointEffects()
+            k = j.diagnostics.get("load_friction_A_per_Nm")
+            if k is not None and j.torque_constant_Nm_per_A is not None:  # (k_L: friction torque per gravity torque)
+                effects = JointEffects(load_friction_per_Nm=float(k) * float(j.torque_constant_Nm_per_A))
             joints[j.name] = JointParams(torque_constant_Nm_per_A=j.torque_constant_Nm_per_A,
-                                         friction=FrictionParams(**fr), std=std)
+                                         friction=FrictionParams(**fr), std=std, effects=effects)
         notes = {"log": self.log, "warnings": list(self.warnings), **_jsonable(self.notes)}
         return ParamsFile(method=self.method, robot=self.robot, joints=joints, notes=notes)
 

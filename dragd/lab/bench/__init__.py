@@ -83,9 +83,9 @@ def _load_plugins() -> None:
     import importlib
 
     for mod in ("dragd.lab.bench.loop", "dragd.lab.bench.identify", "dragd.lab.bench.gap",
-                "dragd.lab.bench.gap_confusion", "dragd.lab.bench.ident_real", "dragd.lab.bench.faults",
-                "dragd.lab.bench.telemetry", "dragd.lab.bench.yardstick", "dragd.lab.bench.ros2",
-                "dragd.lab.bench.drives"):
+                "dragd.lab.bench.gap_confusion", "dragd.lab.bench.ident_real", "dragd.lab.bench.contact_real",
+                "dragd.lab.bench.faults", "dragd.lab.bench.telemetry", "dragd.lab.bench.yardstick",
+                "dragd.lab.bench.ros2", "dragd.lab.bench.drives"):
         try:
             importlib.import_module(mod)
         except ModuleNotFoundError as exc:
