@@ -59,12 +59,12 @@ from dragd.hardware.cia402 import (
 )
 from dragd.resources import eds_path
 from sim.axis import AxisIO
-from sim.drive_profile import DriveProfile, Hardware, ProfileSpec, build_profile
+from sim.drive_profile import ASSUMED_OPTIONS, DriveProfile, Hardware, ProfileSpec, build_profile
 from sim.ds402 import DeviceControl
 from sim.emcy import Errors
 from sim.motion import Motion, Regime
 from sim.nmt import HeartbeatConsumers, Nmt
-from sim.od import ABORT_VALUE_RANGE, COMM_RANGE, ObjectStore, SdoAbort
+from sim.od import ABORT_VALUE_RANGE, COMM_RANGE, STRUCT_CODES, ObjectStore, SdoAbort
 from sim.pdo import PdoChannel, PdoService
 from sim.scaling import Scaling
 from sim.sdo_server import SdoServer
@@ -167,8 +167,6 @@ def _range(store: ObjectStore, slot: int) -> tuple[int, int]:
     var = store.vars[slot]
     if var is None:
         return _TYPE_RANGES["h"]
-    from sim.od import STRUCT_CODES
-
     return _TYPE_RANGES.get(STRUCT_CODES.get(var.data_type, "h"), _TYPE_RANGES["h"])
 
 
@@ -249,11 +247,14 @@ class SimDrive:
             velocity=std(OD_VELOCITY_ACTUAL, "velocity_actual", 0),
             mode=std(OD_MODES_OF_OPERATION, "modes_of_operation", 0),
             mode_display=std(OD_MODES_OF_OPERATION_DISPLAY, "modes_of_operation_display", 0),
-            abort_option=std(OD_ABORT_CONNECTION_OPTION, "abort_connection_option", 1),
-            qs_option=std(OD_QUICK_STOP_OPTION, "quick_stop_option", 2),
-            shutdown_option=std(OD_SHUTDOWN_OPTION, "shutdown_option", 0),
-            disable_op_option=std(OD_DISABLE_OPERATION_OPTION, "disable_operation_option", 1),
-            fault_option=std(OD_FAULT_REACTION_OPTION, "fault_reaction_option", 2),
+            abort_option=std(OD_ABORT_CONNECTION_OPTION, "abort_connection_option",
+                             ASSUMED_OPTIONS[OD_ABORT_CONNECTION_OPTION][0]),
+            qs_option=std(OD_QUICK_STOP_OPTION, "quick_stop_option", ASSUMED_OPTIONS[OD_QUICK_STOP_OPTION][0]),
+            shutdown_option=std(OD_SHUTDOWN_OPTION, "shutdown_option", ASSUMED_OPTIONS[OD_SHUTDOWN_OPTION][0]),
+            disable_op_option=std(OD_DISABLE_OPERATION_OPTION, "disable_operation_option",
+                                  ASSUMED_OPTIONS[OD_DISABLE_OPERATION_OPTION][0]),
+            fault_option=std(OD_FAULT_REACTION_OPTION, "fault_reaction_option",
+                             ASSUMED_OPTIONS[OD_FAULT_REACTION_OPTION][0]),
             target_position=std(OD_TARGET_POSITION, "target_position", 0),
             target_velocity=std(OD_TARGET_VELOCITY, "target_velocity", 0),
             velocity_offset=std(OD_VELOCITY_OFFSET, "velocity_offset", 0),

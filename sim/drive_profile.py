@@ -45,6 +45,14 @@ DRIVES_DIR = Path(__file__).resolve().parent / "config" / "drives"
 OD_IDENTITY = 0x1018
 OD_DEVICE_TYPE = 0x1000
 DEVICE_TYPE_402_SERVO = 0x00020192  # CiA 402 (0192h), additional information 0002h: servo drive
+# option codes a drive acts on when its EDS lacks the object: value, and what the drive then does
+ASSUMED_OPTIONS: dict[int, tuple[int, str]] = {
+    0x6007: (1, "a loss of communication (heartbeat, RPDO deadline, NMT stop) faults the drive"),
+    0x605A: (2, "quick stop on the quick stop ramp, then switch on disabled"),
+    0x605B: (0, "shutdown disables the drive at once"),
+    0x605C: (1, "disable operation slows down first"),
+    0x605E: (2, "the fault reaction is the quick stop ramp"),
+}
 
 _INTEGER_TYPES = frozenset({datatypes.INTEGER8, datatypes.INTEGER16, datatypes.INTEGER32, datatypes.INTEGER64,
                             datatypes.UNSIGNED8, datatypes.UNSIGNED16, datatypes.UNSIGNED32, datatypes.UNSIGNED64})
@@ -428,16 +436,9 @@ def build_profile(spec: ProfileSpec, hw: Hardware, base_dir: Path | None = None)
         var = var_of(index, sub)
         if var is not None and var.default is None and var.value is None and (index, sub) not in commissioned:
             assumptions.append(f"{format_address(index, sub)} ({var.name}) has no default in the EDS: 0")
-    if var_of(0x6007, 0) is None:
-        assumptions.append("no 6007h (abort connection option): on a loss of communication (heartbeat, RPDO deadline, "
-                           "NMT stop) the drive faults (CiA 402's default reaction, 6007h = 1)")
-    if var_of(0x605A, 0) is None:
-        assumptions.append("no 605Ah (quick stop option): quick stop on the quick stop ramp, then switch on disabled "
-                           "(605Ah = 2)")
-    for index, name, value in ((0x605B, "shutdown option", 0), (0x605C, "disable operation option", 1),
-                               (0x605E, "fault reaction option", 2)):
+    for index, (value, what) in ASSUMED_OPTIONS.items():
         if var_of(index, 0) is None:
-            assumptions.append(f"no {index:04X}h ({name}): behaves as {index:04X}h = {value}")
+            assumptions.append(f"no {index:04X}h: {what} ({index:04X}h = {value}, CiA 402's default)")
     for quantity in ("rated_current", "rated_torque"):
         if bindings[quantity].index is None:
             assumptions.append(f"no object holds the {quantity.replace('_', ' ')} ({QUANTITIES[quantity].index:04X}h "
