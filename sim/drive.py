@@ -29,7 +29,17 @@ from typing import Any
 
 import can
 
-from dragd.hardware.cia301 import HEARTBEAT_BASE, SDO_RX_BASE, SDO_TX_BASE, SYNC_COB_ID, NmtCommand, NmtState
+from dragd.hardware.cia301 import (
+    HEARTBEAT_BASE,
+    OD_PRODUCER_HEARTBEAT,
+    OD_SDO_SERVER,
+    OD_SYNC_COB_ID,
+    SDO_RX_BASE,
+    SDO_TX_BASE,
+    SYNC_COB_ID,
+    NmtCommand,
+    NmtState,
+)
 from dragd.hardware.cia402 import (
     EMCY_COMMUNICATION,
     EMCY_HEARTBEAT,
@@ -71,8 +81,6 @@ from sim.sdo_server import SdoServer
 
 DEFAULT_EDS_PATH = eds_path()
 COMM_TICK_S = 0.001  # period of the communication watchdog / heartbeat / event-TPDO checks
-OD_SYNC_COB_ID = 0x1005
-OD_SDO_SERVER = 0x1200
 _INT32_MIN, _INT32_MAX = -(1 << 31), (1 << 31) - 1
 _CST = int(Mode.CYCLIC_SYNC_TORQUE)
 _TYPE_RANGES = {"b": (-(1 << 7), (1 << 7) - 1), "h": (-(1 << 15), (1 << 15) - 1), "i": (_INT32_MIN, _INT32_MAX),
@@ -287,7 +295,7 @@ class SimDrive:
         st, control = self.store, self.control
         st.before_write[OD_SYNC_COB_ID] = self._check_sync_cob
         st.after_write[OD_SYNC_COB_ID] = lambda sub, value: self._load_routing()
-        st.hook_after(0x1017, lambda sub, value: self.nmt.schedule(self._now))
+        st.hook_after(OD_PRODUCER_HEARTBEAT, lambda sub, value: self.nmt.schedule(self._now))
         st.before_write[OD_QUICK_STOP_OPTION] = control.check_quick_stop_option
         st.before_write[OD_MODES_OF_OPERATION] = control.check_mode
         st.after_write[OD_MODES_OF_OPERATION] = lambda sub, value: control.set_mode(value)

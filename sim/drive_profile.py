@@ -24,6 +24,7 @@ import canopen
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable, datatypes
 
 from dragd.config import ConfigError, _read_yaml
+from dragd.hardware.cia301 import OD_DEVICE_TYPE, OD_ERROR_BEHAVIOUR, OD_IDENTITY, OD_PRODUCER_HEARTBEAT
 from dragd.hardware.cia402 import (
     OD_CONTROLWORD,
     OD_MODES_OF_OPERATION,
@@ -42,8 +43,6 @@ from dragd.hardware.cia402 import (
 from dragd.resources import eds_path as bundled_eds_path
 
 DRIVES_DIR = Path(__file__).resolve().parent / "config" / "drives"
-OD_IDENTITY = 0x1018
-OD_DEVICE_TYPE = 0x1000
 DEVICE_TYPE_402_SERVO = 0x00020192  # CiA 402 (0192h), additional information 0002h: servo drive
 # option codes a drive acts on when its EDS lacks the object: value, and what the drive then does
 ASSUMED_OPTIONS: dict[int, tuple[int, str]] = {
@@ -432,7 +431,7 @@ def build_profile(spec: ProfileSpec, hw: Hardware, base_dir: Path | None = None)
         assumptions.append(f"1000h (device type) has no value in the EDS: 0x{DEVICE_TYPE_402_SERVO:08X} (CiA 402, servo "
                            f"drive)")
     modes = _supported_modes(var_of, commissioned, assumptions)
-    for index, sub in ((0x1017, 0), (0x1029, 1)):
+    for index, sub in ((OD_PRODUCER_HEARTBEAT, 0), (OD_ERROR_BEHAVIOUR, 1)):
         var = var_of(index, sub)
         if var is not None and var.default is None and var.value is None and (index, sub) not in commissioned:
             assumptions.append(f"{format_address(index, sub)} ({var.name}) has no default in the EDS: 0")
