@@ -561,6 +561,8 @@ class SimDrive:
     # communication watchdogs, heartbeat
     # ==================================================================================================
     def _comm_tick(self, now: float) -> None:
+        if now > self._now:
+            self._now = now
         with self._lock:
             # on a COMM_TICK_S grid: called once per tick by the simulator's loop, a tick that comes a little early
             # must not push the next one a whole period further (at most one period is made up after a stall)
