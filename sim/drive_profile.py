@@ -44,6 +44,9 @@ from dragd.resources import eds_path as bundled_eds_path
 
 DRIVES_DIR = Path(__file__).resolve().parent / "config" / "drives"
 DEVICE_TYPE_402_SERVO = 0x00020192  # CiA 402 (0192h), additional information 0002h: servo drive
+# a vendor drive's position loop integrates (cascaded PI velocity loop): its CSP integral gain per proportional gain
+# where the truth names none (1/s: the integral catches up with a constant load in about 0.1 s)
+VENDOR_CSP_KI_PER_KP = 10.0
 # option codes a drive acts on when its EDS lacks the object: value, and what the drive then does
 ASSUMED_OPTIONS: dict[int, tuple[int, str]] = {
     0x6007: (1, "a loss of communication (heartbeat, RPDO deadline, NMT stop) faults the drive"),
@@ -154,6 +157,7 @@ class ProfileSpec:
     values: Mapping[str, int] = field(default_factory=dict)  # "6502h" -> commissioned value
     can_fd: bool | None = None  # None: the catalog's, else True for the bundled EDS, False for any other
     where: str = "drive"  # how errors name this entry (the truth file and key)
+    assumed_csp_ki: float | None = None  # the CSP integral gain the drive model assumes (the truth names none)
 
 
 @dataclass(frozen=True)
@@ -446,6 +450,10 @@ def build_profile(spec: ProfileSpec, hw: Hardware, base_dir: Path | None = None)
         assumptions.append("no object holds the current limit: the truth's max_current_A")
     if bindings["max_torque"].index is None:
         assumptions.append("no 6072h (max torque): the current limit alone bounds the torque")
+    if spec.assumed_csp_ki is not None:
+        assumptions.append(f"the position loop (CSP) integrates, as a servo drive's cascaded loops do: "
+                           f"{spec.assumed_csp_ki:g} A/(rad·s), {VENDOR_CSP_KI_PER_KP:g}/s x kp "
+                           f"(the truth names no csp_ki_A_per_rad_s)")
     if var_of(OD_TORQUE_SLOPE, 0) is None:
         assumptions.append("no 6087h (torque slope): profile torque steps without a ramp")
     if problems:

@@ -284,3 +284,24 @@ def test_joints_spread_over_several_buses_as_config_init_splits_them() -> None:
     assert spread_over_buses(TRUTH, "udp_multicast:239.1.1.1") is TRUTH
     two = load_truth(REPO / "sim/config/seed_cobot_two_buses.yaml")  # a truth that places its joints keeps them
     assert spread_over_buses(two, "a,b,c") is two
+
+
+@pytest.mark.parametrize("eds,integrates", [(None, False), ("classic", True)])
+def test_a_vendor_drives_position_loop_integrates(eds: str | None, integrates: bool) -> None:
+    """A drive from a vendor's EDS (here a variant) closes CSP with an integral (the truth names none): a joint held
+    0.01 rad off target sees its demand grow; the bundled drive's loop is P+D, as the seed cobot's truth says."""
+    x = Drive(None if eds is None else variant(eds))
+    kp = TRUTH.joints[0].drive.csp_kp_A_per_rad
+    assert x.d.params.csp_ki_A_per_rad_s == (10.0 * kp if integrates else 0.0)
+    assert x.write(0x6060, 0, 8, 1) is None
+    for word in (CMD_SHUTDOWN, CMD_SWITCH_ON, CMD_ENABLE_OPERATION):
+        assert x.write(0x6040, 0, word, 2) is None
+    x.d.io.position_rad = -0.01  # (nothing moves the joint here: the io is not integrated)
+    x.step(0.01)
+    first = x.d.io.current_demand_A
+    x.step(0.1)
+    assert first == pytest.approx(kp * 0.01, rel=0.2)
+    if integrates:
+        assert x.d.io.current_demand_A > first + 0.5 * 10.0 * kp * 0.01 * 0.1
+    else:
+        assert x.d.io.current_demand_A == first
