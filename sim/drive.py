@@ -10,10 +10,11 @@ the process quantities live and in which unit; what the EDS does not say is assu
 Threads: ``on_message`` / ``on_data`` / ``on_sync`` run in the network's reader thread, ``update`` in the physics thread.
 All take the drive's re-entrant lock for their (short) work. Only ``update`` writes the AxisIO outputs.
 
-Clocks: the drive reads no clock. Communication timing (heartbeats, RPDO deadlines, inhibit and event times) runs on
-the time handed in by ``comm(now)`` and ``on_sync(t)`` (and ``on_data(..., now)`` when given): a frame is received at the
-latest of those. Reception deadlines are also judged against the time up to which the reader has handed frames over
-(``rx_caught_up``). Motion timing (brake release, stop ramps, torque slope) runs on the physics time ``t`` of ``update``.
+Clocks: the drive reads no clock of its own. Communication timing (heartbeats, RPDO deadlines, inhibit and event times)
+runs on the time handed in by ``comm(now)`` and ``on_sync(t)``; a frame is received at ``on_data(..., now)``'s time,
+else at the ``clock`` the drive was built with (the simulator's process: CLOCK_MONOTONIC on the wall clock), else at the
+latest time handed in. Reception deadlines are also judged against the time up to which the reader has handed frames
+over (``rx_caught_up``). Motion timing (brake release, stop ramps, torque slope) runs on the physics time of ``update``.
 """
 
 from __future__ import annotations
@@ -186,9 +187,11 @@ class SimDrive:
     def __init__(self, params: DriveParams, io: AxisIO, send: Callable[[can.Message], None],
                  eds_path: str | Path | None = None,
                  send_data: Callable[[int, bytes, bool], None] | None = None,
-                 profile: DriveProfile | None = None) -> None:
+                 profile: DriveProfile | None = None, clock: Callable[[], float] | None = None) -> None:
         """``send`` transmits a frame; ``send_data(cob_id, data, fd)``, when given, the PDOs (no ``can.Message``).
-        ``eds_path`` replaces the EDS of ``params.profile``; ``profile``, when given, is used as built."""
+        ``eds_path`` replaces the EDS of ``params.profile``; ``profile``, when given, is used as built. ``clock``, when
+        given, stamps a frame's reception (the simulator's process passes CLOCK_MONOTONIC on the wall clock, so a
+        stalled physics thread does not age what the reader received); without it, the latest time handed in."""
         self.params = params
         self.io = io
         self.node_id = params.node_id
@@ -201,6 +204,7 @@ class SimDrive:
             store.set_default(index, sub, value)
         self._counts_per_rad = params.encoder_counts_per_rev / (2.0 * math.pi)
         self._now = 0.0  # the communication clock: the latest time handed in (comm, on_sync, on_data)
+        self._clock = clock
         self._sim_t = 0.0
         self._steady = False  # the last update's outputs hold until something reaches the drive (see ``update``)
         self.encoder_offset_counts = 0  # an injected encoder jump (sim/faults.py), added to 6064h
@@ -295,7 +299,7 @@ class SimDrive:
         st, control = self.store, self.control
         st.before_write[OD_SYNC_COB_ID] = self._check_sync_cob
         st.after_write[OD_SYNC_COB_ID] = lambda sub, value: self._load_routing()
-        st.hook_after(OD_PRODUCER_HEARTBEAT, lambda sub, value: self.nmt.schedule(self._now))
+        st.hook_after(OD_PRODUCER_HEARTBEAT, lambda sub, value: self.nmt.schedule(self._comm_now()))
         st.before_write[OD_QUICK_STOP_OPTION] = control.check_quick_stop_option
         st.before_write[OD_MODES_OF_OPERATION] = control.check_mode
         st.after_write[OD_MODES_OF_OPERATION] = lambda sub, value: control.set_mode(value)
@@ -320,7 +324,7 @@ class SimDrive:
         self.sdo.reset()
         self.pdo.load_all()
         self.consumers.load()  # also reloads the routing (COB-IDs consumed)
-        self.nmt.schedule(self._now)
+        self.nmt.schedule(self._comm_now())
         self._next_comm_s = 0.0
 
     # ==================================================================================================
@@ -340,7 +344,7 @@ class SimDrive:
         with self._lock:
             self._steady = False
             self.control.enter(State.SWITCH_ON_DISABLED)
-            self.nmt.bootup(self._now)
+            self.nmt.bootup(self._comm_now())
 
     def rx_cob_ids(self) -> frozenset[int]:
         """COB-IDs this drive consumes (NMT, SYNC, SDO request, RPDOs, consumed heartbeats)."""
@@ -380,7 +384,8 @@ class SimDrive:
         the reception time on the communication clock (else the latest time handed in)."""
         with self._lock:
             if now is None:
-                now = self._now
+                clock = self._clock
+                now = self._now if clock is None else clock()
             elif now > self._now:
                 self._now = now
             self._steady = False  # (whatever the frame changes, the next physics step computes the outputs afresh)
@@ -464,6 +469,11 @@ class SimDrive:
             self._steady = motion.regime is Regime.OFF or (
                 motion.regime is Regime.COMMAND and motion.mode == _CST and motion.brake_released)
 
+    def _comm_now(self) -> float:
+        """The communication clock now: the clock given, else the latest time handed in."""
+        clock = self._clock
+        return self._now if clock is None else clock()
+
     def _unsteady(self) -> None:
         self._steady = False
 
@@ -544,7 +554,7 @@ class SimDrive:
             self._reset_application_state()
             self._reset_communication_state()
             self.control.enter(State.SWITCH_ON_DISABLED)
-            self.nmt.bootup(self._now)
+            self.nmt.bootup(self._comm_now())
 
     def reset_communication(self) -> None:
         """NMT reset communication: 1000h-1FFFh back to defaults, boot-up (6007h reaction first)."""
@@ -555,7 +565,7 @@ class SimDrive:
             self.store.reset(COMM_RANGE)
             self.errors.update_register()
             self._reset_communication_state()
-            self.nmt.bootup(self._now)
+            self.nmt.bootup(self._comm_now())
 
     # ==================================================================================================
     # communication watchdogs, heartbeat

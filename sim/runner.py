@@ -171,7 +171,8 @@ class SimProcess:
             for j, ax in zip(self.truth.joints, self.axes):
                 spec, inj = self.specs[j.bus_index], self.injectors[j.bus_index]
                 node = drive_params(j, spec.fd).node_id
-                self.drives.append(SimDrive(drive_params(j, spec.fd), ax, inj.sender(node), send_data=inj.data_sender(node)))
+                self.drives.append(SimDrive(drive_params(j, spec.fd), ax, inj.sender(node), send_data=inj.data_sender(node),
+                                            clock=time.monotonic))
             self.networks = [SimNetwork(bus, [d for d, j in zip(self.drives, self.truth.joints) if j.bus_index == k])
                              for k, bus in enumerate(self.buses)]
             for net, inj in zip(self.networks, self.injectors):
