@@ -167,12 +167,13 @@ class SimProcess:
             self.realtime = set_realtime(self.realtime_priority, self.cpus)
         try:
             self.buses = [open_bus(spec, batch_frames=self.batch_frames) for spec in self.specs]
+            clock: Callable[[], float] = time.monotonic  # stamps the frames the drives receive
             self.injectors = [FaultInjector(bus) for bus in self.buses]
             for j, ax in zip(self.truth.joints, self.axes):
                 spec, inj = self.specs[j.bus_index], self.injectors[j.bus_index]
                 node = drive_params(j, spec.fd).node_id
                 self.drives.append(SimDrive(drive_params(j, spec.fd), ax, inj.sender(node), send_data=inj.data_sender(node),
-                                            clock=time.monotonic))
+                                            clock=clock))
             self.networks = [SimNetwork(bus, [d for d, j in zip(self.drives, self.truth.joints) if j.bus_index == k])
                              for k, bus in enumerate(self.buses)]
             for net, inj in zip(self.networks, self.injectors):
