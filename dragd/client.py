@@ -175,3 +175,18 @@ class Client:
 
     async def track(self, **args: Any) -> dict[str, Any]:
         return await self.call("track", **args)
+
+    async def state(self) -> dict[str, Any]:
+        return await self.call("state")
+
+    async def events(self, since: int = 0) -> dict[str, Any]:
+        return await self.call("events", since=since)
+
+    async def stream_open(self, label: str = "stream") -> dict[str, Any]:
+        return await self.call("stream_open", label=label)
+
+    async def stream(self, stream: int, t_s: float, q_rad: list[float]) -> dict[str, Any]:
+        return await self.call("stream", stream=stream, t_s=t_s, q_rad=q_rad)
+
+    async def stream_close(self, stream: int) -> dict[str, Any]:
+        return await self.call("stream_close", stream=stream)

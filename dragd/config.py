@@ -349,6 +349,9 @@ class TelemetryConfig(_Strict):
     # Foxglove's well-known channels beside /dragd/cycle (joint states, link transforms, logs, the URDF)
     foxglove: bool = True
     foxglove_rate_Hz: Annotated[float, Field(gt=0, le=1000), Expect("a rate in (0, 1000] Hz")] = 30.0
+    # their encoding: json (Foxglove's schemas) or ros2 (CDR, standard ROS 2 types: sensor_msgs/JointState, tf2_msgs,
+    # rcl_interfaces/Log on /rosout; docs/ROS2.md)
+    foxglove_encoding: Literal["json", "ros2"] = "json"
     # how often the daemon hands the ring's rows to its writer process: each hand-over takes the GIL from the cycle
     # for a moment (at 50 Hz the demo's period p99 was 1090-1160 us, at 4 Hz 1040-1060 us; docs/PERFORMANCE.md)
     forward_interval_s: Annotated[float, Field(gt=0, le=2.0), Expect("an interval in (0, 2] s")] = 0.25
@@ -398,6 +401,20 @@ class ReplayConfig(_Strict):
     monitor_cycles: PosInt = 20  # a monitor must see its bound exceeded this many cycles in a row
 
 
+class StreamConfig(_Strict):
+    """Position streams into TRACK (the control socket's ``stream`` commands, the ROS 2 bridge): docs/ROS2.md."""
+
+    # the playback lags the newest sample by this: the jitter a stream may have before the arm slows down
+    delay_s: Annotated[float, Field(ge=0.005, le=1.0), Expect("seconds in [0.005, 1]")] = 0.05
+    # no sample for this long (the cycle's time): the stream ends into HOLD at the last sample. The arm has stopped
+    # there already (running dry within delay_s); a stream whose samples pause for less resumes
+    timeout_s: Annotated[float, Field(gt=0, le=2.0), Expect("seconds in (0, 2]")] = 0.5
+    # a sample further ahead of the playback than this is refused (a sender's clock that jumped)
+    max_lead_s: Annotated[float, Field(gt=0, le=4.0), Expect("seconds in (0, 4]")] = 1.0
+    # the playback rate stays within 1 ± this while it keeps delay_s (clock drift between sender and daemon)
+    catch_up: Annotated[float, Field(ge=0, le=0.5), Expect("a fraction in [0, 0.5]")] = 0.1
+
+
 class Config(_Strict):
     robot: RobotConfig = RobotConfig()
     params: str | None = None  # identified-parameters file, relative to the config file
@@ -410,6 +427,7 @@ class Config(_Strict):
     telemetry: TelemetryConfig = TelemetryConfig()
     control: ControlConfig = ControlConfig()
     replay: ReplayConfig = ReplayConfig()
+    stream: StreamConfig = StreamConfig()
     payload: Payload | None = None  # flange payload not in the URDF (docs/GAP.md)
     inertials: dict[str, LinkInertial] | None = None  # identified link inertials over the URDF's (docs/MODEL.md)
     source: str = Field("<memory>", exclude=True)  # file it came from (not a YAML key)
@@ -433,6 +451,9 @@ class Config(_Strict):
                 raise ValueError(f"joints: {j.name} and {seen[key]} share node id {j.node_id} on bus '{j.bus}'")
             seen[key] = j.name
         self._cross_timing()
+        if self.stream.max_lead_s <= self.stream.delay_s:
+            raise ValueError(f"stream.max_lead_s: expected more than stream.delay_s ({self.stream.delay_s:g} s), got "
+                             f"{self.stream.max_lead_s:g}")
         r = self.replay
         for key in ("velocity_limits_rad_s", "acceleration_limits_rad_s2", "jerk_limits_rad_s3",
                     "tracking_error_limit_rad", "residual_current_limit_A", "position_kp_Nm_per_rad",

@@ -186,6 +186,7 @@ class Rule:
     rig: bool = False
     slow: bool = False
     tool: bool = False  # run only where its program is installed
+    ready: str = "sim: running"  # a service's line on its output once it serves
 
 
 RULES: list[Rule] = [
@@ -199,6 +200,8 @@ RULES: list[Rule] = [
     Rule(r"^(systemctl|journalctl) |^systemd-analyze security dragd", "host", "a systemd host running dragd"),
     Rule(r"^(\w+=\S+ )*tests/vcan/run\b", "host", "the vcan suite (QEMU or CAN interfaces): CI's own step"),
     Rule(r"^python3 -m pip wheel ", "host", "builds the wheel: tests/wheel/run does"),
+    Rule(r"^pip install ", "host", "installs into the user's environment (./dev installs the same extras)"),
+    Rule(r"^ros2 ", "host", "a full ROS 2 installation on the integrator's machine (docs/ROS2.md)"),
     Rule(r"^python -m can\.(logger|viewer) ", "host",
          "python-can's tools with the group routed to lo (root): tests/test_python_can_interop.py runs them in a "
          "network namespace"),
@@ -217,6 +220,8 @@ RULES: list[Rule] = [
     # long-running: started, seen ready, stopped
     Rule(r"^dragd sim --help$", "run", "the simulator's options"),
     Rule(r"^dragd sim\b", "service", "the simulator runs until stopped"),
+    Rule(r"^dragd ros2\b", "service", "the ROS 2 bridge runs until stopped (beside the docs' daemon)", rig=True,
+         ready="dragd ros2: bridging the daemon"),
     # the daemon's clients, against the rig
     Rule(r"^dragd start\b", "run", "a session's first step: no motion running", before=("no_replay",), rig=True),
     Rule(r"^dragd (status|stop)\b", "run", "control socket", rig=True),
@@ -243,8 +248,9 @@ RULES: list[Rule] = [
     Rule(r"^dragd identify run ", "run", "a real-time identification run",
          before=("no_replay", "home", "enabled", "fresh_out"), rig=True),
     # offline
-    Rule(r"^dragd (model|config check|log summary|teach show|teach keyframes|identify (plan|fit|check)) ", "run",
-         "offline"),
+    Rule(r"^dragd log ros2$", "mention", "a command named in prose"),
+    Rule(r"^dragd (model|config check|log summary|log ros2|teach show|teach keyframes|identify (plan|fit|check)) ",
+         "run", "offline"),
     Rule(r"^dragd config check$", "run", "offline"),
     Rule(r"^dragd config init ", "run", "offline"),
     Rule(r"^dragd --version$", "run", "offline"),
@@ -261,6 +267,7 @@ RULES: list[Rule] = [
     Rule(r"^dragd demo\b", "run", "sim + daemon", extra="--seconds 8", slow=True),
     Rule(r"^dragd bench --list$", "run", "offline"),
     Rule(r"^dragd bench (compensation_us|bus_load) ", "run", "offline"),
+    Rule(r"^dragd bench ros2_", "run", "sim + daemon + the ROS 2 bridge", extra="--seconds 2", slow=True),
     Rule(r"^dragd bench fault_matrix\b", "run", "sim + daemon: every injectable fault in turn", slow=True),
     Rule(r"^dragd bench (loop_|--json$)", "run", "sim + daemon (every benchmark: the case matrix cut to two cases)",
          extra="--seconds 3 --cases none__ptp_0,pair__backlash1+payload --jobs 1", slow=True),
@@ -379,7 +386,9 @@ class Env:
 
     def environ(self) -> dict[str, str]:
         return {**os.environ, "PATH": f"{self.path}{os.pathsep}{os.environ.get('PATH', '')}",
-                "DRAGD_SOCKET": self.socket, "DRAGD_CONFIG": str(self.config)}
+                "DRAGD_SOCKET": self.socket, "DRAGD_CONFIG": str(self.config),
+                # a documented `dragd ros2`: DDS discovery on this host, in a domain of this run's own
+                "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": str(100 + os.getpid() % 100)}
 
     def fill(self, line: str, work: Path) -> str:
         return (line.replace("{work}", str(work)).replace("{root}", str(self.root)).replace("{config}", str(self.config))
@@ -555,7 +564,9 @@ def test_documented_command_runs(cmd: Command, env: Env) -> None:
         _check_mention(env, line, work)
     elif rule.how == "service":
         line = first_alternatives(line) if cmd.kind == "span" else line
-        _run_service(env, line, work, where)
+        if rule.rig:
+            env.prepare(rule.before, line, work)
+        _run_service(env, line, work, where, rule.ready)
     else:
         if rule.tool and shutil.which(line.split()[0]) is None:
             pytest.skip(f"{line.split()[0]} is not installed here")
@@ -592,19 +603,19 @@ def _check_mention(env: Env, line: str, work: Path) -> None:
             assert option in proc.stdout, f"dragd {' '.join(cmd_words)}: no option {option}"
 
 
-def _run_service(env: Env, line: str, work: Path, where: str) -> None:
-    """Started, ready ("sim: running" on stderr) within 60 s, still running 2 s later, ended by SIGTERM with 0."""
+def _run_service(env: Env, line: str, work: Path, where: str, ready: str = "sim: running") -> None:
+    """Started, ready (``ready`` on its output) within 60 s, still running 2 s later, ended by SIGTERM with 0."""
     log = work / "service.log"
     with log.open("wb") as out:
         proc = subprocess.Popen(["bash", "-c", f"exec {line}"], cwd=work, env=env.environ(), stdout=out,
                                 stderr=subprocess.STDOUT)
         try:
             end = time.monotonic() + 60
-            while time.monotonic() < end and proc.poll() is None and "sim: running" not in log.read_text():
+            while time.monotonic() < end and proc.poll() is None and ready not in log.read_text():
                 time.sleep(0.2)
             time.sleep(2.0)
             assert proc.poll() is None, where.format(line) + f"\nexited {proc.returncode}:\n{log.read_text()}"
-            assert "sim: running" in log.read_text(), where.format(line) + f"\nnot ready:\n{log.read_text()}"
+            assert ready in log.read_text(), where.format(line) + f"\nnot ready:\n{log.read_text()}"
         finally:
             if proc.poll() is None:
                 proc.send_signal(signal.SIGTERM)

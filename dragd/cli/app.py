@@ -14,11 +14,11 @@ from collections.abc import Sequence
 from types import ModuleType
 from typing import Any
 
-from dragd.cli import bench, can, daemon, experiment, gap, identify, log, model, payload, sim, teach, view
+from dragd.cli import bench, can, daemon, experiment, gap, identify, log, model, payload, ros2, sim, teach, view
 from dragd.cli.common import EXIT_FAIL, EXIT_USAGE, CliError, Parser
 
 COMMANDS: tuple[ModuleType, ...] = (model, bench, sim, daemon, payload, view, can, log, identify, teach, gap,
-                                    experiment)
+                                    experiment, ros2)
 
 
 def version() -> str:

@@ -44,6 +44,8 @@ def with_telemetry_options(cfg: Any, args: argparse.Namespace) -> Any:
         update["foxglove_rate_Hz"] = args.foxglove_rate
     if getattr(args, "no_foxglove", False):
         update["foxglove"] = False
+    if getattr(args, "foxglove_encoding", None) is not None:
+        update["foxglove_encoding"] = args.foxglove_encoding
     if not update:
         return cfg
     from pydantic import ValidationError
@@ -150,6 +152,9 @@ def register(sub: Any) -> None:
                    help="rate of the MCAP's Foxglove channels (joint states, transforms; telemetry.foxglove_rate_Hz)")
     r.add_argument("--no-foxglove", action="store_true",
                    help="no Foxglove channels in the MCAP (telemetry.foxglove: false)")
+    r.add_argument("--foxglove-encoding", choices=("json", "ros2"), default=None,
+                   help="those channels as Foxglove's JSON or ROS 2's CDR (sensor_msgs/JointState, tf2_msgs, /rosout; "
+                        "telemetry.foxglove_encoding; docs/ROS2.md)")
     r.add_argument("--realtime-priority", type=int, default=None, metavar="N",
                    help="SCHED_FIFO priority 1..99 of the cycle thread, when permitted (0: none); overrides loop.realtime_priority")
     r.add_argument("--rerun", action="store_true", help="live view in rerun (needs the optional extra dragd[rerun])")

@@ -237,7 +237,7 @@ class Track:
             np.multiply(self.start_offset, -6.0 * x * (1.0 - x) / self.start_blend_s * self.rate, out=self._a)
             self.dq_ref += self._a
         if finished:
-            return "stopped" if self.state == "stopping" else "done"
+            return "stopped" if self.state == "stopping" else tr.outcome
         if self.full_friction:
             self._position_loop(elapsed, q, dq)
         return self._monitor(t, q, current_A, stale_max)

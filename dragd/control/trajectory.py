@@ -53,6 +53,7 @@ class Trajectory:
         self.body_start_s = self.body_row * self.dt_s
         self.marks = marks
         self.info = info
+        self.outcome = "done"  # what Track reports when the path ends (a stream says why it ended)
         self._d = np.zeros(self.table.shape[1])
         self.k = 0  # row and fraction of the last sample()
         self.f = 0.0

@@ -13,6 +13,7 @@ from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any
 
 from dragd.control.modes import MODE_NAMES, Mode
+from dragd.daemon import feed
 from dragd.hardware.cia402 import MODE_CST
 from dragd.hardware.master import DriveError
 from dragd.daemon.server import CommandTable
@@ -97,6 +98,30 @@ def command_table(d: Daemon) -> CommandTable:
     async def track(file: str | None = None, t_s: list[float] | None = None, q_rad: list[list[float]] | None = None,
                     label: str = "track") -> dict[str, Any]:
         return await motions.track_request(str(label), file, t_s, q_rad)
+
+    @command("stream_open")
+    async def stream_open(label: str = "stream") -> dict[str, Any]:
+        return await d.streams.open(str(label))
+
+    @command("stream")
+    async def stream(stream: int, t_s: float, q_rad: list[float]) -> dict[str, Any]:
+        return d.streams.sample(stream, t_s, q_rad)
+
+    @command("stream_close")
+    async def stream_close(stream: int) -> dict[str, Any]:
+        return d.streams.close(stream)
+
+    @command("state")
+    async def state() -> dict[str, Any]:
+        return feed.state(d)
+
+    @command("events")
+    async def events(since: int = 0) -> dict[str, Any]:
+        return feed.events(d, since)
+
+    @command("robot")
+    async def robot() -> dict[str, Any]:
+        return feed.robot(d)
 
     @command("record")
     async def record(action: str, path: str | None = None, label: str = "") -> dict[str, Any]:

@@ -37,6 +37,7 @@ from dragd.daemon.cycle import Cycle
 from dragd.daemon.motion import Motions
 from dragd.daemon.payload import PayloadTools
 from dragd.daemon.recording import Recorder
+from dragd.daemon.stream import Streams
 from dragd.daemon.teach import Teaching
 from dragd.hardware.bus import BusSpec, open_bus, parse_bus
 from dragd.hardware.drives import STATE_NAMES, DriveSupervisor
@@ -148,6 +149,7 @@ class Daemon:
                                           self.scaling.direction)
         self.recorder = Recorder(cfg, self.n, telemetry_path or cfg.telemetry.path, rerun or cfg.telemetry.rerun)
         self.motions = Motions(self)
+        self.streams = Streams(self)
         self.teaching = Teaching(self)
         self.payload = PayloadTools(self)
         self.model_check_failed: list[str] = []  # joints `dragd check model` refused: no drag until a check passes
@@ -464,6 +466,7 @@ class Daemon:
             "fault_count": self.fault_count,
             "drives": drives,
             **self.motions.status(),
+            "stream": self.streams.status(),
             "bus_load_pct": {k: round(v["load_pct"], 2) for k, v in self.budget.items()},
             "tx_errors": io.tx_errors if io is not None else 0,
             "rejected_frames": io.rejected_frames if io is not None else 0,

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from dragd.control.modes import Mode
+from dragd.daemon.feed import EventLog
 from dragd.telemetry.schema import cycle_layout
 
 if TYPE_CHECKING:
@@ -43,6 +44,7 @@ class Recorder:
         self.cols = cols
         self.width = k
         self._sources: tuple[Controller, Estimate, Feedback] | None = None
+        self.events = EventLog()  # every event, numbered, for clients (the `events` command; the ROS 2 bridge)
 
     def attach(self, controller: Controller, est: Estimate, feedback: Feedback) -> None:
         """The arrays a row is filled from."""
@@ -91,7 +93,8 @@ class Recorder:
         row[cols["residual_A"]] = c.track.residual_A if track else 0.0
 
     def event(self, name: str, **fields: Any) -> None:
-        """An event in the telemetry file (not in a record window)."""
+        """An event in the telemetry file (not in a record window) and in the clients' event log."""
+        self.events.add(self._sources[0].t if self._sources is not None else 0.0, name, fields)
         if self.telemetry is not None:
             self.telemetry.event(name, **fields)
 
@@ -108,8 +111,9 @@ class Recorder:
             from dragd.robots import resolve_urdf
             from dragd.telemetry.foxglove import FoxgloveSpec
 
+            kt = self._sources[0].kt.tolist() if self._sources is not None else None
             foxglove = FoxgloveSpec(self.cfg.joint_names, resolve_urdf(self.cfg.robot.urdf, self.cfg.base_dir),
-                                    rate_Hz=tc.foxglove_rate_Hz)
+                                    rate_Hz=tc.foxglove_rate_Hz, encoding=tc.foxglove_encoding, kt_Nm_per_A=kt)
         sinks = []
         if self.rerun:  # the live view (dragd/telemetry/sinks.py): 3D arm, currents and components, mode, faults
             from dragd.robots import resolve_urdf

@@ -222,11 +222,15 @@ class FoxgloveSpec:
     urdf: str | os.PathLike[str] | None = None
     rate_Hz: float = 50.0
     transforms: bool = True
+    encoding: str = "json"  # json (Foxglove's schemas) or ros2 (CDR, standard ROS 2 types: dragd/telemetry/ros2.py)
+    kt_Nm_per_A: Sequence[float] | None = None  # the joint states' effort (ros2) = K_t x the measured current
     _frames: ArmFrames | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         if not self.rate_Hz > 0:
             raise ValueError(f"telemetry foxglove rate_Hz must be > 0; got {self.rate_Hz}")
+        if self.encoding not in ("json", "ros2"):
+            raise ValueError(f"telemetry foxglove encoding: expected json or ros2, got {self.encoding!r}")
         if self.urdf is not None and self.transforms:
             self._frames = ArmFrames(self.urdf, self.joint_names)
 

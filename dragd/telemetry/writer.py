@@ -160,6 +160,15 @@ def _rotated_files(path: Path) -> list[Path]:
     return [p for _m, _n, p in sorted(found)]
 
 
+def channels(spec: FoxgloveSpec) -> type[FoxgloveChannels]:
+    """The well-known channels' class for ``spec.encoding``: Foxglove's JSON, or ROS 2's CDR."""
+    if spec.encoding == "ros2":
+        from dragd.telemetry.ros2 import Ros2Channels
+
+        return Ros2Channels
+    return FoxgloveChannels
+
+
 class McapFile:
     """One telemetry MCAP in ``stream``: header, the cycle and event schemas and channels, the run metadata.
 
@@ -198,7 +207,7 @@ class McapFile:
         self._events = self._mcap.register_channel(
             topic=events_topic, message_encoding="json", schema_id=event_id
         )
-        self.foxglove = FoxgloveChannels(self._mcap, foxglove) if foxglove is not None else None
+        self.foxglove = None if foxglove is None else channels(foxglove)(self._mcap, foxglove)
         if metadata:
             self._mcap.add_metadata(RUN_METADATA, {str(k): str(v) for k, v in metadata.items()})
 
@@ -424,7 +433,10 @@ class TelemetryWriter:
                 foxglove=None if foxglove is None else dict(joint_names=list(foxglove.joint_names),
                                                             urdf=None if foxglove.urdf is None
                                                             else os.fspath(foxglove.urdf),
-                                                            rate_Hz=foxglove.rate_Hz, transforms=foxglove.transforms))
+                                                            rate_Hz=foxglove.rate_Hz, transforms=foxglove.transforms,
+                                                            encoding=foxglove.encoding,
+                                                            kt_Nm_per_A=None if foxglove.kt_Nm_per_A is None
+                                                            else [float(k) for k in foxglove.kt_Nm_per_A]))
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run_process if process else self._run, name="dragd-telemetry",
                                         daemon=True)

@@ -1,0 +1,171 @@
+"""ROS 2 bridge benchmarks (docs/ROS2.md): the bridge's CPU, the latency from the daemon's socket to a subscriber,
+and the highest command-stream rate the whole path carries without the daemon missing a cycle.
+
+One session: simulator + daemon as deployed (SCHED_FIFO where permitted) + ``dragd ros2`` as processes, and a plain
+rclpy node in this process (subscribing ``/joint_states``, publishing ``~/joint_commands`` as
+topic_based_ros2_control does). Needs the ros2 extra.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+import threading
+import time
+from functools import lru_cache
+from typing import Any
+
+import numpy as np
+
+from dragd.lab.bench import BenchError, benchmark
+from dragd.lab.bench.loop import process_cpu_s
+
+RATES_HZ = (100, 250, 500, 1000)
+
+
+def _env() -> dict[str, str]:
+    return {"ROS_DOMAIN_ID": str(150 + os.getpid() % 80), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+
+
+@lru_cache(maxsize=1)
+def _session(seconds: float, config: Any) -> dict[str, Any]:
+    from dragd.lab.rig import Child, Rig, wait_until
+    from dragd.ros2 import unavailable
+
+    reason = unavailable()
+    if reason:
+        raise BenchError(reason)
+    env = _env()
+    os.environ.update(env)
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import JointState
+
+    out: dict[str, Any] = {}
+    with Rig("bench-ros2", config=config, as_deployed=True) as rig:
+        rig.start_sim()
+        rig.start_daemon()
+        rig.must("start")
+        bridge = Child("bridge", [sys.executable, "-m", "dragd", "ros2", "--socket", rig.socket], rig.workdir, env)
+        ctx = rclpy.Context()
+        rclpy.init(context=ctx, domain_id=int(env["ROS_DOMAIN_ID"]))
+        node = rclpy.create_node("dragd_bench", context=ctx)
+        lat: list[float] = []
+        lock = threading.Lock()
+
+        def heard(msg: JointState) -> None:
+            now = node.get_clock().now().nanoseconds
+            with lock:
+                lat.append((now - (msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)) * 1e-6)
+
+        node.create_subscription(JointState, "/joint_states", heard, 100)
+        pub = node.create_publisher(JointState, "/dragd/joint_commands", 10)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        spin = threading.Thread(target=ex.spin, daemon=True)
+        spin.start()
+        try:
+            wait_until(lambda: "bridging the daemon" in bridge.output(), 30.0, "the bridge", bridge)
+            wait_until(lambda: len(lat) > 50, 30.0, "joint states from the bridge", bridge)
+            # bridge CPU and the latency of /joint_states (100 Hz), the arm held
+            with lock:
+                lat.clear()
+            m0 = rig.must("status")["missed_cycles"]
+            c0, t0 = process_cpu_s(bridge.proc.pid), time.monotonic()
+            rig.sleep(seconds)
+            cpu = (process_cpu_s(bridge.proc.pid) - c0) / (time.monotonic() - t0) * 100.0
+            out["baseline_missed_cycles"] = rig.must("status")["missed_cycles"] - m0  # the same time, no stream
+            with lock:
+                got = np.array(lat)
+            out["bridge_cpu_pct"] = cpu
+            out["latency_ms"] = got
+            out["joint_states_Hz"] = len(got) / seconds
+            # the command stream: a smooth path at each rate, through the bridge into the daemon's stream
+            names = rig.must("robot")["joint_names"]
+            rates = []
+            for rate in RATES_HZ:
+                rig.wait_for(lambda: rig.must("status")["mode"] == "hold"
+                             and rig.must("status")["drive_mode"] == "cst", 10.0, "hold in CST")
+                q0 = np.array(rig.must("state")["q_rad"])
+                s0 = rig.must("status")
+                first = ((s0["stream"] or {}).get("opened") or 0) + 1
+                b0 = process_cpu_s(bridge.proc.pid)
+                sent = _stream(node, pub, names, q0, rate, seconds)
+                s1 = rig.must("status")
+                b1 = process_cpu_s(bridge.proc.pid)
+                stream = s1["stream"] or {}
+                rates.append({"rate_Hz": rate, "published": sent, "daemon_samples": stream.get("samples"),
+                              "streams_opened": (stream.get("opened") or 0) - first + 1,
+                              "stream_end": stream.get("end"), "missed_cycles": s1["missed_cycles"] - s0["missed_cycles"],
+                              "refused": stream.get("refused"), "dry_cycles": stream.get("dry_cycles"),
+                              "period_max_us": s1["period_max_us"], "bridge_cpu_pct": (b1 - b0) / seconds * 100.0,
+                              "faults": s1["faults"][-1:]})
+                if s1["mode"] == "fault":
+                    rig.must("start")
+            out["rates"] = rates
+            out["schedulers"] = rig.schedulers()
+        finally:
+            ex.shutdown(timeout_sec=2.0)
+            node.destroy_node()
+            rclpy.shutdown(context=ctx)
+            bridge.terminate()
+    return out
+
+
+def _stream(node: Any, pub: Any, names: list[str], q0: np.ndarray, rate: float, seconds: float) -> int:
+    """Publish a slow sine path at ``rate`` for ``seconds`` (absolute deadlines), then wait for the stream's end."""
+    from sensor_msgs.msg import JointState
+
+    step = np.array([0.1, -0.08, 0.1, 0.12, -0.1, 0.12])
+    period = 1.0 / rate
+    t0 = time.monotonic()
+    k = 0
+    while True:
+        t = time.monotonic() - t0
+        if t > seconds:
+            break
+        msg = JointState()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(node.get_clock().now().nanoseconds), 10**9)
+        msg.name = names
+        msg.position = (q0 + step * (1 - math.cos(2 * math.pi * t / seconds)) / 2).tolist()
+        pub.publish(msg)
+        k += 1
+        time.sleep(max(0.0, t0 + k * period - time.monotonic()))
+    time.sleep(1.0)  # the stream's deadline ends it, the arm holds
+    return k
+
+
+def _opts(opts: dict) -> tuple[float, Any]:
+    return float(opts.get("seconds") or 5.0), opts.get("config")
+
+
+@benchmark("ros2_bridge_cpu_pct", "%")
+def ros2_bridge_cpu_pct(opts: dict) -> tuple[float, dict[str, Any]]:
+    """The bridge's CPU time as a share of one core, publishing /joint_states at 100 Hz (and its diagnostics), the
+    arm held."""
+    s = _session(*_opts(opts))
+    return float(s["bridge_cpu_pct"]), {"joint_states_Hz": round(s["joint_states_Hz"], 1), "schedulers": s["schedulers"]}
+
+
+@benchmark("ros2_state_latency_ms", "ms")
+def ros2_state_latency_ms(opts: dict) -> tuple[float, dict[str, Any]]:
+    """Median age of a /joint_states message when a subscriber gets it: from the bridge's state request on the
+    socket (its header stamp) through the daemon's answer, the publish and DDS (p99 and max in the detail)."""
+    lat = _session(*_opts(opts))["latency_ms"]
+    if lat.size == 0:
+        raise BenchError("no joint states arrived")
+    return float(np.median(lat)), {"p99_ms": round(float(np.percentile(lat, 99)), 3),
+                                   "max_ms": round(float(lat.max()), 3), "messages": int(lat.size)}
+
+
+@benchmark("ros2_stream_max_rate_Hz", "Hz")
+def ros2_stream_max_rate_Hz(opts: dict) -> tuple[float, dict[str, Any]]:
+    """The highest rate of ~/joint_commands (100, 250, 500, 1000 Hz tried) that went into one daemon stream for the
+    whole run (none refused, none ended early; the bridge sends the newest command when the last one is answered,
+    so at high rates it forwards a share of them) without the daemon missing a cycle. The detail has each rate's
+    figures and the missed cycles of the same time with the arm held and no stream (the machine's own)."""
+    s = _session(*_opts(opts))
+    rates = s["rates"]
+    ok = [r["rate_Hz"] for r in rates if r["missed_cycles"] == 0 and not r["refused"] and r["streams_opened"] == 1]
+    return float(max(ok) if ok else 0.0), {"rates": rates, "baseline_missed_cycles": s["baseline_missed_cycles"]}

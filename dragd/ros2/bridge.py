@@ -1,0 +1,512 @@
+"""The bridge's logic on its asyncio loop: the daemon's connections, the pollers, the command stream, the actions.
+
+Five connections to the daemon's control socket (``dragd.client``; the daemon answers a connection's requests in
+order): ``poll`` (state and events at the joint states' rate), ``stream`` (the command topic's samples, never
+queued behind anything), ``act`` (the services: some take half a minute), ``side`` (status for the diagnostics)
+and ``lists`` (the program list where the bridge cannot read the program folder: the daemon lists programs in
+its planner process, which it may have to start first). The bridge adds no safety of its own that the daemon
+would lack, and removes none: every limit, check and monitor is the daemon's; a refusal comes back with the
+daemon's reason and goes out on ``~/status``.
+
+What needs a living client:
+
+- **streamed commands**: the bridge forwards each ``~/joint_commands`` message at most once, as it arrives, one in
+  flight at a time (a newer one replaces one not yet sent: no backlog), and never repeats one; a silent
+  controller, a dead bridge or a partitioned DDS all end in the daemon's stream deadline (``stream.timeout_s``)
+  and HOLD.
+- **drag**: ``~/drag`` and ``~/teach/start`` need ``~/drag_keepalive`` (std_msgs/Empty, at least every
+  ``drag.keepalive_timeout_s``); when it lapses, the bridge holds the arm. The daemon's own drag lease (#30) does not
+  exist yet: until it does, a bridge that dies mid-drag leaves the arm in drag (docs/ROS2.md says so). With the
+  lease, each keepalive becomes the daemon's lease renewal (``renew_drag``: the one place to change).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import datetime
+import json
+import os
+import signal
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from dragd.client import Client, CommandError, DaemonUnavailable
+from dragd.ros2 import convert
+
+CONNECT_RETRY_S = 1.0
+OPEN_RETRY_S = 1.0  # a stream_open the daemon refused (not in hold) is tried again after this long
+RESUMABLE = ("timeout", "closed")  # stream ends after which new commands may open a new stream by themselves
+
+
+class Bridge:
+    """``await Bridge(socket).run()`` until SIGINT/SIGTERM (or ``stop``)."""
+
+    def __init__(self, socket: str, ros_args: Sequence[str] = (), node_name: str = "dragd",
+                 joint_states_rate_Hz: float | None = None) -> None:
+        self.socket = socket
+        self.ros_args = list(ros_args)
+        self.node_name = node_name
+        self.rate_override = joint_states_rate_Hz
+        self.poll = Client(socket, timeout_s=5.0)
+        self.stream = Client(socket, timeout_s=5.0)
+        self.act = Client(socket, timeout_s=180.0)
+        self.side = Client(socket, timeout_s=30.0)
+        self.lists = Client(socket, timeout_s=60.0)
+        self.node: Any = None
+        self.joints: list[str] = []
+        self.program_dir = ""
+        self.state: dict[str, Any] | None = None
+        self.mode: str | None = None
+        self.event_seq = 0
+        self.connected = False
+        # the command stream
+        self.stream_enabled = True
+        self.stream_id: int | None = None
+        self.opening = False
+        self.open_refused_at = -1e9
+        self.latched: str | None = None  # why commands are not forwarded until ~/streaming true
+        self.forwarded = self.dropped = self.refused = self.coalesced = 0
+        self._pending: tuple[int, float, list[float]] | None = None  # the newest command not yet sent
+        self._command_ready = asyncio.Event()
+        self._stream_error_seen: int | None = None
+        # drag by the bridge
+        self.drag_by_bridge = False
+        self.last_keepalive = -1e9
+        self._stop = asyncio.Event()
+        self._programs_changed = asyncio.Event()
+        self._tasks: set[asyncio.Task[Any]] = set()
+
+    @staticmethod
+    def now() -> float:
+        """The bridge's clock for its own timeouts (keepalive, retries): the one place it reads time."""
+        return time.monotonic()
+
+    # ------------------------------------------------------------------------------------------ running
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    async def run(self) -> int:
+        from dragd.ros2.node import RosNode
+
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, self.stop)
+        robot = await self._robot()
+        if robot is None:
+            return 0
+        self.joints = list(robot["joint_names"])
+        self.program_dir = str(robot.get("program_dir") or "")
+        self.node = RosNode(self, loop, self.joints, robot.get("urdf"), self.ros_args, self.node_name)
+        if self.rate_override is not None:
+            self.node.set_parameter("joint_states_rate_Hz", float(self.rate_override))
+        self.stream_enabled = bool(self.node.param("stream.enabled"))
+        print(f"dragd ros2: bridging the daemon at {self.socket} as node {self.node.node.get_fully_qualified_name()} "
+              f"({len(self.joints)} joints)", flush=True)
+        tasks = [loop.create_task(self._forever(p)) for p in (self._poll_state, self._poll_diagnostics,
+                                                               self._poll_programs, self._forward)]
+        try:
+            await self._stop.wait()
+        finally:
+            for t in tasks:
+                t.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+            if self.stream_id is not None:  # a clean exit ends its stream at once (a dead bridge: the deadline)
+                try:
+                    await self.stream.call("stream_close", stream=self.stream_id, timeout_s=1.0)
+                except (CommandError, DaemonUnavailable):
+                    pass
+            for c in (self.poll, self.stream, self.act, self.side, self.lists):
+                await c.close()
+            self.node.close()
+        return 0
+
+    async def _forever(self, poller: Any) -> None:
+        """A poller that fails (a bug, an answer of an unexpected shape) says why and starts again."""
+        while True:
+            try:
+                await poller()
+            except asyncio.CancelledError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - the bridge keeps serving; the log says what broke
+                print(f"dragd ros2: {poller.__name__} failed: {type(exc).__name__}: {exc}; restarting it", flush=True)
+                await asyncio.sleep(1.0)
+
+    async def _robot(self) -> dict[str, Any] | None:
+        """The daemon's ``robot`` answer, waiting for the daemon to come up (a bridge may start first)."""
+        said = False
+        while not self._stop.is_set():
+            try:
+                robot = await self.poll.call("robot")
+                self.connected = True
+                return robot
+            except DaemonUnavailable as exc:
+                if not said:
+                    print(f"dragd ros2: waiting for the daemon: {exc}", flush=True)
+                    said = True
+                await self.poll.close()
+                try:
+                    await asyncio.wait_for(self._stop.wait(), CONNECT_RETRY_S)
+                except TimeoutError:
+                    pass
+        return None
+
+    def _spawn(self, coro: Any) -> None:
+        task = asyncio.get_running_loop().create_task(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def _call(self, client: Client, cmd: str, **args: Any) -> dict[str, Any]:
+        """A request; a lost daemon resets the connection (the next call reconnects) and the stream."""
+        try:
+            resp = await client.call(cmd, **args)
+            self.connected = True
+            return resp
+        except DaemonUnavailable:
+            self.connected = False
+            self.stream_id = None
+            await client.close()
+            raise
+
+    # ------------------------------------------------------------------------------------------ pollers
+
+    async def _every(self, rate_param: str, due: list[float]) -> None:
+        """Sleep until the next period of the rate parameter (absolute deadlines; a late one is not caught up)."""
+        rate = float(self.node.param(rate_param))
+        period = 1.0 / rate if rate > 0 else 1.0
+        now = self.now()
+        due[0] = max(due[0] + period, now)
+        await asyncio.sleep(due[0] - now)
+
+    async def _poll_state(self) -> None:
+        due = [self.now()]
+        while True:
+            try:
+                t_ns = self.node.now_ns()  # (the state is the newest cycle's as the request is answered)
+                st = await self._call(self.poll, "state")
+                self.state = st
+                self.node.publish_joint_states(st, t_ns)
+                if st["mode"] != self.mode:
+                    self.mode = st["mode"]
+                    self.node.publish_mode(self.mode)
+                if st["event_seq"] < self.event_seq:  # a daemon that restarted numbers its events from 1 again
+                    self.event_seq = 0
+                if st["event_seq"] != self.event_seq:
+                    await self._events()
+                await self._watch_drag(st)
+            except DaemonUnavailable:
+                self.state = None
+                await asyncio.sleep(CONNECT_RETRY_S)
+                continue
+            except CommandError as exc:
+                print(f"dragd ros2: state: {exc}", flush=True)
+            await self._every("joint_states_rate_Hz", due)
+
+    async def _events(self) -> None:
+        ev = await self._call(self.poll, "events", since=self.event_seq)
+        if ev["lost"]:
+            self.node.publish_event({"name": "events_lost", "count": ev["lost"]})
+        for e in ev["events"]:
+            self.node.publish_event(e)
+        self.event_seq = ev["event_seq"] if not ev["events"] else max(e["seq"] for e in ev["events"])
+
+    async def _poll_diagnostics(self) -> None:
+        due = [self.now()]
+        while True:
+            try:
+                status = await self._call(self.side, "status")
+            except (DaemonUnavailable, CommandError) as exc:
+                status = {"mode": None}
+                self.connected = not isinstance(exc, DaemonUnavailable)
+            self.node.publish_diagnostics(convert.diagnostics(status, self.summary()))
+            await self._every("diagnostics_rate_Hz", due)
+
+    async def _poll_programs(self) -> None:
+        """The taught programs (``~/replay/<name>``): at the start, after ``~/teach/stop`` and every 5 s, from the
+        program folder's listing (the bridge runs beside the daemon; a folder it may not read: the daemon's ``teach
+        list``, which parses every program in the daemon's planner process)."""
+        known: list[str] | None = None
+        while True:
+            try:
+                folder = Path(self.program_dir)
+                if folder.is_dir() and os.access(folder, os.R_OK | os.X_OK):
+                    programs = sorted(f.stem for f in folder.glob("*.yaml"))
+                else:
+                    listed = (await self._call(self.lists, "teach", action="list"))["programs"]
+                    programs = sorted(Path(p["path"]).stem for p in listed if "error" not in p)
+                if programs != known:
+                    self.node.set_programs(programs)
+                    known = programs
+            except (DaemonUnavailable, CommandError, KeyError, TypeError, OSError):
+                pass
+            self._programs_changed.clear()
+            try:
+                await asyncio.wait_for(self._programs_changed.wait(), 5.0)
+            except TimeoutError:
+                pass
+
+    def summary(self) -> dict[str, Any]:
+        """The bridge's own figures (diagnostics)."""
+        latched = self.latched
+        return {"daemon": self.connected, "message": (f"not connected to the daemon at {self.socket}"
+                                                      if not self.connected else latched or "ok"),
+                "stream_enabled": self.stream_enabled, "stream": self.stream_id, "stream_latched": latched,
+                "commands_forwarded": self.forwarded, "commands_dropped": self.dropped,
+                "commands_coalesced": self.coalesced,
+                "commands_refused": self.refused, "drag_by_bridge": self.drag_by_bridge}
+
+    # ------------------------------------------------------------------------------------------ drag keepalive
+
+    def on_keepalive(self) -> None:
+        self.last_keepalive = self.now()
+        self.renew_drag()
+
+    def renew_drag(self) -> None:
+        """Where a keepalive becomes the daemon's drag lease renewal once the daemon has a lease (#30); until then
+        the bridge watches the keepalive itself (``_watch_drag``)."""
+
+    def keepalive_fresh(self) -> bool:
+        return self.now() - self.last_keepalive <= float(self.node.param("drag.keepalive_timeout_s"))
+
+    async def _watch_drag(self, st: dict[str, Any]) -> None:
+        if not self.drag_by_bridge:
+            return
+        if st.get("requested_mode", st["mode"]) != "drag":
+            # ended by someone else (hold, a guard trip, a fault ...); a feedback hold (late TPDOs) is not an end: the
+            # daemon returns to drag by itself, so the keepalive is still watched
+            self.drag_by_bridge = False
+            return
+        if not self.keepalive_fresh():
+            self.drag_by_bridge = False
+            timeout = float(self.node.param("drag.keepalive_timeout_s"))
+            try:
+                await self._call(self.act, "mode", mode="hold")
+                text = f"drag ended: no ~/drag_keepalive for {timeout:g} s; the arm holds"
+            except (CommandError, DaemonUnavailable) as exc:
+                text = f"drag keepalive lapsed, but hold failed: {exc}"
+            self._status(convert.WARN, "dragd/drag", text)
+
+    # ------------------------------------------------------------------------------------------ the command stream
+
+    def on_command(self, stamp_s: float, names: list[str], positions: list[float]) -> None:
+        """A ``~/joint_commands`` message (the topic_based_ros2_control pair): forwarded once, never repeated."""
+        if not self.stream_enabled or self.latched is not None or not self.joints:
+            self.dropped += 1
+            return
+        try:
+            q = convert.order(names, positions, self.joints, "~/joint_commands")
+        except ValueError as exc:
+            self.dropped += 1
+            self._latch(str(exc))
+            return
+        t = stamp_s if stamp_s > 0.0 else self.node.now_ns() * 1e-9
+        if self.stream_id is None:
+            self.dropped += 1  # (the first command opens the stream; the next ones start at the arm's pose)
+            if not self.opening and self.now() - self.open_refused_at >= OPEN_RETRY_S:
+                self.opening = True
+                self._spawn(self._open())
+            return
+        if self._pending is not None:
+            self.coalesced += 1  # a newer command before the last one left: only the newest goes
+        self._pending = (self.stream_id, t, q)
+        self._command_ready.set()
+
+    async def _forward(self) -> None:
+        """One sample in flight at a time, always the newest command (no backlog that could reach the arm late:
+        a command older than the newest is dropped, none is sent twice)."""
+        while True:
+            await self._command_ready.wait()
+            self._command_ready.clear()
+            pending, self._pending = self._pending, None
+            if pending is None or pending[0] != self.stream_id:
+                continue
+            self.forwarded += 1
+            await self._sample(*pending)
+
+    async def _open(self) -> None:
+        try:
+            resp = await self._call(self.stream, "stream_open", label="ros2 joint_commands")
+            self.stream_id = resp["stream"]
+            self._stream_error_seen = None
+            self._status(convert.OK, "dragd/stream", f"stream {self.stream_id} open: commands go to "
+                                     f"the arm ({resp['delay_s']:g} s behind)")
+        except CommandError as exc:
+            self.open_refused_at = self.now()
+            self._status(convert.WARN, "dragd/stream", f"commands not followed: {exc.error}")
+        except DaemonUnavailable:
+            self.open_refused_at = self.now()
+        finally:
+            self.opening = False
+
+    async def _sample(self, sid: int, t: float, q: list[float]) -> None:
+        try:
+            await self._call(self.stream, "stream", stream=sid, t_s=t, q_rad=q)
+        except CommandError as exc:
+            if sid != self.stream_id or self._stream_error_seen == sid:
+                return  # samples in flight after the first error of this stream
+            self._stream_error_seen = sid
+            self.stream_id = None
+            try:
+                info = (await self._call(self.stream, "state"))["stream"] or {}
+            except (CommandError, DaemonUnavailable):
+                info = {}
+            end = info.get("end") if info.get("stream") == sid else None
+            if end in RESUMABLE:
+                self._status(convert.WARN, "dragd/stream", f"stream {sid} ended ({info.get('outcome')}); "
+                                         "the next command opens a new one")
+            else:
+                self.refused += 1
+                self._latch(exc.error)
+        except DaemonUnavailable:
+            pass
+
+    def _latch(self, reason: str) -> None:
+        self.latched = reason
+        self._status(convert.ERROR, "dragd/stream", f"commands not followed until ~/streaming true: "
+                                 f"{reason}")
+
+    async def _end_stream(self) -> None:
+        """Stop a running stream, trajectory or replay (controlled stop) and wait for HOLD."""
+        sid, self.stream_id = self.stream_id, None
+        if sid is not None:
+            try:
+                await self._call(self.stream, "stream_close", stream=sid)
+            except CommandError:
+                pass
+        st = await self._call(self.act, "status")
+        if st.get("trajectory") is not None and st["mode"] == "track":
+            try:
+                await self._call(self.act, "replay_stop", wait=True)
+            except CommandError:
+                pass
+        for _ in range(50):
+            st = await self._call(self.act, "status")
+            if st["mode"] != "track" and st.get("drive_mode") == "cst":
+                return
+            await asyncio.sleep(0.05)
+
+    # ------------------------------------------------------------------------------------------ trajectories
+
+    def on_trajectory(self, stamp_s: float, names: list[str], points: list[tuple[float, list[float]]]) -> None:
+        self._spawn(self._trajectory(stamp_s, names, points))
+
+    async def _trajectory(self, stamp_s: float, names: list[str], points: list[tuple[float, list[float]]]) -> None:
+        name = "dragd/trajectory"
+        try:
+            if not points:  # joint_trajectory_controller: an empty trajectory stops (hold)
+                await self._call(self.act, "replay_stop", wait=True)
+                self._status(convert.OK, name, "empty trajectory: the motion stops, the arm holds")
+                return
+            q_now = self.state["q_rad"] if self.state else None
+            t_s, q_rad = convert.trajectory_samples(names, points, self.joints, q_now)
+            if stamp_s > 0.0:  # a start time in the future: wait for it (one in the past: start now)
+                wait = stamp_s - self.node.now_ns() * 1e-9
+                if wait > 10.0:
+                    raise ValueError(f"trajectory: header.stamp lies {wait:.1f} s ahead (more than 10 s)")
+                if wait > 0.0:
+                    await asyncio.sleep(wait)
+            resp = await self._call(self.act, "track", t_s=t_s, q_rad=q_rad, label="ros2 trajectory")
+            self._status(convert.OK, name, f"trajectory accepted: {len(points)} points, "
+                                     f"{resp.get('duration_s', t_s[-1]):g} s", {"points": len(points)})
+        except (ValueError, CommandError) as exc:
+            text = exc.error if isinstance(exc, CommandError) else str(exc)
+            self._status(convert.ERROR, name, f"trajectory refused: {text}")
+        except DaemonUnavailable as exc:
+            self._status(convert.ERROR, name, f"trajectory refused: {exc}")
+
+    # ------------------------------------------------------------------------------------------ services
+
+    async def action(self, name: str, *args: Any) -> tuple[bool, str]:
+        """A service: (success, message); the message carries the daemon's answer or its reason."""
+        p = self.node.param
+        try:
+            if name == "streaming":
+                return self._streaming(bool(args[0]))
+            if name == "start":
+                resp = await self._call(self.act, "start")
+            elif name == "stop":
+                self._hold_streaming("stop")
+                resp = await self._call(self.act, "stop")
+            elif name == "hold":
+                self._hold_streaming("hold")
+                await self._end_stream()
+                resp = await self._call(self.act, "mode", mode="hold")
+            elif name in ("drag", "teach_start"):
+                if not self.keepalive_fresh():
+                    return False, (f"{name}: refused: no ~/drag_keepalive within the last "
+                                   f"{float(p('drag.keepalive_timeout_s')):g} s (std_msgs/Empty, published while "
+                                   "the arm is to stay in drag)")
+                self._hold_streaming(name)
+                await self._end_stream()
+                if name == "drag":
+                    resp = await self._call(self.act, "mode", mode="drag", accept=bool(p("drag.accept")))
+                else:
+                    args_: dict[str, Any] = {"name": str(p("teach.name")) or
+                                             datetime.datetime.now().strftime("ros2_%Y%m%d_%H%M%S"),
+                                             "overwrite": bool(p("teach.overwrite"))}
+                    if float(p("teach.rate_Hz")) > 0:
+                        args_["rate_Hz"] = float(p("teach.rate_Hz"))
+                    resp = await self._call(self.act, "teach", action="start", **args_)
+                self.drag_by_bridge = resp.get("mode") == "drag"
+            elif name == "teach_mark":
+                mark = str(p("teach.mark_name"))
+                resp = await self._call(self.act, "teach", action="mark", **({"name": mark} if mark else {}))
+            elif name == "teach_stop":
+                resp = await self._call(self.act, "teach", action="stop")
+                self._programs_changed.set()
+            elif name == "replay":
+                self._hold_streaming("replay")
+                resp = await self._call(self.act, "replay", program=str(args[0]), speed=float(p("replay.speed")),
+                                        interp=str(p("replay.interp")), cycles=int(p("replay.cycles")))
+            elif name == "replay_stop":
+                resp = await self._call(self.act, "replay_stop", wait=True)
+            elif name == "payload_set":
+                resp = await self._call(self.act, "payload", action="set", mass_kg=float(p("payload.mass_kg")),
+                                        com_m=[float(x) for x in p("payload.com_m")])
+            elif name == "payload_clear":
+                resp = await self._call(self.act, "payload", action="clear")
+            elif name == "payload_estimate":
+                resp = await self._call(self.act, "payload", action="estimate", poses=int(p("payload.poses")),
+                                        apply=bool(p("payload.apply")))
+            elif name == "check_model":
+                resp = await self._call(self.act, "check_model", step_rad=float(p("check_model.step_rad")))
+            else:
+                return False, f"unknown action {name!r}"
+        except CommandError as exc:
+            return False, exc.error
+        except DaemonUnavailable as exc:
+            return False, str(exc)
+        resp.pop("ok", None)
+        resp.pop("id", None)
+        return True, json.dumps(resp, default=str)[:4000]
+
+    def _streaming(self, on: bool) -> tuple[bool, str]:
+        self.stream_enabled = on
+        if on:
+            self.latched = None
+            self.open_refused_at = -1e9
+            return True, "commands on ~/joint_commands are followed (the next one opens a stream from hold)"
+        self._hold_streaming("~/streaming false")
+        if self.stream_id is not None:
+            self._spawn(self._close_quietly(self.stream_id))
+            self.stream_id = None
+        return True, "commands on ~/joint_commands are ignored"
+
+    async def _close_quietly(self, sid: int) -> None:
+        try:
+            await self._call(self.stream, "stream_close", stream=sid)
+        except (CommandError, DaemonUnavailable):
+            pass
+
+    def _hold_streaming(self, why: str) -> None:
+        """An operator's action takes the arm: commands wait for ~/streaming true (a controller that keeps
+        publishing must not take it back by itself)."""
+        if self.latched is None:
+            self._latch(f"{why} (an operator's action)")
+
+    def _status(self, level: int, name: str, message: str, values: dict[str, Any] | None = None) -> None:
+        """``~/status`` and the bridge's log (the journal under systemd) say the same."""
+        print(f"dragd ros2: {name}: {message}", flush=True)
+        self.node.publish_status(level, name, message, values)

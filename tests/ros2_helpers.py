@@ -1,0 +1,126 @@
+"""The ROS 2 side of the bridge tests: a plain rclpy client (its own context, executor thread) and the bridge as a
+process beside a rig's simulator and daemon. Skips with the reason where the ros2 extra is not installed."""
+
+from __future__ import annotations
+
+import os
+import sys
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+
+from dragd.lab.rig import Child, Rig, wait_until
+from dragd.ros2 import unavailable
+
+REASON = unavailable()
+needs_ros2 = pytest.mark.skipif(REASON is not None, reason=f"the ros2 extra is not installed: {REASON}")
+
+
+def ros_env() -> dict[str, str]:
+    """A DDS domain of this test run's own, discovery on this host only (no cross-talk with other runs)."""
+    return {"ROS_DOMAIN_ID": str(100 + os.getpid() % 100), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+
+
+def start_bridge(rig: Rig, *ros_args: str, name: str = "bridge") -> Child:
+    argv = [sys.executable, "-m", "dragd", "ros2", "--socket", rig.socket]
+    if ros_args:
+        argv += ["--ros-args", *ros_args]
+    child = Child(name, argv, rig.workdir, ros_env())
+    wait_until(lambda: "bridging the daemon" in child.output(), 30.0, "the bridge's start", child)
+    return child
+
+
+class Probe:
+    """A plain rclpy node in the test process: what it hears, the services it calls, what it publishes."""
+
+    def __init__(self) -> None:
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+
+        for k, v in ros_env().items():
+            os.environ[k] = v  # (read by the middleware at init)
+        self.rclpy = rclpy
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=int(ros_env()["ROS_DOMAIN_ID"]))
+        self.node = rclpy.create_node("dragd_test_probe", context=self.context)
+        self.lock = threading.Lock()
+        self.heard: dict[str, list[Any]] = {}
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _spin(self) -> None:
+        try:
+            self.executor.spin()
+        except Exception:  # noqa: BLE001 - shut down under it
+            pass
+
+    def close(self) -> None:
+        self.executor.shutdown(timeout_sec=2.0)
+        self.node.destroy_node()
+        self.rclpy.shutdown(context=self.context)
+
+    def listen(self, msg_type: Any, topic: str, qos: Any = 10) -> None:
+        self.heard.setdefault(topic, [])
+
+        def got(msg: Any) -> None:
+            with self.lock:
+                self.heard[topic].append((time.monotonic(), msg))
+
+        self.node.create_subscription(msg_type, topic, got, qos)
+
+    def messages(self, topic: str) -> list[Any]:
+        with self.lock:
+            return [m for _t, m in self.heard.get(topic, [])]
+
+    def stamped(self, topic: str) -> list[tuple[float, Any]]:
+        with self.lock:
+            return list(self.heard.get(topic, []))
+
+    def call(self, srv_type: Any, name: str, request: Any = None, timeout_s: float = 60.0) -> Any:
+        client = self.node.create_client(srv_type, name)
+        try:
+            end = time.monotonic() + 20.0
+            while not client.service_is_ready():
+                if time.monotonic() > end:
+                    raise AssertionError(f"service {name} did not appear")
+                client.wait_for_service(timeout_sec=0.2)
+            done = threading.Event()
+            fut = client.call_async(request if request is not None else srv_type.Request())
+            fut.add_done_callback(lambda _f: done.set())
+            if not done.wait(timeout_s):
+                raise AssertionError(f"service {name}: no answer within {timeout_s} s")
+            return fut.result()
+        finally:
+            self.node.destroy_client(client)
+
+    def publisher(self, msg_type: Any, topic: str, qos: Any = 10) -> Any:
+        return self.node.create_publisher(msg_type, topic, qos)
+
+    def every(self, period_s: float, fn: Callable[[], None]) -> Repeat:
+        return Repeat(self, period_s, fn)
+
+    def now_ns(self) -> int:
+        return int(self.node.get_clock().now().nanoseconds)
+
+
+class Repeat:
+    """``fn`` every ``period_s`` on the probe's executor until ``stop`` (which holds once it returns)."""
+
+    def __init__(self, probe: Probe, period_s: float, fn: Callable[[], None]) -> None:
+        self.probe, self.fn, self.on = probe, fn, True
+        self.timer = probe.node.create_timer(period_s, self._tick)
+
+    def _tick(self) -> None:
+        with self.probe.lock:
+            if self.on:
+                self.fn()
+
+    def stop(self) -> None:
+        with self.probe.lock:
+            self.on = False
+        self.timer.cancel()
