@@ -305,3 +305,25 @@ def test_a_vendor_drives_position_loop_integrates(eds: str | None, integrates: b
         assert x.d.io.current_demand_A > first + 0.5 * 10.0 * kp * 0.01 * 0.1
     else:
         assert x.d.io.current_demand_A == first
+
+
+def test_the_sim_cli_names_the_drive_or_the_missing_file(tmp_path: Path) -> None:
+    import json
+    import subprocess
+    import sys
+
+    run = [sys.executable, "-m", "sim"]
+    p = subprocess.run([*run, "run", "--eds", str(tmp_path / "absent.eds"), "--seconds", "1"], cwd=REPO,
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2 and "--eds: " in p.stderr and "absent.eds: file not found" in p.stderr
+    p = subprocess.run([*run, "drives", "--eds", str(variant("no_6075h")), "--json"], cwd=REPO, capture_output=True,
+                       text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    sheet = json.loads(p.stdout)
+    assert list(sheet) == [j.name for j in TRUTH.joints]
+    joint1 = sheet["joint1"]
+    assert joint1["objects"]["rated_current"] == {"object": "3001h:1", "unit": "mA",
+                                                  "source": "sim/config/drives/dragd_variant_no_6075h.yaml: "
+                                                            "objects.rated_current"}
+    assert joint1["commissioned"]["3001h:1"] == 4000 and joint1["commissioned"]["6076h"] == 0
+    assert joint1["can_fd"] is False and joint1["rated_current_A"] == 4.0
