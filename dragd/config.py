@@ -57,7 +57,12 @@ class BusConfig(_Strict):
     fd: bool = False
     data_bitrate: PosInt | None = None
     load_limit_pct: Annotated[float, Field(gt=0, le=100), Expect("a percentage in (0, 100]")] = 70.0
-    layout: Literal["shared", "compact"] = "shared"  # PDO layout, see dragd/hardware/pdo.py
+    # PDO layout (dragd/hardware/pdo.py): shared (a command frame shared by up to 8 joints on CAN FD), compact
+    # (classic CAN, drag only, a shared torque frame), per_node (one SYNC RPDO per drive, no dummy entries), auto
+    # (shared on CAN FD where every drive maps dummy entries, else per_node)
+    layout: Literal["shared", "compact", "per_node", "auto"] = "shared"
+    # per_node: the SYNC RPDO carries 607Ah target positions (CSP: identify run, replay, track); false: drag only
+    position_targets: bool = True
 
     @model_validator(mode="after")
     def _fd_rate(self) -> BusConfig:
@@ -70,6 +75,60 @@ class BusConfig(_Strict):
         if self.fd and self.data_bitrate is None:
             raise ValueError("data_bitrate: expected the CAN FD data-phase bitrate when fd is true")
         return self
+
+
+ObjectAddress = Annotated[str, Field(pattern=r"^\s*(0x)?[0-9A-Fa-f]{4}h?(\s*:\s*(0x)?[0-9A-Fa-f]{1,2}h?)?\s*$"),
+                          Expect("an object address like 6078h or 30D1h:2 (index in hex, sub-index in decimal or "
+                                 "hex with h)")]
+CurrentUnit = Literal["permille_rated_current", "permille_rated_torque", "A", "dA", "cA", "mA", "uA"]
+
+
+class CurrentObject(_Strict):
+    """The object carrying the measured motor current in the drive's TPDO (docs/DRIVES.md "Current feedback")."""
+
+    object: ObjectAddress = "6078h"
+    # null: the CiA 402 unit of 6078h (per mille of the rated current) or 6077h (per mille of the rated torque);
+    # a vendor object needs its unit
+    unit: CurrentUnit | None = None
+
+
+class RatedCurrentObject(_Strict):
+    """Where the drive keeps the motor's rated current (6075h per CiA 402); object null: the drive has none, the
+    joint's ``rated_current_A`` is used unverified."""
+
+    object: ObjectAddress | None = "6075h"
+    unit: Literal["A", "mA"] = "mA"
+
+
+class RatedTorqueObject(_Strict):
+    """Where the drive keeps the motor's rated torque (6076h per CiA 402; the unit of 6071h, 60B2h, 6077h); object
+    null: the drive has none."""
+
+    object: ObjectAddress | None = "6076h"
+    unit: Literal["Nm", "mNm", "uNm"] = "mNm"
+    write: bool = False  # a drive that reads 0 (not set) gets the configuration's rated torque written at boot
+    # the drive's rated torque / rated current against the joint's K_m: apart by more than this is reported
+    tolerance: Annotated[float, Field(gt=0, le=1), Expect("a fraction in (0, 1]")] = 0.05
+
+
+class WatchdogObject(_Strict):
+    """A vendor object that stops the drive when its command frames stop (where 1400h+k sub 5 is missing):
+    ``safety.rpdo_timeout_ms`` is written to it in its unit."""
+
+    object: ObjectAddress
+    unit: Literal["ms", "us", "100us", "s"] = "ms"
+
+
+class DriveConfig(_Strict):
+    """A drive profile: the drive's EDS and what the EDS cannot say (docs/DRIVES.md). Joints name it by its key in
+    ``drives``; a joint without ``drive`` has dragd's own joint drive (canopen_eds/joint_drive.eds)."""
+
+    eds: str | None = None  # EDS file, relative to this configuration file; null: dragd's joint_drive.eds
+    current: CurrentObject = CurrentObject()
+    torque_command: Literal["60B2h", "6071h"] | None = None  # null: 60B2h where PDO-mappable, else 6071h
+    rated_current: RatedCurrentObject = RatedCurrentObject()
+    rated_torque: RatedTorqueObject = RatedTorqueObject()
+    rpdo_watchdog: WatchdogObject | None = None
 
 
 class FrictionConfig(_Strict):
@@ -183,13 +242,15 @@ class JointConfig(_Strict):
     name: str
     node_id: NodeId
     bus: str = "arm"
+    drive: str | None = None  # a key of ``drives``; null: dragd's own joint drive (canopen_eds/joint_drive.eds)
     gear_ratio: PosFloat
     torque_constant_Nm_per_A: PosFloat | None = None  # joint side K_t
     motor_torque_constant_Nm_per_A: PosFloat | None = None  # K_m; then K_t = K_m · gear · efficiency
     gear_efficiency: Annotated[float, Field(gt=0, le=1), Expect("a number in (0, 1]")] = 1.0
     current_limit_A: PosFloat
-    rated_current_A: PosFloat  # 6075h
-    rated_torque_Nm: PosFloat | None = None  # 6076h, motor side; default K_m · rated current
+    rated_current_A: PosFloat  # 6075h (or the drive profile's rated_current object)
+    # 6076h, motor side; default K_m · rated current (then torque per mille = current per mille of rated_current_A)
+    rated_torque_Nm: PosFloat | None = None
     encoder_counts_per_rev: PosInt  # per joint revolution
     encoder_offset_counts: int = 0  # counts at the URDF's zero
     direction: Literal[1, -1] = 1  # +1: drive's positive = URDF's positive
@@ -419,6 +480,7 @@ class Config(_Strict):
     robot: RobotConfig = RobotConfig()
     params: str | None = None  # identified-parameters file, relative to the config file
     buses: list[BusConfig] = Field(default_factory=lambda: [BusConfig()])
+    drives: dict[str, DriveConfig] = Field(default_factory=dict)  # drive profiles by name (docs/DRIVES.md)
     joints: list[JointConfig]
     law: LawConfig = LawConfig()
     loop: LoopConfig = LoopConfig()
@@ -444,6 +506,9 @@ class Config(_Strict):
         for i, j in enumerate(self.joints):
             if j.bus not in bus_names:
                 raise ValueError(f"joints[{i}].bus: expected one of the buses {bus_names}, got '{j.bus}'")
+            if j.drive is not None and j.drive not in self.drives:
+                raise ValueError(f"joints[{i}].drive: expected one of the drives {sorted(self.drives)} (the keys of "
+                                 f"'drives'), got '{j.drive}'")
         seen: dict[tuple[str, int], str] = {}
         for j in self.joints:
             key = (j.bus, j.node_id)
@@ -518,6 +583,21 @@ class Config(_Strict):
 
     def bus(self, name: str) -> BusConfig:
         return next(b for b in self.buses if b.name == name)
+
+    def drive_of(self, joint: int) -> DriveConfig:
+        """The drive profile of ``joints[joint]`` (dragd's own joint drive where it names none)."""
+        name = self.joints[joint].drive
+        return self.drives[name] if name is not None else DriveConfig()
+
+    def eds_of(self, joint: int) -> Path:
+        """The EDS file of ``joints[joint]``'s drive (relative paths: to this configuration file)."""
+        eds = self.drive_of(joint).eds
+        if eds is None:
+            from dragd.resources import eds_path
+
+            return eds_path()
+        p = Path(eds).expanduser()
+        return p if p.is_absolute() else self.base_dir / p
 
 
 # ----------------------------------------------------------------------------------------------- params

@@ -133,7 +133,11 @@ PLACEHOLDERS: list[tuple[str, str]] = [
     (r"--config F\b", "--config {config}"),
     (r"--control SOCKET", "--control {work}/sim.sock"),
     (r"--bus I:C", "--bus udp_multicast:{spare_group}"),
+    (r"--robot R\.urdf\b", "--robot arm.urdf"),
     (r"--robot R\b", "--robot seed_cobot"),
+    (r"--eds FILE\b", "--eds classic.eds"),  # an in-repo EDS variant (tests/data/eds; vendors' files never committed)
+    (r"--eds-dir DIR\b", "--eds-dir eds"),
+    (r"--out cfg\.yaml\b", "--out new-cfg.yaml"),  # (the folder has cfg.yaml, made by the same command)
     (r"--params P\b", "--params identified.yaml"),
     (r"--plots DIR", "--plots plots"),
     (r"--plan KIND", "--plan symmetric"),
@@ -266,7 +270,8 @@ RULES: list[Rule] = [
     Rule(r"^dragd demo --scenario teach\b", "run", "sim + daemon", extra="--seconds 6", slow=True),
     Rule(r"^dragd demo\b", "run", "sim + daemon", extra="--seconds 8", slow=True),
     Rule(r"^dragd bench --list$", "run", "offline"),
-    Rule(r"^dragd bench (compensation_us|bus_load) ", "run", "offline"),
+    Rule(r"^dragd bench (compensation_us|bus_load|io_cycle_us)( |$)", "run", "offline"),
+    Rule(r"^dragd bench drive_profiles\b", "run", "sim + daemon per EDS file (two in-repo variants here)", slow=True),
     Rule(r"^dragd bench ros2_", "run", "sim + daemon + the ROS 2 bridge", extra="--seconds 2", slow=True),
     Rule(r"^dragd bench fault_matrix\b", "run", "sim + daemon: every injectable fault in turn", slow=True),
     Rule(r"^dragd bench (loop_|--json$)", "run", "sim + daemon (every benchmark: the case matrix cut to two cases)",
@@ -316,6 +321,11 @@ def _fixture_files(d: Path, run: Callable[[str], object]) -> None:
     cfg = yaml.safe_load((REPO / "config" / "default.yaml").read_text())
     cfg["robot"]["urdf"] = "arm.urdf"
     (d / "arm.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    (d / "eds").mkdir()  # docs/DRIVES.md: a drive's EDS (an in-repo variant) and a folder of them
+    for name in ("classic", "no_cst"):
+        shutil.copy(REPO / "tests" / "data" / "eds" / f"{name}.eds", d / "eds")
+    shutil.copy(REPO / "tests" / "data" / "eds" / "classic.eds", d / "classic.eds")
+    run("dragd config init --robot arm.urdf --eds classic.eds --out cfg.yaml")
     q, marks, path = list(Q0), [], []
     for i, step in enumerate(steps):
         q0 = list(q)

@@ -25,7 +25,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
         raise CliError(f"--jobs: expected ≥ 1, got {args.jobs}")
     opts = {"config": absolute(args.config), "seconds": args.seconds, "realtime_priority": args.realtime_priority,
             "jobs": args.jobs, "cases": args.cases, "out": absolute(args.out), "profile": absolute(args.profile),
-            "sim_config": absolute(args.sim_config), "data": absolute(args.data)}
+            "sim_config": absolute(args.sim_config), "data": absolute(args.data), "eds_dir": absolute(args.eds_dir),
+            "robot": args.robot}
     try:
         result = bench.run(args.names, {k: v for k, v in opts.items() if v is not None})
     except KeyError as exc:
@@ -41,6 +42,17 @@ def cmd_bench(args: argparse.Namespace) -> int:
                                   "rows_lost"],
                                  [(f, r["detected_ms"], r["reaction"], r["max_joint_speed_rad_s"], r["max_drift_deg"],
                                    r["recovered"], r["rows_lost"]) for f, r in v["faults"].items()]))
+            if "files" in v:
+                def short(x: Any) -> str:
+                    if x is None or isinstance(x, (int, float)):
+                        return "-" if x is None else str(x)
+                    if isinstance(x, list):
+                        return f"{len(x)} error(s)"
+                    return x if len(x) <= 40 else x[:37] + "..."
+
+                out.append(table([k, "config_check", "boot", "drag_drift_deg", "identify", "refused_reason"],
+                                 [(f, short(r["config_check"]), short(r["boot"]), short(r["drag_drift_deg"]),
+                                   short(r["identify"]), short(r["refused_reason"])) for f, r in v["files"].items()]))
         out += [f"{k}: details with --json" for k, v in d.items() if "detail" in v]
         return "\n".join(out)
 
@@ -71,6 +83,10 @@ def register(sub: Any) -> None:
     b.add_argument("--data", type=Path, default=None, metavar="DIR",
                    help="ident_real: the UR10e dataset, a checkout of github:shamilmamedov/dynamic_calibration "
                         "(default: $DRAGD_UR10E_DATA)")
+    b.add_argument("--eds-dir", type=Path, default=None, metavar="DIR",
+                   help="drive_profiles: the vendors' EDS files (docs/DRIVES.md)")
+    b.add_argument("--robot", default=None, metavar="URDF",
+                   help="drive_profiles: the robot (default: the seed cobot's URDF file)")
     add_config(b, params=False)
     b.add_argument("--json", action="store_true", help="print JSON")
     b.set_defaults(func=cmd_bench)

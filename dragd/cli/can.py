@@ -87,17 +87,34 @@ def _node(text: str, allow_all: bool = False) -> int:
     return n
 
 
-def _eds_files(cfg: Any) -> list[Path]:
+def _eds_files(cfg: Any, eds_dir: Path | None = None) -> list[Path]:
+    """The EDS files a scan matches nodes against: the configuration's drives', ``--eds-dir``'s, dragd's own."""
     from dragd.resources import eds_path
 
-    return [Path(eds_path())]
+    files = [cfg.eds_of(i) for i in range(len(cfg.joints))]
+    if eds_dir is not None:
+        if not eds_dir.is_dir():
+            raise CliError(f"--eds-dir {eds_dir}: not a directory")
+        files += sorted(p for p in eds_dir.iterdir() if p.suffix.lower() in (".eds", ".dcf"))
+    files.append(Path(eds_path()))
+    return list(dict.fromkeys(files))
+
+
+def _node_eds(cfg: Any, node: int) -> Path:
+    """The EDS of the configured drive at ``node`` (dragd's own where no joint has that node id)."""
+    from dragd.resources import eds_path
+
+    for i, j in enumerate(cfg.joints):
+        if j.node_id == node:
+            return Path(cfg.eds_of(i))
+    return Path(eds_path())
 
 
 def cmd_scan(args: argparse.Namespace) -> int:
     from dragd.hardware.operator import scan
 
     with _network(args) as (bus, net, cfg):
-        nodes = scan(net, bus, timeout_s=args.timeout, eds_files=_eds_files(cfg))
+        nodes = scan(net, bus, timeout_s=args.timeout, eds_files=_eds_files(cfg, args.eds_dir))
     data = {"nodes": [n.as_dict() for n in nodes]}
 
     def text(d: dict[str, Any]) -> str:
@@ -119,14 +136,18 @@ def cmd_scan(args: argparse.Namespace) -> int:
 
 def cmd_sdo(args: argparse.Namespace) -> int:
     from dragd.hardware.operator import eds_type, parse_address, sdo_read, sdo_write
-    from dragd.resources import eds_path
 
     node = _node(args.node)
     try:
         index, sub = parse_address(args.address)
     except ValueError as exc:
         raise CliError(str(exc)) from None
-    kind = args.type or eds_type(index, sub, Path(eds_path()))
+    if args.type is None:
+        from dragd.config import load_config
+
+        kind = eds_type(index, sub, _node_eds(load_config(args.config), node))
+    else:
+        kind = args.type
     if args.action == "write":
         if args.value is None:
             raise CliError("sdo write: missing VALUE")
@@ -172,6 +193,9 @@ def register(sub: Any) -> None:
     csub.required = True
     s = csub.add_parser("scan", help="nodes on the bus: boot state, device type, identity, matching EDS")
     _common(s)
+    s.add_argument("--eds-dir", type=Path, default=None, metavar="DIR",
+                   help="match the nodes' identity (1018h vendor id, product code) against these EDS files too "
+                        "(the configuration's drives' and dragd's own are always tried)")
     s.set_defaults(func=cmd_scan)
 
     p = sub.add_parser("sdo", help="read or write one object of a node over SDO")
@@ -180,7 +204,8 @@ def register(sub: Any) -> None:
     p.add_argument("address", metavar="INDEX[:SUB]", help="object index in hex, sub-index (default 0), e.g. 6041, 1018:2")
     p.add_argument("value", metavar="VALUE", nargs="?", help="write: the value (numbers: decimal or 0x hex)")
     p.add_argument("--type", choices=list(SDO_TYPES), default=None,
-                   help="data type (default: the drive EDS's type of the object; read: unsigned by length)")
+                   help="data type (default: the type in the EDS of the configured drive at NODE; read: unsigned by "
+                        "length)")
     _common(p)
     p.set_defaults(func=cmd_sdo)
 

@@ -89,7 +89,10 @@ def cmd_model_current(args: argparse.Namespace) -> int:
 
 
 def cmd_config_check(args: argparse.Namespace) -> int:
+    """Validate the configuration, its robot and its drives (every drive's EDS, offline): every problem at once."""
     from dragd.config import load_config
+    from dragd.hardware.plan import plan_drives
+    from dragd.hardware.profile import ProfileError, grouped
     from dragd.model import RobotModel
     from dragd.robots.gravity import check_gravity_currents  # any gravity current above current_limit_A: ConfigError
 
@@ -98,11 +101,50 @@ def cmd_config_check(args: argparse.Namespace) -> int:
     if list(model.joint_names) != cfg.joint_names:
         raise CliError(f"{cfg.source}: joints: expected the robot's joints {', '.join(model.joint_names)}, "
                        f"got {', '.join(cfg.joint_names)}")
+    try:
+        plan = plan_drives(cfg)
+    except ProfileError as exc:
+        raise CliError(str(exc)) from None
+    findings = [{"level": f.level, "text": f.body if where else f.text, "at": where, "refusal": f.refusal}
+                for f, where in grouped(plan.findings)]
+    counts = {lvl: sum(1 for f in findings if f["level"] == lvl) for lvl in ("error", "warning", "note")}
+    drives = [{"joint": p.joint.name, "node_id": p.node_id, "bus": p.joint.bus, "drive": p.drive_name,
+               "eds": str(p.eds_path), "fd": p.fd,
+               "current": None if p.current is None else {"object": f"{p.current.index:04X}h:{p.current.sub}",
+                                                          "unit": p.current_unit},
+               "torque_command": None if p.command is None else f"{p.command.index:04X}h", "csp": p.csp}
+              for p in plan.profiles.profiles]
+    buses = [{"name": b.name, "fd": b.fd, "layout": plan.layouts[b.name].kind,
+              "position_targets": plan.layouts[b.name].position_targets,
+              "load_pct": round(plan.budget[b.name]["load_pct"], 2),
+              "load_min_pct": round(plan.budget[b.name]["load_min_pct"], 2), "limit_pct": b.load_limit_pct}
+             for b in cfg.buses]
+    ok = counts["error"] == 0
+    gravity = [g.to_json() for g in check_gravity_currents(cfg)] if ok else []
     data = {"config": cfg.source, "robot": str(model.urdf_path), "joints": cfg.joint_names,
-            "buses": [b.name for b in cfg.buses], "gravity": [g.to_json() for g in check_gravity_currents(cfg)],
-            "ok": True}
-    emit(args, data, lambda d: f"{d['config']}: ok ({len(d['joints'])} joints, robot {d['robot']})")
-    return 0
+            "buses": [b.name for b in cfg.buses], "bus_load": buses, "drives": drives, "findings": findings,
+            "errors": counts["error"], "warnings": counts["warning"], "notes": counts["note"],
+            "refused": plan.refusals, "gravity": gravity, "ok": ok}
+
+    def text(d: dict[str, Any]) -> str:
+        lines = []
+        for f in d["findings"]:
+            lines.append(f"{f['level']}: {f['text']}")
+            if f["at"]:
+                lines.append(f"    at {f['at']}")
+        for b in d["bus_load"]:
+            lines.append(f"bus '{b['name']}': {'CAN FD' if b['fd'] else 'classic CAN'}, layout {b['layout']}"
+                         f"{'' if b['position_targets'] else ' (no position targets: drag only)'}, worst-case load "
+                         f"{b['load_pct']:.1f} % (no stuff bits {b['load_min_pct']:.1f} %), limit {b['limit_pct']:.0f} %")
+        for r in d["refused"]:
+            lines.append(f"refused: {r}")
+        verdict = "ok" if d["ok"] else "NOT usable"
+        lines.append(f"{d['config']}: {verdict}: {d['errors']} error(s), {d['warnings']} warning(s), {d['notes']} "
+                     f"note(s) ({len(d['joints'])} joints, robot {d['robot']})")
+        return "\n".join(lines)
+
+    emit(args, data, text)
+    return 0 if ok else 1
 
 
 def register(sub: Any) -> None:
@@ -128,7 +170,8 @@ def register(sub: Any) -> None:
     cfgp = sub.add_parser("config", help="configuration tools")
     csub = cfgp.add_subparsers(dest="config_command", metavar="WHAT")
     csub.required = True
-    chk = csub.add_parser("check", help="validate a configuration (and params) file and its robot")
+    chk = csub.add_parser("check", help="validate a configuration (and params) file, its robot and its drives (each "
+                                        "drive's EDS, offline): every problem at once, with the key to change")
     add_config(chk)
     chk.add_argument("--json", action="store_true", help="print JSON")
     chk.set_defaults(func=cmd_config_check)

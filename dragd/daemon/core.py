@@ -43,7 +43,8 @@ from dragd.hardware.bus import BusSpec, open_bus, parse_bus
 from dragd.hardware.drives import STATE_NAMES, DriveSupervisor
 from dragd.hardware.io import BusIO
 from dragd.hardware.master import Master
-from dragd.hardware.pdo import BusLayout, layout_for
+from dragd.hardware.pdo import BusLayout
+from dragd.hardware.plan import DrivePlan, plan_drives
 from dragd.hardware.scaling import Scaling
 from dragd.model import RobotModel
 from dragd.realtime import CpuLatencyRequest, demote_current_thread, scheduler_label, set_realtime
@@ -91,14 +92,26 @@ def go_realtime(loop: asyncio.AbstractEventLoop, priority: int | None, cpus: lis
     return scheduler_label(info, priority)
 
 
-def bus_layouts(cfg: Config) -> dict[str, BusLayout]:
-    """The PDO layout of every configured bus."""
-    out = {}
-    for b in cfg.buses:
-        idx = [i for i, j in enumerate(cfg.joints) if j.bus == b.name]
-        out[b.name] = layout_for(b.name, idx, [cfg.joints[i].node_id for i in idx], fd=b.fd, kind=b.layout,
-                                 rate_Hz=cfg.loop.rate_Hz)
-    return out
+def bus_layouts(cfg: Config, plan: DrivePlan | None = None) -> dict[str, BusLayout]:
+    """The PDO layout of every configured bus, planned from the joints' drive profiles; ConfigError listing every
+    problem with the drives (their EDS files) at once."""
+    from dragd.config import ConfigError
+
+    plan = plan if plan is not None else drive_plan(cfg)
+    if plan.errors:
+        raise ConfigError(plan.error_text(cfg.source))
+    return plan.layouts
+
+
+def drive_plan(cfg: Config) -> DrivePlan:
+    """Profiles and layouts of ``cfg``'s drives (ConfigError for an EDS that cannot be read)."""
+    from dragd.config import ConfigError
+    from dragd.hardware.profile import ProfileError
+
+    try:
+        return plan_drives(cfg, budget_findings=False)
+    except ProfileError as exc:
+        raise ConfigError(str(exc)) from None
 
 
 def check_bus_budget(cfg: Config, layouts: dict[str, BusLayout]) -> dict[str, Any]:
@@ -111,7 +124,7 @@ def check_bus_budget(cfg: Config, layouts: dict[str, BusLayout]) -> dict[str, An
             raise BusBudgetError(
                 f"{cfg.source}: buses[{cfg.buses.index(b)}] '{b.name}': worst-case bus load {r.percent:.1f} % exceeds "
                 f"load_limit_pct {b.load_limit_pct:.0f} % at {cfg.loop.rate_Hz:.0f} Hz "
-                f"({'CAN FD' if b.fd else 'classic CAN'} {b.bitrate / 1e6:g} Mbit/s, layout '{b.layout}'):\n{r.table()}\n"
+                f"({'CAN FD' if b.fd else 'classic CAN'} {b.bitrate / 1e6:g} Mbit/s, layout '{layouts[b.name].kind}'):\n{r.table()}\n"
                 "Use CAN FD, layout 'compact', fewer joints per bus (split buses) or a lower loop.rate_Hz.")
     return report
 
@@ -131,7 +144,8 @@ class Daemon:
         self.log = log or _print_log  # log(text) or log(text, priority)
         self.socket_path = socket_path or cfg.control.socket
         self.bus_specs = self._bus_specs(bus_override)
-        self.layouts = bus_layouts(cfg)
+        self.drives = drive_plan(cfg)  # every joint's drive profile (its EDS) and every bus's PDO layout
+        self.layouts = bus_layouts(cfg, self.drives)
         self.budget = check_bus_budget(cfg, self.layouts)
         self.model = RobotModel.from_config(cfg)  # URDF + the params' payload (docs/GAP.md)
         if list(self.model.joint_names) != cfg.joint_names:
@@ -139,7 +153,7 @@ class Daemon:
                              f"got {', '.join(cfg.joint_names)}")
         self.n = len(cfg.joints)
         self.node_ids = [j.node_id for j in cfg.joints]
-        self.scaling = Scaling.from_config(cfg)
+        self.scaling = Scaling.from_config(cfg, self.drives.profiles)
         self.controller = Controller.from_config(cfg, self.model.position_limits_rad)
         if self.controller.guard is not None:
             self.controller.guard.explain = self._explain_residual
@@ -426,12 +440,20 @@ class Daemon:
         return {name: (getattr(out, name).tolist() if drag and getattr(out, name, None) is not None else zero)
                 for name in ("gravity_A", "friction_A", "startup_A", "damping_A", "back_emf_A", "effects_A")}
 
+    def _boot_status(self) -> dict[tuple[str, int], list[str]]:
+        """Each drive's boot status lines (the protection in force, fallbacks, warnings: hardware/master.py)."""
+        if self.master is None:
+            return {}
+        return {(rt.name, n): list(info.status) for rt in self.master.runtimes.values() for n, info in rt.nodes.items()}
+
     def status(self) -> dict[str, Any]:
         c, cy, sup, io = self.controller, self.cycle, self.supervisor, self.io
         fb = io.feedback if io is not None else None
+        boot = self._boot_status()
         drives = [{"joint": j.name, "node_id": j.node_id, "state": STATE_NAMES[sup.states[i]],
                    "statusword": int(fb.statusword[i]) if fb is not None else 0,
-                   "stale_cycles": int(fb.stale[i]) if fb is not None else 0}
+                   "stale_cycles": int(fb.stale[i]) if fb is not None else 0,
+                   "eds": self.drives.profiles[i].eds_path.name, "boot": boot.get((j.bus, j.node_id), [])}
                   for i, j in enumerate(self.cfg.joints)]
 
         def pct(h: Any, p: float) -> float | None:
@@ -567,7 +589,7 @@ class Daemon:
             raise
         self.attach(buses)
         assert self.io is not None
-        self.master = Master(self.cfg, self.buses, self.layouts, loop,
+        self.master = Master(self.cfg, self.buses, self.layouts, loop, self.drives.profiles,
                              {name: [self.io.listener(name)] for name in self.buses}, log=self.log,
                              on_data={name: self.io.tpdo_decoder(name) for name in self.buses},
                              after_frames=self.io.after_frames, read_done=self.io.read_done)

@@ -114,6 +114,17 @@ class Motions:
             if self.drive_mode != MODE_CST:
                 raise ValueError(f"{what}: the drives did not return to CST after the motion")
 
+    def check_csp(self, what: str) -> None:
+        """Refuse a motion in CSP where a bus carries no position targets or a drive has no CSP (drag needs CST
+        only: the boot does not require CSP)."""
+        d = self.d
+        reason = d.master.csp_refusal() if d.master is not None else None
+        if reason is None and d.io is not None and d.io.compact_buses:
+            reason = f"bus(es) {', '.join(d.io.compact_buses)} carry no position targets"
+        if reason is not None:
+            raise ValueError(f"{what}: the drives cannot follow position targets (CSP): {reason}; drag, hold and "
+                             "idle work (docs/DRIVES.md)")
+
     # ------------------------------------------------------------------------------------------ tracks
 
     def validate(self, traj: Trajectory) -> None:
@@ -179,6 +190,7 @@ class Motions:
         if not 0.0 < rate <= 1.0:
             raise ValueError(f"track: speed: expected a fraction in (0, 1], got {rate}")
         self.validate(traj)
+        self.check_csp("track")
         c.take_over_feedback_hold("track")
         start_err = np.abs(traj.start_q - q)
         if np.any(start_err > START_TOLERANCE_RAD):
@@ -197,6 +209,7 @@ class Motions:
     async def track_request(self, label: str, file: str | None, t_s: list[float] | None,
                             q_rad: list[list[float]] | None) -> dict[str, Any]:
         """The ``track`` command: a trajectory file or samples, built off the loop, then followed."""
+        self.check_csp("track")
         dt = self.d.cycle.dt
         if file is not None:
             traj = await self._trajectory(dt, label, file=str(self.d.paths.check("track", file)))
@@ -256,10 +269,7 @@ class Motions:
         d, c = self.d, self.controller
         if d.teaching.recorder is not None:
             raise ValueError(f"replay: teaching '{d.teaching.recorder.name}' is in progress; 'dragd teach stop' first")
-        compact = d.io.compact_buses if d.io is not None else []
-        if compact:
-            raise ValueError(f"replay: bus(es) {', '.join(compact)} use the 'compact' PDO layout, which carries no "
-                             "position targets; replay (CSP) needs the 'shared' layout")
+        self.check_csp("replay")
         if c.mode not in (Mode.HOLD, Mode.DRAG):
             raise ValueError(f"replay: expected the arm enabled in hold or drag, it is {MODE_NAMES[c.mode]}")
         if c.track.active or self.planning:

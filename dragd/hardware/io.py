@@ -5,8 +5,9 @@ the TPDOs before any ``can.Message`` is made, ``listener`` the rest): TPDOs are 
 precompiled ``struct`` codecs straight into the feedback arrays, EMCYs go to ``on_emcy``; the read step of a
 cycle (``start_read``) ends when every joint's position TPDO arrived after the SYNC (checked by ``after_frames``
 once a wake-up's frames are all decoded) or at the deadline, and hands over by a plain call (``on_read``): no
-future, no task wake-up. ``write`` packs the controlwords, target positions and torque offsets into each command
-frame's preallocated buffer.
+future, no task wake-up. ``write`` packs the controlwords, target positions and torque commands into each command
+frame's preallocated buffer. The frames' fields, offsets and struct codes come from the bus's layout (planned from
+each drive's EDS: hardware/pdo.py), precompiled once.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ class Feedback:
     def __init__(self, n: int) -> None:
         self.counts = np.zeros(n, dtype=np.int64)  # 6064h
         self.statusword = np.zeros(n, dtype=np.int64)  # 6041h
-        self.current_permille = np.zeros(n)  # 6078h, per mille of rated current, the drive's sign
+        self.current_permille = np.zeros(n)  # the current object (6078h: per mille of rated current), the drive's sign
         self.rx = np.zeros(n, dtype=bool)  # the position TPDO arrived this cycle
         self.stale = np.zeros(n, dtype=np.int64)  # cycles since each joint's last position TPDO
         self.rx_count = 0  # joints whose position TPDO arrived this cycle
@@ -265,13 +266,20 @@ class BusIO:
         cw, target_counts, torque_permille = cw_array.tolist(), counts_array.tolist(), permille_array.tolist()
         for bus, msg, enc, with_sync in self._commands:
             buf = enc.buffer
-            for j, off, codec, fields in enc.slots:
-                if len(fields) == 3:
+            for j, off, codec, kind in enc.slots:  # (kinds: pdo.RpdoEncoder.KINDS)
+                if kind == 0:
                     codec.pack_into(buf, off, int(cw[j]), int(target_counts[j]), int(torque_permille[j]))
-                elif fields[0] == "torque_offset":
+                elif kind == 1:
                     codec.pack_into(buf, off, int(torque_permille[j]))
-                else:
+                elif kind == 2:
                     codec.pack_into(buf, off, int(cw[j]))
+                elif kind == 3:
+                    codec.pack_into(buf, off, int(target_counts[j]), int(torque_permille[j]))
+                elif kind == 4:
+                    codec.pack_into(buf, off, int(cw[j]), int(torque_permille[j]))
+            for j, off, codec, f in enc.loose:  # a drive's fixed mapping in an order of its own: field by field
+                codec.pack_into(buf, off, int(cw[j] if f == "controlword" else target_counts[j]
+                                              if f == "target_position" else torque_permille[j]))
             if not enc.due(t):
                 continue
             if with_sync:
@@ -320,4 +328,4 @@ class BusIO:
     @property
     def compact_buses(self) -> list[str]:
         """Buses whose layout carries no position targets (no CSP: drag, hold and idle only)."""
-        return [name for name, lay in self.layouts.items() if lay.kind != "shared"]
+        return [name for name, lay in self.layouts.items() if not lay.position_targets]

@@ -75,15 +75,22 @@ class NodeInfo:
 
 
 def eds_identity(path: Path) -> dict[str, int]:
-    """[DeviceInfo] VendorNumber, ProductNumber, RevisionNumber of an EDS file."""
+    """[DeviceInfo] VendorNumber, ProductNumber, RevisionNumber of an EDS file (those that are numbers)."""
     cp = configparser.ConfigParser(strict=False, interpolation=None)
-    cp.read(path, encoding="utf-8")
+    try:
+        cp.read(path, encoding="utf-8")
+    except UnicodeDecodeError:
+        cp = configparser.ConfigParser(strict=False, interpolation=None)
+        cp.read(path, encoding="latin-1")
     info = cp["DeviceInfo"] if cp.has_section("DeviceInfo") else {}
     out = {}
     for key, name in (("VendorNumber", "vendor_id"), ("ProductNumber", "product_code"),
                       ("RevisionNumber", "revision")):
         if key in info:
-            out[name] = int(str(info[key]), 0)
+            try:
+                out[name] = int(str(info[key]).strip(), 0)
+            except ValueError:
+                continue
     return out
 
 
@@ -146,9 +153,13 @@ def scan(network: canopen.Network, bus: can.BusABC, *, timeout_s: float = 0.5, n
             info.errors.append(f"1008h: {exc}")
         if n in heard:
             info.state = _STATES.get(heard[n], f"0x{heard[n]:02X}")
+        # vendor id and product code identify the drive (1018h:1, :2); a revision other than the EDS's is noted
         for path, ident in eds:
-            if ident and all(getattr(info, k) == v for k, v in ident.items()):
+            key = {k: v for k, v in ident.items() if k != "revision"}
+            if key and all(getattr(info, k) == v for k, v in key.items()):
                 info.eds = path.name
+                if "revision" in ident and info.revision is not None and ident["revision"] != info.revision:
+                    info.eds += f" (EDS revision {ident['revision']:08X}h, the drive's {info.revision:08X}h)"
                 break
         found.append(info)
     return found

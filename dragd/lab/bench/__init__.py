@@ -84,7 +84,7 @@ def _load_plugins() -> None:
 
     for mod in ("dragd.lab.bench.loop", "dragd.lab.bench.identify", "dragd.lab.bench.gap",
                 "dragd.lab.bench.gap_confusion", "dragd.lab.bench.ident_real", "dragd.lab.bench.faults",
-                "dragd.lab.bench.telemetry", "dragd.lab.bench.ros2"):
+                "dragd.lab.bench.telemetry", "dragd.lab.bench.ros2", "dragd.lab.bench.drives"):
         try:
             importlib.import_module(mod)
         except ModuleNotFoundError as exc:
