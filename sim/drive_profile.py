@@ -36,6 +36,7 @@ from dragd.hardware.cia402 import (
     OD_TARGET_POSITION,
     OD_TARGET_TORQUE,
     OD_TARGET_VELOCITY,
+    OD_TORQUE_OFFSET,
     OD_TORQUE_SLOPE,
     Mode,
     supported_modes_bits,
@@ -44,8 +45,9 @@ from dragd.resources import eds_path as bundled_eds_path
 
 DRIVES_DIR = Path(__file__).resolve().parent / "config" / "drives"
 DEVICE_TYPE_402_SERVO = 0x00020192  # CiA 402 (0192h), additional information 0002h: servo drive
-# a vendor drive's position loop integrates (cascaded PI velocity loop): its CSP integral gain per proportional gain
-# where the truth names none (1/s: the integral catches up with a constant load in about 0.1 s)
+# a drive without a torque offset to feed forward (no RPDO-mappable 60B2h) holds the arm with an integrating position
+# loop (cascaded PI velocity loop): its CSP integral gain per proportional gain where the truth names none (1/s: the
+# integral catches up with a constant load in about 0.1 s)
 VENDOR_CSP_KI_PER_KP = 10.0
 # option codes a drive acts on when its EDS lacks the object: value, and what the drive then does
 ASSUMED_OPTIONS: dict[int, tuple[int, str]] = {
@@ -295,6 +297,16 @@ def eds_declares_fd(path: str | Path) -> bool | None:
     return _device_info_fd(str(p.resolve()), p.stat().st_mtime_ns) if p.is_file() else None
 
 
+def takes_torque_offset(eds: str | Path, node_id: int) -> bool:
+    """Whether the EDS's drive takes a torque offset a master can feed forward each cycle (60B2h writable and
+    RPDO-mappable); False for a file that cannot be read (build_profile reports why)."""
+    try:
+        var = _variable(import_eds(eds, node_id), OD_TORQUE_OFFSET, 0)
+    except ProfileError:
+        return False
+    return var is not None and var.writable and var.pdo_mappable
+
+
 def _variable(od: canopen.ObjectDictionary, index: int, subindex: int) -> ODVariable | None:
     obj = od.get(index)
     if obj is None:
@@ -451,16 +463,39 @@ def build_profile(spec: ProfileSpec, hw: Hardware, base_dir: Path | None = None)
     if bindings["max_torque"].index is None:
         assumptions.append("no 6072h (max torque): the current limit alone bounds the torque")
     if spec.assumed_csp_ki is not None:
-        assumptions.append(f"the position loop (CSP) integrates, as a servo drive's cascaded loops do: "
-                           f"{spec.assumed_csp_ki:g} A/(rad·s), {VENDOR_CSP_KI_PER_KP:g}/s x kp "
-                           f"(the truth names no csp_ki_A_per_rad_s)")
+        assumptions.append(f"no torque offset to feed forward (60B2h): the position loop (CSP) holds the arm itself and "
+                           f"integrates, as a servo drive's cascaded loops do: {spec.assumed_csp_ki:g} A/(rad·s), "
+                           f"{VENDOR_CSP_KI_PER_KP:g}/s x kp (the truth names no csp_ki_A_per_rad_s)")
     if var_of(OD_TORQUE_SLOPE, 0) is None:
         assumptions.append("no 6087h (torque slope): profile torque steps without a ramp")
+    problems += _default_mapping_problems(od, eds, can_fd, where)
     if problems:
         raise ProfileError("\n".join(problems))
     return DriveProfile(eds_path=eds, node_id=hw.node_id, od=od, catalog=catalog, bindings=bindings,
                         commissioned=commissioned, truth_raw=truth_raw, hardware=hw, supported_modes=modes, can_fd=can_fd, assumptions=assumptions,
                         identity=identity)
+
+
+def _default_mapping_problems(od: canopen.ObjectDictionary, eds: Path, can_fd: bool, where: str) -> list[str]:
+    """The EDS's default mappings of its valid PDOs that the drive could not hold (an absent or unmappable object,
+    a frame too long): such a drive would not boot."""
+    from sim.od import ObjectStore, SdoAbort
+    from sim.pdo import CLASSIC_MAX_BYTES, COB_INVALID, FD_MAX_BYTES, find_channels, validate_mapping
+
+    store = ObjectStore(od)
+    out = []
+    for comm_base, map_base, receive in ((0x1400, 0x1600, True), (0x1800, 0x1A00, False)):
+        for ch in find_channels(store, comm_base, map_base, receive):
+            if store.get(ch.comm_index, 1) & COB_INVALID:
+                continue
+            count = store.get(ch.map_index, 0)
+            raws = [store.get(ch.map_index, sub) if store.has(ch.map_index, sub) else 0 for sub in range(1, count + 1)]
+            try:
+                validate_mapping(store, ch.map_index, raws, receive, FD_MAX_BYTES if can_fd else CLASSIC_MAX_BYTES)
+            except SdoAbort as exc:
+                out.append(f"{where}.eds: {eds}: the default mapping of {ch.map_index:04X}h (a valid "
+                           f"{'RPDO' if receive else 'TPDO'}) cannot be held: {exc.detail}")
+    return out
 
 
 def _catalog_entry(spec: ProfileSpec, od: canopen.ObjectDictionary, problems: list[str]) -> CatalogEntry | None:

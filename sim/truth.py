@@ -399,18 +399,22 @@ def drive_spec(joint: JointTruth, where: str = "") -> ProfileSpec:
                        objects={k: {"object": o.object, **({"unit": o.unit} if o.unit else {})}
                                 for k, o in hw.objects.items()},
                        values=dict(hw.values), can_fd=hw.can_fd, where=where or f"joints.{joint.name}.drive",
-                       assumed_csp_ki=None if hw.csp_ki_A_per_rad_s is not None or hw.eds is None
+                       assumed_csp_ki=None if hw.csp_ki_A_per_rad_s is not None or not csp_ki_A_per_rad_s(joint)
                        else csp_ki_A_per_rad_s(joint))
 
 
 def csp_ki_A_per_rad_s(joint: JointTruth) -> float:
-    """The CSP loop's integral gain: the truth's, else the drive model's (a vendor's position loop integrates)."""
-    from sim.drive_profile import VENDOR_CSP_KI_PER_KP
+    """The CSP loop's integral gain: the truth's, else the drive model's — 0 (P+D, as the bundled drive) unless the
+    drive's EDS offers no torque offset a master could feed forward (no writable, RPDO-mappable 60B2h): such a drive
+    holds the arm with its own, integrating position loop (VENDOR_CSP_KI_PER_KP x kp)."""
+    from sim.drive_profile import VENDOR_CSP_KI_PER_KP, takes_torque_offset
 
     hw = joint.drive
     if hw.csp_ki_A_per_rad_s is not None:
         return hw.csp_ki_A_per_rad_s
-    return 0.0 if hw.eds is None else VENDOR_CSP_KI_PER_KP * hw.csp_kp_A_per_rad
+    if hw.eds is None or takes_torque_offset(hw.eds, hw.node_id):
+        return 0.0
+    return VENDOR_CSP_KI_PER_KP * hw.csp_kp_A_per_rad
 
 
 def drive_params(joint: JointTruth, fd: bool, base_dir: str | None = None, where: str = "") -> DriveParams:

@@ -9,6 +9,7 @@ refused with every problem at once. The same drives over a real bus with python-
 from __future__ import annotations
 
 import struct
+import sys
 from pathlib import Path
 
 import can
@@ -286,13 +287,48 @@ def test_joints_spread_over_several_buses_as_config_init_splits_them() -> None:
     assert spread_over_buses(two, "a,b,c") is two
 
 
-@pytest.mark.parametrize("eds,integrates", [(None, False), ("classic", True)])
-def test_a_vendor_drives_position_loop_integrates(eds: str | None, integrates: bool) -> None:
-    """A drive from a vendor's EDS (here a variant) closes CSP with an integral (the truth names none): a joint held
-    0.01 rad off target sees its demand grow; the bundled drive's loop is P+D, as the seed cobot's truth says."""
-    x = Drive(None if eds is None else variant(eds))
+def _without(tmp_path: Path, index: int) -> Path:
+    """The classic variant without one object (its sections, its line in the object lists, default mappings naming it
+    emptied: make_variants.py's way)."""
+    sys.path.insert(0, str(VARIANTS))
+    try:
+        import make_variants
+    finally:
+        sys.path.remove(str(VARIANTS))
+    eds = make_variants.Eds(variant("classic").read_text(encoding="utf-8"))
+    eds.remove_object(index)
+    make_variants._drop_default_mappings(eds, index)
+    path = tmp_path / f"no_{index:04X}.eds"
+    path.write_text(eds.text(), encoding="utf-8")
+    return path
+
+
+def test_a_default_mapping_the_drive_cannot_hold_is_an_eds_error(tmp_path: Path) -> None:
+    sys.path.insert(0, str(VARIANTS))
+    try:
+        import make_variants
+    finally:
+        sys.path.remove(str(VARIANTS))
+    eds = make_variants.Eds(variant("classic").read_text(encoding="utf-8"))
+    eds.remove_object(0x60B2)  # RPDO2's default mapping still names it
+    path = tmp_path / "broken_mapping.eds"
+    path.write_text(eds.text(), encoding="utf-8")
+    with pytest.raises(TruthError, match=r"default mapping of 1601h \(a valid RPDO\) cannot be held: mapped object "
+                                         r"0x60B2:00 does not exist"):
+        drive_profiles(with_eds(TRUTH, path))
+
+
+@pytest.mark.parametrize("eds,integrates", [(None, False), ("classic", False), ("no_60B2h", True)])
+def test_a_drive_without_a_torque_offset_holds_with_an_integrating_position_loop(tmp_path: Path, eds: str | None,
+                                                                                 integrates: bool) -> None:
+    """A drive from an EDS without 60B2h (no torque feed-forward possible, as Eyou's) closes CSP with an integral (the
+    truth names none): a joint held 0.01 rad off target sees its demand grow. With 60B2h (and the bundled drive) the
+    loop stays P+D, as the seed cobot's truth says: dragd's feed-forward and the drive's integral would fight."""
+    path = None if eds is None else (_without(tmp_path, 0x60B2) if eds == "no_60B2h" else variant(eds))
+    x = Drive(path)
     kp = TRUTH.joints[0].drive.csp_kp_A_per_rad
     assert x.d.params.csp_ki_A_per_rad_s == (10.0 * kp if integrates else 0.0)
+    assert any("integrates" in a for a in x.d.profile.assumptions) == integrates
     assert x.write(0x6060, 0, 8, 1) is None
     for word in (CMD_SHUTDOWN, CMD_SWITCH_ON, CMD_ENABLE_OPERATION):
         assert x.write(0x6040, 0, word, 2) is None
