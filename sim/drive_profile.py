@@ -23,7 +23,7 @@ from typing import Any
 import canopen
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable, datatypes
 
-from dragd.config import ConfigError, _read_yaml
+from dragd.vocabulary import ConfigError, read_yaml
 from dragd.hardware.cia301 import OD_DEVICE_TYPE, OD_ERROR_BEHAVIOUR, OD_IDENTITY, OD_PRODUCER_HEARTBEAT
 from dragd.hardware.cia402 import (
     OD_CONTROLWORD,
@@ -232,7 +232,7 @@ def load_catalog(directory: Path = DRIVES_DIR) -> tuple[CatalogEntry, ...]:
     entries, problems = [], []
     for path in sorted(directory.glob("*.yaml")):
         try:
-            data = _read_yaml(path)
+            data = read_yaml(path)
         except ConfigError as exc:
             problems.append(str(exc))
             continue

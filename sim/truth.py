@@ -19,9 +19,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, model_validator
 
-from dragd.config import ConfigError, Expect, _read_yaml, format_validation_error
+from dragd.vocabulary import (ConfigError, Expect, Finite, NodeId, NonNegFloat, NonPosFloat, PosFloat, PosInt, Strict,
+                              format_validation_error, read_yaml)
 
 if TYPE_CHECKING:
     from dragd.model import RobotModel
@@ -31,23 +32,11 @@ if TYPE_CHECKING:
 CONFIG_DIR = Path(__file__).resolve().parent / "config"
 DEFAULT_TRUTH = CONFIG_DIR / "seed_cobot.yaml"
 
-PosFloat = Annotated[float, Field(gt=0, allow_inf_nan=False), Expect("a positive number")]
-NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False), Expect("a number >= 0")]
-NonPosFloat = Annotated[float, Field(le=0, allow_inf_nan=False), Expect("a number <= 0 (negative-direction level)")]
-Finite = Annotated[float, Field(allow_inf_nan=False), Expect("a finite number")]
-PosInt = Annotated[int, Field(gt=0), Expect("a positive integer")]
-NodeId = Annotated[int, Field(ge=1, le=127), Expect("a CANopen node id 1..127")]
-
-
 class TruthError(ConfigError):
     """A sim truth file that cannot be used; the message names file, key path and expectation."""
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_default=True, frozen=True)
-
-
-class DriveObject(_Strict):
+class DriveObject(Strict):
     """Where the drive's firmware keeps one process quantity (what the vendor's manual says), e.g. EPOS4's current
     actual value: ``{object: 30D1h:2, unit: mA}`` (sim/drive_profile.py lists the quantities and units)."""
 
@@ -55,7 +44,7 @@ class DriveObject(_Strict):
     unit: str | None = None  # None: the quantity's CiA 402 unit
 
 
-class DriveHardware(_Strict):
+class DriveHardware(Strict):
     """The integrated drive's hardware and built-in loops (what its object dictionary and firmware hold).
 
     ``eds``, ``profile``, ``objects``, ``values``, ``can_fd``: which drive model it is (sim/drive_profile.py,
@@ -89,7 +78,7 @@ class DriveHardware(_Strict):
         return self
 
 
-class FrictionTruth(_Strict):
+class FrictionTruth(Strict):
     """True joint friction, direction asymmetric: Stribeck curve plus viscous slope."""
 
     coulomb_pos_Nm: NonNegFloat = 0.0
@@ -118,7 +107,7 @@ class FrictionTruth(_Strict):
         return self.coulomb_neg_Nm if self.static_neg_Nm is None else self.static_neg_Nm
 
 
-class HardStops(_Strict):
+class HardStops(Strict):
     """Mechanical end stops on the output: a spring-damper beyond each limit."""
 
     lower_rad: Finite
@@ -133,7 +122,7 @@ class HardStops(_Strict):
         return self
 
 
-class Ripple(_Strict):
+class Ripple(Strict):
     """Position-periodic torque ripple: amplitude·sin(cycles·θ + phase), θ the joint or motor angle."""
 
     amplitude_Nm: NonNegFloat
@@ -142,7 +131,7 @@ class Ripple(_Strict):
     phase_rad: Finite = 0.0
 
 
-class Thermal(_Strict):
+class Thermal(Strict):
     """First-order thermal model of the joint: C·dT/dt = P_friction + I²R − (T − T_ambient)/R_th.
 
     Friction levels and viscous slopes scale by 1 + friction_coefficient_per_K·(T − reference_C).
@@ -157,7 +146,7 @@ class Thermal(_Strict):
     friction_coefficient_per_K: Annotated[float, Field(gt=-0.05, lt=0.05), Expect("a fraction per kelvin in (-0.05, 0.05)")] = -0.005
 
 
-class BackEmfHeadroom(_Strict):
+class BackEmfHeadroom(Strict):
     """Current-loop voltage headroom: above ``knee_rad_s`` the back-EMF leaves the loop short of voltage and the
     winding current falls short of the reported (regulated) current by A_s_per_rad·(|q̇| − knee)·sign q̇."""
 
@@ -165,7 +154,7 @@ class BackEmfHeadroom(_Strict):
     knee_rad_s: NonNegFloat = 0.0
 
 
-class FrictionDrift(_Strict):
+class FrictionDrift(Strict):
     """Friction warm-up over time, g = 1 − e^(−t/τ) (t: simulated time): the Coulomb/Stribeck levels × (1 + change·g),
     the viscous slope × (1 + viscous_change·g) (null: ``change`` for both)."""
 
@@ -174,14 +163,14 @@ class FrictionDrift(_Strict):
     viscous_change: Annotated[float, Field(gt=-0.95, lt=5), Expect("a relative change in (-0.95, 5)")] | None = None
 
 
-class Payload(_Strict):
+class Payload(Strict):
     """A point mass on the flange (the last joint's frame) that the URDF does not have."""
 
     mass_kg: NonNegFloat
     com_m: tuple[Finite, Finite, Finite] = (0.0, 0.0, 0.0)
 
 
-class Hidden(_Strict):
+class Hidden(Strict):
     """Effects the compensation model does not have (all off by default), for model-gap work."""
 
     ripple: list[Ripple] = Field(default_factory=list)
@@ -198,7 +187,7 @@ class Hidden(_Strict):
     friction_drift: FrictionDrift | None = None
 
 
-class JointTruth(_Strict):
+class JointTruth(Strict):
     name: str
     drive: DriveHardware
     gear_ratio: PosFloat
@@ -227,12 +216,12 @@ class JointTruth(_Strict):
         return self.rotor_inertia_kgm2 * self.gear_ratio**2
 
 
-class BusTruth(_Strict):
+class BusTruth(Strict):
     channel: str = "udp_multicast:239.74.163.2"  # default for `python -m sim run` without --bus
     fd: bool = True
 
 
-class Truth(_Strict):
+class Truth(Strict):
     robot: str = "seed_cobot"  # bundled robot name or URDF path (relative to the truth file)
     gravity_m_s2: tuple[Finite, Finite, Finite] = (0.0, 0.0, -9.81)
     bus: BusTruth = BusTruth()
@@ -382,7 +371,7 @@ def load_truth(path: str | Path | None = None) -> Truth:
         return load_truth(curated) if str(path) in BUNDLED and curated.is_file() else truth_for_robot(path)
     path = Path(path) if path is not None else DEFAULT_TRUTH
     try:
-        data = _read_yaml(path)
+        data = read_yaml(path)
     except ConfigError as exc:
         raise TruthError(str(exc)) from None
     if isinstance(data, dict) and "source" in data:
