@@ -6,7 +6,7 @@ Response: one line, ``{"ok": true, ...}`` or ``{"ok": false, "error": "..."}``; 
 crash; the connection stays open for further requests (except after an over-long
 line, which closes it).
 
-The server (command table, socket server) is dragd/daemon/server.py; `ControlClient`
+The server (command table, socket server) is dragd/server.py; `ControlClient`
 here is the synchronous client for the CLI.
 """
 

@@ -1,4 +1,4 @@
-"""dragd.client (asyncio) against the real control server (dragd/daemon/server.py) with a command table."""
+"""dragd.client (asyncio) against the real control server (dragd/server.py) with a command table."""
 
 import asyncio
 
