@@ -164,33 +164,10 @@ def _fit_text(d: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def fit_params(log: Any, model: Any, method: str, opts: Any, cfg_kt: list[float] | None = None
-               ) -> tuple[Any, Any, dict[str, Any] | None]:
-    """``identify fit``'s pipeline on a loaded (or stacked) log: the fit, its params file content and — for a
-    full-dynamics fit — the link inertials mapped from the identified base parameters (None otherwise)."""
-    from dragd.identify.methods import identify
-
-    res = identify(log, model, method, opts)
-    params = res.to_params()
-    mapped = None
-    if res.notes.get("base_parameters"):  # full dynamics (or auto that chose it): the identified arm is the model
-        from dragd.identify.inertials import inertials_from_fit
-        from dragd.identify.regressors import RegressorModel
-
-        mapped = inertials_from_fit(res, model, RegressorModel(model), cfg_kt)
-        if mapped is not None:
-            from dragd.identify.results import _jsonable
-
-            pd = params.model_dump(mode="python")
-            pd["inertials"] = mapped["inertials"]
-            pd["notes"] = {**pd["notes"], "inertials_mapping": _jsonable(mapped["mapping"])}
-            params = type(params).model_validate(pd)
-    return res, params, mapped
-
-
 def cmd_fit(args: argparse.Namespace) -> int:
     from dragd.config import save_params
     from dragd.identify.data import LogError, stack_logs
+    from dragd.identify.fit import fit_params
     from dragd.identify.methods import Options
 
     import time
@@ -250,20 +227,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------------------------- check
 
 
-def check_params(log: Any, model: Any, params: Any, params_name: str = "params", **kw: Any) -> Any:
-    """``identify check``'s pipeline: the params' link inertials applied to ``model`` (the identified arm,
-    docs/MODEL.md), then :func:`dragd.identify.check.check` (``kw``: cfg, terms, mask, keep_series, dynamics).
-    Raises ValueError for inertials that do not fit the model."""
-    from dragd.identify.check import check
-
-    if params.inertials:
-        model.apply_inertials(params.inertials, params_name)
-    return check(log, model, params, **kw)
-
-
 def cmd_check(args: argparse.Namespace) -> int:
     from dragd.config import load_config, load_params
-    from dragd.identify.check import plot
+    from dragd.identify.check import check_params, plot
     from dragd.identify.data import LogError
 
     model, _ = _robot(args)

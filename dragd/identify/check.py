@@ -253,3 +253,12 @@ def plot(res: CheckResult, names: list[str], out_dir: str | Path, max_points: in
         plt.close(fig)
         files.append(str(f))
     return files
+
+
+def check_params(log: Any, model: Any, params: Any, params_name: str = "params", **kw: Any) -> Any:
+    """``identify check``'s pipeline: the params' link inertials applied to ``model`` (the identified arm,
+    docs/MODEL.md), then :func:`dragd.identify.check.check` (``kw``: cfg, terms, mask, keep_series, dynamics).
+    Raises ValueError for inertials that do not fit the model."""
+    if params.inertials:
+        model.apply_inertials(params.inertials, params_name)
+    return check(log, model, params, **kw)
