@@ -333,7 +333,7 @@ def test_config_init_for_a_cst_motion_drive_sends_no_position_targets(tmp_path: 
     data = yaml.safe_load(text)
     assert [b["position_targets"] for b in data["buses"]] == [False, False]
     assert "motions in CST with dragd's position loop need none" in text and "60B2h absent" in text
-    assert data["drives"]["no_60b2h"]["torque_command"] == "6071h" and "motion_mode" not in data["drives"]["no_60b2h"]
+    assert data["drives"]["no_60b2h"]["torque_command"] == "6071h" and data["drives"]["no_60b2h"]["motion_mode"] == "cst"
     r = data["replay"]
     assert all(len(r[k]) == 6 and min(r[k]) > 0 for k in ("cst_kp_Nm_per_rad", "cst_kd_Nm_s_per_rad",
                                                           "cst_ki_Nm_per_rad_s", "cst_integral_limit_A"))
@@ -344,6 +344,7 @@ def test_config_init_for_a_cst_motion_drive_sends_no_position_targets(tmp_path: 
     run_cli("config", "init", "--robot", "seed_cobot", "--eds", str(VARIANTS / "classic.eds"), "--out", str(classic))
     d = yaml.safe_load(classic.read_text())
     assert {b["position_targets"] for b in d["buses"]} == {True} and "cst_kp_Nm_per_rad" not in d["replay"]
+    assert d["drives"]["classic"]["motion_mode"] == "csp"
 
 
 # --------------------------------------------------------------------------------------------- boot against LocalNodes

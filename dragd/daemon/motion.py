@@ -101,7 +101,7 @@ class Motions:
         d = self.d
         if d.io is None:
             return []
-        csp_buses = {j.bus for j, cst in zip(d.cfg.joints, self.cst_joints) if not cst}
+        csp_buses = {j.bus for j, cst in zip(d.cfg.joints, self.cst_joints, strict=True) if not cst}
         return [b for b in d.io.compact_buses if b in csp_buses]
 
     async def switch_drive_mode(self, mode: int) -> None:

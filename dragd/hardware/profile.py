@@ -19,6 +19,7 @@ from __future__ import annotations
 import configparser
 import functools
 import re
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
@@ -630,6 +631,9 @@ class Profiles:
 
     def __len__(self) -> int:
         return len(self.profiles)
+
+    def __iter__(self) -> Iterator[DriveProfile]:
+        return iter(self.profiles)
 
     def all_findings(self) -> list[Finding]:
         out = list(self.findings)

@@ -292,6 +292,8 @@ def _eds_config(ref: str, model: RobotModel, sizes: list[JointSizing], gravity: 
         lines.append(f"    # {note}")
     for key, value in drive.items():
         lines.append(f"    {key}: {_flow(value) if isinstance(value, dict) else value}")
+    lines.append(f"    motion_mode: {prof.motion_mode}   # motions: csp = the drive's position loop + 60B2h, "
+                 "cst = dragd's (docs/DRIVES.md)")
     lines += ["", "joints:"]
     for i, s in enumerate(sizes):
         lines += _joint_lines(i, s)
