@@ -70,7 +70,7 @@ def _generate(plan: E.Plan, name: str, seed: int, fmt: str = "mcap", interp: boo
 def _feed_forward_config() -> Path:
     """The default configuration with the TRACK feed-forward's friction scale pinned at 0.9, the value the
     estimators' bounds were set with: the logs must not move with the drag law's tuning (the full method's
-    joint-2 Coulomb level moves 6-9 % with it on the short Fourier log, see docs/NOTES.md)."""
+    joint-2 Coulomb level moves 6-9 % with it on the short Fourier log, measured in session 6; the diary docs/NOTES.md is in git history)."""
     import yaml
 
     from dragd.config import default_config_path
