@@ -151,7 +151,8 @@ class StartupConfig(_Strict):
     # None: 1.25 counts of the joint's encoder — one count of jitter never fires it, the second count of creep does)
     breakout_slip_rad: NonNegFloat | None = None
     breakout_hold_s: PosFloat = 0.1  # ... for at most this long (past Φ friction compensation takes over)
-    settle_s: Annotated[float, Field(ge=0.005, le=10.0), Expect("seconds in [0.005, 10] (at least the 5 ms blend)")] = 0.1
+    settle_s: Annotated[float, Field(ge=0.005, le=10.0),
+                        Expect("seconds in [0.005, 10] (at least the 5 ms blend)")] = 0.1
     # ... the latch re-arms after the joint has been still this long
 
 
@@ -228,8 +229,9 @@ class LinkInertial(_Strict):
         e = np.linalg.eigvalsh(np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]]))
         tol = 1e-9 * max(1.0, float(np.abs(e).max()))
         if e.min() < -tol or any(e.sum() - 2 * v < -tol for v in e):
-            raise ValueError(f"inertia_kgm2: expected a physically consistent inertia (principal moments ≥ 0 satisfying "
-                             f"the triangle inequality a + b ≥ c), got principal moments {', '.join(f'{v:.4g}' for v in e)}")
+            moments = ", ".join(f"{v:.4g}" for v in e)
+            raise ValueError("inertia_kgm2: expected a physically consistent inertia (principal moments ≥ 0 satisfying "
+                             f"the triangle inequality a + b ≥ c), got principal moments {moments}")
         return self
 
 
@@ -263,7 +265,8 @@ class JointConfig(_Strict):
             raise ValueError("torque_constant_Nm_per_A: expected exactly one of torque_constant_Nm_per_A (joint side) "
                              "or motor_torque_constant_Nm_per_A (motor side, with gear_ratio)")
         if self.position_limits_rad is not None and self.position_limits_rad[0] >= self.position_limits_rad[1]:
-            raise ValueError(f"position_limits_rad: expected [lower, upper] with lower < upper, got {list(self.position_limits_rad)}")
+            raise ValueError("position_limits_rad: expected [lower, upper] with lower < upper, "
+                             f"got {list(self.position_limits_rad)}")
         slip, count = self.startup.breakout_slip_rad, self.rad_per_count
         if slip is not None and 0.0 < slip < count:
             raise ValueError(f"startup.breakout_slip_rad: expected 0 (off) or at least one encoder count "
@@ -553,7 +556,8 @@ class Config(_Strict):
                     "cst_integral_limit_A"):
             v = getattr(r, key)
             if isinstance(v, list) and len(v) != len(self.joints):
-                raise ValueError(f"replay.{key}: expected one value or {len(self.joints)} (one per joint), got {len(v)}")
+                raise ValueError(f"replay.{key}: expected one value or {len(self.joints)} (one per joint), "
+                                 f"got {len(v)}")
         return self
 
     def _cross_timing(self) -> None:
@@ -576,7 +580,8 @@ class Config(_Strict):
                              f"(loop.rate_Hz {lp.rate_Hz:g}), got {lp.tpdo_deadline_us}")
         tc = self.telemetry
         if tc.capacity_rows < 2 * lp.rate_Hz * tc.forward_interval_s:
-            raise ValueError(f"telemetry.capacity_rows: expected at least {math.ceil(2 * lp.rate_Hz * tc.forward_interval_s)} "
+            least = math.ceil(2 * lp.rate_Hz * tc.forward_interval_s)
+            raise ValueError(f"telemetry.capacity_rows: expected at least {least} "
                              f"(two hand-overs of telemetry.forward_interval_s {tc.forward_interval_s:g} s at "
                              f"loop.rate_Hz {lp.rate_Hz:g}: a smaller ring drops rows), got {tc.capacity_rows}")
         if m.drive_heartbeat_ms > 1000:
@@ -762,7 +767,8 @@ def apply_params(cfg: Config, params: ParamsFile, source: str = "params") -> Con
     by_name = {j.name: j for j in cfg.joints}
     unknown = sorted(set(params.joints) - set(by_name))
     if unknown:
-        raise ConfigError(f"{source}: joints: expected joint names among {', '.join(by_name)}, got {', '.join(unknown)}")
+        raise ConfigError(f"{source}: joints: expected joint names among {', '.join(by_name)}, "
+                          f"got {', '.join(unknown)}")
     joints = []
     for j in cfg.joints:
         p = params.joints.get(j.name)
@@ -808,7 +814,8 @@ def load_config(path: str | Path | None = None, params: str | Path | None = None
     path = Path(path) if path is not None else default_config_path()
     data = read_yaml(path)
     if not isinstance(data, dict):
-        raise ConfigError(f"{path}: expected a mapping of sections (robot, buses, joints, ...), got {type(data).__name__}")
+        raise ConfigError(f"{path}: expected a mapping of sections (robot, buses, joints, ...), "
+                          f"got {type(data).__name__}")
     if "source" in data:
         raise ConfigError(f"{path}: source: unknown key")
     try:

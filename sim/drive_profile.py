@@ -23,7 +23,6 @@ from typing import Any
 import canopen
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable, datatypes
 
-from dragd.vocabulary import ConfigError, read_yaml
 from dragd.hardware.cia301 import OD_DEVICE_TYPE, OD_ERROR_BEHAVIOUR, OD_IDENTITY, OD_PRODUCER_HEARTBEAT
 from dragd.hardware.cia402 import (
     OD_CONTROLWORD,
@@ -42,6 +41,7 @@ from dragd.hardware.cia402 import (
     supported_modes_bits,
 )
 from dragd.resources import eds_path as bundled_eds_path
+from dragd.vocabulary import ConfigError, read_yaml
 
 DRIVES_DIR = Path(__file__).resolve().parent / "config" / "drives"
 DEVICE_TYPE_402_SERVO = 0x00020192  # CiA 402 (0192h), additional information 0002h: servo drive

@@ -35,9 +35,9 @@ from typing import Any
 import numpy as np
 
 from dragd.hardware.bus import BusSpec, UdpMulticastCanBus, open_bus, parse_bus
-from dragd.server import CommandTable, ControlServer
 from dragd.protocol import ControlError
 from dragd.realtime import demote_current_thread, scheduler_label, set_realtime
+from dragd.server import CommandTable, ControlServer
 from sim.axis import AxisIO
 from sim.drive import SimDrive
 from sim.faults import FaultError, FaultInjector

@@ -21,8 +21,19 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 import numpy as np
 from pydantic import Field, ValidationError, model_validator
 
-from dragd.vocabulary import (ConfigError, Expect, Finite, NodeId, NonNegFloat, NonPosFloat, PosFloat, PosInt, Strict,
-                              format_validation_error, read_yaml)
+from dragd.vocabulary import (
+    ConfigError,
+    Expect,
+    Finite,
+    NodeId,
+    NonNegFloat,
+    NonPosFloat,
+    PosFloat,
+    PosInt,
+    Strict,
+    format_validation_error,
+    read_yaml,
+)
 
 if TYPE_CHECKING:
     from dragd.model import RobotModel

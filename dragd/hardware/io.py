@@ -20,8 +20,8 @@ import can
 import numpy as np
 
 from dragd.clock import TIME_COB_ID
-from dragd.hardware.cia301 import EMCY_BASE, HEARTBEAT_BASE, SYNC_COB_ID
 from dragd.hardware.bus import PreparedBatch, UdpMulticastCanBus
+from dragd.hardware.cia301 import EMCY_BASE, HEARTBEAT_BASE, SYNC_COB_ID
 from dragd.hardware.pdo import BusLayout, RpdoEncoder
 
 # joint, codec, and where the codec's values hold the position, the statusword and the current (-1: not in the frame)

@@ -29,8 +29,15 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal
 
 from dragd.hardware.busload import BusLoadReport, FrameSpec, bus_load
-from dragd.hardware.cia301 import (DUMMY_TYPES, OD_RPDO_COMM, OD_RPDO_MAP, OD_TPDO_COMM,
-                                   OD_TPDO_MAP, PDO_TRANSMISSION_EVENT, PDO_TRANSMISSION_SYNC)
+from dragd.hardware.cia301 import (
+    DUMMY_TYPES,
+    OD_RPDO_COMM,
+    OD_RPDO_MAP,
+    OD_TPDO_COMM,
+    OD_TPDO_MAP,
+    PDO_TRANSMISSION_EVENT,
+    PDO_TRANSMISSION_SYNC,
+)
 from dragd.hardware.profile import Finding, PdoChannel, ProcessObject
 
 if TYPE_CHECKING:

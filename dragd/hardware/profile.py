@@ -28,11 +28,26 @@ import canopen
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable, datatypes
 
 from dragd.hardware.cia301 import DUMMY_TYPES, OD_RPDO_COMM, OD_RPDO_MAP, OD_TPDO_COMM, OD_TPDO_MAP
-from dragd.hardware.cia402 import (MODE_CSP, MODE_CST, OD_ABORT_CONNECTION_OPTION, OD_CONTROLWORD,
-                                   OD_CURRENT_ACTUAL, OD_MAX_TORQUE, OD_MODES_OF_OPERATION,
-                                   OD_MODES_OF_OPERATION_DISPLAY, OD_MOTOR_RATED_CURRENT, OD_MOTOR_RATED_TORQUE,
-                                   OD_POSITION_ACTUAL, OD_QUICK_STOP_OPTION, OD_STATUSWORD, OD_SUPPORTED_DRIVE_MODES,
-                                   OD_TARGET_POSITION, OD_TARGET_TORQUE, OD_TORQUE_ACTUAL, OD_TORQUE_OFFSET)
+from dragd.hardware.cia402 import (
+    MODE_CSP,
+    MODE_CST,
+    OD_ABORT_CONNECTION_OPTION,
+    OD_CONTROLWORD,
+    OD_CURRENT_ACTUAL,
+    OD_MAX_TORQUE,
+    OD_MODES_OF_OPERATION,
+    OD_MODES_OF_OPERATION_DISPLAY,
+    OD_MOTOR_RATED_CURRENT,
+    OD_MOTOR_RATED_TORQUE,
+    OD_POSITION_ACTUAL,
+    OD_QUICK_STOP_OPTION,
+    OD_STATUSWORD,
+    OD_SUPPORTED_DRIVE_MODES,
+    OD_TARGET_POSITION,
+    OD_TARGET_TORQUE,
+    OD_TORQUE_ACTUAL,
+    OD_TORQUE_OFFSET,
+)
 
 if TYPE_CHECKING:
     from dragd.config import Config, DriveConfig, JointConfig

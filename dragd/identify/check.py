@@ -125,7 +125,6 @@ def check(log: Log, robot: Any, params: Any, cfg: Any | None = None, terms: str 
     every joint with the robot model (with the params' link inertials applied by the caller) / K_t, what the daemon
     compensates; a joint whose K_t is unknown then falls back to its base parameters."""
     from dragd.control.law import Workspace, friction_current
-
     from dragd.identify.regressors import RegressorModel
 
     if mask not in MASKS:

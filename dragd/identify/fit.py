@@ -1,4 +1,4 @@
-"""``dragd identify fit``'s pipeline, for the CLI and the benchmarks: the fit, its params file and the link inertials."""
+"""``dragd identify fit``'s pipeline, for the CLI and the benchmarks: the fit, its params file, the link inertials."""
 
 from __future__ import annotations
 

@@ -22,10 +22,23 @@ from scipy.spatial import cKDTree
 
 from dragd.identify.data import Log, LogError, Prepared, motion_summary, prepare, sliding
 from dragd.identify.regressors import RegressorModel
-from dragd.identify.results import (COULOMB_NEG_A, COULOMB_POS_A, FRICTION_KEYS, STATIC_NEG_A, STATIC_POS_A,
-                                   STRIBECK_EXPONENT, STRIBECK_VELOCITY_RAD_S, VISCOUS_A_S_PER_RAD,
-                                   VISCOUS_NEG_A_S_PER_RAD, VISCOUS_POS_A_S_PER_RAD, FitResult, JointResult,
-                                   LinearFit, linear_fit, prior_fit)
+from dragd.identify.results import (
+    COULOMB_NEG_A,
+    COULOMB_POS_A,
+    FRICTION_KEYS,
+    STATIC_NEG_A,
+    STATIC_POS_A,
+    STRIBECK_EXPONENT,
+    STRIBECK_VELOCITY_RAD_S,
+    VISCOUS_A_S_PER_RAD,
+    VISCOUS_NEG_A_S_PER_RAD,
+    VISCOUS_POS_A_S_PER_RAD,
+    FitResult,
+    JointResult,
+    LinearFit,
+    linear_fit,
+    prior_fit,
+)
 
 METHODS = ("lowspeed", "symmetric", "synchronous", "full", "auto")
 PRIOR_REL = 0.05  # full dynamics: prior std of a base parameter relative to its URDF value (CAD masses)

@@ -217,10 +217,10 @@ class Reference:
 
 def _dragd_case(ds: Dataset, logs: dict[Path, Any], gains: np.ndarray | None, workdir: Path) -> dict[str, Any]:
     """``identify fit --method full`` on both training logs, ``identify check --mask all`` on each validation log."""
-    from dragd.identify.check import check_params
-    from dragd.identify.fit import fit_params
     from dragd.config import load_params, save_params
+    from dragd.identify.check import check_params
     from dragd.identify.data import stack_logs
+    from dragd.identify.fit import fit_params
     from dragd.identify.methods import Options
     from dragd.model import RobotModel
 
@@ -289,10 +289,10 @@ def moving_rows(log: Any, v: float = 0.01) -> tuple[int, int] | None:
 def _pairing(ds: Dataset, logs: dict[Path, Any], train: list[Path], valid: list[Path], names: list[str],
              workdir: Path) -> dict[str, Any]:
     """Both models fitted on ``train`` (with the drive gains), held-out RMSE on each of ``valid``."""
-    from dragd.identify.check import check_params
-    from dragd.identify.fit import fit_params
     from dragd.config import load_params, save_params
+    from dragd.identify.check import check_params
     from dragd.identify.data import sliding, stack_logs
+    from dragd.identify.fit import fit_params
     from dragd.identify.methods import Options
     from dragd.model import RobotModel
 

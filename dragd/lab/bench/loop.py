@@ -39,7 +39,6 @@ from dragd.lab.bench import BenchError, benchmark
 from dragd.lab.bench.stalls import PROBE_PRIORITY, StallProbe, attribute
 from dragd.lab.bench.yardstick import yardstick_us_once
 
-
 REALTIME_PRIORITY = 70  # the cycle thread's SCHED_FIFO priority as deployed (docs/SYSTEMD.md); the sim's is 10 below
 # (at least 1: with --realtime-priority 1..10 both run at the same priority)
 
