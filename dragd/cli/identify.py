@@ -91,9 +91,9 @@ def cmd_plan(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from dragd.protocol import ControlClient, DaemonUnavailable
     from dragd.identify.excitation import PLAN_KINDS, Plan, PlanError
     from dragd.identify.runner import RunError, run_plan
+    from dragd.protocol import ControlClient, DaemonUnavailable
 
     client = ControlClient(args.socket, timeout_s=args.timeout)
 
@@ -165,12 +165,12 @@ def _fit_text(d: dict[str, Any]) -> str:
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
+    import time
+
     from dragd.config import save_params
     from dragd.identify.data import LogError, stack_logs
     from dragd.identify.fit import fit_params
     from dragd.identify.methods import Options
-
-    import time
 
     with Stages(args, "identify fit") as st:
         st.stage("loading the robot model")
@@ -228,7 +228,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    from dragd.config import load_config, load_params
+    from dragd.config import check_joint_names, load_config, load_params
     from dragd.identify.check import check_params, plot
     from dragd.identify.data import LogError
 
@@ -237,9 +237,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     cfg = None
     if args.config is not None:
         cfg = load_config(args.config)
-        if cfg.joint_names != list(model.joint_names):
-            raise CliError(f"{cfg.source}: joints {', '.join(cfg.joint_names)} differ from the robot's "
-                           f"{', '.join(model.joint_names)}")
+        check_joint_names(cfg, (model.joint_names, model.urdf_path or cfg.robot.urdf))
     elif not args.robot:
         cfg = load_config(None)
     log = _load_log(args.log, model, args.drop_bad_rows)

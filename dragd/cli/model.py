@@ -90,7 +90,7 @@ def cmd_model_current(args: argparse.Namespace) -> int:
 
 def cmd_config_check(args: argparse.Namespace) -> int:
     """Validate the configuration, its robot and its drives (every drive's EDS, offline): every problem at once."""
-    from dragd.config import load_config
+    from dragd.config import check_joint_names, load_config
     from dragd.hardware.plan import plan_drives
     from dragd.hardware.profile import ProfileError, grouped
     from dragd.model import RobotModel
@@ -98,9 +98,7 @@ def cmd_config_check(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config, args.params)
     model = RobotModel.from_urdf(cfg.robot.urdf, cfg.base_dir, cfg.robot.gravity_m_s2)
-    if list(model.joint_names) != cfg.joint_names:
-        raise CliError(f"{cfg.source}: joints: expected the robot's joints {', '.join(model.joint_names)}, "
-                       f"got {', '.join(cfg.joint_names)}")
+    check_joint_names(cfg, (model.joint_names, model.urdf_path or cfg.robot.urdf))
     try:
         plan = plan_drives(cfg)
     except ProfileError as exc:
