@@ -104,9 +104,11 @@ class FrictionTruth(Strict):
     @model_validator(mode="after")
     def _static_above_coulomb(self) -> FrictionTruth:
         if self.static_pos_Nm is not None and self.static_pos_Nm < self.coulomb_pos_Nm:
-            raise ValueError(f"expected static_pos_Nm >= coulomb_pos_Nm ({self.coulomb_pos_Nm}), got {self.static_pos_Nm}")
+            raise ValueError(f"expected static_pos_Nm >= coulomb_pos_Nm ({self.coulomb_pos_Nm}), "
+                             f"got {self.static_pos_Nm}")
         if self.static_neg_Nm is not None and self.static_neg_Nm > self.coulomb_neg_Nm:
-            raise ValueError(f"expected static_neg_Nm <= coulomb_neg_Nm ({self.coulomb_neg_Nm}), got {self.static_neg_Nm}")
+            raise ValueError(f"expected static_neg_Nm <= coulomb_neg_Nm ({self.coulomb_neg_Nm}), "
+                             f"got {self.static_neg_Nm}")
         return self
 
     @property
@@ -154,7 +156,8 @@ class Thermal(Strict):
     heat_capacity_J_per_K: PosFloat = 500.0
     thermal_resistance_K_per_W: PosFloat = 0.8
     winding_resistance_ohm: NonNegFloat = 0.4
-    friction_coefficient_per_K: Annotated[float, Field(gt=-0.05, lt=0.05), Expect("a fraction per kelvin in (-0.05, 0.05)")] = -0.005
+    friction_coefficient_per_K: Annotated[float, Field(gt=-0.05, lt=0.05), Expect("a fraction per kelvin in "
+                                                                                  "(-0.05, 0.05)")] = -0.005
 
 
 class BackEmfHeadroom(Strict):
@@ -279,7 +282,8 @@ class Truth(Strict):
         try:
             model = RobotModel.from_urdf(self.robot, base_dir=self.base_dir, gravity_m_s2=self.gravity_m_s2)
         except (FileNotFoundError, ValueError) as exc:
-            raise TruthError(f"{self.source}: robot: expected a bundled robot name or URDF path, got {self.robot!r} ({exc})") from None
+            raise TruthError(f"{self.source}: robot: expected a bundled robot name or URDF path, "
+                             f"got {self.robot!r} ({exc})") from None
         if self.inertials:
             try:
                 model.apply_inertials(self.inertials, f"{self.source}")

@@ -106,7 +106,8 @@ def register(sub: Any) -> None:
                         "instead of stopping with an error")
     p.add_argument("--model", help="params file of the model to check (default: seed 000's G/K_t + Coulomb levels "
                                    "fitted on the log)")
-    p.add_argument("--out", help="write the extended model (params YAML: the daemon, `dragd model` and the sim load it)")
+    p.add_argument("--out",
+                   help="write the extended model (params YAML: the daemon, `dragd model` and the sim load it)")
     p.add_argument("--report", help="directory for the report (report.md, PNG residual plots before/after)")
     p.add_argument("--effects", help=f"candidates to consider (default all): {','.join(NAMES)}")
     add_config(p, params=False)

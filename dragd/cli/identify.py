@@ -80,7 +80,8 @@ def cmd_plan(args: argparse.Namespace) -> int:
     kinds: dict[str, int] = {}
     for s in plan.segments:
         kinds[s.kind] = kinds.get(s.kind, 0) + 1
-    data = {"out": str(out), "kind": args.kind, "duration_s": round(plan.duration_s, 3), "samples": int(plan.t_s.shape[0]),
+    data = {"out": str(out), "kind": args.kind, "duration_s": round(plan.duration_s, 3),
+            "samples": int(plan.t_s.shape[0]),
             "segments": kinds, "info": plan.info}
     emit(args, data, lambda d: f"{d['out']}: {d['kind']} plan, {d['duration_s']:.1f} s "
                                 f"({', '.join(f'{v} {k}' for k, v in d['segments'].items())})")
@@ -148,7 +149,7 @@ def _fit_text(d: dict[str, Any]) -> str:
         lines.append(f"auto: {d['notes']['auto']}")
     for name, j in d["joints"].items():
         seen = set()
-        for k, why in j["reasons"].items():
+        for why in j["reasons"].values():
             if why in seen:
                 continue
             seen.add(why)
@@ -187,7 +188,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
             else:
                 kt = floats(args.torque_constants, "--torque-constants")
                 if len(kt) != model.nq or not all(k > 0 for k in kt):
-                    raise CliError(f"--torque-constants: expected {model.nq} positive joint-side torque constants [N·m/A] "
+                    raise CliError(f"--torque-constants: expected {model.nq} positive joint-side "
+                                   "torque constants [N·m/A] "
                                    f"({', '.join(model.joint_names)}) or 'config', got {args.torque_constants!r}")
                 opts.torque_constants = list[float | None](kt)
             if args.method not in ("full", "auto"):
@@ -300,7 +302,8 @@ def register(sub: Any) -> None:
                                                  "the current pose")
     rn.add_argument("--out", required=True, help="MCAP file the daemon records the run to")
     add_socket(rn, timeout=30.0, json_flag=False)
-    rn.add_argument("--chunk", type=float, default=600.0, help="longest single motion [s]; longer plans are cut at rests")
+    rn.add_argument("--chunk", type=float, default=600.0, help="longest single motion [s]; longer "
+                                                               "plans are cut at rests")
     rn.add_argument("--no-progress", action="store_true", help="no progress bar")
     plan_opts(rn)
     rn.add_argument("--json", action="store_true", help="print JSON")

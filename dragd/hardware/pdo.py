@@ -422,7 +422,8 @@ def _shared_frames(pl: _Planner, kind: str, what: str, joints: list[int], profil
             for other in group:
                 cover = list(mine) if other == gi else _dummies(bits[other], p.dummies)
                 if cover is None:
-                    pl.error(p, f"layout '{kind}' puts {len(group)} joints in {what} frame 0x{cob:03X}: this drive must "
+                    pl.error(p, f"layout '{kind}' puts {len(group)} joints in {what} frame "
+                                f"0x{cob:03X}: this drive must "
                                 f"map dummy entries over the others' {bits[other]} bits, and its EDS [DummyUsage] "
                                 f"allows {', '.join(f'{d:04X}h' for d in sorted(p.dummies)) or 'none'}",
                              f"set {pl.bus_key}.layout: per_node")

@@ -404,7 +404,8 @@ class DriveProfile:
             return None
         obj = self._process("torque", index, 0, "rpdo", "the torque command", key=key)
         if obj is not None and obj.code != "h":
-            self.finding("error", index, 0, f"the torque command is {type_name(getattr(self.var(index), 'data_type', None))}; "
+            self.finding("error", index, 0, "the torque command is "
+                                            f"{type_name(getattr(self.var(index), 'data_type', None))}; "
                          "CiA 402 defines it INTEGER16 (per mille of the rated torque)", f"set {key}")
             return None
         return obj

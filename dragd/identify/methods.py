@@ -667,7 +667,8 @@ def fit_symmetric(ctx: Context) -> FitResult:
         A = np.column_stack([cols, np.ones(a.size)])
         names = [f"beta{k}" for k in range(base.r)] + ["asymmetry_A"]
         fit = linear_fit(A, y, names, priority=names[:-1] + ["asymmetry_A"],
-                         explain={"asymmetry_A": "the direction asymmetry (F₊ + F₋)/2 is not separable from the gravity "
+                         explain={"asymmetry_A": "the direction asymmetry (F₊ + F₋)/2 is not "
+                                                 "separable from the gravity "
                                                  "terms along these passes (seed 001's odd-friction assumption applies)"})
         beta = np.array([fit.value(f"beta{k}") or 0.0 for k in range(base.r)])
         live = [k for k in range(base.r) if fit.value(f"beta{k}") is not None]
@@ -974,7 +975,8 @@ def fit_auto(ctx: Context) -> FitResult:
     if steady_share < 0.15 and moving.any():
         res = fit_full(ctx)
         res.method = "auto"
-        res.notes["auto"] = (f"full dynamics: only {steady_share:.0%} of the moving samples are steady (constant speed); "
+        res.notes["auto"] = (f"full dynamics: only {steady_share:.0%} of the moving samples are "
+                             "steady (constant speed); "
                              "the log excites the rigid-body dynamics")
         return res
     movers = [j for j in range(ctx.n) if not ctx.never_moves(j)]

@@ -193,7 +193,8 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
     if probe.complete:
         st = probe.summary()
         print(f"bench: the machine's stalls (probes at SCHED_FIFO {probe.priority} on CPUs {probe.cpus}): "
-              f"{st['late_wakeups']} wake-ups over {probe.threshold_us} µs late, the longest {st['late_max_ms']:.1f} ms, "
+              f"{st['late_wakeups']} wake-ups over {probe.threshold_us} µs late, the longest "
+              f"{st['late_max_ms']:.1f} ms, "
               f"{st['machine_wide_stalls']} on every CPU at once; the daemon's {missed} missed ticks: {host} during "
               f"them, {own} its own", file=sys.stderr)
     else:
