@@ -138,7 +138,7 @@ def _drag_held(args: argparse.Namespace, kw: dict[str, Any]) -> int:
         return call_daemon(args, cmd, **kw_)
 
     holder = LeaseHolder(call, f"dragd mode drag --hold (pid {os.getpid()})", args.lease_s)
-    stop = {"why": None}
+    stop: dict[str, str | None] = {"why": None}
 
     def on_signal(signum: int, _frame: Any) -> None:
         stop["why"] = signal.Signals(signum).name

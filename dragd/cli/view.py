@@ -53,12 +53,42 @@ def cmd_view(args: argparse.Namespace) -> int:
         raise CliError(f"status: {first.get('error')}", status=1)
     joints = [d["joint"] for d in first.get("drives", [])] or cfg.joint_names
     sink = _sink(args, joints, cfg)
+    lease = None
+    if args.drag:  # drag while the view runs: a lease renewed from the poll loop (docs/HAND.md)
+        import os
+
+        from dragd.cli.daemon import call_daemon
+        from dragd.lease import LeaseError, LeaseHolder
+
+        lease = LeaseHolder(lambda cmd, **kw: call_daemon(args, cmd, **kw), f"dragd view --drag (pid {os.getpid()})")
+        if args.poll_rate < 3.0 / float((first.get("drag") or {}).get("lease", {}).get("max_period_s", 0.5)):
+            raise CliError(f"--drag: --poll-rate {args.poll_rate:g} Hz renews the lease too seldom (at least 3 polls "
+                           "per lease period)")
+        try:
+            lease.open()
+            lease.drag()
+        except LeaseError as exc:
+            lease.close()
+            raise CliError(f"--drag: {exc}", status=1) from None
+
+    def renew(st: dict[str, Any]) -> None:
+        if lease is not None and lease.due():
+            try:
+                lease.renew()
+            except LeaseError as exc:
+                raise RuntimeError(f"--drag: the lease ended: {exc}") from None
+
     if args.seconds is None:
-        print("dragd: viewing the daemon; Ctrl-C ends", file=sys.stderr)
+        print("dragd: viewing the daemon" + (" (in drag while it runs)" if lease else "") + "; Ctrl-C ends",
+              file=sys.stderr)
     try:
-        data = live_to_rerun(lambda: client.call("status"), sink, len(joints), args.poll_rate, args.seconds)
+        data = live_to_rerun(lambda: client.call("status"), sink, len(joints), args.poll_rate, args.seconds,
+                             on_poll=renew)
     except (DaemonUnavailable, RuntimeError) as exc:
         raise CliError(str(exc), status=1) from None
+    finally:
+        if lease is not None:
+            lease.close()
     data["rrd"] = str(args.save) if args.save else None
     emit(args, data, lambda d: f"{d['polls']} samples -> {d['rrd'] or args.connect or 'a Rerun viewer'}")
     return 0
@@ -78,6 +108,8 @@ def register(sub: Any) -> None:
     _viewer_options(v, 100.0)
     v.add_argument("--poll-rate", type=float, default=50.0, help="status polls per second (default 50)")
     v.add_argument("--seconds", type=float, default=None, help="stop after this long (default: until Ctrl-C)")
+    v.add_argument("--drag", action="store_true", help="put the arm in drag while the view runs (a drag lease renewed "
+                   "by the view's polls; closing the view holds the arm): docs/HAND.md")
     add_socket(v)
     v.set_defaults(func=cmd_view)
 

@@ -80,7 +80,8 @@ class Input:
         self.position = RELEASED  # enable
         self.armed = False  # enable: seen fully released (since the start, a loss, a squeeze)
         self.held = False  # enable: in the middle after an armed press (what permits drag)
-        self.lost = False
+        self.lost = True  # (not seen yet: counts as lost, silently, until its TPDO first arrives)
+        self.seen = False
         self.fault = NO_FAULT
         self.fault_t = 0.0
         self.discrepant_since = -1.0
@@ -160,7 +161,9 @@ class HandInputs:
             else:
                 if inp.lost:
                     inp.lost = False
-                    self._event(t, inp, "found")
+                    if inp.seen:
+                        self._event(t, inp, "found")
+                    inp.seen = True
                 word = int(words[j])
                 raw = 0
                 for k, m in enumerate(inp.masks):
@@ -190,7 +193,7 @@ class HandInputs:
 
     def _lose(self, t: float, inp: Input) -> None:
         if inp.lost:
-            return
+            return  # (also before its TPDO first arrived: nothing was lost then)
         inp.lost = True
         inp.raw = -1
         inp.discrepant_since = inp.stuck_since = -1.0
@@ -331,6 +334,8 @@ class HandInputs:
                 ok = ok and n_recent == 0
             if ok:
                 inp.fault = NO_FAULT
+                if inp.function == "enable":
+                    inp.armed = inp.raw == 0  # released now: the next press counts
                 self._event(t, inp, "cleared")
             else:
                 kept.append(f"{inp.label} ({inp.where()}): {FAULT_NAMES[inp.fault]}")

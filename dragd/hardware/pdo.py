@@ -326,7 +326,7 @@ def _with_inputs(pl: _Planner, p: DriveProfile, options: list[list[_Role]]) -> l
     safety = bool({"enable", "stop"} & set(p.input_functions))
     what = (f"the digital inputs {p.inputs.index:04X}h (hand.inputs: {', '.join(p.input_functions)}; bit"
             f"{'s' if len(p.input_bits) > 1 else ''} {', '.join(map(str, p.input_bits))})")
-    timing = {"inhibit_ms": pl.inputs_inhibit_ms, "event_timer_ms": pl.inputs_timer_ms}
+    inhibit_ms, timer_ms = pl.inputs_inhibit_ms, pl.inputs_timer_ms
     fits: list[list[_Role]] = []
     for opt in options:  # in the cyclic feedback
         new, done = [], False
@@ -341,13 +341,13 @@ def _with_inputs(pl: _Planner, p: DriveProfile, options: list[list[_Role]]) -> l
         for r in opt:
             if not done and r.direction == "tpdo" and not r.cyclic and any(e.field == "statusword" for e in r.entries):
                 r, done = replace(r, entries=r.entries + di, what=f"{r.what} with {what}", needs_timer=safety,
-                                  **timing), True
+                                  inhibit_ms=inhibit_ms, event_timer_ms=timer_ms), True
             new.append(r)
         if done and all(sum(e.bits for e in r.entries) <= pl.max_bits for r in new):
             fits.append(new)
     for opt in options:  # an event TPDO of their own
         fits.append(opt + [_Role("tpdo", di, False, 3, None, f"{what} (event)", needs_inhibit=True,
-                                 needs_timer=safety, **timing)])
+                                 needs_timer=safety, inhibit_ms=inhibit_ms, event_timer_ms=timer_ms)])
     for opt in options:  # a SYNC TPDO of their own
         fits.append(opt + [_Role("tpdo", di, True, 3, None, f"{what} (SYNC)")])
     return fits
