@@ -569,6 +569,13 @@ class DragConfig(_Strict):
     # the blend from the drag law to the hold when drag ends (release, stop, a lapsed lease): short, so the arm is
     # held within a fraction of a degree, and not zero, so the current does not jump
     exit_ramp_s: Annotated[float, Field(ge=0.002, le=0.2), Expect("seconds in [0.002, 0.2]")] = 0.02
+    # the brake when drag ends: the hold's damping this strong, its pose following the arm, until the arm rests
+    # (every joint below 0.01 rad/s) or exit_brake_s passed; then the hold's own stiffness where the arm came to rest.
+    # A moving arm stops in about |q̇|·J/exit_damping (J: the joint's inertia) instead of springing back through its
+    # pose; a hand that keeps pushing meets the hold's stiffness (docs/HAND.md)
+    # (per joint; null: five times replay.position_kd_Nm_s_per_rad, the arm's own tuning to its joints' inertia)
+    exit_damping_Nm_s_per_rad: NonNegFloat | list[NonNegFloat] | None = None
+    exit_brake_s: Annotated[float, Field(ge=0, le=1.0), Expect("seconds in [0, 1]")] = 0.15
 
 # --- end of drag permission and the hand's inputs -------------------------------------------------------------------
 
@@ -682,6 +689,10 @@ class Config(_Strict):
         if len(enables) > 1:
             raise ValueError(f"hand.inputs: expected at most one 'enable' input (one enabling switch; two contacts "
                              f"are its second_bit), got {len(enables)} (inputs {enables})")
+        kd = self.drag.exit_damping_Nm_s_per_rad
+        if isinstance(kd, list) and len(kd) != len(names):
+            raise ValueError(f"drag.exit_damping_Nm_s_per_rad: expected one value or {len(names)} (one per joint: "
+                             f"{', '.join(names)}), got {len(kd)}")
         req = self.drag.require
         if req in ("enable_input", "both") and not enables:
             raise ValueError(f"drag.require: '{req}' needs an enabling switch: expected a hand.inputs entry with "

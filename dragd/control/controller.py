@@ -126,6 +126,10 @@ class Controller:
         self.drag_ends = 0  # drags the permission ended
         self.last_drag_end: dict[str, Any] | None = None
         self._stop_input = False  # a stop input held the arm last cycle
+        self.drag_exit_kd = np.full(n, float(hold_kd_Nm_s_per_rad))  # the exit brake's damping, per joint
+        self.drag_exit_brake_s = 0.15  # at most this long (drag.exit_brake_s)
+        self._brake_t0 = -1.0  # the exit brake began (-1: not braking)
+        self._hold_kd_cfg = hold_kd_Nm_s_per_rad
         # --- end of drag permission ---
 
     @classmethod
@@ -170,6 +174,10 @@ class Controller:
         c.guard_hold_ramp_s = g.hold_ramp_s
         c.permission = DragPermission(cfg.drag.require, cfg.drag.lease_s)
         c.drag_exit_ramp_s = cfg.drag.exit_ramp_s
+        exit_kd = cfg.drag.exit_damping_Nm_s_per_rad
+        exit_kd = [5.0 * v for v in cfg.per_joint(rc.position_kd_Nm_s_per_rad)] if exit_kd is None else exit_kd
+        c.drag_exit_kd[:] = np.maximum(per_joint(exit_kd), s.hold_kd_Nm_s_per_rad)
+        c.drag_exit_brake_s = cfg.drag.exit_brake_s
         return c
 
     # ------------------------------------------------------------------------------------------ transitions
@@ -473,6 +481,8 @@ class Controller:
                                                       f"{t - ls.renewed_t:.3f} s (period {ls.period_s:g} s)",
                                      fields={"action": "lapsed", "lease": ls.id, "holder": ls.holder,
                                              "since_renewal_s": round(t - ls.renewed_t, 4)}))
+        if self._brake_t0 >= 0.0:
+            self._brake_step(est)
         if self.mode != Mode.DRAG and not (self.feedback_hold and self.resume_mode == Mode.DRAG):
             return
         why = self.drag_refusal()
@@ -489,11 +499,24 @@ class Controller:
         else:
             self.q_hold[:] = q
             self.set_mode(Mode.HOLD, ramp_s=self.drag_exit_ramp_s)
+            if self.drag_exit_brake_s > 0.0 and float(self.drag_exit_kd.max()) > self._hold_kd_cfg:
+                self._brake_t0 = self.t
+                self.hold_kd = self.drag_exit_kd
         lease = self.drag_lease
         self.drag_lease = 0
         self.drag_ends += 1
         self.last_drag_end = {"t_s": round(self.t, 4), "reason": why, "q_rad": q.tolist(), "lease": lease or None}
         self.events.append(Event("drag_end", self.t, text=why, fields={"lease": lease or None}))
+
+    def _brake_step(self, est: Estimate) -> None:
+        """The exit brake: the hold's pose follows the arm (no spring back through it) under the strong damping
+        until the arm rests or ``drag_exit_brake_s`` passed; then the hold's own gains where it is."""
+        np.abs(est.dq_rad_s, out=self._tmp)
+        if self.mode != Mode.HOLD or self.t - self._brake_t0 >= self.drag_exit_brake_s or float(self._tmp.max()) < 0.01:
+            self._brake_t0 = -1.0
+            self.hold_kd = self._hold_kd_cfg
+        else:
+            self.q_hold[:] = est.q_rad
 
     def _stop_pressed(self, q: np.ndarray) -> None:
         """A stop input: a motion ends where the arm is (protective stop), a hold move stops; DRAG ends through the

@@ -209,6 +209,8 @@ class Guiding:
         hand = c.hand
         st.update(mode=MODE_NAMES[c.mode], bound_lease=c.drag_lease or None, drag_ends=c.drag_ends,
                   last_drag_end=c.last_drag_end, last_refusal=self.last_refusal, exit_ramp_s=c.drag_exit_ramp_s,
+                  hold_q_rad=c.q_hold.tolist() if c.mode == Mode.HOLD else None,
+                  braking=c._brake_t0 >= 0.0,
                   stop_active=bool(hand.stop_active) if hand is not None else False,
                   inputs=hand.status() if hand is not None else [])
         return st
