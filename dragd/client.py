@@ -27,6 +27,7 @@ import json
 import os
 from typing import Any
 
+from dragd.lease import PACED_TIMEOUT_S
 from dragd.protocol import DEFAULT_SOCKET_PATH, MAX_LINE_BYTES, DaemonTimeout, DaemonUnavailable, encode_line
 
 __all__ = ["Client", "CommandError", "DaemonUnavailable", "DaemonTimeout", "DragLease"]
@@ -245,14 +246,18 @@ class DragLease:
             pass  # lapsed or gone: nothing left to close
 
     async def _renew(self) -> None:
-        every = self.period_s / 3.0
-        loop = asyncio.get_running_loop()
-        due = loop.time()
+        """Renew paced: the daemon answers when the next renewal is due on its clock (docs/HAND.md); renew again. On
+        a connection of its own (the daemon answers one request of a connection at a time)."""
+        keep = Client(self.client.path, self.client.timeout_s)
+        try:
+            await self._renew_on(keep)
+        finally:
+            await keep.close()
+
+    async def _renew_on(self, keep: Client) -> None:
         while True:
-            due += every
-            await asyncio.sleep(max(0.0, due - loop.time()))
             try:
-                ans = await self.client.lease("renew", lease=self.lease)
+                ans = await keep.call("lease", timeout_s=PACED_TIMEOUT_S, action="renew", lease=self.lease, paced=True)
             except (CommandError, DaemonUnavailable) as exc:
                 self.reason = str(exc)
                 self.ended.set()
@@ -264,4 +269,3 @@ class DragLease:
                     f"the arm left drag ({ans.get('mode')})"
                 self.ended.set()
                 return
-            due = max(due, loop.time() - every)

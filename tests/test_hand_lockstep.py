@@ -65,8 +65,20 @@ def press_enable(rig: Rig) -> None:
     rig.wait_for(lambda: mode(rig) == "drag", 0.1, "drag after the enabling switch's press")
 
 
-def sim_t(rig: Rig) -> float:
-    return float(rig.sim_call("state")["t"])
+def holder_renewing(rig: Rig, child, what: str) -> None:
+    """Wait (wall time, no arm time passes) until a client process holds drag and its first paced renewal is in:
+    from then on its renewals fall at simulated times the run decides."""
+    import time
+
+    end = time.monotonic() + 60.0
+    while time.monotonic() < end:
+        lease = rig.must("lease", action="status")["lease"]
+        if lease["state"] == "active" and lease["renewals"] >= 1 and mode(rig) == "drag":
+            return
+        if child.poll() is not None:
+            raise AssertionError(f"{what} exited ({child.returncode}): {child.communicate()}")
+        time.sleep(0.02)
+    raise AssertionError(f"{what}: no drag with a renewed lease within 60 s of wall time")
 
 
 # ------------------------------------------------------------------------------------------ leaving drag
@@ -152,3 +164,121 @@ def test_the_hold_resists_a_hand_that_keeps_pulling_with_its_stated_stiffness(tm
                           for j in config.joints])
     err = np.abs(tau - kp * dq)
     assert np.all(err[pulled] <= static_Nm[pulled]), (err, static_Nm)
+
+
+# ------------------------------------------------------------------------------------------ the lease
+
+
+def lease_config(tmp: Path, lease_s: float = 0.3) -> Path:
+    return hand_config(tmp, "lease", inputs=[], lease_s=lease_s)
+
+
+def test_a_lapsed_lease_ends_drag_within_one_and_a_half_periods_with_the_reason_in_status_and_faults(tmp_path):
+    period = 0.3
+    with Rig("lease-lapse", workdir=tmp_path, config=lease_config(tmp_path, period), drag_guard="config") as rig:
+        started(rig)
+        with pytest.raises(ProcessError, match="no drag lease"):
+            rig.must("mode", mode="drag")
+        rig.drag()  # opens a lease and renews it between grants (a third of its period at most per grant)
+        rig.sleep(1.0)
+        assert mode(rig) == "drag"
+        lease = rig.lease
+        assert lease is not None and lease.period_s == period and lease.renewals >= 9
+        last_renewal = rig._lease_t
+        rig.drop_lease(close=False)  # the client dies: no more renewals
+        for _ in range(round(2 * period / 0.001)):
+            if mode(rig) != "drag":
+                break
+            rig.sleep(0.001)
+        status = rig.must("status")
+    drag = status["drag"]
+    end = drag["last_drag_end"]
+    detected_s = end["t_s"] - last_renewal
+    print(f"lease {period} s: lapse detected {detected_s * 1e3:.0f} ms after the last renewal")
+    assert status["mode"] == "hold" and period < detected_s <= 1.5 * period
+    assert end["reason"] == "the drag lease lapsed (its client stopped renewing it)"
+    assert drag["lease"]["state"] == "lapsed" and drag["lease"]["lapses"] == 1
+    fault = status["faults"][-1]
+    assert fault["kind"] == "lease" and "lapsed" in fault["text"] and "of 'rig'" in fault["text"]
+    assert fault["reaction"] == "hold"
+
+
+def test_mode_drag_hold_renews_on_the_daemons_clock_and_a_killed_holder_lets_the_lease_lapse(tmp_path):
+    """``dragd mode drag --hold`` as a real process: its renewals are paced by the daemon's (here simulated) clock,
+    so 2 s of granted time hold drag with exactly the renewals due; killed, its lease lapses."""
+    import signal
+    import subprocess
+    import sys
+
+    period = 0.3
+    with Rig("lease-cli", workdir=tmp_path, config=lease_config(tmp_path, period), drag_guard="config") as rig:
+        started(rig)
+        cli = subprocess.Popen([sys.executable, "-m", "dragd", "mode", "drag", "--hold", "--socket", rig.socket],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=str(tmp_path))
+        try:
+            holder_renewing(rig, cli, "dragd mode drag --hold")
+            lease0 = rig.must("lease", action="status")["lease"]
+            rig.sleep(2.0)  # one grant: the clock waits at each renewal due for the holder's
+            lease1 = rig.must("lease", action="status")["lease"]
+            assert mode(rig) == "drag"
+            assert lease1["renewals"] - lease0["renewals"] == round(2.0 / (period / 3))
+            cli.send_signal(signal.SIGKILL)
+            cli.wait(10)
+            renewed = rig.must("lease", action="status")["lease"]
+            t_kill = float(rig.must("clock")["clock"]["t_s"])
+            rig.sleep(1.5 * period)
+            status = rig.must("status")
+        finally:
+            if cli.poll() is None:
+                cli.kill()
+    end = status["drag"]["last_drag_end"]
+    last_renewal = t_kill - renewed["since_renewal_s"]
+    assert status["mode"] == "hold" and end["reason"].startswith("the drag lease lapsed")
+    assert period < end["t_s"] - last_renewal <= 1.5 * period
+    assert status["faults"][-1]["kind"] == "lease" and "dragd mode drag --hold" in status["faults"][-1]["text"]
+
+
+def test_mode_drag_hold_ends_drag_on_ctrl_c_and_after_its_seconds(tmp_path):
+    import signal
+    import subprocess
+    import sys
+
+    with Rig("lease-cli-end", workdir=tmp_path, config=lease_config(tmp_path), drag_guard="config") as rig:
+        started(rig)
+        argv = [sys.executable, "-m", "dragd", "mode", "drag", "--hold", "--socket", rig.socket]
+        cli = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=str(tmp_path))
+        holder_renewing(rig, cli, "dragd mode drag --hold")
+        rig.sleep(0.5)
+        cli.send_signal(signal.SIGINT)
+        out, err = cli.communicate(timeout=30)
+        assert cli.returncode == 0, err
+        assert "ended by SIGINT; mode hold" in out
+        assert mode(rig) == "hold"
+        assert rig.must("status")["drag"]["last_drag_end"]["reason"] == "the drag lease was closed by its client"
+        cli = subprocess.Popen([*argv, "--seconds", "0.6", "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True, cwd=str(tmp_path))
+        holder_renewing(rig, cli, "dragd mode drag --hold --seconds 0.6")
+        t0 = float(rig.must("clock")["clock"]["t_s"])
+        rig.wait_for(lambda: cli.poll() is not None, 2.0, "the command's end after --seconds 0.6")
+        t1 = float(rig.must("clock")["clock"]["t_s"])
+        out, err = cli.communicate(timeout=30)
+    import json
+
+    data = json.loads(out)
+    assert cli.returncode == 0 and data["outcome"] == "ended by 0.6 s" and data["mode"] == "hold", (out, err)
+    assert data["held_s"] == pytest.approx(0.6, abs=0.101)  # (renewals every 0.1 s of the daemon's clock)
+    assert 0.5 <= t1 - t0 <= 0.8
+
+
+def test_drag_require_none_only_with_the_lab_flag_which_status_reports(tmp_path):
+    cfg = hand_config(tmp_path, "none", inputs=[])
+    with Rig("require-none", workdir=tmp_path, config=cfg, drag_guard="config") as rig:
+        rig.start_sim()
+        with pytest.raises(ProcessError, match="'none' .* is a lab's setting: start the daemon with "
+                                               "--lab-unguarded-drag"):
+            rig.start_daemon()
+    with Rig("require-none-lab", workdir=tmp_path / "lab", config=cfg, drag_guard="lab") as rig:
+        started(rig)
+        rig.must("mode", mode="drag")
+        drag = rig.must("status")["drag"]
+        assert drag["lab_unguarded"] is True and drag["require"] == "none" and drag["refusal"] is None

@@ -124,46 +124,63 @@ def cmd_mode(args: argparse.Namespace) -> int:
 
 def _drag_held(args: argparse.Namespace, kw: dict[str, Any]) -> int:
     """``dragd mode drag --hold``: a drag lease, renewed while this command runs (docs/HAND.md); Ctrl-C, SIGTERM or
-    ``--seconds`` end it (the lease is closed: the arm holds). Exit status 1 when the lease lapsed or drag ended
-    without it (the reason is printed)."""
+    ``--seconds`` (of the daemon's clock: simulated time on the lockstep clock) end it (the lease is closed: the arm
+    holds). Exit status 1 when the lease lapsed or drag ended without it (the reason is printed). The renewals are
+    paced by the daemon (this process reads no clock)."""
     import signal
-    import time
 
     from dragd.lease import LeaseError, LeaseHolder
+    from dragd.protocol import ControlClient, DaemonUnavailable
 
     if args.seconds is not None and not args.seconds > 0:
         raise CliError(f"--seconds: expected a positive number of seconds, got {args.seconds}")
 
-    def call(cmd: str, **kw_: Any) -> dict[str, Any]:
-        return call_daemon(args, cmd, **kw_)
+    class Stopped(BaseException):  # (not an Exception: it passes through the lease's error handling)
+        pass
+
+    def call(cmd: str, timeout_s: float | None = None, **kw_: Any) -> dict[str, Any]:
+        try:
+            resp = ControlClient(args.socket, timeout_s=timeout_s or args.timeout).call(cmd, **kw_)
+        except DaemonUnavailable as exc:
+            raise CliError(str(exc), status=1) from None
+        if not resp.get("ok", False):
+            raise CliError(f"daemon at {args.socket}: {resp.get('error', 'request failed')}", status=1)
+        return resp
 
     holder = LeaseHolder(call, f"dragd mode drag --hold (pid {os.getpid()})", args.lease_s)
-    stop: dict[str, str | None] = {"why": None}
+    stop: dict[str, Any] = {"why": None, "waiting": False}
 
     def on_signal(signum: int, _frame: Any) -> None:
         stop["why"] = signal.Signals(signum).name
+        if stop["waiting"]:
+            raise Stopped  # (out of the wait for a paced answer)
 
     old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     status, outcome = 0, ""
-    t0 = time.monotonic()
+    t0: float | None = None
     try:
         holder.open()
         resp = holder.drag(**kw)
         if not args.json:
-            print(f"mode {resp['mode']}: drag lease {holder.lease} (renewed every {holder.every_s * 1e3:.0f} ms, lapses "
-                  f"after {holder.period_s:g} s without); Ctrl-C ends drag", file=sys.stderr, flush=True)
+            print(f"mode {resp['mode']}: drag lease {holder.lease} (renewed every {holder.every_s * 1e3:.0f} ms of the "
+                  f"daemon's clock, lapses after {holder.period_s:g} s without); Ctrl-C ends drag", file=sys.stderr,
+                  flush=True)
         while stop["why"] is None:
-            if args.seconds is not None and time.monotonic() - t0 >= args.seconds:
-                stop["why"] = f"{args.seconds:g} s"
+            try:
+                stop["waiting"] = True
+                ans = holder.renew_paced()
+            except Stopped:
                 break
-            holder.sleep_until_due()
-            if stop["why"] is not None:
-                break
-            ans = holder.renew()
+            finally:
+                stop["waiting"] = False
+            t0 = holder.t_s if t0 is None else t0
             if not ans.get("drag") and not holder.drag_can_return(ans):
                 ended = (call("status").get("drag") or {}).get("last_drag_end") or {}
                 outcome, status = f"drag ended: {ended.get('reason', 'the arm left drag (' + ans['mode'] + ')')}", 1
                 break
+            if args.seconds is not None and holder.t_s is not None and t0 is not None and \
+                    holder.t_s - t0 >= args.seconds - 1e-9:
+                stop["why"] = f"{args.seconds:g} s"
         if not outcome:
             outcome = f"ended by {stop['why']}"
     except LeaseError as exc:
@@ -173,8 +190,8 @@ def _drag_held(args: argparse.Namespace, kw: dict[str, Any]) -> int:
             signal.signal(sig, h)
         closed = holder.close()
     mode = (closed or {}).get("mode") or "unknown"
-    data = {"lease": holder.lease, "renewals": holder.renewals, "held_s": round(time.monotonic() - t0, 3),
-            "outcome": outcome, "mode": mode}
+    held = round(holder.t_s - t0, 3) if holder.t_s is not None and t0 is not None else 0.0
+    data = {"lease": holder.lease, "renewals": holder.renewals, "held_s": held, "outcome": outcome, "mode": mode}
     emit(args, data, lambda d: f"drag lease {d['lease']} closed after {d['held_s']:g} s ({d['renewals']} renewals): "
                                f"{d['outcome']}; mode {d['mode']}")
     return status
@@ -275,7 +292,8 @@ def register(sub: Any) -> None:
                    help="drag: hold a drag lease while this command runs (renewed in the background; Ctrl-C, SIGTERM "
                         "or --seconds close it and the arm holds; a killed command lets it lapse): what drag.require: "
                         "lease asks for (docs/HAND.md)")
-    m.add_argument("--seconds", type=float, default=None, help="with --hold: end after this long")
+    m.add_argument("--seconds", type=float, default=None,
+                   help="with --hold: end after this long (of the daemon's clock: simulated time on the lockstep clock)")
     m.add_argument("--lease-s", type=float, default=None, metavar="S",
                    help="with --hold: the lease period (default and at most the daemon's drag.lease_s)")
     add_socket(m)

@@ -60,23 +60,28 @@ def cmd_view(args: argparse.Namespace) -> int:
         from dragd.cli.daemon import call_daemon
         from dragd.lease import LeaseError, LeaseHolder
 
-        lease = LeaseHolder(lambda cmd, **kw: call_daemon(args, cmd, **kw), f"dragd view --drag (pid {os.getpid()})")
-        if args.poll_rate < 3.0 / float((first.get("drag") or {}).get("lease", {}).get("max_period_s", 0.5)):
-            raise CliError(f"--drag: --poll-rate {args.poll_rate:g} Hz renews the lease too seldom (at least 3 polls "
-                           "per lease period)")
+        from dragd.protocol import ControlClient
+
+        def call(cmd: str, timeout_s: float | None = None, **kw: Any) -> dict[str, Any]:
+            if timeout_s is None:
+                return call_daemon(args, cmd, **kw)
+            resp = ControlClient(args.socket, timeout_s=timeout_s).call(cmd, **kw)
+            if not resp.get("ok", False):
+                raise CliError(f"daemon at {args.socket}: {resp.get('error', 'request failed')}", status=1)
+            return resp
+
+        lease = LeaseHolder(call, f"dragd view --drag (pid {os.getpid()})")
         try:
             lease.open()
             lease.drag()
         except LeaseError as exc:
             lease.close()
             raise CliError(f"--drag: {exc}", status=1) from None
+        lease.keep()  # renewed paced by the daemon's clock in a thread of its own
 
     def renew(st: dict[str, Any]) -> None:
-        if lease is not None and lease.due():
-            try:
-                lease.renew()
-            except LeaseError as exc:
-                raise RuntimeError(f"--drag: the lease ended: {exc}") from None
+        if lease is not None and lease.error is not None:
+            raise RuntimeError(f"--drag: the lease ended: {lease.error}")
 
     if args.seconds is None:
         print("dragd: viewing the daemon" + (" (in drag while it runs)" if lease else "") + "; Ctrl-C ends",

@@ -76,7 +76,7 @@ class Controller:
         self.names = joint_names
         self.dt = dt_s
         self.hold_kp = hold_kp_Nm_per_rad
-        self.hold_kd = hold_kd_Nm_s_per_rad
+        self.hold_kd: float | np.ndarray = hold_kd_Nm_s_per_rad  # (the exit brake's, per joint, while it brakes)
         self.mode_ramp_s = mode_ramp_s
         self.fresh_cycles_resume = fresh_cycles_resume
         self.kt = params.kt_Nm_per_A
@@ -489,9 +489,9 @@ class Controller:
         if why is None and self.drag_lease and (ls.id != self.drag_lease or not ls.active):
             why = R_LEASE_LAPSED if ls.state == "lapsed" else R_LEASE_CLOSED
         if why is not None:
-            self._end_drag(why, est.q_rad)
+            self.end_drag(why, est.q_rad)
 
-    def _end_drag(self, why: str, q: np.ndarray) -> None:
+    def end_drag(self, why: str, q: np.ndarray) -> None:
         """Out of DRAG into HOLD where the arm is, blended over ``drag_exit_ramp_s`` (no jump in current); a
         feedback hold returns to HOLD instead of drag."""
         if self.feedback_hold:

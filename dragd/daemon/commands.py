@@ -88,9 +88,12 @@ def command_table(d: Daemon) -> CommandTable:
 
     @command("lease")
     async def lease(action: str, lease: int | None = None, holder: str = "client",
-                    period_s: float | None = None) -> dict[str, Any]:
-        """The drag lease (docs/HAND.md): ``open`` (answers its number and period), ``renew`` (within the period),
-        ``close`` (drag bound to it ends into HOLD), ``status``."""
+                    period_s: float | None = None, paced: bool = False) -> dict[str, Any]:
+        """The drag lease (docs/HAND.md): ``open`` (answers its number and period), ``renew`` (within the period;
+        ``paced``: the answer comes a third of the period later on the daemon's clock, when the next renewal is
+        due), ``close`` (drag bound to it ends into HOLD), ``status``."""
+        if action == "renew" and paced:
+            return await d.guiding.renew_paced(lease)
         return d.guiding.lease(str(action), lease, str(holder), period_s)
 
     async def _hold_measured() -> None:

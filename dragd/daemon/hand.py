@@ -11,8 +11,10 @@ log) with the whole state.
 from __future__ import annotations
 
 import asyncio
+import time
 from typing import TYPE_CHECKING, Any
 
+from dragd.clock import LockstepClock
 from dragd.control import hand as H
 from dragd.control import permission as P
 from dragd.control.modes import MODE_NAMES, Mode
@@ -21,6 +23,9 @@ from dragd.teach.program import resolve_program
 if TYPE_CHECKING:
     from dragd.control.controller import Event
     from dragd.daemon.core import Daemon
+
+# lockstep: how long (wall) the clock waits for a paced holder's next renewal before it counts the holder as gone
+PACED_GUARD_S = 5.0
 
 # why drag ended -> the fault list's kind (None: a normal end, an event only)
 END_KINDS = {H.R_NOT_HELD: None, P.R_LEASE_CLOSED: None, H.R_SQUEEZED: "panic", H.R_STOP: "stop_input",
@@ -38,6 +43,13 @@ class Guiding:
         self.button_actions = 0
         self._tasks: set[asyncio.Task[Any]] = set()
         self._last_lapse: dict[str, Any] | None = None
+        # a paced holder (``lease renew paced``) between the answer and its next renewal: (lease, wall time of the
+        # answer); on the lockstep clock no period starts meanwhile (the gate), so its renewals fall at the same
+        # simulated times on every run however slowly the client runs
+        self._paced: tuple[int, float] | None = None
+        self.paced_gate_timeouts = 0
+        if isinstance(daemon.clock, LockstepClock):
+            daemon.clock.gates.append(self._paced_gate)
 
     # ------------------------------------------------------------------------------------------ the lease
 
@@ -55,6 +67,7 @@ class Guiding:
         if lease is None:
             raise ValueError(f"lease {action}: missing field 'lease' (the number 'lease open' answered)")
         if action == "renew":
+            self._paced = None
             ls.renew(t, lease)
             bound = c.drag_lease == lease
             return {"lease": lease, "remaining_s": round(ls.deadline_t - t, 4), "mode": MODE_NAMES[c.mode],
@@ -62,10 +75,44 @@ class Guiding:
                     "drag": bound and (c.mode == Mode.DRAG or (c.feedback_hold and c.resume_mode == Mode.DRAG))}
         if action == "close":
             ls.close(t, lease)
+            if c.drag_lease == lease and c.mode == Mode.DRAG:
+                c.end_drag(P.R_LEASE_CLOSED, d.cycle.est.q_rad)  # now, not at the next cycle: the answer says hold
+                d.record_events()
             d.recorder.event("lease", action="close", lease=lease, holder=ls.holder)
             self.publish()
             return {"lease": lease, "mode": MODE_NAMES[c.mode], "closed": True}
         raise ValueError(f"lease: action: expected open, renew, close or status, got {action!r}")
+
+    async def renew_paced(self, lease: int | None) -> dict[str, Any]:
+        """Renew now; answer a third of the period later on the daemon's clock (simulated time in lockstep), when the
+        holder's next renewal is due. The holder reads no clock of its own: it renews on every answer."""
+        ans = self.lease("renew", lease, "", None)
+        c = self.d.controller
+        ls = c.permission.lease
+        await self.d.clock.sleep(ls.period_s / 3.0)
+        if ls.active and ls.id == lease:
+            self._paced = (int(lease or 0), time.monotonic())
+        bound = c.drag_lease == lease
+        ans.update(t_s=round(c.t, 6), remaining_s=round(ls.deadline_t - c.t, 4) if ls.active else 0.0,
+                   state=ls.state, mode=MODE_NAMES[c.mode],
+                   drag=bound and (c.mode == Mode.DRAG or (c.feedback_hold and c.resume_mode == Mode.DRAG)))
+        return ans
+
+    def _paced_gate(self) -> bool:
+        """Lockstep: no period starts while a paced holder's renewal is due and has not come (at most
+        ``PACED_GUARD_S`` of wall time: then the holder counts as gone and its lease lapses on the simulated clock)."""
+        p = self._paced
+        if p is None:
+            return True
+        ls = self.d.controller.permission.lease
+        if not ls.active or ls.id != p[0]:
+            self._paced = None
+            return True
+        if time.monotonic() - p[1] > PACED_GUARD_S:  # (a liveness guard in wall time, as the clock's own)
+            self._paced = None
+            self.paced_gate_timeouts += 1
+            return True
+        return False
 
     # ------------------------------------------------------------------------------------------ after the cycle
 

@@ -31,8 +31,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import threading
-
 from dragd.lease import LeaseHolder
 from dragd.protocol import ControlClient, DaemonUnavailable
 
@@ -165,8 +163,6 @@ class Rig:
             self.daemon_args.append("--lab-unguarded-drag")
         self.lease: LeaseHolder | None = None  # a drag lease the rig holds (drag())
         self._lease_t = 0.0  # lockstep: the simulated time of its last renewal
-        self._lease_thread: threading.Thread | None = None
-        self._lease_stop = threading.Event()
         self.lease_error: str | None = None  # why the wall clock's renewal thread stopped
         self.allow_dirs = [self.workdir, *(allow_dirs or [])]  # where the daemon may write what the rig asks
         self.env = env
@@ -234,15 +230,19 @@ class Rig:
         """Open a drag lease and keep renewing it (lockstep: between grants; wall: a thread)."""
         if self.lease is not None:
             raise ProcessError(f"Rig: already holding lease {self.lease.lease}")
-        lease = LeaseHolder(lambda cmd, **kw: self.must(cmd, **kw), holder, period_s)
+        def call(cmd: str, timeout_s: float | None = None, **kw: Any) -> dict[str, Any]:
+            resp = self.call(cmd, timeout_s=timeout_s, **kw)
+            if not resp.get("ok"):
+                raise ProcessError(f"daemon refused {cmd} {kw}: {resp.get('error')}")
+            return resp
+
+        lease = LeaseHolder(call, holder, period_s)
         lease.open()
         self.lease = lease
         if self.lockstep:
             self._lease_t = float(self.must("clock")["clock"]["t_s"])
         else:
-            self._lease_stop.clear()
-            self._lease_thread = threading.Thread(target=self._renew_wall, name="rig-lease", daemon=True)
-            self._lease_thread.start()
+            lease.keep()  # paced by the daemon's clock
         return lease
 
     def drag(self, accept: bool = False, period_s: float | None = None) -> dict[str, Any]:
@@ -255,27 +255,16 @@ class Rig:
     def drop_lease(self, close: bool = True) -> dict[str, Any] | None:
         """Stop renewing the lease; ``close``: close it too (the arm holds at once), else it lapses in the daemon."""
         lease, self.lease = self.lease, None
-        self._stop_lease_thread()
+        self._stop_lease_thread(lease)
         if lease is None:
             return None
         return lease.close() if close else None
 
-    def _stop_lease_thread(self) -> None:
-        if self._lease_thread is not None:
-            self._lease_stop.set()
-            self._lease_thread.join(5.0)
-            self._lease_thread = None
-
-    def _renew_wall(self) -> None:
-        from dragd.lease import LeaseError
-
-        lease = self.lease
-        while lease is not None and not self._lease_stop.wait(max(0.0, lease.next_due - lease.clock())):
-            try:
-                lease.renew()
-            except (LeaseError, ProcessError, DaemonUnavailable) as exc:
-                self.lease_error = str(exc)
-                return
+    def _stop_lease_thread(self, lease: LeaseHolder | None = None) -> None:
+        lease = lease or self.lease
+        if lease is not None and not self.lockstep:
+            lease.stop_keeping()
+            self.lease_error = lease.error
 
     def _renew_lockstep(self, t_s: float) -> None:
         lease = self.lease
