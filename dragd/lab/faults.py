@@ -1,7 +1,10 @@
 """The fault matrix: every fault the simulator injects, run against the sim + daemon, measured (docs/SAFETY.md).
 
 For each fault: the arm in drag at rest, the sim's ``inject``, then the daemon's status and the sim's truth polled
-until the policy's reaction and recovery are seen (or a time limit). Per fault::
+until the policy's reaction and recovery are seen (or a time limit). Every wait is on the rig's clock (``Rig.now``,
+``Rig.sleep``): on the lockstep clock the injection lands between two cycles and the status is looked at after every
+cycle until the fault shows, so ``detected_ms`` is exact to the cycle and the run is the same on any machine; on the
+wall clock (``lockstep=False``, as deployed) it is polled as fast as the requests return. Per fault::
 
     detected_ms             injection → the daemon's status shows it (fault, hold, or the counter that names it)
     reaction                what the daemon did: fault | hold | dropped | tolerated
@@ -15,7 +18,6 @@ until the policy's reaction and recovery are seen (or a time limit). Per fault::
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -54,7 +56,10 @@ CASES: dict[str, FaultCase] = {
     "garbage": FaultCase("garbage", {"node_id": 2}, "dropped", "continue", "rejected_frames"),
 }
 
-RECOVER_TIMEOUT_S = 15.0
+RECOVER_TIMEOUT_S = 15.0  # of the rig's clock
+DETECT_TIMEOUT_S = 5.0
+DETECT_POLL_S = 0.001  # the status after every cycle until the fault shows (lockstep: detected_ms to the cycle)
+WATCH_POLL_S = 0.01  # then every 10 ms: the truth (speed, drift) and the recovery
 
 
 def _counter(status: dict[str, Any], name: str) -> int:
@@ -63,22 +68,28 @@ def _counter(status: dict[str, Any], name: str) -> int:
     return int(status.get(name) or 0)
 
 
+def _poll(rig: Rig, seconds: float) -> None:
+    """Between two looks: ``seconds`` of arm time on the lockstep clock; on the wall clock the requests' own pace."""
+    if rig.lockstep:
+        rig.sleep(seconds)
+
+
 def drag_at_rest(rig: Rig, timeout_s: float = 20.0) -> None:
-    """Enabled, in drag, no fault (restarting the arm where needed)."""
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
+    """Enabled, in drag, no fault (restarting the arm where needed: the previous fault's state)."""
+    end = rig.now() + timeout_s
+    while rig.now() < end:
         st = rig.must("status")
         if st["mode"] == "drag" and not st["feedback_hold"]:
-            time.sleep(0.5)
+            rig.sleep(0.5)
             return
         if st["mode"] in ("idle", "fault"):
             rig.call("start")
-            time.sleep(0.4)
+            rig.sleep(0.4)
         elif st["mode"] == "hold" and not st["feedback_hold"] and st["drives_enabled"]:
             rig.call("mode", mode="drag")
-            time.sleep(0.3)
+            rig.sleep(0.3)
         else:
-            time.sleep(0.1)
+            rig.sleep(0.1)
     st = rig.must('status')
     raise RuntimeError(f"the arm did not reach drag within {timeout_s:.0f} s: {st['mode']}, faults {[f['text'] for f in st['faults']][-4:]}")
 
@@ -107,26 +118,28 @@ def run_fault(rig: Rig, name: str) -> dict[str, Any]:
         max_speed = max(max_speed, max(abs(v) for v in s["dq_rad_s"]))
         max_drift = max(max_drift, max(abs(a - b) for a, b in zip(s["q_rad"], q0)))
 
+    t_now = rig.now()  # (lockstep: the arm's time stands still until the next grant: the injection lands now)
     injected = rig.sim_call("inject", kind=case.kind, **case.args)
     if not injected.get("ok"):
         raise RuntimeError(f"inject {name}: {injected.get('error')}")
-    t_inj = float(injected["t_mono"])
+    t_inj = t_now if rig.lockstep else float(injected["t_mono"])  # (wall: the sim's CLOCK_MONOTONIC, as rig.now)
     detected_ms = None
     status = before
-    end_detect = time.monotonic() + 5.0
-    while time.monotonic() < end_detect:
+    end_detect = t_inj + DETECT_TIMEOUT_S
+    while (now := rig.now()) < end_detect:
         status = saw(rig.must("status"))
-        now = time.monotonic()
         if _counter(status, case.detect) > _counter(before, case.detect) or \
                 status["fault_count"] > before["fault_count"]:
             detected_ms = (now - t_inj) * 1e3
             break
         truth()
+        _poll(rig, DETECT_POLL_S)
     # the fault's own duration, watching the truth
     end_settle = t_inj + case.settle_s + 0.3
-    while time.monotonic() < end_settle:
+    while rig.now() < end_settle:
         truth()
         saw(rig.must("status"))  # (a rejoin's 'start' clears the daemon's fault list: texts are collected here)
+        _poll(rig, WATCH_POLL_S)
     status = saw(rig.must("status"))
     new_count = status["fault_count"] - before["fault_count"]
     holds = status["feedback_holds"] - before["feedback_holds"]
@@ -141,9 +154,9 @@ def run_fault(rig: Rig, name: str) -> dict[str, Any]:
         # feedback, not this fault's: reported as feedback_holds, not as the reaction)
         reaction = "tolerated"
     recovered = False
-    end = time.monotonic() + RECOVER_TIMEOUT_S
+    end = rig.now() + RECOVER_TIMEOUT_S
     started = False
-    while time.monotonic() < end:
+    while rig.now() < end:
         truth()
         st = saw(rig.must("status"))
         if case.recover == "auto":
@@ -158,7 +171,7 @@ def run_fault(rig: Rig, name: str) -> dict[str, Any]:
                 if rig.call("start").get("ok"):
                     started = True
             elif st["mode"] == "fault":
-                time.sleep(0.2)
+                rig.sleep(0.2)
                 if rig.must("status")["mode"] == "fault":
                     rig.call("start")
         else:
@@ -167,7 +180,7 @@ def run_fault(rig: Rig, name: str) -> dict[str, Any]:
                 break
             if st["mode"] == "fault":
                 break
-        time.sleep(0.02)
+        rig.sleep(WATCH_POLL_S)
     after = rig.must("status")
     sim1 = rig.sim_call("state")
     rate = sim1["steps"] / sim1["t"] if sim1["t"] > 0 else 1000.0
@@ -189,13 +202,18 @@ def run_fault(rig: Rig, name: str) -> dict[str, Any]:
 
 
 def fault_matrix(names: list[str] | None = None, workdir: Path | None = None,
-                 daemon_args: list[str] | None = None, sim_args: list[str] | None = None) -> dict[str, Any]:
-    """Every fault (or ``names``) against one sim + daemon rig, in turn."""
+                 daemon_args: list[str] | None = None, sim_args: list[str] | None = None,
+                 lockstep: bool = True) -> dict[str, Any]:
+    """Every fault (or ``names``) against one sim + daemon rig, in turn; on the lockstep clock unless told not to."""
     out: dict[str, Any] = {}
-    # as deployed: the daemon's cycle SCHED_FIFO 70, the sim 60 (where permitted; a loaded host otherwise stalls
-    # the master heartbeat past the drives' consumer time, a fault of its own)
-    rig_kw: dict[str, Any] = {"daemon_args": daemon_args if daemon_args is not None else ["--realtime-priority", "70"],
-                              "sim_args": sim_args if sim_args is not None else ["--realtime-priority", "60"]}
+    # wall clock as deployed: the daemon's cycle SCHED_FIFO 70, the sim 60 (where permitted; a loaded host otherwise
+    # stalls the master heartbeat past the drives' consumer time, a fault of its own)
+    rt = not lockstep
+    rig_kw: dict[str, Any] = {"lockstep": lockstep,
+                              "daemon_args": daemon_args if daemon_args is not None else
+                              (["--realtime-priority", "70"] if rt else []),
+                              "sim_args": sim_args if sim_args is not None else
+                              (["--realtime-priority", "60"] if rt else [])}
     if workdir is not None:
         rig_kw["workdir"] = workdir
     with Rig("faults", **rig_kw) as rig:

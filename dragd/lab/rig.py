@@ -27,7 +27,8 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -290,6 +291,31 @@ class Rig:
             raise ProcessError("Rig.sleep on the lockstep clock needs the daemon (its SYNCs are the arm's time); "
                                "start_daemon first, or use lockstep=False")
         self.advance(seconds)
+
+    def now(self) -> float:
+        """The arm's time in seconds on the rig's clock (lockstep: the daemon's simulated time, which stands still
+        between grants; wall: CLOCK_MONOTONIC): what a test stamps the samples it sends with."""
+        if not self.lockstep:
+            return time.monotonic()
+        if self.daemon is None:
+            raise ProcessError("Rig.now on the lockstep clock needs the daemon (its SYNCs are the arm's time)")
+        return float(self.must("clock")["clock"]["t_s"])
+
+    @contextmanager
+    def running(self) -> Iterator[None]:
+        """Lockstep: time runs on its own inside (``dragd clock run``, as fast as both processes go), paused again
+        after; wall: nothing to do. For a client that paces itself on the wall clock (``dragd identify run`` polls
+        the daemon every 0.2 s of wall time): what it makes the arm do runs on the daemon's clock from the tick its
+        command lands at."""
+        if not self.lockstep:
+            yield
+            return
+        self.must("clock", action="run")
+        try:
+            yield
+        finally:
+            if self.daemon is not None and self.daemon.alive():
+                self.must("clock", action="pause")
 
     def advance(self, seconds: float) -> dict[str, Any]:
         """Lockstep: grant ``seconds`` of simulated time and wait until they ran; the daemon's clock status. While
