@@ -471,6 +471,7 @@ class SimProcess:
                         self.hand.let_go(t, button)
                     else:
                         raise HandError(f"hand: action: expected press or let_go, got {action!r}")
+                    self.hand.apply(t)  # the drive's inputs follow the contacts (also before any SYNC: the boot)
                     return {"t": t, **self.hand.state()}
             except HandError as exc:
                 raise ControlError(str(exc)) from None
