@@ -389,3 +389,64 @@ def test_the_buttons_demo_runs_a_teach_session_from_the_hand_alone(tmp_path):
     assert r["waypoints"] == 3 and r["waypoint_error_deg_max"] < 0.5
     assert Path(r["program"]).name == "hand_001.yaml"
     assert [f for f in r["faults"] if "lease" not in f] == []  # only the lapse the demo caused
+
+
+# ------------------------------------------------------------------------------------------ vendor EDS files
+
+EDS_DIR = Path(__import__("os").environ.get("DRAGD_EDS_DIR", "/work/eds"))
+HAS_60FD = {"maxon_epos4": True, "zeroerr_erob": True, "technosoft_ipos": True, "eyou_euservo": False,
+            "wittenstein_simco": False, "schunk_prl120": False}  # (grep '^\[60FD\]' of the vendors' files)
+DRAGS = ("maxon_epos4", "zeroerr_erob")  # (technosoft: no CST, schunk: no 6071h; refused whatever the inputs)
+
+
+@pytest.mark.parametrize("vendor", list(HAS_60FD))
+def test_vendor_eds_inputs_ride_where_the_drive_maps_60fdh_and_a_drive_without_it_is_named(tmp_path, vendor):
+    """The vendors' EDS files (never committed; ``$DRAGD_EDS_DIR``): ``dragd config init`` from the file, the
+    guiding device wired to joint6; with 60FDh the inputs are planned into a TPDO and, for a drive dragd can drive,
+    the simulated drive built from the same file carries them: its enabling switch drags and its release holds;
+    without 60FDh ``config check`` names the joint, the object and every bit."""
+    import json
+
+    import yaml
+
+    from dragd.lab.bench.drives import _cli, _truth
+    from dragd.lab.rig import multicast_group
+    from dragd.model import RobotModel
+
+    eds = EDS_DIR / f"{vendor}.eds"
+    if not eds.is_file():
+        pytest.skip(f"{eds} absent (set DRAGD_EDS_DIR to the fetched vendors' EDS files)")
+    robot = str(RobotModel.from_urdf("seed_cobot").urdf_path)
+    cfg_path = tmp_path / "cfg.yaml"
+    init = _cli("config", "init", "--robot", robot, "--eds", str(eds), "--out", str(cfg_path))
+    assert init.returncode == 0, init.stderr
+    cfg = yaml.safe_load(cfg_path.read_text())
+    cfg["hand"] = {"inputs": WIRING}
+    cfg["drag"] = {"require": "enable_input"}
+    cfg_path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    report = json.loads(_cli("config", "check", "--config", str(cfg_path), "--json").stdout)
+    inputs_errors = [f for f in report["findings"] if f["level"] == "error" and "60FDh" in f["text"]]
+    if not HAS_60FD[vendor]:
+        (err,) = inputs_errors
+        assert "joint6" in err["at"] and err["text"].startswith("60FDh:00: missing: the digital inputs")
+        assert "hand.inputs[0] (enable) bits 16, 17, 18" in err["text"] and "hand.inputs[2] (stop) bit 20" in err["text"]
+        return
+    assert not inputs_errors, inputs_errors
+    carried = [f["text"] for f in report["findings"] if "digital inputs in" in f["text"]]
+    if vendor not in DRAGS:
+        return  # (refused for its control modes: the inputs were still planned, or the plan stopped earlier)
+    assert report["ok"] and carried and "60FDh" in carried[-1], report["findings"]
+    truth = tmp_path / "truth.yaml"
+    assert _truth(robot, cfg_path, truth) is None
+    bus = ",".join(f"udp_multicast:{multicast_group(f'{vendor}-hand-{k}')}" for k in range(len(cfg["buses"])))
+    with Rig(f"hand-{vendor}", workdir=tmp_path, config=cfg_path, sim_config=truth, bus=bus,
+             sim_args=["--eds", str(eds)], drag_guard="config") as rig:
+        rig.start_sim(timeout_s=60.0)
+        rig.start_daemon(timeout_s=60.0)
+        rig.must("start")
+        rig.sleep(0.3)
+        press_enable(rig)
+        rig.sim_call("hand", action="let_go", button="enable")
+        detect_ms = ms_until_not_drag(rig)
+    print(f"{vendor}: {carried[-1]}; out of drag {detect_ms} ms after the release")
+    assert detect_ms <= DETECT_MAX_MS

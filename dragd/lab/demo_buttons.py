@@ -147,7 +147,9 @@ def run_buttons_demo(config: Path | None = None, out: Path | None = None, progre
         _say(progress, "the operator presses teach again: the program is written ...")
         _press(rig, "teach")
         rig.wait_for(lambda: not rig.must("status").get("teach"), 5.0, "the end of teaching after the teach button")
-        program = sorted((out / "programs").glob("hand_*.yaml"))[-1]
+        programs = out / "programs"
+        rig.wait_for(lambda: any(programs.glob("hand_*.yaml")), 10.0, f"the program written to {programs}")
+        program = max(programs.glob("hand_*.yaml"), key=lambda p: p.stat().st_mtime)
         waypoints = {w["name"]: w["q_rad"] for w in yaml.safe_load(program.read_text())["waypoints"]}
 
         _say(progress, f"replaying {program.name} ...")
