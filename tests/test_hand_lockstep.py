@@ -77,6 +77,43 @@ def until_wall(get, ok, wall_s: float = 30.0):
     return got
 
 
+def hand_messages(path: Path) -> list[dict]:
+    """The ``/dragd/hand`` messages of a telemetry file, each checked against the JSON schema the file carries."""
+    import json
+
+    from mcap.reader import make_reader
+
+    kinds = {"string": str, "number": (int, float), "integer": int, "boolean": bool, "array": list, "object": dict,
+             "null": type(None)}
+
+    def conforms(value, schema: dict, where: str) -> None:  # (the subset of JSON Schema the channel declares)
+        types = schema.get("type", [])
+        types = [types] if isinstance(types, str) else types
+        assert not types or isinstance(value, tuple(t for k in types for t in (
+            kinds[k] if isinstance(kinds[k], tuple) else (kinds[k],)))), (where, value, types)
+        if "enum" in schema:
+            assert value in schema["enum"], (where, value)
+        if isinstance(value, dict):
+            for k in schema.get("required", []):
+                assert k in value, (where, k)
+            for k, sub in schema.get("properties", {}).items():
+                if k in value:
+                    conforms(value[k], sub, f"{where}.{k}")
+        if isinstance(value, list) and "items" in schema:
+            for i, v in enumerate(value):
+                conforms(v, schema["items"], f"{where}[{i}]")
+
+    out = []
+    with open(path, "rb") as f:
+        for schema, channel, message in make_reader(f).iter_messages(topics=["/dragd/hand"]):
+            assert channel.message_encoding == "json" and schema.encoding == "jsonschema"
+            data = json.loads(message.data)
+            conforms(data, json.loads(schema.data), "/dragd/hand")
+            out.append(data)
+    assert out, f"{path}: no /dragd/hand message"
+    return out
+
+
 def holder_renewing(rig: Rig, child, what: str) -> None:
     """Wait (wall time, no arm time passes) until a client process holds drag and its first paced renewal is in:
     from then on its renewals fall at simulated times the run decides."""
@@ -138,6 +175,11 @@ def test_releasing_the_enable_holds_within_20_ms_and_half_a_degree_with_no_curre
     change = np.abs(cmd[k - 1:k + ramp + 1] - cmd[k - 1]).max(axis=0)
     print(f"exit: largest one-cycle step {np.round(step, 3)} A of a change of {np.round(change, 3)} A")
     assert np.all(step <= 0.2 * change + 0.01), (step, change)
+    # the telemetry's own channel, as Foxglove reads it (the mcap library, the channel's JSON schema)
+    hand = hand_messages(mcap)
+    positions = [m["inputs"][0]["position"] for m in hand]
+    assert "enabled" in positions and positions[-1] == "released"
+    assert any(m["mode"] == "drag" for m in hand) and hand[-1]["drag_ends"] == 1
 
 
 def test_the_hold_resists_a_hand_that_keeps_pulling_with_its_stated_stiffness(tmp_path):

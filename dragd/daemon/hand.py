@@ -207,6 +207,7 @@ class Guiding:
             if hand is None or hand.enable is None or not hand.enable.held:
                 return  # released again meanwhile
             d.set_mode("drag", by_enable=True)
+            self.publish()  # (the state with the mode it led to)
         except (ValueError, RuntimeError) as exc:
             self._refused("enabling switch", t_s, str(exc).removeprefix("mode drag: "))
         finally:
