@@ -420,6 +420,7 @@ def test_a_stop_that_reads_pressed_at_boot_holds_the_arm_and_is_reported_with_it
 # ------------------------------------------------------------------------------------------ the demo
 
 
+@pytest.mark.slow  # (a whole session: ~1.5 min)
 def test_the_buttons_demo_runs_a_teach_session_from_the_hand_alone(tmp_path):
     from dragd.lab.demo_buttons import run_buttons_demo
 
@@ -441,6 +442,7 @@ HAS_60FD = {"maxon_epos4": True, "zeroerr_erob": True, "technosoft_ipos": True, 
 DRAGS = ("maxon_epos4", "zeroerr_erob")  # (technosoft: no CST, schunk: no 6071h; refused whatever the inputs)
 
 
+@pytest.mark.slow  # (config init per file, two rigs)
 @pytest.mark.parametrize("vendor", list(HAS_60FD))
 def test_vendor_eds_inputs_ride_where_the_drive_maps_60fdh_and_a_drive_without_it_is_named(tmp_path, vendor):
     """The vendors' EDS files (never committed; ``$DRAGD_EDS_DIR``): ``dragd config init`` from the file, the
@@ -492,3 +494,35 @@ def test_vendor_eds_inputs_ride_where_the_drive_maps_60fdh_and_a_drive_without_i
         detect_ms = ms_until_not_drag(rig)
     print(f"{vendor}: {carried[-1]}; out of drag {detect_ms} ms after the release")
     assert detect_ms <= DETECT_MAX_MS
+
+
+@pytest.mark.slow  # (Rerun's start: ~1 min)
+def test_the_live_view_drags_on_its_lease_and_shows_the_inputs_and_the_lease(tmp_path):
+    """``dragd view --drag`` (a Rerun recording here): drag while it runs, its lease renewed on the daemon's clock;
+    it ends: the lease closes, the arm holds; the recording carries the hand state (the lease, the inputs)."""
+    import subprocess
+    import sys
+
+    rrd = tmp_path / "view.rrd"
+    with Rig("hand-view", workdir=tmp_path, config=lease_config(tmp_path), drag_guard="config") as rig:
+        started(rig)
+        view = subprocess.Popen([sys.executable, "-m", "dragd", "view", "--drag", "--save", str(rrd),
+                                 "--socket", rig.socket], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                cwd=str(tmp_path))
+        try:
+            holder_renewing(rig, view, "dragd view --drag")
+            lease0 = rig.must("lease", action="status")["lease"]
+            rig.sleep(1.0)
+            lease1 = until_wall(lambda: rig.must("lease", action="status")["lease"],
+                                lambda ls: ls["renewals"] - lease0["renewals"] >= 10)
+            assert mode(rig) == "drag" and lease1["holder"].startswith("dragd view --drag")
+            view.send_signal(__import__("signal").SIGINT)  # Ctrl-C: the view closes its lease
+            out, err = view.communicate(timeout=60)
+        finally:
+            if view.poll() is None:
+                view.kill()
+        assert view.returncode == 0, err
+        st = rig.must("status")
+    assert st["mode"] == "hold" and st["drag"]["last_drag_end"]["reason"] == "the drag lease was closed by its client"
+    assert lease1["renewals"] - lease0["renewals"] == 10  # a renewal per third of 0.3 s of the daemon's clock
+    assert rrd.stat().st_size > 0

@@ -114,7 +114,7 @@ def register(sub: Any) -> None:
     v.add_argument("--poll-rate", type=float, default=50.0, help="status polls per second (default 50)")
     v.add_argument("--seconds", type=float, default=None, help="stop after this long (default: until Ctrl-C)")
     v.add_argument("--drag", action="store_true", help="put the arm in drag while the view runs (a drag lease renewed "
-                   "by the view's polls; closing the view holds the arm): docs/HAND.md")
+                   "on the daemon's clock; closing the view holds the arm): docs/HAND.md")
     add_socket(v)
     v.set_defaults(func=cmd_view)
 
