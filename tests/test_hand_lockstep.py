@@ -526,3 +526,62 @@ def test_the_live_view_drags_on_its_lease_and_shows_the_inputs_and_the_lease(tmp
     assert st["mode"] == "hold" and st["drag"]["last_drag_end"]["reason"] == "the drag lease was closed by its client"
     assert lease1["renewals"] - lease0["renewals"] == 10  # a renewal per third of 0.3 s of the daemon's clock
     assert rrd.stat().st_size > 0
+
+
+def test_the_client_library_renews_its_lease_on_the_daemons_clock_and_a_dead_client_lets_it_lapse(tmp_path):
+    """``dragd.client``'s ``async with client.drag()`` in a process of its own: drag while the block runs, renewed
+    a third of the period at a time on the daemon's (simulated) clock; the process killed: the lease lapses."""
+    import subprocess
+    import sys
+
+    script = ("import asyncio, sys\nfrom dragd.client import Client\n"
+              "async def main():\n    c = Client(sys.argv[1])\n"
+              "    async with c.drag(holder='script') as lease:\n        await lease.ended.wait()\n"
+              "asyncio.run(main())\n")
+    period = 0.3
+    with Rig("hand-client", workdir=tmp_path, config=lease_config(tmp_path, period), drag_guard="config") as rig:
+        started(rig)
+        client = subprocess.Popen([sys.executable, "-c", script, rig.socket], stdout=subprocess.PIPE,
+                                  stderr=subprocess.PIPE, text=True, cwd=str(tmp_path))
+        try:
+            holder_renewing(rig, client, "a dragd.client script")
+            lease0 = rig.must("lease", action="status")["lease"]
+            rig.sleep(1.0)
+            lease1 = until_wall(lambda: rig.must("lease", action="status")["lease"],
+                                lambda ls: ls["renewals"] - lease0["renewals"] >= 10)
+            assert mode(rig) == "drag" and lease1["holder"] == "script"
+            assert lease1["renewals"] - lease0["renewals"] == 10
+            client.kill()
+            client.wait(10)
+            rig.sleep(1.5 * period)
+            st = rig.must("status")
+        finally:
+            if client.poll() is None:
+                client.kill()
+    assert st["mode"] == "hold" and st["drag"]["last_drag_end"]["reason"].startswith("the drag lease lapsed")
+    assert st["faults"][-1]["kind"] == "lease" and "of 'script'" in st["faults"][-1]["text"]
+
+
+def test_on_classic_can_the_inputs_ride_an_event_tpdo_and_a_release_still_holds_at_once(tmp_path):
+    """Where the cyclic TPDO is full (classic CAN: statusword, position, torque), 60FDh rides in an event TPDO of its
+    own beside the statusword (inhibit 2 ms, event timer 10 ms): the release still ends drag the next cycle (4 ms at 250 Hz)."""
+    import json
+
+    from dragd.lab.faults import hand_config as classic_hand_config
+
+    cfg = classic_hand_config(tmp_path / "classic.yaml")
+    from dragd.lab.bench.drives import _cli
+
+    check = _cli("config", "check", "--config", str(cfg), "--json")
+    notes = [f["text"] for f in json.loads(check.stdout)["findings"] if "digital inputs in" in f["text"]]
+    assert notes and "TPDO2 (event, inhibit 2 ms, event timer 10 ms) [6041h, 60FDh]" in notes[0], notes
+    with Rig("hand-classic", workdir=tmp_path, config=cfg, drag_guard="config") as rig:
+        started(rig)
+        press_enable(rig)
+        rig.sim_call("hand", action="let_go", button="enable")
+        detect_ms = 0
+        while mode(rig) == "drag":
+            rig.sleep(0.004)
+            detect_ms += 4
+            assert detect_ms <= DETECT_MAX_MS
+    assert detect_ms <= 8  # (the event TPDO of the change, read by the next cycle)

@@ -61,7 +61,7 @@ CASES: dict[str, FaultCase] = {
 # --- the guiding device's input faults (#30; docs/HAND.md, docs/SAFETY.md) ---------------------------------------
 # Their own rig (hand_rig_kwargs): the enabling switch, mark, stop and teach wired to joint6's 60FDh, drag only while
 # the switch is held; a classic CAN bus (per-node layout, 250 Hz: what one classic bus carries), where the inputs
-# ride in an event TPDO of their own, so losing that TPDO loses the inputs and nothing else.
+# ride in an event TPDO beside the statusword (TPDO2), so losing it loses the inputs, not the feedback (TPDO1).
 HAND_CASES: dict[str, FaultCase] = {
     # the operator lets go of the switch and one channel stays closed (a welded contact)
     "stuck_enable": FaultCase("stuck_enable", {"channel": 1, "seconds": 1.0}, "hold", "start", "faults", 1.0,
