@@ -5,7 +5,7 @@ import asyncio
 import pytest
 
 from dragd.client import Client, CommandError, DaemonUnavailable
-from dragd.daemon.server import CommandTable, ControlServer
+from dragd.server import CommandTable, ControlServer
 
 pytestmark = pytest.mark.unit
 
