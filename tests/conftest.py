@@ -26,6 +26,13 @@ from pathlib import Path
 
 import pytest
 
+# One BLAS/OpenMP thread per process, set before anything imports numpy (children inherit it): the tests run as
+# parallel workers and process pairs on few cores, where OpenBLAS's own threads (one per core, spinning while they
+# wait) fight the other processes for the cores: a 200×66 SVD in identify's inertials fit cost 8x its CPU time with
+# two threads on this 2-core machine under load (25 s against 2.9 s for one test). An explicit setting wins.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_CONFIG = REPO / "config" / "default.yaml"
 
