@@ -60,6 +60,7 @@ def default_config_path() -> Path:
 
 
 TIERS = ("unit", "lockstep", "rig")
+LOCKSTEP_TIMEOUT_S = 900
 
 
 def tier(item: pytest.Item) -> str:
@@ -70,11 +71,36 @@ def tier(item: pytest.Item) -> str:
     return "rig"
 
 
+def _compile_kernels() -> None:
+    """Compile every numba kernel once, into numba's on-disk cache (the package's __pycache__): ~8 s of CPU in a fresh
+    clone, ~0.5 s once cached. Without it each xdist worker and each simulator/daemon process started before the
+    cache exists compiles the same kernels at the same time. (Add a module here when it gets compiled kernels.)"""
+    try:
+        from dragd.control import contact, fused, guard, safety
+        from dragd.daemon import kernels
+        from sim import kernels as sim_kernels
+    except ImportError:  # pragma: no cover - a broken checkout: the tests say what is wrong
+        return
+    for compile_ in (fused._compiled, guard._kernels, safety.safety_kernel, contact.contact_kernel, kernels.kernels,
+                     sim_kernels.hold_kernel):
+        compile_()
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """With xdist workers (``-n``): the kernels compiled once here, in the controller, before the workers start."""
+    if not hasattr(config, "workerinput") and getattr(config.option, "numprocesses", None) not in (None, 0, "0"):
+        _compile_kernels()
+
+
 @pytest.hookimpl(tryfirst=True)  # before -m deselects: an unmarked test is selected by -m rig, never by -m unit
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     for item in items:
         if tier(item) == "rig" and item.get_closest_marker("rig") is None:
             item.add_marker(pytest.mark.rig)
+        # pytest-timeout (pyproject: 300 s) is a guard against hangs, and wall time: a lockstep test's verdict must not
+        # hang on the machine's load, and its ~10-30 s of CPU took 310 s at load 20 (2 cores): 900 s for that tier
+        if tier(item) == "lockstep" and item.get_closest_marker("timeout") is None:
+            item.add_marker(pytest.mark.timeout(LOCKSTEP_TIMEOUT_S))
         # xdist (./dev test: --dist loadgroup): a module whose tests share a module- or class-scoped fixture (a rig
         # session, simulated logs) stays on one worker; every other test goes to whichever worker is free
         defs = getattr(getattr(item, "_fixtureinfo", None), "name2fixturedefs", {})
