@@ -15,33 +15,24 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, model_validator
+
+from dragd.vocabulary import (
+    ConfigError,
+    Expect,
+    Finite,
+    NodeId,
+    NonNegFloat,
+    NonPosFloat,
+    PosFloat,
+    PosInt,
+    format_validation_error,
+    read_yaml,
+)
+from dragd.vocabulary import Strict as _Strict  # (the models below keep their base's short name)
+from dragd.vocabulary import read_yaml as _read_yaml  # noqa: F401  (#32: sim/operator.py's import, until it moves)
 
 SYSTEM_CONFIG = Path("/etc/dragd/dragd.yaml")
-
-
-class ConfigError(ValueError):
-    """A configuration or parameters file that cannot be used; the message names file, key path and expectation."""
-
-
-class Expect:
-    """Annotation marker: how to describe a field's expected value in an error message."""
-
-    def __init__(self, text: str) -> None:
-        self.text = text
-
-
-PosFloat = Annotated[float, Field(gt=0, allow_inf_nan=False), Expect("a positive number")]
-NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False), Expect("a number >= 0")]
-NonPosFloat = Annotated[float, Field(le=0, allow_inf_nan=False), Expect("a number <= 0 (negative direction level)")]
-Finite = Annotated[float, Field(allow_inf_nan=False), Expect("a finite number")]
-PosInt = Annotated[int, Field(gt=0, strict=False), Expect("a positive integer")]
-NodeId = Annotated[int, Field(ge=1, le=127), Expect("a CANopen node id 1..127")]
-Fraction = Annotated[float, Field(ge=0, le=1), Expect("a number between 0 and 1")]
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_default=True, frozen=True)
 
 
 class RobotConfig(_Strict):
@@ -163,7 +154,8 @@ class StartupConfig(_Strict):
     # None: 1.25 counts of the joint's encoder — one count of jitter never fires it, the second count of creep does)
     breakout_slip_rad: NonNegFloat | None = None
     breakout_hold_s: PosFloat = 0.1  # ... for at most this long (past Φ friction compensation takes over)
-    settle_s: Annotated[float, Field(ge=0.005, le=10.0), Expect("seconds in [0.005, 10] (at least the 5 ms blend)")] = 0.1
+    settle_s: Annotated[float, Field(ge=0.005, le=10.0),
+                        Expect("seconds in [0.005, 10] (at least the 5 ms blend)")] = 0.1
     # ... the latch re-arms after the joint has been still this long
 
 
@@ -240,8 +232,9 @@ class LinkInertial(_Strict):
         e = np.linalg.eigvalsh(np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]]))
         tol = 1e-9 * max(1.0, float(np.abs(e).max()))
         if e.min() < -tol or any(e.sum() - 2 * v < -tol for v in e):
-            raise ValueError(f"inertia_kgm2: expected a physically consistent inertia (principal moments ≥ 0 satisfying "
-                             f"the triangle inequality a + b ≥ c), got principal moments {', '.join(f'{v:.4g}' for v in e)}")
+            moments = ", ".join(f"{v:.4g}" for v in e)
+            raise ValueError("inertia_kgm2: expected a physically consistent inertia (principal moments ≥ 0 satisfying "
+                             f"the triangle inequality a + b ≥ c), got principal moments {moments}")
         return self
 
 
@@ -275,7 +268,8 @@ class JointConfig(_Strict):
             raise ValueError("torque_constant_Nm_per_A: expected exactly one of torque_constant_Nm_per_A (joint side) "
                              "or motor_torque_constant_Nm_per_A (motor side, with gear_ratio)")
         if self.position_limits_rad is not None and self.position_limits_rad[0] >= self.position_limits_rad[1]:
-            raise ValueError(f"position_limits_rad: expected [lower, upper] with lower < upper, got {list(self.position_limits_rad)}")
+            raise ValueError("position_limits_rad: expected [lower, upper] with lower < upper, "
+                             f"got {list(self.position_limits_rad)}")
         slip, count = self.startup.breakout_slip_rad, self.rad_per_count
         if slip is not None and 0.0 < slip < count:
             raise ValueError(f"startup.breakout_slip_rad: expected 0 (off) or at least one encoder count "
@@ -646,7 +640,8 @@ class Config(_Strict):
                     "cst_integral_limit_A"):
             v = getattr(r, key)
             if isinstance(v, list) and len(v) != len(self.joints):
-                raise ValueError(f"replay.{key}: expected one value or {len(self.joints)} (one per joint), got {len(v)}")
+                raise ValueError(f"replay.{key}: expected one value or {len(self.joints)} (one per joint), "
+                                 f"got {len(v)}")
         return self
 
     def _cross_timing(self) -> None:
@@ -669,7 +664,8 @@ class Config(_Strict):
                              f"(loop.rate_Hz {lp.rate_Hz:g}), got {lp.tpdo_deadline_us}")
         tc = self.telemetry
         if tc.capacity_rows < 2 * lp.rate_Hz * tc.forward_interval_s:
-            raise ValueError(f"telemetry.capacity_rows: expected at least {math.ceil(2 * lp.rate_Hz * tc.forward_interval_s)} "
+            least = math.ceil(2 * lp.rate_Hz * tc.forward_interval_s)
+            raise ValueError(f"telemetry.capacity_rows: expected at least {least} "
                              f"(two hand-overs of telemetry.forward_interval_s {tc.forward_interval_s:g} s at "
                              f"loop.rate_Hz {lp.rate_Hz:g}: a smaller ring drops rows), got {tc.capacity_rows}")
         if m.drive_heartbeat_ms > 1000:
@@ -814,139 +810,6 @@ class ParamsFile(_Strict):
     notes: dict[str, Any] = Field(default_factory=dict)
 
 
-# ----------------------------------------------------------------------------------------------- errors
-
-
-def _unwrap_optional(t: Any) -> Any:
-    """``X | None`` -> X (keeps ``Annotated`` metadata on X)."""
-    import types
-    from typing import Union, get_args, get_origin
-
-    if get_origin(t) in (Union, types.UnionType):
-        args = [a for a in get_args(t) if a is not type(None)]
-        if len(args) == 1:
-            return args[0]
-    return t
-
-
-def _schema_at(model: type[BaseModel], loc: tuple[Any, ...]) -> tuple[Any, Any]:
-    """Follow an error location through the schema: (FieldInfo of the last field or None, type at loc)."""
-    from typing import Annotated as _Ann
-    from typing import get_args, get_origin
-
-    current: Any = model
-    info = None
-    for part in loc:
-        t = _unwrap_optional(current)
-        base = get_args(t)[0] if get_origin(t) is _Ann else t
-        base = _unwrap_optional(base)
-        origin = get_origin(base)
-        if isinstance(base, type) and issubclass(base, BaseModel) and isinstance(part, str):
-            info = base.model_fields.get(part)
-            if info is None:
-                return None, None
-            current = info.annotation
-            if info.metadata:
-                current = _Ann[(current, *info.metadata)]
-        elif origin in (list, tuple) and isinstance(part, int):
-            args = get_args(base)
-            current = args[0] if origin is list or len(args) == 2 and args[1] is Ellipsis else args[min(part, len(args) - 1)]
-            info = None
-        elif origin is dict:
-            current = get_args(base)[1]
-            info = None
-        else:
-            return None, None
-    return info, current
-
-
-def _annotation_expect(model: type[BaseModel], loc: tuple[Any, ...]) -> str | None:
-    """The ``Expect`` text of the schema element at an error location, if any."""
-    from typing import get_args
-
-    _, t = _schema_at(model, loc)
-    stack = [t]
-    while stack:
-        a = _unwrap_optional(stack.pop())
-        if a is None:
-            continue
-        for meta in getattr(a, "__metadata__", ()):
-            if isinstance(meta, Expect):
-                return meta.text
-        if not (isinstance(a, type) and issubclass(a, BaseModel)):
-            stack.extend(get_args(a))
-    return None
-
-
-def _loc_text(loc: tuple[Any, ...]) -> str:
-    out = ""
-    for part in loc:
-        if isinstance(part, int):
-            out += f"[{part}]"
-        elif part in ("function-after", "constrained-str", "tagged-union") or str(part).startswith(("function-", "union[")):
-            continue
-        else:
-            out += ("." if out else "") + str(part)
-    return out or "(top level)"
-
-
-def _describe(model: type[BaseModel], err: dict[str, Any]) -> str:
-    loc = tuple(p for p in err["loc"] if not (isinstance(p, str) and ("[" in p or p.startswith("function"))))
-    kind = err["type"]
-    given = err.get("input")
-    if kind == "value_error":
-        msg = str(err.get("ctx", {}).get("error", err["msg"]))
-        if ": expected" in msg and not loc:
-            return msg
-        return f"{_loc_text(loc)}: {msg}" if loc else msg
-    if kind == "extra_forbidden":
-        parent = loc[:-1]
-        allowed = _allowed_keys(model, parent)
-        hint = f"; expected one of: {', '.join(allowed)}" if allowed else ""
-        return f"{_loc_text(loc)}: unknown key{hint}"
-    if kind == "missing":
-        return f"{_loc_text(loc)}: missing required key"
-    expect = _annotation_expect(model, loc)
-    if expect is None:
-        if kind == "literal_error":
-            expect = f"one of {err.get('ctx', {}).get('expected', '')}"
-        elif kind in ("float_parsing", "float_type"):
-            expect = "a number"
-        elif kind in ("int_parsing", "int_type", "int_from_float"):
-            expect = "an integer"
-        elif kind in ("bool_parsing", "bool_type"):
-            expect = "true or false"
-        elif kind in ("list_type", "tuple_type"):
-            expect = "a list"
-        elif kind == "too_short" or kind == "too_long":
-            expect = err["msg"].lower()
-        elif kind in ("model_type", "dict_type", "model_attributes_type"):
-            expect = "a mapping of keys"
-        elif kind == "string_type":
-            expect = "a string"
-        else:
-            expect = err["msg"][0].lower() + err["msg"][1:]
-    return f"{_loc_text(loc)}: expected {expect}, got {given!r}"
-
-
-def _allowed_keys(model: type[BaseModel], loc: tuple[Any, ...]) -> list[str]:
-    from typing import Annotated as _Ann
-    from typing import get_args, get_origin
-
-    _, t = _schema_at(model, loc)
-    t = _unwrap_optional(t)
-    if get_origin(t) is _Ann:
-        t = _unwrap_optional(get_args(t)[0])
-    if isinstance(t, type) and issubclass(t, BaseModel):
-        return [k for k, f in t.model_fields.items() if not f.exclude]
-    return []
-
-
-def format_validation_error(path: str, model: type[BaseModel], exc: ValidationError) -> str:
-    lines = [f"{path}: {_describe(model, e)}" for e in exc.errors(include_url=False)]
-    return "\n".join(lines)
-
-
 # ----------------------------------------------------------------------------------------------- the robot
 
 
@@ -982,25 +845,6 @@ def check_joint_names(cfg: Config, robot: tuple[tuple[str, ...] | list[str], Pat
 # ----------------------------------------------------------------------------------------------- loading
 
 
-def _read_yaml(path: Path) -> Any:
-    if path.is_dir():
-        raise ConfigError(f"{path}: is a directory; expected a YAML file")
-    if not path.is_file():
-        raise ConfigError(f"{path}: file not found")
-    try:
-        with path.open(encoding="utf-8") as fh:
-            return yaml.safe_load(fh)
-    except UnicodeDecodeError as exc:
-        raise ConfigError(f"{path}: not UTF-8 text (byte 0x{exc.object[exc.start]:02X} at offset {exc.start}); "
-                          "expected a YAML file") from None
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot be read: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
-        raise ConfigError(f"{path}: not valid YAML{where}: {getattr(exc, 'problem', exc)}") from exc
-
-
 def default_config_path() -> Path:
     """``$DRAGD_CONFIG``, else /etc/dragd/dragd.yaml if present, else the repository's config/default.yaml."""
     env = os.environ.get("DRAGD_CONFIG")
@@ -1015,7 +859,7 @@ def default_config_path() -> Path:
 
 def load_params(path: str | Path) -> ParamsFile:
     path = Path(path)
-    data = _read_yaml(path)
+    data = read_yaml(path)
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping with 'joints', got {type(data).__name__}")
     try:
@@ -1037,7 +881,8 @@ def apply_params(cfg: Config, params: ParamsFile, source: str = "params") -> Con
     by_name = {j.name: j for j in cfg.joints}
     unknown = sorted(set(params.joints) - set(by_name))
     if unknown:
-        raise ConfigError(f"{source}: joints: expected joint names among {', '.join(by_name)}, got {', '.join(unknown)}")
+        raise ConfigError(f"{source}: joints: expected joint names among {', '.join(by_name)}, "
+                          f"got {', '.join(unknown)}")
     joints = []
     for j in cfg.joints:
         p = params.joints.get(j.name)
@@ -1081,9 +926,10 @@ def load_config(path: str | Path | None = None, params: str | Path | None = None
     ``robot``: check ``joints[].name`` against the robot's URDF (:func:`check_joint_names`).
     """
     path = Path(path) if path is not None else default_config_path()
-    data = _read_yaml(path)
+    data = read_yaml(path)
     if not isinstance(data, dict):
-        raise ConfigError(f"{path}: expected a mapping of sections (robot, buses, joints, ...), got {type(data).__name__}")
+        raise ConfigError(f"{path}: expected a mapping of sections (robot, buses, joints, ...), "
+                          f"got {type(data).__name__}")
     if "source" in data:
         raise ConfigError(f"{path}: source: unknown key")
     try:

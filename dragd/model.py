@@ -59,7 +59,8 @@ class RobotModel:
 
     @classmethod
     def from_config(cls, cfg: object) -> RobotModel:
-        """The configuration's robot (URDF, gravity) with its ``payload`` (``dragd gap``'s payload_mass) on the flange."""
+        """The configuration's robot (URDF, gravity) with its ``payload`` (``dragd gap``'s payload_mass) on the
+        flange."""
         model = cls.from_urdf(cfg.robot.urdf, cfg.base_dir, cfg.robot.gravity_m_s2)  # type: ignore[attr-defined]
         inertials = getattr(cfg, "inertials", None)
         if inertials:
@@ -84,7 +85,8 @@ class RobotModel:
         for name, val in inertials.items():
             if name not in links:
                 raise ValueError(f"{source}: inertials: expected link names among {', '.join(links)}, got '{name}'")
-            fields = val if isinstance(val, Mapping) else {k: getattr(val, k) for k in ("mass_kg", "com_m", "inertia_kgm2")}
+            fields = (val if isinstance(val, Mapping)
+                      else {k: getattr(val, k) for k in ("mass_kg", "com_m", "inertia_kgm2")})
             xx, xy, xz, yy, yz, zz = (float(v) for v in fields["inertia_kgm2"])
             inertia = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
             self.model.inertias[links.index(name) + 1] = pin.Inertia(float(fields["mass_kg"]),

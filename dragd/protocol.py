@@ -6,7 +6,7 @@ Response: one line, ``{"ok": true, ...}`` or ``{"ok": false, "error": "..."}``; 
 crash; the connection stays open for further requests (except after an over-long
 line, which closes it).
 
-The server (command table, socket server) is dragd/daemon/server.py; `ControlClient`
+The server (command table, socket server) is dragd/server.py; `ControlClient`
 here is the synchronous client for the CLI.
 """
 
@@ -16,7 +16,8 @@ import json
 import math
 import os
 import socket
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 __all__ = [
     "DEFAULT_SOCKET_PATH",
@@ -117,7 +118,7 @@ class ControlClient:
                 raise self._unavailable(
                     "permission denied (is your user in group 'dragd'?)"
                 ) from None
-            except socket.timeout:
+            except TimeoutError:
                 raise self._unavailable(f"connect timed out after {self.timeout_s} s") from None
             except OSError as e:
                 raise self._unavailable(e.strerror or str(e)) from None
@@ -131,7 +132,7 @@ class ControlClient:
                     buf += chunk
                     if len(buf) > MAX_LINE_BYTES * 16:
                         raise DaemonUnavailable(f"response from {self.path} is too long")
-            except socket.timeout:
+            except TimeoutError:
                 raise DaemonTimeout(
                     f"dragd at {self.path} did not answer {cmd!r} within {self.timeout_s} s"
                 ) from None

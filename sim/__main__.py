@@ -46,7 +46,8 @@ def main(argv: list[str] | None = None) -> int:
                        help="build every joint's drive from this EDS: its objects, access and mapping flags, PDOs, "
                             "COB-IDs, dummy usage and 6502h; vendor objects from sim/config/drives/ (matched by the "
                             "EDS's [DeviceInfo]); per joint: drive.eds in the truth file (docs/SIM_DRIVES.md)")
-    run_p.add_argument("--bus", help="INTERFACE:CHANNEL, e.g. udp_multicast:239.74.163.2 (default: the truth's bus.channel); "
+    run_p.add_argument("--bus", help="INTERFACE:CHANNEL, e.g. udp_multicast:239.74.163.2 (default: "
+                                     "the truth's bus.channel); "
                                      "A,B,C: several buses (a truth that puts every joint on bus 0 is spread: joint i "
                                      "of n on bus i*k//n of the k buses, as dragd config init splits them)")
     run_p.add_argument("--scenario", help="operator scenario file (or a name in sim/scenarios) started at t = 0")

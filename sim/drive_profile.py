@@ -23,7 +23,6 @@ from typing import Any
 import canopen
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable, datatypes
 
-from dragd.config import ConfigError, _read_yaml
 from dragd.hardware.cia301 import OD_DEVICE_TYPE, OD_ERROR_BEHAVIOUR, OD_IDENTITY, OD_PRODUCER_HEARTBEAT
 from dragd.hardware.cia402 import (
     OD_CONTROLWORD,
@@ -42,6 +41,7 @@ from dragd.hardware.cia402 import (
     supported_modes_bits,
 )
 from dragd.resources import eds_path as bundled_eds_path
+from dragd.vocabulary import ConfigError, read_yaml
 
 DRIVES_DIR = Path(__file__).resolve().parent / "config" / "drives"
 DEVICE_TYPE_402_SERVO = 0x00020192  # CiA 402 (0192h), additional information 0002h: servo drive
@@ -235,7 +235,7 @@ def load_catalog(directory: Path = DRIVES_DIR) -> tuple[CatalogEntry, ...]:
     entries, problems = [], []
     for path in sorted(directory.glob("*.yaml")):
         try:
-            data = _read_yaml(path)
+            data = read_yaml(path)
         except ConfigError as exc:
             problems.append(str(exc))
             continue
@@ -405,7 +405,8 @@ def build_profile(spec: ProfileSpec, hw: Hardware, base_dir: Path | None = None)
             fitted = min(hi, fitted) if hi is not None else fitted
             commissioned[(index, sub)] = fitted
             assumptions.append(f"{format_address(index, sub)} ({var.name}): the truth's value {value} is outside the "
-                               f"EDS's limits [{lo}, {hi}] (its unit may not be the one the simulator assumes): {fitted}")
+                               f"EDS's limits [{lo}, {hi}] (its unit may not be the one the "
+                               f"simulator assumes): {fitted}")
     for source, values in ((f"{catalog.label}: values" if catalog else "", catalog.values if catalog else {}),
                            (f"{where}.values", spec.values)):
         if not isinstance(values, Mapping):
@@ -447,7 +448,8 @@ def build_profile(spec: ProfileSpec, hw: Hardware, base_dir: Path | None = None)
     if device_type is not None and device_type.default is None and device_type.value is None \
             and (OD_DEVICE_TYPE, 0) not in commissioned:
         commissioned[(OD_DEVICE_TYPE, 0)] = DEVICE_TYPE_402_SERVO
-        assumptions.append(f"1000h (device type) has no value in the EDS: 0x{DEVICE_TYPE_402_SERVO:08X} (CiA 402, servo "
+        assumptions.append("1000h (device type) has no value in the EDS: "
+                           f"0x{DEVICE_TYPE_402_SERVO:08X} (CiA 402, servo "
                            f"drive)")
     modes = _supported_modes(var_of, commissioned, assumptions)
     for index, sub in ((OD_PRODUCER_HEARTBEAT, 0), (OD_ERROR_BEHAVIOUR, 1)):
@@ -466,7 +468,8 @@ def build_profile(spec: ProfileSpec, hw: Hardware, base_dir: Path | None = None)
     if bindings["max_torque"].index is None:
         assumptions.append("no 6072h (max torque): the current limit alone bounds the torque")
     if spec.assumed_csp_ki is not None:
-        assumptions.append(f"no torque offset to feed forward (60B2h): the position loop (CSP) holds the arm itself and "
+        assumptions.append("no torque offset to feed forward (60B2h): the position loop (CSP) "
+                           "holds the arm itself and "
                            f"integrates, as a servo drive's cascaded loops do: {spec.assumed_csp_ki:g} A/(rad·s), "
                            f"{VENDOR_CSP_KI_PER_KP:g}/s x kp (the truth names no csp_ki_A_per_rad_s)")
     if var_of(OD_TORQUE_SLOPE, 0) is None:
@@ -577,7 +580,8 @@ def _fit_hardware(hw: Hardware, bindings: dict[str, Binding], var_of: Any, assum
                          "rated_torque_Nm": hw.rated_torque_Nm * factor,
                          "max_torque_permille": max(1, round(hw.max_torque_permille / factor))})
     assumptions.append(f"the drive's per-mille limits cannot hold the truth's peak ({hw.max_torque_permille} per mille "
-                       f"of {hw.rated_torque_Nm:g} N·m): its rated current and torque are taken {factor:g} x the truth's "
+                       f"of {hw.rated_torque_Nm:g} N·m): its rated current and torque are taken "
+                       f"{factor:g} x the truth's "
                        f"({fitted.rated_current_A:g} A, {fitted.rated_torque_Nm:g} N·m), the same peak in amperes")
     return fitted
 

@@ -112,7 +112,8 @@ class Errors:
 
     def _check_history_write(self, sub: int, value: int) -> None:
         if sub != 0 or value != 0:
-            raise SdoAbort(ABORT_VALUE_RANGE, OD_ERROR_HISTORY, sub, "only 0 may be written to sub-index 0 (clear history)")
+            raise SdoAbort(ABORT_VALUE_RANGE, OD_ERROR_HISTORY, sub, "only 0 may be written to sub-index "
+                                                                     "0 (clear history)")
 
     def _clear_history(self, sub: int, value: int) -> None:
         for s in range(1, self.history_size + 1):

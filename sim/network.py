@@ -29,6 +29,8 @@ from typing import TYPE_CHECKING
 
 import can
 
+from dragd.hardware.bus import UdpMulticastCanBus
+from dragd.hardware.cia301 import SYNC_COB_ID
 from sim.drive import SimDrive
 
 if TYPE_CHECKING:
@@ -70,10 +72,11 @@ class SimNetwork:
         self.lockstep = lockstep
         self.bus_index = bus_index
         self._now: Callable[[], float] = time.monotonic if lockstep is None else lockstep.clock.now
-        self._sync_cob = 0x080  # (lockstep: a SYNC counts toward the period even while the link is muted)
+        self._sync_cob = SYNC_COB_ID  # (lockstep: a SYNC counts toward the period even while the link is muted)
         self.rx_muted: Callable[[], bool] | None = None  # an injected link-down (sim/faults.py): drop what arrives
         # the TPDOs a SYNC triggers leave in one datagram where the bus batches (udp_multicast, batch_frames)
-        self._batch: Callable[[], AbstractContextManager[None]] = getattr(bus, "batch", nullcontext)
+        self._batch: Callable[[], AbstractContextManager[None]] = (bus.batch if isinstance(bus, UdpMulticastCanBus)
+                                                                   else nullcontext)
         self._routes: dict[int, tuple[SimDrive, ...]] = {}
         self._sync_routes: dict[int, tuple[SimDrive, ...]] = {}
         self._epoch = -1
@@ -144,9 +147,8 @@ class SimNetwork:
     def _run(self) -> None:
         self._caught_up_s, self._running = time.monotonic(), True
         try:
-            drain = getattr(self.bus, "drain", None)
-            if drain is not None:
-                self._run_draining(drain)
+            if isinstance(self.bus, UdpMulticastCanBus):
+                self._run_draining(self.bus.drain)
             else:
                 self._run_receiving()
         finally:
@@ -203,7 +205,7 @@ class SimNetwork:
 
     def _on_data(self, cob: int, data: bytes | bytearray) -> bool:
         if self.rx_muted is None or not self.rx_muted():
-            self.dispatch_data(cob, data, getattr(self.bus, "rx_timestamp", 0.0))
+            self.dispatch_data(cob, data, self.bus.rx_timestamp if isinstance(self.bus, UdpMulticastCanBus) else 0.0)
         elif self.lockstep is not None and cob == self._sync_cob:
             self._on_sync(0.0, ())  # (muted: the drives hear nothing; the period still runs)
         return True

@@ -22,7 +22,6 @@ from dragd.hardware.cia301 import (
 from sim.od import ABORT_PARAMETER_INCOMPATIBLE, ABORT_VALUE_RANGE, ObjectStore, SdoAbort
 
 
-
 class Nmt:
     """NMT state, boot-up and the heartbeat this node produces."""
 

@@ -71,16 +71,14 @@ class OfflineArm:
 
     def __init__(self, truth: Truth, config: str | Path | None = None, rate_Hz: float = 1000.0,
                  csp_interpolation: bool = False) -> None:
-        from dragd.config import load_config
+        from dragd.config import check_joint_names, load_config
         from dragd.control.params import LawParams
 
         self.truth = truth
         self.model = truth.load_model()
         self.n = n = self.model.nq
         self.cfg = load_config(config)
-        if self.cfg.joint_names != list(self.model.joint_names):
-            raise ValueError(f"{self.cfg.source}: joints {self.cfg.joint_names} differ from the sim's "
-                             f"{list(self.model.joint_names)}")
+        check_joint_names(self.cfg, (self.model.joint_names, self.model.urdf_path or "the sim's robot"))
         self.law = LawParams.from_config(self.cfg)
         self.axes = [AxisIO() for _ in range(n)]
         self.physics = ArmPhysics(truth, self.model, self.axes)
@@ -103,8 +101,8 @@ class OfflineArm:
 
     def run(self, table: np.ndarray, progress: Callable[[float], None] | None = None) -> dict[str, np.ndarray]:
         """Follow ``table`` (rows every loop period, the daemon's TRACK table); return the telemetry arrays."""
-        from dragd.control.law import Workspace, friction_current
         from dragd.control.estimate import VelocityEstimator
+        from dragd.control.law import Workspace, friction_current
 
         n, sub, dt = self.n, self.sub, self.dt
         phys, axes, law = self.physics, self.axes, self.law

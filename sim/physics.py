@@ -636,6 +636,7 @@ class ArmPhysics:
             checks.append(("hidden.gear_damping_ratio", dg * inv_pair * dt, jo))
         for what, value, j in checks:
             if value > STABILITY_MARGIN:
-                raise TruthError(f"{self.truth.source}: joints[{j}].{what}: expected a value the {self.truth.physics_rate_Hz} Hz "
+                raise TruthError(f"{self.truth.source}: joints[{j}].{what}: expected a value the "
+                                 f"{self.truth.physics_rate_Hz} Hz "
                                  f"step integrates stably (ω·dt or c·dt/I <= {STABILITY_MARGIN}), got {value:.2f}; "
                                  "lower it or raise physics_rate_Hz")

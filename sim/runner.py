@@ -36,16 +36,16 @@ from typing import Any
 import numpy as np
 
 from dragd.hardware.bus import BusSpec, UdpMulticastCanBus, open_bus, parse_bus
-from dragd.daemon.server import CommandTable, ControlServer
 from dragd.protocol import ControlError
 from dragd.realtime import demote_current_thread, scheduler_label, set_realtime
+from dragd.server import CommandTable, ControlServer
 from sim.axis import AxisIO
 from sim.drive import SimDrive
 from sim.faults import FaultError, FaultInjector
-from sim.lockstep import LockstepSync
-from sim.network import SimNetwork
 from sim.hand import KINDS as HAND_KINDS
 from sim.hand import HandDevice, HandError
+from sim.lockstep import LockstepSync
+from sim.network import SimNetwork
 from sim.operator import Operator, ScenarioError, load_scenario, validate_scenario
 from sim.physics import ArmPhysics
 from sim.scenario_payload import PayloadSchedule, set_flange_payload
@@ -415,7 +415,8 @@ class SimProcess:
             """Teleport the arm (zero velocity); only while every drive's power stage is off."""
             if not isinstance(q_rad, list) or len(q_rad) != self.physics.n or \
                     not all(isinstance(v, (int, float)) and math.isfinite(v) for v in q_rad):
-                raise ControlError(f"set_q: q_rad: expected a list of {self.physics.n} finite numbers (rad), got {q_rad!r}")
+                raise ControlError(f"set_q: q_rad: expected a list of {self.physics.n} finite "
+                                   f"numbers (rad), got {q_rad!r}")
             for i, (v, j) in enumerate(zip(q_rad, self.truth.joints)):
                 if not j.hard_stops.lower_rad <= v <= j.hard_stops.upper_rad:
                     raise ControlError(f"set_q: q_rad[{i}]: expected within the hard stops [{j.hard_stops.lower_rad}, "
@@ -423,7 +424,8 @@ class SimProcess:
             with self.lock:
                 powered = [j.name for j, ax in zip(self.truth.joints, self.axes) if ax.power_stage_on]
                 if powered:
-                    raise ControlError(f"set_q: only while the drives are disabled; power stage on at {', '.join(powered)}")
+                    raise ControlError("set_q: only while the drives are disabled; power stage "
+                                       f"on at {', '.join(powered)}")
                 self.physics.set_state(np.array(q_rad, dtype=float))
                 return {"q_rad": self.physics.q_rad.tolist(), "t": self.physics.t_s}
 
@@ -436,7 +438,8 @@ class SimProcess:
                     if at_t_s is None:
                         return set_flange_payload(self.physics, mass_kg, com)
                     if not (isinstance(mass_kg, (int, float)) and mass_kg >= 0 and isinstance(at_t_s, (int, float))):
-                        raise ValueError(f"payload: expected mass_kg >= 0 and a sim time at_t_s, got {mass_kg!r}, {at_t_s!r}")
+                        raise ValueError("payload: expected mass_kg >= 0 and a sim time at_t_s, "
+                                         f"got {mass_kg!r}, {at_t_s!r}")
                     self.payloads.add(float(at_t_s), float(mass_kg), com)
                     return {"scheduled": True, "at_t_s": float(at_t_s), "mass_kg": float(mass_kg), "t": self.physics.t_s}
             except (ValueError, TypeError) as exc:
@@ -451,7 +454,8 @@ class SimProcess:
             """Raise a device fault in one drive (EMCY + its fault reaction), e.g. 0x2310 over-current."""
             drive = next((d for d in self.drives if d.node_id == node_id), None)
             if drive is None:
-                raise ControlError(f"fault: node_id: expected one of {[d.node_id for d in self.drives]}, got {node_id!r}")
+                raise ControlError("fault: node_id: expected one of "
+                                   f"{[d.node_id for d in self.drives]}, got {node_id!r}")
             if not 0 < int(code) <= 0xFFFF:
                 raise ControlError(f"fault: code: expected an EMCY error code 0x0001..0xFFFF, got {code!r}")
             drive.inject_fault(int(code))

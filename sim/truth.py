@@ -19,9 +19,21 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, model_validator
 
-from dragd.config import ConfigError, Expect, _read_yaml, format_validation_error
+from dragd.vocabulary import (
+    ConfigError,
+    Expect,
+    Finite,
+    NodeId,
+    NonNegFloat,
+    NonPosFloat,
+    PosFloat,
+    PosInt,
+    Strict,
+    format_validation_error,
+    read_yaml,
+)
 
 if TYPE_CHECKING:
     from dragd.model import RobotModel
@@ -31,23 +43,11 @@ if TYPE_CHECKING:
 CONFIG_DIR = Path(__file__).resolve().parent / "config"
 DEFAULT_TRUTH = CONFIG_DIR / "seed_cobot.yaml"
 
-PosFloat = Annotated[float, Field(gt=0, allow_inf_nan=False), Expect("a positive number")]
-NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False), Expect("a number >= 0")]
-NonPosFloat = Annotated[float, Field(le=0, allow_inf_nan=False), Expect("a number <= 0 (negative-direction level)")]
-Finite = Annotated[float, Field(allow_inf_nan=False), Expect("a finite number")]
-PosInt = Annotated[int, Field(gt=0), Expect("a positive integer")]
-NodeId = Annotated[int, Field(ge=1, le=127), Expect("a CANopen node id 1..127")]
-
-
 class TruthError(ConfigError):
     """A sim truth file that cannot be used; the message names file, key path and expectation."""
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_default=True, frozen=True)
-
-
-class DriveObject(_Strict):
+class DriveObject(Strict):
     """Where the drive's firmware keeps one process quantity (what the vendor's manual says), e.g. EPOS4's current
     actual value: ``{object: 30D1h:2, unit: mA}`` (sim/drive_profile.py lists the quantities and units)."""
 
@@ -55,7 +55,7 @@ class DriveObject(_Strict):
     unit: str | None = None  # None: the quantity's CiA 402 unit
 
 
-class DriveHardware(_Strict):
+class DriveHardware(Strict):
     """The integrated drive's hardware and built-in loops (what its object dictionary and firmware hold).
 
     ``eds``, ``profile``, ``objects``, ``values``, ``can_fd``: which drive model it is (sim/drive_profile.py,
@@ -89,7 +89,7 @@ class DriveHardware(_Strict):
         return self
 
 
-class FrictionTruth(_Strict):
+class FrictionTruth(Strict):
     """True joint friction, direction asymmetric: Stribeck curve plus viscous slope."""
 
     coulomb_pos_Nm: NonNegFloat = 0.0
@@ -104,9 +104,11 @@ class FrictionTruth(_Strict):
     @model_validator(mode="after")
     def _static_above_coulomb(self) -> FrictionTruth:
         if self.static_pos_Nm is not None and self.static_pos_Nm < self.coulomb_pos_Nm:
-            raise ValueError(f"expected static_pos_Nm >= coulomb_pos_Nm ({self.coulomb_pos_Nm}), got {self.static_pos_Nm}")
+            raise ValueError(f"expected static_pos_Nm >= coulomb_pos_Nm ({self.coulomb_pos_Nm}), "
+                             f"got {self.static_pos_Nm}")
         if self.static_neg_Nm is not None and self.static_neg_Nm > self.coulomb_neg_Nm:
-            raise ValueError(f"expected static_neg_Nm <= coulomb_neg_Nm ({self.coulomb_neg_Nm}), got {self.static_neg_Nm}")
+            raise ValueError(f"expected static_neg_Nm <= coulomb_neg_Nm ({self.coulomb_neg_Nm}), "
+                             f"got {self.static_neg_Nm}")
         return self
 
     @property
@@ -118,7 +120,7 @@ class FrictionTruth(_Strict):
         return self.coulomb_neg_Nm if self.static_neg_Nm is None else self.static_neg_Nm
 
 
-class HardStops(_Strict):
+class HardStops(Strict):
     """Mechanical end stops on the output: a spring-damper beyond each limit."""
 
     lower_rad: Finite
@@ -133,7 +135,7 @@ class HardStops(_Strict):
         return self
 
 
-class Ripple(_Strict):
+class Ripple(Strict):
     """Position-periodic torque ripple: amplitude·sin(cycles·θ + phase), θ the joint or motor angle."""
 
     amplitude_Nm: NonNegFloat
@@ -142,7 +144,7 @@ class Ripple(_Strict):
     phase_rad: Finite = 0.0
 
 
-class Thermal(_Strict):
+class Thermal(Strict):
     """First-order thermal model of the joint: C·dT/dt = P_friction + I²R − (T − T_ambient)/R_th.
 
     Friction levels and viscous slopes scale by 1 + friction_coefficient_per_K·(T − reference_C).
@@ -154,10 +156,11 @@ class Thermal(_Strict):
     heat_capacity_J_per_K: PosFloat = 500.0
     thermal_resistance_K_per_W: PosFloat = 0.8
     winding_resistance_ohm: NonNegFloat = 0.4
-    friction_coefficient_per_K: Annotated[float, Field(gt=-0.05, lt=0.05), Expect("a fraction per kelvin in (-0.05, 0.05)")] = -0.005
+    friction_coefficient_per_K: Annotated[float, Field(gt=-0.05, lt=0.05), Expect("a fraction per kelvin in "
+                                                                                  "(-0.05, 0.05)")] = -0.005
 
 
-class BackEmfHeadroom(_Strict):
+class BackEmfHeadroom(Strict):
     """Current-loop voltage headroom: above ``knee_rad_s`` the back-EMF leaves the loop short of voltage and the
     winding current falls short of the reported (regulated) current by A_s_per_rad·(|q̇| − knee)·sign q̇."""
 
@@ -165,7 +168,7 @@ class BackEmfHeadroom(_Strict):
     knee_rad_s: NonNegFloat = 0.0
 
 
-class FrictionDrift(_Strict):
+class FrictionDrift(Strict):
     """Friction warm-up over time, g = 1 − e^(−t/τ) (t: simulated time): the Coulomb/Stribeck levels × (1 + change·g),
     the viscous slope × (1 + viscous_change·g) (null: ``change`` for both)."""
 
@@ -174,14 +177,14 @@ class FrictionDrift(_Strict):
     viscous_change: Annotated[float, Field(gt=-0.95, lt=5), Expect("a relative change in (-0.95, 5)")] | None = None
 
 
-class Payload(_Strict):
+class Payload(Strict):
     """A point mass on the flange (the last joint's frame) that the URDF does not have."""
 
     mass_kg: NonNegFloat
     com_m: tuple[Finite, Finite, Finite] = (0.0, 0.0, 0.0)
 
 
-class Hidden(_Strict):
+class Hidden(Strict):
     """Effects the compensation model does not have (all off by default), for model-gap work."""
 
     ripple: list[Ripple] = Field(default_factory=list)
@@ -198,7 +201,7 @@ class Hidden(_Strict):
     friction_drift: FrictionDrift | None = None
 
 
-class JointTruth(_Strict):
+class JointTruth(Strict):
     name: str
     drive: DriveHardware
     gear_ratio: PosFloat
@@ -230,14 +233,14 @@ class JointTruth(_Strict):
 Bit = Annotated[int, Field(ge=0, le=31, strict=True), Expect("a bit of the drive's inputs 0..31")]
 
 
-class HandContact(_Strict):
+class HandContact(Strict):
     """A push button at the hand wired to a bit of one joint drive's digital inputs."""
 
     bit: Bit
     normally_closed: bool = False  # the bit reads 1 while the button is not pressed (a stop: a cut wire stops)
 
 
-class HandTruth(_Strict):
+class HandTruth(Strict):
     """The guiding device on the simulated arm (sim/hand.py): a three-position enabling switch and buttons, wired to
     one drive's digital inputs (60FDh; CiA 402's manufacturer bits 16-31). The operator presses them
     (sim/operator.py ``press`` / ``let_go``); dragd's configuration says which bit is what (``hand.inputs``)."""
@@ -259,12 +262,12 @@ class HandTruth(_Strict):
         return self
 
 
-class BusTruth(_Strict):
+class BusTruth(Strict):
     channel: str = "udp_multicast:239.74.163.2"  # default for `python -m sim run` without --bus
     fd: bool = True
 
 
-class Truth(_Strict):
+class Truth(Strict):
     robot: str = "seed_cobot"  # bundled robot name or URDF path (relative to the truth file)
     gravity_m_s2: tuple[Finite, Finite, Finite] = (0.0, 0.0, -9.81)
     bus: BusTruth = BusTruth()
@@ -314,7 +317,8 @@ class Truth(_Strict):
         try:
             model = RobotModel.from_urdf(self.robot, base_dir=self.base_dir, gravity_m_s2=self.gravity_m_s2)
         except (FileNotFoundError, ValueError) as exc:
-            raise TruthError(f"{self.source}: robot: expected a bundled robot name or URDF path, got {self.robot!r} ({exc})") from None
+            raise TruthError(f"{self.source}: robot: expected a bundled robot name or URDF path, "
+                             f"got {self.robot!r} ({exc})") from None
         if self.inertials:
             try:
                 model.apply_inertials(self.inertials, f"{self.source}")
@@ -417,7 +421,7 @@ def load_truth(path: str | Path | None = None) -> Truth:
         return load_truth(curated) if str(path) in BUNDLED and curated.is_file() else truth_for_robot(path)
     path = Path(path) if path is not None else DEFAULT_TRUTH
     try:
-        data = _read_yaml(path)
+        data = read_yaml(path)
     except ConfigError as exc:
         raise TruthError(str(exc)) from None
     if isinstance(data, dict) and "source" in data:

@@ -27,7 +27,7 @@ class ClosedLoop:
                  loaded_host: int | None = None) -> None:
         """``wrong_sign``: joints whose configured direction is wrong (the drive's counts and current, as the
         daemon decodes them, are the physics' negated). ``loaded_host`` (an RNG seed): the timing of a loaded
-        2-core host as measured on the rig (docs/NOTES.md): 15 % of cycles late by 1–2 periods (the physics runs
+        2-core host as measured on the rig (session notes in git): 15 % of cycles late by 1–2 periods (the physics runs
         on with the old command), 20 % of position samples repeated from the cycle before (the drive's TPDO lags)."""
         self.cfg = cfg or load_config()
         self.truth = truth or load_truth()

@@ -6,14 +6,13 @@ import math
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import yaml
+
 from dragd.telemetry.reader import read_rows
 
 from conftest import DEFAULT_CONFIG
-
 
 # Rigs whose telemetry feeds identification run as deployed: the daemon's cycle thread SCHED_FIFO 70, the simulator
 # 60 (where permitted; otherwise both say so in their status and run SCHED_OTHER). Under SCHED_OTHER on 2 cores a

@@ -81,7 +81,7 @@ def model_for(case: str) -> dict[str, Any]:
     return p
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def plan(poses: int = 2) -> Any:
     from dragd.config import load_config
     from dragd.identify import excitation as E

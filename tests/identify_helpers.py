@@ -23,17 +23,17 @@ TMP = (Path(tempfile.gettempdir()) / f"dragd-identify-tests-{_RUN}" if _RUN
 TMP.mkdir(exist_ok=True)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def robot() -> RobotModel:
     return RobotModel.from_urdf("seed_cobot")
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def limits() -> E.Limits:
     return E.Limits.from_model(robot(), load_config())
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def truth() -> dict:
     from sim.offline import truth_summary
     from sim.truth import load_truth
@@ -66,11 +66,12 @@ def _generate(plan: E.Plan, name: str, seed: int, fmt: str = "mcap", interp: boo
     return out
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _feed_forward_config() -> Path:
     """The default configuration with the TRACK feed-forward's friction scale pinned at 0.9, the value the
     estimators' bounds were set with: the logs must not move with the drag law's tuning (the full method's
-    joint-2 Coulomb level moves 6-9 % with it on the short Fourier log, see docs/NOTES.md)."""
+    joint-2 Coulomb level moves 6-9 % with it on the short Fourier log; the measurement is in the diary docs/NOTES.md,
+    in git history)."""
     import yaml
 
     from dragd.config import default_config_path
@@ -88,7 +89,7 @@ def _feed_forward_config() -> Path:
     return out
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def sync_plan() -> E.Plan:
     """Seed 002 style: joints 2 and 4 reciprocate at two speeds, one pose (~40 s)."""
     b = E.PlanBuilder(START, limits())
@@ -96,19 +97,19 @@ def sync_plan() -> E.Plan:
     return b.build("test-sync")
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def sync_log(fmt: str = "mcap", seed: int = 3, interp: bool = True) -> Path:
     return _generate(sync_plan(), "sync", seed, fmt, interp)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def symmetric_log(seed: int = 4) -> Path:
     b = E.PlanBuilder(START, limits())
     E.add_symmetric(b, passes=4, speed=0.25, rng=np.random.default_rng(seed))
     return _generate(b.build("test-symmetric"), "symmetric", seed)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def lowspeed_log() -> Path:
     b = E.PlanBuilder(START, limits())
     E.add_lowspeed(b, [1], seconds_per_joint=40.0, cycles=1)
@@ -119,7 +120,7 @@ def rel(a: float, b: float) -> float:
     return abs(a - b) / abs(b)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def fourier_log() -> Path:
     b = E.PlanBuilder(START, limits())
     E.add_fourier(b, robot(), periods=5, maxiter=20, seed=3)

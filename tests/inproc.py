@@ -47,7 +47,8 @@ class InProcess:
 
     def counts(self, q: np.ndarray) -> np.ndarray:
         s = self.scaling
-        return np.rint(np.asarray(q) * s.counts_per_rev / (2 * math.pi) * s.direction).astype(np.int64) + s.offset_counts
+        counts = np.rint(np.asarray(q) * s.counts_per_rev / (2 * math.pi) * s.direction).astype(np.int64)
+        return counts + s.offset_counts
 
     def feed(self, q: np.ndarray, current_A: np.ndarray | None = None) -> None:
         """What the drives report this cycle: positions [rad] and currents [A]."""

@@ -1,11 +1,11 @@
-"""dragd.client (asyncio) against the real control server (dragd/daemon/server.py) with a command table."""
+"""dragd.client (asyncio) against the real control server (dragd/server.py) with a command table."""
 
 import asyncio
 
 import pytest
 
 from dragd.client import Client, CommandError, DaemonUnavailable
-from dragd.daemon.server import CommandTable, ControlServer
+from dragd.server import CommandTable, ControlServer
 
 pytestmark = pytest.mark.unit
 

@@ -151,3 +151,14 @@ def test_telemetry_ring_must_hold_two_hand_overs(tmp_path, base):
     base["telemetry"]["forward_interval_s"] = 0
     msg = str(pytest.raises(ConfigError, load_config, _write(tmp_path, base)).value)
     assert "telemetry.forward_interval_s: expected an interval in (0, 2] s" in msg
+
+
+def test_friction_keys_have_one_owner() -> None:
+    """The identified friction (FrictionParams) is the configured friction's fields (FrictionConfig), each optional,
+    plus one viscous slope for both directions; identification's keys are those fields (identify/results.py)."""
+    from dragd.config import FrictionConfig, FrictionParams
+    from dragd.identify.results import FRICTION_KEYS
+
+    assert set(FrictionParams.model_fields) == set(FrictionConfig.model_fields) | {"viscous_A_s_per_rad"}
+    assert all(FrictionParams.model_fields[k].default is None for k in FrictionParams.model_fields)
+    assert FRICTION_KEYS == tuple(FrictionParams.model_fields)

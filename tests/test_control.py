@@ -8,7 +8,7 @@ import threading
 import numpy as np
 import pytest
 
-from dragd.daemon.server import CommandTable, ControlServer
+from dragd.server import CommandTable, ControlServer
 from dragd.protocol import (
     DEFAULT_SOCKET_PATH,
     ControlClient,
@@ -238,7 +238,7 @@ def test_server_in_running_loop_with_async_client(sock_path):
 
 
 def test_typed_fields_deep_nesting_and_the_client_cap(sock_path):
-    from dragd.daemon import server as srv
+    from dragd import server as srv
 
     table = make_table()
 
@@ -296,7 +296,7 @@ def test_typed_fields_deep_nesting_and_the_client_cap(sock_path):
 def test_a_trickled_request_loses_its_slot(sock_path, monkeypatch):
     """A request once begun must arrive whole within REQUEST_READ_S: a client that sends half a line and stalls
     gets an error line and is closed (it cannot hold one of the MAX_CLIENTS slots); a whole request is answered."""
-    from dragd.daemon import server as srv
+    from dragd import server as srv
 
     monkeypatch.setattr(srv, "REQUEST_READ_S", 0.3)
     with ServerThread(sock_path, make_table()):

@@ -93,7 +93,7 @@ def test_cycle_runs_as_loop_callbacks_and_raises_what_stops_it() -> None:
     import threading
 
     from dragd.clock import TIME_COB_ID, LockstepClock, encode_time_of_day
-    from dragd.hardware.reader import DrainingNotifier
+    from dragd.hardware.reader import BusReader
 
     d = Daemon(load_config(DEFAULT_CONFIG), bus_override="udp_multicast:239.74.200.1", log=lambda msg: None,
                lockstep=True)
@@ -119,7 +119,7 @@ def test_cycle_runs_as_loop_callbacks_and_raises_what_stops_it() -> None:
         io, cycle, clock = d.io, d.cycle, d.clock
         assert isinstance(clock, LockstepClock)
         clock.attach(loop)
-        notifier = DrainingNotifier(d.buses["arm"], [io.listener("arm")], loop=loop, timeout=0.05,
+        notifier = BusReader(d.buses["arm"], [io.listener("arm")], loop=loop, timeout=0.05,
                                     on_data=io.tpdo_decoder("arm"), after=io.after_frames, until=io.read_done)
         try:
             run = loop.create_task(cycle.run())

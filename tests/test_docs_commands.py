@@ -212,6 +212,8 @@ RULES: list[Rule] = [
     Rule(r"^python3 -m pip wheel ", "host", "builds the wheel: tests/wheel/run does"),
     Rule(r"^pip install ", "host", "installs into the user's environment (./dev installs the same extras)"),
     Rule(r"^ros2 ", "host", "a full ROS 2 installation on the integrator's machine (docs/ROS2.md)"),
+    Rule(r"^python -m can\.(logger|viewer|player) -i dragd_udp ", "mention",
+         "python-can's tools on dragd's bus by name: tests/test_python_can_tools.py runs can.logger and can.player"),
     Rule(r"^python -m can\.(logger|viewer) ", "host",
          "python-can's tools with the group routed to lo (root): tests/test_python_can_interop.py runs them in a "
          "network namespace"),

@@ -14,7 +14,7 @@ import can
 import pytest
 
 from dragd.hardware.bus import open_bus, parse_bus
-from dragd.hardware.reader import DrainingNotifier
+from dragd.hardware.reader import BusReader
 
 pytestmark = [pytest.mark.unit, pytest.mark.timeout(60)]
 
@@ -49,7 +49,7 @@ async def _run(bus: can.BusABC, peer: can.BusABC) -> tuple[list, list, int]:
         return cob in (0x181, 0x182)
 
     rest = _Collect()
-    notifier = DrainingNotifier(bus, [rest], loop=asyncio.get_running_loop(), on_data=on_data, timeout=0.1)
+    notifier = BusReader(bus, [rest], loop=asyncio.get_running_loop(), on_data=on_data, timeout=0.1)
     try:
         for msg in FRAMES:
             peer.send(msg)
@@ -60,7 +60,7 @@ async def _run(bus: can.BusABC, peer: can.BusABC) -> tuple[list, list, int]:
         await asyncio.sleep(0.05)
     finally:
         notifier.stop()
-    return offered, rest.got, len(notifier._readers)
+    return offered, rest.got, int(notifier._thread is not None)
 
 
 def _check(offered: list, rest: list) -> None:
@@ -72,12 +72,13 @@ def test_udp_bus_drain_claims_plain_frames_and_delivers_the_rest(request: pytest
     spec = parse_bus(f"udp_multicast:{_group(request.node.name)}")
     bus, peer = open_bus(spec), open_bus(spec)
     try:
-        offered, rest, _ = asyncio.run(_run(bus, peer))
+        offered, rest, threaded = asyncio.run(_run(bus, peer))
         c = bus.counters()
     finally:
         bus.shutdown()
         peer.shutdown()
     _check(offered, rest)
+    assert threaded == 0  # read by the loop's callback on the socket, no thread
     assert c.frames_received == 5 and c.undecodable == 0 and c.duplicates_dropped == 0
 
 
@@ -110,11 +111,12 @@ def test_bus_without_drain_is_read_frame_by_frame_with_the_same_split(request: p
     bus = can.Bus(interface="virtual", channel=channel)
     peer = can.Bus(interface="virtual", channel=channel)
     try:
-        offered, rest, readers = asyncio.run(_run(bus, peer))
+        offered, rest, threaded = asyncio.run(_run(bus, peer))
     finally:
         bus.shutdown()
         peer.shutdown()
     _check(offered, rest)
+    assert threaded == 1  # no file descriptor: the reader's thread
 
 
 @pytest.mark.parametrize("config", ["default.yaml", "two_buses.yaml"])

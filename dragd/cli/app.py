@@ -14,8 +14,22 @@ from collections.abc import Sequence
 from types import ModuleType
 from typing import Any
 
-from dragd.cli import (bench, can, contact, daemon, experiment, gap, identify, log, model, payload, ros2, sim, teach,
-                       view)
+from dragd.cli import (
+    bench,
+    can,
+    contact,
+    daemon,
+    experiment,
+    gap,
+    identify,
+    log,
+    model,
+    payload,
+    ros2,
+    sim,
+    teach,
+    view,
+)
 from dragd.cli.common import EXIT_FAIL, EXIT_USAGE, CliError, Parser
 
 COMMANDS: tuple[ModuleType, ...] = (model, bench, sim, daemon, payload, view, can, log, identify, teach, gap,

@@ -76,7 +76,8 @@ def register(sub: Any) -> None:
     b.add_argument("--cases", default=None, metavar="PATTERNS",
                    help="gap_confusion: comma-separated shell patterns of case ids (default: the whole matrix)")
     b.add_argument("--out", type=Path, default=None, metavar="DIR",
-                   help="gap_confusion: keep the generated cases and results.json here (default: a temporary directory)")
+                   help="gap_confusion: keep the generated cases and results.json here "
+                        "(default: a temporary directory)")
     b.add_argument("--profile", type=Path, default=None, metavar="DIR",
                    help="loop benchmarks: also sample the daemon and the simulator with py-spy over the session and "
                         "write DIR/daemon.svg, DIR/sim.svg (flame graphs) and DIR/*.txt (collapsed stacks)")

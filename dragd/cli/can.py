@@ -180,7 +180,8 @@ def _common(p: argparse.ArgumentParser, timeout: float = 0.5) -> None:
     p.add_argument("--bus", default=None, help="INTERFACE:CHANNEL (default: the config's first bus), e.g. "
                    "socketcan:can0, udp_multicast:239.74.163.2")
     p.add_argument("--force", action="store_true", help="act even though a master (a running daemon) drives the bus")
-    p.add_argument("--timeout", type=float, default=timeout, help=f"SDO answer timeout in seconds (default {timeout:g})")
+    p.add_argument("--timeout", type=float, default=timeout,
+                   help=f"SDO answer timeout in seconds (default {timeout:g})")
     add_config(p, params=False)
     p.add_argument("--json", action="store_true", help="print JSON")
 
@@ -201,7 +202,8 @@ def register(sub: Any) -> None:
     p = sub.add_parser("sdo", help="read or write one object of a node over SDO")
     p.add_argument("action", choices=["read", "write"])
     p.add_argument("node", metavar="NODE", help="node id 1..127")
-    p.add_argument("address", metavar="INDEX[:SUB]", help="object index in hex, sub-index (default 0), e.g. 6041, 1018:2")
+    p.add_argument("address", metavar="INDEX[:SUB]", help="object index in hex, sub-index (default "
+                                                          "0), e.g. 6041, 1018:2")
     p.add_argument("value", metavar="VALUE", nargs="?", help="write: the value (numbers: decimal or 0x hex)")
     p.add_argument("--type", choices=list(SDO_TYPES), default=None,
                    help="data type (default: the type in the EDS of the configured drive at NODE; read: unsigned by "

@@ -135,7 +135,8 @@ def cmd_detect(args: argparse.Namespace) -> int:
     from dragd.contact.calibrate import CalibrationError
 
     if not 0 < args.sensitivity <= 4:
-        raise CliError(f"--sensitivity: expected a factor in (0, 4] (1: the calibrated bands), got {args.sensitivity:g}")
+        raise CliError("--sensitivity: expected a factor in (0, 4] (1: the calibrated bands), "
+                       f"got {args.sensitivity:g}")
     model, params = _model(args)
     log = _logs(args, model, [args.log])[0]
     try:
@@ -216,7 +217,8 @@ def register(sub: Any) -> None:
                        help="a headerless CSV's blocks of one column per joint after t, e.g. q,dq,i,- ('-': not read; "
                             "default: from the column count)")
         q.add_argument("--drop-bad-rows", action="store_true",
-                       help="skip log rows with NaN/inf values, malformed or out-of-sequence rows (warned, lines named)")
+                       help="skip log rows with NaN/inf values, malformed or out-of-sequence rows "
+                            "(warned, lines named)")
         q.add_argument("--json", action="store_true", help="print JSON")
 
     c = csub.add_parser("calibrate", help="the detector's per-joint bands from free-motion logs → params file")

@@ -203,7 +203,7 @@ def _status_text(d: dict[str, Any]) -> str:
     lines = [f"mode {d['mode']}, drives {'enabled' if d['drives_enabled'] else 'disabled'}, {d['cycles']} cycles, "
              f"period p99 {d['period_p99_us'] or 0:.0f} µs, missed {d['missed_cycles']}"]
     rows = [(dr["joint"], dr["node_id"], dr["state"], f"{math.degrees(q):.3f}", f"{i:.3f}")
-            for dr, q, i in zip(d["drives"], d["q_rad"], d["current_A"])]
+            for dr, q, i in zip(d["drives"], d["q_rad"], d["current_A"], strict=True)]
     lines.append(table(["joint", "node", "state", "q_deg", "current_A"], rows))
     g, p = d.get("guard"), d.get("payload")
     if p is not None and p.get("mass_kg"):
@@ -246,7 +246,8 @@ def register(sub: Any) -> None:
     r.add_argument("--allow-dir", action="append", default=None, metavar="DIR",
                    help="a folder control requests may read/write files in, beside control.allowed_dirs (repeatable)")
     r.add_argument("--socket", default=os.environ.get("DRAGD_SOCKET") or None,
-                   help=f"control socket path (default: $DRAGD_SOCKET, else the config's control.socket, {DEFAULT_SOCKET})")
+                   help="control socket path (default: $DRAGD_SOCKET, else the config's "
+                        f"control.socket, {DEFAULT_SOCKET})")
     r.add_argument("--telemetry", default=None, help="write every cycle to this MCAP file")
     r.add_argument("--telemetry-decimation", type=int, default=None, metavar="N",
                    help="write every N-th cycle to the MCAP's /dragd/cycle (size option; overrides "
@@ -259,7 +260,8 @@ def register(sub: Any) -> None:
                    help="those channels as Foxglove's JSON or ROS 2's CDR (sensor_msgs/JointState, tf2_msgs, /rosout; "
                         "telemetry.foxglove_encoding; docs/ROS2.md)")
     r.add_argument("--realtime-priority", type=int, default=None, metavar="N",
-                   help="SCHED_FIFO priority 1..99 of the cycle thread, when permitted (0: none); overrides loop.realtime_priority")
+                   help="SCHED_FIFO priority 1..99 of the cycle thread, when permitted (0: none); "
+                        "overrides loop.realtime_priority")
     r.add_argument("--rerun", action="store_true", help="live view in rerun (needs the optional extra dragd[rerun])")
     r.add_argument("--batch-frames", action="store_true",
                    help="udp_multicast: send each cycle's command frames with the next SYNC in one datagram (the "
@@ -293,7 +295,8 @@ def register(sub: Any) -> None:
                         "or --seconds close it and the arm holds; a killed command lets it lapse): what drag.require: "
                         "lease asks for (docs/HAND.md)")
     m.add_argument("--seconds", type=float, default=None,
-                   help="with --hold: end after this long (of the daemon's clock: simulated time on the lockstep clock)")
+                   help="with --hold: end after this long (of the daemon's clock: simulated time on the lockstep "
+                        "clock)")
     m.add_argument("--lease-s", type=float, default=None, metavar="S",
                    help="with --hold: the lease period (default and at most the daemon's drag.lease_s)")
     add_socket(m)

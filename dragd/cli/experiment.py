@@ -50,7 +50,8 @@ def cmd_startup(args: argparse.Namespace) -> int:
         result["plots"] = [str(plots.startup_bars(result, out / "startup_torque.png"))]
         rows = read_rows(bench.workdir / "ramps_on.mcap")
         result["plots"].append(str(plots.ramp_trace(rows, joints[0], out / "startup_trace.png",
-                                                    f"{bench.cfg.joints[joints[0]].name}: ramps with start-up compensation")))
+                                                    f"{bench.cfg.joints[joints[0]].name}: ramps "
+                                                    "with start-up compensation")))
 
     def text(d: dict[str, Any]) -> str:
         rows = [(n, v["starting_torque_without_Nm"], v["starting_torque_with_Nm"], f"{v['reduction_pct']:.2f}",
@@ -108,7 +109,8 @@ def cmd_quality(args: argparse.Namespace) -> int:
         result["plots"] = [str(plots.quality_bars(result, out / "drag_effort.png"))]
 
     def text(d: dict[str, Any]) -> str:
-        rows = [(n, v["effort_uncompensated_Nm"], v["effort_compensated_Nm"], v["effort_pct"], v["drift_after_release_deg"])
+        rows = [(n, v["effort_uncompensated_Nm"], v["effort_compensated_Nm"], v["effort_pct"],
+                 v["drift_after_release_deg"])
                 for n, v in d["joints"].items()]
         return table(["joint", "uncompensated_Nm", "drag_Nm", "effort_%", "drift_°"], rows)
 

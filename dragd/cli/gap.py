@@ -12,7 +12,7 @@ from dragd.cli.common import CliError, Stages, add_config, emit, table
 
 
 def cmd_gap(args: argparse.Namespace) -> int:
-    from dragd.config import load_config, load_params, save_params
+    from dragd.config import check_joint_names, load_config, load_params, save_params
     from dragd.gap.effects import NAMES
     from dragd.gap.run import analyse
     from dragd.identify.data import LogError, load_log
@@ -24,9 +24,7 @@ def cmd_gap(args: argparse.Namespace) -> int:
                                                                                         cfg.robot.gravity_m_s2)
     except (FileNotFoundError, ValueError) as exc:
         raise CliError(f"--robot: {exc}") from None
-    if list(model.joint_names) != cfg.joint_names:
-        raise CliError(f"{cfg.source}: joints {', '.join(cfg.joint_names)} differ from the robot's "
-                       f"{', '.join(model.joint_names)}; give --config for this robot")
+    check_joint_names(cfg, (model.joint_names, model.urdf_path or cfg.robot.urdf))  # (else: give --config for it)
     params = load_params(args.model) if args.model else None
     if params is not None and params.inertials:  # the identified arm is the baseline's model (docs/MODEL.md)
         try:
@@ -108,7 +106,8 @@ def register(sub: Any) -> None:
                         "instead of stopping with an error")
     p.add_argument("--model", help="params file of the model to check (default: seed 000's G/K_t + Coulomb levels "
                                    "fitted on the log)")
-    p.add_argument("--out", help="write the extended model (params YAML: the daemon, `dragd model` and the sim load it)")
+    p.add_argument("--out",
+                   help="write the extended model (params YAML: the daemon, `dragd model` and the sim load it)")
     p.add_argument("--report", help="directory for the report (report.md, PNG residual plots before/after)")
     p.add_argument("--effects", help=f"candidates to consider (default all): {','.join(NAMES)}")
     add_config(p, params=False)

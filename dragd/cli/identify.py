@@ -80,7 +80,8 @@ def cmd_plan(args: argparse.Namespace) -> int:
     kinds: dict[str, int] = {}
     for s in plan.segments:
         kinds[s.kind] = kinds.get(s.kind, 0) + 1
-    data = {"out": str(out), "kind": args.kind, "duration_s": round(plan.duration_s, 3), "samples": int(plan.t_s.shape[0]),
+    data = {"out": str(out), "kind": args.kind, "duration_s": round(plan.duration_s, 3),
+            "samples": int(plan.t_s.shape[0]),
             "segments": kinds, "info": plan.info}
     emit(args, data, lambda d: f"{d['out']}: {d['kind']} plan, {d['duration_s']:.1f} s "
                                 f"({', '.join(f'{v} {k}' for k, v in d['segments'].items())})")
@@ -91,9 +92,9 @@ def cmd_plan(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from dragd.protocol import ControlClient, DaemonUnavailable
     from dragd.identify.excitation import PLAN_KINDS, Plan, PlanError
     from dragd.identify.runner import RunError, run_plan
+    from dragd.protocol import ControlClient, DaemonUnavailable
 
     client = ControlClient(args.socket, timeout_s=args.timeout)
 
@@ -148,7 +149,7 @@ def _fit_text(d: dict[str, Any]) -> str:
         lines.append(f"auto: {d['notes']['auto']}")
     for name, j in d["joints"].items():
         seen = set()
-        for k, why in j["reasons"].items():
+        for why in j["reasons"].values():
             if why in seen:
                 continue
             seen.add(why)
@@ -164,36 +165,13 @@ def _fit_text(d: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def fit_params(log: Any, model: Any, method: str, opts: Any, cfg_kt: list[float] | None = None
-               ) -> tuple[Any, Any, dict[str, Any] | None]:
-    """``identify fit``'s pipeline on a loaded (or stacked) log: the fit, its params file content and — for a
-    full-dynamics fit — the link inertials mapped from the identified base parameters (None otherwise)."""
-    from dragd.identify.methods import identify
-
-    res = identify(log, model, method, opts)
-    params = res.to_params()
-    mapped = None
-    if res.notes.get("base_parameters"):  # full dynamics (or auto that chose it): the identified arm is the model
-        from dragd.identify.inertials import inertials_from_fit
-        from dragd.identify.regressors import RegressorModel
-
-        mapped = inertials_from_fit(res, model, RegressorModel(model), cfg_kt)
-        if mapped is not None:
-            from dragd.identify.results import _jsonable
-
-            pd = params.model_dump(mode="python")
-            pd["inertials"] = mapped["inertials"]
-            pd["notes"] = {**pd["notes"], "inertials_mapping": _jsonable(mapped["mapping"])}
-            params = type(params).model_validate(pd)
-    return res, params, mapped
-
-
 def cmd_fit(args: argparse.Namespace) -> int:
+    import time
+
     from dragd.config import save_params
     from dragd.identify.data import LogError, stack_logs
+    from dragd.identify.fit import fit_params
     from dragd.identify.methods import Options
-
-    import time
 
     with Stages(args, "identify fit") as st:
         st.stage("loading the robot model")
@@ -210,7 +188,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
             else:
                 kt = floats(args.torque_constants, "--torque-constants")
                 if len(kt) != model.nq or not all(k > 0 for k in kt):
-                    raise CliError(f"--torque-constants: expected {model.nq} positive joint-side torque constants [N·m/A] "
+                    raise CliError(f"--torque-constants: expected {model.nq} positive joint-side "
+                                   "torque constants [N·m/A] "
                                    f"({', '.join(model.joint_names)}) or 'config', got {args.torque_constants!r}")
                 opts.torque_constants = list[float | None](kt)
             if args.method not in ("full", "auto"):
@@ -250,20 +229,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------------------------- check
 
 
-def check_params(log: Any, model: Any, params: Any, params_name: str = "params", **kw: Any) -> Any:
-    """``identify check``'s pipeline: the params' link inertials applied to ``model`` (the identified arm,
-    docs/MODEL.md), then :func:`dragd.identify.check.check` (``kw``: cfg, terms, mask, keep_series, dynamics).
-    Raises ValueError for inertials that do not fit the model."""
-    from dragd.identify.check import check
-
-    if params.inertials:
-        model.apply_inertials(params.inertials, params_name)
-    return check(log, model, params, **kw)
-
-
 def cmd_check(args: argparse.Namespace) -> int:
-    from dragd.config import load_config, load_params
-    from dragd.identify.check import plot
+    from dragd.config import check_joint_names, load_config, load_params
+    from dragd.identify.check import check_params, plot
     from dragd.identify.data import LogError
 
     model, _ = _robot(args)
@@ -271,9 +239,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     cfg = None
     if args.config is not None:
         cfg = load_config(args.config)
-        if cfg.joint_names != list(model.joint_names):
-            raise CliError(f"{cfg.source}: joints {', '.join(cfg.joint_names)} differ from the robot's "
-                           f"{', '.join(model.joint_names)}")
+        check_joint_names(cfg, (model.joint_names, model.urdf_path or cfg.robot.urdf))
     elif not args.robot:
         cfg = load_config(None)
     log = _load_log(args.log, model, args.drop_bad_rows)
@@ -336,7 +302,8 @@ def register(sub: Any) -> None:
                                                  "the current pose")
     rn.add_argument("--out", required=True, help="MCAP file the daemon records the run to")
     add_socket(rn, timeout=30.0, json_flag=False)
-    rn.add_argument("--chunk", type=float, default=600.0, help="longest single motion [s]; longer plans are cut at rests")
+    rn.add_argument("--chunk", type=float, default=600.0, help="longest single motion [s]; longer "
+                                                               "plans are cut at rests")
     rn.add_argument("--no-progress", action="store_true", help="no progress bar")
     plan_opts(rn)
     rn.add_argument("--json", action="store_true", help="print JSON")

@@ -45,7 +45,7 @@ def cmd_model_gravity(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from None
     g = model.gravity(q)
     data = {"joints": list(model.joint_names), "gravity_Nm": [float(x) for x in g]}
-    emit(args, data, lambda d: table(["joint", "gravity_Nm"], list(zip(d["joints"], d["gravity_Nm"]))))
+    emit(args, data, lambda d: table(["joint", "gravity_Nm"], list(zip(d["joints"], d["gravity_Nm"], strict=True))))
     return 0
 
 
@@ -84,13 +84,13 @@ def cmd_model_current(args: argparse.Namespace) -> int:
     emit(args, data, lambda d: table(
         ["joint", "current_A", "gravity_A", "friction_A", "startup_A", "back_emf_A", "damping_A", "clamped"],
         list(zip(d["joints"], d["current_A"], d["gravity_A"], d["friction_A"], d["startup_A"], d["back_emf_A"],
-                 d["damping_A"], d["clamped"]))))
+                 d["damping_A"], d["clamped"], strict=True))))
     return 0
 
 
 def cmd_config_check(args: argparse.Namespace) -> int:
     """Validate the configuration, its robot and its drives (every drive's EDS, offline): every problem at once."""
-    from dragd.config import load_config
+    from dragd.config import check_joint_names, load_config
     from dragd.hardware.plan import plan_drives
     from dragd.hardware.profile import ProfileError, grouped
     from dragd.model import RobotModel
@@ -98,9 +98,7 @@ def cmd_config_check(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config, args.params)
     model = RobotModel.from_urdf(cfg.robot.urdf, cfg.base_dir, cfg.robot.gravity_m_s2)
-    if list(model.joint_names) != cfg.joint_names:
-        raise CliError(f"{cfg.source}: joints: expected the robot's joints {', '.join(model.joint_names)}, "
-                       f"got {', '.join(cfg.joint_names)}")
+    check_joint_names(cfg, (model.joint_names, model.urdf_path or cfg.robot.urdf))
     try:
         plan = plan_drives(cfg)
     except ProfileError as exc:
@@ -135,7 +133,8 @@ def cmd_config_check(args: argparse.Namespace) -> int:
         for b in d["bus_load"]:
             lines.append(f"bus '{b['name']}': {'CAN FD' if b['fd'] else 'classic CAN'}, layout {b['layout']}"
                          f"{'' if b['position_targets'] else ' (no position targets)'}, worst-case load "
-                         f"{b['load_pct']:.1f} % (no stuff bits {b['load_min_pct']:.1f} %), limit {b['limit_pct']:.0f} %")
+                         f"{b['load_pct']:.1f} % (no stuff bits {b['load_min_pct']:.1f} %), "
+                         f"limit {b['limit_pct']:.0f} %")
         for r in d["refused"]:
             lines.append(f"refused: {r}")
         verdict = "ok" if d["ok"] else "NOT usable"

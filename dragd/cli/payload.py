@@ -19,7 +19,7 @@ def _estimate_text(d: dict[str, Any]) -> str:
     lines = [f"payload estimate from {d['samples']} rests at {d['poses']} poses:",
              f"  mass {d['mass_kg']:.3f} kg (std {d['mass_std_kg']:.3f} kg)",
              "  centre of mass " + ", ".join(f"{a} {v * 1000:+.0f} mm (std {s * 1000:.0f})"
-                                             for a, v, s in zip("xyz", d["com_m"], d["com_std_m"])),
+                                             for a, v, s in zip("xyz", d["com_m"], d["com_std_m"], strict=True)),
              f"  rms residual {d['rms_residual_Nm']:.2f} N·m", f"  {d['observability']}"]
     if d.get("applied"):
         lines.append("  applied: " + _applied(d["applied"]))

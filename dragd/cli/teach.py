@@ -49,7 +49,8 @@ def cmd_teach_mark(args: argparse.Namespace) -> int:
         kw["name"] = args.name
     resp = call_daemon(args, "teach", **kw)
     resp.pop("ok", None)
-    emit(args, resp, lambda d: f"{d['name']} (waypoint {d['index']}) at t = {d['t_s']:.3f} s: q = [{_deg(d['q_rad'])}]°")
+    emit(args, resp,
+         lambda d: f"{d['name']} (waypoint {d['index']}) at t = {d['t_s']:.3f} s: q = [{_deg(d['q_rad'])}]°")
     return 0
 
 
@@ -65,7 +66,8 @@ def _programs_text(d: dict[str, Any]) -> str:
     rows = []
     for p in d["programs"]:
         if p.get("interrupted"):
-            rows.append((Path(p["path"]).stem, "-", "-", "-", f"interrupted: dragd teach recover {Path(p['path']).stem}"))
+            stem = Path(p["path"]).stem
+            rows.append((stem, "-", "-", "-", f"interrupted: dragd teach recover {stem}"))
         elif "error" in p:
             rows.append((Path(p["path"]).stem, "-", "-", "-", p["error"][:60]))
         else:
@@ -155,7 +157,8 @@ def cmd_teach_keyframes(args: argparse.Namespace) -> int:
             "max_deviation_deg": round(math.degrees(kf.max_deviation_rad), 4), "tolerance_deg": args.tolerance_deg,
             "written": False}
     if args.write:
-        prog.keyframes = [Keyframe(t_s=float(t[i]), q_rad=q[i].tolist(), kind=k) for i, k in zip(kf.index, kf.kind)]
+        prog.keyframes = [Keyframe(t_s=float(t[i]), q_rad=q[i].tolist(), kind=k)
+                          for i, k in zip(kf.index, kf.kind, strict=True)]
         prog.notes = {**prog.notes, "keyframe_tolerance_deg": args.tolerance_deg}
         save_program(prog, args.program)
         data["written"] = True
@@ -323,7 +326,8 @@ def register(sub: Any) -> None:
     sh.set_defaults(func=cmd_teach_show)
     kf = tsub.add_parser("keyframes", help="reduce a program's continuous recording to keyframes (post-processing)")
     kf.add_argument("program", type=Path)
-    kf.add_argument("--tolerance-deg", type=float, default=0.5, help="max deviation of the replayed path (default 0.5°)")
+    kf.add_argument("--tolerance-deg", type=float, default=0.5,
+                    help="max deviation of the replayed path (default 0.5°)")
     kf.add_argument("--pause-s", type=float, default=0.3, help="a hand still this long marks a stop (default 0.3 s)")
     kf.add_argument("--write", action="store_true", help="store the keyframes in the program (replay uses them)")
     kf.add_argument("--json", action="store_true", help="print JSON")
@@ -331,7 +335,8 @@ def register(sub: Any) -> None:
 
     r = sub.add_parser("replay", help="replay a taught program in CSP (or: replay pause | resume | stop | speed X | "
                                       "status)")
-    r.add_argument("target", metavar="PROGRAM", help="program name or .yaml path; or pause, resume, stop, speed, status")
+    r.add_argument("target", metavar="PROGRAM",
+                   help="program name or .yaml path; or pause, resume, stop, speed, status")
     r.add_argument("value", nargs="?", default=None, help=argparse.SUPPRESS)
     r.add_argument("--interp", choices=["linear", "circular", "spline"], default="linear",
                    help="linear: point-to-point joint moves; circular: Cartesian circle through p1, p2, p3; "

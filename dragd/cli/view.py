@@ -59,7 +59,6 @@ def cmd_view(args: argparse.Namespace) -> int:
 
         from dragd.cli.daemon import call_daemon
         from dragd.lease import LeaseError, LeaseHolder
-
         from dragd.protocol import ControlClient
 
         def call(cmd: str, timeout_s: float | None = None, **kw: Any) -> dict[str, Any]:

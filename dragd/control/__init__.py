@@ -1,1 +1,2 @@
-"""The control law of every mode and its estimate: pure functions and state over numpy arrays (no asyncio, no CAN, no pydantic)."""
+"""The control law of every mode and its estimate: pure functions and state over numpy arrays (no asyncio, no CAN,
+no pydantic)."""

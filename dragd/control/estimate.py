@@ -15,7 +15,6 @@ from typing import Any
 import numpy as np
 
 
-
 class VelocityEstimator:
     """Per-joint filtered differentiation of int32 encoder counts (wrap-safe); allocation-free ``update``."""
 
@@ -47,7 +46,8 @@ class VelocityEstimator:
 
     def reset(self, counts: np.ndarray) -> None:
         if np.asarray(counts).dtype.kind not in "iu":  # update() wraps differences with an unsafe integer cast
-            raise TypeError(f"VelocityEstimator: encoder counts must be an integer array, got {np.asarray(counts).dtype}")
+            raise TypeError("VelocityEstimator: encoder counts must be an integer array, "
+                            f"got {np.asarray(counts).dtype}")
         self._last[:] = counts
         self.velocity_rad_s.fill(0.0)
         self._age.fill(0.0)

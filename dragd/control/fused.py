@@ -24,7 +24,6 @@ from dragd.control.law import LawOutput, Workspace, compensate
 from dragd.control.params import LawParams
 from dragd.jit import compile_kernels
 
-
 # rows of the packed per-joint parameters
 (KT, LIMIT, COUL_POS, COUL_NEG, STAT_POS, STAT_NEG, STRIB_V, STRIB_EXP, VISC_POS, VISC_NEG, AMP_POS, AMP_NEG, FREQ,
  REST_THR, FADE_W, BACK_EMF, DAMPING, HOLD_S, SETTLE_S) = range(19)

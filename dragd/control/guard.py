@@ -277,7 +277,8 @@ class RunawayGuard:
             s.keep_speed, s.residual_A, s.confirm_s, s.run_max_s, t_s >= self.retest_at, self.running)
         return self._decided(code, t_s, q)
 
-    def update(self, t_s: float, q: np.ndarray, dq: np.ndarray, p_Nms: np.ndarray, tau_in_Nm: np.ndarray) -> Trip | None:
+    def update(self, t_s: float, q: np.ndarray, dq: np.ndarray, p_Nms: np.ndarray,
+               tau_in_Nm: np.ndarray) -> Trip | None:
         """One cycle: advance the observer; a :class:`Trip` when a joint runs away."""
         if not self.armed:
             return None
@@ -377,7 +378,8 @@ class RunawayGuard:
         return None
 
     def _fast_test(self, t_s: float, q: np.ndarray, dq: np.ndarray, due: np.ndarray) -> Trip | None:
-        """The fast path's test, unless a deferred verdict's retest is not due yet (a joint at rest may hide the load)."""
+        """The fast path's test, unless a deferred verdict's retest is not due yet (a joint at rest may hide the
+        load)."""
         return None if t_s < self._retest_stuck_at else self._decide(t_s, q, dq, due)
 
     def _decide(self, t_s: float, q: np.ndarray, dq: np.ndarray, due: np.ndarray) -> Trip | None:
@@ -416,6 +418,7 @@ class RunawayGuard:
         kg_text = f"; a load of about {kg:.2f} kg at the flange would explain it" if math.isfinite(kg) else ""
         text = (f"runaway in drag: {self.names[j]} moving {v:+.3f} rad/s, driven by {r:+.1f} N·m "
                 f"({r / self.kt[j]:+.2f} A) that the model and no hand explain{kg_text}; holding. "
-                "Check the payload (dragd payload estimate) and the joint's sign and torque constant (dragd check model)")
+                "Check the payload (dragd payload estimate) and the joint's sign and torque constant "
+                "(dragd check model)")
         self.disarm()
         return Trip(j, r, r / float(self.kt[j]), v, kg, unexplained, text)

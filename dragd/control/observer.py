@@ -1,4 +1,5 @@
-"""The generalised-momentum observer (De Luca's residual): one arithmetic for the runaway guard and the contact detector.
+"""The generalised-momentum observer (De Luca's residual): one arithmetic for the runaway guard and the contact
+detector.
 
 With p = M̄(q)·q̇ the generalised momentum (M̄ = M + the rotor inertias) and τ_in every torque the model accounts for,
 

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields, replace
 from collections.abc import Callable
+from dataclasses import dataclass, field, fields, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -68,8 +68,8 @@ class LawParams:
         def arr(get: Callable[[Any], float]) -> np.ndarray:
             return np.array([float(get(j)) for j in js], dtype=float)
 
-        fs_pos = arr(lambda j: j.friction.static_pos_A if j.friction.static_pos_A is not None else j.friction.coulomb_pos_A)
-        fs_neg = arr(lambda j: j.friction.static_neg_A if j.friction.static_neg_A is not None else j.friction.coulomb_neg_A)
+        fs_pos = arr(lambda j: j.friction.coulomb_pos_A if j.friction.static_pos_A is None else j.friction.static_pos_A)
+        fs_neg = arr(lambda j: j.friction.coulomb_neg_A if j.friction.static_neg_A is None else j.friction.static_neg_A)
         scale = cfg.law.startup_scale
         amp_pos = np.array([j.startup.amplitude_pos_A if j.startup.amplitude_pos_A is not None else scale * fs_pos[i]
                             for i, j in enumerate(js)], dtype=float)
@@ -91,7 +91,8 @@ class LawParams:
             startup_freq_Hz=arr(lambda j: j.startup.frequency_Hz),
             rest_threshold_rad_s=arr(lambda j: j.startup.rest_threshold_rad_s),
             fade_width_rad_s=arr(lambda j: j.startup.fade_width_rad_s),
-            back_emf_A_s_per_rad=arr(lambda j: j.back_emf.constant_V_s_per_rad * j.gear_ratio / j.back_emf.resistance_ohm),
+            back_emf_A_s_per_rad=arr(lambda j: j.back_emf.constant_V_s_per_rad * j.gear_ratio
+                                     / j.back_emf.resistance_ohm),
             damping_A_s_per_rad=arr(lambda j: j.drag_damping_Nm_s_per_rad / j.kt_Nm_per_A),
             breakout_slip_rad=arr(lambda j: j.breakout_slip_rad),
             breakout_hold_s=arr(lambda j: j.startup.breakout_hold_s),
@@ -120,7 +121,7 @@ def _back_emf_from_effects(cfg: Config) -> dict[str, object]:
         return {}
     base = [j.back_emf.constant_V_s_per_rad * j.gear_ratio / j.back_emf.resistance_ohm for j in js]
     return {"back_emf_A_s_per_rad": [j.effects.back_emf.A_s_per_rad if j.effects.back_emf is not None else b
-                                     for j, b in zip(js, base)], "use_back_emf": True}
+                                     for j, b in zip(js, base, strict=True)], "use_back_emf": True}
 
 
 @dataclass(frozen=True)
@@ -158,7 +159,8 @@ class EffectArrays:
                 cyc[i, h], sa[i, h], ca[i, h] = term.cycles_per_rev, term.sin_A, term.cos_A
         td = [e.temperature_drift for e in effs]
         return cls(periodic_cycles=cyc, periodic_sin_A=sa, periodic_cos_A=ca,
-                   load_friction_A_per_Nm=np.array([e.load_friction_per_Nm / j.kt_Nm_per_A for e, j in zip(effs, js)]),
+                   load_friction_A_per_Nm=np.array([e.load_friction_per_Nm / j.kt_Nm_per_A
+                                                    for e, j in zip(effs, js, strict=True)]),
                    offset_A=np.array([e.current_offset_A for e in effs], dtype=float),
                    drift_change=np.array([0.0 if d is None else d.friction_change for d in td]),
                    drift_time_constant_s=np.array([np.inf if d is None else d.time_constant_s for d in td]),

@@ -55,8 +55,9 @@ class DragLease:
     def open(self, t: float, holder: str, period_s: float | None = None) -> int:
         """A new lease from ``t`` (ValueError while another is active, or for a period beyond the configured one)."""
         if self.state == ACTIVE:
-            raise ValueError(f"lease open: lease {self.id} of '{self.holder}' is active (renewed {t - self.renewed_t:.3f} "
-                             f"s ago, period {self.period_s:g} s); one client holds drag at a time")
+            raise ValueError(f"lease open: lease {self.id} of '{self.holder}' is active "
+                             f"(renewed {t - self.renewed_t:.3f} s ago, period {self.period_s:g} s); "
+                             "one client holds drag at a time")
         p = self.max_period_s if period_s is None else float(period_s)
         if not 0.01 <= p <= self.max_period_s:
             raise ValueError(f"lease open: period_s: expected 0.01..{self.max_period_s:g} s (drag.lease_s), got {p:g}")

@@ -35,8 +35,8 @@ def _safety_kernel(q: np.ndarray, dq: np.ndarray, speed_cap: bool, out: np.ndarr
         if near:
             for lo in (False, True):
                 pen = lim_lo[j] - q[j] if lo else q[j] - lim_hi[j]
-                v = dq[j] if (lo and (dq[j] <= 0.0 or dq[j] != dq[j])) or (not lo and (dq[j] >= 0.0 or dq[j] != dq[j])) \
-                    else 0.0  # np.minimum(dq, 0) / np.maximum(dq, 0)
+                toward = dq[j] <= 0.0 if lo else dq[j] >= 0.0
+                v = dq[j] if toward or dq[j] != dq[j] else 0.0  # np.minimum(dq, 0) / np.maximum(dq, 0)
                 pen += margin
                 pen = pen if (pen >= 0.0 or pen != pen) else 0.0
                 v *= 1.0 if pen > 0.0 else 0.0

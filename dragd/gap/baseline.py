@@ -51,8 +51,8 @@ class Baseline:
 def given(d: GapData, params: Any, cfg: Any) -> Baseline:
     """The model of a params file overlaid on the configuration ``cfg`` (K_t/friction the file leaves null)."""
     from dragd.config import apply_params
-    from dragd.identify.check import law_from_params
     from dragd.control.law import Workspace, friction_current, viscous_current
+    from dragd.identify.check import law_from_params
 
     law, _ = law_from_params(params, d.names, cfg)
     cfg2 = apply_params(cfg, params, "params")
@@ -151,7 +151,7 @@ def _kt_determined(d: GapData, j: int, X: np.ndarray, kt_cfg: float) -> bool:
 def update_seed000(b: Baseline, d: GapData, j: int, theta: np.ndarray) -> None:
     """After a fit: the free base coefficients of joint j → K_t (when determined), levels, friction current."""
     names = b.free_names[j]
-    th = dict(zip(names, theta[:len(names)]))
+    th = dict(zip(names, theta[:len(names)], strict=True))
     a = th.get("inv_kt")
     if a is not None and a > 0:
         b.kt[j] = 1.0 / a

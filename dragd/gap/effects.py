@@ -45,11 +45,10 @@ from typing import Any
 import numpy as np
 from scipy.ndimage import binary_dilation
 
-from dragd.identify.methods import friction_columns
-
 from dragd.gap import EFFECT_NAMES
 from dragd.gap import backlash as BL
 from dragd.gap.context import GapData
+from dragd.identify.methods import friction_columns
 
 SMOOTH_RAD_S = 0.005  # the law's zero-crossing width (law.friction_smoothing_rad_s default)
 
@@ -263,7 +262,8 @@ class LoadFriction(Effect):
 class Inertia(Effect):
     name = "inertia"
     transient = True
-    signature = "∝ q̈ (rotor inertia; with the URDF's M(q)q̈ + C q̇ when the model had no dynamics): zero at constant speed"
+    signature = ("∝ q̈ (rotor inertia; with the URDF's M(q)q̈ + C q̇ when the model had no dynamics): "
+                 "zero at constant speed")
 
     def columns(self, d, j, hyper, info):
         off = None if info.has_inertia[j] else d.tau_dyn[:, j] / info.kt[j]

@@ -80,7 +80,8 @@ def markdown(res: GapResult, files: list[str], out_dir: Path, log_path: str, mod
     lines = [f"# Model gap: {Path(log_path).name}", "",
              f"- log: `{log_path}` ({d.log.t.shape[0]} samples at {d.p.source_rate_Hz:.0f} Hz, "
              f"{d.t_rel[-1]:.1f} s; work rate {d.p.fs:.0f} Hz, regression filter {d.p.cutoff_Hz:g} Hz)",
-             f"- baseline: {'the model in `' + model + '`' if model else 'seed 000 fitted on the data (G/K_t + a Coulomb level per direction)'}",
+             "- baseline: " + (f"the model in `{model}`" if model
+                               else "seed 000 fitted on the data (G/K_t + a Coulomb level per direction)"),
              f"- extended model: {'`' + params_out + '`' if params_out else '(not written; use --out)'}",
              f"- RMSE of the raw current on sliding samples: **{_mA(j['baseline']['rmse_A'])} mA → "
              f"{_mA(j['final']['rmse_A'])} mA** (current noise {_mA(j['final']['noise_A'])} mA, ratio "
@@ -108,7 +109,8 @@ def markdown(res: GapResult, files: list[str], out_dir: Path, log_path: str, mod
                          f"within 0.3 × the noise of this effect's); the data do not tell the two apart.")
         lines.append("")
     lines += ["## Per joint", "",
-              "| joint | noise [mA] | RMSE before [mA] | after [mA] | constant speed / accel. / reversal RMS before [mA] "
+              "| joint | noise [mA] | RMSE before [mA] | after [mA] "
+              "| constant speed / accel. / reversal RMS before [mA] "
               "| even / odd RMS before [mA] | spectrum peak before |", "|---|---|---|---|---|---|---|"]
     for k, nm in enumerate(d.names):
         lo = res.localisation.get(nm, {})
@@ -117,7 +119,8 @@ def markdown(res: GapResult, files: list[str], out_dir: Path, log_path: str, mod
         sp = lo.get("spectrum")
         spt = f"{sp['order_cycles_per_rev']:.1f}/rev, {sp['amplitude_A'] * 1e3:.1f} mA" if sp else "—"
         lines.append(f"| {nm} | {_mA(d.noise_A[k])} | {_mA(res.baseline_rmse[0][k])} | {_mA(res.final_rmse[0][k])} | "
-                     f"{_mA(ph.get('constant_speed', {}).get('rms_A'))} / {_mA(ph.get('acceleration', {}).get('rms_A'))}"
+                     f"{_mA(ph.get('constant_speed', {}).get('rms_A'))} / "
+                     f"{_mA(ph.get('acceleration', {}).get('rms_A'))}"
                      f" / {_mA(ph.get('reversal', {}).get('rms_A'))} | {_mA(eo.get('even_rms_A'))} / "
                      f"{_mA(eo.get('odd_rms_A'))} | {spt} |")
     lines += ["", "## Plots", ""] + [f"![{Path(f).stem}]({Path(f).name})" for f in files]
@@ -130,7 +133,8 @@ def markdown(res: GapResult, files: list[str], out_dir: Path, log_path: str, mod
     return str(out_dir / "report.md")
 
 
-def write(res: GapResult, out_dir: str | Path, log_path: str, model: str | None, params_out: str | None) -> dict[str, Any]:
+def write(res: GapResult, out_dir: str | Path, log_path: str, model: str | None,
+          params_out: str | None) -> dict[str, Any]:
     out = Path(out_dir)
     files = plots(res, out)
     md = markdown(res, files, out, log_path, model, params_out)

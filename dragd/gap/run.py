@@ -9,13 +9,12 @@ from typing import Any
 
 import numpy as np
 
-from dragd.identify.data import Log
-
 from dragd.gap import baseline as B
 from dragd.gap.context import GapData, load_gap_data
 from dragd.gap.effects import CATALOGUE
 from dragd.gap.localise import localise
 from dragd.gap.select import Selector
+from dragd.identify.data import Log
 
 
 @dataclass
@@ -92,7 +91,7 @@ def analyse(log: Log, robot: Any, cfg: Any, params: Any | None = None,
     after = sel.predict()
     out_effects = []
     eparams = sel.effect_params()
-    for k, (st, (name, joints, prm)) in enumerate(zip(sel.steps, eparams)):
+    for k, (st, (name, joints, prm)) in enumerate(zip(sel.steps, eparams, strict=True)):
         out_effects.append({"effect": name, "joints": joints, "params": _round(prm),
                             "rmse_A": float(f"{d.raw_rmse(sel.snapshots[k + 1])[1]:.6g}"),
                             "ambiguous_with": [{"effect": a, "joints": sorted(v, key=d.names.index)}
@@ -108,7 +107,7 @@ def analyse(log: Log, robot: Any, cfg: Any, params: Any | None = None,
                 jp["torque_constant_Nm_per_A"] = float(base.kt[j])
             cp, cn = base.coulomb_A[j]
             jp.setdefault("friction", {}).update({"coulomb_pos_A": max(cp, 0.0), "coulomb_neg_A": min(cn, 0.0)})
-    for name, joints, prm in eparams:
+    for name, _joints, prm in eparams:
         eff = CATALOGUE[name]
         if eff.shared:
             eff.write(pf, "", prm)

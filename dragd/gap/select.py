@@ -234,7 +234,8 @@ class Selector:
             self.payload_scale[jm.j] = scale
 
     def _shared_fit(self, terms: dict[int, Term], fold: int | None) -> tuple[np.ndarray, dict[int, float]]:
-        """Shared θ_p over joints (their own columns eliminated); returns θ_p and per-joint held-out SSE for ``fold``."""
+        """Shared θ_p over joints (their own columns eliminated); returns θ_p and per-joint held-out SSE for
+        ``fold``."""
         A = np.zeros((4, 4))
         b = np.zeros(4)
         parts = []
@@ -336,7 +337,8 @@ class Selector:
         sigma = float(self.d.noise_A[jm.j])
         physical = eff.physical(th1[th1.size - t.XH.shape[1]:], self.base.info(), jm.j)
         real = gain > 0 and gain >= REL_MIN * cv0 and math.sqrt(gain / n) >= ABS_MIN * sigma and dbic < 0 and physical
-        info = {"physical": physical, "cv_rmse_before_A": math.sqrt(cv0 / n), "cv_rmse_after_A": math.sqrt(max(cv1, 0.0) / n),
+        info = {"physical": physical, "cv_rmse_before_A": math.sqrt(cv0 / n),
+                "cv_rmse_after_A": math.sqrt(max(cv1, 0.0) / n),
                 "explained_rms_A": math.sqrt(max(gain, 0.0) / n), "delta_bic": dbic, "real": real}
         return (gain / n if real else 0.0), info, t
 
@@ -432,7 +434,8 @@ class Selector:
         joint, the added effect is swapped for each other per-joint candidate (its best hyperparameter); when the
         swapped model is real against the model without the effect (the selection's tests, physical sign) and its
         held-out RMS is within AMBIGUOUS × the joint's noise of the final model's, both explain the data equally and
-        the alternative is reported (``Step.ambiguous``). The shared payload and the play's predictor are not swapped."""
+        the alternative is reported (``Step.ambiguous``). The shared payload and the play's predictor are not
+        swapped."""
         info = self.base.info()
         for st in self.steps:
             st.ambiguous = {}

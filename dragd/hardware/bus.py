@@ -19,9 +19,11 @@ For this each sender stamps the msgpack ``channel`` field (the map's first key, 
 its own echoes by their first bytes) with a 64-bit integer: a random 32-bit sender
 token (per bus instance) in the high half and a 32-bit sequence number in the low half (the receiver
 replaces the field with its own channel name). Python-can's ``channel`` field accepts any msgpack value,
-so the frames stay readable by python-can: with the group routed to the loopback interface
-(``ip route add 239.74.0.0/16 dev lo``) python-can's own udp_multicast bus and tools (can.logger, can.viewer) join
-on ``lo`` too and talk to dragd and the sim both ways (docs/TOOLS.md, tests/test_python_can_interop.py). A receiver tracks, per sender token, the highest sequence
+so the frames stay readable by python-can. python-can opens this bus by name: it is registered as the
+``can.interface`` entry point ``dragd_udp`` (``can.Bus(interface="dragd_udp", channel=GROUP)``, ``python -m can.logger
+-i dragd_udp -c GROUP``; tests/test_python_can_tools.py). python-can's own udp_multicast bus talks to it too once the
+group is routed to the loopback interface (``ip route add 239.74.0.0/16 dev lo``: then both join on ``lo``;
+docs/TOOLS.md, tests/test_python_can_interop.py). A receiver tracks, per sender token, the highest sequence
 seen plus a 64-frame window: repeats in the window are duplicates, numbers skipped are gaps (a frame that
 arrives late fills its gap again and counts as reordered). Losses the kernel itself counts (receive
 buffer overflow, SO_RXQ_OVFL) are reported as well. Not detectable: frames from senders that do not
@@ -34,7 +36,7 @@ the block ends. The simulated drives answer a SYNC that way (six TPDOs, one data
 wake-up instead of six). Every bus of this module decodes such datagrams, and ``drain`` hands out all their frames
 at once; ``recv`` returns them one per call, so a reader that waits on the socket between calls (python-can's
 asyncio ``Notifier``, which calls ``recv(0)`` once per wake-up) would leave the rest of a batch queued until the next
-datagram — dragd's daemon reads with ``DrainingNotifier`` and its tools with a thread that calls ``recv(timeout)``
+datagram — dragd's daemon reads with ``BusReader`` (hardware/reader.py) and its tools with a thread that calls ``recv(timeout)``
 in a loop. python-can's own udp_multicast bus cannot read batches at all (it expects exactly one map), so a bus
 that talks to python-can's tools leaves batching off (the default).
 """

@@ -27,6 +27,11 @@ OD_TPDO_COMM, OD_TPDO_MAP = 0x1800, 0x1A00  # + n - 1 for TPDO n
 COB_ID_INVALID = 1 << 31  # PDO / EMCY COB-ID bit 31: not valid
 COB_ID_NO_RTR = 1 << 30  # TPDO COB-ID bit 30: no remote frames
 COB_ID_EXTENDED = 1 << 29  # bit 29: 29-bit identifier
+PDO_TRANSMISSION_SYNC = 1  # PDO communication sub 2 (transmission type): sent/applied at every SYNC
+PDO_TRANSMISSION_EVENT = 255  # ... event-driven (device-profile specific)
+# data type indices usable as dummy mapping entries (a gap in a PDO) -> their width in bits
+DT_UNSIGNED16, DT_UNSIGNED32 = 0x0006, 0x0007
+DUMMY_TYPES = {0x0002: 8, 0x0003: 16, 0x0004: 32, 0x0005: 8, DT_UNSIGNED16: 16, DT_UNSIGNED32: 32}
 
 
 class NmtCommand(IntEnum):

@@ -15,8 +15,15 @@ from enum import IntEnum
 
 import numpy as np
 
-from dragd.hardware.cia402 import (CMD_DISABLE_VOLTAGE, CMD_QUICK_STOP, CMD_SHUTDOWN, CW_FAULT_RESET, State,
-                                   decode_statusword, next_controlword)
+from dragd.hardware.cia402 import (
+    CMD_DISABLE_VOLTAGE,
+    CMD_QUICK_STOP,
+    CMD_SHUTDOWN,
+    CW_FAULT_RESET,
+    State,
+    decode_statusword,
+    next_controlword,
+)
 
 STATE_NAMES = {s: s.name.lower() for s in State}
 

@@ -20,8 +20,8 @@ import can
 import numpy as np
 
 from dragd.clock import TIME_COB_ID
+from dragd.hardware.bus import PreparedBatch, UdpMulticastCanBus
 from dragd.hardware.cia301 import EMCY_BASE, HEARTBEAT_BASE, SYNC_COB_ID
-from dragd.hardware.bus import PreparedBatch
 from dragd.hardware.pdo import BusLayout, RpdoEncoder
 
 # joint, codec, and where the codec's values hold the position, the statusword, the current and the digital inputs
@@ -101,21 +101,21 @@ class BusIO:
                     enc = RpdoEncoder(fr, fd, min_interval_s=1.0 / fr.max_rate_Hz)
                     msg = can.Message(arbitration_id=fr.cob_id, data=enc.buffer, is_extended_id=False,
                                       is_fd=fd, bitrate_switch=fd, dlc=len(enc.buffer))
-                    with_sync = enc.cyclic and getattr(bus, "batch_frames", False) and hasattr(bus, "prepare")
+                    with_sync = enc.cyclic and isinstance(bus, UdpMulticastCanBus) and bus.batch_frames
                     self._commands.append((bus, msg, enc, with_sync))
             self._sync.append((bus, can.Message(arbitration_id=SYNC_COB_ID, data=b"", is_extended_id=False)))
             synced = [(msg, enc) for b, msg, enc, with_sync in self._commands if b is bus and with_sync]
             if synced:
                 frames = [(msg.arbitration_id, len(enc.buffer), fd) for msg, enc in synced] + [(SYNC_COB_ID, 0, False)]
-                batch = bus.prepare(frames)  # type: ignore[attr-defined]
+                assert isinstance(bus, UdpMulticastCanBus)
+                batch = bus.prepare(frames)
                 self._batched[bus] = (batch, [(view, enc.buffer) for view, (_, enc) in zip(batch.data, synced)],
                                       [msg for msg, _ in synced])
             self._heartbeat.append((bus, can.Message(arbitration_id=HEARTBEAT_BASE + master_node_id, data=b"\x05",
                                                      is_extended_id=False)))
-            expect = getattr(bus, "expect", None)
-            if expect is not None:  # (udp_multicast: the TPDOs read by their template, without unpacking maps)
+            if isinstance(bus, UdpMulticastCanBus):  # the TPDOs read by their template, without unpacking maps
                 tpdos = [fr for fr in layout.frames if fr.direction == "tpdo"]  # (on an FD bus: FD or classic)
-                expect([(fr.cob_id, fr.data_bytes, kind) for fr in tpdos for kind in {fd, False}])
+                bus.expect([(fr.cob_id, fr.data_bytes, kind) for fr in tpdos for kind in {fd, False}])
         self._emcy = {EMCY_BASE + node: i for i, node in enumerate(node_ids)}
         self._node_ids = list(node_ids)
         self._buses = [buses[name] for name in layouts]
@@ -124,9 +124,8 @@ class BusIO:
         """The lockstep clock: the simulator's datagram per period also carries its TIME frame and, when due, the
         drives' heartbeats; a bus that reads by template (udp_multicast ``expect``) learns them too."""
         for bus in self._buses:
-            expect = getattr(bus, "expect", None)
-            if expect is not None:
-                expect([(TIME_COB_ID, 6, False)] + [(HEARTBEAT_BASE + node, 1, False) for node in self._node_ids])
+            if isinstance(bus, UdpMulticastCanBus):
+                bus.expect([(TIME_COB_ID, 6, False)] + [(HEARTBEAT_BASE + node, 1, False) for node in self._node_ids])
 
     # ------------------------------------------------------------------------------------------ read
 

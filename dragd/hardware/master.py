@@ -34,7 +34,7 @@ from canopen.objectdictionary import ODVariable
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from dragd.hardware.cia301 import HEARTBEAT_BASE, NMT_COB_ID, SYNC_COB_ID, NmtCommand
-from dragd.hardware.reader import DrainingNotifier
+from dragd.hardware.reader import BusReader
 from dragd.hardware.cia402 import (MODE_CSP, MODE_CST, OD_ABORT_CONNECTION_OPTION, OD_CONTROLWORD, OD_MAX_TORQUE,
                                    OD_MODES_OF_OPERATION, OD_MODES_OF_OPERATION_DISPLAY, OD_QUICK_STOP_OPTION,
                                    OD_STATUSWORD, OD_SUPPORTED_DRIVE_MODES, OD_TARGET_TORQUE, OD_TORQUE_OFFSET, VOLTAGE_ENABLED_STATES, decode_statusword)
@@ -106,7 +106,7 @@ class BusRuntime:
     network: canopen.Network
     layout: BusLayout
     nodes: dict[int, NodeInfo] = field(default_factory=dict)
-    notifier: can.Notifier | None = None
+    notifier: BusReader | None = None  # (#32: python-can's public API only; was a can.Notifier subclass)
 
 
 STRUCT_TYPES = ODVariable.STRUCT_TYPES
@@ -154,10 +154,10 @@ class Master:
             net.subscribe(SYNC_COB_ID, self._foreign_cb(name, "SYNC"))
             net.subscribe(HEARTBEAT_BASE + cfg.master.node_id, self._foreign_cb(name, f"heartbeat of node "
                                                                                   f"{cfg.master.node_id}"))
-            rt.notifier = DrainingNotifier(bus, [*net.listeners, *listeners.get(name, [])], timeout=0.5, loop=loop,
-                                           on_data=(on_data or {}).get(name), after=after_frames,
-                                           until=read_done)
-            net.notifier = rt.notifier
+            # --- the bus reader (#32: python-can's public API, hardware/reader.py) ---
+            rt.notifier = BusReader(bus, [*net.listeners, *listeners.get(name, [])], timeout=0.5, loop=loop,
+                                    on_data=(on_data or {}).get(name), after=after_frames, until=read_done)
+            net.notifier = rt.notifier  # type: ignore[assignment]  # canopen calls stop() and reads exception
             self.runtimes[name] = rt
 
     # ------------------------------------------------------------------------------------------ NMT

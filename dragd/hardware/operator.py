@@ -18,8 +18,16 @@ from typing import Any
 import can
 import canopen
 
-from dragd.hardware.cia301 import HEARTBEAT_BASE, NMT_COB_ID, NMT_COMMANDS, SDO_RX_BASE, SDO_TX_BASE, SDO_TYPES, \
-    SYNC_COB_ID, NmtState
+from dragd.hardware.cia301 import (
+    HEARTBEAT_BASE,
+    NMT_COB_ID,
+    NMT_COMMANDS,
+    SDO_RX_BASE,
+    SDO_TX_BASE,
+    SDO_TYPES,
+    SYNC_COB_ID,
+    NmtState,
+)
 
 __all__ = ["BusBusy", "NodeInfo", "busy_reason", "scan", "parse_address", "SDO_TYPES", "sdo_read", "sdo_write", "nmt",
            "NMT_COMMANDS", "eds_identity"]

@@ -29,19 +29,21 @@ from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Literal
 
 from dragd.hardware.busload import BusLoadReport, FrameSpec, bus_load
-from dragd.hardware.profile import DUMMY_TYPES, Finding, PdoChannel, ProcessObject
+from dragd.hardware.cia301 import (
+    DUMMY_TYPES,
+    OD_RPDO_COMM,
+    OD_RPDO_MAP,
+    OD_TPDO_COMM,
+    OD_TPDO_MAP,
+    PDO_TRANSMISSION_EVENT,
+    PDO_TRANSMISSION_SYNC,
+)
+from dragd.hardware.profile import Finding, PdoChannel, ProcessObject
 
 if TYPE_CHECKING:
     from dragd.hardware.profile import DriveProfile
 
-SYNC_COB_ID = 0x080
 SHARED_RPDO_BASE = 0x200  # 0x200 (+0x80·k): "RPDO of node 0", unused by any node; not a restricted COB-ID
-DUMMY_U32 = 0x0007
-DUMMY_U16 = 0x0006
-TPDO_COMM, TPDO_MAP = 0x1800, 0x1A00
-RPDO_COMM, RPDO_MAP = 0x1400, 0x1600
-TRANS_SYNC = 1
-TRANS_EVENT = 255
 STATUS_EVENT_TIMER_MS = 100  # an event TPDO's keep-alive (where the drive has an event timer)
 
 Field = Literal["statusword", "position", "current", "controlword", "target_position", "torque", "inputs"]
@@ -87,11 +89,11 @@ class PdoSpec:
 
     @property
     def comm_index(self) -> int:
-        return (TPDO_COMM if self.direction == "tpdo" else RPDO_COMM) + self.number - 1
+        return (OD_TPDO_COMM if self.direction == "tpdo" else OD_RPDO_COMM) + self.number - 1
 
     @property
     def map_index(self) -> int:
-        return (TPDO_MAP if self.direction == "tpdo" else RPDO_MAP) + self.number - 1
+        return (OD_TPDO_MAP if self.direction == "tpdo" else OD_RPDO_MAP) + self.number - 1
 
     @property
     def data_bytes(self) -> int:
@@ -297,7 +299,7 @@ class _Planner:
             event = not role.cyclic
             inhibit_ms = role.inhibit_ms if role.inhibit_ms is not None else self.event_min_interval_ms
             timer_ms = role.event_timer_ms if role.event_timer_ms is not None else STATUS_EVENT_TIMER_MS
-            out.append(PdoSpec(role.direction, ch.number, cob, TRANS_SYNC if role.cyclic else TRANS_EVENT,
+            out.append(PdoSpec(role.direction, ch.number, cob, PDO_TRANSMISSION_SYNC if role.cyclic else PDO_TRANSMISSION_EVENT,
                                fixed if fixed is not None else role.entries,
                                inhibit_100us=inhibit_ms * 10 if event and role.direction == "tpdo" else 0,
                                event_timer_ms=(timer_ms if event and role.direction == "tpdo"
@@ -475,7 +477,8 @@ def _shared_frames(pl: _Planner, kind: str, what: str, joints: list[int], profil
             for other in group:
                 cover = list(mine) if other == gi else _dummies(bits[other], p.dummies)
                 if cover is None:
-                    pl.error(p, f"layout '{kind}' puts {len(group)} joints in {what} frame 0x{cob:03X}: this drive must "
+                    pl.error(p, f"layout '{kind}' puts {len(group)} joints in {what} frame "
+                                f"0x{cob:03X}: this drive must "
                                 f"map dummy entries over the others' {bits[other]} bits, and its EDS [DummyUsage] "
                                 f"allows {', '.join(f'{d:04X}h' for d in sorted(p.dummies)) or 'none'}",
                              f"set {pl.bus_key}.layout: per_node")

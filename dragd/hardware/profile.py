@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Literal
 import canopen
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable, datatypes
 
+from dragd.hardware.cia301 import DUMMY_TYPES, OD_RPDO_COMM, OD_RPDO_MAP, OD_TPDO_COMM, OD_TPDO_MAP
 from dragd.hardware.cia402 import (MODE_CSP, MODE_CST, OD_ABORT_CONNECTION_OPTION, OD_CONTROLWORD,
                                    OD_CURRENT_ACTUAL, OD_DIGITAL_INPUTS, OD_MAX_TORQUE, OD_MODES_OF_OPERATION,
                                    OD_MODES_OF_OPERATION_DISPLAY, OD_MOTOR_RATED_CURRENT, OD_MOTOR_RATED_TORQUE,
@@ -38,9 +39,7 @@ if TYPE_CHECKING:
 
 DEVICE_TYPE_402 = 0x0192
 HEARTBEAT_CONSUMER, HEARTBEAT_PRODUCER, IDENTITY = 0x1016, 0x1017, 0x1018
-RPDO_COMM, RPDO_MAP, TPDO_COMM, TPDO_MAP = 0x1400, 0x1600, 0x1800, 0x1A00
 MAX_PDOS = 512  # CiA 301: 1400h..15FFh, 1800h..19FFh
-DUMMY_TYPES = {0x0002: 8, 0x0003: 16, 0x0004: 32, 0x0005: 8, 0x0006: 16, 0x0007: 32}  # CiA 301 dummy entries
 
 # struct codes of the EDS data types a PDO may carry (little endian; CiA 301)
 STRUCT_CODES = {datatypes.BOOLEAN: "?", datatypes.INTEGER8: "b", datatypes.INTEGER16: "h", datatypes.INTEGER32: "i",
@@ -139,11 +138,11 @@ class PdoChannel:
 
     @property
     def comm_index(self) -> int:
-        return (TPDO_COMM if self.direction == "tpdo" else RPDO_COMM) + self.number - 1
+        return (OD_TPDO_COMM if self.direction == "tpdo" else OD_RPDO_COMM) + self.number - 1
 
     @property
     def map_index(self) -> int:
-        return (TPDO_MAP if self.direction == "tpdo" else RPDO_MAP) + self.number - 1
+        return (OD_TPDO_MAP if self.direction == "tpdo" else OD_RPDO_MAP) + self.number - 1
 
     @property
     def name(self) -> str:
@@ -230,7 +229,7 @@ def _int_default(var: ODVariable) -> int | None:
 
 def channels(od: canopen.ObjectDictionary, direction: Literal["tpdo", "rpdo"]) -> list[PdoChannel]:
     """The PDOs the EDS defines (communication and mapping object both present)."""
-    comm_base, map_base = (TPDO_COMM, TPDO_MAP) if direction == "tpdo" else (RPDO_COMM, RPDO_MAP)
+    comm_base, map_base = (OD_TPDO_COMM, OD_TPDO_MAP) if direction == "tpdo" else (OD_RPDO_COMM, OD_RPDO_MAP)
     out = []
     for k in range(MAX_PDOS):
         comm, mapping = od.get(comm_base + k), od.get(map_base + k)
@@ -391,7 +390,8 @@ class DriveProfile:
             return None
         obj = self._process("torque", index, 0, "rpdo", "the torque command", key=key)
         if obj is not None and obj.code != "h":
-            self.finding("error", index, 0, f"the torque command is {type_name(getattr(self.var(index), 'data_type', None))}; "
+            self.finding("error", index, 0, "the torque command is "
+                                            f"{type_name(getattr(self.var(index), 'data_type', None))}; "
                          "CiA 402 defines it INTEGER16 (per mille of the rated torque)", f"set {key}")
             return None
         return obj
@@ -571,9 +571,9 @@ class DriveProfile:
         if not self.has(IDENTITY, 1):
             self.finding("error", IDENTITY, 1, "missing: the vendor id (CiA 301 mandatory)")
         if not self.tpdos:
-            self.finding("error", TPDO_COMM, 0, "the EDS defines no TPDO (1800h + 1A00h)")
+            self.finding("error", OD_TPDO_COMM, 0, "the EDS defines no TPDO (1800h + 1A00h)")
         if not self.rpdos:
-            self.finding("error", RPDO_COMM, 0, "the EDS defines no RPDO (1400h + 1600h)")
+            self.finding("error", OD_RPDO_COMM, 0, "the EDS defines no RPDO (1400h + 1600h)")
 
     def _check_optional(self) -> None:
         """Optional objects: each missing one with its fallback (and a status line at boot)."""
@@ -601,11 +601,11 @@ class DriveProfile:
             self.finding("warning", HEARTBEAT_CONSUMER, 1, "missing: the drive does not watch the master's heartbeat")
         if not deadline and self.watchdog_object is None:
             if has_consumer:
-                self.finding("warning", RPDO_COMM, 5, "missing on every RPDO: no RPDO deadline; the drive stops on "
+                self.finding("warning", OD_RPDO_COMM, 5, "missing on every RPDO: no RPDO deadline; the drive stops on "
                              "a lost master heartbeat only (1016h, master.heartbeat_consumer_ms)",
                              f"name the vendor's command watchdog in {self.key}.rpdo_watchdog if the drive has one")
             else:
-                self.finding("error", RPDO_COMM, 5, "missing on every RPDO, and no 1016h heartbeat consumer: "
+                self.finding("error", OD_RPDO_COMM, 5, "missing on every RPDO, and no 1016h heartbeat consumer: "
                              "nothing stops this drive when dragd stops sending",
                              f"name the vendor's command watchdog in {self.key}.rpdo_watchdog")
 

@@ -125,7 +125,6 @@ def check(log: Log, robot: Any, params: Any, cfg: Any | None = None, terms: str 
     every joint with the robot model (with the params' link inertials applied by the caller) / K_t, what the daemon
     compensates; a joint whose K_t is unknown then falls back to its base parameters."""
     from dragd.control.law import Workspace, friction_current
-
     from dragd.identify.regressors import RegressorModel
 
     if mask not in MASKS:
@@ -253,3 +252,12 @@ def plot(res: CheckResult, names: list[str], out_dir: str | Path, max_points: in
         plt.close(fig)
         files.append(str(f))
     return files
+
+
+def check_params(log: Any, model: Any, params: Any, params_name: str = "params", **kw: Any) -> Any:
+    """``identify check``'s pipeline: the params' link inertials applied to ``model`` (the identified arm,
+    docs/MODEL.md), then :func:`dragd.identify.check.check` (``kw``: cfg, terms, mask, keep_series, dynamics).
+    Raises ValueError for inertials that do not fit the model."""
+    if params.inertials:
+        model.apply_inertials(params.inertials, params_name)
+    return check(log, model, params, **kw)

@@ -430,9 +430,11 @@ def stack_logs(logs: list[Log], max_rate_mismatch: float = 0.1) -> Log:
     first = logs[0]
     for lg in logs[1:]:
         if lg.n != first.n:
-            raise LogError(f"{lg.path}: {lg.n} joints, but {first.path} has {first.n}; stacked logs must be of one robot")
+            raise LogError(f"{lg.path}: {lg.n} joints, but {first.path} has {first.n}; stacked "
+                           "logs must be of one robot")
         if abs(lg.rate_Hz - first.rate_Hz) > max_rate_mismatch * first.rate_Hz:
-            raise LogError(f"{lg.path}: sampled at {lg.rate_Hz:.1f} Hz, {first.path} at {first.rate_Hz:.1f} Hz; stacked "
+            raise LogError(f"{lg.path}: sampled at {lg.rate_Hz:.1f} Hz, {first.path} at "
+                           f"{first.rate_Hz:.1f} Hz; stacked "
                            f"logs must share a rate within {max_rate_mismatch:.0%}")
     ts, offset = [], 0.0
     for lg in logs:

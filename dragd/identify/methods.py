@@ -22,7 +22,23 @@ from scipy.spatial import cKDTree
 
 from dragd.identify.data import Log, LogError, Prepared, motion_summary, prepare, sliding
 from dragd.identify.regressors import RegressorModel
-from dragd.identify.results import FRICTION_KEYS, FitResult, JointResult, LinearFit, linear_fit, prior_fit
+from dragd.identify.results import (
+    COULOMB_NEG_A,
+    COULOMB_POS_A,
+    FRICTION_KEYS,
+    STATIC_NEG_A,
+    STATIC_POS_A,
+    STRIBECK_EXPONENT,
+    STRIBECK_VELOCITY_RAD_S,
+    VISCOUS_A_S_PER_RAD,
+    VISCOUS_NEG_A_S_PER_RAD,
+    VISCOUS_POS_A_S_PER_RAD,
+    FitResult,
+    JointResult,
+    LinearFit,
+    linear_fit,
+    prior_fit,
+)
 
 METHODS = ("lowspeed", "symmetric", "synchronous", "full", "auto")
 PRIOR_REL = 0.05  # full dynamics: prior std of a base parameter relative to its URDF value (CAD masses)
@@ -131,10 +147,10 @@ def friction_columns(v: np.ndarray, direction: np.ndarray | None = None, vs: flo
     """Columns of dragd's friction law: F_c±, F_v±, (F_s − F_c)± for a given v_s, δ; ``direction`` = sign source."""
     d = np.sign(v) if direction is None else np.sign(direction)
     pos, neg = (d > 0).astype(float), (d < 0).astype(float)
-    cols, names = [pos, neg], ["coulomb_pos_A", "coulomb_neg_A"]
+    cols, names = [pos, neg], [COULOMB_POS_A, COULOMB_NEG_A]
     if viscous:
         cols += [v * pos, v * neg]
-        names += ["viscous_pos_A_s_per_rad", "viscous_neg_A_s_per_rad"]
+        names += [VISCOUS_POS_A_S_PER_RAD, VISCOUS_NEG_A_S_PER_RAD]
     if vs is not None:
         e = np.exp(-(np.abs(v) / vs) ** delta)
         cols += [pos * e, neg * e]
@@ -146,15 +162,15 @@ def friction_value(v: np.ndarray, fr: dict[str, float | None]) -> np.ndarray:
     """I_f(v) of a friction dict (None terms count as zero; no hump without v_s)."""
     g = {k: (0.0 if fr.get(k) is None else float(fr[k])) for k in FRICTION_KEYS}
     pos = v > 0
-    out = np.where(pos, g["coulomb_pos_A"], g["coulomb_neg_A"])
-    vp = fr.get("viscous_pos_A_s_per_rad")
-    vn = fr.get("viscous_neg_A_s_per_rad")
-    vv = fr.get("viscous_A_s_per_rad") or 0.0
+    out = np.where(pos, g[COULOMB_POS_A], g[COULOMB_NEG_A])
+    vp = fr.get(VISCOUS_POS_A_S_PER_RAD)
+    vn = fr.get(VISCOUS_NEG_A_S_PER_RAD)
+    vv = fr.get(VISCOUS_A_S_PER_RAD) or 0.0
     out = out + np.where(pos, vp if vp is not None else vv, vn if vn is not None else vv) * v
-    if fr.get("stribeck_velocity_rad_s") and fr.get("static_pos_A") is not None and fr.get("static_neg_A") is not None:
-        delta = fr.get("stribeck_exponent") or 2.0
-        e = np.exp(-(np.abs(v) / fr["stribeck_velocity_rad_s"]) ** delta)
-        out = out + np.where(pos, g["static_pos_A"] - g["coulomb_pos_A"], g["static_neg_A"] - g["coulomb_neg_A"]) * e
+    if fr.get(STRIBECK_VELOCITY_RAD_S) and fr.get(STATIC_POS_A) is not None and fr.get(STATIC_NEG_A) is not None:
+        delta = fr.get(STRIBECK_EXPONENT) or 2.0
+        e = np.exp(-(np.abs(v) / fr[STRIBECK_VELOCITY_RAD_S]) ** delta)
+        out = out + np.where(pos, g[STATIC_POS_A] - g[COULOMB_POS_A], g[STATIC_NEG_A] - g[COULOMB_NEG_A]) * e
     return np.where(v == 0, 0.0, out)
 
 
@@ -176,7 +192,7 @@ def _set_friction_from_fit(jr: JointResult, fit: LinearFit, vmax: float, reason_
                    f"{level:.4f} A); add passes at other speeds")
             jr.set(ck, None, reason=why)
             jr.set(vk, None, reason=why)
-    for key in ("coulomb_pos_A", "coulomb_neg_A"):
+    for key in (COULOMB_POS_A, COULOMB_NEG_A):
         if key in jr.reasons and "one speed only" in jr.reasons[key]:
             continue
         v, s = fit.value(key), fit.std(key)
@@ -187,7 +203,7 @@ def _set_friction_from_fit(jr: JointResult, fit: LinearFit, vmax: float, reason_
         else:
             jr.set(key, v, s)
     vis = {}
-    for key in ("viscous_pos_A_s_per_rad", "viscous_neg_A_s_per_rad"):
+    for key in (VISCOUS_POS_A_S_PER_RAD, VISCOUS_NEG_A_S_PER_RAD):
         if key in jr.reasons and "one speed only" in jr.reasons[key]:
             continue
         v, s = fit.value(key), fit.std(key)
@@ -202,18 +218,18 @@ def _set_friction_from_fit(jr: JointResult, fit: LinearFit, vmax: float, reason_
     if len(vis) == 2:
         (a, sa), (b, sb) = vis.values()
         wa, wb = 1 / max(sa, 1e-12) ** 2, 1 / max(sb, 1e-12) ** 2
-        jr.set("viscous_A_s_per_rad", (a * wa + b * wb) / (wa + wb), math.sqrt(1 / (wa + wb)))
+        jr.set(VISCOUS_A_S_PER_RAD, (a * wa + b * wb) / (wa + wb), math.sqrt(1 / (wa + wb)))
     elif len(vis) == 1:
         (a, sa), = vis.values()
-        jr.set("viscous_A_s_per_rad", a, sa)
+        jr.set(VISCOUS_A_S_PER_RAD, a, sa)
     else:
-        jr.set("viscous_A_s_per_rad", None, reason=jr.reasons.get("viscous_pos_A_s_per_rad", "not determined"))
+        jr.set(VISCOUS_A_S_PER_RAD, None, reason=jr.reasons.get(VISCOUS_POS_A_S_PER_RAD, "not determined"))
 
 
 def _physical(jr: JointResult) -> None:
     """Signs the params schema requires; an estimate of the wrong sign is zero when within 2σ, else null."""
-    rules = {"coulomb_pos_A": 1, "coulomb_neg_A": -1, "static_pos_A": 1, "static_neg_A": -1,
-             "viscous_A_s_per_rad": 1, "viscous_pos_A_s_per_rad": 1, "viscous_neg_A_s_per_rad": 1}
+    rules = {COULOMB_POS_A: 1, COULOMB_NEG_A: -1, STATIC_POS_A: 1, STATIC_NEG_A: -1,
+             VISCOUS_A_S_PER_RAD: 1, VISCOUS_POS_A_S_PER_RAD: 1, VISCOUS_NEG_A_S_PER_RAD: 1}
     for key, sign in rules.items():
         v = jr.friction.get(key)
         if v is None or v * sign >= 0:
@@ -224,14 +240,14 @@ def _physical(jr: JointResult) -> None:
         else:
             jr.set(key, None, reason=f"estimate {v:.4g} ± {s:.2g} has the wrong sign for this term (model mismatch)")
             jr.std.pop(key, None)
-    for key in ("stribeck_velocity_rad_s", "stribeck_exponent"):
+    for key in (STRIBECK_VELOCITY_RAD_S, STRIBECK_EXPONENT):
         v = jr.friction.get(key)
         if v is not None and not v > 0:
             jr.set(key, None, reason=f"estimate {v:.4g} is not positive")
-    d = jr.friction.get("stribeck_exponent")
+    d = jr.friction.get(STRIBECK_EXPONENT)
     if d is not None and not 0.3 <= d <= 4.0:  # the law's schema: δ in (0, 4]
-        jr.set("stribeck_exponent", None, reason=f"estimate {d:.3g} outside the plausible 0.3…4 (hump not determined)")
-        jr.std.pop("stribeck_exponent", None)
+        jr.set(STRIBECK_EXPONENT, None, reason=f"estimate {d:.3g} outside the plausible 0.3…4 (hump not determined)")
+        jr.std.pop(STRIBECK_EXPONENT, None)
     kt = jr.torque_constant_Nm_per_A
     if kt is not None and not kt > 0:
         jr.set("torque_constant_Nm_per_A", None, reason=f"estimate {kt:.4g} N·m/A is not positive (model mismatch)")
@@ -259,7 +275,7 @@ def _kt_from_slope(jr: JointResult, a: float | None, sa: float | None, reason_nu
     jr.set("torque_constant_Nm_per_A", kt, skt)
 
 
-PREFER_DROP = ("dstatic_pos_A", "dstatic_neg_A", "viscous_pos_A_s_per_rad", "viscous_neg_A_s_per_rad")
+PREFER_DROP = ("dstatic_pos_A", "dstatic_neg_A", VISCOUS_POS_A_S_PER_RAD, VISCOUS_NEG_A_S_PER_RAD)
 
 NO_GRAVITY = ("no gravity torque change on this joint along the motion (range {rng:.3f} N·m): K_t is not "
               "identifiable from current (only the friction lines are, seed 002 §3.2)")
@@ -310,10 +326,10 @@ def fit_lowspeed(ctx: Context) -> FitResult:
         explain = {"gravity": NO_GRAVITY.format(rng=gr)}
         if gr < 1e-6:
             A[:, 0] = 0.0
-        fit = linear_fit(A, iH[sel, j], ["gravity", "coulomb_pos_A", "coulomb_neg_A"], explain=explain)
+        fit = linear_fit(A, iH[sel, j], ["gravity", COULOMB_POS_A, COULOMB_NEG_A], explain=explain)
         _kt_from_slope(jr, fit.value("gravity"), fit.std("gravity"), fit.dropped.get("gravity", "not determined"))
         speed = float(np.mean(np.abs(vbar[sel, j])))
-        for key in ("coulomb_pos_A", "coulomb_neg_A"):
+        for key in (COULOMB_POS_A, COULOMB_NEG_A):
             v, s = fit.value(key), fit.std(key)
             if v is None:
                 jr.set(key, None, reason=fit.dropped.get(key, "no motion in this direction"))
@@ -321,8 +337,8 @@ def fit_lowspeed(ctx: Context) -> FitResult:
                 jr.set(key, v, s)
         model_note = ("seed 000's model has one constant friction level per direction (the level at the test speed, "
                       f"mean {speed:.4f} rad/s, ≈ the static level); this term is not part of it")
-        for key in ("viscous_A_s_per_rad", "viscous_pos_A_s_per_rad", "viscous_neg_A_s_per_rad", "static_pos_A",
-                    "static_neg_A", "stribeck_velocity_rad_s", "stribeck_exponent"):
+        for key in (VISCOUS_A_S_PER_RAD, VISCOUS_POS_A_S_PER_RAD, VISCOUS_NEG_A_S_PER_RAD, STATIC_POS_A,
+                    STATIC_NEG_A, STRIBECK_VELOCITY_RAD_S, STRIBECK_EXPONENT):
             jr.set(key, None, reason=model_note)
         lines = {}
         for dname, m in (("pos", posm[sel]), ("neg", negm[sel])):
@@ -388,7 +404,7 @@ def fit_synchronous(ctx: Context) -> FitResult:
         _kt_from_slope(jr, fit.value("gravity"), fit.std("gravity"), fit.dropped.get("gravity", "not determined"))
         vmax = float(np.abs(ctx.p.dq[sel, j]).max())
         _set_friction_from_fit(jr, fit, vmax, v=ctx.p.dq[sel, j])
-        for key in ("static_pos_A", "static_neg_A", "stribeck_velocity_rad_s", "stribeck_exponent"):
+        for key in (STATIC_POS_A, STATIC_NEG_A, STRIBECK_VELOCITY_RAD_S, STRIBECK_EXPONENT):
             jr.set(key, None, reason="seed 002's friction model is Coulomb + viscous per direction (no Stribeck "
                                      "term); use the symmetric or auto method for it")
         diag: dict[str, Any] = {"rows": int(sel.size), "condition_number": fit.cond, "residual_A": fit.sigma,
@@ -399,12 +415,12 @@ def fit_synchronous(ctx: Context) -> FitResult:
             i_ff = ctx.iH[sel, j] - fric
             c = np.corrcoef(i_ff, ctx.tauH[sel, j])[0, 1]
             diag["r2_friction_free_vs_gravity"] = float(c * c)
-        fc = {k: jr.friction[k] for k in ("coulomb_pos_A", "coulomb_neg_A", "viscous_pos_A_s_per_rad",
-                                           "viscous_neg_A_s_per_rad")}
-        if fc["coulomb_pos_A"] is not None and fc["viscous_pos_A_s_per_rad"] is not None:
-            diag["line_pos"] = f"I = {fc['viscous_pos_A_s_per_rad']:.4f}·v + {fc['coulomb_pos_A']:.4f} A (v > 0, rad/s)"
-        if fc["coulomb_neg_A"] is not None and fc["viscous_neg_A_s_per_rad"] is not None:
-            diag["line_neg"] = f"I = {fc['viscous_neg_A_s_per_rad']:.4f}·v {fc['coulomb_neg_A']:+.4f} A (v < 0, rad/s)"
+        fc = {k: jr.friction[k] for k in (COULOMB_POS_A, COULOMB_NEG_A, VISCOUS_POS_A_S_PER_RAD,
+                                           VISCOUS_NEG_A_S_PER_RAD)}
+        if fc[COULOMB_POS_A] is not None and fc[VISCOUS_POS_A_S_PER_RAD] is not None:
+            diag["line_pos"] = f"I = {fc[VISCOUS_POS_A_S_PER_RAD]:.4f}·v + {fc[COULOMB_POS_A]:.4f} A (v > 0, rad/s)"
+        if fc[COULOMB_NEG_A] is not None and fc[VISCOUS_NEG_A_S_PER_RAD] is not None:
+            diag["line_neg"] = f"I = {fc[VISCOUS_NEG_A_S_PER_RAD]:.4f}·v {fc[COULOMB_NEG_A]:+.4f} A (v < 0, rad/s)"
         jr.diagnostics = diag
         _physical(jr)
     return FitResult("synchronous", out, ctx.log.path, str(ctx.robot.urdf_path), list(ctx.warnings))
@@ -493,11 +509,11 @@ def stribeck_lm(v: np.ndarray, f: np.ndarray, delta: float | None, v_s0: float =
     except np.linalg.LinAlgError:
         std = np.full(J.shape[1], np.inf)
     x = res.x
-    out = {"coulomb_pos_A": (x[0], std[0]), "coulomb_neg_A": (x[1], std[1]),
+    out = {COULOMB_POS_A: (x[0], std[0]), COULOMB_NEG_A: (x[1], std[1]),
            "dstatic_pos_A": (x[2], std[2]), "dstatic_neg_A": (x[3], std[3]),
-           "viscous_pos_A_s_per_rad": (x[4], std[4]), "viscous_neg_A_s_per_rad": (x[5], std[5]),
-           "stribeck_velocity_rad_s": (math.exp(x[6]), math.exp(x[6]) * std[6]),
-           "stribeck_exponent": (delta, 0.0) if delta is not None else (math.exp(x[7]), math.exp(x[7]) * std[7]),
+           VISCOUS_POS_A_S_PER_RAD: (x[4], std[4]), VISCOUS_NEG_A_S_PER_RAD: (x[5], std[5]),
+           STRIBECK_VELOCITY_RAD_S: (math.exp(x[6]), math.exp(x[6]) * std[6]),
+           STRIBECK_EXPONENT: (delta, 0.0) if delta is not None else (math.exp(x[7]), math.exp(x[7]) * std[7]),
            "residual_A": math.sqrt(s2), "samples": int(f.size), "success": bool(res.success)}
     return out
 
@@ -516,7 +532,7 @@ def friction_curve(v: np.ndarray, f: np.ndarray, delta: float | None, slow_rad_s
                       f"{float(np.abs(v).min()):.3f} rad/s): the Stribeck hump is not observable")
         return out
     s = stribeck_lm(v, f, delta)
-    vs, svs = s["stribeck_velocity_rad_s"]
+    vs, svs = s[STRIBECK_VELOCITY_RAD_S]
     if not (np.isfinite(svs) and svs < 0.5 * vs and s["success"]):
         out["why"] = f"the Stribeck hump is not determined by the friction samples (v_s ≈ {vs:.3g} ± {svs:.2g} rad/s)"
         return out
@@ -528,14 +544,14 @@ def _apply_stribeck(jr: JointResult, sfit: dict[str, Any], v: np.ndarray) -> Non
     """Set Coulomb/viscous/static/Stribeck from an LM fit, nulling what the data does not determine."""
     vmin = float(np.abs(v).min()) if v.size else float("inf")
     vmax = float(np.abs(v).max()) if v.size else 0.0
-    vs, svs = sfit["stribeck_velocity_rad_s"]
+    vs, svs = sfit[STRIBECK_VELOCITY_RAD_S]
     hump_seen = vmin < 2.0 * vs and np.isfinite(svs) and svs < 0.5 * vs
-    for key in ("coulomb_pos_A", "coulomb_neg_A"):
+    for key in (COULOMB_POS_A, COULOMB_NEG_A):
         val, s = sfit[key]
         jr.set(key, val if s <= RESOLUTION_A else None, s,
                reason=None if s <= RESOLUTION_A else f"not determined: {val:.4f} ± {s:.4f} A")
     vis = []
-    for key in ("viscous_pos_A_s_per_rad", "viscous_neg_A_s_per_rad"):
+    for key in (VISCOUS_POS_A_S_PER_RAD, VISCOUS_NEG_A_S_PER_RAD):
         val, s = sfit[key]
         ok = s * vmax <= RESOLUTION_A
         jr.set(key, val if ok else None, s, reason=None if ok else f"not determined: {val:.4f} ± {s:.4f} A·s/rad")
@@ -543,9 +559,9 @@ def _apply_stribeck(jr: JointResult, sfit: dict[str, Any], v: np.ndarray) -> Non
             vis.append((val, s))
     if vis:
         w = np.array([1 / max(s, 1e-12) ** 2 for _, s in vis])
-        jr.set("viscous_A_s_per_rad", float(np.sum(w * [a for a, _ in vis]) / w.sum()), float(math.sqrt(1 / w.sum())))
+        jr.set(VISCOUS_A_S_PER_RAD, float(np.sum(w * [a for a, _ in vis]) / w.sum()), float(math.sqrt(1 / w.sum())))
     else:
-        jr.set("viscous_A_s_per_rad", None, reason="not determined by the friction samples")
+        jr.set(VISCOUS_A_S_PER_RAD, None, reason="not determined by the friction samples")
     why = (f"the friction samples reach down to {vmin:.4f} rad/s only; the Stribeck hump (v_s ≈ {vs:.3g} ± {svs:.2g} "
            "rad/s) is not seen by steady sliding")
     for d in ("pos", "neg"):
@@ -556,12 +572,12 @@ def _apply_stribeck(jr: JointResult, sfit: dict[str, Any], v: np.ndarray) -> Non
         else:
             jr.set(f"static_{d}_A", None, reason=why)
     if hump_seen:
-        jr.set("stribeck_velocity_rad_s", vs, svs)
-        dl, sdl = sfit["stribeck_exponent"]
-        jr.set("stribeck_exponent", dl, sdl)
+        jr.set(STRIBECK_VELOCITY_RAD_S, vs, svs)
+        dl, sdl = sfit[STRIBECK_EXPONENT]
+        jr.set(STRIBECK_EXPONENT, dl, sdl)
     else:
-        jr.set("stribeck_velocity_rad_s", None, reason=why)
-        jr.set("stribeck_exponent", None, reason=why)
+        jr.set(STRIBECK_VELOCITY_RAD_S, None, reason=why)
+        jr.set(STRIBECK_EXPONENT, None, reason=why)
 
 
 def breakaway_levels(ctx: Context, j: int, i_free: np.ndarray, min_stick_s: float = 0.08,
@@ -651,7 +667,8 @@ def fit_symmetric(ctx: Context) -> FitResult:
         A = np.column_stack([cols, np.ones(a.size)])
         names = [f"beta{k}" for k in range(base.r)] + ["asymmetry_A"]
         fit = linear_fit(A, y, names, priority=names[:-1] + ["asymmetry_A"],
-                         explain={"asymmetry_A": "the direction asymmetry (F₊ + F₋)/2 is not separable from the gravity "
+                         explain={"asymmetry_A": "the direction asymmetry (F₊ + F₋)/2 is not "
+                                                 "separable from the gravity "
                                                  "terms along these passes (seed 001's odd-friction assumption applies)"})
         beta = np.array([fit.value(f"beta{k}") or 0.0 for k in range(base.r)])
         live = [k for k in range(base.r) if fit.value(f"beta{k}") is not None]
@@ -693,7 +710,7 @@ def fit_symmetric(ctx: Context) -> FitResult:
             lin = curve["linear"]
             _set_friction_from_fit(jr, lin, float(sp.max()), v=vv)
             why = curve["why"]
-            for key in ("static_pos_A", "static_neg_A", "stribeck_velocity_rad_s", "stribeck_exponent"):
+            for key in (STATIC_POS_A, STATIC_NEG_A, STRIBECK_VELOCITY_RAD_S, STRIBECK_EXPONENT):
                 jr.set(key, None, reason=why)
             jr.diagnostics["friction_fit_residual_A"] = lin.sigma
         # the mirrored samples count twice: the stds of the symmetric curve are √2 too small
@@ -701,20 +718,20 @@ def fit_symmetric(ctx: Context) -> FitResult:
             if key != "torque_constant_Nm_per_A":
                 jr.std[key] *= math.sqrt(2.0)
         shift = c if c is not None else 0.0
-        for key in ("coulomb_pos_A", "coulomb_neg_A", "static_pos_A", "static_neg_A"):
+        for key in (COULOMB_POS_A, COULOMB_NEG_A, STATIC_POS_A, STATIC_NEG_A):
             if jr.friction[key] is not None:
                 jr.friction[key] += shift
                 jr.std[key] = math.hypot(jr.std.get(key, 0.0), cs)
         why_v = ("symmetric extraction (half-differences) gives the mean slope of both directions only; see "
-                 "viscous_A_s_per_rad")
-        for key in ("viscous_pos_A_s_per_rad", "viscous_neg_A_s_per_rad"):
+                 + VISCOUS_A_S_PER_RAD)
+        for key in (VISCOUS_POS_A_S_PER_RAD, VISCOUS_NEG_A_S_PER_RAD):
             jr.friction[key] = None
             jr.std.pop(key, None)
             jr.reasons[key] = why_v
         if c is None:
             jr.diagnostics["asymmetry"] = ("not determined: levels reported symmetric (seed 001's odd-friction "
                                            "assumption)")
-        if jr.friction["static_pos_A"] is None or jr.friction["static_neg_A"] is None:
+        if jr.friction[STATIC_POS_A] is None or jr.friction[STATIC_NEG_A] is None:
             brk = breakaway_levels(ctx, j, p.i[:, j] - ghat)
             for d, (lvl, s, cnt) in brk.items():
                 if jr.friction[f"static_{d}_A"] is None:
@@ -876,13 +893,13 @@ def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
                     jr.set(f"static_{d}_A", c + dv, math.hypot(fit.std(f"dstatic_{d}_A"), jr.std.get(f"coulomb_{d}_A", 0)))
                 else:
                     jr.set(f"static_{d}_A", None, reason="Stribeck hump not determined")
-            jr.set("stribeck_velocity_rad_s", stb[0], None)
-            jr.set("stribeck_exponent", stb[1], None)
+            jr.set(STRIBECK_VELOCITY_RAD_S, stb[0], None)
+            jr.set(STRIBECK_EXPONENT, stb[1], None)
             jr.diagnostics["stribeck"] = "variable projection over a v_s × δ grid (grid resolution, no std)"
         else:
             why_s = ("too little sliding below 0.1 rad/s to see a Stribeck hump" if slow_share <= 0.05 else
                      "a determined Stribeck hump does not lower the residual")
-            for key in ("static_pos_A", "static_neg_A", "stribeck_velocity_rad_s", "stribeck_exponent"):
+            for key in (STATIC_POS_A, STATIC_NEG_A, STRIBECK_VELOCITY_RAD_S, STRIBECK_EXPONENT):
                 jr.set(key, None, reason=why_s)
         # identified base parameters β̂ = c·β_URDF + δβ and their covariance (J·cov·Jᵀ)
         names = fit.names
@@ -958,7 +975,8 @@ def fit_auto(ctx: Context) -> FitResult:
     if steady_share < 0.15 and moving.any():
         res = fit_full(ctx)
         res.method = "auto"
-        res.notes["auto"] = (f"full dynamics: only {steady_share:.0%} of the moving samples are steady (constant speed); "
+        res.notes["auto"] = (f"full dynamics: only {steady_share:.0%} of the moving samples are "
+                             "steady (constant speed); "
                              "the log excites the rigid-body dynamics")
         return res
     movers = [j for j in range(ctx.n) if not ctx.never_moves(j)]
@@ -1025,30 +1043,30 @@ def fit_auto(ctx: Context) -> FitResult:
             why = (f"seed 000's model (one joint, one speed each way): one friction level per direction, the level at "
                    f"the test speed (+{sp['pos']:.3f}/−{sp['neg']:.3f} rad/s); viscous friction is not separable "
                    "from it at one speed — add passes at other speeds to identify it")
-            for key in ("viscous_A_s_per_rad", "viscous_pos_A_s_per_rad", "viscous_neg_A_s_per_rad"):
+            for key in (VISCOUS_A_S_PER_RAD, VISCOUS_POS_A_S_PER_RAD, VISCOUS_NEG_A_S_PER_RAD):
                 jr.set(key, None, reason=why)
             jr.diagnostics["model"] = "seed 000 (level at the test speed)"
             seed000.append(f"seed-000 experiment recognised: one joint ({name}), one speed each way; Coulomb = level "
                            f"at {sp['pos']:.2f} rad/s (+) and {sp['neg']:.2f} rad/s (−): "
-                           f"{jr.friction['coulomb_pos_A']:+.4f}/{jr.friction['coulomb_neg_A']:+.4f} A, gravity "
+                           f"{jr.friction[COULOMB_POS_A]:+.4f}/{jr.friction[COULOMB_NEG_A]:+.4f} A, gravity "
                            "removed with the fitted K_t (seed 000 eq. 20)")
         if stb is not None and stb[2] < 0.5 * stb[0]:
             for d in ("pos", "neg"):
                 c, dv, ds = jr.friction[f"coulomb_{d}_A"], fit.value(f"dstatic_{d}_A"), fit.std(f"dstatic_{d}_A")
                 if c is not None and dv is not None and ds <= RESOLUTION_A:
                     jr.set(f"static_{d}_A", c + dv, math.hypot(ds, jr.std.get(f"coulomb_{d}_A", 0.0)))
-            jr.set("stribeck_velocity_rad_s", stb[0], stb[2])
-            jr.set("stribeck_exponent", stb[1], stb[3])
+            jr.set(STRIBECK_VELOCITY_RAD_S, stb[0], stb[2])
+            jr.set(STRIBECK_EXPONENT, stb[1], stb[3])
             jr.diagnostics["stribeck_source"] = "steady sliding, variable projection (LM)"
         else:
             why_s = (f"no steady sliding below {vmin:.3f} rad/s (stick–slip or no slow passes): the Stribeck curve is "
                      "not observable in steady motion")
-            jr.set("stribeck_velocity_rad_s", None, reason=why_s)
-            jr.set("stribeck_exponent", None, reason=why_s)
+            jr.set(STRIBECK_VELOCITY_RAD_S, None, reason=why_s)
+            jr.set(STRIBECK_EXPONENT, None, reason=why_s)
         for d in ("pos", "neg"):
             if jr.friction[f"static_{d}_A"] is None:
                 jr.set(f"static_{d}_A", None, reason="no breakaway events and no steady slow sliding")
-        if jr.friction["static_pos_A"] is None or jr.friction["static_neg_A"] is None:
+        if jr.friction[STATIC_POS_A] is None or jr.friction[STATIC_NEG_A] is None:
             a = fit.value("gravity") or 0.0
             brk = breakaway_levels(ctx, j, p.i[:, j] - a * ctx.grav[:, j])  # at rest: gravity only
             for d, (lvl, s, cnt) in brk.items():

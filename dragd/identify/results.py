@@ -13,11 +13,31 @@ from typing import Any
 
 import numpy as np
 
+from dragd.config import FrictionParams
+
 VIF_LIMIT = 1.0e4
 
-FRICTION_KEYS = ("coulomb_pos_A", "coulomb_neg_A", "viscous_A_s_per_rad", "viscous_pos_A_s_per_rad",
-                 "viscous_neg_A_s_per_rad", "static_pos_A", "static_neg_A", "stribeck_velocity_rad_s",
-                 "stribeck_exponent")
+#: the identified friction values of a joint: the fields of ``FrictionParams`` (dragd/config.py), which are
+#: ``FrictionConfig``'s plus one viscous slope for both directions (tests/test_config.py keeps the two in step)
+FRICTION_KEYS: tuple[str, ...] = tuple(FrictionParams.model_fields)
+
+
+def _key(name: str) -> str:
+    """A friction key by name, checked against the model when the module loads (a misspelt key fails at import)."""
+    if name not in FrictionParams.model_fields:
+        raise KeyError(f"{name!r} is not a field of FrictionParams ({', '.join(FRICTION_KEYS)})")
+    return name
+
+
+COULOMB_POS_A = _key("coulomb_pos_A")
+COULOMB_NEG_A = _key("coulomb_neg_A")
+VISCOUS_A_S_PER_RAD = _key("viscous_A_s_per_rad")
+VISCOUS_POS_A_S_PER_RAD = _key("viscous_pos_A_s_per_rad")
+VISCOUS_NEG_A_S_PER_RAD = _key("viscous_neg_A_s_per_rad")
+STATIC_POS_A = _key("static_pos_A")
+STATIC_NEG_A = _key("static_neg_A")
+STRIBECK_VELOCITY_RAD_S = _key("stribeck_velocity_rad_s")
+STRIBECK_EXPONENT = _key("stribeck_exponent")
 
 
 @dataclass

@@ -277,7 +277,8 @@ def run_teach_demo(seconds: float = 20.0, config: Path | None = None, out: Path 
             _wait_fresh(rig)
             t0 = rig.must("status")["t_s"]
             resp = rig.must("replay", program=str(program), interp=interp, timeout_s=60.0)
-            _say(progress, f"replaying {interp}: move to start {resp['move_to_start_s']:.1f} s, cycle {resp['cycle_s']:.1f} s")
+            _say(progress, f"replaying {interp}: move to start {resp['move_to_start_s']:.1f} s, "
+                           f"cycle {resp['cycle_s']:.1f} s")
             st = _wait_replay(rig, resp["duration_s"] / 0.5 + 30.0)
             runs[interp] = {"t0": t0, "t1": st["t_s"], "marks": resp["marks"], "body_start_s": resp["move_to_start_s"],
                             "outcome": st["replay"]["outcome"], "duration_s": resp["duration_s"]}

@@ -28,47 +28,47 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, model_validator
 
-from dragd.config import ConfigError, Expect, format_validation_error
+from dragd.vocabulary import (
+    ConfigError,
+    Expect,
+    Finite,
+    NonNegFloat,
+    StrictEditable,
+    format_validation_error,
+    read_yaml,
+)
 
 FORMAT = "dragd.teach.program"
 VERSION = 1
 NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
-Finite = Annotated[float, Field(allow_inf_nan=False), Expect("a finite number")]
-NonNeg = Annotated[float, Field(ge=0, allow_inf_nan=False), Expect("a number >= 0")]
-
-
 class ProgramError(ConfigError):
     """A program file that cannot be used; the message names the file, the key and what was expected."""
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_default=True)
-
-
-class Waypoint(_Strict):
+class Waypoint(StrictEditable):
     name: str
-    t_s: NonNeg
+    t_s: NonNegFloat
     q_rad: list[Finite]
 
 
-class Keyframe(_Strict):
-    t_s: NonNeg
+class Keyframe(StrictEditable):
+    t_s: NonNegFloat
     q_rad: list[Finite]
     kind: Literal["start", "end", "pause", "mark", "shape"] = "shape"
 
 
-class Recording(_Strict):
+class Recording(StrictEditable):
     mcap: str | None = None  # relative to the program file
     rate_Hz: Annotated[float, Field(gt=0), Expect("a positive rate")] = 50.0
-    duration_s: NonNeg = 0.0
+    duration_s: NonNegFloat = 0.0
     samples: Annotated[int, Field(ge=0)] = 0
     dropped: Annotated[int, Field(ge=0)] = 0  # samples beyond the recorder's capacity
 
 
-class Program(_Strict):
+class Program(StrictEditable):
     format: Literal["dragd.teach.program"] = FORMAT
     version: Literal[1] = VERSION
     name: str
@@ -188,9 +188,9 @@ def load_program(path: str | Path) -> Program:
     if not path.is_file():
         raise ProgramError(f"{path}: program file not found")
     try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise ProgramError(f"{path}: not valid YAML: {exc}") from None
+        data = read_yaml(path)
+    except ConfigError as exc:
+        raise ProgramError(str(exc)) from None
     return program_from_data(data, str(path))
 
 

@@ -204,7 +204,7 @@ class ArmFrames:
         omf = self.data.oMf
         stamp = _stamp(time_ns)
         out = []
-        for (p, c), (pname, cname) in zip(self.pairs, self._names):
+        for (p, c), (pname, cname) in zip(self.pairs, self._names, strict=True):
             m = omf[p].actInv(omf[c])
             t = m.translation
             x, y, z, w = pin.Quaternion(m.rotation).coeffs()

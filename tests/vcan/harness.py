@@ -40,8 +40,8 @@ import shutil
 import socket
 import stat
 import subprocess
-import tarfile
 import sys
+import tarfile
 import tempfile
 import threading
 import time
@@ -296,7 +296,8 @@ fail() { echo "dragd-vcan-guest: FAILED: $*"; /bin/busybox poweroff -f; }
 for m in @MODULES@; do /bin/busybox insmod /lib/modules/$m.ko || fail "insmod $m (kernel and modules must match)"; done
 /bin/busybox mount -t 9p -o trans=virtio,version=9p2000.L,msize=262144,ro,cache=loose hostroot /host \
   || fail "mounting the host's root (9p tag hostroot)"
-[ -x "/host$dragd_busybox" ] && [ -f "/host$dragd_init" ] || fail "not found in the host's root: $dragd_busybox or $dragd_init"
+[ -x "/host$dragd_busybox" ] && [ -f "/host$dragd_init" ] \
+  || fail "not found in the host's root: $dragd_busybox or $dragd_init"
 /bin/busybox mount --move /dev /host/dev || fail "moving /dev"
 /bin/busybox umount /proc
 exec /bin/busybox switch_root /host "$dragd_busybox" sh "$dragd_init"

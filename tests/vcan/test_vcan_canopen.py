@@ -19,11 +19,8 @@ from collections.abc import Iterator
 import can
 import canopen
 import pytest
-from can.interfaces.socketcan import SocketcanBus
-
 import test_sim_canopen as base
-from dragd.hardware.bus import open_bus, parse_bus
-from dragd.lab.rig import Rig as Processes
+from can.interfaces.socketcan import SocketcanBus
 from test_sim_canopen import (  # noqa: F401  (pytest collects the imported tests here, with this module's rig)
     r,
     test_402_walk_and_quick_stop,
@@ -39,6 +36,9 @@ from test_sim_canopen import (  # noqa: F401  (pytest collects the imported test
     test_tpdo_remap_in_preoperational_and_sync,
     test_unsupported_mode_aborts_and_supported_mode_shows,
 )
+
+from dragd.hardware.bus import open_bus, parse_bus
+from dragd.lab.rig import Rig as Processes
 
 from .conftest import BUS, PHYSICS_HZ, SIM_BUS, START_TIMEOUT_S, channel, net_stat, vcan_only
 
@@ -142,7 +142,8 @@ def test_error_frames_reach_sockets_and_canopen_ignores_them(rig: base.Rig) -> N
     try:
         mark = rig.log.mark()
         # class bits 0x080 (bus error) | 0x001 (TX timeout) = 0x081, node 1's EMCY COB-ID
-        rig.bus.send(can.Message(arbitration_id=0x081, is_error_frame=True, data=bytes([0x10, 0x23, 0x11, 0, 0, 0, 0, 0]),
+        rig.bus.send(can.Message(arbitration_id=0x081, is_error_frame=True,
+                                 data=bytes([0x10, 0x23, 0x11, 0, 0, 0, 0, 0]),
                                  is_extended_id=False))
         end = time.monotonic() + 3.0
         while not got and time.monotonic() < end:

@@ -24,13 +24,22 @@ import numpy as np
 import pytest
 from can.interfaces.socketcan import SocketcanBus
 
-from daemon_helpers import cycle_rows, wait_for
 from dragd.hardware.bus import open_bus, parse_bus
 from dragd.lab.rig import Rig
 
+from .conftest import (
+    BUS,
+    LOOP_HZ,
+    SIM_BUS,
+    START_TIMEOUT_S,
+    assert_python_can_socketcan,
+    channel,
+    net_stat,
+    vcan_only,
+    vcan_rig,
+)
 from conftest import run_cli
-
-from .conftest import BUS, LOOP_HZ, SIM_BUS, START_TIMEOUT_S, assert_python_can_socketcan, channel, net_stat, vcan_only, vcan_rig
+from daemon_helpers import cycle_rows, wait_for
 
 pytestmark = pytest.mark.timeout(900)
 

@@ -114,7 +114,6 @@ def contact_real(opts: dict) -> tuple[float, dict[str, Any]] | dict[str, Any]:
 def _run(ds: Any, root: Path, tmp: Path, train_spec: Any, Reference: Any, filter_data: Any,
          t_all: float) -> tuple[float, dict[str, Any]]:
     from dragd.cli.contact import detect
-    from dragd.cli.identify import fit_params
     from dragd.config import load_params, save_params
     from dragd.contact.calibrate import CalibrationError, calibrate, to_params, usable
     from dragd.contact.detect import log_terms, run_log
@@ -124,6 +123,7 @@ def _run(ds: Any, root: Path, tmp: Path, train_spec: Any, Reference: Any, filter
     from dragd.contact.score import combine, max_ratio_outside, score
     from dragd.control.contact import ContactBands, ContactSettings
     from dragd.identify.data import stack_logs
+    from dragd.identify.fit import fit_params
     from dragd.identify.methods import Options
     from dragd.model import RobotModel
 

@@ -11,7 +11,8 @@ from dragd.lab.bench import benchmark
 @benchmark("fault_matrix", "per fault")
 def fault_matrix(opts: dict) -> dict[str, Any]:
     """Each fault the sim injects, the daemon's detection, reaction, worst joint speed and drift, recovery."""
-    from dragd.lab.faults import CASES, fault_matrix as run
+    from dragd.lab.faults import CASES
+    from dragd.lab.faults import fault_matrix as run
 
     lockstep = opts.get("clock", "lockstep") == "lockstep"
     prio = opts.get("realtime_priority", 0 if lockstep else 70)  # (wall clock: as deployed)

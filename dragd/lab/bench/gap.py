@@ -16,8 +16,8 @@ import numpy as np
 import yaml
 
 from dragd.lab.bench import benchmark
-from dragd.resources import config_path
 from dragd.lab.bench.identify import SIM_DIR, START, _cache_dir, _sim, _source_key, _truth
+from dragd.resources import config_path
 
 RIPPLE = {"amplitude_Nm": 0.4, "cycles_per_rev": 24.0, "reference": "joint", "phase_rad": 0.7}
 _CACHE: dict[str, Any] = {}

@@ -12,7 +12,7 @@ the raw measured motor current, per joint and over all joints' samples (overall)
 
 - **dragd**: its own pipeline, exactly what ``dragd identify fit --robot URDF --log A --log B --method full
   [--torque-constants K1,..,K6]`` and ``dragd identify check --robot URDF --params P --log V --mask all`` run
-  (:func:`dragd.cli.identify.fit_params`, :func:`dragd.cli.identify.check_params`; the params file goes through
+  (:func:`dragd.identify.fit.fit_params`, :func:`dragd.identify.check.check_params`; the params file goes through
   YAML as the CLI writes it). "with_gains": the drive gains given as torque constants; "without_gains": none given
   (dragd's current-space model).
 - **reference** (fitted here, same files, same gains): the textbook ordinary least squares of the dataset's own
@@ -217,9 +217,10 @@ class Reference:
 
 def _dragd_case(ds: Dataset, logs: dict[Path, Any], gains: np.ndarray | None, workdir: Path) -> dict[str, Any]:
     """``identify fit --method full`` on both training logs, ``identify check --mask all`` on each validation log."""
-    from dragd.cli.identify import check_params, fit_params
     from dragd.config import load_params, save_params
+    from dragd.identify.check import check_params
     from dragd.identify.data import stack_logs
+    from dragd.identify.fit import fit_params
     from dragd.identify.methods import Options
     from dragd.model import RobotModel
 
@@ -288,9 +289,10 @@ def moving_rows(log: Any, v: float = 0.01) -> tuple[int, int] | None:
 def _pairing(ds: Dataset, logs: dict[Path, Any], train: list[Path], valid: list[Path], names: list[str],
              workdir: Path) -> dict[str, Any]:
     """Both models fitted on ``train`` (with the drive gains), held-out RMSE on each of ``valid``."""
-    from dragd.cli.identify import check_params, fit_params
     from dragd.config import load_params, save_params
+    from dragd.identify.check import check_params
     from dragd.identify.data import sliding, stack_logs
+    from dragd.identify.fit import fit_params
     from dragd.identify.methods import Options
     from dragd.model import RobotModel
 

@@ -39,7 +39,6 @@ from dragd.lab.bench import BenchError, benchmark
 from dragd.lab.bench.stalls import PROBE_PRIORITY, StallProbe, attribute
 from dragd.lab.bench.yardstick import yardstick_us_once
 
-
 REALTIME_PRIORITY = 70  # the cycle thread's SCHED_FIFO priority as deployed (docs/SYSTEMD.md); the sim's is 10 below
 # (at least 1: with --realtime-priority 1..10 both run at the same priority)
 
@@ -194,7 +193,8 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
     if probe.complete:
         st = probe.summary()
         print(f"bench: the machine's stalls (probes at SCHED_FIFO {probe.priority} on CPUs {probe.cpus}): "
-              f"{st['late_wakeups']} wake-ups over {probe.threshold_us} µs late, the longest {st['late_max_ms']:.1f} ms, "
+              f"{st['late_wakeups']} wake-ups over {probe.threshold_us} µs late, the longest "
+              f"{st['late_max_ms']:.1f} ms, "
               f"{st['machine_wide_stalls']} on every CPU at once; the daemon's {missed} missed ticks: {host} during "
               f"them, {own} its own", file=sys.stderr)
     else:

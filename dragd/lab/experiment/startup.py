@@ -18,8 +18,15 @@ from typing import Any
 import numpy as np
 
 from dragd.config import ParamsFile, load_params, save_params
-from dragd.lab.experiment.bench import (Bench, feedback_holds, handover_step_A, oscillation_deg, ramp_breakaway, record,
-                                       wait_rest)
+from dragd.lab.experiment.bench import (
+    Bench,
+    feedback_holds,
+    handover_step_A,
+    oscillation_deg,
+    ramp_breakaway,
+    record,
+    wait_rest,
+)
 
 OSCILLATION_LIMIT_DEG = 0.06  # seed 001: the oscillation range at the chosen frequency stays below it
 RAMP_S = 10.0  # seconds the load ramp takes to reach the believed static friction
