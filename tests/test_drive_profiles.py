@@ -582,3 +582,14 @@ def test_layout_auto_chooses_from_what_the_drives_support() -> None:
     assert plan.layouts["arm"].kind == "shared"  # dragd's own drive: CAN FD, dummy entries
     plan = plan_drives(config(VARIANTS / "no_dummies.eds", layout="auto", fd=False), budget_findings=False)
     assert plan.layouts["arm"].kind == "per_node" and plan.errors == []
+
+
+def test_bench_all_skips_drive_profiles_without_eds_dir_and_names_it_when_asked() -> None:
+    """`dragd bench` (every benchmark) without --eds-dir skips drive_profiles with the reason; named, it is an error."""
+    from dragd.lab.bench import BenchError
+    from dragd.lab.bench.drives import drive_profiles
+
+    skipped = drive_profiles({"selected": []})
+    assert "--eds-dir" in skipped["skipped"]
+    with pytest.raises(BenchError, match="--eds-dir DIR"):
+        drive_profiles({"selected": ["drive_profiles"]})
