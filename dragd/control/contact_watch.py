@@ -14,7 +14,8 @@ Pinocchio's p = M̄(q)·q̇, g(q) and C(q, q̇) (dragd/daemon/cycle.py) and it r
   point's linear Jacobian, world axes), low-passed at ``contact.wrench_Hz``.
 
 Without calibrated bands (a params file without ``contact``: ``dragd contact calibrate``) only the drag residual
-runs; status says why the detector does not.
+runs; status says why the detector does not. ``contact.enabled: false`` turns both off (the cycle makes none of
+their calls).
 """
 
 from __future__ import annotations
@@ -97,6 +98,7 @@ class ContactWatch:
         self.det = detector
         self.modes = modes
         self.calibrated = calibrated
+        self.enabled = not reason.startswith("disabled")  # contact.enabled: false: no residual in any mode
         self.reason = reason  # why the detector does not judge (not calibrated, disabled); "" when it does
         self.retract_rad = retract_rad
         self.retract_speed_rad_s = retract_speed_rad_s
@@ -295,6 +297,7 @@ class ContactWatch:
             "onsets": self.onsets,
             "last_event": self.last,
             "hand_force_N": self.force_N.tolist() if self.watching == "drag" and self.force_valid else None,
+            "grip_m": self.grip_m.tolist() if self.watching == "drag" and self.force_valid else None,
             "hand_force_norm_N": (round(float(np.linalg.norm(self.force_N)), 2)
                                   if self.watching == "drag" and self.force_valid else None),
         }

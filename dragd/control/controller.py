@@ -417,7 +417,9 @@ class Controller:
             return ""
         mode, why = self.mode, ""
         want = ""
-        if mode == Mode.DRAG:
+        if not w.enabled:
+            why = w.reason
+        elif mode == Mode.DRAG:
             want = "drag"
         elif not w.calibrated:
             why = w.reason
