@@ -251,7 +251,8 @@ def strike_info(rig: Rig, clocks: Clocks, before_onsets: int, what: str) -> dict
     faults = contact_faults(st, t_contact - 1.0)
     res: dict[str, Any] = {"what": what, "link": start["link"], "peak_N": end["peak_N"] if end else None,
                            "direction": [round(x, 3) for x in start["direction"]],
-                           "alarms": st["contact"]["onsets"] - before_onsets, "t_contact_s": round(t_contact, 4)}
+                           "alarms": st["contact"]["onsets"] - before_onsets, "t_contact_s": round(t_contact, 4),
+                           "t_contact_end_s": round(clocks.to_daemon(float(end["t"])), 4) if end else None}
     if not faults:
         res["detected"] = False
         return res
@@ -263,8 +264,8 @@ def strike_info(rig: Rig, clocks: Clocks, before_onsets: int, what: str) -> dict
 
 
 def strike_figures(res: dict[str, Any], rows: dict[str, np.ndarray], model: Any) -> dict[str, Any]:
-    """From the daemon's telemetry: how long after the detection every joint was below ``STOPPED_RAD_S`` and how
-    far the struck point travelled meanwhile."""
+    """From the daemon's telemetry: how long after the detection (and after the contact's force ended) every joint
+    was below ``STOPPED_RAD_S``, and how far the struck point travelled from the detection until then."""
     if not res.get("detected"):
         return res
     t = rows["t_s"]
@@ -278,6 +279,8 @@ def strike_figures(res: dict[str, Any], rows: dict[str, np.ndarray], model: Any)
         return res
     k1 = k0 + int(after[0])
     res["stopped_after_ms"] = round(1000.0 * (t[k1] - t_det), 1)
+    if res.get("t_contact_end_s") is not None:  # (the contact's force may push the arm after the detection)
+        res["stopped_after_contact_end_ms"] = round(1000.0 * (t[k1] - res["t_contact_end_s"]), 1)
     res["stop_distance_mm"] = round(1000.0 * float(np.linalg.norm(point_position(model, rows["q_rad"][k1])
                                                                    - point_position(model, rows["q_rad"][k0]))), 2)
     res["stop_distance_deg"] = round(math.degrees(float(np.max(np.abs(rows["q_rad"][k1] - rows["q_rad"][k0])))), 3)
@@ -310,9 +313,15 @@ def hand_force_error(trace: dict[str, Any], offset_s: float, rows: dict[str, np.
     def q(x: np.ndarray, p: float) -> float | None:
         return round(float(np.percentile(x, p)), 4) if x.size else None
 
+    # the estimate along the truth: its cosine and its projection's gain (1: the right size)
+    n2 = np.maximum(norm[sel2], 1e-9)
+    cos = np.sum(f_est[sel2] * truth[sel2], axis=1) / (n2 * np.maximum(np.linalg.norm(f_est[sel2], axis=1), 1e-9))
+    gain = np.sum(f_est[sel2] * truth[sel2], axis=1) / (n2 * n2)
+
     return {"samples": int(sel.sum()), "error_rel_median": q(err, 50), "error_rel_p95": q(err, 95),
             "error_rel_max": q(err, 100), "settled_samples": int(sel2.sum()), "settled_error_rel_median": q(err2, 50),
             "settled_error_rel_p95": q(err2, 95), "settled_error_rel_max": q(err2, 100),
+            "settled_cos_median": q(cos, 50), "settled_gain_median": q(gain, 50),
             "true_force_max_N": round(float(norm.max()), 2) if norm.size else 0.0}
 
 
