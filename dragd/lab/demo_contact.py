@@ -2,9 +2,9 @@
 
 Two sessions of the simulated robot and the daemon (separate processes, as ``dragd demo``):
 
-1. **Calibration** (the detector not yet calibrated): the arm moves by itself through a free-motion plan — each
-   joint alone, out and back at two speeds with rests (the held-while-others-move band needs it), then a
-   multi-joint symmetric pass — recorded to MCAP; ``dragd contact calibrate`` on that recording with the daemon's
+1. **Calibration** (the detector not yet calibrated): the arm moves by itself through free motion — each joint
+   alone, out and back at two speeds with rests (the held-while-others-move band needs it), two multi-joint moves,
+   then a Fourier excitation (the coupled dynamics of every joint moving) — recorded to MCAP; ``dragd contact calibrate`` on that recording with the daemon's
    own model (the configuration's K_t and friction as a params file) writes the bands.
 2. **Detection** (the daemon restarted with those bands, reaction ``stop`` in every mode): held 2 s; the teach demo
    (three waypoints by hand in drag, replayed linearly and circularly); an identification run of another plan
@@ -38,7 +38,8 @@ IMPACT_N = 60.0
 IMPACT = {"profile": "half_sine", "duration_s": 0.1}  # a 60 N impact: 100 ms half-sine
 STOPPED_RAD_S = 0.01  # the arm counts as stopped once every joint is slower than this
 HAND_PUSHES_N = ([18.0, 0.0, 0.0], [0.0, -22.0, 0.0], [0.0, 12.0, 16.0], [-15.0, 10.0, -10.0])  # drag: at the grip
-HAND_FORCE_MIN_N = 10.0  # the hand-force error is judged where the true force is above this
+HAND_FORCE_MIN_N = 10.0
+CALIBRATION_SEED = 3  # the calibration's Fourier excitation; the detection session's identification runs use others  # the hand-force error is judged where the true force is above this
 
 
 class ContactDemoError(RuntimeError):
@@ -149,11 +150,15 @@ def calibrate_session(config: Path | None, work: Path, lockstep: bool, progress:
         rig.sleep(0.5)
         q0 = np.array(rig.must("status")["q_rad"])
         plan = calibration_plan(q0, cfg)
-        _say(progress, f"calibration: free motion {plan.duration_s:.0f} s (each joint alone, then all)")
+        rich = fourier_plan(q0, cfg, seed=CALIBRATION_SEED)
+        _say(progress, f"calibration: free motion {plan.duration_s + rich.duration_s:.0f} s (each joint alone, then "
+                       "all; a Fourier excitation)")
         rec = work / "calibration.mcap"
         rig.must("record", action="start", path=str(rec), label="contact calibration")
         rig.sleep(1.0)  # held first
         run_motion(rig, plan.t_s, plan.q_rad, "identify contact-calibration", work)
+        rig.sleep(1.0)
+        run_motion(rig, rich.t_s, rich.q_rad, "identify contact-calibration-fourier", work)
         rig.sleep(1.0)
         rig.must("record", action="stop")
         rig.must("stop")
