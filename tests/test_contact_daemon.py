@@ -116,10 +116,11 @@ def test_impact_during_a_motion_is_detected_within_30_ms_and_the_arm_stops_withi
     assert figures["stop_distance_mm"] < 30.0, figures
 
 
-def _rows_after(mcap: Path, t_s: float) -> dict[str, np.ndarray]:
+def _rows_between(mcap: Path, t_s: float, until_s: float) -> dict[str, np.ndarray]:
+    """Telemetry rows from ``t_s`` to ``until_s`` (before the test's own stop)."""
     rows = read_rows(mcap, ["t_s", "q_rad", "q_ref_rad", "mode"])
-    k = int(np.searchsorted(rows["t_s"], t_s))
-    return {name: v[k:] for name, v in rows.items()}
+    k, m = int(np.searchsorted(rows["t_s"], t_s)), int(np.searchsorted(rows["t_s"], until_s, side="right"))
+    return {name: v[k:m] for name, v in rows.items()}
 
 
 def test_push_on_the_held_arm_stops_it_where_it_is(tmp_path, bands, model):
@@ -135,7 +136,7 @@ def test_push_on_the_held_arm_stops_it_where_it_is(tmp_path, bands, model):
     assert res["delay_ms"] < 200.0, res  # while the push still rises (over 0.2 s)
     assert st["mode"] == "hold" and st["contact"]["last_event"]["mode"] == "hold"
     # the hold's pose is the one the detection found (it no longer springs back into the contact) and stays so
-    after = _rows_after(tmp_path / "t.mcap", res["t_detect_s"])
+    after = _rows_between(tmp_path / "t.mcap", res["t_detect_s"], st["t_s"])
     assert (after["mode"] == "hold").all()
     np.testing.assert_allclose(after["q_ref_rad"], np.tile(after["q_rad"][0], (len(after["q_rad"]), 1)), atol=1e-9)
 
@@ -152,7 +153,7 @@ def test_retract_backs_off_a_bounded_distance_along_the_contact(tmp_path, bands,
         rig.must("stop")
     assert res["detected"] and res["reaction"] == "retract", res
     assert st["mode"] == "hold"
-    after = _rows_after(tmp_path / "t.mcap", res["t_detect_s"])
+    after = _rows_between(tmp_path / "t.mcap", res["t_detect_s"], st["t_s"])
     q_det, target = after["q_rad"][0], after["q_ref_rad"][-1]
     assert np.abs(target - q_det).max() == pytest.approx(0.03, abs=1e-9)  # the hold pose backed off retract_rad ...
     step = np.abs(np.diff(after["q_ref_rad"], axis=0)).max()

@@ -353,15 +353,15 @@ def run_contact_demo(config: Path | None = None, out: Path | None = None, progre
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
     work = (out / f"contact-{stamp}").absolute()
     work.mkdir(parents=True, exist_ok=True)
+    from dragd.config import load_params
+
     if calibrated is None:
         _say(progress, f"session 1: calibration{' (lockstep clock)' if lockstep else ''} ...")
-        params, cal = calibrate_session(config, work, lockstep, progress)
+        params, _ = calibrate_session(config, work, lockstep, progress)
     else:
-        from dragd.config import load_params
-
         params = Path(calibrated)
-        pc = load_params(params).contact
-        cal = pc.calibration if pc is not None else {}
+    pc = load_params(params).contact
+    cal = pc.calibration if pc is not None else {}
     margins = {nm: j.get("moving_max_ratio") for nm, j in (cal.get("joints") or {}).items()}
     cfg2 = detection_config(config, params, work)
     cfg = load_config(cfg2)
