@@ -26,7 +26,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     opts = {"config": absolute(args.config), "seconds": args.seconds, "realtime_priority": args.realtime_priority,
             "jobs": args.jobs, "cases": args.cases, "out": absolute(args.out), "profile": absolute(args.profile),
             "sim_config": absolute(args.sim_config), "data": absolute(args.data), "train": args.train,
-            "valid": args.valid, "eds_dir": absolute(args.eds_dir), "robot": args.robot}
+            "valid": args.valid, "eds_dir": absolute(args.eds_dir), "robot": args.robot, "clock": args.clock}
     try:
         result = bench.run(args.names, {k: v for k, v in opts.items() if v is not None})
     except KeyError as exc:
@@ -65,6 +65,9 @@ def register(sub: Any) -> None:
     b.add_argument("names", nargs="*", metavar="NAME", help="benchmarks to run (default: all); --list shows them")
     b.add_argument("--list", action="store_true", help="list benchmarks")
     b.add_argument("--seconds", type=float, default=None, help="duration of timed benchmarks")
+    b.add_argument("--clock", choices=("lockstep", "wall"), default=None,
+                   help="the sim + daemon benchmarks of behaviour (fault_matrix, drive_profiles): lockstep (default: "
+                        "simulated time, the same figures on any machine) or wall (real time, as deployed)")
     b.add_argument("--realtime-priority", type=int, default=None, metavar="N",
                    help="loop benchmarks: SCHED_FIFO priority of the daemon's cycle thread as deployed (default 70, "
                         "the sim's 10 below; applied when permitted), 0 for none")
