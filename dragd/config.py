@@ -474,10 +474,20 @@ class ReplayConfig(_Strict):
 
 
 class ContactModeConfig(_Strict):
-    """Contact detection in one mode: how sensitive (the calibrated bands / sensitivity)."""
+    """Contact detection in one mode: how sensitive (the calibrated bands / sensitivity) and what the arm does."""
 
     sensitivity: Annotated[float, Field(gt=0, le=4), Expect("a factor in (0, 4] (1: the calibrated bands; 2: half "
                                                              "as wide)")] = 1.0
+    # stop: protective stop, the arm held where it is (drives enabled); retract: back off along the residual by
+    # retract_rad at most, then hold; compliant: drag under the hand where drag is permitted now (else stop)
+    reaction: Literal["stop", "retract", "compliant"] = "stop"
+
+
+class GripConfig(_Strict):
+    """Where the operator's hand holds the arm: the point whose wrench the drag residual estimates (docs/CONTACT.md)."""
+
+    frame: str = "tool0"  # a frame of the URDF (a link or joint name); the last joint's where there is no tool0
+    offset_m: tuple[Finite, Finite, Finite] = (0.0, 0.0, 0.0)  # the grip point in that frame
 
 
 class ContactConfig(_Strict):
@@ -486,8 +496,13 @@ class ContactConfig(_Strict):
 
     enabled: bool = True
     hold: ContactModeConfig = ContactModeConfig()
-    track: ContactModeConfig = ContactModeConfig()  # replay, `dragd track`
+    track: ContactModeConfig = ContactModeConfig()  # replay, `dragd track`, streams
     identify: ContactModeConfig = ContactModeConfig()  # `dragd identify run`
+    # retract: the largest joint displacement [rad] and the speed of the hold pose's move
+    retract_rad: Annotated[float, Field(gt=0, le=0.2), Expect("radians in (0, 0.2]")] = 0.03
+    retract_speed_rad_s: Annotated[float, Field(gt=0, le=1.0), Expect("rad/s in (0, 1]")] = 0.15
+    grip: GripConfig = GripConfig()  # the hand's wrench in drag (status, telemetry, the live view)
+    wrench_Hz: Annotated[float, Field(gt=0, le=100), Expect("a cutoff in (0, 100] Hz")] = 5.0  # its low-pass
 
 
 # --- end of contact detection --------------------------------------------------------------------------------------
@@ -605,6 +620,10 @@ class Config(_Strict):
     drag: DragConfig = DragConfig()  # what drag requires: enabling switch, lease (docs/HAND.md)
     hand: HandConfig = HandConfig()  # the guiding device's inputs at the hand (docs/HAND.md)
     source: str = Field("<memory>", exclude=True)  # file it came from (not a YAML key)
+    # from the params file (not YAML keys of the configuration): the contact detector's calibrated bands and the
+    # identified rotor inertias [kg·m²] by joint (notes.armature_kgm2)
+    contact_calibration: Any = Field(None, exclude=True)
+    armature_kgm2: dict[str, float] | None = Field(None, exclude=True)
 
     @model_validator(mode="after")
     def _cross(self) -> Config:
@@ -917,7 +936,12 @@ def apply_params(cfg: Config, params: ParamsFile, source: str = "params") -> Con
         out = Config.model_validate(data)
     except ValidationError as exc:
         raise ConfigError(format_validation_error(source, Config, exc)) from None
-    return out.model_copy(update={"source": cfg.source})
+    arm = (params.notes or {}).get("armature_kgm2")
+    armature = ({k: float(v) for k, v in arm.items() if k in by_name and v is not None} if isinstance(arm, dict)
+                else cfg.armature_kgm2)
+    return out.model_copy(update={"source": cfg.source, "armature_kgm2": armature or None,
+                                  "contact_calibration": params.contact if params.contact is not None
+                                  else cfg.contact_calibration})
 
 
 def load_config(path: str | Path | None = None, params: str | Path | None = None, robot: bool = True) -> Config:

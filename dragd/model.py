@@ -43,6 +43,7 @@ class RobotModel:
         self._ramp: tuple[pin.Model, pin.Data, float, float] | None = None  # (old model, data, t0, duration)
         self._g_old = np.zeros(model.nv)
         self._nograv: tuple[pin.Model, pin.Data] | None = None
+        self.grip_frame_id = -1  # (add_grip)
 
     @classmethod
     def from_urdf(cls, name_or_path: str | Path, base_dir: Path | None = None,
@@ -68,6 +69,9 @@ class RobotModel:
         payload = getattr(cfg, "payload", None)
         if payload is not None:
             model.add_payload(payload.mass_kg, payload.com_m)
+        armature = getattr(cfg, "armature_kgm2", None)
+        if armature:
+            model.set_armature(np.array([float(armature.get(nm, 0.0)) for nm in model.joint_names]))
         return model
 
     def link_names(self) -> list[str]:
@@ -160,6 +164,44 @@ class RobotModel:
             self._nograv = (m, m.createData())
         m, d = self._nograv
         out[:] = pin.rnea(m, d, q_rad, self._zero, dq_rad_s)
+        return out
+
+    def set_armature(self, armature_kgm2: np.ndarray) -> None:
+        """Rotor inertias reflected to the joints [kg·m²] (identified: params ``notes.armature_kgm2``): M̄ = M +
+        diag(J_a) in the momentum, the Coriolis matrix and inverse dynamics (Pinocchio's ``armature``)."""
+        self.model.armature = np.asarray(armature_kgm2, dtype=float).copy()
+        self.data = self.model.createData()
+        self._nograv = None
+
+    def coriolis(self, q_rad: np.ndarray, dq_rad_s: np.ndarray) -> np.ndarray:
+        """The Coriolis matrix C(q, q̇) (Pinocchio's, Christoffel form: Ṁ − 2C skew), as Pinocchio returns it."""
+        return pin.computeCoriolisMatrix(self.model, self.data, q_rad, dq_rad_s)
+
+    def add_grip(self, frame: str, offset_m: tuple[float, float, float] | np.ndarray, source: str = "config") -> int:
+        """A frame at the grip point: ``offset_m`` in ``frame`` (a URDF frame; "tool0" falls back to the last joint
+        where the URDF has none). Its id for :meth:`grip_jacobian`."""
+        m = self.model
+        if not m.existFrame(frame):
+            if frame != "tool0":
+                names = [f.name for f in m.frames if f.name != "universe"]
+                raise ValueError(f"{source}: contact.grip.frame: expected a frame of the robot ({', '.join(names)}), "
+                                 f"got {frame!r}")
+            frame = m.names[m.njoints - 1]
+        parent = m.frames[m.getFrameId(frame)]
+        place = parent.placement * pin.SE3(np.eye(3), np.asarray(offset_m, dtype=float))
+        fid = m.addFrame(pin.Frame("dragd_grip", parent.parentJoint, m.getFrameId(frame), place, pin.FrameType.OP_FRAME))
+        self.data = m.createData()
+        self._nograv = None
+        self.grip_frame_id = fid
+        return fid
+
+    def grip_jacobian(self, q_rad: np.ndarray) -> np.ndarray:
+        """The grip point's 6×n Jacobian (linear rows first, world-aligned axes at the point), as Pinocchio returns it."""
+        return pin.computeFrameJacobian(self.model, self.data, q_rad, self.grip_frame_id, pin.LOCAL_WORLD_ALIGNED)
+
+    def grip_position(self, out: np.ndarray) -> np.ndarray:
+        """The grip point's position [m] (world) at the pose of the last :meth:`grip_jacobian`."""
+        out[:] = self.data.oMf[self.grip_frame_id].translation
         return out
 
     def payload_unexplained(self, q_rad: np.ndarray, residual_Nm: np.ndarray) -> float:

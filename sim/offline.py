@@ -230,6 +230,7 @@ def write_mcap(path: str | Path, data: dict[str, np.ndarray], metadata: dict[str
         "mode": int(mode), "statusword": STATUSWORD_ENABLED, "rx": 1, "period_us": period_us,
         "compute_us": 0.0, "q_ref_rad": data.get("q_ref_rad", data["q_rad"]), "track_t_s": t,
         "startup_A": 0.0, "damping_A": 0.0, "residual_A": 0.0, "back_emf_A": 0.0, "effects_A": 0.0,
+        "contact_residual_A": 0.0, "contact_band_A": 0.0, "hand_force_N": 0.0, "grip_m": 0.0,
     }
     values.update({k: v for k, v in data.items() if k in layout})
     missing = [k for k in layout if k not in values]

@@ -13,6 +13,13 @@ A scenario is a list of segments run one after the other (sim time):
   mean torque it took over the segment's second half (drag effort);
 * ``hand``: a spring–damper "hand" pulling the joints (``q_rad``) or the flange (``position_m``, optional
   ``rpy_rad``) to a target, absolute or relative to the pose at the segment's start;
+* ``strike``: a hand or an object striking a chosen link: a force of a given profile (``half_sine`` over
+  ``duration_s``, or ``trapezoid``: ``rise_s``, ``hold_s``, ``fall_s``) up to ``peak_N`` along ``direction`` (world)
+  at ``point_m`` in the link's frame; records ``strike`` (start) and ``strike_end`` events with the peak force;
+* ``obstacle``: a rigid object the arm may run into: a plane (``point_m``, outward ``normal``, world) that a point of
+  a link (``link``, ``link_point_m``) cannot pass without a spring–damper force (``stiffness_N_m``, ``damping_N_s_m``,
+  pushing only) for ``duration_s``; records ``obstacle_contact`` (first touch) and ``obstacle_end`` (peak force,
+  deepest penetration).
 * ``press`` / ``let_go``: a button of the guiding device at the wrist (sim/hand.py: ``enable`` to the ``middle`` or
   ``squeeze`` position, ``mark``, ``stop``, ``teach``), pressed or let go at the segment's start (``hold_s``: let go
   by itself that long later, while the next segments run); the load stays as the previous segment left it (a
@@ -20,6 +27,8 @@ A scenario is a list of segments run one after the other (sim time):
   ``let_go`` record the instants.
 
 After the last segment the operator lets go (no load).
+The operator's Cartesian force (a flange hand, push or ramp; a strike; an obstacle) is its truth: :meth:`Operator.trace`
+returns it every millisecond (time, the force [N] in world axes, where it acts), NaN while the load is joint torques.
 Flange wrenches act at the scenario's ``frame`` (default ``tool0``, else the last joint) with world-aligned axes
 and become joint torques through the frame Jacobian: τ = Jᵀ·[f; m].
 From YAML (``sim/scenarios/*.yaml``, schema-validated) or Python (:func:`load_scenario`, :func:`validate_scenario`).
@@ -41,6 +50,8 @@ if TYPE_CHECKING:
     from dragd.model import RobotModel
 
 SCENARIO_DIR = Path(__file__).resolve().parent / "scenarios"
+TRACE_DT_S = 1e-3  # the force trace's sampling
+TRACE_ROWS = 1 << 18  # ... kept (the last ~4 min)
 
 PosFloat = Annotated[float, Field(gt=0, allow_inf_nan=False), Expect("a positive number")]
 NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False), Expect("a number >= 0")]
@@ -141,6 +152,61 @@ class Move(_Strict):
     duration_s: PosFloat
 
 
+class Strike(_Strict):
+    """A hand or an object striking ``link``: a force profile on a point of it (docs/CONTACT.md, the contact demo)."""
+
+    kind: Literal["strike"]
+    link: str  # a frame of the robot (its URDF link name)
+    point_m: Vec3 = (0.0, 0.0, 0.0)  # where it strikes, in the link's frame
+    direction: Vec3  # of the force on the arm (world axes; normalised)
+    peak_N: PosFloat
+    profile: Literal["half_sine", "trapezoid"] = "half_sine"
+    duration_s: PosFloat = 0.1  # half_sine: the whole pulse
+    rise_s: PosFloat = 0.01  # trapezoid
+    hold_s: NonNegFloat = 0.05
+    fall_s: PosFloat = 0.01
+
+    @model_validator(mode="after")
+    def _direction(self) -> Strike:
+        if np.linalg.norm(self.direction) == 0:
+            raise ValueError("expected a non-zero direction")
+        return self
+
+    @property
+    def length_s(self) -> float:
+        return self.duration_s if self.profile == "half_sine" else self.rise_s + self.hold_s + self.fall_s
+
+    def force(self, elapsed: float) -> float:
+        """The force's magnitude [N] ``elapsed`` seconds into the strike."""
+        if self.profile == "half_sine":
+            return self.peak_N * math.sin(math.pi * elapsed / self.duration_s) if elapsed < self.duration_s else 0.0
+        if elapsed < self.rise_s:
+            return self.peak_N * elapsed / self.rise_s
+        if elapsed < self.rise_s + self.hold_s:
+            return self.peak_N
+        x = elapsed - self.rise_s - self.hold_s
+        return self.peak_N * (1.0 - x / self.fall_s) if x < self.fall_s else 0.0
+
+
+class Obstacle(_Strict):
+    """A plane the arm may run into: a point of ``link`` penetrating it meets a spring–damper force (pushing only)."""
+
+    kind: Literal["obstacle"]
+    link: str
+    link_point_m: Vec3 = (0.0, 0.0, 0.0)  # the point of the link that touches, in the link's frame
+    point_m: Vec3  # a point of the plane (world)
+    normal: Vec3  # the plane's outward normal (world): the side the arm is on
+    stiffness_N_m: PosFloat = 20000.0
+    damping_N_s_m: NonNegFloat = 100.0
+    duration_s: PosFloat
+
+    @model_validator(mode="after")
+    def _normal(self) -> Obstacle:
+        if np.linalg.norm(self.normal) == 0:
+            raise ValueError("expected a non-zero normal")
+        return self
+
+
 # --- the guiding device's buttons (#30; sim/hand.py) ---
 
 
@@ -170,9 +236,11 @@ class LetGo(_Strict):
 # --- end of the guiding device's buttons ---
 
 
-Segment = Annotated[Union[Push, Ramp, Hold, Release, Hand, Move, Press, LetGo], Field(discriminator="kind")]
+Segment = Annotated[Union[Push, Ramp, Hold, Release, Hand, Move, Strike, Obstacle, Press, LetGo],
+                    Field(discriminator="kind")]
 SEGMENT_KINDS: dict[str, type[_Strict]] = {"push": Push, "ramp": Ramp, "hold": Hold, "release": Release, "hand": Hand,
-                                           "move": Move, "press": Press, "let_go": LetGo}
+                                           "move": Move, "strike": Strike, "obstacle": Obstacle, "press": Press,
+                                           "let_go": LetGo}
 
 
 class Scenario(_Strict):
@@ -258,6 +326,9 @@ class Operator:
             joint = getattr(seg, "joint", None)
             if joint is not None and joint not in self._index:
                 raise ScenarioError(f"{where}.joint: expected one of {', '.join(names)}, got {joint!r}")
+            link = getattr(seg, "link", None)
+            if link is not None and not self.model.existFrame(link):
+                raise ScenarioError(f"{where}.link: expected a link (frame) of the robot, got {link!r}")
             for key in ("torques_Nm", "q_rad"):
                 vec = getattr(seg, key, None)
                 if vec is not None and len(vec) != self.n:
@@ -294,12 +365,33 @@ class Operator:
         self._move_sum: list[float] = [0.0, 0.0, 0]
         self._dt_hint = 2.5e-4  # the physics step; set by apply() from successive calls
         self._last_t: float | None = None
+        # the truth of the Cartesian load: its force [N] (world) and where it acts, every TRACE_DT_S (NaN: none known)
+        self.force_N = np.zeros(3)
+        self.force_at_m = np.zeros(3)
+        self._force_known = False
+        self._trace = np.full((TRACE_ROWS, 7), np.nan)
+        self._trace_n = 0
+        self._trace_next = -math.inf
+        self._peak = 0.0
+        self._depth = 0.0
+        self._touched = False
+        self._link_id = 0
 
     # ------------------------------------------------------------------------------------------- API
 
     @property
     def segment_index(self) -> int:
         return self._seg
+
+    def trace(self, since_t_s: float = -math.inf) -> dict[str, list[Any]]:
+        """The Cartesian load's truth every ``TRACE_DT_S`` from ``since_t_s`` on: t [s], force [N] (world), where
+        it acts [m] (world); NaN rows while the load is joint torques (a joint-space hand) or none is applied."""
+        n = self._trace_n
+        first = max(0, n - TRACE_ROWS)
+        rows = np.array([self._trace[k % TRACE_ROWS] for k in range(first, n)]) if n else np.zeros((0, 7))
+        if rows.size:
+            rows = rows[rows[:, 0] >= since_t_s]
+        return {"t_s": rows[:, 0].tolist(), "force_N": rows[:, 1:4].tolist(), "at_m": rows[:, 4:7].tolist()}
 
     def breakaways(self) -> list[dict[str, Any]]:
         return [e for e in self.events if e["kind"] == "breakaway"]
@@ -321,10 +413,28 @@ class Operator:
             self._let_go_due(t_s)
         while not self.done and self._segment_over(t_s, q_rad, dq_rad_s):
             self._enter(self._seg + 1, t_s, q_rad)
+        self._force_known = False
         if self.done:
             out_Nm[:] = 0.0
+            self._record(t_s)
             return
         self._load(t_s, q_rad, dq_rad_s, out_Nm)
+        self._record(t_s)
+
+    def _record(self, t_s: float) -> None:
+        if t_s + 1e-9 < self._trace_next:
+            return
+        self._trace_next = t_s + TRACE_DT_S - 1e-9 if self._trace_next == -math.inf else self._trace_next + TRACE_DT_S
+        if self._trace_next < t_s:  # (a gap: restart the grid)
+            self._trace_next = t_s + TRACE_DT_S - 1e-9
+        row = self._trace[self._trace_n % TRACE_ROWS]
+        row[0] = t_s
+        if self._force_known:
+            row[1:4] = self.force_N
+            row[4:7] = self.force_at_m
+        else:
+            row[1:7] = np.nan
+        self._trace_n += 1
 
     # ------------------------------------------------------------------------------------------- segments
 
@@ -368,6 +478,22 @@ class Operator:
             self._has_wrench = False
             self._move_integral = 0.0
             self._move_sum = [0.0, 0.0, 0]
+        elif isinstance(seg, (Strike, Obstacle)):
+            self._tau[:] = 0.0
+            self._wrench[:] = 0.0
+            self._has_wrench = False
+            self._peak = 0.0
+            self._depth = 0.0
+            self._touched = False
+            self._link_id = self.model.getFrameId(seg.link)
+            if isinstance(seg, Strike):
+                d = np.asarray(seg.direction, dtype=float)
+                self._direction[:] = d / np.linalg.norm(d)
+                self._event(t_s, "strike", link=seg.link, peak_N=seg.peak_N, profile=seg.profile,
+                            length_s=seg.length_s, direction=self._direction.tolist())
+            else:
+                nrm = np.asarray(seg.normal, dtype=float)
+                self._direction[:] = nrm / np.linalg.norm(nrm)
         elif isinstance(seg, (Press, LetGo)):
             self._button(seg, t_s)
         elif isinstance(seg, Hand):
@@ -420,6 +546,17 @@ class Operator:
                 self._tau[:] = 0.0
                 self._wrench[:] = 0.0
                 self._has_wrench = False
+                return True
+            return False
+        if isinstance(seg, Strike):
+            if elapsed >= seg.length_s:
+                self._event(t_s, "strike_end", link=seg.link, peak_N=round(self._peak, 3))
+                return True
+            return False
+        if isinstance(seg, Obstacle):
+            if elapsed >= seg.duration_s:
+                self._event(t_s, "obstacle_end", link=seg.link, peak_N=round(self._peak, 3),
+                            depth_m=round(self._depth, 6), touched=self._touched)
                 return True
             return False
         if isinstance(seg, Move) and elapsed >= seg.duration_s:
@@ -489,6 +626,12 @@ class Operator:
         elif isinstance(seg, Hand):
             self._hand(seg, q, dq, out)
             return
+        elif isinstance(seg, Strike):
+            self._strike(seg, t_s - self._seg_t0, q, out)
+            return
+        elif isinstance(seg, Obstacle):
+            self._obstacle(seg, t_s, q, dq, out)
+            return
         elif isinstance(seg, Move):
             j = self._index[seg.joint]
             err = seg.velocity_rad_s - dq[j]
@@ -506,6 +649,52 @@ class Operator:
         out[:] = self._tau
         if self._has_wrench:
             out += self._wrench_torque(q, self._wrench)
+            self._flange_force(self._wrench[:3])
+
+    def _flange_force(self, f: np.ndarray) -> None:
+        """The truth: a force ``f`` (world) at the scenario's frame (its placement from the last Jacobian)."""
+        self.force_N[:] = f
+        self.force_at_m[:] = self.data.oMf[self.frame_id].translation
+        self._force_known = True
+
+    def _point_jacobian(self, q: np.ndarray, frame_id: int, point: tuple[float, float, float]) -> tuple[np.ndarray,
+                                                                                                         np.ndarray]:
+        """(linear Jacobian 3×n, world position) of a point given in a frame (world axes)."""
+        J = pin.computeFrameJacobian(self.model, self.data, q, frame_id, pin.LOCAL_WORLD_ALIGNED)
+        M = self.data.oMf[frame_id]
+        r = M.rotation @ np.asarray(point, dtype=float)
+        # v_p = v_o + ω × r  ⇒  J_p = J_v − [r]× J_ω
+        Jp = J[:3] - np.cross(r, J[3:].T).T
+        return Jp, M.translation + r
+
+    def _strike(self, seg: Strike, elapsed: float, q: np.ndarray, out: np.ndarray) -> None:
+        f = seg.force(elapsed)
+        self._peak = max(self._peak, f)
+        Jp, at = self._point_jacobian(q, self._link_id, seg.point_m)
+        force = f * self._direction
+        out[:] = Jp.T @ force
+        self.force_N[:] = force
+        self.force_at_m[:] = at
+        self._force_known = True
+
+    def _obstacle(self, seg: Obstacle, t_s: float, q: np.ndarray, dq: np.ndarray, out: np.ndarray) -> None:
+        Jp, at = self._point_jacobian(q, self._link_id, seg.link_point_m)
+        nrm = self._direction
+        depth = float(np.dot(np.asarray(seg.point_m, dtype=float) - at, nrm))  # > 0: inside the obstacle
+        f = 0.0
+        if depth > 0.0:
+            v = float(nrm @ (Jp @ dq))  # the point's speed along the normal (< 0: moving in)
+            f = max(0.0, seg.stiffness_N_m * depth - seg.damping_N_s_m * v)
+            if not self._touched:
+                self._touched = True
+                self._event(t_s, "obstacle_contact", link=seg.link, at_m=[round(x, 5) for x in at.tolist()])
+            self._depth = max(self._depth, depth)
+        self._peak = max(self._peak, f)
+        force = f * nrm
+        out[:] = Jp.T @ force
+        self.force_N[:] = force
+        self.force_at_m[:] = at
+        self._force_known = True
 
     def _wrench_torque(self, q: np.ndarray, wrench: np.ndarray) -> np.ndarray:
         J = pin.computeFrameJacobian(self.model, self.data, q, self.frame_id, pin.LOCAL_WORLD_ALIGNED)
@@ -533,3 +722,4 @@ class Operator:
             err = pin.log3(self._target_M.rotation @ now.rotation.T)  # world-frame rotation error
             wrench[3:] = seg.rot_stiffness_Nm_per_rad * err - seg.rot_damping_Nm_s_per_rad * twist[3:]
         out[:] = J.T @ wrench
+        self._flange_force(f)

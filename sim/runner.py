@@ -410,6 +410,16 @@ class SimProcess:
                     return {"events": [], "done": True, "name": None}
                 return {"events": list(op.events), "done": op.done, "name": op.scenario.name}
 
+        @table.command("operator_trace")
+        def operator_trace(since_t_s: float | None = None) -> dict[str, Any]:
+            """The operator's Cartesian force (truth) every ms since ``since_t_s`` (sim time): t_s, force_N, at_m."""
+            with self.lock:
+                op = self.operator
+                t = self.physics.t_s
+                if op is None:
+                    return {"t_s": [], "force_N": [], "at_m": [], "now_s": t}
+                return {**op.trace(-math.inf if since_t_s is None else float(since_t_s)), "now_s": t}
+
         @table.command("set_q")
         def set_q(q_rad: list[float]) -> dict[str, Any]:
             """Teleport the arm (zero velocity); only while every drive's power stage is off."""

@@ -278,12 +278,14 @@ RULES: list[Rule] = [
          tool=True),
     # long: the shortest documented options
     Rule(r"^dragd demo --scenario payload\b", "run", "sim + daemon (its own length, ~1 min)", slow=True),
+    Rule(r"^dragd demo --scenario contact\b", "help", "sim + daemon, two sessions (~10 min on a loaded machine): "
+                                                     "tests/test_contact_daemon.py runs its parts on the lockstep clock"),
     Rule(r"^dragd demo --scenario teach\b", "run", "sim + daemon", extra="--seconds 6", slow=True),
     Rule(r"^dragd demo --scenario buttons\b", "help", "sim + daemon, ~1.5 min: tests/test_hand_lockstep.py runs the same "
                                                    "session (run_buttons_demo, lockstep tier)"),
     Rule(r"^dragd demo\b", "run", "sim + daemon", extra="--seconds 8", slow=True),
     Rule(r"^dragd bench --list$", "run", "offline"),
-    Rule(r"^dragd bench (compensation_us|bus_load|io_cycle_us)( |$)", "run", "offline"),
+    Rule(r"^dragd bench (compensation_us|bus_load|io_cycle_us|contact_cycle_us)( |$)", "run", "offline"),
     Rule(r"^dragd bench drive_profiles\b", "run", "sim + daemon per EDS file (two in-repo variants here)", slow=True),
     Rule(r"^dragd bench yardstick_us --json$", "run", "offline"),
     Rule(r"^dragd bench (daemon_cpu_us_per_cycle|yardstick_us (compensation_us )?lockstep_)", "run",

@@ -13,7 +13,7 @@ from dragd.telemetry.writer import TelemetryWriter
 
 pytestmark = pytest.mark.unit
 
-# (name, per joint, kind): the daemon's row before the split (Daemon._telemetry_layout)
+# (name, per joint or a fixed width, kind): the daemon's row (before the split, then #29's columns) (Daemon._telemetry_layout)
 DAEMON_ROW = [
     ("t_s", False, "float"), ("mode", False, "enum"), ("q_rad", True, "float"), ("dq_rad_s", True, "float"),
     ("current_measured_A", True, "float"), ("current_command_A", True, "float"), ("gravity_A", True, "float"),
@@ -21,6 +21,9 @@ DAEMON_ROW = [
     ("statusword", True, "int"), ("rx", True, "bool"), ("period_us", False, "float"), ("compute_us", False, "float"),
     ("q_ref_rad", True, "float"), ("track_t_s", False, "float"), ("residual_A", True, "float"),
     ("back_emf_A", True, "float"), ("effects_A", True, "float"),
+    # the contact detector's (#29): residual and band per joint, the hand's force and the grip point (3 wide)
+    ("contact_residual_A", True, "float"), ("contact_band_A", True, "float"), ("hand_force_N", 3, "float"),
+    ("grip_m", 3, "float"),
 ]
 
 
@@ -32,7 +35,7 @@ def test_cycle_layout_is_the_daemons_row(n):
     for name, per_joint, kind in DAEMON_ROW:
         f = layout[name]
         assert isinstance(f, Field) and f.description, name
-        assert cols[name].width == (n if per_joint else 1), name
+        assert cols[name].width == (per_joint if type(per_joint) is int else (n if per_joint else 1)), name
         assert cols[name].kind == kind, name
     assert cols["mode"].labels == {int(m): s for m, s in MODE_NAMES.items()}
     assert cols["mode"].labels == {0: "idle", 1: "hold", 2: "drag", 3: "track", 4: "fault"}

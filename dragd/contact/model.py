@@ -5,7 +5,9 @@ link inertials and rotor inertias), the identified friction (dragd's law, unscal
 
 with I_L = w(q̇)·sign(q̇)·k_L·|g(q)|/K_t the load-dependent friction (params ``effects.load_friction_per_Nm``).
 
-``terms`` evaluates them per sample into preallocated arrays (what the cycle does); ``log_terms`` over a whole log.
+``terms`` evaluates them per sample into preallocated arrays with numpy (the reference); ``log_terms`` over a whole
+log with the cycle's compiled arithmetic (dragd/control/contact.py ``contact_tau_in``: only Pinocchio's p, g and
+C(q, q̇) outside it), or with ``terms`` where numba is missing or ``compiled`` is false.
 """
 
 from __future__ import annotations
@@ -108,11 +110,32 @@ class ContactModel:
         tau_out -= g
         tau_out += C.T @ dq
 
-    def log_terms(self, q: np.ndarray, dq: np.ndarray, i_A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``terms`` over every sample of a log: (p, τ_in), each (N, n)."""
+    def pack(self) -> tuple[np.ndarray, np.ndarray]:
+        """The packed model of ``contact_tau_in`` (dragd/control/contact.py ``pack_model``)."""
+        from dragd.control.contact import pack_model
+
+        return pack_model(self.law, self.kt_Nm_per_A, self.load_friction_per_Nm)
+
+    def log_terms(self, q: np.ndarray, dq: np.ndarray, i_A: np.ndarray,
+                  compiled: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """(p, τ_in) at every sample of a log, each (N, n): the cycle's arithmetic (``compiled``), else ``terms``."""
+        from dragd.control.contact import contact_kernels
+
         N, n = q.shape
         P, T = np.empty((N, n)), np.empty((N, n))
-        ws = self.workspace()
+        kernels = contact_kernels() if compiled else None
+        if kernels is None:
+            ws = self.workspace()
+            for k in range(N):
+                self.terms(q[k], dq[k], i_A[k], P[k], T[k], ws)
+            return P, T
+        tau_in = kernels["tau_in"]
+        F, FS = self.pack()
+        m, d = self.robot.model, self.robot.data
+        q, dq, i_A = (np.ascontiguousarray(a, dtype=float) for a in (q, dq, i_A))
         for k in range(N):
-            self.terms(q[k], dq[k], i_A[k], P[k], T[k], ws)
+            self.robot.momentum(q[k], dq[k], P[k])
+            g = pin.computeGeneralizedGravity(m, d, q[k])
+            C = pin.computeCoriolisMatrix(m, d, q[k], dq[k])
+            tau_in(dq[k], i_A[k], g, C, F, FS, T[k])
         return P, T

@@ -155,7 +155,13 @@ class ContactDetector:
         self._m2 = np.zeros(n, dtype=bool)
         self._m3 = np.zeros(n, dtype=bool)
         self._m4 = np.zeros(n, dtype=bool)
+        self._no_ref = np.zeros(n, dtype=bool)
         self._kernel: Any = None
+        self._cycle_kernel: Any = None
+        self._observe_kernel: Any = None
+        self.tau_in = np.zeros(n)  # the model's τ_in of the last ``update_cycle`` [N·m]
+        self.F: np.ndarray | None = None  # the packed model (``set_model``)
+        self.FS = np.zeros(3)
         self._pack()
 
     def _pack(self) -> None:
@@ -170,6 +176,51 @@ class ContactDetector:
     def use_kernel(self, kernel: Any) -> None:
         """``update`` by the compiled kernel (``contact_kernel()``; the numpy in ``update`` is its reference)."""
         self._kernel = kernel
+
+    def set_model(self, F: np.ndarray, FS: np.ndarray) -> None:
+        """The identified model ``update_cycle`` computes τ_in with (``pack_model``)."""
+        self.F, self.FS = np.ascontiguousarray(F, dtype=float), np.ascontiguousarray(FS, dtype=float)
+
+    def use_cycle_kernels(self, kernels: dict[str, Any]) -> None:
+        """``update_cycle`` and ``observe_cycle`` by the compiled kernels (``contact_kernels()``)."""
+        self._cycle_kernel, self._observe_kernel = kernels["cycle"], kernels["observe"]
+
+    def observe_cycle(self, t_s: float, dq: np.ndarray, p_Nms: np.ndarray, i_A: np.ndarray, g_Nm: np.ndarray,
+                      C: np.ndarray) -> None:
+        """The residual alone (``r``, ``e``), no bands or events: in drag, where it is the operator's hand."""
+        if not self.armed:
+            return
+        assert self.F is not None, "ContactDetector.observe_cycle: set_model first"
+        dt = self._elapsed(t_s)
+        k = self._observe_kernel
+        if k is not None:
+            k(dt, dq, p_Nms, i_A, g_Nm, C, self.F, self.FS, self.tau_in, self.s.observer_gain_per_s, self.p0,
+              self.integ, self.r, self.e)
+            return
+        contact_tau_in(dq, i_A, g_Nm, C, self.F, self.FS, self.tau_in)
+        observer_step_np(dt, self.s.observer_gain_per_s, self.tau_in, p_Nms, self.p0, self.integ, self.r, self._a)
+        np.divide(self.r, self.F[F_KT], out=self.e)
+
+    def update_cycle(self, t_s: float, dq: np.ndarray, p_Nms: np.ndarray, i_A: np.ndarray, g_Nm: np.ndarray,
+                     C: np.ndarray, ref_moving: np.ndarray | None = None) -> int:
+        """``update`` with τ_in computed here from the measured current ``i_A``, gravity ``g_Nm`` and the Coriolis
+        matrix ``C`` (the cycle's form: one compiled call after Pinocchio's; ``set_model`` first)."""
+        if not self.armed:
+            return QUIET
+        assert self.F is not None, "ContactDetector.update_cycle: set_model first"
+        k = self._cycle_kernel
+        if k is None:
+            contact_tau_in(dq, i_A, g_Nm, C, self.F, self.FS, self.tau_in)
+            return self.update(t_s, dq, p_Nms, self.tau_in, ref_moving)
+        rm = self._no_ref if ref_moving is None else ref_moving
+        dt = self._elapsed(t_s)
+        settled = t_s - self.armed_at >= self.s.arm_s
+        code, self.active = k(
+            dt, settled, self.active, dq, p_Nms, i_A, g_Nm, C, self.F, self.FS, self.tau_in, rm, self.P, self.S,
+            self.p0, self.integ, self.r, self.e, self.d, self.band, self.rest_s, self.release_left_s, self.anchor,
+            self.still_time, self.state, self.baseline, self.over, self.in_event, self.peak, self.first_state,
+            self.quiet_t, self.pratio, self.f_low, self.f_speed, self.f_acc, self.f_arm, self.dq_prev)
+        return self._bookkeep(code, t_s)
 
     def set_scale(self, scale: float) -> None:
         """The mode's bands × ``scale`` (1/sensitivity), from the next update on."""
@@ -208,16 +259,19 @@ class ContactDetector:
         self._t_last = t_s
         return dt
 
-    def update(self, t_s: float, dq: np.ndarray, p_Nms: np.ndarray, tau_in_Nm: np.ndarray) -> int:
+    def update(self, t_s: float, dq: np.ndarray, p_Nms: np.ndarray, tau_in_Nm: np.ndarray,
+               ref_moving: np.ndarray | None = None) -> int:
         """One sample: advance the observer, judge every joint; QUIET, ONSET (an event began: ``events[-1]``),
-        ONGOING or ENDED (``events[-1]`` has its end)."""
+        ONGOING or ENDED (``events[-1]`` has its end). ``ref_moving``: joints whose commanded reference moves (a
+        motion in TRACK): never at rest, whatever their speed (a commanded start moves the drive before the joint)."""
         if not self.armed:
             return QUIET
+        rm = self._no_ref if ref_moving is None else ref_moving
         dt = self._elapsed(t_s)
         settled = t_s - self.armed_at >= self.s.arm_s
         if self._kernel is not None:
             code, self.active = self._kernel(
-                dt, settled, self.active, dq, p_Nms, tau_in_Nm, self.P, self.S, self.p0, self.integ,
+                dt, settled, self.active, dq, p_Nms, tau_in_Nm, rm, self.P, self.S, self.p0, self.integ,
                 self.r, self.e, self.d, self.band, self.rest_s, self.release_left_s, self.anchor, self.still_time,
                 self.state, self.baseline, self.over, self.in_event, self.peak, self.first_state, self.quiet_t,
                 self.pratio, self.f_low, self.f_speed, self.f_acc, self.f_arm, self.dq_prev)
@@ -247,13 +301,15 @@ class ContactDetector:
         b -= self.f_low
         b *= alpha
         self.f_low += b
-        moving = 1.0 if float(a.max()) >= s.rest_speed_rad_s else 0.0
+        moving = 1.0 if float(a.max()) >= s.rest_speed_rad_s or rm.any() else 0.0
         np.subtract(moving, self.f_arm, out=b)
         b *= alpha
         self.f_arm += b
         # states: at rest → settling → held (latched baseline), released → held (latched anew); a joint of an
         # ongoing event keeps its state
-        np.less(a, s.rest_speed_rad_s, out=m)  # m = at rest
+        np.less(a, s.rest_speed_rad_s, out=m)  # m = at rest (and its reference too)
+        np.logical_not(rm, out=m2)
+        m &= m2
         self.rest_s += dt
         self.rest_s *= m
         self.release_left_s -= dt
@@ -412,7 +468,8 @@ class ContactDetector:
 
 
 def _contact_kernel(dt: float, settled: bool, active: bool, dq: np.ndarray, p: np.ndarray,
-                    tau: np.ndarray, P: np.ndarray, S: np.ndarray, p0: np.ndarray, integ: np.ndarray, r: np.ndarray,
+                    tau: np.ndarray, ref_moving: np.ndarray, P: np.ndarray, S: np.ndarray, p0: np.ndarray,
+                    integ: np.ndarray, r: np.ndarray,
                     e: np.ndarray, d: np.ndarray, band: np.ndarray, rest_s: np.ndarray, release_left: np.ndarray,
                     anchor: np.ndarray, still_time: np.ndarray, state: np.ndarray, baseline: np.ndarray,
                     over: np.ndarray,
@@ -433,6 +490,9 @@ def _contact_kernel(dt: float, settled: bool, active: bool, dq: np.ndarray, p: n
     for j in range(1, n):
         x = abs(dq[j])
         top = x if (x >= top or x != x) else top  # (np.max: NaN wins)
+    for j in range(n):
+        if ref_moving[j]:
+            top = top if top >= rest_speed else rest_speed
     moving = 1.0 if top >= rest_speed else 0.0
     any_over = False
     for j in range(n):
@@ -458,7 +518,7 @@ def _contact_kernel(dt: float, settled: bool, active: bool, dq: np.ndarray, p: n
         x = moving - f_arm[j]
         x *= alpha
         f_arm[j] += x
-        rest = speed < rest_speed
+        rest = speed < rest_speed and not ref_moving[j]
         rest_s[j] = (rest_s[j] + dt) * (1.0 if rest else 0.0)
         release_left[j] -= dt
         if not rest and not in_event[j]:
@@ -539,16 +599,116 @@ def _contact_kernel(dt: float, settled: bool, active: bool, dq: np.ndarray, p: n
     return 3, False
 
 
-def contact_kernel() -> Any:
-    """The compiled ``_contact_kernel`` (once per process), or None where numba cannot be imported."""
+# rows of the packed model block (``pack_model``) the cycle computes τ_in from
+(F_KT, F_COUL_POS, F_COUL_NEG, F_STAT_POS, F_STAT_NEG, F_STRIB_V, F_STRIB_EXP, F_VISC_POS, F_VISC_NEG, F_LOAD) = range(10)
+N_MODEL_ROWS = 10
+
+
+def pack_model(law: Any, kt_Nm_per_A: np.ndarray, load_friction_per_Nm: np.ndarray | None) -> tuple[np.ndarray,
+                                                                                                     np.ndarray]:
+    """(per-joint rows, scalars) of the identified friction (``law``, a LawParams: dragd's friction law at scale 1),
+    K_t and the load-dependent friction k_L, for ``contact_tau_in``."""
+    n = kt_Nm_per_A.shape[0]
+    F = np.zeros((N_MODEL_ROWS, n))
+    for row, a in ((F_KT, kt_Nm_per_A), (F_COUL_POS, law.coulomb_pos_A), (F_COUL_NEG, law.coulomb_neg_A),
+                   (F_STAT_POS, law.static_pos_A), (F_STAT_NEG, law.static_neg_A),
+                   (F_STRIB_V, law.stribeck_velocity_rad_s), (F_STRIB_EXP, law.stribeck_exponent),
+                   (F_VISC_POS, law.viscous_pos_A_s_per_rad), (F_VISC_NEG, law.viscous_neg_A_s_per_rad)):
+        F[row] = np.broadcast_to(np.asarray(a, dtype=float), (n,))
+    if load_friction_per_Nm is not None:
+        F[F_LOAD] = load_friction_per_Nm
+    FS = np.array([law.smoothing_rad_s, law.deadband_rad_s, 1.0 if law.use_stribeck else 0.0])
+    return F, FS
+
+
+def contact_tau_in(dq: np.ndarray, i_A: np.ndarray, g: np.ndarray, C: np.ndarray, F: np.ndarray, FS: np.ndarray,
+                   tau: np.ndarray) -> None:
+    """τ_in = K_t·(I − I_f(q̇) − I_L(q, q̇)) − g + Cᵀq̇ joint by joint (the identified friction of dragd's law at
+    scale 1 and the load-dependent term w·sign(q̇)·k_L·|g|/K_t; dragd/contact/model.py ``terms`` is the numpy
+    reference). ``C``: the Coriolis matrix C(q, q̇) (Pinocchio's)."""
+    n = dq.shape[0]
+    smoothing, deadband, stribeck = FS[0], FS[1], FS[2] != 0.0
+    for j in range(n):
+        v = dq[j]
+        speed = abs(v)
+        pos = v >= 0.0
+        c = F[F_COUL_POS, j] if pos else F[F_COUL_NEG, j]
+        if stribeck:
+            b = (F[F_STAT_POS, j] if pos else F[F_STAT_NEG, j]) - c
+            b *= math.exp(-((speed / F[F_STRIB_V, j]) ** F[F_STRIB_EXP, j]))
+            c += b
+        x = speed - deadband
+        x = x if (x >= 0.0 or x != x) else 0.0  # (np.maximum: NaN propagates)
+        w = math.tanh(x / smoothing)
+        fr = w * c
+        fr += (F[F_VISC_POS, j] if pos else F[F_VISC_NEG, j]) * v
+        if F[F_LOAD, j] != 0.0:
+            x = w * abs(g[j])
+            x *= F[F_LOAD, j]
+            x /= F[F_KT, j]
+            fr += math.copysign(x, v)
+        a = i_A[j] - fr
+        a *= F[F_KT, j]
+        a -= g[j]
+        s = 0.0
+        for k in range(n):
+            s += C[k, j] * dq[k]
+        tau[j] = a + s
+
+
+def _contact_cycle_kernel(dt: float, settled: bool, active: bool, dq: np.ndarray, p: np.ndarray, i_A: np.ndarray,
+                          g: np.ndarray, C: np.ndarray, F: np.ndarray, FS: np.ndarray, tau: np.ndarray,
+                          ref_moving: np.ndarray, P: np.ndarray, S: np.ndarray, p0: np.ndarray, integ: np.ndarray,
+                          r: np.ndarray, e: np.ndarray, d: np.ndarray, band: np.ndarray, rest_s: np.ndarray,
+                          release_left: np.ndarray, anchor: np.ndarray, still_time: np.ndarray, state: np.ndarray,
+                          baseline: np.ndarray, over: np.ndarray, in_event: np.ndarray, peak: np.ndarray,
+                          first_state: np.ndarray, quiet_t: np.ndarray, pratio: np.ndarray, f_low: np.ndarray,
+                          f_speed: np.ndarray, f_acc: np.ndarray, f_arm: np.ndarray,
+                          dq_prev: np.ndarray) -> tuple[int, bool]:
+    """The cycle's whole contact step in one call: the model's τ_in from the measured current (``contact_tau_in``),
+    then ``_contact_kernel``. Only Pinocchio's p = M̄q̇, g and C(q, q̇) come from outside."""
+    contact_tau_in(dq, i_A, g, C, F, FS, tau)
+    return _contact_kernel(dt, settled, active, dq, p, tau, ref_moving, P, S, p0, integ, r, e, d, band, rest_s,
+                           release_left, anchor, still_time, state, baseline, over, in_event, peak, first_state,
+                           quiet_t, pratio, f_low, f_speed, f_acc, f_arm, dq_prev)
+
+
+def _contact_observe_kernel(dt: float, dq: np.ndarray, p: np.ndarray, i_A: np.ndarray, g: np.ndarray, C: np.ndarray,
+                            F: np.ndarray, FS: np.ndarray, tau: np.ndarray, k_o: float, p0: np.ndarray,
+                            integ: np.ndarray, r: np.ndarray, e: np.ndarray) -> None:
+    """The residual alone (no bands, no events): τ_in, the observer step, e = r/K_t (drag: the hand's torque)."""
+    contact_tau_in(dq, i_A, g, C, F, FS, tau)
+    observer_step(dt, k_o, tau, p, p0, integ, r)
+    for j in range(dq.shape[0]):
+        e[j] = r[j] / F[F_KT, j]
+
+
+def contact_kernels() -> dict[str, Any] | None:
+    """The compiled kernels (once per process): ``contact`` (``_contact_kernel``: τ_in given, offline), ``cycle``
+    (``_contact_cycle_kernel``: τ_in from the current, the daemon's) and ``tau_in`` (``contact_tau_in``); None where
+    numba cannot be imported."""
     f, b, i = np.zeros(1), np.zeros(1, dtype=bool), np.zeros(1, dtype=np.int64)
     S = np.array([25.0, 0.005, 0.3, 0.5, 0.25, 0.5, 0.05, 1.0, 0.5])
+    F = np.ones((N_MODEL_ROWS, 1))
+    FS = np.array([0.005, 0.0, 1.0])
     state = {"r", "e", "d", "band", "rest_s", "release_left", "anchor", "still_time", "baseline", "peak", "quiet_t",
-             "pratio", "f_low", "f_speed", "f_acc", "f_arm", "dq_prev", "p0", "integ"}
-    args: list[Any] = []
-    for name in _contact_kernel.__code__.co_varnames[:_contact_kernel.__code__.co_argcount]:
-        args.append({"dt": 1e-3, "settled": True, "active": False, "dq": f, "p": f, "tau": f, "P": np.ones((9, 1)),
-                     "S": S, "state": i.copy(), "first_state": i.copy(), "over": b.copy(), "in_event": b.copy()}.get(
-            name, f.copy() if name in state else None))
-    k = compile_kernels(globals(), ("observer_step",), {"contact": (_contact_kernel, tuple(args))})
+             "pratio", "f_low", "f_speed", "f_acc", "f_arm", "dq_prev", "p0", "integ", "tau"}
+    given = {"dt": 1e-3, "settled": True, "active": False, "dq": f, "p": f, "i_A": f, "g": f, "C": np.zeros((1, 1)),
+             "F": F, "FS": FS, "P": np.ones((9, 1)), "S": S, "ref_moving": b.copy(), "state": i.copy(), "k_o": 25.0,
+             "first_state": i.copy(), "over": b.copy(), "in_event": b.copy()}
+
+    def args(fn: Any) -> tuple[Any, ...]:
+        names = fn.__code__.co_varnames[:fn.__code__.co_argcount]
+        return tuple(given.get(nm, f.copy() if nm in state else None) for nm in names)
+
+    kernel, cycle, tau_in, observe = (_contact_kernel, _contact_cycle_kernel, contact_tau_in,
+                                      _contact_observe_kernel)  # (the Python functions)
+    return compile_kernels(globals(), ("observer_step", "contact_tau_in", "_contact_kernel"), {
+        "contact": (kernel, args(kernel)), "cycle": (cycle, args(cycle)), "observe": (observe, args(observe)),
+        "tau_in": (tau_in, (f, f, f, np.zeros((1, 1)), F, FS, f.copy()))})
+
+
+def contact_kernel() -> Any:
+    """The compiled ``_contact_kernel`` (once per process), or None where numba cannot be imported."""
+    k = contact_kernels()
     return None if k is None else k["contact"]

@@ -22,6 +22,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from dragd.control.contact import ONSET
+from dragd.control.contact_watch import ContactWatch
 from dragd.control.guard import GuardSettings, RunawayGuard, guard_command_kernel, guard_kernel
 from dragd.control.fused import DragLaw
 from dragd.control.hand import HandInputs
@@ -56,7 +58,7 @@ class Estimate:
     dq_rad_s: np.ndarray
     current_A: np.ndarray
     tau_g_Nm: np.ndarray
-    p_Nms: np.ndarray | None = None  # generalised momentum M(q)·q̇ (the runaway guard's observer; DRAG only)
+    p_Nms: np.ndarray | None = None  # generalised momentum M̄(q)·q̇ (the runaway guard's and the contact observer's)
     inputs: np.ndarray | None = None  # per joint the drive's digital inputs word (60FDh; the feedback's array)
     inputs_age: np.ndarray | None = None  # per joint cycles since the TPDO carrying it arrived
 
@@ -119,6 +121,11 @@ class Controller:
         self.hold_move: np.ndarray | None = None  # HOLD's pose moving to this target (payload estimate, check model)
         self.hold_move_speed = 0.1
         self._tau_in = np.zeros(n)
+        # contact detection (dragd/control/contact_watch.py; set by from_config): see "contact" below
+        self.contact: ContactWatch | None = None
+        self.contact_stops = 0
+        self._contact_drag_pending = False
+        self._contact_target = np.zeros(n)
         # --- drag permission and the hand's inputs (#30) ---
         self.permission = DragPermission("none", 0.5)  # what DRAG requires (from_config: drag.require)
         self.hand: HandInputs | None = None  # the guiding device's inputs (set_hand)
@@ -177,6 +184,7 @@ class Controller:
         c.track.use_cst(np.zeros(c.n, dtype=bool), CstLoop(
             kp_Nm_per_rad=per_joint(rc.cst_kp_Nm_per_rad), kd_Nm_s_per_rad=per_joint(rc.cst_kd_Nm_s_per_rad),
             ki_Nm_per_rad_s=per_joint(rc.cst_ki_Nm_per_rad_s), integral_max_Nm=per_joint(rc.cst_integral_limit_A) * kt))
+        c.contact = ContactWatch.from_config(cfg, params, dt, cfg.loop.compiled)
         c.permission = DragPermission(cfg.drag.require, cfg.drag.lease_s)
         c.drag_exit_ramp_s = cfg.drag.exit_ramp_s
         exit_kd = cfg.drag.exit_damping_Nm_s_per_rad
@@ -192,6 +200,7 @@ class Controller:
         (or ``ramp_s``)."""
         if mode == self.mode:
             return
+        self._contact_drag_pending = False
         self.blend_from_A[:] = self.prev_cmd_A
         self.blend_t0 = self.t if blend else -1.0
         self.blend_ramp_s = self.mode_ramp_s if ramp_s is None else ramp_s
@@ -321,6 +330,11 @@ class Controller:
 
         ``t`` (the cycle's time) is set by the cycle's tick."""
         t = self.t
+        if self.contact is not None:
+            if self.contact.code == ONSET:
+                self._contact_react(est)
+            elif self._contact_drag_pending:
+                self._contact_drag_when_cst()
         self._permission_step(est)
         if self.mode == Mode.HOLD:
             self._hold_step(est)
@@ -432,6 +446,103 @@ class Controller:
         np.divide(g.r_f, self.kt, out=self._tmp)
         self.gravity_offset_A -= self._tmp  # the residual drives the motion: hold against it
         np.clip(self.gravity_offset_A, self.neg_limit_A, self.params.current_limit_A, out=self.gravity_offset_A)
+
+    # ------------------------------------------------------------------------------------------ contact
+
+    def contact_want(self) -> str:
+        """What the contact detector watches this cycle (and select it): "" nothing, "drag" the residual alone (the
+        hand's force), else the mode whose bands and reaction apply: "hold", "track", "identify"."""
+        w = self.contact
+        if w is None:
+            return ""
+        mode, why = self.mode, ""
+        want = ""
+        if not w.enabled:
+            why = w.reason
+        elif mode == Mode.DRAG:
+            want = "drag"
+        elif not w.calibrated:
+            why = w.reason
+        elif mode == Mode.TRACK and self.track.active:
+            tr = self.track.trajectory
+            want = "identify" if tr is not None and tr.label.startswith("identify") else "track"
+        elif mode == Mode.HOLD:
+            if self.stop_after_hold_at is not None:
+                why = "stopping (the ramp before the drives disable)"
+            elif self.feedback_hold:
+                why = "feedback hold (stale TPDOs)"
+            elif self.gravity_offset_A.any():
+                why = "hold with a gravity offset the model lacks (mode drag --accept, a runaway-guard trip)"
+            else:
+                want = "hold"
+        w.select(want, why)
+        if w.ended is not None:
+            self._contact_ended()
+        return want
+
+    def contact_step(self, est: Estimate, C: np.ndarray, stale_max: int) -> None:
+        """The estimate step's contact part (after ``contact_want`` and Pinocchio's terms): the detector's update.
+        A cycle with stale feedback is skipped (the next one integrates the elapsed time)."""
+        w = self.contact
+        assert w is not None and est.p_Nms is not None
+        if stale_max > 0:
+            w.code = 0
+            return
+        track = self.mode == Mode.TRACK
+        w.step(self.t, est.dq_rad_s, est.p_Nms, est.current_A, est.tau_g_Nm, C, self.blend_t0 < 0.0,
+               self.track.dq_ref if track else None)
+        if w.ended is not None:
+            self._contact_ended()
+
+    def _contact_ended(self) -> None:
+        w = self.contact
+        assert w is not None and w.ended is not None
+        self.events.append(Event("contact_end", self.t, fields={**w.ended, "names": [self.names[j] for j in
+                                                                                      w.ended["joints"]]}))
+        w.ended = None
+
+    def _contact_react(self, est: Estimate) -> None:
+        """An onset: the mode's reaction (``contact.<mode>.reaction``) and the fault entry. Rare path."""
+        w = self.contact
+        assert w is not None
+        mode = w.watching
+        reaction = w.modes[mode].reaction
+        note = ""
+        if reaction == "compliant":
+            refusal = self.drag_refusal()
+            if refusal is not None:
+                reaction, note = "stop", f"compliant refused: {refusal}"
+        if reaction == "retract":
+            sf = self.safety
+            if not w.retract_step(est.q_rad, sf.wall_lo_rad, sf.wall_hi_rad, self._contact_target):
+                reaction, note = "stop", "retract: no joint carries the contact"
+        dom, text, fields = w.onset_record(self.names, reaction, note)
+        self.contact_stops += 1
+        self.events.append(Event("protective_stop", self.t, dom, text, fields=fields))
+        if self.track.active and self.mode == Mode.TRACK:
+            self.end_track(f"contact: {text}", est.q_rad, hold_at_ref=False)  # → HOLD where the arm is
+        elif self.mode == Mode.HOLD:
+            self.q_hold[:] = est.q_rad  # hold where it is now (the hold no longer springs back into the contact)
+            self.hold_move = None
+        if reaction == "retract":
+            self.hold_move = self._contact_target.copy()
+            self.hold_move_speed = w.retract_speed_rad_s
+        elif reaction == "compliant":
+            self._contact_drag_pending = True
+            self._contact_drag_when_cst()
+
+    def _contact_drag_when_cst(self) -> None:
+        """The compliant reaction: DRAG once the drives are back in torque mode (CST) after a motion, if drag is
+        still permitted then; else the arm stays held."""
+        if self.mode != Mode.HOLD or self.drive_csp:
+            return
+        refusal = self.drag_refusal()
+        self._contact_drag_pending = False
+        if refusal is not None:
+            self.events.append(Event("protective_stop", self.t, None, f"contact: compliant refused: {refusal}; held",
+                                     fields={"kind": "contact", "reaction": "stop", "note": refusal}))
+            return
+        self.set_mode(Mode.DRAG)
 
     # --- drag permission and the hand's inputs (#30; docs/HAND.md) --------------------------------------------------
 

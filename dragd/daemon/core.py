@@ -51,6 +51,7 @@ from dragd.clock import GUARD_S, Clock, LockstepClock, WallClock
 from dragd.realtime import CpuLatencyRequest, demote_current_thread, scheduler_label, set_realtime
 
 MAX_FAULTS = 100  # the fault list keeps the newest
+CONTACT_REACTION = {"stop": "hold", "retract": "retract", "compliant": "drag"}  # a contact's fault entry: what the arm did
 PAYLOAD_REACH_M = 0.3  # a flange load's centre of mass lies within this of the flange (the guard's plausibility test)
 
 
@@ -154,6 +155,7 @@ class Daemon:
         self.layouts = bus_layouts(cfg, self.drives)
         self.budget = check_bus_budget(cfg, self.layouts)
         self.model = RobotModel.from_config(cfg)  # URDF + the params' payload (docs/GAP.md)
+        self.model.add_grip(cfg.contact.grip.frame, cfg.contact.grip.offset_m, cfg.source)  # the hand's force in drag
         if list(self.model.joint_names) != cfg.joint_names:
             raise ValueError(f"{cfg.source}: joints: expected the robot's joints {', '.join(self.model.joint_names)}, "
                              f"got {', '.join(cfg.joint_names)}")
@@ -181,6 +183,7 @@ class Daemon:
         self.model_check_failed: list[str] = []  # joints `dragd check model` refused: no drag until a check passes
         self.comms = CommsMonitor(self)
         self.faults: list[dict[str, Any]] = []
+        self._contact_entry: dict[str, Any] | None = None  # the last contact's fault entry (its end and peaks follow)
         self.fault_count = 0  # every fault entry since the start (the list is cleared by 'start', capped)
         self.protective_stops = 0
         self.stop_requested = False
@@ -287,11 +290,25 @@ class Daemon:
                 if f.get("new"):
                     rec.event("fault", text=ev.text, code=ev.code)
             elif ev.kind == "protective_stop":
-                kind = (ev.fields or {}).get("kind")
+                f = ev.fields or {}
+                kind = f.get("kind")
                 self.protective_stops += 1
-                self._fault_entry(ev.joint, ev.t_s, ev.text, 0, reaction="hold", kind=kind)
+                if kind == "contact":  # the joints, residual and estimated contact torque (docs/CONTACT.md)
+                    extra = {k: v for k, v in f.items() if k not in ("kind", "reaction")}
+                    self._fault_entry(ev.joint, ev.t_s, ev.text, 0, kind=kind, reaction=CONTACT_REACTION.get(
+                        f.get("reaction"), "hold"), **extra)
+                    self._contact_entry = self.faults[-1]
+                    rec.event("contact", text=ev.text, **f)
+                else:
+                    self._fault_entry(ev.joint, ev.t_s, ev.text, 0, reaction="hold", kind=kind)
                 self._log_later(f"protective stop at t={ev.t_s:.3f} s: {ev.text}", LOG_WARNING)
                 rec.event("protective_stop", kind=kind, text=ev.text)
+            elif ev.kind == "contact_end":
+                f = ev.fields or {}
+                entry = self._contact_entry
+                if entry is not None and entry.get("t_end_s") is None:
+                    entry.update(t_end_s=f.get("t_end_s"), peak_Nm=f.get("peak_Nm"), peak_A=f.get("peak_A"))
+                rec.event("contact_end", t_end_s=f.get("t_end_s"), joints=f.get("names"), peak_Nm=f.get("peak_Nm"))
             elif ev.kind == "track_end":
                 f = ev.fields or {}
                 self.motions.on_end(ev.text, ev.t_s, int(f.get("cycle", 0)))
@@ -548,6 +565,8 @@ class Daemon:
                       "hand_runs": c.guard.hand_runs if c.guard is not None else 0,
                       "stuck_deferrals": c.guard.stuck_deferrals if c.guard is not None else 0, "last_trip": c.last_trip,
                       "gravity_offset_A": c.gravity_offset_A.tolist(), "hold_rest_s": round(c.hold_rest_s, 3)},
+            "contact": (c.contact.status(self.cfg.joint_names) | {"stops": c.contact_stops}
+                        if c.contact is not None else None),
             "payload": {"mass_kg": self.model.payload_mass_kg, "com_m": self.model.payload_com_m.tolist()},
             "telemetry": self.recorder.telemetry.stats() if self.recorder.telemetry is not None else None,
             "recording": self.recorder.recording_path,

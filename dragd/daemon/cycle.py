@@ -145,8 +145,15 @@ class Cycle:
                         sc.A_per_permille, est.current_A)
         self.velocity.update(fb.counts, self.sample_dt_s, fb.rx)
         self.model.gravity_at(est.q_rad, self.t, est.tau_g_Nm)  # (blended while a payload change ramps in)
-        if c.mode == Mode.DRAG and c.guard is not None:
-            self.model.momentum(est.q_rad, est.dq_rad_s, est.p_Nms)  # the runaway guard's observer
+        watch = c.contact_want()  # the contact observer's mode ("": none)
+        if watch or (c.mode == Mode.DRAG and c.guard is not None):
+            self.model.momentum(est.q_rad, est.dq_rad_s, est.p_Nms)  # the observers' p = M̄(q)·q̇
+        if watch:  # the contact detector (HOLD, TRACK) or, in DRAG, the hand's force: one compiled call after these
+            c.contact_step(est, self.model.coriolis(est.q_rad, est.dq_rad_s), worst)
+            if watch == "drag" and self.model.grip_frame_id >= 0:
+                w = c.contact
+                w.grip_force(self.model.grip_jacobian(est.q_rad))  # type: ignore[union-attr]
+                self.model.grip_position(w.grip_m)  # type: ignore[union-attr]
         # compute
         c.advance(est, worst)  # (the stalest joint's count: fb.stale.max(), 0 when every TPDO arrived)
         fault = self.supervisor.update(fb.statusword, _TARGETS.get(c.mode, Target.ENABLED), self.t)

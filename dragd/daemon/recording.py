@@ -99,6 +99,12 @@ class Recorder:
         track = mode == Mode.TRACK
         row[cols["track_t_s"]] = c.track.tau if track else -1.0
         row[cols["residual_A"]] = c.track.residual_A if track else 0.0
+        w = c.contact
+        watch = w.watching if w is not None and w.det.armed else ""
+        row[cols["contact_residual_A"]] = w.det.e if watch else 0.0  # type: ignore[union-attr]
+        row[cols["contact_band_A"]] = w.det.band if watch and watch != "drag" else 0.0  # type: ignore[union-attr]
+        row[cols["hand_force_N"]] = w.force_N if watch == "drag" and w.force_valid else 0.0  # type: ignore[union-attr]
+        row[cols["grip_m"]] = w.grip_m if watch == "drag" and w.force_valid else 0.0  # type: ignore[union-attr]
 
     def log_time_ns(self) -> int | None:
         """An event's log time: None (the writer's CLOCK_REALTIME), or the lockstep clock's."""

@@ -51,6 +51,13 @@ def run_demo(seconds: float = 20.0, config: Path | None = None, out: Path | None
             return run_payload_demo(config, out, progress, lockstep)
         except PayloadDemoError as exc:
             raise DemoError(str(exc)) from None
+    if scenario == "contact":
+        from dragd.lab.demo_contact import ContactDemoError, run_contact_demo
+
+        try:
+            return run_contact_demo(config, out, progress, lockstep)
+        except ContactDemoError as exc:
+            raise DemoError(str(exc)) from None
     if scenario == "buttons":  # (#30: a teach session from the guiding device at the hand)
         from dragd.lab.demo_buttons import ButtonsDemoError, run_buttons_demo
 
@@ -59,7 +66,7 @@ def run_demo(seconds: float = 20.0, config: Path | None = None, out: Path | None
         except ButtonsDemoError as exc:
             raise DemoError(str(exc)) from None
     if scenario != "drag":
-        raise DemoError(f"--scenario: expected 'drag', 'teach', 'payload' or 'buttons', got '{scenario}'")
+        raise DemoError(f"--scenario: expected 'drag', 'teach', 'payload', 'buttons' or 'contact', got '{scenario}'")
     if not seconds >= 8.0:
         raise DemoError(f"--seconds: expected at least 8 s (hold, untouched drag, hand pull, release), got {seconds}")
     out = Path(out) if out is not None else Path.cwd() / "out"

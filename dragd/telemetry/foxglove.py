@@ -10,6 +10,9 @@ Written by the telemetry writer's thread (never the cycle), decimated to ``rate_
 - ``/log``                ``foxglove.Log``: the daemon's events (faults and protective stops as ERROR/WARNING)
 - ``/robot_description``  ``std_msgs/String``: the URDF text, once per file (the 3D panel's URDF layer with
                           source "topic" reads it, so the file alone shows the arm)
+- ``/hand_force``         ``foxglove.SceneUpdate``: in drag, an arrow at the grip point along the operator's force
+                          estimated from the contact residual (``hand_force_N``, ``grip_m``; 1 cm per N, in the
+                          URDF's root frame); an empty update otherwise (docs/CONTACT.md)
 
 The schemas are Foxglove's JSON schemas (foxglove.FrameTransforms, foxglove.Log); dragd's own cycle channel
 is unchanged. docs/foxglove_layout.json is a layout for these topics.
@@ -17,6 +20,7 @@ is unchanged. docs/foxglove_layout.json is a layout for these topics.
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -46,6 +50,7 @@ JOINT_STATES_TOPIC = "/joint_states"
 TF_TOPIC = "/tf"
 LOG_TOPIC = "/log"
 ROBOT_DESCRIPTION_TOPIC = "/robot_description"
+HAND_FORCE_TOPIC = "/hand_force"
 
 _TIME = {
     "type": "object",
@@ -124,6 +129,62 @@ JOINT_STATE_SCHEMA: dict[str, Any] = {
     "required": ["timestamp", "name", "position_rad", "velocity_rad_s", "current_A", "command_A", "mode"],
 }
 """The joint-state message (ROS sensor_msgs/JointState's content, units in the field names)."""
+
+# --- the hand's force in drag (#29: docs/CONTACT.md) ---
+_VEC3 = {"title": "foxglove.Vector3", "type": "object", "properties": dict(_XYZ)}
+_QUAT = {"title": "foxglove.Quaternion", "type": "object", "properties": {**_XYZ, "w": {"type": "number"}}}
+_COLOR = {"title": "foxglove.Color", "type": "object", "properties": {k: {"type": "number"} for k in "rgba"}}
+SCENE_UPDATE_SCHEMA: dict[str, Any] = {
+    "title": "foxglove.SceneUpdate",
+    "description": "An update to the entities displayed in a 3D scene",
+    "type": "object",
+    "properties": {
+        "deletions": {"type": "array", "items": {"title": "foxglove.SceneEntityDeletion", "type": "object",
+                                                   "properties": {"timestamp": _TIME, "type": {"type": "integer"},
+                                                                  "id": {"type": "string"}}}},
+        "entities": {"type": "array", "items": {
+            "title": "foxglove.SceneEntity", "type": "object",
+            "properties": {
+                "timestamp": _TIME, "frame_id": {"type": "string"}, "id": {"type": "string"},
+                "lifetime": {"title": "duration", "type": "object",
+                             "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}}},
+                "frame_locked": {"type": "boolean"},
+                "arrows": {"type": "array", "items": {
+                    "title": "foxglove.ArrowPrimitive", "type": "object",
+                    "properties": {"pose": {"title": "foxglove.Pose", "type": "object",
+                                            "properties": {"position": _VEC3, "orientation": _QUAT}},
+                                   "shaft_length": {"type": "number"}, "shaft_diameter": {"type": "number"},
+                                   "head_length": {"type": "number"}, "head_diameter": {"type": "number"},
+                                   "color": _COLOR}}},
+            }}},
+    },
+}
+"""Foxglove's JSON schema of foxglove.SceneUpdate (the fields dragd writes: entities with arrows)."""
+HAND_FORCE_M_PER_N = 0.01  # the arrow's length per newton
+HAND_FORCE_MIN_N = 1.0  # below this no arrow is drawn
+
+
+def hand_force_arrow(ts: int, frame_id: str, at_m: np.ndarray, force_N: np.ndarray) -> dict[str, Any]:
+    """A SceneUpdate with the hand's force as an arrow at ``at_m`` (``frame_id`` axes); no arrow below
+    ``HAND_FORCE_MIN_N``. The arrow primitive points along its pose's +x: the rotation taking x onto the force."""
+    f = np.asarray(force_N, dtype=float)
+    norm = float(np.linalg.norm(f))
+    arrows: list[dict[str, Any]] = []
+    if np.isfinite(norm) and norm >= HAND_FORCE_MIN_N:
+        u = f / norm
+        w, v = 1.0 + u[0], np.array([0.0, -u[2], u[1]])  # q = [1 + x·u, x × u], normalised (x = (1, 0, 0))
+        if w < 1e-9:  # u = -x: half a turn about z
+            w, v = 0.0, np.array([0.0, 0.0, 1.0])
+        qn = math.sqrt(w * w + float(v @ v))
+        length = norm * HAND_FORCE_M_PER_N
+        arrows.append({"pose": {"position": dict(zip("xyz", map(float, at_m))),
+                                "orientation": {"x": v[0] / qn, "y": v[1] / qn, "z": v[2] / qn, "w": w / qn}},
+                       "shaft_length": 0.8 * length, "shaft_diameter": 0.01, "head_length": 0.2 * length,
+                       "head_diameter": 0.025, "color": {"r": 1.0, "g": 0.45, "b": 0.0, "a": 1.0}})
+    return {"entities": [{"timestamp": _stamp(ts), "frame_id": frame_id, "id": "hand_force",
+                          "lifetime": {"sec": 0, "nsec": 0}, "frame_locked": False, "arrows": arrows}]}
+# --- end of the hand's force ---
+
 
 STRING_SCHEMA: dict[str, Any] = {
     "title": "std_msgs/String",
@@ -264,6 +325,8 @@ class FoxgloveChannels:
         self._description = channel(ROBOT_DESCRIPTION_TOPIC, STRING_SCHEMA) if text is not None else None
         self._urdf_text = text
         self._described = False
+        self._hand = channel(HAND_FORCE_TOPIC, SCENE_UPDATE_SCHEMA)  # (#29: the hand's force in drag)
+        self._root = spec.frames.root if spec.frames is not None else "base_link"
 
     def _add(self, channel_id: int, t_ns: int, message: dict[str, Any], seq: int = 0) -> int:
         data = dumps(message)
@@ -310,6 +373,9 @@ class FoxgloveChannels:
                 "command_A": r[sl["current_command_A"]].tolist(), "mode": mode}, self._seq)
             if frames is not None and self._tf is not None and np.isfinite(q).all():
                 n += self._add(self._tf, ts, frames.transforms(q, ts), self._seq)
+            if "hand_force_N" in sl:
+                n += self._add(self._hand, ts, hand_force_arrow(ts, self._root, r[sl["grip_m"]], r[sl["hand_force_N"]]),
+                               self._seq)
         return n
 
     def add_event(self, t_ns: int, name: str, fields: Mapping[str, Any]) -> int:

@@ -61,8 +61,8 @@ class Field:
 MODE_LABELS: dict[int, str] = {int(m): name for m, name in MODE_NAMES.items()}
 """The ``mode`` field's labels: 0 idle, 1 hold, 2 drag, 3 track, 4 fault."""
 
-# name -> (per joint, kind, description); the order is the row's order
-_CYCLE_FIELDS: tuple[tuple[str, bool, str, str], ...] = (
+# name -> (per joint, or a fixed width, kind, description); the order is the row's order
+_CYCLE_FIELDS: tuple[tuple[str, bool | int, str, str], ...] = (
     ("t_s", False, "float", "controller time since the daemon started [s]"),
     ("mode", False, "enum", "the daemon's mode"),
     ("q_rad", True, "float", "joint positions from the encoders [rad]"),
@@ -82,6 +82,11 @@ _CYCLE_FIELDS: tuple[tuple[str, bool, str, str], ...] = (
     ("residual_A", True, "float", "filtered measured minus predicted current (track, else 0) [A]"),
     ("back_emf_A", True, "float", "back-EMF compensation (drag, else 0) [A]"),
     ("effects_A", True, "float", "identified extra effects (drag, else 0) [A]"),
+    ("contact_residual_A", True, "float", "contact observer's residual r/K_t: hold, track (the detector), drag "
+                                          "(the hand); else 0 [A]"),
+    ("contact_band_A", True, "float", "the band the detector judges the residual against (hold, track; else 0) [A]"),
+    ("hand_force_N", 3, "float", "the operator's force at the grip point, world axes (drag, else 0) [N]"),
+    ("grip_m", 3, "float", "the grip point's position, world (drag, else 0) [m]"),
 )
 
 
@@ -91,7 +96,7 @@ def cycle_layout(n_joints: int) -> dict[str, int | Field]:
         raise ValueError(f"cycle_layout: n_joints must be >= 1; got {n_joints}")
     out: dict[str, int | Field] = {}
     for name, per_joint, kind, description in _CYCLE_FIELDS:
-        width = n_joints if per_joint else 1
+        width = per_joint if type(per_joint) is int else (n_joints if per_joint else 1)
         if kind == "enum":
             out[name] = Field(width, kind="int", labels=MODE_LABELS, description=description)
         else:

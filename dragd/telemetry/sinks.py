@@ -49,7 +49,8 @@ def rerun_unavailable() -> str | None:
 
 _COMPONENTS = (("current_measured_A", "measured"), ("current_command_A", "command"), ("gravity_A", "gravity"),
                ("friction_A", "friction"), ("startup_A", "startup"), ("damping_A", "damping"),
-               ("back_emf_A", "back_emf"), ("effects_A", "effects"))
+               ("back_emf_A", "back_emf"), ("effects_A", "effects"), ("contact_residual_A", "contact_residual"),
+               ("contact_band_A", "contact_band"))
 
 
 def _pick(stamps: np.ndarray, period_ns: int, next_ns: int | None) -> tuple[np.ndarray, int | None]:
@@ -156,6 +157,14 @@ class RerunSink:
                 rec.set_time(self._timeline, timestamp=np.datetime64(int(t[i]), "ns"))
                 rec.log("arm/skeleton", rr.LineStrips3D([points], radii=0.02))
                 rec.log("arm/links", rr.Points3D(points, radii=0.03, labels=self._frames.chain_names))
+                if "hand_force_N" in layout.slices and "grip_m" in layout.slices:  # the hand's force in drag (#29)
+                    f = rows[i, layout.slices["hand_force_N"]]
+                    if np.isfinite(f).all() and float(np.linalg.norm(f)) >= 1.0:
+                        rec.log("arm/hand_force", rr.Arrows3D(origins=[rows[i, layout.slices["grip_m"]]],
+                                                              vectors=[0.01 * f], radii=0.008,
+                                                              labels=[f"{float(np.linalg.norm(f)):.0f} N"]))
+                    else:
+                        rec.log("arm/hand_force", rr.Clear(recursive=False))
 
     def write_event(self, log_time_ns: int, name: str, fields: Mapping[str, Any]) -> None:
         rr, rec = self._rr, self.rec

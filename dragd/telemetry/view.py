@@ -110,6 +110,10 @@ def live_to_rerun(call: Callable[[], dict[str, Any]], sink: RerunSink, n: int, r
             for name, value in (st.get("components_A") or {}).items():
                 if name in lay.slices:
                     row[0, lay.slices[name]] = value
+            contact = st.get("contact") or {}
+            if contact.get("hand_force_N") is not None:  # drag: the hand's force at the grip point (#29)
+                row[0, lay.slices["hand_force_N"]] = contact["hand_force_N"]
+                row[0, lay.slices["grip_m"]] = contact.get("grip_m") or 0.0
             if st.get("mode") != last_mode:
                 sink.write_event(t_ns, "mode", {"mode": st.get("mode"), "previous": last_mode})
                 last_mode = st.get("mode")

@@ -84,6 +84,7 @@ def _load_plugins() -> None:
 
     for mod in ("dragd.lab.bench.loop", "dragd.lab.bench.identify", "dragd.lab.bench.gap",
                 "dragd.lab.bench.gap_confusion", "dragd.lab.bench.ident_real", "dragd.lab.bench.contact_real",
+                "dragd.lab.bench.contact_cycle",
                 "dragd.lab.bench.faults", "dragd.lab.bench.telemetry", "dragd.lab.bench.yardstick",
                 "dragd.lab.bench.ros2", "dragd.lab.bench.drives"):
         try:
