@@ -189,14 +189,15 @@ class RobotModel:
             frame = m.names[m.njoints - 1]
         parent = m.frames[m.getFrameId(frame)]
         place = parent.placement * pin.SE3(np.eye(3), np.asarray(offset_m, dtype=float))
-        fid = m.addFrame(pin.Frame("dragd_grip", parent.parentJoint, m.getFrameId(frame), place, pin.FrameType.OP_FRAME))
+        fid = m.addFrame(pin.Frame("dragd_grip", parent.parentJoint, m.getFrameId(frame), place,
+                                   pin.FrameType.OP_FRAME))
         self.data = m.createData()
         self._nograv = None
         self.grip_frame_id = fid
         return fid
 
     def grip_jacobian(self, q_rad: np.ndarray) -> np.ndarray:
-        """The grip point's 6×n Jacobian (linear rows first, world-aligned axes at the point), as Pinocchio returns it."""
+        """The grip point's 6×n Jacobian (linear rows first, world-aligned axes at the point), as Pinocchio gives it."""
         return pin.computeFrameJacobian(self.model, self.data, q_rad, self.grip_frame_id, pin.LOCAL_WORLD_ALIGNED)
 
     def grip_position(self, out: np.ndarray) -> np.ndarray:

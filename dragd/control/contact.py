@@ -600,7 +600,8 @@ def _contact_kernel(dt: float, settled: bool, active: bool, dq: np.ndarray, p: n
 
 
 # rows of the packed model block (``pack_model``) the cycle computes τ_in from
-(F_KT, F_COUL_POS, F_COUL_NEG, F_STAT_POS, F_STAT_NEG, F_STRIB_V, F_STRIB_EXP, F_VISC_POS, F_VISC_NEG, F_LOAD) = range(10)
+(F_KT, F_COUL_POS, F_COUL_NEG, F_STAT_POS, F_STAT_NEG, F_STRIB_V, F_STRIB_EXP, F_VISC_POS, F_VISC_NEG,
+ F_LOAD) = range(10)
 N_MODEL_ROWS = 10
 
 

@@ -26,8 +26,16 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from dragd.control.contact import (ENDED, ONSET, QUIET, ContactBands, ContactDetector, ContactSettings,
-                                   contact_kernels, pack_model)
+from dragd.control.contact import (
+    ENDED,
+    ONSET,
+    QUIET,
+    ContactBands,
+    ContactDetector,
+    ContactSettings,
+    contact_kernels,
+    pack_model,
+)
 from dragd.jit import compile_kernels
 
 if TYPE_CHECKING:

@@ -177,7 +177,7 @@ def hand_force_arrow(ts: int, frame_id: str, at_m: np.ndarray, force_N: np.ndarr
             w, v = 0.0, np.array([0.0, 0.0, 1.0])
         qn = math.sqrt(w * w + float(v @ v))
         length = norm * HAND_FORCE_M_PER_N
-        arrows.append({"pose": {"position": dict(zip("xyz", map(float, at_m))),
+        arrows.append({"pose": {"position": dict(zip("xyz", map(float, at_m), strict=True)),
                                 "orientation": {"x": v[0] / qn, "y": v[1] / qn, "z": v[2] / qn, "w": w / qn}},
                        "shaft_length": 0.8 * length, "shaft_diameter": 0.01, "head_length": 0.2 * length,
                        "head_diameter": 0.025, "color": {"r": 1.0, "g": 0.45, "b": 0.0, "a": 1.0}})
