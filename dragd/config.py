@@ -30,7 +30,6 @@ from dragd.vocabulary import (
     read_yaml,
 )
 from dragd.vocabulary import Strict as _Strict  # (the models below keep their base's short name)
-from dragd.vocabulary import read_yaml as _read_yaml  # noqa: F401  (#32: sim/operator.py's import, until it moves)
 
 SYSTEM_CONFIG = Path("/etc/dragd/dragd.yaml")
 

@@ -44,7 +44,7 @@ import numpy as np
 import pinocchio as pin
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from dragd.config import ConfigError, Expect, _read_yaml, format_validation_error
+from dragd.vocabulary import ConfigError, Expect, format_validation_error, read_yaml
 
 if TYPE_CHECKING:
     from dragd.model import RobotModel
@@ -292,7 +292,7 @@ def load_scenario(path: str | Path) -> Scenario:
     if not p.is_file() and not p.suffix and (SCENARIO_DIR / f"{p}.yaml").is_file():
         p = SCENARIO_DIR / f"{p}.yaml"
     try:
-        data = _read_yaml(p)
+        data = read_yaml(p)
     except ConfigError as exc:
         raise ScenarioError(str(exc)) from None
     return validate_scenario(data, str(p))

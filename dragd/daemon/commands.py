@@ -1,6 +1,6 @@
 """The control socket's commands: one table, one function per command with its fields as keyword arguments.
 
-Unknown or missing fields are refused by the table (dragd/daemon/server.py); a handler's ValueError (bad value,
+Unknown or missing fields are refused by the table (dragd/server.py); a handler's ValueError (bad value,
 wrong state), DriveError, OSError or RuntimeError becomes ``{"ok": false, "error": ...}``. Every command records
 the controller's events before it answers (a fault or mode change it caused is in the next ``status``).
 """
@@ -15,7 +15,7 @@ from dragd.control.modes import MODE_NAMES, Mode
 from dragd.daemon import feed
 from dragd.hardware.cia402 import MODE_CST
 from dragd.hardware.master import DriveError
-from dragd.daemon.server import CommandTable
+from dragd.server import CommandTable
 from dragd.protocol import ControlError
 
 HOLD_WAIT_S = 3.0  # mode drag --accept waits this long beyond the settle time for the arm to rest in HOLD

@@ -6,7 +6,7 @@
             ├─ Master (hardware/master.py): boot and SDO configuration of the drives
             ├─ Motions (daemon/motion.py): tracks, replays, the drives' CST ↔ CSP switch, the planner process
             ├─ Teaching (daemon/teach.py), Recorder (daemon/recording.py)
-            └─ the control socket (daemon/server.py) with one command table (daemon/commands.py)
+            └─ the control socket (dragd/server.py) with one command table (daemon/commands.py)
 
 The cycle's decisions (faults, mode changes, a motion's end) come back as controller events; ``record_events``
 turns them into the fault list, log lines and telemetry events after each cycle and each command.
@@ -26,7 +26,7 @@ from typing import Any
 
 import can
 
-from dragd.config import Config
+from dragd.config import Config, check_joint_names
 from dragd.control.controller import Controller
 from dragd.control.estimate import VelocityEstimator
 from dragd.control.modes import MODE_NAMES, Mode
@@ -156,9 +156,7 @@ class Daemon:
         self.budget = check_bus_budget(cfg, self.layouts)
         self.model = RobotModel.from_config(cfg)  # URDF + the params' payload (docs/GAP.md)
         self.model.add_grip(cfg.contact.grip.frame, cfg.contact.grip.offset_m, cfg.source)  # the hand's force in drag
-        if list(self.model.joint_names) != cfg.joint_names:
-            raise ValueError(f"{cfg.source}: joints: expected the robot's joints {', '.join(self.model.joint_names)}, "
-                             f"got {', '.join(cfg.joint_names)}")
+        check_joint_names(cfg, (self.model.joint_names, self.model.urdf_path or cfg.robot.urdf))
         self.n = len(cfg.joints)
         self.node_ids = [j.node_id for j in cfg.joints]
         period_s = 1.0 / cfg.loop.rate_Hz
@@ -630,7 +628,7 @@ class Daemon:
 
     async def run(self) -> int:
         from dragd.daemon.commands import command_table
-        from dragd.daemon.server import ControlServer
+        from dragd.server import ControlServer
 
         loop = asyncio.get_running_loop()
         self.clock.attach(loop)  # (lockstep: the loop's executor jobs hold the clock)
