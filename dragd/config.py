@@ -126,6 +126,10 @@ class DriveConfig(_Strict):
     eds: str | None = None  # EDS file, relative to this configuration file; null: dragd's joint_drive.eds
     current: CurrentObject = CurrentObject()
     torque_command: Literal["60B2h", "6071h"] | None = None  # null: 60B2h where PDO-mappable, else 6071h
+    # how the drive follows motions (identify run, replay, track): csp = its own position loop, dragd's feed-forward
+    # in 60B2h; cst = dragd's position loop (replay.cst_*) + the feed-forward in the torque command, no mode switch.
+    # null: csp where the command is 60B2h and the drive can do CSP, else cst (CiA 402 CSP ignores 6071h)
+    motion_mode: Literal["csp", "cst"] | None = None
     rated_current: RatedCurrentObject = RatedCurrentObject()
     rated_torque: RatedTorqueObject = RatedTorqueObject()
     rpdo_watchdog: WatchdogObject | None = None
@@ -455,6 +459,13 @@ class ReplayConfig(_Strict):
     position_ki_Nm_per_rad_s: NonNegFloat | list[NonNegFloat] = 600.0  # only while the joint's reference moves
     position_integral_limit_A: NonNegFloat | list[NonNegFloat] = 0.3
     position_output_limit_A: NonNegFloat | list[NonNegFloat] = 0.6  # the loop's authority (P + D + I)
+    # the daemon's position loop of the joints whose drives follow motions in CST (drives.X.motion_mode: cst): their
+    # only position loop, with the model's feed-forward; the integral learns what the model misses (friction) while
+    # the reference moves and the error is within half the tracking bound, and fades at rest
+    cst_kp_Nm_per_rad: NonNegFloat | list[NonNegFloat] = 300.0
+    cst_kd_Nm_s_per_rad: NonNegFloat | list[NonNegFloat] = 15.0
+    cst_ki_Nm_per_rad_s: NonNegFloat | list[NonNegFloat] = 1500.0
+    cst_integral_limit_A: NonNegFloat | list[NonNegFloat] = 1.0
     ramp_s: PosFloat = 0.4  # pause / resume / stop / speed-override changes (longer when the path is fast)
     tracking_error_limit_rad: PerJoint = 0.035  # |q - q_ref| beyond this stops the motion (hold)
     residual_current_limit_A: PerJoint = 2.0  # |measured - predicted current| beyond this stops the motion
@@ -547,7 +558,8 @@ class Config(_Strict):
         for key in ("velocity_limits_rad_s", "acceleration_limits_rad_s2", "jerk_limits_rad_s3",
                     "tracking_error_limit_rad", "residual_current_limit_A", "position_kp_Nm_per_rad",
                     "position_kd_Nm_s_per_rad", "position_ki_Nm_per_rad_s", "position_integral_limit_A",
-                    "position_output_limit_A"):
+                    "position_output_limit_A", "cst_kp_Nm_per_rad", "cst_kd_Nm_s_per_rad", "cst_ki_Nm_per_rad_s",
+                    "cst_integral_limit_A"):
             v = getattr(r, key)
             if isinstance(v, list) and len(v) != len(self.joints):
                 raise ValueError(f"replay.{key}: expected one value or {len(self.joints)} (one per joint), got {len(v)}")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 from typing import Any
 
 from dragd.realtime import single_threaded_blas
@@ -99,6 +100,9 @@ def main(argv: list[str] | None = None) -> int:
     from sim.runner import run
     from sim.truth import drive_profiles, load_truth, spread_over_buses, with_eds
 
+    if args.eds and not Path(args.eds).is_file():
+        print(f"sim: --eds: {args.eds}: file not found; expected a drive's EDS (.eds)", file=sys.stderr)
+        return 2
     try:
         truth = _truth_with_model(load_truth(args.config), args.model)
         if args.eds:
@@ -190,6 +194,9 @@ def _cmd_truth(args: argparse.Namespace) -> int:
 def _cmd_drives(args: argparse.Namespace) -> int:
     from sim.truth import drive_profiles, load_truth, with_eds
 
+    if args.eds and not Path(args.eds).is_file():
+        print(f"sim: --eds: {args.eds}: file not found; expected a drive's EDS (.eds)", file=sys.stderr)
+        return 2
     try:
         truth = load_truth(args.config)
         if args.eds:

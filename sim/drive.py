@@ -10,10 +10,11 @@ the process quantities live and in which unit; what the EDS does not say is assu
 Threads: ``on_message`` / ``on_data`` / ``on_sync`` run in the network's reader thread, ``update`` in the physics thread.
 All take the drive's re-entrant lock for their (short) work. Only ``update`` writes the AxisIO outputs.
 
-Clocks: the drive reads no clock. Communication timing (heartbeats, RPDO deadlines, inhibit and event times) runs on
-the time handed in by ``comm(now)`` and ``on_sync(t)`` (and ``on_data(..., now)`` when given): a frame is received at the
-latest of those. Reception deadlines are also judged against the time up to which the reader has handed frames over
-(``rx_caught_up``). Motion timing (brake release, stop ramps, torque slope) runs on the physics time ``t`` of ``update``.
+Clocks: the drive reads no clock of its own. Communication timing (heartbeats, RPDO deadlines, inhibit and event times)
+runs on the time handed in by ``comm(now)`` and ``on_sync(t)``; a frame is received at ``on_data(..., now)``'s time,
+else at the ``clock`` the drive was built with (the simulator's process: CLOCK_MONOTONIC on the wall clock), else at the
+latest time handed in. Reception deadlines are also judged against the time up to which the reader has handed frames
+over (``rx_caught_up``). Motion timing (brake release, stop ramps, torque slope) runs on the physics time of ``update``.
 """
 
 from __future__ import annotations
@@ -29,7 +30,17 @@ from typing import Any
 
 import can
 
-from dragd.hardware.cia301 import HEARTBEAT_BASE, SDO_RX_BASE, SDO_TX_BASE, SYNC_COB_ID, NmtCommand, NmtState
+from dragd.hardware.cia301 import (
+    HEARTBEAT_BASE,
+    OD_PRODUCER_HEARTBEAT,
+    OD_SDO_SERVER,
+    OD_SYNC_COB_ID,
+    SDO_RX_BASE,
+    SDO_TX_BASE,
+    SYNC_COB_ID,
+    NmtCommand,
+    NmtState,
+)
 from dragd.hardware.cia402 import (
     EMCY_COMMUNICATION,
     EMCY_HEARTBEAT,
@@ -59,20 +70,18 @@ from dragd.hardware.cia402 import (
 )
 from dragd.resources import eds_path
 from sim.axis import AxisIO
-from sim.drive_profile import DriveProfile, Hardware, ProfileSpec, build_profile
+from sim.drive_profile import ASSUMED_OPTIONS, DriveProfile, Hardware, ProfileSpec, build_profile
 from sim.ds402 import DeviceControl
 from sim.emcy import Errors
 from sim.motion import Motion, Regime
 from sim.nmt import HeartbeatConsumers, Nmt
-from sim.od import ABORT_VALUE_RANGE, COMM_RANGE, ObjectStore, SdoAbort
+from sim.od import ABORT_VALUE_RANGE, COMM_RANGE, STRUCT_CODES, ObjectStore, SdoAbort
 from sim.pdo import PdoChannel, PdoService
 from sim.scaling import Scaling
 from sim.sdo_server import SdoServer
 
 DEFAULT_EDS_PATH = eds_path()
 COMM_TICK_S = 0.001  # period of the communication watchdog / heartbeat / event-TPDO checks
-OD_SYNC_COB_ID = 0x1005
-OD_SDO_SERVER = 0x1200
 _INT32_MIN, _INT32_MAX = -(1 << 31), (1 << 31) - 1
 _CST = int(Mode.CYCLIC_SYNC_TORQUE)
 _TYPE_RANGES = {"b": (-(1 << 7), (1 << 7) - 1), "h": (-(1 << 15), (1 << 15) - 1), "i": (_INT32_MIN, _INT32_MAX),
@@ -167,8 +176,6 @@ def _range(store: ObjectStore, slot: int) -> tuple[int, int]:
     var = store.vars[slot]
     if var is None:
         return _TYPE_RANGES["h"]
-    from sim.od import STRUCT_CODES
-
     return _TYPE_RANGES.get(STRUCT_CODES.get(var.data_type, "h"), _TYPE_RANGES["h"])
 
 
@@ -180,9 +187,11 @@ class SimDrive:
     def __init__(self, params: DriveParams, io: AxisIO, send: Callable[[can.Message], None],
                  eds_path: str | Path | None = None,
                  send_data: Callable[[int, bytes, bool], None] | None = None,
-                 profile: DriveProfile | None = None) -> None:
+                 profile: DriveProfile | None = None, clock: Callable[[], float] | None = None) -> None:
         """``send`` transmits a frame; ``send_data(cob_id, data, fd)``, when given, the PDOs (no ``can.Message``).
-        ``eds_path`` replaces the EDS of ``params.profile``; ``profile``, when given, is used as built."""
+        ``eds_path`` replaces the EDS of ``params.profile``; ``profile``, when given, is used as built. ``clock``, when
+        given, stamps a frame's reception (the simulator's process passes CLOCK_MONOTONIC on the wall clock, so a
+        stalled physics thread does not age what the reader received); without it, the latest time handed in."""
         self.params = params
         self.io = io
         self.node_id = params.node_id
@@ -195,6 +204,7 @@ class SimDrive:
             store.set_default(index, sub, value)
         self._counts_per_rad = params.encoder_counts_per_rev / (2.0 * math.pi)
         self._now = 0.0  # the communication clock: the latest time handed in (comm, on_sync, on_data)
+        self._clock = clock
         self._sim_t = 0.0
         self._steady = False  # the last update's outputs hold until something reaches the drive (see ``update``)
         self.encoder_offset_counts = 0  # an injected encoder jump (sim/faults.py), added to 6064h
@@ -249,11 +259,14 @@ class SimDrive:
             velocity=std(OD_VELOCITY_ACTUAL, "velocity_actual", 0),
             mode=std(OD_MODES_OF_OPERATION, "modes_of_operation", 0),
             mode_display=std(OD_MODES_OF_OPERATION_DISPLAY, "modes_of_operation_display", 0),
-            abort_option=std(OD_ABORT_CONNECTION_OPTION, "abort_connection_option", 1),
-            qs_option=std(OD_QUICK_STOP_OPTION, "quick_stop_option", 2),
-            shutdown_option=std(OD_SHUTDOWN_OPTION, "shutdown_option", 0),
-            disable_op_option=std(OD_DISABLE_OPERATION_OPTION, "disable_operation_option", 1),
-            fault_option=std(OD_FAULT_REACTION_OPTION, "fault_reaction_option", 2),
+            abort_option=std(OD_ABORT_CONNECTION_OPTION, "abort_connection_option",
+                             ASSUMED_OPTIONS[OD_ABORT_CONNECTION_OPTION][0]),
+            qs_option=std(OD_QUICK_STOP_OPTION, "quick_stop_option", ASSUMED_OPTIONS[OD_QUICK_STOP_OPTION][0]),
+            shutdown_option=std(OD_SHUTDOWN_OPTION, "shutdown_option", ASSUMED_OPTIONS[OD_SHUTDOWN_OPTION][0]),
+            disable_op_option=std(OD_DISABLE_OPERATION_OPTION, "disable_operation_option",
+                                  ASSUMED_OPTIONS[OD_DISABLE_OPERATION_OPTION][0]),
+            fault_option=std(OD_FAULT_REACTION_OPTION, "fault_reaction_option",
+                             ASSUMED_OPTIONS[OD_FAULT_REACTION_OPTION][0]),
             target_position=std(OD_TARGET_POSITION, "target_position", 0),
             target_velocity=std(OD_TARGET_VELOCITY, "target_velocity", 0),
             velocity_offset=std(OD_VELOCITY_OFFSET, "velocity_offset", 0),
@@ -286,7 +299,7 @@ class SimDrive:
         st, control = self.store, self.control
         st.before_write[OD_SYNC_COB_ID] = self._check_sync_cob
         st.after_write[OD_SYNC_COB_ID] = lambda sub, value: self._load_routing()
-        st.hook_after(0x1017, lambda sub, value: self.nmt.schedule(self._now))
+        st.hook_after(OD_PRODUCER_HEARTBEAT, lambda sub, value: self.nmt.schedule(self._comm_now()))
         st.before_write[OD_QUICK_STOP_OPTION] = control.check_quick_stop_option
         st.before_write[OD_MODES_OF_OPERATION] = control.check_mode
         st.after_write[OD_MODES_OF_OPERATION] = lambda sub, value: control.set_mode(value)
@@ -311,7 +324,7 @@ class SimDrive:
         self.sdo.reset()
         self.pdo.load_all()
         self.consumers.load()  # also reloads the routing (COB-IDs consumed)
-        self.nmt.schedule(self._now)
+        self.nmt.schedule(self._comm_now())
         self._next_comm_s = 0.0
 
     # ==================================================================================================
@@ -331,7 +344,7 @@ class SimDrive:
         with self._lock:
             self._steady = False
             self.control.enter(State.SWITCH_ON_DISABLED)
-            self.nmt.bootup(self._now)
+            self.nmt.bootup(self._comm_now())
 
     def rx_cob_ids(self) -> frozenset[int]:
         """COB-IDs this drive consumes (NMT, SYNC, SDO request, RPDOs, consumed heartbeats)."""
@@ -371,7 +384,8 @@ class SimDrive:
         the reception time on the communication clock (else the latest time handed in)."""
         with self._lock:
             if now is None:
-                now = self._now
+                clock = self._clock
+                now = self._now if clock is None else clock()
             elif now > self._now:
                 self._now = now
             self._steady = False  # (whatever the frame changes, the next physics step computes the outputs afresh)
@@ -455,6 +469,11 @@ class SimDrive:
             self._steady = motion.regime is Regime.OFF or (
                 motion.regime is Regime.COMMAND and motion.mode == _CST and motion.brake_released)
 
+    def _comm_now(self) -> float:
+        """The communication clock now: the clock given, else the latest time handed in."""
+        clock = self._clock
+        return self._now if clock is None else clock()
+
     def _unsteady(self) -> None:
         self._steady = False
 
@@ -535,7 +554,7 @@ class SimDrive:
             self._reset_application_state()
             self._reset_communication_state()
             self.control.enter(State.SWITCH_ON_DISABLED)
-            self.nmt.bootup(self._now)
+            self.nmt.bootup(self._comm_now())
 
     def reset_communication(self) -> None:
         """NMT reset communication: 1000h-1FFFh back to defaults, boot-up (6007h reaction first)."""
@@ -546,12 +565,14 @@ class SimDrive:
             self.store.reset(COMM_RANGE)
             self.errors.update_register()
             self._reset_communication_state()
-            self.nmt.bootup(self._now)
+            self.nmt.bootup(self._comm_now())
 
     # ==================================================================================================
     # communication watchdogs, heartbeat
     # ==================================================================================================
     def _comm_tick(self, now: float) -> None:
+        if now > self._now:
+            self._now = now
         with self._lock:
             # on a COMM_TICK_S grid: called once per tick by the simulator's loop, a tick that comes a little early
             # must not push the next one a whole period further (at most one period is made up after a stall)

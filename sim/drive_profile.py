@@ -24,6 +24,7 @@ import canopen
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable, datatypes
 
 from dragd.config import ConfigError, _read_yaml
+from dragd.hardware.cia301 import OD_DEVICE_TYPE, OD_ERROR_BEHAVIOUR, OD_IDENTITY, OD_PRODUCER_HEARTBEAT
 from dragd.hardware.cia402 import (
     OD_CONTROLWORD,
     OD_MODES_OF_OPERATION,
@@ -35,6 +36,7 @@ from dragd.hardware.cia402 import (
     OD_TARGET_POSITION,
     OD_TARGET_TORQUE,
     OD_TARGET_VELOCITY,
+    OD_TORQUE_OFFSET,
     OD_TORQUE_SLOPE,
     Mode,
     supported_modes_bits,
@@ -42,9 +44,19 @@ from dragd.hardware.cia402 import (
 from dragd.resources import eds_path as bundled_eds_path
 
 DRIVES_DIR = Path(__file__).resolve().parent / "config" / "drives"
-OD_IDENTITY = 0x1018
-OD_DEVICE_TYPE = 0x1000
 DEVICE_TYPE_402_SERVO = 0x00020192  # CiA 402 (0192h), additional information 0002h: servo drive
+# a drive without a torque offset to feed forward (no RPDO-mappable 60B2h) holds the arm with an integrating position
+# loop (cascaded PI velocity loop): its CSP integral gain per proportional gain where the truth names none (1/s: the
+# integral catches up with a constant load in about 0.1 s)
+VENDOR_CSP_KI_PER_KP = 10.0
+# option codes a drive acts on when its EDS lacks the object: value, and what the drive then does
+ASSUMED_OPTIONS: dict[int, tuple[int, str]] = {
+    0x6007: (1, "a loss of communication (heartbeat, RPDO deadline, NMT stop) faults the drive"),
+    0x605A: (2, "quick stop on the quick stop ramp, then switch on disabled"),
+    0x605B: (0, "shutdown disables the drive at once"),
+    0x605C: (1, "disable operation slows down first"),
+    0x605E: (2, "the fault reaction is the quick stop ramp"),
+}
 
 _INTEGER_TYPES = frozenset({datatypes.INTEGER8, datatypes.INTEGER16, datatypes.INTEGER32, datatypes.INTEGER64,
                             datatypes.UNSIGNED8, datatypes.UNSIGNED16, datatypes.UNSIGNED32, datatypes.UNSIGNED64})
@@ -147,6 +159,7 @@ class ProfileSpec:
     values: Mapping[str, int] = field(default_factory=dict)  # "6502h" -> commissioned value
     can_fd: bool | None = None  # None: the catalog's, else True for the bundled EDS, False for any other
     where: str = "drive"  # how errors name this entry (the truth file and key)
+    assumed_csp_ki: float | None = None  # the CSP integral gain the drive model assumes (the truth names none)
 
 
 @dataclass(frozen=True)
@@ -282,6 +295,16 @@ def eds_declares_fd(path: str | Path) -> bool | None:
     """``[DeviceInfo] CANopenFD`` (dragd's marker; EDS 4.0 has no standard key): True/False, None if absent."""
     p = Path(path)
     return _device_info_fd(str(p.resolve()), p.stat().st_mtime_ns) if p.is_file() else None
+
+
+def takes_torque_offset(eds: str | Path, node_id: int) -> bool:
+    """Whether the EDS's drive takes a torque offset a master can feed forward each cycle (60B2h writable and
+    RPDO-mappable); False for a file that cannot be read (build_profile reports why)."""
+    try:
+        var = _variable(import_eds(eds, node_id), OD_TORQUE_OFFSET, 0)
+    except ProfileError:
+        return False
+    return var is not None and var.writable and var.pdo_mappable
 
 
 def _variable(od: canopen.ObjectDictionary, index: int, subindex: int) -> ODVariable | None:
@@ -424,20 +447,13 @@ def build_profile(spec: ProfileSpec, hw: Hardware, base_dir: Path | None = None)
         assumptions.append(f"1000h (device type) has no value in the EDS: 0x{DEVICE_TYPE_402_SERVO:08X} (CiA 402, servo "
                            f"drive)")
     modes = _supported_modes(var_of, commissioned, assumptions)
-    for index, sub in ((0x1017, 0), (0x1029, 1)):
+    for index, sub in ((OD_PRODUCER_HEARTBEAT, 0), (OD_ERROR_BEHAVIOUR, 1)):
         var = var_of(index, sub)
         if var is not None and var.default is None and var.value is None and (index, sub) not in commissioned:
             assumptions.append(f"{format_address(index, sub)} ({var.name}) has no default in the EDS: 0")
-    if var_of(0x6007, 0) is None:
-        assumptions.append("no 6007h (abort connection option): on a loss of communication (heartbeat, RPDO deadline, "
-                           "NMT stop) the drive faults (CiA 402's default reaction, 6007h = 1)")
-    if var_of(0x605A, 0) is None:
-        assumptions.append("no 605Ah (quick stop option): quick stop on the quick stop ramp, then switch on disabled "
-                           "(605Ah = 2)")
-    for index, name, value in ((0x605B, "shutdown option", 0), (0x605C, "disable operation option", 1),
-                               (0x605E, "fault reaction option", 2)):
+    for index, (value, what) in ASSUMED_OPTIONS.items():
         if var_of(index, 0) is None:
-            assumptions.append(f"no {index:04X}h ({name}): behaves as {index:04X}h = {value}")
+            assumptions.append(f"no {index:04X}h: {what} ({index:04X}h = {value}, CiA 402's default)")
     for quantity in ("rated_current", "rated_torque"):
         if bindings[quantity].index is None:
             assumptions.append(f"no object holds the {quantity.replace('_', ' ')} ({QUANTITIES[quantity].index:04X}h "
@@ -446,13 +462,40 @@ def build_profile(spec: ProfileSpec, hw: Hardware, base_dir: Path | None = None)
         assumptions.append("no object holds the current limit: the truth's max_current_A")
     if bindings["max_torque"].index is None:
         assumptions.append("no 6072h (max torque): the current limit alone bounds the torque")
+    if spec.assumed_csp_ki is not None:
+        assumptions.append(f"no torque offset to feed forward (60B2h): the position loop (CSP) holds the arm itself and "
+                           f"integrates, as a servo drive's cascaded loops do: {spec.assumed_csp_ki:g} A/(rad·s), "
+                           f"{VENDOR_CSP_KI_PER_KP:g}/s x kp (the truth names no csp_ki_A_per_rad_s)")
     if var_of(OD_TORQUE_SLOPE, 0) is None:
         assumptions.append("no 6087h (torque slope): profile torque steps without a ramp")
+    problems += _default_mapping_problems(od, eds, can_fd, where)
     if problems:
         raise ProfileError("\n".join(problems))
     return DriveProfile(eds_path=eds, node_id=hw.node_id, od=od, catalog=catalog, bindings=bindings,
                         commissioned=commissioned, truth_raw=truth_raw, hardware=hw, supported_modes=modes, can_fd=can_fd, assumptions=assumptions,
                         identity=identity)
+
+
+def _default_mapping_problems(od: canopen.ObjectDictionary, eds: Path, can_fd: bool, where: str) -> list[str]:
+    """The EDS's default mappings of its valid PDOs that the drive could not hold (an absent or unmappable object,
+    a frame too long): such a drive would not boot."""
+    from sim.od import ObjectStore, SdoAbort
+    from sim.pdo import CLASSIC_MAX_BYTES, COB_INVALID, FD_MAX_BYTES, find_channels, validate_mapping
+
+    store = ObjectStore(od)
+    out = []
+    for comm_base, map_base, receive in ((0x1400, 0x1600, True), (0x1800, 0x1A00, False)):
+        for ch in find_channels(store, comm_base, map_base, receive):
+            if store.get(ch.comm_index, 1) & COB_INVALID:
+                continue
+            count = store.get(ch.map_index, 0)
+            raws = [store.get(ch.map_index, sub) if store.has(ch.map_index, sub) else 0 for sub in range(1, count + 1)]
+            try:
+                validate_mapping(store, ch.map_index, raws, receive, FD_MAX_BYTES if can_fd else CLASSIC_MAX_BYTES)
+            except SdoAbort as exc:
+                out.append(f"{where}.eds: {eds}: the default mapping of {ch.map_index:04X}h (a valid "
+                           f"{'RPDO' if receive else 'TPDO'}) cannot be held: {exc.detail}")
+    return out
 
 
 def _catalog_entry(spec: ProfileSpec, od: canopen.ObjectDictionary, problems: list[str]) -> CatalogEntry | None:

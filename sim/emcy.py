@@ -13,13 +13,10 @@ from typing import Any
 
 import can
 
-from dragd.hardware.cia301 import EMCY_BASE, NmtState
+from dragd.hardware.cia301 import EMCY_BASE, OD_EMCY_COB_ID, OD_ERROR_HISTORY, OD_ERROR_REGISTER, NmtState
 from dragd.hardware.cia402 import EMCY_NO_ERROR, ERR_REG_GENERIC, OD_ERROR_CODE
 from sim.od import ABORT_VALUE_RANGE, ObjectStore, SdoAbort
 
-OD_ERROR_REGISTER = 0x1001
-OD_ERROR_HISTORY = 0x1003
-OD_EMCY_COB_ID = 0x1014
 _EMCY = struct.Struct("<HB5s")
 _EMCY_PRODUCING = frozenset({NmtState.PRE_OPERATIONAL, NmtState.OPERATIONAL})
 

@@ -12,12 +12,15 @@ from typing import Any
 
 import can
 
-from dragd.hardware.cia301 import HEARTBEAT_BASE, NmtState
+from dragd.hardware.cia301 import (
+    HEARTBEAT_BASE,
+    OD_CONSUMER_HEARTBEAT,
+    OD_ERROR_BEHAVIOUR,
+    OD_PRODUCER_HEARTBEAT,
+    NmtState,
+)
 from sim.od import ABORT_PARAMETER_INCOMPATIBLE, ABORT_VALUE_RANGE, ObjectStore, SdoAbort
 
-OD_CONSUMER_HEARTBEAT = 0x1016
-OD_PRODUCER_HEARTBEAT = 0x1017
-OD_ERROR_BEHAVIOUR = 0x1029
 
 
 class Nmt:

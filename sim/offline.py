@@ -32,7 +32,7 @@ import numpy as np
 from dragd.control.modes import Mode
 from sim.axis import AxisIO
 from sim.physics import ArmPhysics
-from sim.truth import Truth
+from sim.truth import Truth, csp_ki_A_per_rad_s
 
 STATUSWORD_ENABLED = 0x1237  # operation enabled, voltage, remote, target reached cleared
 
@@ -95,7 +95,7 @@ class OfflineArm:
         hw = [j.drive for j in truth.joints]
         self.kp = [h.csp_kp_A_per_rad for h in hw]
         self.kd = [h.csp_kd_A_s_per_rad for h in hw]
-        self.ki = [h.csp_ki_A_per_rad_s for h in hw]
+        self.ki = [csp_ki_A_per_rad_s(j) for j in truth.joints]
         self.limit = [min(h.max_torque_permille * h.rated_current_A / 1000.0, h.max_current_A) for h in hw]
         self.rated = np.array([h.rated_current_A for h in hw])
         self.cpr = np.array([h.encoder_counts_per_rev for h in hw], dtype=float)

@@ -17,7 +17,16 @@ from typing import Any
 import can
 
 from dragd.hardware.busload import fd_length
-from dragd.hardware.cia301 import NmtState
+from dragd.hardware.cia301 import (
+    COB_ID_EXTENDED,
+    COB_ID_INVALID,
+    COB_ID_NO_RTR,
+    OD_RPDO_COMM,
+    OD_RPDO_MAP,
+    OD_TPDO_COMM,
+    OD_TPDO_MAP,
+    NmtState,
+)
 from dragd.hardware.cia402 import EMCY_PDO_LENGTH, EMCY_RPDO_TIMEOUT, ERR_REG_COMMUNICATION
 from sim.od import (
     ABORT_CANNOT_MAP,
@@ -31,9 +40,7 @@ from sim.od import (
     fixed_size_bits,
 )
 
-COB_INVALID = 0x80000000
-COB_NO_RTR = 0x40000000
-COB_EXTENDED = 0x20000000
+COB_INVALID, COB_NO_RTR, COB_EXTENDED = COB_ID_INVALID, COB_ID_NO_RTR, COB_ID_EXTENDED
 CLASSIC_MAX_BYTES = 8
 FD_MAX_BYTES = 64
 _DUMMY_BITS = {0x0002: 8, 0x0003: 16, 0x0004: 32, 0x0005: 8, 0x0006: 16, 0x0007: 32}
@@ -176,7 +183,6 @@ class PdoChannel:
         return self.layout.unpack_from(data)
 
 
-RPDO_COMM, RPDO_MAP, TPDO_COMM, TPDO_MAP = 0x1400, 0x1600, 0x1800, 0x1A00
 MAX_CHANNELS = 512
 
 
@@ -211,8 +217,8 @@ class PdoService:
         self._clear_error = clear_error
         self._refresh = refresh
         self._routing_changed = routing_changed
-        self.rpdos = find_channels(store, RPDO_COMM, RPDO_MAP, receive=True)
-        self.tpdos = find_channels(store, TPDO_COMM, TPDO_MAP, receive=False)
+        self.rpdos = find_channels(store, OD_RPDO_COMM, OD_RPDO_MAP, receive=True)
+        self.tpdos = find_channels(store, OD_TPDO_COMM, OD_TPDO_MAP, receive=False)
         self.no_rtr = frozenset(ch.comm_index for ch in self.tpdos
                                 if store.defaults[store.slot(ch.comm_index, 1)] & COB_NO_RTR)
         self.rpdo_hooks: dict[int, Callable[[int], None]] = {}  # slot -> side effect of an RPDO write (the drive's)

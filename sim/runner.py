@@ -175,7 +175,7 @@ class SimProcess:
             self.realtime = set_realtime(self.realtime_priority, self.cpus)
         try:
             self.buses = [open_bus(spec, batch_frames=self.batch_frames) for spec in self.specs]
-            clock: Callable[[], float] = time.monotonic
+            clock: Callable[[], float] = time.monotonic  # stamps the frames the drives receive
             if self.lockstep_period_s is not None:
                 self.lockstep = LockstepSync(self.buses, self.lockstep_period_s, self.physics.dt_s)
                 self._limit_steps = None if self.seconds is None else int(round(self.seconds / self.physics.dt_s))
@@ -185,7 +185,8 @@ class SimProcess:
             for j, ax in zip(self.truth.joints, self.axes):
                 spec, inj = self.specs[j.bus_index], self.injectors[j.bus_index]
                 node = drive_params(j, spec.fd).node_id
-                self.drives.append(SimDrive(drive_params(j, spec.fd), ax, inj.sender(node), send_data=inj.data_sender(node)))
+                self.drives.append(SimDrive(drive_params(j, spec.fd), ax, inj.sender(node), send_data=inj.data_sender(node),
+                                            clock=clock))
             self.networks = [SimNetwork(bus, [d for d, j in zip(self.drives, self.truth.joints) if j.bus_index == k],
                                         lockstep=self.lockstep, bus_index=k)
                              for k, bus in enumerate(self.buses)]

@@ -69,7 +69,9 @@ class DriveHardware(_Strict):
     encoder_counts_per_rev: PosInt  # per joint revolution (absolute output encoder)
     csp_kp_A_per_rad: NonNegFloat = 40.0  # cyclic synchronous position loop, amperes of demand
     csp_kd_A_s_per_rad: NonNegFloat = 2.0  # ... and the CSV velocity-loop gain
-    csp_ki_A_per_rad_s: NonNegFloat = 0.0  # integral of the position error (removes the friction offset)
+    # integral of the position error (removes the friction and gravity offset); None: the drive model's — 0 for the
+    # bundled joint drive, VENDOR_CSP_KI_PER_KP x kp for a drive from a vendor's EDS (docs/SIM_DRIVES.md)
+    csp_ki_A_per_rad_s: NonNegFloat | None = None
     quickstop_decel_rad_s2: PosFloat = 10.0  # 6085h
     slowdown_decel_rad_s2: PosFloat = 4.0  # 6084h
     brake_release_delay_s: NonNegFloat = 0.05  # operation enabled -> brake released
@@ -362,10 +364,12 @@ def spread_over_buses(truth: Truth, bus: str | None) -> Truth:
 
 def with_eds(truth: Truth, eds: str | Path) -> Truth:
     """The truth with every joint's drive built from ``eds`` (``python -m sim run --eds FILE``): its catalog entry
-    (sim/config/drives/, matched by the EDS's [DeviceInfo]) replaces the joints' own objects, values and profile."""
+    (sim/config/drives/, matched by the EDS's [DeviceInfo]) replaces the joints' own objects, values and profile, and
+    the drive model's CSP integral the truth's (a vendor's position loop integrates: csp_ki_A_per_rad_s None)."""
     path = str(Path(eds).expanduser().resolve())
     return truth.with_updates(joints={i: {"drive": {"eds": path, "profile": None, "objects": {}, "values": {},
-                                                    "can_fd": None}} for i in range(len(truth.joints))})
+                                                    "can_fd": None, "csp_ki_A_per_rad_s": None}}
+                                      for i in range(len(truth.joints))})
 
 
 def load_truth(path: str | Path | None = None) -> Truth:
@@ -394,7 +398,23 @@ def drive_spec(joint: JointTruth, where: str = "") -> ProfileSpec:
     return ProfileSpec(eds=hw.eds, profile=hw.profile,
                        objects={k: {"object": o.object, **({"unit": o.unit} if o.unit else {})}
                                 for k, o in hw.objects.items()},
-                       values=dict(hw.values), can_fd=hw.can_fd, where=where or f"joints.{joint.name}.drive")
+                       values=dict(hw.values), can_fd=hw.can_fd, where=where or f"joints.{joint.name}.drive",
+                       assumed_csp_ki=None if hw.csp_ki_A_per_rad_s is not None or not csp_ki_A_per_rad_s(joint)
+                       else csp_ki_A_per_rad_s(joint))
+
+
+def csp_ki_A_per_rad_s(joint: JointTruth) -> float:
+    """The CSP loop's integral gain: the truth's, else the drive model's — 0 (P+D, as the bundled drive) unless the
+    drive's EDS offers no torque offset a master could feed forward (no writable, RPDO-mappable 60B2h): such a drive
+    holds the arm with its own, integrating position loop (VENDOR_CSP_KI_PER_KP x kp)."""
+    from sim.drive_profile import VENDOR_CSP_KI_PER_KP, takes_torque_offset
+
+    hw = joint.drive
+    if hw.csp_ki_A_per_rad_s is not None:
+        return hw.csp_ki_A_per_rad_s
+    if hw.eds is None or takes_torque_offset(hw.eds, hw.node_id):
+        return 0.0
+    return VENDOR_CSP_KI_PER_KP * hw.csp_kp_A_per_rad
 
 
 def drive_params(joint: JointTruth, fd: bool, base_dir: str | None = None, where: str = "") -> DriveParams:
@@ -414,7 +434,7 @@ def drive_params(joint: JointTruth, fd: bool, base_dir: str | None = None, where
         max_torque_permille=hw.max_torque_permille,
         csp_kp_A_per_rad=hw.csp_kp_A_per_rad,
         csp_kd_A_s_per_rad=hw.csp_kd_A_s_per_rad,
-        csp_ki_A_per_rad_s=hw.csp_ki_A_per_rad_s,
+        csp_ki_A_per_rad_s=csp_ki_A_per_rad_s(joint),
         quickstop_decel_rad_s2=hw.quickstop_decel_rad_s2,
         slowdown_decel_rad_s2=hw.slowdown_decel_rad_s2,
         brake_release_delay_s=hw.brake_release_delay_s,

@@ -302,6 +302,57 @@ def test_config_init_eds_writes_classic_or_fd_as_the_eds_says(tmp_path: Path) ->
     run_cli("config", "check", "--config", str(fd))
 
 
+@pytest.mark.unit
+def test_a_drive_without_torque_offset_follows_motions_in_cst(tmp_path: Path) -> None:
+    """No 60B2h (Eyou): the command is 6071h, which CSP ignores; motions run in CST with dragd's position loop. The
+    choice is the profile's (drives.X.motion_mode), forced csp is warned, csp on a drive without CSP is an error."""
+    plan = plan_drives(config(VARIANTS / "no_60b2h.eds"))
+    p = plan.profiles[0]
+    assert (p.command.index, p.motion_mode) == (0x6071, "cst")
+    notes = [f.text for f in plan.findings if f.level == "note" and "run in CST" in f.text]
+    assert len(notes) == 6 and "the torque command is 6071h, which CiA 402 CSP ignores" in notes[0], notes
+    assert not [f for f in plan.findings if f.level != "note"], plan.findings
+    assert plan_drives(config(None)).profiles[0].motion_mode == "csp"  # dragd's own drive: CSP + 60B2h, as before
+    assert plan_drives(config(VARIANTS / "classic.eds", {"motion_mode": "cst"})).profiles[0].motion_mode == "cst"
+    forced = plan_drives(config(VARIANTS / "no_60b2h.eds", {"motion_mode": "csp"}))
+    assert forced.profiles[0].motion_mode == "csp"
+    warned = [f.text for f in forced.findings if f.level == "warning" and "60B2h" in f.text]
+    assert len(warned) == 6 and "the arm sags" in warned[0] and "set drives.d.motion_mode to cst" in warned[0]
+    # a drive with 60B2h but without CSP in 6502h follows motions in CST by default; csp is an error with the key
+    text = (VARIANTS / "classic.eds").read_text().replace("DefaultValue=0x00000388", "DefaultValue=0x00000208", 1)
+    cst_only = tmp_path / "cst_only.eds"
+    cst_only.write_text(text)
+    assert plan_drives(config(cst_only)).profiles[0].motion_mode == "cst"
+    errors, refused = findings(config(cst_only, {"motion_mode": "csp"}))
+    assert refused == [] and len(errors) == 6
+    assert "drives.d.motion_mode csp: the drive cannot follow position targets (6502h supported modes 0x00000208 " \
+           "lack CSP); set drives.d.motion_mode to cst or null" in errors[0]
+
+
+@pytest.mark.unit
+def test_config_init_for_a_cst_motion_drive_sends_no_position_targets(tmp_path: Path) -> None:
+    """config init --eds of a drive that follows motions in CST: no 607Ah on the bus (2 buses at 1 kHz instead of 3),
+    the CST loop's gains; config check finds nothing refused (identify run, replay and track need no targets)."""
+    out = tmp_path / "c.yaml"
+    run_cli("config", "init", "--robot", "seed_cobot", "--eds", str(VARIANTS / "no_60b2h.eds"), "--out", str(out))
+    text = out.read_text()
+    data = yaml.safe_load(text)
+    assert [b["position_targets"] for b in data["buses"]] == [False, False]
+    assert "motions in CST with dragd's position loop need none" in text and "60B2h absent" in text
+    assert data["drives"]["no_60b2h"]["torque_command"] == "6071h" and data["drives"]["no_60b2h"]["motion_mode"] == "cst"
+    r = data["replay"]
+    assert all(len(r[k]) == 6 and min(r[k]) > 0 for k in ("cst_kp_Nm_per_rad", "cst_kd_Nm_s_per_rad",
+                                                          "cst_ki_Nm_per_rad_s", "cst_integral_limit_A"))
+    check = run_cli("config", "check", "--config", str(out))
+    assert "refused" not in check.stdout and "carries no position targets" not in check.stdout, check.stdout
+    assert "run in CST" in check.stdout
+    classic = tmp_path / "classic.yaml"
+    run_cli("config", "init", "--robot", "seed_cobot", "--eds", str(VARIANTS / "classic.eds"), "--out", str(classic))
+    d = yaml.safe_load(classic.read_text())
+    assert {b["position_targets"] for b in d["buses"]} == {True} and "cst_kp_Nm_per_rad" not in d["replay"]
+    assert d["drives"]["classic"]["motion_mode"] == "csp"
+
+
 # --------------------------------------------------------------------------------------------- boot against LocalNodes
 
 
@@ -588,3 +639,14 @@ def test_layout_auto_chooses_from_what_the_drives_support() -> None:
     assert plan.layouts["arm"].kind == "shared"  # dragd's own drive: CAN FD, dummy entries
     plan = plan_drives(config(VARIANTS / "no_dummies.eds", layout="auto", fd=False), budget_findings=False)
     assert plan.layouts["arm"].kind == "per_node" and plan.errors == []
+
+
+def test_bench_all_skips_drive_profiles_without_eds_dir_and_names_it_when_asked() -> None:
+    """`dragd bench` (every benchmark) without --eds-dir skips drive_profiles with the reason; named, it is an error."""
+    from dragd.lab.bench import BenchError
+    from dragd.lab.bench.drives import drive_profiles
+
+    skipped = drive_profiles({"selected": []})
+    assert "--eds-dir" in skipped["skipped"]
+    with pytest.raises(BenchError, match="--eds-dir DIR"):
+        drive_profiles({"selected": ["drive_profiles"]})

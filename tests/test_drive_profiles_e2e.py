@@ -30,14 +30,9 @@ CASES = [REPO / "tests" / "data" / "eds" / f"{v}.eds" for v in ("only_6077h", "n
                                    "technosoft_ipos", "schunk_prl120")]
 
 
-# Eyou has no 60B2h: its command is 6071h, which CSP ignores, so the identify run's CSP gets no torque feed-forward
-# and the simulated drive's CSP loop (P+D, no integral: sim/truth.py truth_for_robot) sags under the shoulder's
-# gravity until the tracking or residual monitor stops the motion. Boot and drag pass.
-KNOWN = {"eyou_euservo": "identify: CSP without a torque offset; the simulated CSP loop does not integrate"}
-
-
-@pytest.mark.parametrize("eds", [pytest.param(p, marks=pytest.mark.xfail(reason=KNOWN[p.stem], strict=False))
-                                 if p.stem in KNOWN else p for p in CASES], ids=[p.stem for p in CASES])
+# (Eyou has no 60B2h: its motions run in CST with dragd's position loop, docs/DRIVES.md; the in-repo no_60b2h variant's
+# motions: tests/test_drive_motion_cst.py)
+@pytest.mark.parametrize("eds", CASES, ids=[p.stem for p in CASES])
 def test_config_init_check_boot_drag_identify(eds: Path) -> None:
     if not eds.is_file():
         pytest.skip(f"{eds} absent (set DRAGD_EDS_DIR to the fetched vendors' EDS files)")

@@ -9,6 +9,7 @@ refused with every problem at once. The same drives over a real bus with python-
 from __future__ import annotations
 
 import struct
+import sys
 from pathlib import Path
 
 import can
@@ -284,3 +285,81 @@ def test_joints_spread_over_several_buses_as_config_init_splits_them() -> None:
     assert spread_over_buses(TRUTH, "udp_multicast:239.1.1.1") is TRUTH
     two = load_truth(REPO / "sim/config/seed_cobot_two_buses.yaml")  # a truth that places its joints keeps them
     assert spread_over_buses(two, "a,b,c") is two
+
+
+def _without(tmp_path: Path, index: int) -> Path:
+    """The classic variant without one object (its sections, its line in the object lists, default mappings naming it
+    emptied: make_variants.py's way)."""
+    sys.path.insert(0, str(VARIANTS))
+    try:
+        import make_variants
+    finally:
+        sys.path.remove(str(VARIANTS))
+    eds = make_variants.Eds(variant("classic").read_text(encoding="utf-8"))
+    eds.remove_object(index)
+    make_variants._drop_default_mappings(eds, index)
+    path = tmp_path / f"no_{index:04X}.eds"
+    path.write_text(eds.text(), encoding="utf-8")
+    return path
+
+
+def test_a_default_mapping_the_drive_cannot_hold_is_an_eds_error(tmp_path: Path) -> None:
+    sys.path.insert(0, str(VARIANTS))
+    try:
+        import make_variants
+    finally:
+        sys.path.remove(str(VARIANTS))
+    eds = make_variants.Eds(variant("classic").read_text(encoding="utf-8"))
+    eds.remove_object(0x60B2)  # RPDO2's default mapping still names it
+    path = tmp_path / "broken_mapping.eds"
+    path.write_text(eds.text(), encoding="utf-8")
+    with pytest.raises(TruthError, match=r"default mapping of 1601h \(a valid RPDO\) cannot be held: mapped object "
+                                         r"0x60B2:00 does not exist"):
+        drive_profiles(with_eds(TRUTH, path))
+
+
+@pytest.mark.parametrize("eds,integrates", [(None, False), ("classic", False), ("no_60B2h", True)])
+def test_a_drive_without_a_torque_offset_holds_with_an_integrating_position_loop(tmp_path: Path, eds: str | None,
+                                                                                 integrates: bool) -> None:
+    """A drive from an EDS without 60B2h (no torque feed-forward possible, as Eyou's) closes CSP with an integral (the
+    truth names none): a joint held 0.01 rad off target sees its demand grow. With 60B2h (and the bundled drive) the
+    loop stays P+D, as the seed cobot's truth says: dragd's feed-forward and the drive's integral would fight."""
+    path = None if eds is None else (_without(tmp_path, 0x60B2) if eds == "no_60B2h" else variant(eds))
+    x = Drive(path)
+    kp = TRUTH.joints[0].drive.csp_kp_A_per_rad
+    assert x.d.params.csp_ki_A_per_rad_s == (10.0 * kp if integrates else 0.0)
+    assert any("integrates" in a for a in x.d.profile.assumptions) == integrates
+    assert x.write(0x6060, 0, 8, 1) is None
+    for word in (CMD_SHUTDOWN, CMD_SWITCH_ON, CMD_ENABLE_OPERATION):
+        assert x.write(0x6040, 0, word, 2) is None
+    x.d.io.position_rad = -0.01  # (nothing moves the joint here: the io is not integrated)
+    x.step(0.01)
+    first = x.d.io.current_demand_A
+    x.step(0.1)
+    assert first == pytest.approx(kp * 0.01, rel=0.2)
+    if integrates:
+        assert x.d.io.current_demand_A > first + 0.5 * 10.0 * kp * 0.01 * 0.1
+    else:
+        assert x.d.io.current_demand_A == first
+
+
+def test_the_sim_cli_names_the_drive_or_the_missing_file(tmp_path: Path) -> None:
+    import json
+    import subprocess
+    import sys
+
+    run = [sys.executable, "-m", "sim"]
+    p = subprocess.run([*run, "run", "--eds", str(tmp_path / "absent.eds"), "--seconds", "1"], cwd=REPO,
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2 and "--eds: " in p.stderr and "absent.eds: file not found" in p.stderr
+    p = subprocess.run([*run, "drives", "--eds", str(variant("no_6075h")), "--json"], cwd=REPO, capture_output=True,
+                       text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    sheet = json.loads(p.stdout)
+    assert list(sheet) == [j.name for j in TRUTH.joints]
+    joint1 = sheet["joint1"]
+    assert joint1["objects"]["rated_current"] == {"object": "3001h:1", "unit": "mA",
+                                                  "source": "sim/config/drives/dragd_variant_no_6075h.yaml: "
+                                                            "objects.rated_current"}
+    assert joint1["commissioned"]["3001h:1"] == 4000 and joint1["commissioned"]["6076h"] == 0
+    assert joint1["can_fd"] is False and joint1["rated_current_A"] == 4.0

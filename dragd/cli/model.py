@@ -134,7 +134,7 @@ def cmd_config_check(args: argparse.Namespace) -> int:
                 lines.append(f"    at {f['at']}")
         for b in d["bus_load"]:
             lines.append(f"bus '{b['name']}': {'CAN FD' if b['fd'] else 'classic CAN'}, layout {b['layout']}"
-                         f"{'' if b['position_targets'] else ' (no position targets: drag only)'}, worst-case load "
+                         f"{'' if b['position_targets'] else ' (no position targets)'}, worst-case load "
                          f"{b['load_pct']:.1f} % (no stuff bits {b['load_min_pct']:.1f} %), limit {b['limit_pct']:.0f} %")
         for r in d["refused"]:
             lines.append(f"refused: {r}")

@@ -4,6 +4,7 @@
     HOLD          [G(q) + k_p·(q_hold − q) − k_d·q̇] / K_t
     DRAG          the zero-force law (dragd/control/law.py): G/K_t + friction + start-up + damping (+ effects)
     TRACK         the CSP torque offset (dragd/control/track.py): G/K_t + friction(q̇_ref) + feed-forward
+                  (+ dragd's position loop: a replay's around the drives' CSP loops; CST joints' only one)
     every mode    + soft-limit walls (and in DRAG the speed cap), clamped to the current limits
 
 A mode switch blends from the command at the switch instant to the new mode's over ``mode_ramp_s`` (smoothstep):
@@ -26,7 +27,7 @@ from dragd.control.fused import DragLaw
 from dragd.control.modes import MODE_NAMES, Mode
 from dragd.control.params import LawParams
 from dragd.control.safety import SafetyTerms, safety_kernel
-from dragd.control.track import Track, TrackLimits, Trip
+from dragd.control.track import CstLoop, Track, TrackLimits, Trip
 from dragd.control.trajectory import Trajectory
 
 if TYPE_CHECKING:
@@ -155,6 +156,10 @@ class Controller:
             if cfg.loop.compiled and (kernel := guard_kernel()) is not None:
                 c.guard.use_kernel(kernel, guard_command_kernel())
         c.guard_hold_ramp_s = g.hold_ramp_s
+        # the joints whose drives follow motions in CST are set from their drive profiles (Daemon)
+        c.track.use_cst(np.zeros(c.n, dtype=bool), CstLoop(
+            kp_Nm_per_rad=per_joint(rc.cst_kp_Nm_per_rad), kd_Nm_s_per_rad=per_joint(rc.cst_kd_Nm_s_per_rad),
+            ki_Nm_per_rad_s=per_joint(rc.cst_ki_Nm_per_rad_s), integral_max_Nm=per_joint(rc.cst_integral_limit_A) * kt))
         return c
 
     # ------------------------------------------------------------------------------------------ transitions

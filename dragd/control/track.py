@@ -1,11 +1,13 @@
-"""TRACK mode: the trajectory clock, the reference it samples, the replay's position loop and the monitors.
+"""TRACK mode: the trajectory clock, the reference it samples, the position loops and the monitors.
 
 The drives follow the reference with their own position loops (CSP); the command current is the torque offset
 that feeds gravity, friction and the planned motion's inertia forward (``Track.command``). The clock runs at a
 rate (speed override, pause, controlled stop: all smoothstep ramps along the path, never a jump), repeats the
 trajectory's body, and waits rather than jumping ahead after a stalled loop. A replay adds a PD + integral loop on
-q_ref − q around the drives' own loops; the monitors (tracking error, residual current, position limits) end the
-motion with a protective stop.
+q_ref − q around the drives' own loops. Joints whose drives follow motions in CST (``cst``: a drive without a torque
+offset, whose CSP would ignore the feed-forward) have dragd's loop as their only position loop, with full authority.
+The monitors (tracking error, residual current, position limits) end the motion with a protective stop; the
+residual compares the measured current with the model's feed-forward, never with a position loop's output.
 """
 
 from __future__ import annotations
@@ -20,6 +22,8 @@ from dragd.control.params import LawParams
 from dragd.control.trajectory import Trajectory
 
 GRACE_S = 0.05  # after a long loop stall the monitors count only at twice their bounds for this long
+CST_FADE_S = 0.2  # a CST joint's integral fades with this time constant while its reference rests
+MOVING_RAD_S = 0.005  # a joint's reference moves (its loop's integral learns) above this speed
 
 
 @dataclass(frozen=True)
@@ -39,6 +43,16 @@ class TrackLimits:
     monitor_cycles: int
     position_lo_rad: np.ndarray
     position_hi_rad: np.ndarray
+
+
+@dataclass(frozen=True)
+class CstLoop:
+    """Gains of dragd's position loop for the joints whose drives follow motions in CST (``replay.cst_*``)."""
+
+    kp_Nm_per_rad: np.ndarray
+    kd_Nm_s_per_rad: np.ndarray
+    ki_Nm_per_rad_s: np.ndarray
+    integral_max_Nm: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -79,6 +93,15 @@ class Track:
         self.start_offset = np.zeros(n)
         self.start_blend_s = 0.0
         self.full_friction = False  # replay plans: the full friction belief and the position loop
+        self.cst = np.zeros(n, dtype=bool)  # joints whose drives follow motions in CST (set from their profiles)
+        self.cst_loop: CstLoop | None = None
+        self.loop_on = False  # a position loop runs this motion (a replay's, or a CST joint's)
+        # the position loop's per-joint gains for this motion (a CST joint's; a replay's outer loop; or none)
+        self._kp, self._kd, self._ki = np.zeros(n), np.zeros(n), np.zeros(n)
+        self._int_max, self._out_max = np.zeros(n), np.zeros(n)
+        self._gate = np.zeros(n)  # the integral learns while |q_ref − q| is below this
+        self._fade = np.ones(n)  # ... and is multiplied by this each cycle while the reference rests
+        self._ref_moving = np.zeros(n, dtype=bool)
         self._moving = np.zeros(n, dtype=bool)
         self._small = np.zeros(n, dtype=bool)
         self._over = np.zeros(n, dtype=bool)
@@ -93,6 +116,31 @@ class Track:
     @property
     def active(self) -> bool:
         return self.trajectory is not None
+
+    def use_cst(self, joints: np.ndarray, loop: CstLoop) -> None:
+        """The joints whose drives follow motions in CST, and dragd's position loop for them."""
+        self.cst[:] = joints
+        self.cst_loop = loop
+
+    def _loop_gains(self) -> None:
+        """This motion's position loop per joint: a CST joint's (full authority, an integral that learns while the
+        reference moves within half the tracking bound and fades at rest), a replay's outer loop around the drive's
+        CSP loop (bounded authority, integral frozen at rest), or none."""
+        lim, c, outer = self.lim, self.cst, self.full_friction
+        for dst, cst_v, csp_v in ((self._kp, "kp_Nm_per_rad", lim.kp_Nm_per_rad),
+                                  (self._kd, "kd_Nm_s_per_rad", lim.kd_Nm_s_per_rad),
+                                  (self._ki, "ki_Nm_per_rad_s", lim.ki_Nm_per_rad_s),
+                                  (self._int_max, "integral_max_Nm", lim.integral_max_Nm)):
+            dst[:] = csp_v if outer else 0.0
+            if self.cst_loop is not None:
+                np.copyto(dst, getattr(self.cst_loop, cst_v), where=c)
+        self._out_max[:] = lim.output_max_Nm if outer else 0.0
+        np.copyto(self._out_max, np.inf, where=c)
+        self._gate[:] = 0.0035
+        np.copyto(self._gate, 0.5 * lim.tracking_error_rad, where=c)
+        self._fade[:] = 1.0
+        np.copyto(self._fade, math.exp(-self.dt / CST_FADE_S), where=c)
+        self.loop_on = outer or (self.cst_loop is not None and bool(c.any()))
 
     # -- starting and ending
 
@@ -120,6 +168,7 @@ class Track:
             self.q_ref += self.start_offset
         self.dq_ref.fill(0.0)
         self.full_friction = traj.dq_table is not None  # replay plans; identification tracks as before
+        self._loop_gains()
         self.trajectory = traj
 
     def end(self) -> Trajectory | None:
@@ -238,38 +287,45 @@ class Track:
             self.dq_ref += self._a
         if finished:
             return "stopped" if self.state == "stopping" else tr.outcome
-        if self.full_friction:
+        if self.loop_on:
             self._position_loop(elapsed, q, dq)
         return self._monitor(t, q, current_A, stale_max)
 
     def _position_loop(self, elapsed: float, q: np.ndarray, dq: np.ndarray) -> None:
-        """Replay: PD + integral on q_ref − q into the torque offset, around the drives' own CSP loops.
+        """PD + integral on q_ref − q into the command, per joint with this motion's gains (``_loop_gains``).
 
-        The feed-forward leaves the model's errors (a torque constant 1-2 % off under 60 N·m of gravity is
-        ≈ 1 N·m) to the drive's position loop, whose stiffness turns them into position error. This loop adds
-        stiffness and learns the bias with an integral that only runs while a joint's reference moves (kinetic
-        friction; at rest stiction would make it hunt) and is frozen at the stops.
+        Replay, around the drives' own CSP loops: the feed-forward leaves the model's errors (a torque constant
+        1-2 % off under 60 N·m of gravity is ≈ 1 N·m) to the drive's position loop, whose stiffness turns them into
+        position error. This loop adds stiffness and learns the bias with an integral that only runs while a joint's
+        reference moves (kinetic friction; at rest stiction would make it hunt) and is frozen at the stops.
+        CST joints: the only position loop; its integral learns friction the same way and fades at rest, where the
+        feed-forward (gravity) holds the arm and kinetic friction is gone.
         """
-        lim = self.lim
         e, v, pid = self._a, self._b, self.pid_Nm
         np.subtract(self.q_ref, q, out=e)
         np.abs(self.dq_ref, out=v)
-        np.greater(v, 0.005, out=self._moving)
+        np.greater(v, MOVING_RAD_S, out=self._ref_moving)
         np.abs(e, out=v)  # a large error is a disturbance (or a stall), not a bias to learn
-        np.less(v, 0.0035, out=self._small)
-        self._moving &= self._small
-        np.multiply(e, lim.ki_Nm_per_rad_s * elapsed, out=v)
+        np.less(v, self._gate, out=self._small)
+        np.logical_and(self._ref_moving, self._small, out=self._moving)
+        np.multiply(e, self._ki, out=v)
+        v *= elapsed
         v *= self._moving
         self.int_Nm += v
-        np.minimum(self.int_Nm, lim.integral_max_Nm, out=self.int_Nm)
-        np.maximum(self.int_Nm, -lim.integral_max_Nm, out=self.int_Nm)
-        np.multiply(e, lim.kp_Nm_per_rad, out=pid)
+        np.copyto(v, self._fade)
+        np.copyto(v, 1.0, where=self._ref_moving)
+        self.int_Nm *= v
+        np.minimum(self.int_Nm, self._int_max, out=self.int_Nm)
+        np.negative(self._int_max, out=v)
+        np.maximum(self.int_Nm, v, out=self.int_Nm)
+        np.multiply(e, self._kp, out=pid)
         np.subtract(self.dq_ref, dq, out=v)
-        v *= lim.kd_Nm_s_per_rad
+        v *= self._kd
         pid += v
         pid += self.int_Nm
-        np.minimum(pid, lim.output_max_Nm, out=pid)  # bounded authority: the drive's loop stays in charge
-        np.maximum(pid, -lim.output_max_Nm, out=pid)
+        np.minimum(pid, self._out_max, out=pid)  # a replay's bounded authority: the drive's loop stays in charge
+        np.negative(self._out_max, out=v)
+        np.maximum(pid, v, out=pid)
 
     def _monitor(self, t: float, q: np.ndarray, current_A: np.ndarray, stale_max: int) -> Trip | None:
         """Tracking error, residual current and position limits: beyond a bound for ``monitor_cycles`` → trip."""
@@ -330,15 +386,19 @@ class Track:
         """CSP torque offset [A]: gravity + friction at the reference velocity + the planned motion's inertia
         (+ the replay's position loop); ``pred_A`` ← the model's current for the commanded motion."""
         friction_current(self.dq_ref, p, out, self._ws)
-        if self.full_friction and 0.0 < p.friction_scale != 1.0:
-            out /= p.friction_scale  # replay: the full belief (the drag law's under-compensation
-            # guards a released joint against run-away; in CSP it would only leave more to the drive's loop)
+        if 0.0 < p.friction_scale != 1.0:
+            # replay and CST joints: the full belief (the drag law's under-compensation guards a released joint
+            # against run-away; in a motion it would only leave more to the position loop)
+            if self.full_friction:
+                out /= p.friction_scale
+            elif self.loop_on:
+                np.divide(out, p.friction_scale, out=out, where=self.cst)
         out *= p.kt_Nm_per_A
         out += self.ff_Nm  # + the planned motion's M(q)q̈ + C(q,q̇)q̇ (replay plans)
         out += tau_g_Nm
         out /= p.kt_Nm_per_A
         np.divide(self.pred_extra_Nm, p.kt_Nm_per_A, out=self.pred_A)
         self.pred_A += out
-        if self.full_friction:  # replay: the daemon's position loop around the drive's own
+        if self.loop_on:  # the daemon's position loop: a replay's around the drive's own, a CST joint's alone
             np.divide(self.pid_Nm, p.kt_Nm_per_A, out=tmp)
             out += tmp

@@ -164,6 +164,7 @@ class Daemon:
                              if lockstep else WallClock(period_s))
         self.scaling = Scaling.from_config(cfg, self.drives.profiles)
         self.controller = Controller.from_config(cfg, self.model.position_limits_rad)
+        self.controller.track.cst[:] = [p.motion_mode == "cst" for p in self.drives.profiles]  # (docs/DRIVES.md)
         if self.controller.guard is not None:
             self.controller.guard.explain = self._explain_residual
             self.controller.guard.load_free[:] = self.model.load_free_joints()
@@ -464,7 +465,8 @@ class Daemon:
         drives = [{"joint": j.name, "node_id": j.node_id, "state": STATE_NAMES[sup.states[i]],
                    "statusword": int(fb.statusword[i]) if fb is not None else 0,
                    "stale_cycles": int(fb.stale[i]) if fb is not None else 0,
-                   "eds": self.drives.profiles[i].eds_path.name, "boot": boot.get((j.bus, j.node_id), [])}
+                   "eds": self.drives.profiles[i].eds_path.name, "boot": boot.get((j.bus, j.node_id), []),
+                   "motion_mode": self.drives.profiles[i].motion_mode}
                   for i, j in enumerate(self.cfg.joints)]
 
         def pct(h: Any, p: float) -> float | None:

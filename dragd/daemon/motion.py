@@ -2,7 +2,8 @@
 
 A motion starts from hold: the drives switch to CSP (an SDO write of 6060h per drive, confirmed on 6061h, in the
 master's worker thread), the controller enters TRACK along a trajectory table built off the loop; at its end the
-arm holds where the path ended and the drives return to CST. Planning a replay and the rigid-body prediction of a
+arm holds where the path ended and the drives return to CST. Drives whose profile follows motions in CST (a drive
+without a torque offset 60B2h: CSP would ignore dragd's feed-forward) stay in CST: dragd's position loop is theirs. Planning a replay and the rigid-body prediction of a
 track run in the planner process (dragd/teach/worker.py): seconds of Python there would hold the GIL here.
 """
 
@@ -89,16 +90,34 @@ class Motions:
 
     # ------------------------------------------------------------------------------------------ drive mode
 
+    @property
+    def cst_joints(self) -> np.ndarray:
+        """Joints whose drives follow motions in CST (their profile's motion_mode): dragd's position loop, no switch."""
+        return self.controller.track.cst
+
+    def untargeted_buses(self) -> list[str]:
+        """Buses without position targets (layout 'compact', or position_targets false) that carry a joint whose drive
+        follows motions in CSP."""
+        d = self.d
+        if d.io is None:
+            return []
+        csp_buses = {j.bus for j, cst in zip(d.cfg.joints, self.cst_joints, strict=True) if not cst}
+        return [b for b in d.io.compact_buses if b in csp_buses]
+
     async def switch_drive_mode(self, mode: int) -> None:
-        """6060h on every drive (confirmed on 6061h), in the master's SDO worker."""
+        """6060h on every drive that follows motions in CSP (confirmed on 6061h), in the master's SDO worker; the
+        drives that follow them in CST stay in CST (with none in CSP the drive mode stays CST)."""
         master = self.d.master
         assert master is not None
         self.switch_pending = True
         try:
+            switched = False
             for rt in master.runtimes.values():
-                for node_id in rt.nodes:
-                    await master.run_sdo(master.set_mode, rt, node_id, mode)
-            self._set_drive_mode(mode)
+                for node_id, info in rt.nodes.items():
+                    if info.profile.motion_mode == "csp":
+                        await master.run_sdo(master.set_mode, rt, node_id, mode)
+                        switched = True
+            self._set_drive_mode(mode if switched else MODE_CST)
         finally:
             self.switch_pending = False
 
@@ -131,8 +150,8 @@ class Motions:
         only: the boot does not require CSP)."""
         d = self.d
         reason = d.master.csp_refusal() if d.master is not None else None
-        if reason is None and d.io is not None and d.io.compact_buses:
-            reason = f"bus(es) {', '.join(d.io.compact_buses)} carry no position targets"
+        if reason is None and (untargeted := self.untargeted_buses()):
+            reason = f"bus(es) {', '.join(untargeted)} carry no position targets"
         if reason is not None:
             raise ValueError(f"{what}: the drives cannot follow position targets (CSP): {reason}; drag, hold and "
                              "idle work (docs/DRIVES.md)")

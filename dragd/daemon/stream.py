@@ -80,7 +80,7 @@ class Streams:
                                 if c.mode == Mode.DRAG else ""))
         if c.track.active or d.motions.planning or self.running() or self.opening:
             raise ValueError("stream_open: a motion is running (or being planned, or a stream opening); stop it first")
-        compact = d.io.compact_buses if d.io is not None else []
+        compact = d.motions.untargeted_buses()  # (drives that follow motions in CST need no position targets)
         if compact:
             raise ValueError(f"stream_open: bus(es) {', '.join(compact)} use the 'compact' PDO layout, which carries "
                              "no position targets; streams (CSP) need the 'shared' layout")

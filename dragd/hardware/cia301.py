@@ -11,6 +11,23 @@ TPDO1_BASE, RPDO1_BASE = 0x180, 0x200  # + node id (TPDOn/RPDOn: + 0x100·(n −
 SDO_TX_BASE, SDO_RX_BASE = 0x580, 0x600  # + node id (server → client, client → server)
 HEARTBEAT_BASE = 0x700  # + node id
 
+# --- communication profile objects ------------------------------------------------------------------------
+OD_DEVICE_TYPE = 0x1000
+OD_ERROR_REGISTER = 0x1001
+OD_ERROR_HISTORY = 0x1003  # pre-defined error field
+OD_SYNC_COB_ID = 0x1005
+OD_EMCY_COB_ID = 0x1014
+OD_CONSUMER_HEARTBEAT = 0x1016
+OD_PRODUCER_HEARTBEAT = 0x1017
+OD_IDENTITY = 0x1018  # sub 1 vendor-ID, 2 product code, 3 revision, 4 serial number
+OD_ERROR_BEHAVIOUR = 0x1029
+OD_SDO_SERVER = 0x1200  # sub 1 COB-ID client -> server, sub 2 server -> client
+OD_RPDO_COMM, OD_RPDO_MAP = 0x1400, 0x1600  # + n - 1 for RPDO n
+OD_TPDO_COMM, OD_TPDO_MAP = 0x1800, 0x1A00  # + n - 1 for TPDO n
+COB_ID_INVALID = 1 << 31  # PDO / EMCY COB-ID bit 31: not valid
+COB_ID_NO_RTR = 1 << 30  # TPDO COB-ID bit 30: no remote frames
+COB_ID_EXTENDED = 1 << 29  # bit 29: 29-bit identifier
+
 
 class NmtCommand(IntEnum):
     """NMT node control command specifiers (first byte of COB-ID 0x000)."""

@@ -304,13 +304,15 @@ class Master:
             time.sleep(0.005)
 
     def csp_refusal(self) -> str | None:
-        """Why the drives cannot follow position targets (CSP: identify run, replay, track), or None."""
+        """Why the drives that follow motions in CSP (identify run, replay, track) cannot follow position targets, or
+        None (drives whose profile follows motions in CST need none)."""
         reasons = []
         for rt in self.runtimes.values():
-            if not rt.layout.position_targets:
+            csp = [info for info in rt.nodes.values() if info.profile.motion_mode == "csp"]
+            if csp and not rt.layout.position_targets:
                 reasons.append(f"bus '{rt.name}': layout '{rt.layout.kind}' carries no position targets")
                 continue
-            for info in rt.nodes.values():
+            for info in csp:
                 if info.csp is False:
                     reasons.append(f"node {info.node_id} ({info.joint.name}): "
                                    f"{info.profile.csp_reason() or '6502h lacks CSP'}")

@@ -61,11 +61,12 @@ def plan_drives(cfg: Config, profiles: Profiles | None = None, *, budget_finding
                                  position_targets=b.position_targets, bus_key=key)
         findings += found
         layouts[b.name] = layout
-        if not layout.position_targets:
+        csp_motion = [p for p in bus_profiles if p.motion_mode == "csp"]  # (CST motions need no position targets)
+        if not layout.position_targets and csp_motion:
             findings.append(Finding("note", f"{key} '{b.name}': layout '{layout.kind}' carries no position targets: "
                                             "drag, hold and idle only (identify run, replay and track refused)"))
-        else:
-            for p in bus_profiles:
+        elif layout.position_targets:
+            for p in csp_motion:
                 if p.csp is False:
                     findings.append(Finding("note", f"{p.where}: no CSP ({p.csp_reason()}): identify run, replay and "
                                                     "track refused", where=p.where))
@@ -79,6 +80,7 @@ def plan_drives(cfg: Config, profiles: Profiles | None = None, *, budget_finding
                                              f"({'CAN FD' if b.fd else 'classic CAN'} {b.bitrate / 1e6:g} Mbit/s, "
                                              f"{len(idx)} joints, layout '{kind}'); use CAN FD, fewer joints per "
                                              "bus (split buses), a lower loop.rate_Hz"
-                                             + (", or position_targets: false (drag only)"
+                                             + (", or position_targets: false (" + (
+                                                 "drag only" if csp_motion else "motions in CST need none") + ")"
                                                 if kind == "per_node" and b.position_targets else "")))
     return DrivePlan(profiles, layouts, budget, findings)

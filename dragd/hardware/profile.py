@@ -19,6 +19,7 @@ from __future__ import annotations
 import configparser
 import functools
 import re
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
@@ -282,6 +283,7 @@ class DriveProfile:
         self.rated_torque_object = self._rated("rated_torque")
         self.watchdog_object = self._watchdog()
         self._check_modes()
+        self._check_motion()
         self._check_required()
         self._check_optional()
 
@@ -386,10 +388,6 @@ class DriveProfile:
         index = OD_TORQUE_OFFSET if choice == "60B2h" else OD_TARGET_TORQUE
         if index == OD_TARGET_TORQUE and not self.has(OD_TARGET_TORQUE):
             return None
-        if index == OD_TARGET_TORQUE and self.target_position_mappable():
-            self.finding("warning", OD_TORQUE_OFFSET, 0, "missing or not RPDO-mappable: the torque command is 6071h, "
-                         "which CiA 402 CSP ignores; in CSP motions (identify run, replay, track) no torque "
-                         "feed-forward reaches the drive: its own position loop carries gravity and friction")
         obj = self._process("torque", index, 0, "rpdo", "the torque command", key=key)
         if obj is not None and obj.code != "h":
             self.finding("error", index, 0, f"the torque command is {type_name(getattr(self.var(index), 'data_type', None))}; "
@@ -488,6 +486,36 @@ class DriveProfile:
         if self.supported_modes is not None and not self.supported_modes & (1 << (MODE_CSP - 1)):
             return f"6502h supported modes 0x{self.supported_modes:08X} lack CSP"
         return None
+
+    @property
+    def motion_mode(self) -> Literal["csp", "cst"]:
+        """How the drive follows motions (identify run, replay, track): ``csp``, its own position loop with dragd's
+        feed-forward in 60B2h, or ``cst``, dragd's position loop with the feed-forward in the torque command (no mode
+        switch). The configured choice; by default csp where the command is 60B2h and the drive can do CSP."""
+        if self.drive.motion_mode is not None:
+            return self.drive.motion_mode
+        offset = self.command is not None and self.command.index == OD_TORQUE_OFFSET
+        return "csp" if offset and self.csp is not False else "cst"
+
+    def _check_motion(self) -> None:
+        key = f"{self.key}.motion_mode"
+        if self.command is None or self.refusals:
+            return
+        no_offset = self.command.index != OD_TORQUE_OFFSET
+        if self.motion_mode == "cst":
+            why = ("the torque command is 6071h, which CiA 402 CSP ignores (no torque feed-forward in CSP)" if no_offset
+                   else f"the drive cannot follow position targets: {self.csp_reason()}" if self.csp is False
+                   else f"{key} is cst")
+            self.finding("note", None, 0, f"motions (identify run, replay, track) run in CST: {why}; dragd's position "
+                         "loop (replay.cst_*) with the model's feed-forward")
+        elif self.csp is False:
+            self.finding("error", OD_TARGET_POSITION, 0, f"{key} csp: the drive cannot follow position targets "
+                         f"({self.csp_reason()})", f"set {key} to cst or null")
+        elif no_offset:
+            self.finding("warning", OD_TORQUE_OFFSET, 0, f"missing or not RPDO-mappable, and {key} csp: the torque "
+                         "command is 6071h, which CiA 402 CSP ignores; in motions no feed-forward reaches the drive: "
+                         "at every switch to CSP the arm sags until the drive's own loop holds its weight",
+                         f"set {key} to cst (or null)")
 
     def _check_required(self) -> None:
         for index, what, need in ((OD_MODES_OF_OPERATION, "modes of operation", "writable"),
@@ -603,6 +631,9 @@ class Profiles:
 
     def __len__(self) -> int:
         return len(self.profiles)
+
+    def __iter__(self) -> Iterator[DriveProfile]:
+        return iter(self.profiles)
 
     def all_findings(self) -> list[Finding]:
         out = list(self.findings)

@@ -89,15 +89,26 @@ def starting_config(robot: str | Path, base_dir: Path | None = None,
     return text
 
 
-def _replay_lines(peaks: list[float]) -> list[str]:
-    return [
+def _replay_lines(peaks: list[float], cst_limits_A: list[float] | None = None) -> list[str]:
+    """The ``replay`` section: the daemon's position loop around the drives' CSP loops and, with ``cst_limits_A``
+    (the joints' current limits; drives that follow motions in CST), its loop for CST, all scaled with each joint's
+    peak torque. The CST loop is the joint's only one: its damping is 3 x the outer loop's."""
+    lines = [
         "# teach and replay: the daemon's position loop per joint, scaled with each joint's peak torque",
         "replay:",
         f"  position_kp_Nm_per_rad: {_flow([round(12.0 * p) for p in peaks])}",
         f"  position_kd_Nm_s_per_rad: {_flow([round(0.2 * p, 1) for p in peaks])}",
         f"  position_ki_Nm_per_rad_s: {_flow([round(24.0 * p) for p in peaks])}",
-        "",
     ]
+    if cst_limits_A is not None:
+        lines += [
+            "  # motions in CST (the drives' motion_mode): the daemon's loop is the joints' only position loop",
+            f"  cst_kp_Nm_per_rad: {_flow([round(12.0 * p) for p in peaks])}",
+            f"  cst_kd_Nm_s_per_rad: {_flow([round(0.6 * p, 1) for p in peaks])}",
+            f"  cst_ki_Nm_per_rad_s: {_flow([round(24.0 * p) for p in peaks])}",
+            f"  cst_integral_limit_A: {_flow([round(0.1 * a, 2) for a in cst_limits_A])}",
+        ]
+    return [*lines, ""]
 
 
 # ------------------------------------------------------------------------------------------------ from a vendor EDS
@@ -157,6 +168,9 @@ def drive_section(eds: Path, node_id: int = 1) -> tuple[dict[str, object], list[
                      f"candidates: {found})")
     offset = var(OD_TORQUE_OFFSET)
     drive["torque_command"] = "60B2h" if offset is not None and offset.pdo_mappable and offset.writable else "6071h"
+    if drive["torque_command"] == "6071h":
+        notes.append(f"60B2h {'not RPDO-mappable' if offset is not None else 'absent'}: the command is 6071h, which "
+                     "CSP ignores; motions run in CST with dragd's position loop (motion_mode, replay.cst_*)")
     if var(OD_MOTOR_RATED_CURRENT) is None:
         drive["rated_current"] = {"object": None}
         cands = _candidates(od, ("nominal current", "rated current", "continuous current"))
@@ -209,7 +223,8 @@ def _eds_config(ref: str, model: RobotModel, sizes: list[JointSizing], gravity: 
     probe_cfg, probe = trial(1, 1000.0, "per_node", True)
     prof = probe.profiles[0]  # type: ignore[attr-defined]
     layout = "shared" if fd and 0x0007 in prof.dummies else "per_node"
-    targets = prof.target_position is not None
+    # position targets (607Ah) only for drives that follow motions in CSP: in CST dragd's loop needs none
+    targets = prof.target_position is not None and prof.motion_mode == "csp"
     plan = None
     if n_buses is not None and n_buses < 1:
         raise ValueError(f"--buses: expected at least 1, got {n_buses}")
@@ -254,7 +269,9 @@ def _eds_config(ref: str, model: RobotModel, sizes: list[JointSizing], gravity: 
         "",
         f"# {eds_abs.name} is {'a CAN FD' if fd else 'a classic CAN'} drive ("
         + ("[DeviceInfo] CANopenFD=1" if fd else "its EDS declares no CANopenFD=1") + f"); layout {layout}"
-        + ("" if targets else " without position targets (607Ah not mappable: drag only)") + ".",
+        + ("" if targets else " without position targets (" + (
+            "motions in CST with dragd's position loop need none" if prof.motion_mode == "cst"
+            else "607Ah not mappable: drag only") + ")") + ".",
         f"# Worst-case bus load at {hz:g} Hz: " + ", ".join(f"{k} {v:.1f} %" for k, v in loads.items())
         + f" (limit {LOAD_LIMIT_PCT:g} %).",
     ]
@@ -275,13 +292,16 @@ def _eds_config(ref: str, model: RobotModel, sizes: list[JointSizing], gravity: 
         lines.append(f"    # {note}")
     for key, value in drive.items():
         lines.append(f"    {key}: {_flow(value) if isinstance(value, dict) else value}")
+    lines.append(f"    motion_mode: {prof.motion_mode}   # motions: csp = the drive's position loop + 60B2h, "
+                 "cst = dragd's (docs/DRIVES.md)")
     lines += ["", "joints:"]
     for i, s in enumerate(sizes):
         lines += _joint_lines(i, s)
         lines.append(f"    drive: {name}")
         if nb > 1:
             lines.append(f"    bus: {cfg.joints[i].bus}")
-    lines += ["", "loop:", f"  rate_Hz: {hz:g}", "", *_replay_lines(peaks)]
+    cst = [float(s.current_limit_A) for s in sizes] if prof.motion_mode == "cst" else None
+    lines += ["", "loop:", f"  rate_Hz: {hz:g}", "", *_replay_lines(peaks, cst)]
     text = "\n".join(lines)
     data = yaml.safe_load(text)
     data["drives"][name]["eds"] = str(eds_abs)

@@ -92,6 +92,8 @@ def drive_profiles(opts: dict) -> dict[str, Any]:
     from pathlib import Path
 
     eds_dir = opts.get("eds_dir")
+    if eds_dir is None and "drive_profiles" not in opts.get("selected", ["drive_profiles"]):  # `dragd bench` (all)
+        return {"skipped": "the vendors' EDS files are not given (--eds-dir DIR; docs/DRIVES.md says where they are)"}
     if eds_dir is None:
         raise BenchError("drive_profiles: give --eds-dir DIR (the vendors' EDS files; docs/DRIVES.md says where they "
                          "are)")

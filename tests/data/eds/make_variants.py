@@ -18,6 +18,7 @@ vendors' files (which are never committed):
     tpdo_no_timers.eds     TPDO communication parameters without inhibit time (sub 3) or event timer (sub 5) (simco)
     no_cst.eds             6502h without CST (Technosoft iPOS): refused
     no_6071h.eds           no 6071h; 607Ah not PDO-mappable (Schunk PRL120): refused
+    no_60b2h.eds           no 60B2h torque offset: the command is 6071h, which CSP ignores; motions in CST (Eyou)
 
 Run ``python tests/data/eds/make_variants.py`` after changing the bundled EDS; the files are committed.
 """
@@ -222,6 +223,11 @@ def tpdo_no_timers(eds: Eds) -> None:
         eds.set(f"{0x1800 + k:04X}sub0", "DefaultValue", "0x02")
 
 
+def no_60b2h(eds: Eds) -> None:
+    eds.remove_object(0x60B2)
+    _drop_default_mappings(eds, 0x60B2)
+
+
 def no_cst(eds: Eds) -> None:
     eds.set("6502", "DefaultValue", "0x00000080")  # CSP only (bit 7); bit 9 (CST) clear
 
@@ -262,6 +268,7 @@ VARIANTS: dict[str, tuple[str, Callable[[Eds], None] | None]] = {
     "tpdo_no_timers": ("TPDOs without inhibit time and event timer", tpdo_no_timers),
     "no_cst": ("6502h without cyclic synchronous torque", no_cst),
     "no_6071h": ("no 6071h target torque; 607Ah not mappable", no_6071h),
+    "no_60b2h": ("no 60B2h torque offset", no_60b2h),
 }
 
 
