@@ -641,6 +641,7 @@ def test_layout_auto_chooses_from_what_the_drives_support() -> None:
     assert plan.layouts["arm"].kind == "per_node" and plan.errors == []
 
 
+@pytest.mark.unit
 def test_bench_all_skips_drive_profiles_without_eds_dir_and_names_it_when_asked() -> None:
     """`dragd bench` (every benchmark) without --eds-dir skips drive_profiles with the reason; named, it is an error."""
     from dragd.lab.bench import BenchError
