@@ -9,7 +9,8 @@
         async with Client("/run/dragd/dragd.sock") as d:
             print((await d.status())["mode"])
             await d.start()
-            await d.mode("drag")
+            async with d.drag():        # a drag lease, renewed in the background (docs/HAND.md)
+                await asyncio.sleep(30)  # ... the operator guides the arm; leaving the block holds it
 
     asyncio.run(main())
 
@@ -26,9 +27,10 @@ import json
 import os
 from typing import Any
 
+from dragd.lease import PACED_TIMEOUT_S
 from dragd.protocol import DEFAULT_SOCKET_PATH, MAX_LINE_BYTES, DaemonTimeout, DaemonUnavailable, encode_line
 
-__all__ = ["Client", "CommandError", "DaemonUnavailable", "DaemonTimeout"]
+__all__ = ["Client", "CommandError", "DaemonUnavailable", "DaemonTimeout", "DragLease"]
 
 
 class CommandError(RuntimeError):
@@ -146,8 +148,18 @@ class Client:
     async def stop(self) -> dict[str, Any]:
         return await self.call("stop")
 
-    async def mode(self, mode: str) -> dict[str, Any]:
-        return await self.call("mode", mode=mode)
+    async def mode(self, mode: str, **args: Any) -> dict[str, Any]:
+        return await self.call("mode", mode=mode, **args)
+
+    async def lease(self, action: str, **args: Any) -> dict[str, Any]:
+        """The drag lease: ``open`` (holder, period_s), ``renew``/``close`` (lease), ``status``."""
+        return await self.call("lease", action=action, **args)
+
+    def drag(self, holder: str = "dragd.client", period_s: float | None = None, accept: bool = False) -> DragLease:
+        """``async with client.drag() as lease:`` the arm drags while the block runs: a lease is opened, drag
+        requested with it and the lease renewed every third of its period; leaving the block closes it (the arm
+        holds). ``lease.ended`` is set when drag ended otherwise (``lease.reason``)."""
+        return DragLease(self, holder, period_s, accept)
 
     async def record_start(self, path: str, label: str = "") -> dict[str, Any]:
         return await self.call("record", action="start", path=path, label=label)
@@ -190,3 +202,70 @@ class Client:
 
     async def stream_close(self, stream: int) -> dict[str, Any]:
         return await self.call("stream_close", stream=stream)
+
+
+class DragLease:
+    """A drag lease held by an asyncio client (``Client.drag``); see docs/HAND.md."""
+
+    def __init__(self, client: Client, holder: str, period_s: float | None, accept: bool) -> None:
+        self.client, self.holder, self.requested_period_s, self.accept = client, holder, period_s, accept
+        self.lease = 0
+        self.period_s = 0.0
+        self.renewals = 0
+        self.reason: str | None = None  # why drag (or the lease) ended, when it ended before the block did
+        self.ended = asyncio.Event()
+        self._task: asyncio.Task[None] | None = None
+
+    async def __aenter__(self) -> DragLease:
+        kw: dict[str, Any] = {"holder": self.holder}
+        if self.requested_period_s is not None:
+            kw["period_s"] = self.requested_period_s
+        ans = await self.client.lease("open", **kw)
+        self.lease, self.period_s = int(ans["lease"]), float(ans["period_s"])
+        try:
+            await self.client.mode("drag", lease=self.lease, **({"accept": True} if self.accept else {}))
+        except BaseException:
+            await self._close()
+            raise
+        self._task = asyncio.get_running_loop().create_task(self._renew())
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            try:
+                await self._task
+            except (asyncio.CancelledError, Exception):  # noqa: BLE001
+                pass
+        await self._close()
+
+    async def _close(self) -> None:
+        try:
+            await self.client.lease("close", lease=self.lease)
+        except (CommandError, DaemonUnavailable):
+            pass  # lapsed or gone: nothing left to close
+
+    async def _renew(self) -> None:
+        """Renew paced: the daemon answers when the next renewal is due on its clock (docs/HAND.md); renew again. On
+        a connection of its own (the daemon answers one request of a connection at a time)."""
+        keep = Client(self.client.path, self.client.timeout_s)
+        try:
+            await self._renew_on(keep)
+        finally:
+            await keep.close()
+
+    async def _renew_on(self, keep: Client) -> None:
+        while True:
+            try:
+                ans = await keep.call("lease", timeout_s=PACED_TIMEOUT_S, action="renew", lease=self.lease, paced=True)
+            except (CommandError, DaemonUnavailable) as exc:
+                self.reason = str(exc)
+                self.ended.set()
+                return
+            self.renewals += 1
+            if not ans.get("drag") and ans.get("require") != "both":
+                st = await self.client.status()
+                self.reason = ((st.get("drag") or {}).get("last_drag_end") or {}).get("reason") or \
+                    f"the arm left drag ({ans.get('mode')})"
+                self.ended.set()
+                return

@@ -133,6 +133,9 @@ class DriveConfig(_Strict):
     rated_current: RatedCurrentObject = RatedCurrentObject()
     rated_torque: RatedTorqueObject = RatedTorqueObject()
     rpdo_watchdog: WatchdogObject | None = None
+    # the drive's digital inputs (CiA 402 60FDh: bits 0-3 limit/home/interlock, 16-31 the manufacturer's), or a
+    # vendor object that holds them (e.g. Wittenstein simco 3A13h:5): read where `inputs` name this drive's joint
+    digital_inputs: ObjectAddress = "60FDh"
 
 
 class FrictionConfig(_Strict):
@@ -510,6 +513,84 @@ class StreamConfig(_Strict):
     catch_up: Annotated[float, Field(ge=0, le=0.5), Expect("a fraction in [0, 0.5]")] = 0.1
 
 
+# --- drag permission and the hand's inputs (#30; docs/HAND.md) ------------------------------------------------------
+
+InputBit = Annotated[int, Field(ge=0, le=63, strict=True), Expect("a bit number 0..63 of the drive's inputs object")]
+
+
+class HandInput(_Strict):
+    """One input at the hand, wired to a digital input of a joint's drive (60FDh, or ``drives.X.digital_inputs``)."""
+
+    function: Literal["enable", "mark", "stop", "teach"]
+    joint: str  # the joint whose drive reads the contact (a name of ``joints``)
+    bit: InputBit
+    # enable only: the second channel of a two-channel enabling switch (both must agree; ISO 13849 category 3)
+    second_bit: InputBit | None = None
+    # enable only: the contact of the squeezed (panic, position 3) position, where the device reports it
+    panic_bit: InputBit | None = None
+    active: Literal["high", "low"] = "high"  # low: a normally-closed contact (a stop wire that breaks stops)
+    name: str | None = None  # a label for status and events (default: the function)
+
+    @model_validator(mode="after")
+    def _bits(self) -> HandInput:
+        if self.function != "enable" and (self.second_bit is not None or self.panic_bit is not None):
+            raise ValueError(f"second_bit, panic_bit: expected only on an 'enable' input, got them on "
+                             f"'{self.function}'")
+        bits = [b for b in (self.bit, self.second_bit, self.panic_bit) if b is not None]
+        if len(set(bits)) != len(bits):
+            raise ValueError(f"bit, second_bit, panic_bit: expected different bits, got {bits}")
+        return self
+
+    @property
+    def label(self) -> str:
+        return self.name or self.function
+
+    @property
+    def bits(self) -> list[int]:
+        """Every bit the input reads (channels, then the panic contact)."""
+        return [b for b in (self.bit, self.second_bit, self.panic_bit) if b is not None]
+
+
+class HandConfig(_Strict):
+    """The guiding device's inputs and how they are judged (docs/HAND.md)."""
+
+    inputs: list[HandInput] = Field(default_factory=list)
+    # a press counts once the contact has been steady this long (a release, a stop and a panic act at once)
+    debounce_ms: Annotated[float, Field(ge=0, le=100), Expect("milliseconds in [0, 100]")] = 5.0
+    # the two channels of an enabling switch may disagree this long (contact travel) before it is a fault
+    discrepancy_ms: Annotated[float, Field(gt=0, le=1000), Expect("milliseconds in (0, 1000]")] = 50.0
+    # more edges than chatter_edges within chatter_window_ms: a chattering contact (faulted until `start`)
+    chatter_edges: Annotated[int, Field(ge=2, le=1000), Expect("a number of edges >= 2")] = 8
+    chatter_window_ms: Annotated[float, Field(gt=0, le=10000), Expect("milliseconds in (0, 10000]")] = 200.0
+    # where the inputs ride in an event TPDO of their own: its keep-alive (event timer) and inhibit time
+    event_timer_ms: Annotated[int, Field(ge=1, le=100), Expect("milliseconds in [1, 100]")] = 10
+    event_inhibit_ms: Annotated[int, Field(ge=1, le=20), Expect("milliseconds in [1, 20]")] = 2
+    # the inputs count as lost (not enabled, stop pressed) once their TPDO is this late: null: the cyclic feedback's
+    # loop.stale_cycles_hold periods, or 2.5 event timers for an event TPDO
+    lost_after_ms: Annotated[float, Field(gt=0, le=1000), Expect("milliseconds in (0, 1000]")] | None = None
+
+
+class DragConfig(_Strict):
+    """What DRAG requires (docs/HAND.md): the enabling switch held, a client's lease, both, or (lab only) nothing."""
+
+    # none: only with `dragd run --lab-unguarded-drag` (a lab's flag; status reports it)
+    require: Literal["enable_input", "lease", "both", "none"] = "lease"
+    # a software client's lease: renewed at least this often, else drag ends into HOLD (a client may ask for less)
+    lease_s: Annotated[float, Field(ge=0.05, le=10.0), Expect("seconds in [0.05, 10]")] = 0.5
+    # the blend from the drag law to the hold when drag ends (release, stop, a lapsed lease): short, so the arm is
+    # held within a fraction of a degree, and not zero, so the current does not jump
+    exit_ramp_s: Annotated[float, Field(ge=0.002, le=0.2), Expect("seconds in [0.002, 0.2]")] = 0.02
+    # the brake when drag ends: the hold's damping this strong, its pose following the arm, until the arm rests
+    # (every joint below 0.01 rad/s) or exit_brake_s passed; then the hold's own stiffness where the arm came to rest.
+    # A moving arm stops in about |q̇|·J/exit_damping (J: the joint's inertia) instead of springing back through its
+    # pose; a hand that keeps pushing meets the hold's stiffness (docs/HAND.md)
+    # (per joint; null: five times replay.position_kd_Nm_s_per_rad, the arm's own tuning to its joints' inertia)
+    exit_damping_Nm_s_per_rad: NonNegFloat | list[NonNegFloat] | None = None
+    exit_brake_s: Annotated[float, Field(ge=0, le=1.0), Expect("seconds in [0, 1]")] = 0.15
+
+# --- end of drag permission and the hand's inputs -------------------------------------------------------------------
+
+
 class Config(_Strict):
     robot: RobotConfig = RobotConfig()
     params: str | None = None  # identified-parameters file, relative to the config file
@@ -527,6 +608,8 @@ class Config(_Strict):
     payload: Payload | None = None  # flange payload not in the URDF (docs/GAP.md)
     inertials: dict[str, LinkInertial] | None = None  # identified link inertials over the URDF's (docs/MODEL.md)
     contact: ContactConfig = ContactConfig()  # contact detection (docs/CONTACT.md)
+    drag: DragConfig = DragConfig()  # what drag requires: enabling switch, lease (docs/HAND.md)
+    hand: HandConfig = HandConfig()  # the guiding device's inputs at the hand (docs/HAND.md)
     source: str = Field("<memory>", exclude=True)  # file it came from (not a YAML key)
 
     @model_validator(mode="after")
@@ -551,6 +634,7 @@ class Config(_Strict):
                 raise ValueError(f"joints: {j.name} and {seen[key]} share node id {j.node_id} on bus '{j.bus}'")
             seen[key] = j.name
         self._cross_timing()
+        self._cross_hand(names)
         if self.stream.max_lead_s <= self.stream.delay_s:
             raise ValueError(f"stream.max_lead_s: expected more than stream.delay_s ({self.stream.delay_s:g} s), got "
                              f"{self.stream.max_lead_s:g}")
@@ -599,6 +683,36 @@ class Config(_Strict):
             if j.node_id == m.node_id:
                 raise ValueError(f"master.node_id: expected a node id no drive uses, got {m.node_id} "
                                  f"= joints[{i}] ({j.name}).node_id")
+
+    def _cross_hand(self, names: list[str]) -> None:
+        """The hand's inputs against the joints and what drag requires (the drives' objects: dragd/hardware/plan.py)."""
+        seen: dict[tuple[str, int], str] = {}
+        for i, inp in enumerate(self.hand.inputs):
+            if inp.joint not in names:
+                raise ValueError(f"hand.inputs[{i}].joint: expected one of the joints {', '.join(names)}, got "
+                                 f"'{inp.joint}'")
+            for b in inp.bits:
+                key = (inp.joint, b)
+                if key in seen:
+                    raise ValueError(f"hand.inputs[{i}] ({inp.label}): {inp.joint} bit {b} is already "
+                                     f"{seen[key]}'s; expected each bit wired to one input")
+                seen[key] = f"hand.inputs[{i}] ({inp.label})"
+        enables = [i for i, inp in enumerate(self.hand.inputs) if inp.function == "enable"]
+        if len(enables) > 1:
+            raise ValueError(f"hand.inputs: expected at most one 'enable' input (one enabling switch; two contacts "
+                             f"are its second_bit), got {len(enables)} (inputs {enables})")
+        kd = self.drag.exit_damping_Nm_s_per_rad
+        if isinstance(kd, list) and len(kd) != len(names):
+            raise ValueError(f"drag.exit_damping_Nm_s_per_rad: expected one value or {len(names)} (one per joint: "
+                             f"{', '.join(names)}), got {len(kd)}")
+        req = self.drag.require
+        if req in ("enable_input", "both") and not enables:
+            raise ValueError(f"drag.require: '{req}' needs an enabling switch: expected a hand.inputs entry with "
+                             "function: enable")
+        if req in ("lease", "none") and enables:
+            raise ValueError(f"drag.require: expected 'enable_input' or 'both' with an enabling switch wired "
+                             f"(hand.inputs[{enables[0]}]), got '{req}' (an enabling switch that does not end drag "
+                             "would be a false promise)")
 
     def per_joint(self, value: float | list[float]) -> list[float]:
         """A ``PerJoint`` setting as one value per joint."""

@@ -15,3 +15,4 @@ class AxisIO:
     current_demand_A: float = 0.0  # drive -> physics: current-loop setpoint, motor current
     power_stage_on: bool = False  # drive -> physics: False = no motor torque
     brake_engaged: bool = True  # drive -> physics: holding brake clamps the joint
+    digital_inputs: int = 0  # hand device -> drive: the contacts wired to the drive's inputs (60FDh bits; sim/hand.py)

@@ -285,6 +285,10 @@ class SimDrive:
             max_torque=bound("max_torque", 0xFFFF),
             max_current=bound("max_current", round(1000.0 * hw.max_current_A / hw.rated_current_A)),
         )
+        s.digital_inputs = bound("digital_inputs", 0)
+        lo, hi = _range(st, s.digital_inputs) if st.vars[s.digital_inputs] is not None else (0, 0xFFFFFFFF)
+        s.inputs_mask = hi if lo == 0 else (hi << 1) | 1  # (a signed object: its bits)
+        s.inputs_signed = lo < 0
         watchdog = b["rpdo_watchdog"]
         s.rpdo_watchdog = None if watchdog.index is None else st.slot(watchdog.index, watchdog.subindex)
         s.rpdo_watchdog_s_per_unit = 1.0 / (watchdog.per_si or 1000.0)
@@ -491,6 +495,10 @@ class SimDrive:
     def _sample(self, io: AxisIO) -> None:
         cells, s, k = self.store.cells, self.s, self.scaling
         cells[s.position] = _wrap_int32(round(io.position_rad * self._counts_per_rad) + self.encoder_offset_counts)
+        word = io.digital_inputs & s.inputs_mask  # the contacts wired to the drive (sim/hand.py)
+        if s.inputs_signed and word > s.inputs_mask >> 1:
+            word -= s.inputs_mask + 1
+        cells[s.digital_inputs] = word
         v = round(io.velocity_rad_s * self._counts_per_rad)
         cells[s.velocity] = _INT32_MIN if v < _INT32_MIN else _INT32_MAX if v > _INT32_MAX else v
         current_A = io.current_measured_A

@@ -68,6 +68,7 @@ UNITS: dict[str, dict[str, float | None]] = {
     "torque": {"permille": None, "mNm": 1000.0, "uNm": 1e6, "Nm": 1.0},
     "torque_constant": {"mNm_per_A": 1000.0, "uNm_per_A": 1e6, "Nm_per_A": 1.0},
     "time": {"ms": 1000.0, "s": 1.0},
+    "bits": {"bits": None},
 }
 
 
@@ -97,6 +98,8 @@ QUANTITIES: dict[str, Quantity] = {q.name: q for q in (
              "the firmware's motor torque constant (torque command -> current)"),
     Quantity("rpdo_watchdog", None, "time", "ms", "parameter",
              "a vendor's reception watchdog: no RPDO for this long (0: off) is an RPDO timeout (EMCY 8250h, 6007h)"),
+    Quantity("digital_inputs", 0x60FD, "bits", "bits", "actual",
+             "the digital inputs (60FDh: 0-3 limit switches, home, interlock; 16-31 the manufacturer's)"),
 )}
 
 

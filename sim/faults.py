@@ -16,6 +16,11 @@ Faults (``kind``):
 - ``bus_off``        seconds: the sim's link goes down (nothing in, nothing out), then comes back
 - ``encoder_jump``   node_id, rad, seconds: the reported position jumps by ``rad`` (for ``seconds``; 0 = forever)
 - ``garbage``        node_id: frames on the node's TPDO COB-ID a master must drop: short DLC, 29-bit id, RTR
+- ``inputs_lost``    node_id, seconds: the node's TPDOs that carry its digital inputs (60FDh, or the object its
+                     truth names) are lost — the rest of its frames pass (docs/HAND.md, docs/SAFETY.md)
+
+Faults of the guiding device at the hand (a stuck or chattering contact, a cut cable) are the device's own:
+sim/hand.py.
 """
 
 from __future__ import annotations
@@ -32,7 +37,7 @@ from dragd.hardware.cia402 import ERR_REG_GENERIC, State
 from dragd.realtime import demote_current_thread
 
 KINDS = ("drive_silent", "burst_loss", "duplicates", "late_tpdo", "emcy", "drive_fault", "switched_on",
-         "node_reboot", "bus_off", "encoder_jump", "garbage")
+         "node_reboot", "bus_off", "encoder_jump", "garbage", "inputs_lost")
 
 
 class FaultError(ValueError):
@@ -51,6 +56,7 @@ class FaultInjector:
         self._due: list[tuple[float, Callable[[], None]]] = []  # lockstep: timed ends (encoder_jump seconds)
         self.active = False  # any transmit-side fault armed (the fast path tests only this)
         self.silent_until: dict[int, float] = {}
+        self.silent_cobs: dict[int, float] = {}  # COB-ID -> until (inputs_lost)
         self.drop_frames = 0
         self.dup_frames = 0
         self.late_until = 0.0
@@ -114,6 +120,14 @@ class FaultInjector:
                 return
             del self.silent_until[node_id]
             self._rearm()
+        if self.silent_cobs:
+            until = self.silent_cobs.get(msg.arbitration_id)
+            if until is not None:
+                if now < until:
+                    c["lost_inputs"] += 1
+                    return
+                del self.silent_cobs[msg.arbitration_id]
+                self._rearm()
         if self.drop_frames > 0:
             self.drop_frames -= 1
             c["lost_burst"] += 1
@@ -138,7 +152,7 @@ class FaultInjector:
 
     def _rearm(self) -> None:
         self.active = bool(self.silent_until or self.drop_frames or self.dup_frames or self.late_until
-                           or self.down_until)
+                           or self.down_until or self.silent_cobs)
 
     def release_due(self, now: float) -> None:
         """Lockstep: at a period's end (sim time ``now``), send the delayed frames due by then and end what is due."""
@@ -222,6 +236,19 @@ class FaultInjector:
                 self._late_thread.start()
         elif kind == "bus_off":
             self.down_until = now + number("seconds", 1.0, 0.001, 600.0)
+        elif kind == "inputs_lost":
+            d = node()
+            index = d.profile.bindings["digital_inputs"].index
+            cobs = [ch.cob_id & 0x7FF for ch in d.tpdos if ch.valid
+                    and any((e.index, e.subindex) == (index, d.profile.bindings["digital_inputs"].subindex)
+                            for e in ch.entries)]
+            if not cobs:
+                raise FaultError(f"inject inputs_lost: node {d.node_id} sends its digital inputs in no TPDO (is a "
+                                 "master's layout mapping them?)")
+            until = now + number("seconds", 1.0, 0.001, 600.0)
+            for cob in cobs:
+                self.silent_cobs[cob] = until
+            done["cob_ids"] = [f"0x{c:03X}" for c in cobs]
         elif kind == "garbage":
             d = node()
             cob = 0x180 + d.node_id

@@ -12,7 +12,12 @@ A scenario is a list of segments run one after the other (sim time):
 * ``move``: a hand moving one joint at ``velocity_rad_s`` (PI loop on its torque); a ``move`` event records the
   mean torque it took over the segment's second half (drag effort);
 * ``hand``: a spring–damper "hand" pulling the joints (``q_rad``) or the flange (``position_m``, optional
-  ``rpy_rad``) to a target, absolute or relative to the pose at the segment's start.
+  ``rpy_rad``) to a target, absolute or relative to the pose at the segment's start;
+* ``press`` / ``let_go``: a button of the guiding device at the wrist (sim/hand.py: ``enable`` to the ``middle`` or
+  ``squeeze`` position, ``mark``, ``stop``, ``teach``), pressed or let go at the segment's start (``hold_s``: let go
+  by itself that long later, while the next segments run); the load stays as the previous segment left it (a
+  ``hand`` segment's spring ends with it), ``duration_s`` (default 0) before the next segment. Events ``press`` and
+  ``let_go`` record the instants.
 
 After the last segment the operator lets go (no load).
 Flange wrenches act at the scenario's ``frame`` (default ``tool0``, else the last joint) with world-aligned axes
@@ -136,9 +141,38 @@ class Move(_Strict):
     duration_s: PosFloat
 
 
-Segment = Annotated[Union[Push, Ramp, Hold, Release, Hand, Move], Field(discriminator="kind")]
+# --- the guiding device's buttons (#30; sim/hand.py) ---
+
+
+class Press(_Strict):
+    """Press a button of the guiding device at the wrist (the enabling switch to the middle or squeezed)."""
+
+    kind: Literal["press"]
+    button: Literal["enable", "mark", "stop", "teach"]
+    position: Literal["middle", "squeeze"] = "middle"  # enable only
+    hold_s: PosFloat | None = None  # let go by itself this long later (a momentary press: mark, teach)
+    duration_s: NonNegFloat = 0.0
+
+    @model_validator(mode="after")
+    def _enable_only(self) -> Press:
+        if self.position != "middle" and self.button != "enable":
+            raise ValueError(f"expected position only with button enable, got it with {self.button!r}")
+        return self
+
+
+class LetGo(_Strict):
+    """Let go of a button (the enabling switch back to released)."""
+
+    kind: Literal["let_go"]
+    button: Literal["enable", "mark", "stop", "teach"]
+    duration_s: NonNegFloat = 0.0
+
+# --- end of the guiding device's buttons ---
+
+
+Segment = Annotated[Union[Push, Ramp, Hold, Release, Hand, Move, Press, LetGo], Field(discriminator="kind")]
 SEGMENT_KINDS: dict[str, type[_Strict]] = {"push": Push, "ramp": Ramp, "hold": Hold, "release": Release, "hand": Hand,
-                                           "move": Move}
+                                           "move": Move, "press": Press, "let_go": LetGo}
 
 
 class Scenario(_Strict):
@@ -200,7 +234,8 @@ class Operator:
     """Runs a scenario: :meth:`apply` writes the operator's joint torques for the present sim time."""
 
     def __init__(self, scenario: Scenario | dict[str, Any] | str | Path, model: RobotModel | pin.Model,
-                 start_t_s: float | None = None) -> None:
+                 start_t_s: float | None = None, hand: Any = None) -> None:
+        """``hand``: the guiding device (sim/hand.py ``HandDevice``) that ``press`` / ``let_go`` segments use."""
         if isinstance(scenario, (str, Path)):
             scenario = load_scenario(scenario)
         self.scenario = validate_scenario(scenario)
@@ -228,6 +263,16 @@ class Operator:
                 if vec is not None and len(vec) != self.n:
                     raise ScenarioError(f"{where}.{key}: expected {self.n} values ({', '.join(names)}), got {len(vec)}")
 
+        self.hand = hand
+        self._let_go_at: list[tuple[float, str]] = []  # momentary presses: (when, button)
+        pressed = sorted({seg.button for seg in self.scenario.segments if isinstance(seg, (Press, LetGo))})
+        if pressed and hand is None:
+            raise ScenarioError(f"{src}: segments press/let_go {', '.join(pressed)}: the simulated arm has no guiding "
+                                "device (the truth's hand is null)")
+        missing = [b for b in pressed if hand is not None and b not in hand.controls]
+        if missing:
+            raise ScenarioError(f"{src}: segments press/let_go: button(s) {', '.join(missing)}: expected one of "
+                                f"{', '.join(hand.controls)} (the truth's hand)")
         self.events: list[dict[str, Any]] = []
         self.done = False
         self._start_t = start_t_s
@@ -272,6 +317,8 @@ class Operator:
                 return
             self._event(t_s, "start", name=self.scenario.name)
             self._enter(0, t_s, q_rad)
+        if self._let_go_at:
+            self._let_go_due(t_s)
         while not self.done and self._segment_over(t_s, q_rad, dq_rad_s):
             self._enter(self._seg + 1, t_s, q_rad)
         if self.done:
@@ -321,6 +368,8 @@ class Operator:
             self._has_wrench = False
             self._move_integral = 0.0
             self._move_sum = [0.0, 0.0, 0]
+        elif isinstance(seg, (Press, LetGo)):
+            self._button(seg, t_s)
         elif isinstance(seg, Hand):
             self._tau[:] = 0.0
             self._wrench[:] = 0.0
@@ -338,6 +387,28 @@ class Operator:
                     if seg.relative:
                         rot = rot @ now.rotation
                 self._target_M = pin.SE3(rot, pos + (now.translation if seg.relative else 0.0))
+
+    def _button(self, seg: Press | LetGo, t_s: float) -> None:
+        """A press or let-go of the guiding device; the load stays as it was (a hand segment's spring ends)."""
+        if isinstance(seg, Press):
+            self.hand.press(t_s, seg.button, seg.position)
+            self._event(t_s, "press", button=seg.button, position=seg.position)
+            if seg.hold_s is not None:
+                self._let_go_at.append((t_s + seg.hold_s, seg.button))
+        else:
+            self.hand.let_go(t_s, seg.button)
+            self._event(t_s, "let_go", button=seg.button)
+        prev = self.scenario.segments[self._seg - 1] if self._seg > 0 else None
+        if isinstance(prev, Hand):
+            self._tau[:] = 0.0
+
+    def _let_go_due(self, t_s: float) -> None:
+        due = [b for when, b in self._let_go_at if when <= t_s]
+        if due:
+            self._let_go_at = [(when, b) for when, b in self._let_go_at if when > t_s]
+            for b in due:
+                self.hand.let_go(t_s, b)
+                self._event(t_s, "let_go", button=b)
 
     def _segment_over(self, t_s: float, q: np.ndarray, dq: np.ndarray) -> bool:
         seg = self.scenario.segments[self._seg]

@@ -12,7 +12,8 @@ drives' communication clock is the simulated time; ``rtf`` is then as fast as th
 
 Control commands: ``state``, ``operator`` (scenario dict or file, starting now), ``operator_events``,
 ``set_q`` (teleport, only while every drive's power stage is off), ``drives``, ``fault`` (inject a
-device fault into one drive), ``inject`` (a bus or node fault: sim/faults.py), ``stop``.
+device fault into one drive), ``inject`` (a bus or node fault: sim/faults.py; a fault of the guiding device at the
+hand: sim/hand.py), ``hand`` (press / let go a button of the guiding device now), ``stop``.
 """
 
 from __future__ import annotations
@@ -43,6 +44,8 @@ from sim.drive import SimDrive
 from sim.faults import FaultError, FaultInjector
 from sim.lockstep import LockstepSync
 from sim.network import SimNetwork
+from sim.hand import KINDS as HAND_KINDS
+from sim.hand import HandDevice, HandError
 from sim.operator import Operator, ScenarioError, load_scenario, validate_scenario
 from sim.physics import ArmPhysics
 from sim.scenario_payload import PayloadSchedule, set_flange_payload
@@ -121,6 +124,8 @@ class SimProcess:
         self.robot = truth.load_model()
         self.axes = [AxisIO() for _ in truth.joints]
         self.physics = ArmPhysics(truth, self.robot, self.axes)
+        # the guiding device at the wrist: its contacts on one drive's digital inputs (sim/hand.py)
+        self.hand = None if truth.hand is None else HandDevice(truth.hand, [j.name for j in truth.joints], self.axes)
         # one or more buses ("A,B"): joint j's drive sits on bus truth.joints[j].bus_index
         self.specs: list[BusSpec] = [parse_bus(b, fd=truth.bus.fd) for b in (bus or truth.bus.channel).split(",") if b]
         for j in truth.joints:
@@ -196,6 +201,8 @@ class SimProcess:
                 self._start_control()
             if self.scenario is not None:
                 self._set_operator(self.scenario)
+            if self.hand is not None:
+                self.hand.apply(self.physics.t_s)  # the contacts as wired, before anyone reads them (the boot)
             for net in self.networks:
                 net.start(boot=True)
             try:
@@ -274,6 +281,8 @@ class SimProcess:
                 physics.step()
             if self.payloads.pending:
                 self.payloads.apply_due(physics)
+            if self.hand is not None:
+                self.hand.apply(physics.t_s)  # the drive reads its inputs (next SYNC's TPDO, its event TPDOs)
             if self.lockstep is not None:
                 now = self.lockstep.clock.t_s = physics.t_s
                 for inj in self.injectors:
@@ -310,6 +319,7 @@ class SimProcess:
             "tau_motor_Nm": snap["tau_motor_Nm"], "tau_friction_Nm": snap["tau_friction_Nm"],
             "power_on": snap["power_on"], "stuck": snap["stuck"], "temperature_C": snap["temperature_C"],
             "dropped_steps": self.dropped_steps, "operator": op_info, "scheduler": self._scheduler(),
+            "hand": None if self.hand is None else self.hand.state(),
         }
 
     def _scheduler(self) -> str:
@@ -368,7 +378,7 @@ class SimProcess:
     # ------------------------------------------------------------------------------------------- control
 
     def _set_operator(self, scenario: Any) -> Operator:
-        op = Operator(scenario, self.physics.model, start_t_s=self.physics.t_s)
+        op = Operator(scenario, self.physics.model, start_t_s=self.physics.t_s, hand=self.hand)
         self.operator = op
         self.physics.operator = op
         return op
@@ -447,9 +457,37 @@ class SimProcess:
             drive.inject_fault(int(code))
             return {"node_id": node_id, "code": int(code)}
 
+        @table.command("hand")
+        def hand(action: str, button: str, position: str = "middle") -> dict[str, Any]:
+            """Press (``press``) or let go (``let_go``) a button of the guiding device now (sim/hand.py)."""
+            if self.hand is None:
+                raise ControlError("hand: the simulated arm has no guiding device (the truth's hand is null)")
+            try:
+                with self.lock:
+                    t = self.physics.t_s
+                    if action == "press":
+                        self.hand.press(t, button, position)
+                    elif action == "let_go":
+                        self.hand.let_go(t, button)
+                    else:
+                        raise HandError(f"hand: action: expected press or let_go, got {action!r}")
+                    self.hand.apply(t)  # the drive's inputs follow the contacts (also before any SYNC: the boot)
+                    return {"t": t, **self.hand.state()}
+            except HandError as exc:
+                raise ControlError(str(exc)) from None
+
         @table.command("inject")
         def inject(kind: str, node_id: int | None = None, **args: Any) -> dict[str, Any]:
-            """Inject a bus or node fault now (sim/faults.py lists the kinds and their arguments)."""
+            """Inject a bus or node fault now (sim/faults.py lists the kinds and their arguments), or a fault of the
+            guiding device at the hand (sim/hand.py: stuck_enable, chattering, inputs_cut)."""
+            if kind in HAND_KINDS:
+                if self.hand is None:
+                    raise ControlError(f"inject {kind}: the simulated arm has no guiding device (the truth's hand)")
+                try:
+                    with self.lock:
+                        return self.hand.inject(self.physics.t_s, kind, args)
+                except HandError as exc:
+                    raise ControlError(str(exc)) from None
             if node_id is not None:
                 args["node_id"] = node_id
             bus_index = 0

@@ -227,6 +227,38 @@ class JointTruth(_Strict):
         return self.rotor_inertia_kgm2 * self.gear_ratio**2
 
 
+Bit = Annotated[int, Field(ge=0, le=31, strict=True), Expect("a bit of the drive's inputs 0..31")]
+
+
+class HandContact(_Strict):
+    """A push button at the hand wired to a bit of one joint drive's digital inputs."""
+
+    bit: Bit
+    normally_closed: bool = False  # the bit reads 1 while the button is not pressed (a stop: a cut wire stops)
+
+
+class HandTruth(_Strict):
+    """The guiding device on the simulated arm (sim/hand.py): a three-position enabling switch and buttons, wired to
+    one drive's digital inputs (60FDh; CiA 402's manufacturer bits 16-31). The operator presses them
+    (sim/operator.py ``press`` / ``let_go``); dragd's configuration says which bit is what (``hand.inputs``)."""
+
+    joint: str | None = None  # the joint whose drive reads the contacts; None: the last joint (the wrist)
+    enable_bits: list[Bit] = Field(default_factory=lambda: [16, 17], min_length=1, max_length=2)  # the middle position
+    panic_bit: Bit | None = 18  # the squeezed position's contact (None: the device reports none)
+    buttons: dict[Literal["mark", "stop", "teach"], HandContact] = Field(
+        default_factory=lambda: {"mark": HandContact(bit=19), "stop": HandContact(bit=20, normally_closed=True),
+                                 "teach": HandContact(bit=21)})
+    bounce_ms: Annotated[float, Field(ge=0, le=20), Expect("milliseconds in [0, 20]")] = 0.0  # contact bounce
+
+    @model_validator(mode="after")
+    def _bits(self) -> HandTruth:
+        bits = list(self.enable_bits) + ([self.panic_bit] if self.panic_bit is not None else []) + \
+            [c.bit for c in self.buttons.values()]
+        if len(set(bits)) != len(bits):
+            raise ValueError(f"expected each contact on its own bit, got {bits}")
+        return self
+
+
 class BusTruth(_Strict):
     channel: str = "udp_multicast:239.74.163.2"  # default for `python -m sim run` without --bus
     fd: bool = True
@@ -242,6 +274,7 @@ class Truth(_Strict):
     # link name → {mass_kg, com_m, inertia_kgm2 (ixx, ixy, ixz, iyy, iyz, izz about the COM)}: replaces the URDF's
     inertials: dict[str, dict[str, Any]] | None = None
     joints: list[JointTruth] = Field(min_length=1)
+    hand: HandTruth | None = HandTruth()  # the guiding device at the wrist (None: the arm has none)
     source: str = Field("<memory>", exclude=True)  # file it came from (not a YAML key)
 
     @model_validator(mode="after")
@@ -255,6 +288,8 @@ class Truth(_Strict):
         ids = [j.drive.node_id for j in self.joints]
         if len(set(ids)) != len(ids):
             raise ValueError(f"joints: expected unique drive.node_id values, got {ids}")
+        if self.hand is not None and self.hand.joint is not None and self.hand.joint not in names:
+            raise ValueError(f"hand.joint: expected one of the joints {', '.join(names)}, got '{self.hand.joint}'")
         return self
 
     @property

@@ -26,6 +26,13 @@ from pathlib import Path
 
 import pytest
 
+# One BLAS/OpenMP thread per process, set before anything imports numpy (children inherit it): the tests run as
+# parallel workers and process pairs on few cores, where OpenBLAS's own threads (one per core, spinning while they
+# wait) fight the other processes for the cores: a 200×66 SVD in identify's inertials fit cost 8x its CPU time with
+# two threads on this 2-core machine under load (25 s against 2.9 s for one test). An explicit setting wins.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_CONFIG = REPO / "config" / "default.yaml"
 
@@ -53,6 +60,7 @@ def default_config_path() -> Path:
 
 
 TIERS = ("unit", "lockstep", "rig")
+HANG_GUARD_S = 900  # s, unit and lockstep tests (see pytest_collection_modifyitems)
 
 
 def tier(item: pytest.Item) -> str:
@@ -63,11 +71,37 @@ def tier(item: pytest.Item) -> str:
     return "rig"
 
 
+def _compile_kernels() -> None:
+    """Compile every numba kernel once, into numba's on-disk cache (the package's __pycache__): ~8 s of CPU in a fresh
+    clone, ~0.5 s once cached. Without it each xdist worker and each simulator/daemon process started before the
+    cache exists compiles the same kernels at the same time. (Add a module here when it gets compiled kernels.)"""
+    try:
+        from dragd.control import contact, fused, guard, safety
+        from dragd.daemon import kernels
+        from sim import kernels as sim_kernels
+    except ImportError:  # pragma: no cover - a broken checkout: the tests say what is wrong
+        return
+    for compile_ in (fused._compiled, guard._kernels, safety.safety_kernel, contact.contact_kernel, kernels.kernels,
+                     sim_kernels.hold_kernel):
+        compile_()
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """With xdist workers (``-n``): the kernels compiled once here, in the controller, before the workers start."""
+    if not hasattr(config, "workerinput") and getattr(config.option, "numprocesses", None) not in (None, 0, "0"):
+        _compile_kernels()
+
+
 @pytest.hookimpl(tryfirst=True)  # before -m deselects: an unmarked test is selected by -m rig, never by -m unit
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     for item in items:
         if tier(item) == "rig" and item.get_closest_marker("rig") is None:
             item.add_marker(pytest.mark.rig)
+        # pytest-timeout (pyproject: 300 s) is a guard against hangs, and wall time: the verdicts of the unit and
+        # lockstep tiers must not depend on the machine's load, and tests of 13-27 s of CPU took 300+ s at load 20
+        # (2 cores): 900 s for those tiers; the rig tier keeps 300 s
+        if tier(item) in ("unit", "lockstep") and item.get_closest_marker("timeout") is None:
+            item.add_marker(pytest.mark.timeout(HANG_GUARD_S))
         # xdist (./dev test: --dist loadgroup): a module whose tests share a module- or class-scoped fixture (a rig
         # session, simulated logs) stays on one worker; every other test goes to whichever worker is free
         defs = getattr(getattr(item, "_fixtureinfo", None), "name2fixturedefs", {})

@@ -28,8 +28,10 @@ class _Sink:
 
 
 class InProcess:
-    def __init__(self, cfg: Config) -> None:
-        d = self.d = Daemon(cfg, socket_path="/nonexistent/dragd.sock", log=lambda msg: None)
+    def __init__(self, cfg: Config, lab_unguarded_drag: bool = True) -> None:
+        """``lab_unguarded_drag``: as a lab's daemon runs (drag needs no lease); False: as ``drag.require`` says."""
+        d = self.d = Daemon(cfg, socket_path="/nonexistent/dragd.sock", log=lambda msg: None,
+                            lab_unguarded_drag=lab_unguarded_drag)
         d.attach({name: _Sink() for name in d.layouts})  # type: ignore[misc]
         self.c, self.cy, self.m = d.controller, d.cycle, d.motions
         self.fb = d.io.feedback

@@ -236,6 +236,8 @@ RULES: list[Rule] = [
     Rule(r"^dragd clock\b", "run", "the lockstep clock's control (docs/LOCKSTEP.md)", before=("lockstep",), rig=True),
     Rule(r"^dragd start\b", "run", "a session's first step: no motion running", before=("no_replay",), rig=True),
     Rule(r"^dragd (status|stop)\b", "run", "control socket", rig=True),
+    Rule(r"^dragd mode drag --hold\b", "run", "a drag lease held while it runs (docs/HAND.md): for half a second",
+         extra="--seconds 0.5", before=("enabled", "no_replay"), rig=True),
     Rule(r"^dragd mode ", "run", "control socket", before=("enabled", "no_replay"), rig=True),
     Rule(r"^dragd payload (show|set|clear)\b", "run", "control socket", before=("enabled",), rig=True),
     Rule(r"^dragd (payload estimate( --apply)?|check model)$", "mention", "a command named in prose"),
@@ -275,6 +277,8 @@ RULES: list[Rule] = [
     # long: the shortest documented options
     Rule(r"^dragd demo --scenario payload\b", "run", "sim + daemon (its own length, ~1 min)", slow=True),
     Rule(r"^dragd demo --scenario teach\b", "run", "sim + daemon", extra="--seconds 6", slow=True),
+    Rule(r"^dragd demo --scenario buttons\b", "help", "sim + daemon, ~1.5 min: tests/test_hand_lockstep.py runs the same "
+                                                   "session (run_buttons_demo, lockstep tier)"),
     Rule(r"^dragd demo\b", "run", "sim + daemon", extra="--seconds 8", slow=True),
     Rule(r"^dragd bench --list$", "run", "offline"),
     Rule(r"^dragd bench (compensation_us|bus_load|io_cycle_us)( |$)", "run", "offline"),

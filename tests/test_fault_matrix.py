@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import pytest
 
-from dragd.lab.faults import CASES, run_fault
+from dragd.lab.faults import CASES, hand_rig_kwargs, run_fault
 from dragd.lab.rig import Rig
 
 pytestmark = [pytest.mark.lockstep, pytest.mark.slow, pytest.mark.timeout(1200)]  # (a hang guard of wall time: on a loaded machine the lockstep clock runs slower, never wrong)
@@ -34,7 +34,8 @@ DETECTED_MS = {
 
 
 def _run(tmp_path, name: str) -> tuple[dict, dict, str]:
-    with Rig(f"fault-{name}", workdir=tmp_path, telemetry=tmp_path / "t.mcap") as rig:
+    kw = hand_rig_kwargs(tmp_path) if CASES[name].rig == "hand" else {}  # (#30: the guiding device wired)
+    with Rig(f"fault-{name}", workdir=tmp_path, telemetry=tmp_path / "t.mcap", **kw) as rig:
         rig.start_sim()
         rig.start_daemon()
         r = run_fault(rig, name)
@@ -65,6 +66,9 @@ def test_fault(tmp_path, name):
         assert status["comms"]["reboots"] == 1 and "reconfigured after its reboot" in log, log
     if name == "bus_off":
         assert status["comms"]["outages"] == 1 and any("bus outage" in t for t in r["faults"]), r
+    if case.rig == "hand":  # (#30) out of drag at once, into a hold, the fault named where it is
+        assert r["out_of_drag_ms"] is not None and r["out_of_drag_ms"] <= r["detected_ms"], r
+        assert status["mode"] == "drag" and r["feedback_holds"] == 0, (status["mode"], r)
     if name == "garbage":
         # the short and the RTR frame reach the decoder and are rejected; the 29-bit ones never pass the bus filter
         assert status["rejected_frames"] >= 2 and status["fault_count"] == 0, status

@@ -78,12 +78,18 @@ def _variants(base: LawParams) -> list[tuple[str, LawParams]]:
 
 
 def _same(a: np.ndarray, b: np.ndarray, what: str) -> None:
-    """Equal (integers, booleans) or within a few ulp (floats; NaN where NaN)."""
+    """Equal (integers, booleans) or within a few ulp (floats; NaN where NaN), step by step: ``a`` and ``b`` are the
+    reference's and the kernels' values stacked over the steps (axis 0); a mismatch names its first step."""
     if a.dtype.kind == "f":
-        if not np.allclose(b, a, rtol=1e-12, atol=1e-12, equal_nan=True):
-            np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-12, err_msg=what)
-    elif not np.array_equal(a, b):
-        np.testing.assert_array_equal(b, a, err_msg=what)
+        ok = np.isclose(b, a, rtol=1e-12, atol=1e-12, equal_nan=True)
+    else:
+        ok = b == a
+    bad = np.flatnonzero(~ok.reshape(ok.shape[0], -1).all(axis=1))
+    if bad.size:
+        k = int(bad[0])
+        if a.dtype.kind == "f":
+            np.testing.assert_allclose(b[k], a[k], rtol=1e-12, atol=1e-12, err_msg=f"{what} at step {k}")
+        np.testing.assert_array_equal(b[k], a[k], err_msg=f"{what} at step {k}")
 
 
 @pytest.mark.parametrize("variant", range(10))
@@ -97,22 +103,36 @@ def test_the_kernels_match_the_numpy_reference(base: LawParams, variant: int) ->
     ref_st, ref_out, ws = BreakoutState(6).configure(p), LawOutput.zeros(6), Workspace(6)
     ref_st.reset(t[0])
     law.state.reset(t[0])
-    worst = 0.0
+    # every step's state and outputs, copied, compared at the end (all steps, each its own ulp check)
+    fields = [("state", f) for f in STATE] + [("output", f) for f in OUTPUT]
+    ref: dict[tuple[str, str], list[np.ndarray]] = {k: [] for k in fields}
+    got: dict[tuple[str, str], list[np.ndarray]] = {k: [] for k in fields}
+    scalars_ref, scalars_got = [], []
     for k in range(t.shape[0]):
         g = tau_g + 3 * np.sin(q[k])
         extra = np.zeros(6) if k % 7 else rng.normal(0.0, 0.5, 6)  # wall currents now and then
         breakout_update(q[k], dq[k], t[k], p, ref_st, g)
         law.breakout(q[k], dq[k], t[k], p, g)
         compensate(g, dq[k], t[k], p, ref_out, ws, extra, ref_st, q[k])
-        got = law.compensate(g, dq[k], t[k], p, extra, q[k])
+        out = law.compensate(g, dq[k], t[k], p, extra, q[k])
         for f in STATE:
-            _same(getattr(ref_st, f), getattr(law.state, f), f"{name}: {f} at step {k}")
-        assert law.state.active == ref_st.active and law.state.t_prev_s == ref_st.t_prev_s, f"{name} at {k}"
+            ref["state", f].append(np.array(getattr(ref_st, f)))
+            got["state", f].append(np.array(getattr(law.state, f)))
         for f in OUTPUT:
-            a, b = getattr(ref_out, f), getattr(got, f)
-            _same(a, b, f"{name}: {f} at step {k}")
-            if a.dtype.kind == "f":
-                worst = max(worst, float(np.abs(b - a).max()))
+            ref["output", f].append(np.array(getattr(ref_out, f)))
+            got["output", f].append(np.array(getattr(out, f)))
+        scalars_ref.append((ref_st.active, ref_st.t_prev_s))
+        scalars_got.append((law.state.active, law.state.t_prev_s))
+    for kind, f in fields:
+        a, b = np.stack(ref[kind, f]), np.stack(got[kind, f])
+        _same(a, b, f"{name}: {f}")
+    bad = [k for k, (x, y) in enumerate(zip(scalars_ref, scalars_got, strict=True)) if x != y]
+    assert not bad, f"{name}: active/t_prev_s at step {bad[0]}: {scalars_got[bad[0]]} != {scalars_ref[bad[0]]}"
+    worst = 0.0  # the largest float difference (NaN where both are NaN: not a difference)
+    for f in OUTPUT:
+        if ref["output", f][0].dtype.kind == "f":
+            d = np.abs(np.stack(got["output", f]) - np.stack(ref["output", f]))
+            worst = max(worst, float(d[~np.isnan(d)].max(initial=0.0)))
     latched, suppressed = int(ref_st.latches.sum()), int(ref_st.suppressed.sum())
     # the sequences exercise the latch (where it is on): fired, and suppressed where the uncertainty is high
     if p.use_breakout and p.use_startup and not p.startup_abrupt and p.gravity_uncertainty < 0.5:

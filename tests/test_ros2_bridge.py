@@ -125,7 +125,7 @@ def test_bridge_publishes_serves_follows_commands_and_trajectories(tmp_path):
             assert {"dragd: loop", "dragd: faults", "dragd: drives", "dragd: ros2 bridge"} <= set(diag)
             assert any(n.startswith("dragd: bus ") for n in diag)
             assert {kv.key for kv in diag["dragd: loop"].values} >= {"period_p99_us", "missed_cycles"}
-            # --- drag needs the keepalive; when it lapses the bridge holds the arm
+            # --- drag needs the keepalive; when it lapses the daemon's drag lease lapses and the arm holds
             no = p.call(m["Trigger"], "/dragd/drag")
             assert not no.success and "drag_keepalive" in no.message, no
             keep = p.publisher(m["Empty"], "/dragd/drag_keepalive")
@@ -137,10 +137,11 @@ def test_bridge_publishes_serves_follows_commands_and_trajectories(tmp_path):
             rig.sleep(1.0)
             assert rig.must("state")["requested_mode"] == "drag"  # kept alive
             alive.stop()
-            rig.wait_for(lambda: status_texts(p, "dragd/drag"), 3.0, "the bridge ending drag")
             rig.wait_for(lambda: rig.must("state")["requested_mode"] == "hold", 3.0, "hold after the keepalive stopped")
-            assert any("drag ended: no ~/drag_keepalive" in t for _lv, t in status_texts(p, "dragd/drag")), \
+            rig.wait_for(lambda: status_texts(p, "dragd/drag"), 3.0, "the bridge reporting the end of drag")
+            assert any("drag ended: the drag lease lapsed" in t for _lv, t in status_texts(p, "dragd/drag")), \
                 p.messages("/dragd/status")
+            assert rig.must("status")["faults"][-1]["kind"] == "lease"
             ensure_streaming = p.call(m["SetBool"], "/dragd/streaming", m["SetBool"].Request(data=True))
             assert ensure_streaming.success  # (~/drag held the command stream back: an operator's action)
             # --- the topic_based_ros2_control pair: commands at 100 Hz followed, the arm where they end
@@ -258,12 +259,11 @@ def test_bridge_refuses_what_the_daemon_refuses_with_the_reason(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="#30: the daemon has no drag lease yet; a bridge killed mid-drag leaves the "
-                   "arm in drag until the lease lapses (docs/ROS2.md). With the lease, the bridge renews it per "
-                   "keepalive (Bridge.renew_drag) and this passes")
 def test_bridge_killed_mid_drag_ends_drag(tmp_path):
+    """The bridge's keepalives renew the daemon's drag lease; killed, it renews nothing and the daemon holds the arm
+    within the lease period (drag.require: lease, as configured; not the lab's flag)."""
     m = _msgs()
-    with Rig("ros2-drag", workdir=tmp_path) as rig:
+    with Rig("ros2-drag", workdir=tmp_path, drag_guard="config") as rig:
         rig.start_sim()
         rig.start_daemon()
         p = listening(m)
@@ -275,14 +275,18 @@ def test_bridge_killed_mid_drag_ends_drag(tmp_path):
             rig.sleep(0.5)
             assert p.call(m["Trigger"], "/dragd/drag").success
             rig.wait_for(lambda: mode_of(rig) == "drag", 5.0, "drag")
+            assert rig.must("status")["drag"]["lease"]["holder"].startswith("ros2 bridge")
             bridge.proc.send_signal(signal.SIGKILL)
             bridge.proc.wait(5)
             rig.sleep(2.0)
             mode = mode_of(rig)
+            status = rig.must("status")
         finally:
             bridge.terminate()
             p.close()
     assert mode == "hold", mode
+    end = status["drag"]["last_drag_end"]
+    assert "lease lapsed" in end["reason"] and status["faults"][-1]["kind"] == "lease", status["faults"]
 
 
 @pytest.mark.slow

@@ -79,7 +79,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     try:
         daemon = Daemon(cfg, bus_override=args.bus, socket_path=args.socket, telemetry_path=args.telemetry,
                         rerun=args.rerun, allow_dirs=args.allow_dir, batch_frames=args.batch_frames,
-                        lockstep=args.lockstep, lockstep_guard_s=args.lockstep_guard_s)
+                        lockstep=args.lockstep, lockstep_guard_s=args.lockstep_guard_s,
+                        lab_unguarded_drag=args.lab_unguarded_drag)
     except (BusBudgetError, ValueError) as exc:
         raise CliError(str(exc)) from None
     try:
@@ -110,9 +111,90 @@ def cmd_stop(args: argparse.Namespace) -> int:
 
 def cmd_mode(args: argparse.Namespace) -> int:
     kw = {"accept": True} if getattr(args, "accept", False) else {}
+    if args.hold:
+        if args.mode != "drag":
+            raise CliError(f"--hold: only with 'mode drag' (the lease keeps the arm in drag), got 'mode {args.mode}'")
+        return _drag_held(args, kw)
+    if args.seconds is not None:
+        raise CliError("--seconds: only with --hold")
     resp = call_daemon(args, "mode", mode=args.mode, **kw)
     emit(args, resp, lambda d: f"mode {d['mode']}")
     return 0
+
+
+def _drag_held(args: argparse.Namespace, kw: dict[str, Any]) -> int:
+    """``dragd mode drag --hold``: a drag lease, renewed while this command runs (docs/HAND.md); Ctrl-C, SIGTERM or
+    ``--seconds`` (of the daemon's clock: simulated time on the lockstep clock) end it (the lease is closed: the arm
+    holds). Exit status 1 when the lease lapsed or drag ended without it (the reason is printed). The renewals are
+    paced by the daemon (this process reads no clock)."""
+    import signal
+
+    from dragd.lease import LeaseError, LeaseHolder
+    from dragd.protocol import ControlClient, DaemonUnavailable
+
+    if args.seconds is not None and not args.seconds > 0:
+        raise CliError(f"--seconds: expected a positive number of seconds, got {args.seconds}")
+
+    class Stopped(BaseException):  # (not an Exception: it passes through the lease's error handling)
+        pass
+
+    def call(cmd: str, timeout_s: float | None = None, **kw_: Any) -> dict[str, Any]:
+        try:
+            resp = ControlClient(args.socket, timeout_s=timeout_s or args.timeout).call(cmd, **kw_)
+        except DaemonUnavailable as exc:
+            raise CliError(str(exc), status=1) from None
+        if not resp.get("ok", False):
+            raise CliError(f"daemon at {args.socket}: {resp.get('error', 'request failed')}", status=1)
+        return resp
+
+    holder = LeaseHolder(call, f"dragd mode drag --hold (pid {os.getpid()})", args.lease_s)
+    stop: dict[str, Any] = {"why": None, "waiting": False}
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        stop["why"] = signal.Signals(signum).name
+        if stop["waiting"]:
+            raise Stopped  # (out of the wait for a paced answer)
+
+    old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    status, outcome = 0, ""
+    t0: float | None = None
+    try:
+        holder.open()
+        resp = holder.drag(**kw)
+        if not args.json:
+            print(f"mode {resp['mode']}: drag lease {holder.lease} (renewed every {holder.every_s * 1e3:.0f} ms of the "
+                  f"daemon's clock, lapses after {holder.period_s:g} s without); Ctrl-C ends drag", file=sys.stderr,
+                  flush=True)
+        while stop["why"] is None:
+            try:
+                stop["waiting"] = True
+                ans = holder.renew_paced()
+            except Stopped:
+                break
+            finally:
+                stop["waiting"] = False
+            t0 = holder.t_s if t0 is None else t0
+            if not ans.get("drag") and not holder.drag_can_return(ans):
+                ended = (call("status").get("drag") or {}).get("last_drag_end") or {}
+                outcome, status = f"drag ended: {ended.get('reason', 'the arm left drag (' + ans['mode'] + ')')}", 1
+                break
+            if args.seconds is not None and holder.t_s is not None and t0 is not None and \
+                    holder.t_s - t0 >= args.seconds - 1e-9:
+                stop["why"] = f"{args.seconds:g} s"
+        if not outcome:
+            outcome = f"ended by {stop['why']}"
+    except LeaseError as exc:
+        outcome, status = str(exc), 1
+    finally:
+        for sig, h in old.items():
+            signal.signal(sig, h)
+        closed = holder.close()
+    mode = (closed or {}).get("mode") or "unknown"
+    held = round(holder.t_s - t0, 3) if holder.t_s is not None and t0 is not None else 0.0
+    data = {"lease": holder.lease, "renewals": holder.renewals, "held_s": held, "outcome": outcome, "mode": mode}
+    emit(args, data, lambda d: f"drag lease {d['lease']} closed after {d['held_s']:g} s ({d['renewals']} renewals): "
+                               f"{d['outcome']}; mode {d['mode']}")
+    return status
 
 
 def _status_text(d: dict[str, Any]) -> str:
@@ -187,6 +269,10 @@ def register(sub: Any) -> None:
                    help="run on the lockstep clock against 'dragd sim --lockstep': simulated time, one period per "
                         "SYNC, advanced only when granted ('dragd clock advance|run') or waited for by a command; "
                         "for tests, demos and experiments (docs/LOCKSTEP.md)")
+    r.add_argument("--lab-unguarded-drag", action="store_true",
+                   help="a lab's flag: drag needs no lease (and no enabling switch where none is wired), whatever "
+                        "drag.require says; 'dragd status' reports it (drag.lab_unguarded). Never on a robot people "
+                        "work beside (docs/HAND.md)")
     r.add_argument("--lockstep-guard-s", type=float, default=LOCKSTEP_GUARD_S, metavar="S",
                    help="lockstep: wall seconds without the simulator's answer before it is an error (default "
                         f"{LOCKSTEP_GUARD_S:g})")
@@ -202,6 +288,14 @@ def register(sub: Any) -> None:
     m.add_argument("--accept", action="store_true",
                    help="drag even where the hold current disagrees with the gravity model: the measured hold currents "
                    "become the gravity offset around this pose (docs/PAYLOAD.md)")
+    m.add_argument("--hold", action="store_true",
+                   help="drag: hold a drag lease while this command runs (renewed in the background; Ctrl-C, SIGTERM "
+                        "or --seconds close it and the arm holds; a killed command lets it lapse): what drag.require: "
+                        "lease asks for (docs/HAND.md)")
+    m.add_argument("--seconds", type=float, default=None,
+                   help="with --hold: end after this long (of the daemon's clock: simulated time on the lockstep clock)")
+    m.add_argument("--lease-s", type=float, default=None, metavar="S",
+                   help="with --hold: the lease period (default and at most the daemon's drag.lease_s)")
     add_socket(m)
     m.set_defaults(func=cmd_mode)
     k = sub.add_parser("clock", help="the cycle's clock: status; on a --lockstep daemon advance SECONDS, run, pause")

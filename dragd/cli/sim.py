@@ -41,7 +41,7 @@ def register(sub: Any) -> None:
 
     d = sub.add_parser("demo", help="the main job: sim + daemon as separate processes, a scripted drag, MCAP written")
     d.add_argument("--seconds", type=float, default=20.0, help="length of the drag session (default 20)")
-    d.add_argument("--scenario", default="drag", help="demo scenario (default: drag)")
+    d.add_argument("--scenario", default="drag", help="demo scenario: drag, teach, payload, buttons (a teach session from the hand's buttons) (default: drag)")
     d.add_argument("--out", type=Path, default=None, help="output folder for the MCAP log (default ./out)")
     add_config(d, params=False)
     d.add_argument("--lockstep", action="store_true",

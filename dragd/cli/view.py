@@ -53,12 +53,47 @@ def cmd_view(args: argparse.Namespace) -> int:
         raise CliError(f"status: {first.get('error')}", status=1)
     joints = [d["joint"] for d in first.get("drives", [])] or cfg.joint_names
     sink = _sink(args, joints, cfg)
+    lease = None
+    if args.drag:  # drag while the view runs: a lease renewed from the poll loop (docs/HAND.md)
+        import os
+
+        from dragd.cli.daemon import call_daemon
+        from dragd.lease import LeaseError, LeaseHolder
+
+        from dragd.protocol import ControlClient
+
+        def call(cmd: str, timeout_s: float | None = None, **kw: Any) -> dict[str, Any]:
+            if timeout_s is None:
+                return call_daemon(args, cmd, **kw)
+            resp = ControlClient(args.socket, timeout_s=timeout_s).call(cmd, **kw)
+            if not resp.get("ok", False):
+                raise CliError(f"daemon at {args.socket}: {resp.get('error', 'request failed')}", status=1)
+            return resp
+
+        lease = LeaseHolder(call, f"dragd view --drag (pid {os.getpid()})")
+        try:
+            lease.open()
+            lease.drag()
+        except LeaseError as exc:
+            lease.close()
+            raise CliError(f"--drag: {exc}", status=1) from None
+        lease.keep()  # renewed paced by the daemon's clock in a thread of its own
+
+    def renew(st: dict[str, Any]) -> None:
+        if lease is not None and lease.error is not None:
+            raise RuntimeError(f"--drag: the lease ended: {lease.error}")
+
     if args.seconds is None:
-        print("dragd: viewing the daemon; Ctrl-C ends", file=sys.stderr)
+        print("dragd: viewing the daemon" + (" (in drag while it runs)" if lease else "") + "; Ctrl-C ends",
+              file=sys.stderr)
     try:
-        data = live_to_rerun(lambda: client.call("status"), sink, len(joints), args.poll_rate, args.seconds)
+        data = live_to_rerun(lambda: client.call("status"), sink, len(joints), args.poll_rate, args.seconds,
+                             on_poll=renew)
     except (DaemonUnavailable, RuntimeError) as exc:
         raise CliError(str(exc), status=1) from None
+    finally:
+        if lease is not None:
+            lease.close()
     data["rrd"] = str(args.save) if args.save else None
     emit(args, data, lambda d: f"{d['polls']} samples -> {d['rrd'] or args.connect or 'a Rerun viewer'}")
     return 0
@@ -78,6 +113,8 @@ def register(sub: Any) -> None:
     _viewer_options(v, 100.0)
     v.add_argument("--poll-rate", type=float, default=50.0, help="status polls per second (default 50)")
     v.add_argument("--seconds", type=float, default=None, help="stop after this long (default: until Ctrl-C)")
+    v.add_argument("--drag", action="store_true", help="put the arm in drag while the view runs (a drag lease renewed "
+                   "on the daemon's clock; closing the view holds the arm): docs/HAND.md")
     add_socket(v)
     v.set_defaults(func=cmd_view)
 

@@ -24,6 +24,8 @@ import numpy as np
 
 from dragd.control.guard import GuardSettings, RunawayGuard, guard_command_kernel, guard_kernel
 from dragd.control.fused import DragLaw
+from dragd.control.hand import HandInputs
+from dragd.control.permission import R_LEASE_CLOSED, R_LEASE_LAPSED, DragPermission
 from dragd.control.modes import MODE_NAMES, Mode
 from dragd.control.params import LawParams
 from dragd.control.safety import SafetyTerms, safety_kernel
@@ -55,6 +57,8 @@ class Estimate:
     current_A: np.ndarray
     tau_g_Nm: np.ndarray
     p_Nms: np.ndarray | None = None  # generalised momentum M(q)·q̇ (the runaway guard's observer; DRAG only)
+    inputs: np.ndarray | None = None  # per joint the drive's digital inputs word (60FDh; the feedback's array)
+    inputs_age: np.ndarray | None = None  # per joint cycles since the TPDO carrying it arrived
 
     @classmethod
     def zeros(cls, n: int) -> Estimate:
@@ -73,7 +77,7 @@ class Controller:
         self.names = joint_names
         self.dt = dt_s
         self.hold_kp = hold_kp_Nm_per_rad
-        self.hold_kd = hold_kd_Nm_s_per_rad
+        self.hold_kd: float | np.ndarray = hold_kd_Nm_s_per_rad  # (the exit brake's, per joint, while it brakes)
         self.mode_ramp_s = mode_ramp_s
         self.fresh_cycles_resume = fresh_cycles_resume
         self.kt = params.kt_Nm_per_A
@@ -115,6 +119,19 @@ class Controller:
         self.hold_move: np.ndarray | None = None  # HOLD's pose moving to this target (payload estimate, check model)
         self.hold_move_speed = 0.1
         self._tau_in = np.zeros(n)
+        # --- drag permission and the hand's inputs (#30) ---
+        self.permission = DragPermission("none", 0.5)  # what DRAG requires (from_config: drag.require)
+        self.hand: HandInputs | None = None  # the guiding device's inputs (set_hand)
+        self.drag_lease = 0  # the lease DRAG was entered with (0: none): when it lapses or closes, drag ends
+        self.drag_exit_ramp_s = 0.02  # drag -> hold blend when the permission goes (drag.exit_ramp_s)
+        self.drag_ends = 0  # drags the permission ended
+        self.last_drag_end: dict[str, Any] | None = None
+        self._stop_input = False  # a stop input held the arm last cycle
+        self.drag_exit_kd = np.full(n, float(hold_kd_Nm_s_per_rad))  # the exit brake's damping, per joint
+        self.drag_exit_brake_s = 0.15  # at most this long (drag.exit_brake_s)
+        self._brake_t0 = -1.0  # the exit brake began (-1: not braking)
+        self._hold_kd_cfg = hold_kd_Nm_s_per_rad
+        # --- end of drag permission ---
 
     @classmethod
     def from_config(cls, cfg: Config, position_limits_rad: tuple[np.ndarray, np.ndarray]) -> Controller:
@@ -160,6 +177,12 @@ class Controller:
         c.track.use_cst(np.zeros(c.n, dtype=bool), CstLoop(
             kp_Nm_per_rad=per_joint(rc.cst_kp_Nm_per_rad), kd_Nm_s_per_rad=per_joint(rc.cst_kd_Nm_s_per_rad),
             ki_Nm_per_rad_s=per_joint(rc.cst_ki_Nm_per_rad_s), integral_max_Nm=per_joint(rc.cst_integral_limit_A) * kt))
+        c.permission = DragPermission(cfg.drag.require, cfg.drag.lease_s)
+        c.drag_exit_ramp_s = cfg.drag.exit_ramp_s
+        exit_kd = cfg.drag.exit_damping_Nm_s_per_rad
+        exit_kd = [5.0 * v for v in cfg.per_joint(rc.position_kd_Nm_s_per_rad)] if exit_kd is None else exit_kd
+        c.drag_exit_kd[:] = np.maximum(per_joint(exit_kd), s.hold_kd_Nm_s_per_rad)
+        c.drag_exit_brake_s = cfg.drag.exit_brake_s
         return c
 
     # ------------------------------------------------------------------------------------------ transitions
@@ -192,6 +215,9 @@ class Controller:
         self.stop_after_hold_at = None
         self.feedback_hold = False
         self.gravity_offset_A.fill(0.0)
+        self.drag_lease = 0
+        if self.hand is not None:
+            self.hand.acknowledge(self.t)  # the operator's start clears the input faults whose cause is gone
         self.set_mode(Mode.HOLD, blend=False)
 
     def stop(self, q: np.ndarray) -> None:
@@ -206,8 +232,10 @@ class Controller:
             self.set_mode(Mode.HOLD)
         self.stop_after_hold_at = self.t + self.mode_ramp_s + 0.05
 
-    def request(self, target: Mode, q: np.ndarray) -> None:
-        """An operator's ``hold`` or ``drag`` (IDLE: ``stop``); ValueError when the arm cannot take it now."""
+    def request(self, target: Mode, q: np.ndarray, lease: int = 0, by_enable: bool = False) -> None:
+        """An operator's ``hold`` or ``drag`` (IDLE: ``stop``); ValueError when the arm cannot take it now. ``lease``:
+        the drag lease the request comes with (drag then ends when it lapses or closes); ``by_enable``: the request
+        is the enabling switch's press (with ``drag.require: both`` it drags on the lease a client holds)."""
         name = MODE_NAMES[target]
         if target == Mode.IDLE:
             self.stop(q)
@@ -217,9 +245,12 @@ class Controller:
         if self.mode == Mode.TRACK:
             label = self.track.trajectory.label if self.track.trajectory else "track"
             raise ValueError(f"mode {name}: a {label} motion is running; stop it first")
+        if target == Mode.DRAG:
+            self._admit_drag(lease, by_enable)
         if target == Mode.HOLD:
             self.q_hold[:] = q
             self.hold_move = None
+            self.drag_lease = 0
         self.stop_after_hold_at = None
         if self.feedback_hold:  # the feedback hold stays; the new request is what it resumes
             self.resume_mode = target
@@ -248,6 +279,9 @@ class Controller:
 
     def begin_track(self, traj: Trajectory, q: np.ndarray, rate: float, cycles: int) -> None:
         """Enter TRACK along ``traj`` (the drives are in CSP, the arm held at its start)."""
+        why = self.motion_refusal()
+        if why is not None:
+            raise ValueError(f"{traj.label}: refused: {why}")
         self.track.begin(traj, self.t, q, rate, cycles)
         self.set_mode(Mode.TRACK)
 
@@ -287,6 +321,7 @@ class Controller:
 
         ``t`` (the cycle's time) is set by the cycle's tick."""
         t = self.t
+        self._permission_step(est)
         if self.mode == Mode.HOLD:
             self._hold_step(est)
         if self.mode == Mode.DRAG and self.params.use_breakout and self.params.use_startup:
@@ -397,6 +432,108 @@ class Controller:
         np.divide(g.r_f, self.kt, out=self._tmp)
         self.gravity_offset_A -= self._tmp  # the residual drives the motion: hold against it
         np.clip(self.gravity_offset_A, self.neg_limit_A, self.params.current_limit_A, out=self.gravity_offset_A)
+
+    # --- drag permission and the hand's inputs (#30; docs/HAND.md) --------------------------------------------------
+
+    def set_hand(self, hand: HandInputs | None) -> None:
+        """The guiding device's inputs (the daemon builds them with the drives' objects and TPDO timing)."""
+        self.hand = hand
+        self.permission.hand = hand
+
+    def drag_refusal(self) -> str | None:
+        """None when DRAG may be entered now, else why not (a constant string: safe inside the cycle). What a
+        contact reaction asks before it drags (#29), and what ``mode drag`` and the enabling switch's press ask."""
+        return self.permission.refusal()
+
+    def motion_refusal(self) -> str | None:
+        """None unless a stop input holds the arm (no motion, stream or hold move may start)."""
+        return self.hand.stop_refusal() if self.hand is not None else None
+
+    def _admit_drag(self, lease: int, by_enable: bool = False) -> None:
+        """A drag request: refused (ValueError) without the permission; bound to ``lease`` when it names the active
+        one (a lease that is not active is refused: its client believes it holds drag and would not). Where a lease
+        is required, a client's request must name it; the enabling switch's press drags on the active one."""
+        why = self.drag_refusal()
+        if why is not None:
+            raise ValueError(f"mode drag: refused: {why}")
+        ls = self.permission.lease
+        if lease:
+            if lease != ls.id or not ls.active:
+                raise ValueError(f"mode drag: refused: lease {lease} is not the active lease "
+                                 f"({ls.status(self.t)['state']} lease {ls.id or 'none'}); open a new one")
+            self.drag_lease = lease
+        elif self.permission.needs_lease:
+            if not by_enable:
+                raise ValueError(f"mode drag: refused: drag.require is '{self.permission.require}': the request must "
+                                 f"name the lease its client holds (field 'lease'; 'dragd mode drag --hold')")
+            self.drag_lease = ls.id  # (active: the refusal said so) the enabling switch's press with `both`
+        else:
+            self.drag_lease = 0
+
+    def _permission_step(self, est: Estimate) -> None:
+        """The cycle: the hand's inputs, the lease's deadline; DRAG (or a feedback hold that would return to it) ends
+        into HOLD the cycle its permission goes; a stop input ends motions and hold moves."""
+        t = self.t
+        hand = self.hand
+        if hand is not None and est.inputs is not None and est.inputs_age is not None:
+            hand.update(t, est.inputs, est.inputs_age)
+            if hand.stop_active and not self._stop_input:
+                self._stop_pressed(est.q_rad)
+            self._stop_input = hand.stop_active
+        ls = self.permission.lease
+        if ls.step(t):
+            self.events.append(Event("lease", t, text=f"drag lease {ls.id} of '{ls.holder}' lapsed: no renewal for "
+                                                      f"{t - ls.renewed_t:.3f} s (period {ls.period_s:g} s)",
+                                     fields={"action": "lapsed", "lease": ls.id, "holder": ls.holder,
+                                             "since_renewal_s": round(t - ls.renewed_t, 4)}))
+        if self._brake_t0 >= 0.0:
+            self._brake_step(est)
+        if self.mode != Mode.DRAG and not (self.feedback_hold and self.resume_mode == Mode.DRAG):
+            return
+        why = self.drag_refusal()
+        if why is None and self.drag_lease and (ls.id != self.drag_lease or not ls.active):
+            why = R_LEASE_LAPSED if ls.state == "lapsed" else R_LEASE_CLOSED
+        if why is not None:
+            self.end_drag(why, est.q_rad)
+
+    def end_drag(self, why: str, q: np.ndarray) -> None:
+        """Out of DRAG into HOLD where the arm is, blended over ``drag_exit_ramp_s`` (no jump in current); a
+        feedback hold returns to HOLD instead of drag."""
+        if self.feedback_hold:
+            self.resume_mode = Mode.HOLD
+        else:
+            self.q_hold[:] = q
+            self.set_mode(Mode.HOLD, ramp_s=self.drag_exit_ramp_s)
+            if self.drag_exit_brake_s > 0.0 and float(self.drag_exit_kd.max()) > self._hold_kd_cfg:
+                self._brake_t0 = self.t
+                self.hold_kd = self.drag_exit_kd
+        lease = self.drag_lease
+        self.drag_lease = 0
+        self.drag_ends += 1
+        self.last_drag_end = {"t_s": round(self.t, 4), "reason": why, "q_rad": q.tolist(), "lease": lease or None}
+        self.events.append(Event("drag_end", self.t, text=why, fields={"lease": lease or None}))
+
+    def _brake_step(self, est: Estimate) -> None:
+        """The exit brake: the hold's pose follows the arm (no spring back through it) under the strong damping
+        until the arm rests or ``drag_exit_brake_s`` passed; then the hold's own gains where it is."""
+        np.abs(est.dq_rad_s, out=self._tmp)
+        if self.mode != Mode.HOLD or self.t - self._brake_t0 >= self.drag_exit_brake_s or float(self._tmp.max()) < 0.01:
+            self._brake_t0 = -1.0
+            self.hold_kd = self._hold_kd_cfg
+        else:
+            self.q_hold[:] = est.q_rad
+
+    def _stop_pressed(self, q: np.ndarray) -> None:
+        """A stop input: a motion ends where the arm is (protective stop), a hold move stops; DRAG ends through the
+        permission (the same cycle)."""
+        why = self.motion_refusal() or "the stop button is pressed"
+        if self.mode == Mode.TRACK and self.track.active:
+            self.events.append(Event("protective_stop", self.t, None, why, fields={"kind": "stop_input"}))
+            self.end_track(f"stop_input: {why}", q, hold_at_ref=False)
+        elif self.mode == Mode.HOLD and self.hold_move is not None:
+            self.hold_move = None
+
+    # --- end of drag permission ---------------------------------------------------------------------------------
 
     def _mode_command(self, est: Estimate, out: np.ndarray) -> None:
         mode = self.mode

@@ -75,13 +75,26 @@ def command_table(d: Daemon) -> CommandTable:
         return {"mode": MODE_NAMES[c.mode]}
 
     @command("mode")
-    async def mode(mode: str, accept: bool = False) -> dict[str, Any]:
+    async def mode(mode: str, accept: bool = False, lease: int | None = None) -> dict[str, Any]:
+        if mode == "drag" and (why := c.drag_refusal()) is not None:
+            raise ValueError(f"mode drag: refused: {why}")  # (at once: no wait for the drives or the hold current)
         if mode in ("hold", "drag") and not c.track.active and c.mode not in (Mode.IDLE, Mode.FAULT):
             await motions.wait_cst(f"mode {mode}")  # after a motion the drives return to CST first (bumpless)
         if mode == "drag" and accept:
             await _hold_measured()
-        check = d.set_mode(str(mode), accept=bool(accept))
-        return {"mode": MODE_NAMES[c.mode], **({"gravity_check": check} if check else {})}
+        check = d.set_mode(str(mode), accept=bool(accept), lease=int(lease or 0))
+        return {"mode": MODE_NAMES[c.mode], **({"gravity_check": check} if check else {}),
+                **({"lease": c.drag_lease} if mode == "drag" and c.drag_lease else {})}
+
+    @command("lease")
+    async def lease(action: str, lease: int | None = None, holder: str = "client",
+                    period_s: float | None = None, paced: bool = False) -> dict[str, Any]:
+        """The drag lease (docs/HAND.md): ``open`` (answers its number and period), ``renew`` (within the period;
+        ``paced``: the answer comes a third of the period later on the daemon's clock, when the next renewal is
+        due), ``close`` (drag bound to it ends into HOLD), ``status``."""
+        if action == "renew" and paced:
+            return await d.guiding.renew_paced(lease)
+        return d.guiding.lease(str(action), lease, str(holder), period_s)
 
     async def _hold_measured() -> None:
         """``mode drag --accept`` right after ``start`` or ``mode hold``: wait (up to the settle time + 3 s) until the
@@ -132,11 +145,12 @@ def command_table(d: Daemon) -> CommandTable:
 
     @command("teach")
     async def teach(action: str, name: str | None = None, rate_Hz: float | None = None,
-                    overwrite: bool = False) -> dict[str, Any]:
+                    overwrite: bool = False, lease: int | None = None) -> dict[str, Any]:
         if action == "start":
             if name is None:
                 raise ValueError("teach start: missing field 'name'")
-            return await teaching.start(str(name), None if rate_Hz is None else float(rate_Hz), bool(overwrite))
+            return await teaching.start(str(name), None if rate_Hz is None else float(rate_Hz), bool(overwrite),
+                                        lease=int(lease or 0))
         if action == "mark":
             return teaching.mark(None if name is None else str(name))
         if action == "stop":

@@ -33,6 +33,7 @@ from dragd.control.modes import MODE_NAMES, Mode
 from dragd.daemon import sdnotify
 from dragd.daemon.comms import CommsMonitor
 from dragd.daemon.cycle import Cycle
+from dragd.daemon.hand import Guiding
 from dragd.daemon.motion import Motions
 from dragd.daemon.payload import PayloadTools
 from dragd.daemon.recording import Recorder
@@ -135,9 +136,11 @@ class Daemon:
     def __init__(self, cfg: Config, *, bus_override: str | None = None, socket_path: str | None = None,
                  telemetry_path: str | None = None, rerun: bool = False, allow_dirs: list[str] | None = None,
                  log: Callable[[str], None] | None = None, batch_frames: bool = False, lockstep: bool = False,
-                 lockstep_guard_s: float = GUARD_S) -> None:
+                 lockstep_guard_s: float = GUARD_S, lab_unguarded_drag: bool = False) -> None:
         """``lockstep``: the cycle runs on the lockstep clock (dragd/clock.py) against ``dragd sim --lockstep``:
-        simulated time, advanced by grants (the ``clock`` command) and by the commands that wait for the arm."""
+        simulated time, advanced by grants (the ``clock`` command) and by the commands that wait for the arm.
+        ``lab_unguarded_drag``: drag needs no lease (and no enabling switch where none is wired): a lab's setting,
+        which status reports (``drag.require: none`` is accepted only with it)."""
         from dragd.daemon.paths import PathPolicy, allowed_dirs, spool_dir
 
         if lockstep:  # an SDO answer is late on simulated time only when its peer is silent: the guard's wall time
@@ -168,6 +171,7 @@ class Daemon:
         if self.controller.guard is not None:
             self.controller.guard.explain = self._explain_residual
             self.controller.guard.load_free[:] = self.model.load_free_joints()
+        self._setup_drag_permission(lab_unguarded_drag)
         self.supervisor = DriveSupervisor(self.node_ids, cfg.master.enable_timeout_s)
         self.velocity = VelocityEstimator(self.scaling.counts_per_rev, cfg.law.velocity_filter_Hz,
                                           self.scaling.direction)
@@ -176,6 +180,7 @@ class Daemon:
         self.streams = Streams(self)
         self.teaching = Teaching(self)
         self.payload = PayloadTools(self)
+        self.guiding = Guiding(self)  # the drag lease, the hand's inputs and buttons (docs/HAND.md)
         self.model_check_failed: list[str] = []  # joints `dragd check model` refused: no drag until a check passes
         self.comms = CommsMonitor(self)
         self.faults: list[dict[str, Any]] = []
@@ -191,6 +196,29 @@ class Daemon:
         self.buses: dict[str, can.BusABC] = {}
         self.io: BusIO | None = None
         self.cycle: Cycle = None  # type: ignore[assignment]  # built by attach()
+
+    def _setup_drag_permission(self, lab: bool) -> None:
+        """What drag requires (drag.require, or the lab flag) and the hand's inputs, timed by the TPDOs that carry
+        them (docs/HAND.md)."""
+        import numpy as np
+
+        from dragd.control.hand import HandInputs
+        from dragd.control.permission import DragPermission
+        from dragd.hardware.plan import inputs_lost_after
+        from dragd.hardware.profile import address
+
+        cfg = self.cfg
+        if cfg.drag.require == "none" and not lab:
+            raise ValueError(f"{cfg.source}: drag.require: 'none' (drag with neither an enabling switch nor a lease) "
+                             "is a lab's setting: start the daemon with --lab-unguarded-drag (status reports it), or "
+                             "require 'lease', 'enable_input' or 'both'")
+        objects = [address(p.inputs.index, p.inputs.sub) if p.inputs is not None else "60FDh"
+                   for p in self.drives.profiles.profiles]
+        hand = HandInputs.from_config(cfg, objects, np.array(inputs_lost_after(cfg, self.layouts), dtype=np.int64))
+        if lab:  # a wired enabling switch still governs drag: its release ends it (a switch that does not is a lie)
+            require = "enable_input" if hand is not None and hand.enable is not None else "none"
+            self.controller.permission = DragPermission(require, cfg.drag.lease_s, lab=True)
+        self.controller.set_hand(hand)
 
     def _bus_specs(self, override: str | None) -> dict[str, BusSpec]:
         specs = {}
@@ -243,6 +271,7 @@ class Daemon:
 
     def record_events(self) -> None:
         """What the cycle decided, recorded: the fault list, log lines (after the cycle), telemetry events."""
+        self.guiding.drain_hand()
         events = self.controller.events
         if not events:
             return
@@ -270,6 +299,8 @@ class Daemon:
                 f = ev.fields or {}
                 self.motions.on_end(ev.text, ev.t_s, int(f.get("cycle", 0)))
                 rec.event("track_end", label=f.get("label"), outcome=ev.text)
+            else:
+                self.guiding.on_event(ev)  # drag_end, lease (docs/HAND.md)
 
     def _log_later(self, text: str, priority: int = LOG_INFO) -> None:
         try:  # logged after this cycle, not inside it
@@ -421,19 +452,22 @@ class Daemon:
         self.controller.stop(self.cycle.est.q_rad)
         self.record_events()
 
-    def set_mode(self, name: str, accept: bool = False) -> dict[str, Any] | None:
+    def set_mode(self, name: str, accept: bool = False, lease: int = 0, by_enable: bool = False) -> dict[str, Any] | None:
         modes = {"idle": Mode.IDLE, "hold": Mode.HOLD, "drag": Mode.DRAG}
         if name not in modes:
             raise ValueError(f"mode: expected one of {', '.join(modes)}, got '{name}'")
         check = None
         if modes[name] == Mode.DRAG:
+            why = self.controller.drag_refusal()  # (before the checks below: the answer names what is missing)
+            if why is not None:
+                raise ValueError(f"mode drag: refused: {why}")
             if self.model_check_failed:
                 raise ValueError(f"mode drag: refused: 'dragd check model' failed on {', '.join(self.model_check_failed)} "
                                  "(a wrong sign or K_t scale); fix the configuration and run the check again")
             self.check_gravity_current("mode drag")
             if self.controller.mode != Mode.DRAG:
                 check = self._check_before_drag(accept)
-        self.controller.request(modes[name], self.cycle.est.q_rad)
+        self.controller.request(modes[name], self.cycle.est.q_rad, lease=lease, by_enable=by_enable)
         self.record_events()
         return check
 
@@ -524,6 +558,7 @@ class Daemon:
             "clock": self.clock.status(),
             "spool_dir": self.spool_dir,
             "teach": self.teaching.recorder.status() if self.teaching.recorder is not None else None,
+            "drag": self.guiding.status(),  # what drag requires, the lease, the hand's inputs (docs/HAND.md)
         }
 
     # ------------------------------------------------------------------------------------------ run

@@ -60,7 +60,8 @@ class Cycle:
         self._last_hb_t = -1e9
         self.hold_after, self.disable_after = stale_cycles_hold, stale_cycles_disable
         self.node_ids = node_ids
-        self.est = Estimate(np.zeros(n), velocity.velocity_rad_s, np.zeros(n), np.zeros(n), np.zeros(n))
+        self.est = Estimate(np.zeros(n), velocity.velocity_rad_s, np.zeros(n), np.zeros(n), np.zeros(n),
+                            inputs=io.feedback.inputs, inputs_age=io.feedback.inputs_age)
         self.target_counts = np.zeros(n, dtype=np.int64)
         self.torque_permille = np.zeros(n, dtype=np.int64)
         self._tmp = np.zeros(n)
@@ -108,6 +109,7 @@ class Cycle:
             # fault thresholds (stale_cycles_hold / stale_cycles_disable) mean time, not steps (the read step resets
             # every joint that reports this cycle)
             np.add(self.io.feedback.stale, expirations - 1, out=self.io.feedback.stale)
+            np.add(self.io.feedback.inputs_age, expirations - 1, out=self.io.feedback.inputs_age)
         self.sample_dt_s = period_us * 1e-6  # SYNC goes out right after the tick: the sampling interval
         self.t += self.dt * expirations
         self.controller.t = self.t  # (commands during the read see the cycle's time)

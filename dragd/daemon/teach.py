@@ -25,8 +25,10 @@ class Teaching:
         if self.recorder is not None:
             self.recorder.add(self.d.cycle.t, self.d.cycle.est.q_rad)
 
-    async def start(self, name: str, rate_Hz: float | None = None, overwrite: bool = False) -> dict[str, Any]:
-        """Start teaching: the raw MCAP window, positions at ``rate_Hz`` and marks; the arm goes to drag."""
+    async def start(self, name: str, rate_Hz: float | None = None, overwrite: bool = False,
+                    lease: int = 0) -> dict[str, Any]:
+        """Start teaching: the raw MCAP window, positions at ``rate_Hz`` and marks; the arm goes to drag where drag is
+        permitted now (``lease``: the drag lease the client holds; else the enabling switch's press starts it)."""
         d, c, motions = self.d, self.d.controller, self.d.motions
         try:
             path = resolve_program(name, d.cfg.program_dir)
@@ -71,9 +73,10 @@ class Teaching:
         if c.mode == Mode.HOLD and not c.feedback_hold:
             try:
                 await motions.wait_cst("teach start")
-                c.request(Mode.DRAG, d.cycle.est.q_rad)
+                if c.drag_refusal() is None:
+                    c.request(Mode.DRAG, d.cycle.est.q_rad, lease=lease)
             except ValueError:
-                pass  # the drives are still in CSP after a motion: teaching starts in hold
+                pass  # the drives are still in CSP after a motion, or drag needs a lease: teaching starts in hold
         return {**self.recorder.status(), "mode": MODE_NAMES[c.mode]}
 
     def mark(self, name: str | None = None) -> dict[str, Any]:

@@ -24,8 +24,9 @@ from dragd.hardware.cia301 import EMCY_BASE, HEARTBEAT_BASE, SYNC_COB_ID
 from dragd.hardware.bus import PreparedBatch
 from dragd.hardware.pdo import BusLayout, RpdoEncoder
 
-# joint, codec, and where the codec's values hold the position, the statusword and the current (-1: not in the frame)
-Decoder = tuple[int, struct.Struct, int, int, int]
+# joint, codec, and where the codec's values hold the position, the statusword, the current and the digital inputs
+# (-1: not in the frame)
+Decoder = tuple[int, struct.Struct, int, int, int, int]
 
 
 class Feedback:
@@ -38,6 +39,8 @@ class Feedback:
         self.rx = np.zeros(n, dtype=bool)  # the position TPDO arrived this cycle
         self.stale = np.zeros(n, dtype=np.int64)  # cycles since each joint's last position TPDO
         self.rx_count = 0  # joints whose position TPDO arrived this cycle
+        self.inputs = np.zeros(n, dtype=np.int64)  # the digital inputs word (60FDh) where a TPDO carries it
+        self.inputs_age = np.full(n, 1 << 40, dtype=np.int64)  # cycles since that TPDO arrived (none yet: ages)
 
     def worst_stale(self) -> tuple[int, int]:
         """(cycles, joint) of the stalest joint; (0, 0) when every TPDO arrived this cycle."""
@@ -93,7 +96,7 @@ class BusIO:
                     (slot,) = fr.slots
                     at = {f: i for i, f in enumerate(slot.fields)}
                     table[fr.cob_id] = (slot.joint, struct.Struct(slot.fmt), at.get("position", -1),
-                                        at.get("statusword", -1), at.get("current", -1))
+                                        at.get("statusword", -1), at.get("current", -1), at.get("inputs", -1))
                 else:
                     enc = RpdoEncoder(fr, fd, min_interval_s=1.0 / fr.max_rate_Hz)
                     msg = can.Message(arbitration_id=fr.cob_id, data=enc.buffer, is_extended_id=False,
@@ -178,7 +181,7 @@ class BusIO:
         entry = table.get(cob)
         if entry is None:
             return False
-        j, codec, at_position, at_statusword, at_current = entry
+        j, codec, at_position, at_statusword, at_current, at_inputs = entry
         if len(data) < codec.size:
             self.rejected_frames += 1
             return True
@@ -190,6 +193,9 @@ class BusIO:
             fb.counts[j] = values[at_position]
         if at_current >= 0:
             fb.current_permille[j] = values[at_current]
+        if at_inputs >= 0:
+            fb.inputs[j] = values[at_inputs]
+            fb.inputs_age[j] = 0
         if at_statusword >= 0:
             v = values[at_statusword]
             if self._sw_unseen[j] and v != fb.statusword[j]:
@@ -223,6 +229,7 @@ class BusIO:
         """Before the SYNC: nothing has arrived for this cycle yet."""
         self.feedback.rx.fill(False)
         self.feedback.rx_count = 0
+        self.feedback.inputs_age += 1
 
     def end_read(self) -> bool:
         """After the read step: age the joints that did not report; True when every joint reported."""

@@ -402,6 +402,7 @@ class _Boot:
         self.command_zero()
         self.mode_cst()
         self.disable_voltage()
+        self.hand_inputs()
         for pdo in self.rt.layout.pdos[self.info.node_id]:
             self.verify_pdo(pdo)
 
@@ -648,6 +649,52 @@ class _Boot:
                 return
             time.sleep(0.005)
         self.rep.status.append(f"statusword 0x{sw:04X} ({state.name.lower()}) after controlword 0000h")
+
+    def hand_inputs(self) -> None:
+        """The contacts wired to this drive's digital inputs (docs/HAND.md), read once before the arm may move: an
+        enabling switch, mark or teach button reading active (pressed, stuck, or wired inverted), or an enabling
+        switch whose two channels disagree, is a wiring fault; a stop reading active is reported (pressed, or its
+        normally-closed wire open)."""
+        obj = self.p.inputs
+        if obj is None:
+            return
+        wired = [(k, inp) for k, inp in enumerate(self.m.cfg.hand.inputs) if inp.joint == self.j.name]
+        word = self.read(obj.index, obj.sub, "the digital inputs (hand.inputs)")
+        if word is None:
+            return
+        word = int(word) & ((1 << obj.bits) - 1)
+        name = f"{obj.index:04X}h" + (f":{obj.sub}" if obj.sub else "")
+        self.rep.status.append(f"hand inputs: {name} = 0x{word:0{max(2, obj.bits // 4)}X} at boot")
+
+        def active(bit: int, low: bool) -> bool:
+            return bool(word >> bit & 1) != low
+
+        for k, inp in wired:
+            low = inp.active == "low"
+            chans = [(b, active(b, low)) for b in [inp.bit] + ([inp.second_bit] if inp.second_bit is not None else [])]
+            key = f"hand.inputs[{k}] ({inp.label})"
+            levels = ", ".join(f"bit {b} {'active' if a else 'inactive'}" for b, a in chans)
+            if inp.function == "stop":
+                if chans[0][1]:
+                    self.rep.status.append(f"warning: {key} {self.j.name} {name} bit {inp.bit} reads active at boot: "
+                                           "the stop is pressed, or its wire is open; nothing moves until it reads "
+                                           "released")
+                continue
+            if len(chans) == 2 and chans[0][1] != chans[1][1]:
+                self.rep.fail(obj.index, obj.sub, f"{key} on {self.j.name}: the enabling switch's channels disagree "
+                              f"at boot ({levels}): one contact is stuck, broken or miswired",
+                              f"check the wiring of {self.j.name}'s inputs {inp.bit} and {inp.second_bit}, or "
+                              f"{key}.bit/.second_bit")
+            elif any(a for _, a in chans):
+                self.rep.fail(obj.index, obj.sub, f"{key} on {self.j.name}: {levels} at boot: the contact is pressed, "
+                              "stuck, or wired inverted (nobody may hold it while dragd starts)",
+                              f"release it; or set {key}.active: {'high' if low else 'low'} for a "
+                              f"normally-{'open' if low else 'closed'} contact, or {key}.bit to the input it is "
+                              "wired to")
+            if inp.panic_bit is not None and word >> inp.panic_bit & 1:
+                self.rep.fail(obj.index, obj.sub, f"{key} on {self.j.name}: the panic contact (bit {inp.panic_bit}) "
+                              "reads active at boot: the switch is squeezed, stuck or miswired",
+                              f"release it, or set {key}.panic_bit to the input it is wired to")
 
     def verify_pdo(self, pdo: PdoSpec) -> None:
         where = pdo.name

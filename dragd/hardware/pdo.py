@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import struct
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Literal
 
 from dragd.hardware.busload import BusLoadReport, FrameSpec, bus_load
@@ -44,9 +44,10 @@ TRANS_SYNC = 1
 TRANS_EVENT = 255
 STATUS_EVENT_TIMER_MS = 100  # an event TPDO's keep-alive (where the drive has an event timer)
 
-Field = Literal["statusword", "position", "current", "controlword", "target_position", "torque"]
+Field = Literal["statusword", "position", "current", "controlword", "target_position", "torque", "inputs"]
 Kind = Literal["shared", "compact", "per_node"]
-_FORMAT = {"statusword": "H", "position": "i", "current": "h", "controlword": "H", "target_position": "i", "torque": "h"}
+_FORMAT = {"statusword": "H", "position": "i", "current": "h", "controlword": "H", "target_position": "i", "torque": "h",
+           "inputs": "I"}
 
 
 @dataclass(frozen=True)
@@ -182,6 +183,9 @@ class _Role:
     cob_id: int | None  # None: the pre-defined connection set's COB-ID of the PDO chosen
     what: str
     needs_inhibit: bool = False
+    needs_timer: bool = False  # an event PDO whose loss must show (the enabling switch, a stop): an event timer (sub 5)
+    inhibit_ms: int | None = None  # an event TPDO's inhibit time and keep-alive (default: the statusword's)
+    event_timer_ms: int | None = None
 
 
 def _predefined_cob(direction: str, number: int, node_id: int) -> int:
@@ -204,6 +208,7 @@ class _Planner:
 
     def __init__(self, bus_key: str, fd: bool, kind: Kind, event_min_interval_ms: int) -> None:
         self.bus_key, self.fd, self.kind = bus_key, fd, kind
+        self.inputs_timer_ms, self.inputs_inhibit_ms = 10, 2  # (plan_bus sets the configuration's)
         self.event_min_interval_ms = event_min_interval_ms
         self.findings: list[Finding] = []
         self.max_bits = 512 if fd else 64
@@ -214,7 +219,8 @@ class _Planner:
     def entries(self, p: DriveProfile, fields: tuple[Field, ...]) -> tuple[MapEntry, ...] | None:
         """The drive's mapping entries for ``fields`` (None where the profile lacks one: its own finding says why)."""
         objs = {"statusword": p.statusword, "position": p.position, "current": p.current,
-                "controlword": p.controlword, "target_position": p.target_position, "torque": p.command}
+                "controlword": p.controlword, "target_position": p.target_position, "torque": p.command,
+                "inputs": p.inputs}
         got = [objs[f] for f in fields]
         if any(o is None for o in got):
             if "target_position" in fields and p.target_position is None:
@@ -239,6 +245,9 @@ class _Planner:
                 continue
             if role.needs_inhibit and 3 not in ch.comm_subs:
                 why.append(f"{ch.name}: no inhibit time ({ch.comm_index:04X}h sub 3) for an event PDO")
+                continue
+            if role.needs_timer and 5 not in ch.comm_subs:
+                why.append(f"{ch.name}: no event timer ({ch.comm_index:04X}h sub 5): a lost event TPDO would not show")
                 continue
             cob = role.cob_id if role.cob_id is not None else _predefined_cob(ch.direction, ch.number, p.node_id)
             if not ch.cob_writable and (ch.cob_default or 0) & 0x7FF != cob:
@@ -286,10 +295,12 @@ class _Planner:
             trial.add((ch.direction, ch.number))
             cob = role.cob_id if role.cob_id is not None else _predefined_cob(ch.direction, ch.number, p.node_id)
             event = not role.cyclic
+            inhibit_ms = role.inhibit_ms if role.inhibit_ms is not None else self.event_min_interval_ms
+            timer_ms = role.event_timer_ms if role.event_timer_ms is not None else STATUS_EVENT_TIMER_MS
             out.append(PdoSpec(role.direction, ch.number, cob, TRANS_SYNC if role.cyclic else TRANS_EVENT,
                                fixed if fixed is not None else role.entries,
-                               inhibit_100us=self.event_min_interval_ms * 10 if event and role.direction == "tpdo" else 0,
-                               event_timer_ms=(STATUS_EVENT_TIMER_MS if event and role.direction == "tpdo"
+                               inhibit_100us=inhibit_ms * 10 if event and role.direction == "tpdo" else 0,
+                               event_timer_ms=(timer_ms if event and role.direction == "tpdo"
                                                and 5 in ch.comm_subs else 0),
                                fixed_mapping=fixed is not None, comm_subs=ch.comm_subs, cob_writable=ch.cob_writable))
         used |= trial
@@ -304,16 +315,57 @@ class _Planner:
         return self.assign(p, options[-1], used) or []
 
 
+def _with_inputs(pl: _Planner, p: DriveProfile, options: list[list[_Role]]) -> list[list[_Role]]:
+    """A drive whose digital inputs are wired to the hand (docs/HAND.md): its feedback options, the inputs object
+    added — in the cyclic feedback TPDO where it fits, else beside the statusword in its event TPDO, else in an event
+    TPDO of its own (inhibit time; an event timer where the enabling switch or a stop rides in it, so that a lost
+    frame shows), else in a SYNC TPDO of its own. The first option every role of fits is the plan."""
+    if p.inputs is None:
+        return options
+    di = (_entry(p.inputs),)
+    safety = bool({"enable", "stop"} & set(p.input_functions))
+    what = (f"the digital inputs {p.inputs.index:04X}h (hand.inputs: {', '.join(p.input_functions)}; bit"
+            f"{'s' if len(p.input_bits) > 1 else ''} {', '.join(map(str, p.input_bits))})")
+    inhibit_ms, timer_ms = pl.inputs_inhibit_ms, pl.inputs_timer_ms
+    fits: list[list[_Role]] = []
+    for opt in options:  # in the cyclic feedback
+        new, done = [], False
+        for r in opt:
+            if not done and r.direction == "tpdo" and r.cyclic and any(e.field == "position" for e in r.entries):
+                r, done = replace(r, entries=r.entries + di, what=f"{r.what} with {what}"), True
+            new.append(r)
+        if done and all(sum(e.bits for e in r.entries) <= pl.max_bits for r in new):
+            fits.append(new)
+    for opt in options:  # beside the statusword's event TPDO
+        new, done = [], False
+        for r in opt:
+            if not done and r.direction == "tpdo" and not r.cyclic and any(e.field == "statusword" for e in r.entries):
+                r, done = replace(r, entries=r.entries + di, what=f"{r.what} with {what}", needs_timer=safety,
+                                  inhibit_ms=inhibit_ms, event_timer_ms=timer_ms), True
+            new.append(r)
+        if done and all(sum(e.bits for e in r.entries) <= pl.max_bits for r in new):
+            fits.append(new)
+    for opt in options:  # an event TPDO of their own
+        fits.append(opt + [_Role("tpdo", di, False, 3, None, f"{what} (event)", needs_inhibit=True,
+                                 needs_timer=safety, inhibit_ms=inhibit_ms, event_timer_ms=timer_ms)])
+    for opt in options:  # a SYNC TPDO of their own
+        fits.append(opt + [_Role("tpdo", di, True, 3, None, f"{what} (SYNC)")])
+    return fits
+
+
 def plan_bus(bus: str, joints: list[int], profiles: list[DriveProfile], *, fd: bool, kind: str | None = None,
              rate_Hz: float = 1000.0, event_min_interval_ms: int = 10, position_targets: bool = True,
-             bus_key: str | None = None) -> tuple[BusLayout, list[Finding]]:
+             bus_key: str | None = None, inputs_timer_ms: int = 10,
+             inputs_inhibit_ms: int = 2) -> tuple[BusLayout, list[Finding]]:
     """The PDO layout of one bus carrying ``joints`` (indices) on the drives of ``profiles`` (one per joint), and
-    every finding against the drives' EDS (an empty list: the layout is complete)."""
+    every finding against the drives' EDS (an empty list: the layout is complete). ``inputs_*``: the event TPDO
+    timing of a drive's digital inputs where they cannot ride in the cyclic feedback (hand.event_timer_ms, ...)."""
     kind = kind or "shared"
     bus_key = bus_key or f"bus '{bus}'"
     if kind not in ("shared", "compact", "per_node"):
         raise ValueError(f"{bus_key}: layout: expected 'shared', 'compact' or 'per_node', got '{kind}'")
     pl = _Planner(bus_key, fd, kind, event_min_interval_ms)  # type: ignore[arg-type]
+    pl.inputs_timer_ms, pl.inputs_inhibit_ms = inputs_timer_ms, inputs_inhibit_ms
     node_ids = [p.node_id for p in profiles]
     pdos: dict[int, list[PdoSpec]] = {n: [] for n in node_ids}
     frames: list[FrameLayout] = []
@@ -325,9 +377,10 @@ def plan_bus(bus: str, joints: list[int], profiles: list[DriveProfile], *, fd: b
     targets = position_targets if kind == "per_node" else kind == "shared"
 
     def tpdo_frame(j: int, n: int, spec: PdoSpec, what: str) -> None:
+        event_hz = 1e4 / spec.inhibit_100us if spec.inhibit_100us else ev_hz  # (the worst case: every inhibit time)
         frames.append(FrameLayout(f"{spec.name} node {n}{what}", spec.cob_id, spec.data_bytes,
                                   (_slot(j, 0, spec.entries),), "tpdo", spec.transmission_type <= 240, rate_Hz
-                                  if spec.transmission_type <= 240 else ev_hz))
+                                  if spec.transmission_type <= 240 else max(ev_hz, event_hz)))
 
     if kind == "shared":
         slot_fields: tuple[Field, ...] = ("controlword", "target_position", "torque")
@@ -336,7 +389,8 @@ def plan_bus(bus: str, joints: list[int], profiles: list[DriveProfile], *, fd: b
             tp = pl.entries(p, ("statusword", "position", "current"))
             slot_entries.append(pl.entries(p, slot_fields))
             if tp is not None:
-                for spec in pl.assign(p, [_Role("tpdo", tp, True, 1, None, "the cyclic feedback")]) or []:
+                fb = _with_inputs(pl, p, [[_Role("tpdo", tp, True, 1, None, "the cyclic feedback")]])
+                for spec in pl.first_fit(p, fb, set()):
                     pdos[p.node_id].append(spec)
                     tpdo_frame(j, p.node_id, spec, "")
         slot_bits = [sum(e.bits for e in s) if s is not None else 64 for s in slot_entries]
@@ -355,9 +409,10 @@ def plan_bus(bus: str, joints: list[int], profiles: list[DriveProfile], *, fd: b
             if pc is None or sw is None or cw is None:
                 continue
             used: set[tuple[str, int]] = set()
-            specs = pl.assign(p, [_Role("tpdo", pc, True, 1, None, "position and current"),
-                                  _Role("tpdo", sw, False, 2, None, "the statusword (event)", needs_inhibit=True),
-                                  _Role("rpdo", cw, False, 1, None, "the controlword (event)")], used) or []
+            specs = pl.first_fit(p, _with_inputs(pl, p, [[
+                _Role("tpdo", pc, True, 1, None, "position and current"),
+                _Role("tpdo", sw, False, 2, None, "the statusword (event)", needs_inhibit=True),
+                _Role("rpdo", cw, False, 1, None, "the controlword (event)")]]), used)
             for spec in specs:
                 pdos[p.node_id].append(spec)
                 if spec.direction == "tpdo":
@@ -388,7 +443,7 @@ def plan_bus(bus: str, joints: list[int], profiles: list[DriveProfile], *, fd: b
             fb_options = [split_fb, [sync_fb], two_sync_fb] if not fd else [[sync_fb], two_sync_fb]
             cmd_options = [split_cmd, [sync_cmd]] if not fd else [[sync_cmd], split_cmd]
             placed: set[tuple[str, int]] = set()
-            specs = pl.first_fit(p, fb_options, placed) + pl.first_fit(p, cmd_options, placed)
+            specs = pl.first_fit(p, _with_inputs(pl, p, fb_options), placed) + pl.first_fit(p, cmd_options, placed)
             for spec in specs:
                 pdos[p.node_id].append(spec)
                 if spec.direction == "tpdo":

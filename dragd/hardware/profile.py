@@ -28,7 +28,7 @@ import canopen
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable, datatypes
 
 from dragd.hardware.cia402 import (MODE_CSP, MODE_CST, OD_ABORT_CONNECTION_OPTION, OD_CONTROLWORD,
-                                   OD_CURRENT_ACTUAL, OD_MAX_TORQUE, OD_MODES_OF_OPERATION,
+                                   OD_CURRENT_ACTUAL, OD_DIGITAL_INPUTS, OD_MAX_TORQUE, OD_MODES_OF_OPERATION,
                                    OD_MODES_OF_OPERATION_DISPLAY, OD_MOTOR_RATED_CURRENT, OD_MOTOR_RATED_TORQUE,
                                    OD_POSITION_ACTUAL, OD_QUICK_STOP_OPTION, OD_STATUSWORD, OD_SUPPORTED_DRIVE_MODES,
                                    OD_TARGET_POSITION, OD_TARGET_TORQUE, OD_TORQUE_ACTUAL, OD_TORQUE_OFFSET)
@@ -282,6 +282,7 @@ class DriveProfile:
         self.rated_current_object = self._rated("rated_current")
         self.rated_torque_object = self._rated("rated_torque")
         self.watchdog_object = self._watchdog()
+        self.inputs = self._inputs()
         self._check_modes()
         self._check_motion()
         self._check_required()
@@ -424,6 +425,44 @@ class DriveProfile:
             self.finding("error", index, sub, f"{self.key}.rated_torque.write is true but the object is "
                          f"AccessType={var.access_type}", f"set {self.key}.rated_torque.write: false")
         return index, sub
+
+    def _inputs(self) -> ProcessObject | None:
+        """The digital inputs object where ``hand.inputs`` name this joint's drive (None otherwise): present, TPDO-
+        mappable, an unsigned integer wide enough for every bit wired to it; 60FDh's bits 4-15 are reserved."""
+        wired = [(k, inp) for k, inp in enumerate(self.cfg.hand.inputs) if inp.joint == self.joint.name]
+        self.input_bits = sorted({b for _, inp in wired for b in inp.bits})
+        self.input_functions = sorted({inp.function for _, inp in wired})
+        if not wired:
+            return None
+        key = f"{self.key}.digital_inputs"
+        names = "; ".join(f"hand.inputs[{k}] ({inp.label}) bit{'s' if len(inp.bits) > 1 else ''} "
+                          f"{', '.join(map(str, inp.bits))}" for k, inp in wired)
+        try:
+            index, sub = parse_address(self.drive.digital_inputs)
+        except ValueError as exc:
+            self.finding("error", None, 0, str(exc), f"set {key}")
+            return None
+        obj = self._process("inputs", index, sub, "tpdo", f"the digital inputs ({names})", key=key)
+        if obj is None:
+            return None
+        var = self.var(index, sub)
+        if var is None or var.data_type not in (datatypes.UNSIGNED8, datatypes.UNSIGNED16, datatypes.UNSIGNED32,
+                                                 datatypes.INTEGER8, datatypes.INTEGER16, datatypes.INTEGER32):
+            self.finding("error", index, sub, f"{names}: the inputs object is {type_name(getattr(var, 'data_type', None))}"
+                         "; expected an integer of 8, 16 or 32 bits", f"set {key}")
+            return None
+        for k, inp in wired:
+            for b in inp.bits:
+                if b >= obj.bits:
+                    self.finding("error", index, sub, f"hand.inputs[{k}] ({inp.label}) bit {b}: the object has "
+                                 f"{obj.bits} bits (0..{obj.bits - 1})", f"set hand.inputs[{k}] to the bit the "
+                                 "contact is wired to")
+                elif index == OD_DIGITAL_INPUTS and sub == 0 and 4 <= b <= 15:
+                    self.finding("error", index, sub, f"hand.inputs[{k}] ({inp.label}) bit {b}: CiA 402 reserves "
+                                 "bits 4-15 of 60FDh (0-3: limit switches, home, interlock; 16-31: the "
+                                 "manufacturer's digital inputs)", f"set hand.inputs[{k}] to the manufacturer bit "
+                                 "(16 + the drive's input number, per its manual)")
+        return obj
 
     def _watchdog(self) -> tuple[int, int] | None:
         w = self.drive.rpdo_watchdog

@@ -51,8 +51,15 @@ def run_demo(seconds: float = 20.0, config: Path | None = None, out: Path | None
             return run_payload_demo(config, out, progress, lockstep)
         except PayloadDemoError as exc:
             raise DemoError(str(exc)) from None
+    if scenario == "buttons":  # (#30: a teach session from the guiding device at the hand)
+        from dragd.lab.demo_buttons import ButtonsDemoError, run_buttons_demo
+
+        try:
+            return run_buttons_demo(config, out, progress, lockstep)
+        except ButtonsDemoError as exc:
+            raise DemoError(str(exc)) from None
     if scenario != "drag":
-        raise DemoError(f"--scenario: expected 'drag', 'teach' or 'payload', got '{scenario}'")
+        raise DemoError(f"--scenario: expected 'drag', 'teach', 'payload' or 'buttons', got '{scenario}'")
     if not seconds >= 8.0:
         raise DemoError(f"--seconds: expected at least 8 s (hold, untouched drag, hand pull, release), got {seconds}")
     out = Path(out) if out is not None else Path.cwd() / "out"

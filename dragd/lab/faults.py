@@ -18,6 +18,7 @@ wall clock (``lockstep=False``, as deployed) it is polled as fast as the request
 from __future__ import annotations
 
 import math
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,6 +35,7 @@ class FaultCase:
     detect: str  # the status field that detects it when no fault is raised
     settle_s: float = 0.0  # wait after the injection before recovering (the fault's own duration)
     expect_fault: tuple[str, ...] = field(default_factory=tuple)  # words in the first fault's text
+    rig: str = "default"  # default | hand (the guiding device wired, drag by its enabling switch: hand_rig_kwargs)
 
 
 CASES: dict[str, FaultCase] = {
@@ -55,6 +57,153 @@ CASES: dict[str, FaultCase] = {
                               "faults", 0.8, ("encoder jump", "node 2")),
     "garbage": FaultCase("garbage", {"node_id": 2}, "dropped", "continue", "rejected_frames"),
 }
+
+# --- the guiding device's input faults (#30; docs/HAND.md, docs/SAFETY.md) ---------------------------------------
+# Their own rig (hand_rig_kwargs): the enabling switch, mark, stop and teach wired to joint6's 60FDh, drag only while
+# the switch is held; a classic CAN bus (per-node layout, 250 Hz: what one classic bus carries), where the inputs
+# ride in an event TPDO beside the statusword (TPDO2), so losing it loses the inputs, not the feedback (TPDO1).
+HAND_CASES: dict[str, FaultCase] = {
+    # the operator lets go of the switch and one channel stays closed (a welded contact)
+    "stuck_enable": FaultCase("stuck_enable", {"channel": 1, "seconds": 1.0}, "hold", "start", "faults", 1.0,
+                              ("channels disagree", "joint6 60FDh bits 16, 17, 18"), rig="hand"),
+    # the switch's contact opens and closes by itself while the operator holds it
+    "chattering_contact": FaultCase("chattering", {"button": "enable", "period_ms": 8.0, "seconds": 0.4}, "hold",
+                                    "start", "faults", 0.4, ("chattering contact",), rig="hand"),
+    # the event TPDO carrying joint6's inputs is lost (the feedback goes on)
+    "inputs_lost": FaultCase("inputs_lost", {"node_id": 6, "seconds": 0.3}, "hold", "press", "faults", 0.3,
+                             ("lost", "60FDh"), rig="hand"),
+}
+CASES.update(HAND_CASES)
+HAND_WIRING = [{"function": "enable", "joint": "joint6", "bit": 16, "second_bit": 17, "panic_bit": 18},
+               {"function": "mark", "joint": "joint6", "bit": 19},
+               {"function": "stop", "joint": "joint6", "bit": 20, "active": "low"},
+               {"function": "teach", "joint": "joint6", "bit": 21}]  # (the simulated arm's device: sim/truth.py hand)
+
+
+def hand_config(path: Path) -> Path:
+    """config/default.yaml with the guiding device wired and required, on one classic CAN bus at 250 Hz."""
+    import yaml
+
+    from dragd.resources import config_path
+
+    data = yaml.safe_load(config_path("default.yaml").read_text())
+    data["robot"]["urdf"] = "seed_cobot"
+    data["hand"] = {"inputs": HAND_WIRING}
+    data["drag"] = {"require": "enable_input"}
+    data["loop"]["rate_Hz"] = 250
+    data["buses"][0].update(fd=False, layout="per_node")
+    data["buses"][0].pop("data_bitrate", None)
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def hand_rig_kwargs(workdir: Path) -> dict[str, Any]:
+    """Rig arguments for the hand's cases: its configuration, drag as configured (no lab flag)."""
+    workdir.mkdir(parents=True, exist_ok=True)
+    return {"config": hand_config(workdir / "hand.yaml"), "drag_guard": "config"}
+
+
+def hand_drag(rig: Rig, timeout_s: float = 5.0) -> None:
+    """Enabled, the switch released and pressed again (a latched fault cleared by 'start' first), in drag."""
+    end = rig.now() + timeout_s
+    while rig.now() < end:
+        st = rig.must("status")
+        if st["mode"] in ("idle", "fault") or any(i.get("fault") for i in st["drag"]["inputs"]):
+            rig.call("start")
+            rig.sleep(0.3)
+            continue
+        rig.sim_call("hand", action="let_go", button="enable")
+        rig.sleep(0.05)
+        rig.sim_call("hand", action="press", button="enable")
+        rig.sleep(0.05)
+        if rig.must("status")["mode"] == "drag":
+            rig.sleep(0.3)
+            return
+    st = rig.must("status")
+    raise RuntimeError(f"the enabling switch did not bring the arm into drag within {timeout_s:g} s: {st['mode']}, "
+                       f"{st['drag']['refusal']}")
+
+
+def run_hand_fault(rig: Rig, name: str) -> dict[str, Any]:
+    """One input fault of the guiding device (a ``hand`` rig, in drag by the switch): detect → react → recover.
+    Adds ``out_of_drag_ms`` (injection → drag ended) to ``run_fault``'s keys."""
+    case = CASES[name]
+    hand_drag(rig)
+    before = rig.must("status")
+    telemetry0 = (before.get("telemetry") or {}).get("dropped", 0)
+    sim0 = rig.sim_call("state")
+    q0 = sim0["q_rad"]
+    max_speed = max_drift = 0.0
+    texts: list[str] = []
+
+    def truth() -> None:
+        nonlocal max_speed, max_drift
+        s = rig.sim_call("state")
+        max_speed = max(max_speed, max(abs(v) for v in s["dq_rad_s"]))
+        max_drift = max(max_drift, max(abs(a - b) for a, b in zip(s["q_rad"], q0)))
+
+    def saw(st: dict[str, Any]) -> dict[str, Any]:
+        for f in st["faults"][len(st["faults"]) - (st["fault_count"] - before["fault_count"]):]:
+            if f["text"] not in texts:
+                texts.append(f["text"])
+        return st
+
+    t_inj = rig.now()
+    injected = rig.sim_call("inject", kind=case.kind, **case.args)
+    if not injected.get("ok"):
+        raise RuntimeError(f"inject {name}: {injected.get('error')}")
+    if case.kind == "stuck_enable":
+        rig.sim_call("hand", action="let_go", button="enable")  # the operator lets go; the welded channel stays
+    detected_ms = out_ms = None
+    period = rig.must("clock")["clock"]["period_s"] if rig.lockstep else 0.001
+    while rig.now() < t_inj + DETECT_TIMEOUT_S:
+        st = saw(rig.must("status"))
+        if out_ms is None and st["mode"] != "drag":
+            out_ms = (rig.now() - t_inj) * 1e3
+        if st["fault_count"] > before["fault_count"] and any(w in t for t in texts for w in case.expect_fault[:1]):
+            detected_ms = (rig.now() - t_inj) * 1e3
+            break
+        truth()
+        _poll(rig, period)
+    while rig.now() < t_inj + case.settle_s + 0.3:  # the fault's own duration
+        truth()
+        saw(rig.must("status"))
+        _poll(rig, WATCH_POLL_S)
+    status = saw(rig.must("status"))
+    reaction = "hold" if out_ms is not None and status["mode"] == "hold" else status["mode"]
+    # recovery: 'start' clears a latched input fault whose cause is gone; then the operator releases the switch and
+    # presses it again (a switch held through a fault or a loss never drags by itself)
+    recovered = False
+    if case.recover == "start":
+        rig.must("start")
+        rig.sleep(0.3)
+    end = rig.now() + RECOVER_TIMEOUT_S
+    while rig.now() < end and not recovered:
+        truth()
+        rig.sim_call("hand", action="let_go", button="enable")
+        rig.sleep(0.05)
+        rig.sim_call("hand", action="press", button="enable")
+        rig.sleep(0.1)
+        recovered = rig.must("status")["mode"] == "drag"
+    after = rig.must("status")
+    sim1 = rig.sim_call("state")
+    rate = sim1["steps"] / sim1["t"] if sim1["t"] > 0 else 1000.0
+    behind = (sim1["late_steps"] + sim1["dropped_steps"] - sim0["late_steps"] - sim0["dropped_steps"]) / rate
+    return {
+        "detected_ms": None if detected_ms is None else round(detected_ms, 1),
+        "out_of_drag_ms": None if out_ms is None else round(out_ms, 1),
+        "reaction": reaction,
+        "max_joint_speed_rad_s": round(max_speed, 4),
+        "max_drift_deg": round(math.degrees(max_drift), 3),
+        "recovered": recovered,
+        "rows_lost": int((after.get("telemetry") or {}).get("dropped", 0) - telemetry0),
+        "feedback_holds": after["feedback_holds"] - before["feedback_holds"],
+        "sim_behind_ms": round(behind * 1e3, 1),
+        "expected": {"reaction": case.reaction, "recover": case.recover},
+        "faults": texts[:4],
+    }
+
+# --- end of the guiding device's input faults --------------------------------------------------------------------
 
 RECOVER_TIMEOUT_S = 15.0  # of the rig's clock
 DETECT_TIMEOUT_S = 5.0
@@ -97,6 +246,8 @@ def drag_at_rest(rig: Rig, timeout_s: float = 20.0) -> None:
 def run_fault(rig: Rig, name: str) -> dict[str, Any]:
     """Inject one fault into a running rig (arm in drag) and measure the daemon's reaction and recovery."""
     case = CASES[name]
+    if case.rig == "hand":
+        return run_hand_fault(rig, name)
     drag_at_rest(rig)
     before = rig.must("status")
     telemetry0 = (before.get("telemetry") or {}).get("dropped", 0)
@@ -216,10 +367,19 @@ def fault_matrix(names: list[str] | None = None, workdir: Path | None = None,
                               (["--realtime-priority", "60"] if rt else [])}
     if workdir is not None:
         rig_kw["workdir"] = workdir
-    with Rig("faults", **rig_kw) as rig:
-        rig.telemetry = rig.workdir / "faults.mcap"
-        rig.start_sim()
-        rig.start_daemon()
-        for name in names or list(CASES):
-            out[name] = run_fault(rig, name)
-    return out
+    todo = names or list(CASES)
+    for group in ("default", "hand"):  # (the hand's cases on a rig of their own: hand_rig_kwargs)
+        group_names = [n for n in todo if CASES[n].rig == group]
+        if not group_names:
+            continue
+        kw = dict(rig_kw)
+        if group == "hand":
+            kw["workdir"] = Path(kw.get("workdir") or tempfile.mkdtemp(prefix="dragd-faults-")) / "hand"
+            kw.update(hand_rig_kwargs(kw["workdir"]))
+        with Rig(f"faults-{group}", **kw) as rig:
+            rig.telemetry = rig.workdir / "faults.mcap"
+            rig.start_sim()
+            rig.start_daemon()
+            for name in group_names:
+                out[name] = run_fault(rig, name)
+    return {n: out[n] for n in todo}

@@ -10,6 +10,11 @@ between the rig's calls: ``sleep`` grants exactly ``s`` of simulated time (``rou
 once they ran, ``wait_for`` grants ``LOCKSTEP_STEP_S`` at a time and looks at ``cond`` after each; what the test does
 in between (a sim ``operator`` scenario, an injected fault, a daemon command) happens at a cycle the run determines,
 so a test's verdict does not depend on how the host schedules the two processes.
+
+Drag: a rig starts the daemon with ``--lab-unguarded-drag`` unless ``drag_guard="config"`` (then drag needs what the
+configuration's ``drag.require`` says). ``Rig.drag()`` holds a drag lease as a client does (docs/HAND.md): on the
+lockstep clock it is renewed between grants (``sleep`` and ``wait_for`` grant at most a third of its period at a
+time), on the wall clock by a thread; ``drop_lease(close=False)`` stops renewing (a client that died).
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from dragd.lease import LeaseHolder
 from dragd.protocol import ControlClient, DaemonUnavailable
 
 class ProcessError(RuntimeError):
@@ -124,7 +130,8 @@ class Rig:
                  sim_config: Path | None = None, telemetry: Path | None = None, group: str | None = None,
                  sim_args: list[str] | None = None, daemon_args: list[str] | None = None,
                  env: dict[str, str] | None = None, bus: str | None = None,
-                 allow_dirs: list[Path] | None = None, as_deployed: bool = False, lockstep: bool | None = None) -> None:
+                 allow_dirs: list[Path] | None = None, as_deployed: bool = False, lockstep: bool | None = None,
+                 drag_guard: str = "lab") -> None:
         self.workdir = Path(workdir or tempfile.mkdtemp(prefix=f"dragd-{tag}-"))
         self.workdir.mkdir(parents=True, exist_ok=True)
         if bus is not None and group is not None:
@@ -151,6 +158,13 @@ class Rig:
                 self.sim_args += ["--lockstep", "--period-ms", f"{1000.0 / config_rate_Hz(config):g}"]
             if "--lockstep" not in self.daemon_args:
                 self.daemon_args.append("--lockstep")
+        if drag_guard not in ("lab", "config"):
+            raise ValueError(f"Rig: drag_guard: expected 'lab' or 'config', got {drag_guard!r}")
+        if drag_guard == "lab" and "--lab-unguarded-drag" not in self.daemon_args:
+            self.daemon_args.append("--lab-unguarded-drag")
+        self.lease: LeaseHolder | None = None  # a drag lease the rig holds (drag())
+        self._lease_t = 0.0  # lockstep: the simulated time of its last renewal
+        self.lease_error: str | None = None  # why the wall clock's renewal thread stopped
         self.allow_dirs = [self.workdir, *(allow_dirs or [])]  # where the daemon may write what the rig asks
         self.env = env
         self.sim: Child | None = None
@@ -188,6 +202,7 @@ class Rig:
         self.close()
 
     def close(self) -> dict[str, int]:
+        self._stop_lease_thread()
         codes = {}
         if self.daemon is not None:  # (lockstep: its ramp down runs on the simulated clock, at the machine's pace)
             codes["dragd"] = self.daemon.terminate(LOCKSTEP_CALL_S if self.lockstep else 10.0)
@@ -213,6 +228,53 @@ class Rig:
         return subprocess.run([sys.executable, "-m", "dragd", *args, "--socket", self.socket, *extra],
                               capture_output=True, text=True, timeout=max(timeout_s, LOCKSTEP_CALL_S + 30.0)
                               if extra else timeout_s, cwd=str(self.workdir))
+
+    # a drag lease, as a client holds it (docs/HAND.md)
+    def hold_lease(self, period_s: float | None = None, holder: str = "rig") -> LeaseHolder:
+        """Open a drag lease and keep renewing it (lockstep: between grants; wall: a thread)."""
+        if self.lease is not None:
+            raise ProcessError(f"Rig: already holding lease {self.lease.lease}")
+        def call(cmd: str, timeout_s: float | None = None, **kw: Any) -> dict[str, Any]:
+            resp = self.call(cmd, timeout_s=timeout_s, **kw)
+            if not resp.get("ok"):
+                raise ProcessError(f"daemon refused {cmd} {kw}: {resp.get('error')}")
+            return resp
+
+        lease = LeaseHolder(call, holder, period_s)
+        lease.open()
+        self.lease = lease
+        if self.lockstep:
+            self._lease_t = float(self.must("clock")["clock"]["t_s"])
+        else:
+            lease.keep()  # paced by the daemon's clock
+        return lease
+
+    def drag(self, accept: bool = False, period_s: float | None = None) -> dict[str, Any]:
+        """``mode drag`` with a drag lease the rig holds from now on (opened if none is held)."""
+        if self.lease is None:
+            self.hold_lease(period_s)
+        assert self.lease is not None
+        return self.lease.drag(**({"accept": True} if accept else {}))
+
+    def drop_lease(self, close: bool = True) -> dict[str, Any] | None:
+        """Stop renewing the lease; ``close``: close it too (the arm holds at once), else it lapses in the daemon."""
+        lease, self.lease = self.lease, None
+        self._stop_lease_thread(lease)
+        if lease is None:
+            return None
+        return lease.close() if close else None
+
+    def _stop_lease_thread(self, lease: LeaseHolder | None = None) -> None:
+        lease = lease or self.lease
+        if lease is not None and not self.lockstep:
+            lease.stop_keeping()
+            self.lease_error = lease.error
+
+    def _renew_lockstep(self, t_s: float) -> None:
+        lease = self.lease
+        if lease is not None and t_s - self._lease_t >= lease.every_s - 1e-9:
+            lease.renew()
+            self._lease_t = t_s
 
     def ensure_hold(self, tries: int = 3) -> None:
         """Restart a daemon that faulted at rest (a loaded machine's missed cycles) until it holds."""
@@ -259,7 +321,21 @@ class Rig:
                 self.must("clock", action="pause")
 
     def advance(self, seconds: float) -> dict[str, Any]:
-        """Lockstep: grant ``seconds`` of simulated time and wait until they ran; the daemon's clock status."""
+        """Lockstep: grant ``seconds`` of simulated time and wait until they ran; the daemon's clock status. While
+        the rig holds a drag lease, at most a third of its period per grant, renewed after each."""
+        lease = self.lease
+        if lease is not None and seconds > lease.every_s:
+            period = 1.0 / config_rate_Hz(self.config)  # (whole periods per grant: the total stays exact)
+            left, chunk = round(seconds / period), max(1, int(lease.every_s / period + 1e-9))
+            clock: dict[str, Any] = {}
+            while left > 0:
+                step = min(left, chunk)
+                clock = self._grant(step * period)
+                left -= step
+            return clock
+        return self._grant(seconds)
+
+    def _grant(self, seconds: float) -> dict[str, Any]:
         guard = 60.0 + LOCKSTEP_WALL_S_PER_S * seconds
         try:
             resp = self.call("clock", timeout_s=guard, action="advance", seconds=seconds)
@@ -272,6 +348,8 @@ class Rig:
                                f"of wall time ({exc}){held}:\n{self._tails()}") from None
         if not resp.get("ok"):
             raise ProcessError(f"lockstep: clock advance {seconds:g} s refused: {resp.get('error')}\n{self._tails()}")
+        if self.lease is not None:
+            self._renew_lockstep(float(resp["clock"]["t_s"]))
         return resp["clock"]
 
     def wait_for(self, cond: Callable[[], bool], timeout_s: float, what: str) -> None:

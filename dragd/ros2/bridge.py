@@ -1,10 +1,11 @@
 """The bridge's logic on its asyncio loop: the daemon's connections, the pollers, the command stream, the actions.
 
-Five connections to the daemon's control socket (``dragd.client``; the daemon answers a connection's requests in
+Six connections to the daemon's control socket (``dragd.client``; the daemon answers a connection's requests in
 order): ``poll`` (state and events at the joint states' rate), ``stream`` (the command topic's samples, never
-queued behind anything), ``act`` (the services: some take half a minute), ``side`` (status for the diagnostics)
-and ``lists`` (the program list where the bridge cannot read the program folder: the daemon lists programs in
-its planner process, which it may have to start first). The bridge adds no safety of its own that the daemon
+queued behind anything), ``act`` (the services: some take half a minute), ``side`` (status for the diagnostics),
+``lists`` (the program list where the bridge cannot read the program folder: the daemon lists programs in
+its planner process, which it may have to start first) and ``keep`` (the drag lease's renewals, never queued behind
+a service). The bridge adds no safety of its own that the daemon
 would lack, and removes none: every limit, check and monitor is the daemon's; a refusal comes back with the
 daemon's reason and goes out on ``~/status``.
 
@@ -15,9 +16,9 @@ What needs a living client:
   controller, a dead bridge or a partitioned DDS all end in the daemon's stream deadline (``stream.timeout_s``)
   and HOLD.
 - **drag**: ``~/drag`` and ``~/teach/start`` need ``~/drag_keepalive`` (std_msgs/Empty, at least every
-  ``drag.keepalive_timeout_s``); when it lapses, the bridge holds the arm. The daemon's own drag lease (#30) does not
-  exist yet: until it does, a bridge that dies mid-drag leaves the arm in drag (docs/ROS2.md says so). With the
-  lease, each keepalive becomes the daemon's lease renewal (``renew_drag``: the one place to change).
+  ``drag.keepalive_timeout_s``): the bridge opens a drag lease in the daemon with that period (docs/HAND.md) and
+  each keepalive renews it (``renew_drag``). When the keepalives stop — the client, the bridge or the DDS link
+  died — the daemon's lease lapses and the daemon ends drag into HOLD; the bridge only reports it on ``~/status``.
 """
 
 from __future__ import annotations
@@ -54,6 +55,7 @@ class Bridge:
         self.act = Client(socket, timeout_s=180.0)
         self.side = Client(socket, timeout_s=30.0)
         self.lists = Client(socket, timeout_s=60.0)
+        self.keep = Client(socket, timeout_s=5.0)
         self.node: Any = None
         self.joints: list[str] = []
         self.program_dir = ""
@@ -71,9 +73,12 @@ class Bridge:
         self._pending: tuple[int, float, list[float]] | None = None  # the newest command not yet sent
         self._command_ready = asyncio.Event()
         self._stream_error_seen: int | None = None
-        # drag by the bridge
+        # drag by the bridge: the daemon's drag lease it holds, renewed per keepalive
         self.drag_by_bridge = False
         self.last_keepalive = -1e9
+        self.lease = 0
+        self.renewing = False  # a renewal in flight (keepalives meanwhile are coalesced)
+        self.renewals = 0
         self._stop = asyncio.Event()
         self._programs_changed = asyncio.Event()
         self._tasks: set[asyncio.Task[Any]] = set()
@@ -118,7 +123,12 @@ class Bridge:
                     await self.stream.call("stream_close", stream=self.stream_id, timeout_s=1.0)
                 except (CommandError, DaemonUnavailable):
                     pass
-            for c in (self.poll, self.stream, self.act, self.side, self.lists):
+            if self.lease:  # ... and its drag lease (the arm holds; a dead bridge: the lease lapses)
+                try:
+                    await self.keep.call("lease", action="close", lease=self.lease, timeout_s=1.0)
+                except (CommandError, DaemonUnavailable):
+                    pass
+            for c in (self.poll, self.stream, self.act, self.side, self.lists, self.keep):
                 await c.close()
             self.node.close()
         return 0
@@ -255,7 +265,8 @@ class Bridge:
                 "stream_enabled": self.stream_enabled, "stream": self.stream_id, "stream_latched": latched,
                 "commands_forwarded": self.forwarded, "commands_dropped": self.dropped,
                 "commands_coalesced": self.coalesced,
-                "commands_refused": self.refused, "drag_by_bridge": self.drag_by_bridge}
+                "commands_refused": self.refused, "drag_by_bridge": self.drag_by_bridge, "drag_lease": self.lease,
+                "lease_renewals": self.renewals}
 
     # ------------------------------------------------------------------------------------------ drag keepalive
 
@@ -264,29 +275,51 @@ class Bridge:
         self.renew_drag()
 
     def renew_drag(self) -> None:
-        """Where a keepalive becomes the daemon's drag lease renewal once the daemon has a lease (#30); until then
-        the bridge watches the keepalive itself (``_watch_drag``)."""
+        """A keepalive becomes the daemon's drag lease renewal (one in flight at a time: keepalives that come
+        meanwhile are coalesced into it)."""
+        if self.lease and not self.renewing:
+            self.renewing = True
+            self._spawn(self._renew(self.lease))
+
+    async def _renew(self, lease: int) -> None:
+        try:
+            await self._call(self.keep, "lease", action="renew", lease=lease)
+            self.renewals += 1
+        except (CommandError, DaemonUnavailable) as exc:
+            if self.lease == lease:  # lapsed or closed in the daemon: drag (if it was) has ended there
+                self.lease = 0
+                self._status(convert.WARN, "dragd/drag", f"drag lease {lease} ended: {exc}")
+        finally:
+            self.renewing = False
+
+    async def _open_lease(self) -> int:
+        """The bridge's drag lease: the one it holds if still active, else a new one with the keepalive's period."""
+        if self.lease:
+            try:
+                await self._call(self.keep, "lease", action="renew", lease=self.lease)
+                return self.lease
+            except CommandError:
+                self.lease = 0
+        ans = await self._call(self.keep, "lease", action="open", holder=f"ros2 bridge {self.node_name}",
+                               period_s=float(self.node.param("drag.keepalive_timeout_s")))
+        self.lease = int(ans["lease"])
+        return self.lease
 
     def keepalive_fresh(self) -> bool:
         return self.now() - self.last_keepalive <= float(self.node.param("drag.keepalive_timeout_s"))
 
     async def _watch_drag(self, st: dict[str, Any]) -> None:
-        if not self.drag_by_bridge:
+        """The daemon ends drag (its lease lapsed, a hold, a guard trip, a fault ...): said on ``~/status``. A
+        feedback hold (late TPDOs) is not an end: the daemon returns to drag by itself."""
+        if not self.drag_by_bridge or st.get("requested_mode", st["mode"]) == "drag":
             return
-        if st.get("requested_mode", st["mode"]) != "drag":
-            # ended by someone else (hold, a guard trip, a fault ...); a feedback hold (late TPDOs) is not an end: the
-            # daemon returns to drag by itself, so the keepalive is still watched
-            self.drag_by_bridge = False
-            return
-        if not self.keepalive_fresh():
-            self.drag_by_bridge = False
-            timeout = float(self.node.param("drag.keepalive_timeout_s"))
-            try:
-                await self._call(self.act, "mode", mode="hold")
-                text = f"drag ended: no ~/drag_keepalive for {timeout:g} s; the arm holds"
-            except (CommandError, DaemonUnavailable) as exc:
-                text = f"drag keepalive lapsed, but hold failed: {exc}"
-            self._status(convert.WARN, "dragd/drag", text)
+        self.drag_by_bridge = False
+        try:
+            status = await self._call(self.side, "status")
+            why = ((status.get("drag") or {}).get("last_drag_end") or {}).get("reason") or f"mode {st['mode']}"
+        except (CommandError, DaemonUnavailable) as exc:
+            why = str(exc)
+        self._status(convert.WARN, "dragd/drag", f"drag ended: {why}; the arm holds")
 
     # ------------------------------------------------------------------------------------------ the command stream
 
@@ -440,15 +473,17 @@ class Bridge:
                                    "the arm is to stay in drag)")
                 self._hold_streaming(name)
                 await self._end_stream()
+                lease = await self._open_lease()  # the keepalives renew it; drag ends in the daemon when they stop
                 if name == "drag":
-                    resp = await self._call(self.act, "mode", mode="drag", accept=bool(p("drag.accept")))
+                    resp = await self._call(self.act, "mode", mode="drag", accept=bool(p("drag.accept")),
+                                            lease=lease)
                 else:
                     args_: dict[str, Any] = {"name": str(p("teach.name")) or
                                              datetime.datetime.now().strftime("ros2_%Y%m%d_%H%M%S"),
                                              "overwrite": bool(p("teach.overwrite"))}
                     if float(p("teach.rate_Hz")) > 0:
                         args_["rate_Hz"] = float(p("teach.rate_Hz"))
-                    resp = await self._call(self.act, "teach", action="start", **args_)
+                    resp = await self._call(self.act, "teach", action="start", lease=lease, **args_)
                 self.drag_by_bridge = resp.get("mode") == "drag"
             elif name == "teach_mark":
                 mark = str(p("teach.mark_name"))

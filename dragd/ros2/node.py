@@ -40,7 +40,8 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     "joint_states_rate_Hz": (100.0, "rate of /joint_states (polls of the daemon's state)"),
     "diagnostics_rate_Hz": (1.0, "rate of /diagnostics"),
     "stream.enabled": (True, "forward ~/joint_commands into the daemon's position stream (also ~/streaming)"),
-    "drag.keepalive_timeout_s": (0.5, "~/drag and ~/teach/start need ~/drag_keepalive; silent this long: hold"),
+    "drag.keepalive_timeout_s": (0.5, "~/drag and ~/teach/start need ~/drag_keepalive; silent this long, the "
+                                      "daemon's drag lease lapses: hold (at most the daemon's drag.lease_s)"),
     "drag.accept": (False, "~/drag as 'dragd mode drag --accept' (the measured hold currents as gravity offset)"),
     "teach.name": ("", "program name of ~/teach/start (empty: ros2_<date>_<time>)"),
     "teach.rate_Hz": (0.0, "recording rate of ~/teach/start (0: the daemon's replay.record_rate_Hz)"),

@@ -31,6 +31,11 @@ CYCLE_TOPIC = "/dragd/cycle"
 """One JSON message per control cycle (a row of `cycle_layout`)."""
 EVENTS_TOPIC = "/dragd/events"
 """Rare events (mode changes, faults, record start/stop): ``{"name": ..., **fields}``."""
+HAND_TOPIC = "/dragd/hand"
+"""The hand guiding state at every change (docs/HAND.md): what drag requires, the lease, the hand's inputs; the
+events named ``hand`` go here instead of ``EVENTS_TOPIC``."""
+HAND_EVENT = "hand"
+HAND_SCHEMA = "dragd.Hand"
 CYCLE_SCHEMA = "dragd.Cycle"
 EVENT_SCHEMA = "dragd.Event"
 RUN_METADATA = "dragd.run"
@@ -92,6 +97,34 @@ def cycle_layout(n_joints: int) -> dict[str, int | Field]:
         else:
             out[name] = Field(width, kind=kind, description=description)  # type: ignore[arg-type]
     return out
+
+
+def hand_json_schema() -> dict[str, Any]:
+    """JSON Schema of a ``/dragd/hand`` message (dragd/daemon/hand.py ``Guiding.status``)."""
+    lease = {"type": "object", "properties": {
+        "state": {"type": "string", "enum": ["none", "active", "lapsed", "closed"]},
+        "id": {"type": ["integer", "null"]},
+        "holder": {"type": "string"}, "period_s": {"type": "number"}, "remaining_s": {"type": "number"},
+        "since_renewal_s": {"type": "number"}, "renewals": {"type": "integer"}, "lapses": {"type": "integer"}}}
+    an_input = {"type": "object", "properties": {
+        "function": {"type": "string", "enum": ["enable", "mark", "stop", "teach"]}, "name": {"type": "string"},
+        "joint": {"type": "string"}, "object": {"type": "string"},
+        "bits": {"type": "array", "items": {"type": "integer"}},
+        "position": {"type": "string", "enum": ["released", "enabled", "squeezed"]}, "held": {"type": "boolean"},
+        "pressed": {"type": "boolean"}, "lost": {"type": "boolean"}, "fault": {"type": ["string", "null"]},
+        "raw": {"type": ["integer", "null"]}, "edges": {"type": "integer"}}}
+    return {
+        "title": HAND_SCHEMA,
+        "type": "object",
+        "description": "hand guiding: what drag requires, the drag lease, the guiding device's inputs (each change)",
+        "properties": {"name": {"type": "string"}, "require": {"type": "string"},
+                       "lab_unguarded": {"type": "boolean"},
+                       "refusal": {"type": ["string", "null"]}, "mode": {"type": "string"}, "lease": lease,
+                       "bound_lease": {"type": ["integer", "null"]}, "drag_ends": {"type": "integer"},
+                       "stop_active": {"type": "boolean"}, "inputs": {"type": "array", "items": an_input}},
+        "required": ["name"],
+        "additionalProperties": True,
+    }
 
 
 def event_json_schema() -> dict[str, Any]:

@@ -75,6 +75,8 @@ class RerunSink:
     - ``current/<joint>/<component>``: measured, command, gravity, friction, startup, damping, back_emf, effects [A]
     - ``joints/<joint>/q_rad``, ``joints/<joint>/dq_rad_s``
     - ``mode`` (0 idle, 1 hold, 2 drag, 3 track, 4 fault) and ``events`` / ``faults`` (text logs)
+    - ``hand/<input>`` (the guiding device's inputs: an enabling switch's position 0 released, 1 enabled,
+      2 squeezed; a button 0/1; -1 lost), ``hand/lease_remaining_s``, ``hand/state`` (text: what drag needs now)
     - ``arm/skeleton`` (the URDF's link origins joined, from Pinocchio forward kinematics), ``arm/links``
 
     Scalars are sent at ``rate_Hz`` in columnar batches, the 3D arm at ``arm_rate_Hz`` (needs ``urdf``).
@@ -158,6 +160,9 @@ class RerunSink:
     def write_event(self, log_time_ns: int, name: str, fields: Mapping[str, Any]) -> None:
         rr, rec = self._rr, self.rec
         rec.set_time(self._timeline, timestamp=np.datetime64(int(log_time_ns), "ns"))
+        if name == "hand":  # the hand guiding state (docs/HAND.md): the inputs and the lease as scalars
+            self._hand(fields)
+            return
         text = name + (" " + dumps(dict(fields)).decode() if fields else "")
         from dragd.telemetry.foxglove import log_level
 
@@ -165,6 +170,25 @@ class RerunSink:
         rec.log("events", rr.TextLog(text, level=level))
         if level != rr.TextLogLevel.INFO:
             rec.log("faults", rr.TextLog(text, level=level))
+
+    def _hand(self, st: Mapping[str, Any]) -> None:
+        rr, rec = self._rr, self.rec
+        positions = {"released": 0.0, "enabled": 1.0, "squeezed": 2.0}
+        for inp in st.get("inputs") or []:
+            if inp.get("lost"):
+                value = -1.0
+            elif inp.get("function") == "enable":
+                value = positions.get(str(inp.get("position")), -1.0)
+            else:
+                value = 1.0 if inp.get("pressed") else 0.0
+            rec.log(f"hand/{inp.get('name')}", rr.Scalars(value))
+        lease = st.get("lease") or {}
+        rec.log("hand/lease_remaining_s", rr.Scalars(float(lease.get("remaining_s", 0.0) or 0.0)))
+        refusal = st.get("refusal")
+        rec.log("hand/state", rr.TextLog(f"drag.require {st.get('require')}"
+                                         f"{' (lab: unguarded)' if st.get('lab_unguarded') else ''}; lease "
+                                         f"{lease.get('state', 'none')}; "
+                                         + ("drag permitted" if refusal is None else f"no drag: {refusal}")))
 
     def flush(self) -> None:
         self.rec.flush()

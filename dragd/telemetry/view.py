@@ -73,15 +73,23 @@ def log_to_rerun(path: str | os.PathLike[str], sink_factory: Callable[[Sequence[
 STATUS_FIELDS = ("q_rad", "dq_rad_s", "current_A", "command_A")
 
 
+def _hand_key(st: dict[str, Any]) -> Any:
+    """What of the hand guiding state is worth a new sample (its inputs, the lease's state, the refusal)."""
+    lease = st.get("lease") or {}
+    return (repr(st.get("inputs")), lease.get("state"), lease.get("id"), st.get("refusal"), st.get("mode"))
+
+
 def live_to_rerun(call: Callable[[], dict[str, Any]], sink: RerunSink, n: int, rate_Hz: float,
-                  seconds: float | None) -> dict[str, Any]:
-    """Poll the daemon's ``status`` at ``rate_Hz`` and send it to ``sink`` until ``seconds`` (None: Ctrl-C)."""
+                  seconds: float | None, on_poll: Callable[[dict[str, Any]], None] | None = None) -> dict[str, Any]:
+    """Poll the daemon's ``status`` at ``rate_Hz`` and send it to ``sink`` until ``seconds`` (None: Ctrl-C).
+    ``on_poll(status)`` after each poll (``dragd view --drag`` renews its lease there)."""
     from dragd.control.modes import MODE_NAMES
 
     lay = RowLayout(cycle_layout(n))
     inv = {name: int(m) for m, name in MODE_NAMES.items()}
     seen_faults = 0
     last_mode = None
+    last_hand = None
     polls = 0
     period = 1.0 / rate_Hz
     end = None if seconds is None else time.monotonic() + seconds
@@ -109,7 +117,14 @@ def live_to_rerun(call: Callable[[], dict[str, Any]], sink: RerunSink, n: int, r
             for f in faults[seen_faults:]:
                 sink.write_event(t_ns, "fault", f)
             seen_faults = len(faults)
+            hand = st.get("drag")
+            leased = (hand or {}).get("lease", {}).get("state") == "active"
+            if hand is not None and (leased or _hand_key(hand) != last_hand):
+                sink.write_event(t_ns, "hand", hand)  # the inputs and the lease (every poll while a lease runs)
+                last_hand = _hand_key(hand)
             sink.write_rows(lay, row, np.array([t_ns], dtype=np.int64))
+            if on_poll is not None:
+                on_poll(st)
             polls += 1
             next_t += period
             time.sleep(max(0.0, next_t - time.monotonic()))

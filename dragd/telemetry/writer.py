@@ -67,10 +67,14 @@ from dragd.telemetry.schema import (
     CYCLE_TOPIC,
     EVENT_SCHEMA,
     EVENTS_TOPIC,
+    HAND_EVENT,
+    HAND_SCHEMA,
+    HAND_TOPIC,
     RUN_METADATA,
     WRITER_METADATA,
     Field,
     event_json_schema,
+    hand_json_schema,
 )
 from dragd.telemetry.sinks import RerunSink, RowSink
 
@@ -208,6 +212,7 @@ class McapFile:
             topic=events_topic, message_encoding="json", schema_id=event_id
         )
         self.foxglove = None if foxglove is None else channels(foxglove)(self._mcap, foxglove)
+        self._hand: int | None = None  # /dragd/hand, registered with its first message
         if metadata:
             self._mcap.add_metadata(RUN_METADATA, {str(k): str(v) for k, v in metadata.items()})
 
@@ -224,9 +229,17 @@ class McapFile:
             channel_id=self._cycle, log_time=log_time_ns, data=data, publish_time=log_time_ns, sequence=seq
         )
 
-    def add_event(self, data: bytes, log_time_ns: int) -> None:
+    def add_event(self, data: bytes, log_time_ns: int, name: str | None = None) -> None:
+        """An event on ``/dragd/events``; one named ``hand`` (the hand guiding state) on ``/dragd/hand``."""
+        channel = self._events
+        if name == HAND_EVENT:
+            if self._hand is None:
+                schema = self._mcap.register_schema(name=HAND_SCHEMA, encoding="jsonschema",
+                                                    data=dumps(hand_json_schema()))
+                self._hand = self._mcap.register_channel(topic=HAND_TOPIC, message_encoding="json", schema_id=schema)
+            channel = self._hand
         self._mcap.add_message(
-            channel_id=self._events, log_time=log_time_ns, data=data, publish_time=log_time_ns, sequence=0
+            channel_id=channel, log_time=log_time_ns, data=data, publish_time=log_time_ns, sequence=0
         )
 
     def add_foxglove_event(self, log_time_ns: int, name: str, fields: Mapping[str, Any]) -> int:
@@ -276,14 +289,16 @@ def write_file(
         k = 0
         for seq, (values, ok, t) in enumerate(zip(rows.tolist(), finite, stamps, strict=True), start=1):
             while k < len(pending) and pending[k][0] <= t:
-                f.add_event(f.encode_event(pending[k][1], pending[k][2]), pending[k][0])
-                f.add_foxglove_event(*pending[k])
+                f.add_event(f.encode_event(pending[k][1], pending[k][2]), pending[k][0], pending[k][1])
+                if pending[k][1] != HAND_EVENT:
+                    f.add_foxglove_event(*pending[k])
                 k += 1
             f.add_row(f.encode_row(values, ok), t, seq)
         f.add_foxglove_rows(rows, stamps)
         for t_ev, name, fields in pending[k:]:
-            f.add_event(f.encode_event(name, fields), t_ev)
-            f.add_foxglove_event(t_ev, name, fields)
+            f.add_event(f.encode_event(name, fields), t_ev, name)
+            if name != HAND_EVENT:
+                f.add_foxglove_event(t_ev, name, fields)
         f.finish({"written": len(stamps), "dropped": 0, "events_written": len(pending), "events_dropped": 0})
     return len(stamps)
 
@@ -834,7 +849,7 @@ class TelemetryWriter:
         self._segment_rows += self._unflushed_rows
         self._unflushed_rows = self._unflushed_events = self._unflushed_bytes = 0
 
-    def _add(self, log_time: int, data: bytes, seq: int, is_row: bool) -> None:
+    def _add(self, log_time: int, data: bytes, seq: int, is_row: bool, name: str | None = None) -> None:
         assert self._mcap is not None and self._stream is not None
         before = self._stream.position
         self._unflushed_bytes += len(data)
@@ -843,7 +858,7 @@ class TelemetryWriter:
             self._mcap.add_row(data, log_time, seq)
         else:
             self._unflushed_events += 1
-            self._mcap.add_event(data, log_time)
+            self._mcap.add_event(data, log_time, name)
         if self._stream.position != before:
             self._note_flush()
 
@@ -934,9 +949,10 @@ class TelemetryWriter:
             for t, name, fields in events:
                 data = McapFile.encode_event(name, fields)
                 events_done += 1  # from here on a failure is counted by _fail()
-                self._add(t, data, 0, False)
+                self._add(t, data, 0, False, name)
                 assert self._mcap is not None
-                self._unflushed_bytes += self._mcap.add_foxglove_event(t, name, fields)
+                if name != HAND_EVENT:  # (the state snapshots have their own channel, not the log's lines)
+                    self._unflushed_bytes += self._mcap.add_foxglove_event(t, name, fields)
             if taken is not None:
                 rows, stamps, seqs = taken
                 assert self._mcap is not None

@@ -18,6 +18,7 @@ vendors' files (which are never committed):
     tpdo_no_timers.eds     TPDO communication parameters without inhibit time (sub 3) or event timer (sub 5) (simco)
     no_cst.eds             6502h without CST (Technosoft iPOS): refused
     no_6071h.eds           no 6071h; 607Ah not PDO-mappable (Schunk PRL120): refused
+    no_60fdh.eds           no 60FDh digital inputs (Eyou EuServo; Wittenstein simco keeps them in 3A13h:5)
     no_60b2h.eds           no 60B2h torque offset: the command is 6071h, which CSP ignores; motions in CST (Eyou)
 
 Run ``python tests/data/eds/make_variants.py`` after changing the bundled EDS; the files are committed.
@@ -239,6 +240,10 @@ def no_6071h(eds: Eds) -> None:
     _drop_default_mappings(eds, 0x607A)
 
 
+def no_60fdh(eds: Eds) -> None:
+    eds.remove_object(0x60FD)
+
+
 def _drop_default_mappings(eds: Eds, index: int) -> None:
     """Default mappings that name a removed or unmappable object are emptied (a drive would not ship them)."""
     for base in (0x1600, 0x1A00):
@@ -268,6 +273,7 @@ VARIANTS: dict[str, tuple[str, Callable[[Eds], None] | None]] = {
     "tpdo_no_timers": ("TPDOs without inhibit time and event timer", tpdo_no_timers),
     "no_cst": ("6502h without cyclic synchronous torque", no_cst),
     "no_6071h": ("no 6071h target torque; 607Ah not mappable", no_6071h),
+    "no_60fdh": ("no 60FDh digital inputs", no_60fdh),
     "no_60b2h": ("no 60B2h torque offset", no_60b2h),
 }
 
