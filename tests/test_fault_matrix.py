@@ -30,6 +30,10 @@ DETECTED_MS = {
     "bus_off": 50.0,  # every TPDO stale for loop.stale_cycles_disable cycles
     "encoder_jump": 10.0,  # samples rejected for loop.stale_cycles_hold cycles in a row: fault "encoder jump"
     "garbage": 0.0,  # counted as the frames are decoded (rejected_frames)
+    # (#30's hand rig: 250 Hz, a 4 ms cycle)
+    "stuck_enable": 56.0,  # the channels disagreeing longer than hand.discrepancy_ms (50), at the cycles' 4 ms grid
+    "chattering_contact": 36.0,  # the 9th edge (more than hand.chatter_edges, 8) of an 8 ms chatter: 4 ms apart
+    "inputs_lost": 36.0,  # the inputs' event TPDO older than 2.5 event timers (hand.event_timer_ms), on the grid
 }
 
 
