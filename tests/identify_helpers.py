@@ -128,13 +128,17 @@ def fourier_log() -> Path:
 
 
 def run_plan(rig, plan: E.Plan, tmp_path: Path) -> tuple[dict, Path]:  # noqa: ANN001
-    """``dragd identify run`` of a plan through a rig's daemon (real time, CSP); returns its JSON and the MCAP path."""
+    """``dragd identify run`` of a plan through a rig's daemon (CSP); returns its JSON and the MCAP path. On the
+    lockstep clock, time runs freely meanwhile (the CLI polls the daemon on the wall clock; the plan runs on the
+    daemon's)."""
     import json
 
     pf = tmp_path / "plan.npz"
     plan.save(pf)
-    rig.ensure_hold()  # a machine loaded by other jobs can fault the daemon at rest before the run
+    rig.wait_for(lambda: rig.must("status")["mode"] == "hold", 5.0, "hold before the run")
     out = tmp_path / "run.mcap"
-    proc = rig.cli("identify", "run", "--plan", str(pf), "--out", str(out), "--no-progress", "--json", timeout_s=120.0)
+    with rig.running():
+        proc = rig.cli("identify", "run", "--plan", str(pf), "--out", str(out), "--no-progress", "--json",
+                       timeout_s=300.0)
     assert proc.returncode == 0, proc.stderr + proc.stdout
     return json.loads(proc.stdout), out

@@ -1,7 +1,7 @@
 """Any robot: the UR5 and UR10 of example-robot-data, their URDFs unchanged (joint names shoulder_pan_joint, ...),
 through ``dragd config init``/``check``, ``dragd model gravity``, an offline identification (``identify plan`` →
 ``python -m sim log`` on a truth generated from the URDF → ``identify fit``), ``dragd gap``, and (UR5) the
-simulator and daemon processes: start, drag, a push, stop."""
+simulator and daemon processes on the lockstep clock: start, drag, a push, stop."""
 
 from __future__ import annotations
 
@@ -10,7 +10,6 @@ import json
 import math
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +21,6 @@ from dragd.config import ConfigError, load_config
 from dragd.model import RobotModel
 
 from conftest import run_cli
-from daemon_helpers import AS_DEPLOYED
 
 ROBOTS = ("ur5", "ur10")
 START = "0,-0.5,0.8,-1.57,-1.57,0"  # elbow up, wrist down: every joint's identification range is reachable
@@ -196,7 +194,7 @@ def test_gap_names_the_missing_rotor_inertia(identified):
     assert gap["final"]["rmse_A"] < 0.3 * gap["baseline"]["rmse_A"] and gap["final"]["rmse_A"] < 0.03
 
 
-@pytest.mark.rig
+@pytest.mark.lockstep
 @pytest.mark.slow
 def test_ur5_drag_on_the_simulator(configs, tmp_path):
     """The UR5 on the simulated robot (its truth generated from the URDF), the daemon on the generated config:
@@ -207,31 +205,31 @@ def test_ur5_drag_on_the_simulator(configs, tmp_path):
 
     truth = tmp_path / "ur5_truth.yaml"
     truth.write_text(truth_yaml(truth_for_robot(erd_urdf("ur5"), initial_q_rad=[0.0, -0.5, 0.8, -1.57, -1.57, 0.0])))
-    rig = Rig("ur5", workdir=tmp_path, config=configs["ur5"], sim_config=truth, **AS_DEPLOYED)
+    rig = Rig("ur5", workdir=tmp_path, config=configs["ur5"], sim_config=truth)
     try:
         rig.start_sim()
         rig.start_daemon()
         p = rig.cli("start", "--json")
         assert p.returncode == 0, (p.stderr, rig.daemon.tail())
+        rig.sleep(0.3)  # (start answers once the drives are enabled; the hold current builds up after the brakes)
         st = rig.must("status")
         assert st["mode"] == "hold" and abs(st["current_A"][1]) > 1.0  # the shoulder holds the arm
         assert rig.cli("mode", "drag").returncode == 0, rig.daemon.tail()
-        time.sleep(0.5)
+        rig.sleep(0.5)
         before = np.array(rig.sim_call("state")["q_rad"])
         rig.sim_call("operator", scenario={"name": "push_pan", "segments": [
             {"kind": "push", "joint": "shoulder_pan_joint", "torque_Nm": 15.0, "duration_s": 0.6},
             {"kind": "release", "duration_s": 0.0}]})
-        time.sleep(0.7)
-        end = time.monotonic() + 8.0
-        while max(abs(v) for v in rig.sim_call("state")["dq_rad_s"]) > 1e-4 and time.monotonic() < end:
-            time.sleep(0.05)
+        rig.sleep(0.7)
+        rig.wait_for(lambda: max(abs(v) for v in rig.sim_call("state")["dq_rad_s"]) <= 1e-4, 8.0,
+                     "the arm to come to rest")
         rest = np.array(rig.sim_call("state")["q_rad"])
-        time.sleep(1.5)
+        rig.sleep(1.5)
         later = np.array(rig.sim_call("state")["q_rad"])
         drag = rig.must("status")
         p = rig.cli("stop", "--json")
         assert p.returncode == 0, p.stderr
-        time.sleep(0.2)
+        rig.sleep(0.2)
         after = rig.sim_call("state")
     finally:
         rig.close()

@@ -11,9 +11,30 @@ import pytest
 from dragd.lab.faults import CASES, hand_rig_kwargs, run_fault
 from dragd.lab.rig import Rig
 
-pytestmark = [pytest.mark.lockstep, pytest.mark.slow]
+pytestmark = [pytest.mark.lockstep, pytest.mark.slow, pytest.mark.timeout(1200)]  # (a hang guard of wall time: on a loaded machine the lockstep clock runs slower, never wrong)
 
 SPEED_CAP_RAD_S = 1.0  # the lowest joints[].velocity_limit_rad_s of config/default.yaml
+
+# injection → detection on the lockstep clock, exact to the cycle (1 ms), by config/default.yaml's policy (the status
+# is looked at after every cycle): a new row states its own
+DETECTED_MS = {
+    "drive_silent": 50.0,  # its TPDO stale for loop.stale_cycles_disable (50) cycles: fault "feedback lost"
+    "burst_loss": 10.0,  # TPDOs stale for loop.stale_cycles_hold (10) cycles: a feedback hold
+    "burst_loss_short": 1.0,  # the first cycle without them (late_tpdo_cycles)
+    "duplicates": 1.0,  # the first cycle with a position TPDO twice (duplicate_tpdos)
+    "late_tpdo": 1.0,  # the first period whose TPDOs miss its end (late_tpdo_cycles)
+    "emcy": 0.0,  # the EMCY leaves at once and is handled before the next cycle
+    "drive_fault": 0.0,  # likewise (its EMCY)
+    "switched_on": 1.0,  # the next TPDO's statusword
+    "node_reboot": 10.0,  # its boot-up heartbeat, seen by the heartbeat consumer's 10 ms check: within 10 ms
+    "bus_off": 50.0,  # every TPDO stale for loop.stale_cycles_disable cycles
+    "encoder_jump": 10.0,  # samples rejected for loop.stale_cycles_hold cycles in a row: fault "encoder jump"
+    "garbage": 0.0,  # counted as the frames are decoded (rejected_frames)
+    # (#30's hand rig: 250 Hz, a 4 ms cycle)
+    "stuck_enable": 56.0,  # the channels disagreeing longer than hand.discrepancy_ms (50), at the cycles' 4 ms grid
+    "chattering_contact": 36.0,  # the 9th edge (more than hand.chatter_edges, 8) of an 8 ms chatter: 4 ms apart
+    "inputs_lost": 36.0,  # the inputs' event TPDO older than 2.5 event timers (hand.event_timer_ms), on the grid
+}
 
 
 def _run(tmp_path, name: str) -> tuple[dict, dict, str]:
@@ -30,6 +51,10 @@ def test_fault(tmp_path, name):
     case = CASES[name]
     r, status, log = _run(tmp_path, name)
     assert r["detected_ms"] is not None, (r, log)
+    if name == "node_reboot":  # (where in the check's 10 ms the boot-up falls is the rig's start's phase)
+        assert 0.0 < r["detected_ms"] <= DETECTED_MS[name] + 1e-6, (r, log)
+    else:
+        assert r["detected_ms"] == pytest.approx(DETECTED_MS[name], abs=1e-6), (r, log)
     assert r["reaction"] == case.reaction, (r, log)
     assert r["recovered"], (r, log)
     assert r["max_joint_speed_rad_s"] <= SPEED_CAP_RAD_S, r

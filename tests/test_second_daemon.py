@@ -1,23 +1,26 @@
 """A second daemon refuses to start and leaves the running arm untouched: the run lock (same control socket) and,
-on another socket, the listen for another master's SYNC/heartbeat before any NMT."""
+on another socket, the listen for another master's SYNC/heartbeat before any NMT.
+
+On the lockstep clock the running arm's bus is silent while its time stands still (its SYNCs and the drives'
+heartbeats come with granted time), so the clock runs freely (``dragd clock run``) while the second daemon starts:
+its 0.3 s listen (wall time: it has no clock yet) then hears the first master as it would on a wall-clock bus."""
 
 from __future__ import annotations
 
 import os
 import subprocess
 import sys
-import time
 
 import pytest
 
 from dragd.lab.rig import Rig
 
-pytestmark = pytest.mark.rig
+pytestmark = pytest.mark.lockstep
 
 
 def _second(rig: Rig, socket: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "dragd", "run", "--bus", rig.bus, "--socket", socket],
-                          capture_output=True, text=True, timeout=60, cwd=str(rig.workdir))
+                          capture_output=True, text=True, timeout=240, cwd=str(rig.workdir))
 
 
 def test_second_daemon_refuses_and_leaves_the_running_arm_alone(tmp_path):
@@ -25,16 +28,18 @@ def test_second_daemon_refuses_and_leaves_the_running_arm_alone(tmp_path):
              sim_args=["--realtime-priority", "60"]) as rig:
         rig.start_sim()
         rig.start_daemon()
-        rig.ensure_hold()
+        rig.must("start")
+        rig.wait_for(lambda: rig.must("status")["mode"] == "hold", 5.0, "hold")
         before = rig.sim_call("drives")["drives"]
         status0 = rig.must("status")
-        other = _second(rig, str(tmp_path / "other" / "dragd.sock"))  # another socket: the bus tells
+        with rig.running():  # (the first master's SYNCs and heartbeats on the bus while the second listens)
+            other = _second(rig, str(tmp_path / "other" / "dragd.sock"))  # another socket: the bus tells
         assert other.returncode == 1, other.stderr
         assert "another CANopen master is running" in other.stderr and "before any NMT" in other.stderr, other.stderr
         assert "Traceback" not in other.stderr
         same = _second(rig, rig.socket)  # the same socket: the run lock tells, before a bus is opened
         assert same.returncode == 1 and "another dragd holds" in same.stderr, same.stderr
-        time.sleep(0.3)
+        rig.sleep(0.3)
         after = rig.sim_call("drives")["drives"]
         status = rig.must("status")
     # no NMT reached the drives, nothing was reconfigured, the arm still holds with the same fault count

@@ -4,15 +4,18 @@ One rig per test, several checks per rig: teaching by hand through the CLI (prog
 point-to-point replay's accuracy at the waypoints, bumpless drag → replay → drag; pause / resume / speed override /
 controlled stop; the monitors (tracking error, residual current) and the soft limits; the demo's JSON.
 
-The rigs' configurations give the drives' communication watchdogs more slack than the default (the shared test
-machine stalls processes for tens of milliseconds); the control behaviour under test is the default's.
+On the lockstep clock with the default's watchdogs: every cycle runs (the recording has one row a cycle, the program
+one sample per 10 ms), so the accuracy bounds are the ones of a loop that runs in real time, always. The CLI's
+``replay --wait`` polls the daemon on the wall clock: it is started while the arm's time stands still (its replay
+lands at a known cycle), then the rig grants time until it returns.
 """
 
 from __future__ import annotations
 
 import json
 import math
-import time
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,37 +23,35 @@ import pytest
 import yaml
 
 from dragd.lab.demo import TEACH_STEPS_RAD, guide_and_settle
-from dragd.lab.rig import Rig
+from dragd.lab.rig import Rig, wait_until
 from dragd.teach.analysis import replay_errors
 from dragd.teach.program import Program, Waypoint, load_program, save_program
 from dragd.telemetry.reader import read_events, read_rows
 
 from conftest import run_cli
-from daemon_helpers import derived_config, wait_for
+from daemon_helpers import derived_config
 
-pytestmark = pytest.mark.rig
+pytestmark = [pytest.mark.lockstep, pytest.mark.timeout(1200)]  # (a hang guard of wall time: on a loaded machine the lockstep clock runs slower, never wrong)
 
 Q0 = np.array([0.0, -0.6, 1.2, -0.6, 1.5708, 0.0])  # the simulated arm's start pose
 
 
 def _config(tmp: Path, name: str, **replay) -> Path:
     def edit(d):
-        d.setdefault("safety", {})["rpdo_timeout_ms"] = 500
-        d.setdefault("master", {})["heartbeat_consumer_ms"] = 2000
-        d.setdefault("loop", {}).update(stale_cycles_hold=400, stale_cycles_disable=2000, fresh_cycles_resume=20)
         d["replay"] = {"program_dir": str(tmp / "programs"), **replay}
 
     return derived_config(tmp, name, edit)
 
 
 def _wait_outcome(rig: Rig, timeout_s: float) -> dict:
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        st = rig.must("status")
-        if (st.get("replay") or {}).get("outcome"):
-            return st
-        time.sleep(0.05)
-    raise AssertionError(f"the replay did not end within {timeout_s} s: {rig.must('status').get('replay')}")
+    got: list[dict] = []
+
+    def ended() -> bool:
+        got[:] = [rig.must("status")]
+        return bool((got[0].get("replay") or {}).get("outcome"))
+
+    rig.wait_for(ended, timeout_s, "the replay's end")
+    return got[0]
 
 
 def _replay_t(rig: Rig) -> float:
@@ -58,14 +59,6 @@ def _replay_t(rig: Rig) -> float:
     r = rig.must("status")["replay"]
     assert r is not None and r.get("outcome") is None, r
     return r["t_s"]
-
-
-def _strict(rig: Rig, before: dict) -> bool:
-    """Did the control loop run in real time since ``before`` (under 2 % missed cycles)? The accuracy bounds hold
-    for a loop that does; on an overloaded machine the test checks looser bounds."""
-    now = rig.must("status")
-    missed = now["missed_cycles"] - before["missed_cycles"]
-    return missed < 0.02 * max(1, now["cycles"] - before["cycles"])
 
 
 def _cli_json(rig: Rig, *args: str) -> dict:
@@ -86,7 +79,7 @@ def test_teach_by_hand_replay_linear_and_bumpless_drag_replay_drag(tmp_path):
         rig.start_sim()
         rig.start_daemon()
         rig.must("start")
-        time.sleep(0.3)
+        rig.sleep(0.3)
         # --- record: teach start puts the arm in drag; the hand guides it to three points, each marked
         started = _cli_json(rig, "teach", "start", "hand", "--rate", "100")
         assert started["mode"] == "drag" and started["rate_Hz"] == 100.0
@@ -106,34 +99,44 @@ def test_teach_by_hand_replay_linear_and_bumpless_drag_replay_drag(tmp_path):
         listed = _cli_json(rig, "teach", "list")
         assert [p["name"] for p in listed["programs"]] == ["hand"]
         # --- replay, point to point, from drag; then back to the hand
-        # (a feedback hold under machine load returns to drag by itself)
-        wait_for(lambda: rig.must("status")["mode"] == "drag", 5.0, "drag mode")
         st = rig.must("status")
-        assert st["teach"] is None
+        assert st["mode"] == "drag" and st["teach"] is None, st
         t0 = st["t_s"]
-        resp = _cli_json(rig, "replay", "hand", "--interp", "linear", "--wait")
-        strict = _strict(rig, st)
+        cli = subprocess.Popen([sys.executable, "-m", "dragd", "replay", "hand", "--interp", "linear", "--wait",
+                                "--json", "--socket", rig.socket], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True, cwd=str(rig.workdir))
+        try:  # its replay lands while the clock stands still; then time runs until --wait has seen the end
+            wait_until(lambda: rig.must("status")["replay"] is not None or cli.poll() is not None, 120.0,
+                       "the replay request of 'dragd replay --wait'")
+            rig.wait_for(lambda: cli.poll() is not None, 60.0, "'dragd replay --wait' to return")
+        finally:
+            if cli.poll() is None:
+                cli.kill()
+        out, err = cli.communicate()
+        assert cli.returncode == 0, f"dragd replay --wait: {out}\n{err}"
+        resp = json.loads(out)
         assert resp["outcome"] == "done" and resp["mode"] == "hold", resp
         t1 = rig.must("status")["t_s"]
         drag = rig.must("mode", mode="drag")  # waits for the drives to be back in CST
         assert drag["mode"] == "drag"
-        time.sleep(0.6)
+        rig.sleep(0.6)
         end = rig.must("status")
         # planned in the planner process: the daemon never imported the planner's scipy (a late import beside the
         # cycle holds the GIL for a third of a second: the drag → hold switch then steps)
         assert "/scipy/" not in Path(f"/proc/{rig.daemon.proc.pid}/maps").read_text()
         rig.must("stop")
-    assert end["faults"] == [] and end["drive_mode"] == "cst"
+    assert end["faults"] == [] and end["drive_mode"] == "cst" and end["missed_cycles"] == 0
     # the program file: versioned, readable, the marks and the continuous recording at the chosen rate
     prog = load_program(tmp_path / "programs" / "hand.yaml")
     assert prog.version == 1 and prog.joints == [f"joint{i + 1}" for i in range(6)]
     assert [w.name for w in prog.waypoints] == ["p1", "p2", "p3"]
     assert np.allclose(prog.waypoint_array(), [m["q_rad"] for m in marks], atol=1e-6)
     t, q = prog.path_arrays()
-    # one sample per 10 ms of the daemon's clock, both ends included (a stall of the loop loses the samples it spans)
+    # one sample per 10 ms of the daemon's clock, both ends included
     n_grid = 100 * prog.recording.duration_s + 1
-    assert prog.recording.rate_Hz == 100.0 and 0.9 * n_grid < len(t) <= n_grid + 0.01, (len(t), n_grid)
-    assert np.median(np.diff(t)) == pytest.approx(0.01, abs=1.5e-3) and q.shape[1] == 6
+    assert prog.recording.rate_Hz == 100.0 and len(t) == pytest.approx(n_grid, abs=1e-6), (len(t), n_grid)
+    # (the grid starts at teach start; the first sample is the first cycle after it)
+    assert 0 < np.diff(t)[0] <= 0.01 and np.diff(t)[1:] == pytest.approx(0.01, abs=1e-6) and q.shape[1] == 6
     assert np.abs(q[-1] - np.array(marks[2]["q_rad"])).max() < math.radians(0.5)
     raw = tmp_path / "programs" / prog.recording.mcap
     assert raw.is_file() and [e["waypoint"] for e in _events(raw, "mark")] == ["p1", "p2", "p3"]
@@ -147,10 +150,11 @@ def test_teach_by_hand_replay_linear_and_bumpless_drag_replay_drag(tmp_path):
     # drive's and the daemon's stiffness leaves a band of about ±0.3°. Measured over 18 runs on 2026-11-24:
     # 0.05–0.106°, once 0.135° (p3, joint 2, the arm still for the whole dwell; no late cycle near the stops). The
     # bound is that measured spread with a margin, not the band: a stop anywhere in the band is physically possible.
-    bound = 0.15 if strict else 0.6
-    assert len(res["waypoints"]) == 3 and res["waypoint_error_deg_max"] < bound, (strict, res)
-    assert res["path_error_deg_max"] < (0.6 if strict else 3.0), res
-    # bumpless: drag → hold → (CSP) track → hold → (CST) drag
+    assert len(res["waypoints"]) == 3 and res["waypoint_error_deg_max"] < 0.15, res
+    assert res["path_error_deg_max"] < 0.6, res
+    # bumpless: drag → (CSP) track → hold → (CST) drag. (The hold in which the drives switch to CSP and the plan is
+    # made lasts no cycle on the lockstep clock: the SDO transfers and the planner are jobs off the cycle, done
+    # between two ticks; on the wall clock it lasts as long as they take.)
     mode = rows["mode"]
     cmd = rows["current_command_A"]
     meas = rows["current_measured_A"]
@@ -158,13 +162,14 @@ def test_teach_by_hand_replay_linear_and_bumpless_drag_replay_drag(tmp_path):
     switches = np.flatnonzero(mode[1:] != mode[:-1]) + 1
     around = [i for i in switches if t0 - 0.05 < rows["t_s"][i] < t1 + 1.5]
     seq = [(mode[i - 1], mode[i]) for i in around]
-    assert seq[:4] == [("drag", "hold"), ("hold", "track"), ("track", "hold"), ("hold", "drag")], seq
-    def per_cycle(x: np.ndarray, w: slice) -> np.ndarray:
-        """|change| of x from row to row in w, per cycle: the rows on both sides of a missed cycle are two apart."""
-        cycles = np.maximum(1.0, np.round(np.diff(rows["t_s"][w]) / 1e-3))
-        return np.abs(np.diff(x[w], axis=0)) / cycles[:, None]
+    assert seq[:3] == [("drag", "track"), ("track", "hold"), ("hold", "drag")], seq
+    assert np.diff(rows["t_s"]) == pytest.approx(1e-3, abs=1e-9)  # one row a cycle: no cycle missed
 
-    for i in around[:4]:
+    def per_cycle(x: np.ndarray, w: slice) -> np.ndarray:
+        """|change| of x from row to row (cycle to cycle) in w."""
+        return np.abs(np.diff(x[w], axis=0))
+
+    for i in around[:3]:
         # no step in the commanded current at the switch (the blends start from the last command), no jerk of the
         # arm around it (drag's own law varies by up to ~0.25 A per cycle with its start-up dither)
         w = slice(i - 3, i + 4)
@@ -178,11 +183,11 @@ def test_teach_by_hand_replay_linear_and_bumpless_drag_replay_drag(tmp_path):
     seg = slice(first - 5, tr[-1] + 300)
     assert per_cycle(target, seg).max() < math.radians(0.2)
     # the drives' return to CST after the motion happens in the hold that follows it (drag waits for it): no step in
-    # the measured current there. (Not into drag: its blend ramps the command by up to 0.1 A a cycle, and a
-    # simulator descheduled past a SYNC reports one sample twice, then the ramp of two or three cycles at once.)
+    # the measured current there. (Not into drag: its blend ramps the command by up to 0.1 A a cycle.)
     last = tr[-1] + 1
     back = last + int(np.argmax(mode[last:] != "hold"))
-    assert mode[back] == "drag" and back - last >= 5, (mode[back], back - last)
+    # (how long: where the test's grants left the arm when 'replay --wait' returned, on the lockstep clock)
+    assert mode[back] == "drag" and back - last >= 1, (mode[back], back - last)
     # the daemon's reference stayed at the hold pose all along (HOLD with the drives still in CSP, not yet back in CST)
     assert np.abs(np.diff(target[last:back], axis=0)).max() == 0.0
     assert per_cycle(meas, slice(last, back + 1)).max() < 0.3
@@ -212,9 +217,9 @@ def test_pause_resume_speed_override_stop_and_monitors(tmp_path):
         rig.start_sim()
         rig.start_daemon()
         rig.must("start")
-        time.sleep(0.3)
+        rig.sleep(0.3)
         # soft limits: a program beyond them is refused before anything moves; the arm stays held, CST
-        bad = rig.call("replay", program=str(far), interp="linear", timeout_s=60.0)
+        bad = rig.call("replay", program=str(far), interp="linear")
         assert not bad["ok"] and "soft limits of joint2" in bad["error"]
         st = rig.must("status")
         assert st["mode"] == "hold" and st["drive_mode"] == "cst" and st["trajectory"] is None
@@ -222,30 +227,31 @@ def test_pause_resume_speed_override_stop_and_monitors(tmp_path):
         resp = _cli_json(rig, "replay", "loop", "--interp", "spline", "--cycles", "0", "--speed", "0.5")
         assert resp["mode"] == "track" and resp["interp"] == "spline"
         body_s = resp["move_to_start_s"]
-        wait_for(lambda: _replay_t(rig) > body_s + 0.3, 10.0, "the cycle under way")
+        rig.wait_for(lambda: _replay_t(rig) > body_s + 0.3, 10.0, "the cycle under way")
         r = rig.must("status")["replay"]
         assert r["state"] == "running" and r["rate"] == 0.5 and r["speed_override"] == 0.5
         sp = _cli_json(rig, "replay", "speed", "1.0")
         assert sp["speed_override"] == 1.0
-        wait_for(lambda: rig.must("status")["replay"]["rate"] == 1.0, 3.0, "the override ramped to 1")
+        rig.wait_for(lambda: rig.must("status")["replay"]["rate"] == 1.0, 3.0, "the override ramped to 1")
         paused = _cli_json(rig, "replay", "pause")
         assert paused["state"] == "paused"
         a = rig.must("status")
-        time.sleep(0.4)
+        rig.sleep(0.4)
         b = rig.must("status")
         assert b["replay"]["state"] == "paused" and b["replay"]["t_s"] == a["replay"]["t_s"]
         assert np.abs(np.array(b["q_rad"]) - np.array(a["q_rad"])).max() < math.radians(0.02)  # holds still
         assert _cli_json(rig, "replay", "resume")["state"] == "running"
         # moving again: the clock advances (or the body wraps to its next cycle when paused near the body's end)
-        wait_for(lambda: _replay_t(rig) > b["replay"]["t_s"] + 0.5
+        rig.wait_for(lambda: _replay_t(rig) > b["replay"]["t_s"] + 0.5
                  or rig.must("status")["replay"]["cycle"] > b["replay"]["cycle"], 5.0, "moving again")
         stopped = _cli_json(rig, "replay", "stop")
         assert stopped["mode"] == "hold" and stopped["replay"]["outcome"] == "stopped"
-        wait_for(lambda: rig.must("status")["drive_mode"] == "cst", 2.0, "the drives back in CST")
+        rig.wait_for(lambda: rig.must("status")["drive_mode"] == "cst", 2.0, "the drives back in CST")
+        rig.sleep(0.1)  # held at the stop point (the next replay would start at once)
         t_stop = rig.must("status")["t_s"]
         # --- tracking-error monitor: a push on the wrist during the motion stops it, held where the arm is
-        r2 = rig.must("replay", program="loop", interp="linear", cycles=0, timeout_s=60.0)
-        wait_for(lambda: _replay_t(rig) > r2["move_to_start_s"] + 0.2, 15.0, "moving")
+        r2 = rig.must("replay", program="loop", interp="linear", cycles=0)
+        rig.wait_for(lambda: _replay_t(rig) > r2["move_to_start_s"] + 0.2, 15.0, "moving")
         rig.sim_call("operator", scenario={"name": "bump", "segments": [
             {"kind": "push", "joint": "joint6", "torque_Nm": 7.0, "duration_s": 1.0}]})
         st = _wait_outcome(rig, 5.0)
@@ -253,10 +259,10 @@ def test_pause_resume_speed_override_stop_and_monitors(tmp_path):
         f = st["faults"][-1]
         assert f["joint"] == "joint6" and f["kind"] == "tracking_error" and f["reaction"] == "hold"
         assert st["mode"] == "hold"
-        time.sleep(1.2)  # the push is over; the arm stays where it stopped
+        rig.sleep(1.2)  # the push is over; the arm stays where it stopped
         # --- residual-current monitor: a collision on the shoulder
-        r3 = rig.must("replay", program="loop", interp="linear", cycles=0, timeout_s=60.0)
-        wait_for(lambda: _replay_t(rig) > r3["move_to_start_s"] + 0.2, 15.0, "moving")
+        r3 = rig.must("replay", program="loop", interp="linear", cycles=0)
+        rig.wait_for(lambda: _replay_t(rig) > r3["move_to_start_s"] + 0.2, 15.0, "moving")
         rig.sim_call("operator", scenario={"name": "collision", "segments": [
             {"kind": "push", "joint": "joint2", "torque_Nm": -40.0, "duration_s": 0.8}]})
         st = _wait_outcome(rig, 5.0)
@@ -271,8 +277,8 @@ def test_pause_resume_speed_override_stop_and_monitors(tmp_path):
     ref = rows["q_ref_rad"][m]
     t = rows["t_s"][m]
     dt = np.diff(t)
-    ok = (dt > 0.0005) & (dt < 0.0015)  # cycles without a stall
-    v = np.diff(ref, axis=0)[ok] / dt[ok, None]
+    assert dt == pytest.approx(1e-3, abs=1e-9)  # one replay, every cycle of it
+    v = np.diff(ref, axis=0) / dt[:, None]
     assert np.abs(v).max() < 1.6, np.abs(v).max(axis=0)  # within the velocity limits (1.0 / 1.5 rad/s)
     tt = rows["track_t_s"][m]
     back = np.diff(tt) < -1e-9  # the trajectory clock never goes back, except where the body repeats (cycles 0)
@@ -281,7 +287,7 @@ def test_pause_resume_speed_override_stop_and_monitors(tmp_path):
     last = np.flatnonzero(m)[-1]
     # until the drives were back in CST (the status that said so and the next replay can fall in one cycle)
     held = rows["q_ref_rad"][last + 1:][rows["t_s"][last + 1:] < t_stop - 0.0015]
-    assert rows["mode"][last + 1] == "hold" and len(held) > 5
+    assert rows["mode"][last + 1] == "hold" and len(held) >= 95, len(held)  # (the 0.1 s held before t_stop)
     assert np.abs(held - ref[-1]).max() < 1e-6
 
 
@@ -289,15 +295,14 @@ def test_pause_resume_speed_override_stop_and_monitors(tmp_path):
 def test_demo_teach_scenario_json(tmp_path):
     cfg = _config(tmp_path, "demo", residual_current_limit_A=4.0)
     proc = run_cli("demo", "--scenario", "teach", "--seconds", "9", "--config", str(cfg), "--out", str(tmp_path),
-                   "--json", timeout=300)
+                   "--lockstep", "--json", timeout=1100)
     data = json.loads(proc.stdout)
     assert data["waypoints"] == 3 and data["faults"] == 0
     # the replay passes every taught waypoint closely. The issue's 0.1° target is a measured figure (docs/TEACH.md,
-    # 0.03-0.10° here), not a test bound: a test asserts behaviour, and the figure depends on the machine's load.
-    strict = data["missed_cycles"] < 0.02 * data["cycles"]
-    bound = 0.2 if strict else 0.6
-    assert data["waypoint_error_deg_max"] < bound, (strict, data)
-    assert data["path_error_deg_max"] < 5 * bound, data
+    # 0.03-0.10° here), not a test bound: the bound is the design's spread with a margin (see the first test).
+    assert data["missed_cycles"] == 0, data
+    assert data["waypoint_error_deg_max"] < 0.2, data
+    assert data["path_error_deg_max"] < 1.0, data
     assert {w["name"] for w in data["linear"]["waypoints"]} == {"p1", "p2", "p3"}
     assert {w["kind"] for w in data["circular"]["waypoints"]} == {"pass", "stop"}
     prog = yaml.safe_load(Path(data["program"]).read_text())

@@ -1,3 +1,10 @@
+"""The telemetry writer: round trip, precision, the cycle side that never blocks, I/O failures and retries,
+roll-over, summaries, the writer process.
+
+No simulator or daemon and no verdict on the wall clock (unit tier): "never blocks" is shown with a writer held
+inside a write (the cycle side's calls return while it is stuck), a close budget by what close() reports, retries
+by waiting (a lower bound on elapsed time) past ``retry_after_s`` and for the writer to drain each batch."""
+
 import enum
 import errno
 import inspect
@@ -19,7 +26,7 @@ from dragd.telemetry.schema import Field
 from dragd.telemetry.sinks import RerunSink, RerunUnavailable, rerun_unavailable
 from dragd.telemetry.writer import TelemetryError, TelemetryWriter
 
-pytestmark = pytest.mark.rig
+pytestmark = pytest.mark.unit
 
 
 class Mode(enum.IntEnum):
@@ -158,9 +165,11 @@ class SlowFile:
 
     def __init__(self):
         self.release = threading.Event()
+        self.entered = threading.Event()
         self.data = bytearray()
 
     def write(self, b):
+        self.entered.set()
         self.release.wait()
         self.data += bytes(b)
         return len(b)
@@ -172,11 +181,10 @@ class SlowFile:
 def test_full_ring_drops_and_never_blocks():
     f = SlowFile()
     w = TelemetryWriter(f, {"t_s": 1, "q_rad": 6}, capacity=32, flush_interval_s=0.005)
+    assert f.entered.wait(30.0), "the writer never wrote"  # from here the writer is stuck inside a write
     attempts = 0
     dropped_seen = 0
-    worst_s = 0.0
-    for i in range(500):
-        t0 = time.perf_counter()
+    for i in range(500):  # every call returns while the writer is stuck: begin/commit never wait for it
         row = w.begin()
         if row is None:
             dropped_seen += 1
@@ -184,14 +192,11 @@ def test_full_ring_drops_and_never_blocks():
             row[0] = i
             row[1:] = i
             w.commit()
-        worst_s = max(worst_s, time.perf_counter() - t0)
         attempts += 1
-        if i % 50 == 0:
-            time.sleep(0.002)
     st = w.stats()
-    assert dropped_seen > 0
+    assert not f.release.is_set() and len(f.data) == 0  # (still stuck: nothing written yet)
+    assert dropped_seen == 500 - 32  # the ring's 32 rows queued, every other row dropped and counted
     assert st["dropped_ring_full"] == dropped_seen
-    assert worst_s < 0.05  # begin/commit never waited for the stalled writer
     f.release.set()
     st = w.close()
     assert st["written"] + st["dropped"] == attempts
@@ -257,27 +262,23 @@ class FullDisk:
 
 def run_rows(w, n, pause_every=100):
     ok = 0
-    worst = 0.0
     for i in range(n):
-        t0 = time.perf_counter()
         row = w.begin()
         if row is not None:
             row[:] = i
             w.commit()
             ok += 1
-        worst = max(worst, time.perf_counter() - t0)
         if i % pause_every == 0:
             time.sleep(0.001)
-    return ok, worst
+    return ok
 
 
 def test_full_disk_from_the_start_drops_rows_and_keeps_first_error():
     f = FullDisk(0)
     w = TelemetryWriter(f, {"t_s": 1, "q_rad": 6}, capacity=64, flush_interval_s=0.005)
-    ok, worst = run_rows(w, 1000)
+    run_rows(w, 1000)
     wait_for(lambda: w.stats()["pending"] == 0)
     st = w.close()
-    assert worst < 0.05
     assert st["written"] == 0
     assert st["dropped"] == 1000
     assert st["errors"] >= 1
@@ -288,9 +289,8 @@ def test_full_disk_from_the_start_drops_rows_and_keeps_first_error():
 def test_full_disk_midway_counts_are_consistent():
     f = FullDisk(ok_bytes=8_000)
     w = TelemetryWriter(f, {"t_s": 1, "q_rad": 6}, capacity=256, flush_interval_s=0.005, chunk_size=8 * 1024)
-    ok, worst = run_rows(w, 5000)
+    run_rows(w, 5000)
     st = w.close()
-    assert worst < 0.05
     assert st["written"] > 0 and st["dropped_io"] > 0
     assert st["written"] + st["dropped"] == 5000
     assert st["dropped_bytes"] > 0
@@ -303,7 +303,7 @@ def test_dev_full_path(tmp_path, process):
     if not os.path.exists("/dev/full"):
         pytest.skip("/dev/full not available")
     w = TelemetryWriter("/dev/full", {"t_s": 1}, capacity=64, flush_interval_s=0.005, process=process)
-    ok, worst = run_rows(w, 300)
+    run_rows(w, 300)
     st = w.close()
     assert os.path.exists("/dev/full") and not os.path.isfile("/dev/full")  # never rotated away
     assert st["written"] == 0 and st["dropped"] == 300
@@ -366,7 +366,12 @@ def test_max_bytes_rolls_over_and_keeps_n(tmp_path):
     path = tmp_path / "roll.mcap"
     w = TelemetryWriter(path, {"t_s": 1, "q_rad": 6}, capacity=4096, flush_interval_s=0.005,
                         chunk_size=1024, max_bytes=2_000, keep_rotated=2)
-    run_rows(w, 4000, pause_every=50)
+    for b in range(40):  # in batches, each drained before the next (the size is checked once per drained batch)
+        for i in range(100 * b, 100 * b + 100):
+            row = w.begin()
+            row[:] = i
+            w.commit()
+        wait_for(lambda: w.stats()["pending"] == 0)
     st = w.close()
     rotated = sorted(tmp_path.glob("roll.*.mcap"))
     assert st["segments"] >= 4
@@ -546,12 +551,15 @@ def test_a_disk_that_stays_full_never_costs_an_older_log(tmp_path, monkeypatch):
     wait_for(lambda: w.stats()["failing"])  # from here no write succeeds: no roll-over, no normal pruning
     older = sorted(tmp_path.glob("t.*.mcap"))
     assert len(older) == 3 and all(summarize(p)["complete"] for p in older)
-    for _ in range(29):  # ~30 retries (the old policy rotated and pruned on each: every older log gone)
+    for _ in range(29):  # 29 retries (the old policy rotated and pruned on each: every older log gone)
+        failed_at = w._failed_at
+        time.sleep(0.03)  # past retry_after_s since the last failure: the next batch is a retry
         run_rows(w, 50)
-        time.sleep(0.03)
+        wait_for(lambda f=failed_at: w._failed_at != f)  # (the retry failed: the time of the failure is set last)
     st = w.stats()
     assert st["failing"] and "ENOSPC" in st["last_error"] and st["dropped_io"] > 0
-    assert st["failed_segments_removed"] >= 10 and st["failed_segments_kept"] <= 1
+    # each retry disposed of the file that failed before it: removed (no row), or kept aside (the one with rows)
+    assert st["failed_segments_removed"] + st["failed_segments_kept"] >= 29 and st["failed_segments_kept"] <= 1, st
     now = sorted(tmp_path.glob("t.*.mcap"))
     assert set(older) <= set(now) and len(now) <= len(older) + 1  # every older log is still there
     full["on"] = False
@@ -610,14 +618,12 @@ def test_writer_process_killed_is_reported_and_later_rows_are_counted(tmp_path):
     wait_for(lambda: w.stats()["writer_pid"] is not None and w.stats()["pending"] == 0 and w.stats()["written"] > 0)
     written = w.stats()["written"]  # in finished chunks; the open chunk's rows die with the process
     os.kill(w.stats()["writer_pid"], signal.SIGKILL)
-    t0 = time.monotonic()
-    for i in range(300):
+    for i in range(300):  # (a producer that blocked on the dead process would hang here)
         row = w.begin()
         if row is not None:
             row[0] = i
             w.commit()
         time.sleep(0.001)
-    assert time.monotonic() - t0 < 5.0
     st = w.close()
     assert st["errors"] >= 1 and "writer process" in st["first_error"] and "exit code -9" in st["first_error"]
     assert st["written"] == written and st["written"] + st["dropped"] == 500 and st["failing"], st
@@ -663,9 +669,8 @@ def test_a_wedged_writer_process_cannot_hold_close_and_its_rows_are_counted(tmp_
         n += 1
         if i % 100 == 0:
             time.sleep(0.005)
-    t0 = time.monotonic()
-    st = w.close(timeout_s=3.0)
-    assert time.monotonic() - t0 < 6.0
+    st = w.close(timeout_s=3.0)  # returns: it gave up on the process after its budget and killed it
+    assert "did not finish within 3 s; killed" in st["last_error"], st
     assert st["written"] + st["dropped"] == n, st
     assert "writer process" in (st["first_error"] or "") and st["failing"], st
     assert not os.path.exists(f"/proc/{pid}")

@@ -188,7 +188,7 @@ def test_definitions_match_the_installed_message_packages():
             assert _fields(body) == want, (name, bpkg, btyp)
 
 
-@pytest.mark.rig
+@pytest.mark.lockstep
 def test_daemon_writes_joint_states_in_ros2_encoding(tmp_path):
     mcap = tmp_path / "daemon.mcap"
     with Rig("ros2-mcap", workdir=tmp_path, telemetry=mcap, daemon_args=["--foxglove-encoding", "ros2"]) as rig:
@@ -197,7 +197,7 @@ def test_daemon_writes_joint_states_in_ros2_encoding(tmp_path):
         rig.must("start")
         rig.sleep(1.0)
         state = rig.must("state")
-        t_state = time.time_ns()  # (log times are CLOCK_REALTIME)
+        t_state = round(rig.now() * 1e9)  # (on the lockstep clock, log times are the simulated time)
         rig.sleep(0.2)
         rig.must("stop")
     time.sleep(0.2)  # (the daemon's writer finished the file at exit)

@@ -144,6 +144,9 @@ class Daemon:
         which status reports (``drag.require: none`` is accepted only with it)."""
         from dragd.daemon.paths import PathPolicy, allowed_dirs, spool_dir
 
+        if lockstep:  # an SDO answer is late on simulated time only when its peer is silent: the guard's wall time
+            cfg = cfg.model_copy(update={"master": cfg.master.model_copy(
+                update={"sdo_timeout_s": max(cfg.master.sdo_timeout_s, lockstep_guard_s)})})
         self.cfg = cfg
         self.batch_frames = batch_frames  # udp_multicast: a cycle's command frames leave with the next SYNC
         self.paths = PathPolicy(allowed_dirs(cfg, telemetry_path, allow_dirs))  # where requests may read/write

@@ -222,9 +222,12 @@ class Rig:
         return ControlClient(self.sim_socket, timeout_s).call(cmd, **args)
 
     def cli(self, *args: str, timeout_s: float = 60.0) -> subprocess.CompletedProcess:
-        """Run ``dragd ARGS --socket <this rig's daemon>`` as a real process."""
-        return subprocess.run([sys.executable, "-m", "dragd", *args, "--socket", self.socket], capture_output=True,
-                              text=True, timeout=timeout_s, cwd=str(self.workdir))
+        """Run ``dragd ARGS --socket <this rig's daemon>`` as a real process (lockstep: with the answer's wall-clock
+        guard of ``call``, unless ARGS say ``--timeout``: a command that waits for the arm runs its time first)."""
+        extra = ["--timeout", str(LOCKSTEP_CALL_S)] if self.lockstep and "--timeout" not in args else []
+        return subprocess.run([sys.executable, "-m", "dragd", *args, "--socket", self.socket, *extra],
+                              capture_output=True, text=True, timeout=max(timeout_s, LOCKSTEP_CALL_S + 30.0)
+                              if extra else timeout_s, cwd=str(self.workdir))
 
     # a drag lease, as a client holds it (docs/HAND.md)
     def hold_lease(self, period_s: float | None = None, holder: str = "rig") -> LeaseHolder:
