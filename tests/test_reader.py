@@ -156,3 +156,18 @@ def test_tpdo_decoder_fills_the_feedback_as_the_listener_does(config: str) -> No
     for field in ("counts", "statusword", "current_permille", "rx"):
         assert np.array_equal(getattr(a.feedback, field), getattr(b.feedback, field)), field
     assert a.feedback.rx_count == b.feedback.rx_count == a.n and a.end_read() and b.end_read()
+
+
+def test_bus_with_a_file_descriptor_but_no_drain_is_read_in_the_loop(request: pytest.FixtureRequest) -> None:
+    """A bus with fileno() but not dragd's drain() (socketcan on a robot; python-can's own udp_multicast here): the
+    loop's reader takes every queued frame with recv(0), no thread, the same split."""
+    group = _group(request.node.name)
+    bus = can.Bus(interface="udp_multicast", channel=group, fd=True)
+    peer = can.Bus(interface="udp_multicast", channel=group, fd=True)
+    try:
+        offered, rest, threaded = asyncio.run(_run(bus, peer))
+    finally:
+        bus.shutdown()
+        peer.shutdown()
+    _check(offered, rest)
+    assert threaded == 0  # a file descriptor: read in the loop (BusReader._read_queued)
