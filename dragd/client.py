@@ -33,6 +33,17 @@ from dragd.protocol import DEFAULT_SOCKET_PATH, MAX_LINE_BYTES, DaemonTimeout, D
 __all__ = ["Client", "CommandError", "DaemonUnavailable", "DaemonTimeout", "DragLease"]
 
 
+async def _cancelled(task: asyncio.Task | None) -> None:
+    """Cancel ``task`` (if any) and wait until it has ended, whatever it ended with."""
+    if task is None:
+        return
+    task.cancel()
+    try:
+        await task
+    except (asyncio.CancelledError, Exception):  # noqa: BLE001
+        pass
+
+
 class CommandError(RuntimeError):
     """The daemon refused a command (``{"ok": false, "error": ...}``)."""
 
@@ -76,12 +87,7 @@ class Client:
                 await self._writer.wait_closed()
             except (ConnectionError, OSError):
                 pass
-        if self._task is not None:
-            self._task.cancel()
-            try:
-                await self._task
-            except (asyncio.CancelledError, Exception):  # noqa: BLE001
-                pass
+        await _cancelled(self._task)
         self._fail_pending(DaemonUnavailable(f"connection to {self.path} closed"))
         self._writer = self._reader = self._task = None
 
@@ -231,12 +237,7 @@ class DragLease:
         return self
 
     async def __aexit__(self, *exc: object) -> None:
-        if self._task is not None:
-            self._task.cancel()
-            try:
-                await self._task
-            except (asyncio.CancelledError, Exception):  # noqa: BLE001
-                pass
+        await _cancelled(self._task)
         await self._close()
 
     async def _close(self) -> None:

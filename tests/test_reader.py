@@ -105,18 +105,25 @@ def test_udp_bus_drain_takes_a_burst_in_one_call(request: pytest.FixtureRequest)
     assert c.own_echoes_dropped == 1 and c.frames_received == 10
 
 
-def test_bus_without_drain_is_read_frame_by_frame_with_the_same_split(request: pytest.FixtureRequest) -> None:
-    """A bus without drain() (virtual here: no file descriptor, the notifier's thread) splits frames the same way."""
-    channel = f"reader-{request.node.name}-{os.getpid()}"
-    bus = can.Bus(interface="virtual", channel=channel)
-    peer = can.Bus(interface="virtual", channel=channel)
+@pytest.mark.parametrize("interface, threaded", [("virtual", 1), ("udp_multicast", 0)])
+def test_bus_without_drain_is_read_with_the_same_split(interface: str, threaded: int,
+                                                        request: pytest.FixtureRequest) -> None:
+    """A bus without dragd's drain() splits frames the same way: without a file descriptor (python-can's virtual) in
+    the reader's thread; with one (socketcan on a robot; python-can's own udp_multicast here) in the loop, every
+    queued frame by recv(0) (BusReader._read_queued)."""
+    if interface == "virtual":
+        channel, kw = f"reader-{request.node.name}-{os.getpid()}", {}
+    else:
+        channel, kw = _group(request.node.name), {"fd": True}
+    bus = can.Bus(interface=interface, channel=channel, **kw)
+    peer = can.Bus(interface=interface, channel=channel, **kw)
     try:
-        offered, rest, threaded = asyncio.run(_run(bus, peer))
+        offered, rest, in_thread = asyncio.run(_run(bus, peer))
     finally:
         bus.shutdown()
         peer.shutdown()
     _check(offered, rest)
-    assert threaded == 1  # no file descriptor: the reader's thread
+    assert in_thread == threaded
 
 
 @pytest.mark.parametrize("config", ["default.yaml", "two_buses.yaml"])
@@ -156,18 +163,3 @@ def test_tpdo_decoder_fills_the_feedback_as_the_listener_does(config: str) -> No
     for field in ("counts", "statusword", "current_permille", "rx"):
         assert np.array_equal(getattr(a.feedback, field), getattr(b.feedback, field)), field
     assert a.feedback.rx_count == b.feedback.rx_count == a.n and a.end_read() and b.end_read()
-
-
-def test_bus_with_a_file_descriptor_but_no_drain_is_read_in_the_loop(request: pytest.FixtureRequest) -> None:
-    """A bus with fileno() but not dragd's drain() (socketcan on a robot; python-can's own udp_multicast here): the
-    loop's reader takes every queued frame with recv(0), no thread, the same split."""
-    group = _group(request.node.name)
-    bus = can.Bus(interface="udp_multicast", channel=group, fd=True)
-    peer = can.Bus(interface="udp_multicast", channel=group, fd=True)
-    try:
-        offered, rest, threaded = asyncio.run(_run(bus, peer))
-    finally:
-        bus.shutdown()
-        peer.shutdown()
-    _check(offered, rest)
-    assert threaded == 0  # a file descriptor: read in the loop (BusReader._read_queued)
