@@ -30,11 +30,14 @@ from typing import Any
 import numpy as np
 
 from dragd.control.modes import Mode
+from dragd.hardware.cia402 import STATE_STATUSWORD_BITS, SW_CYCLIC_FOLLOWING, SW_REMOTE, SW_VOLTAGE_ENABLED, State
 from sim.axis import AxisIO
 from sim.physics import ArmPhysics
 from sim.truth import Truth, csp_ki_A_per_rad_s
 
-STATUSWORD_ENABLED = 0x1237  # operation enabled, voltage, remote, target reached cleared
+# 1237h: operation enabled, voltage enabled, remote, following the cyclic command; target reached cleared
+STATUSWORD_ENABLED = (STATE_STATUSWORD_BITS[State.OPERATION_ENABLED] | SW_VOLTAGE_ENABLED | SW_REMOTE
+                      | SW_CYCLIC_FOLLOWING)
 
 
 def load_plan(path: str | Path) -> tuple[np.ndarray, np.ndarray]:

@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from dragd.hardware.bus import BusSpec, UdpMulticastCanBus, open_bus, parse_bus
+from dragd.hardware.cia402 import EMCY_OVER_CURRENT
 from dragd.protocol import ControlError
 from dragd.realtime import demote_current_thread, scheduler_label, set_realtime
 from dragd.server import CommandTable, ControlServer
@@ -460,8 +461,8 @@ class SimProcess:
             return {"drives": self.drive_report()}
 
         @table.command("fault")
-        def fault(node_id: int, code: int = 0x2310) -> dict[str, Any]:
-            """Raise a device fault in one drive (EMCY + its fault reaction), e.g. 0x2310 over-current."""
+        def fault(node_id: int, code: int = EMCY_OVER_CURRENT) -> dict[str, Any]:
+            """Raise a device fault in one drive (EMCY + its fault reaction), e.g. 2310h over-current."""
             drive = next((d for d in self.drives if d.node_id == node_id), None)
             if drive is None:
                 raise ControlError("fault: node_id: expected one of "

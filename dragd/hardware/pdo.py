@@ -30,20 +30,30 @@ from typing import TYPE_CHECKING, Literal
 
 from dragd.hardware.busload import BusLoadReport, FrameSpec, bus_load
 from dragd.hardware.cia301 import (
+    COB_ID_MASK,
+    DT_INTEGER8,
+    DT_INTEGER16,
+    DT_INTEGER32,
+    DT_UNSIGNED8,
+    DT_UNSIGNED16,
+    DT_UNSIGNED32,
     DUMMY_TYPES,
     OD_RPDO_COMM,
     OD_RPDO_MAP,
     OD_TPDO_COMM,
     OD_TPDO_MAP,
+    PDO_COB_STEP,
     PDO_TRANSMISSION_EVENT,
     PDO_TRANSMISSION_SYNC,
+    RPDO1_BASE,
+    TPDO1_BASE,
 )
 from dragd.hardware.profile import Finding, PdoChannel, ProcessObject
 
 if TYPE_CHECKING:
     from dragd.hardware.profile import DriveProfile
 
-SHARED_RPDO_BASE = 0x200  # 0x200 (+0x80·k): "RPDO of node 0", unused by any node; not a restricted COB-ID
+SHARED_RPDO_BASE = RPDO1_BASE  # 200h (+80h·k): "RPDO of node 0", unused by any node; not a restricted COB-ID
 STATUS_EVENT_TIMER_MS = 100  # an event TPDO's keep-alive (where the drive has an event timer)
 
 Field = Literal["statusword", "position", "current", "controlword", "target_position", "torque", "inputs"]
@@ -191,13 +201,13 @@ class _Role:
 
 
 def _predefined_cob(direction: str, number: int, node_id: int) -> int:
-    return (0x180 if direction == "tpdo" else 0x200) + 0x100 * (number - 1) + node_id
+    return (TPDO1_BASE if direction == "tpdo" else RPDO1_BASE) + PDO_COB_STEP * (number - 1) + node_id
 
 
 def _dummies(bits: int, have: frozenset[int]) -> list[MapEntry] | None:
     """Dummy entries covering ``bits`` with the largest dummy types the drive supports (None: impossible)."""
     out: list[MapEntry] = []
-    for index in (0x0007, 0x0004, 0x0006, 0x0003, 0x0005, 0x0002):
+    for index in (DT_UNSIGNED32, DT_INTEGER32, DT_UNSIGNED16, DT_INTEGER16, DT_UNSIGNED8, DT_INTEGER8):
         size = DUMMY_TYPES[index]
         while index in have and bits >= size:
             out.append(MapEntry(index, 0, size))
@@ -252,8 +262,9 @@ class _Planner:
                 why.append(f"{ch.name}: no event timer ({ch.comm_index:04X}h sub 5): a lost event TPDO would not show")
                 continue
             cob = role.cob_id if role.cob_id is not None else _predefined_cob(ch.direction, ch.number, p.node_id)
-            if not ch.cob_writable and (ch.cob_default or 0) & 0x7FF != cob:
-                why.append(f"{ch.name}: COB-ID read-only at 0x{(ch.cob_default or 0) & 0x7FF:03X}, 0x{cob:03X} needed")
+            if not ch.cob_writable and (ch.cob_default or 0) & COB_ID_MASK != cob:
+                why.append(f"{ch.name}: COB-ID read-only at 0x{(ch.cob_default or 0) & COB_ID_MASK:03X}, "
+                           f"0x{cob:03X} needed")
                 continue
             if ch.map_writable:
                 if len(role.entries) > ch.max_entries:
@@ -423,11 +434,11 @@ def plan_bus(bus: str, joints: list[int], profiles: list[DriveProfile], *, fd: b
                     frames.append(FrameLayout(f"{spec.name} node {p.node_id}", spec.cob_id, spec.data_bytes,
                                               (_slot(j, 0, spec.entries),), "rpdo", False, ev_hz))
         groups = [list(range(i, min(i + 4, len(joints)))) for i in range(0, len(joints), 4)]
-        # 0x300, 0x380: PDO COB-IDs of node 0, unused
-        _shared_frames(pl, "compact", "torque", joints, profiles, [pl.entries(p, ("torque",)) for p in profiles], groups,
-                       SHARED_RPDO_BASE + 0x100, rate_Hz, pdos, frames)
+        # 300h, 380h: PDO COB-IDs of node 0, unused
+        _shared_frames(pl, "compact", "torque", joints, profiles, [pl.entries(p, ("torque",)) for p in profiles],
+                       groups, SHARED_RPDO_BASE + PDO_COB_STEP, rate_Hz, pdos, frames)
     else:  # per_node
-        for j, p in zip(joints, profiles):
+        for j, p in zip(joints, profiles, strict=True):
             cmd_fields: tuple[Field, ...] = ("target_position", "torque") if targets else ("torque",)
             pc, sw = pl.entries(p, ("position", "current")), pl.entries(p, ("statusword",))
             cw, cmd = pl.entries(p, ("controlword",)), pl.entries(p, cmd_fields)

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from dragd.hardware.cia402 import EMCY_OVER_CURRENT, EMCY_TEMPERATURE_DEVICE
 from dragd.lab.rig import Rig
 
 
@@ -46,8 +47,9 @@ CASES: dict[str, FaultCase] = {
     "duplicates": FaultCase("duplicates", {"frames": 60}, "tolerated", "continue", "duplicate_tpdos"),
     "late_tpdo": FaultCase("late_tpdo", {"delay_ms": 15.0, "seconds": 0.3}, "hold", "continue",
                            "late_tpdo_cycles", 0.4),
-    "emcy": FaultCase("emcy", {"node_id": 2, "code": 0x4210}, "fault", "start", "faults", 0.2, ("EMCY 0x4210",)),
-    "drive_fault": FaultCase("drive_fault", {"node_id": 3, "code": 0x2310}, "fault", "start", "faults", 0.2,
+    "emcy": FaultCase("emcy", {"node_id": 2, "code": EMCY_TEMPERATURE_DEVICE}, "fault", "start", "faults", 0.2,
+                      (f"EMCY 0x{EMCY_TEMPERATURE_DEVICE:04X}",)),
+    "drive_fault": FaultCase("drive_fault", {"node_id": 3, "code": EMCY_OVER_CURRENT}, "fault", "start", "faults", 0.2,
                              ("node 3",)),
     "switched_on": FaultCase("switched_on", {"node_id": 5}, "fault", "start", "faults", 0.3,
                              ("node 5", "left operation enabled")),
