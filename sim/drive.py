@@ -7,8 +7,8 @@ sim/scaling.py. A profile swaps what differs between drive models: which objects
 0602 0000 and cannot be mapped), their access and mapping flags, the PDOs and their COB-IDs, dummy usage, 6502h, where
 the process quantities live and in which unit; what the EDS does not say is assumed as docs/SIM_DRIVES.md lists.
 
-Threads: ``on_message`` / ``on_data`` / ``on_sync`` run in the network's reader thread, ``update`` in the physics thread.
-All take the drive's re-entrant lock for their (short) work. Only ``update`` writes the AxisIO outputs.
+Threads: ``on_message`` / ``on_data`` / ``on_sync`` run in the network's reader thread, ``update`` in the physics
+thread. All take the drive's re-entrant lock for their (short) work. Only ``update`` writes the AxisIO outputs.
 
 Clocks: the drive reads no clock of its own. Communication timing (heartbeats, RPDO deadlines, inhibit and event times)
 runs on the time handed in by ``comm(now)`` and ``on_sync(t)``; a frame is received at ``on_data(..., now)``'s time,
@@ -605,7 +605,8 @@ class SimDrive:
                 return
             pdo = self.pdo
             for ch in pdo.deadline_rpdos:
-                if ch.last_rx_s is not None and not ch.timed_out and self._deadline_passed(ch.last_rx_s, ch.event_s, now):
+                if (ch.last_rx_s is not None and not ch.timed_out
+                        and self._deadline_passed(ch.last_rx_s, ch.event_s, now)):
                     ch.timed_out = True
                     self._rpdo_timeout(ch.number)
             watchdog = self.s.rpdo_watchdog

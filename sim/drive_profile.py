@@ -242,7 +242,8 @@ class DriveProfile:
         """The profile as JSON-able data (``python -m sim drives --json``)."""
         info = self.od.device_information
         return {
-            "node_id": self.node_id, "eds": str(self.eds_path), "vendor": info.vendor_name, "product": info.product_name,
+            "node_id": self.node_id, "eds": str(self.eds_path), "vendor": info.vendor_name,
+            "product": info.product_name,
             "profile": self.catalog.name if self.catalog else None, "can_fd": self.can_fd,
             "supported_modes": self.supported_modes,
             "rated_current_A": self.hardware.rated_current_A, "rated_torque_Nm": self.hardware.rated_torque_Nm,
@@ -474,7 +475,7 @@ def build_profile(spec: ProfileSpec, hw: Hardware, base_dir: Path | None = None)
     info = od.device_information
     identity = hw.identity if hw.identity is not None else (info.vendor_number or 0, info.product_number or 0,
                                                              info.revision_number or 0)
-    for sub, value in zip((1, 2, 3), identity):
+    for sub, value in zip((1, 2, 3), identity, strict=True):
         if var_of(OD_IDENTITY, sub) is not None:
             commissioned.setdefault((OD_IDENTITY, sub), value)
     if var_of(OD_IDENTITY, 4) is not None:
@@ -513,7 +514,8 @@ def build_profile(spec: ProfileSpec, hw: Hardware, base_dir: Path | None = None)
     if problems:
         raise ProfileError("\n".join(problems))
     return DriveProfile(eds_path=eds, node_id=hw.node_id, od=od, catalog=catalog, bindings=bindings,
-                        commissioned=commissioned, truth_raw=truth_raw, hardware=hw, supported_modes=modes, can_fd=can_fd, assumptions=assumptions,
+                        commissioned=commissioned, truth_raw=truth_raw, hardware=hw, supported_modes=modes,
+                        can_fd=can_fd, assumptions=assumptions,
                         identity=identity)
 
 

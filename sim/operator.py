@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Literal, Union
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import numpy as np
 import pinocchio as pin
@@ -236,7 +236,7 @@ class LetGo(_Strict):
 # --- end of the guiding device's buttons ---
 
 
-Segment = Annotated[Union[Push, Ramp, Hold, Release, Hand, Move, Strike, Obstacle, Press, LetGo],
+Segment = Annotated[Push | Ramp | Hold | Release | Hand | Move | Strike | Obstacle | Press | LetGo,
                     Field(discriminator="kind")]
 SEGMENT_KINDS: dict[str, type[_Strict]] = {"push": Push, "ramp": Ramp, "hold": Hold, "release": Release, "hand": Hand,
                                            "move": Move, "strike": Strike, "obstacle": Obstacle, "press": Press,

@@ -382,7 +382,7 @@ class PdoService:
 
     def apply(self, ch: PdoChannel, data: bytes | bytearray) -> None:
         cells = self.store.cells
-        for slot, value in zip(ch.slots, ch.layout.unpack_from(data)):
+        for slot, value in zip(ch.slots, ch.layout.unpack_from(data), strict=True):  # (dummies unpack to nothing)
             cells[slot] = value
         hooks = self.rpdo_hooks
         for slot in ch.hooked_slots:  # mode before controlword
@@ -424,7 +424,8 @@ class PdoService:
             self.counters.send_errors += 1
 
     def poll_event_tpdos(self, now: float, sampled: bool = False) -> None:
-        """Send the event-driven TPDOs whose data changed (inhibit time kept); ``sampled``: actual values are current."""
+        """Send the event-driven TPDOs whose data changed (inhibit time kept); ``sampled``: actual values are
+        current."""
         if not sampled:
             self._sample()
         cells = self.store.cells
