@@ -58,8 +58,8 @@ STATUS_EVENT_TIMER_MS = 100  # an event TPDO's keep-alive (where the drive has a
 
 Field = Literal["statusword", "position", "current", "controlword", "target_position", "torque", "inputs"]
 Kind = Literal["shared", "compact", "per_node"]
-_FORMAT = {"statusword": "H", "position": "i", "current": "h", "controlword": "H", "target_position": "i", "torque": "h",
-           "inputs": "I"}
+_FORMAT = {"statusword": "H", "position": "i", "current": "h", "controlword": "H", "target_position": "i",
+           "torque": "h", "inputs": "I"}
 
 
 @dataclass(frozen=True)
@@ -310,7 +310,8 @@ class _Planner:
             event = not role.cyclic
             inhibit_ms = role.inhibit_ms if role.inhibit_ms is not None else self.event_min_interval_ms
             timer_ms = role.event_timer_ms if role.event_timer_ms is not None else STATUS_EVENT_TIMER_MS
-            out.append(PdoSpec(role.direction, ch.number, cob, PDO_TRANSMISSION_SYNC if role.cyclic else PDO_TRANSMISSION_EVENT,
+            transmission = PDO_TRANSMISSION_SYNC if role.cyclic else PDO_TRANSMISSION_EVENT
+            out.append(PdoSpec(role.direction, ch.number, cob, transmission,
                                fixed if fixed is not None else role.entries,
                                inhibit_100us=inhibit_ms * 10 if event and role.direction == "tpdo" else 0,
                                event_timer_ms=(timer_ms if event and role.direction == "tpdo"
@@ -398,7 +399,7 @@ def plan_bus(bus: str, joints: list[int], profiles: list[DriveProfile], *, fd: b
     if kind == "shared":
         slot_fields: tuple[Field, ...] = ("controlword", "target_position", "torque")
         slot_entries: list[tuple[MapEntry, ...] | None] = []
-        for j, p in zip(joints, profiles):
+        for j, p in zip(joints, profiles, strict=True):
             tp = pl.entries(p, ("statusword", "position", "current"))
             slot_entries.append(pl.entries(p, slot_fields))
             if tp is not None:
@@ -416,7 +417,7 @@ def plan_bus(bus: str, joints: list[int], profiles: list[DriveProfile], *, fd: b
         _shared_frames(pl, "shared", "command", joints, profiles, slot_entries, groups, SHARED_RPDO_BASE, rate_Hz,
                        pdos, frames)
     elif kind == "compact":
-        for j, p in zip(joints, profiles):
+        for j, p in zip(joints, profiles, strict=True):
             pc, sw, cw = (pl.entries(p, ("position", "current")), pl.entries(p, ("statusword",)),
                           pl.entries(p, ("controlword",)))
             if pc is None or sw is None or cw is None:
@@ -464,7 +465,8 @@ def plan_bus(bus: str, joints: list[int], profiles: list[DriveProfile], *, fd: b
                 else:
                     cyclic = spec.transmission_type <= 240
                     frames.append(FrameLayout(f"{spec.name} node {p.node_id}", spec.cob_id, spec.data_bytes,
-                                              (_slot(j, 0, spec.entries),), "rpdo", cyclic, rate_Hz if cyclic else ev_hz))
+                                              (_slot(j, 0, spec.entries),), "rpdo", cyclic,
+                                              rate_Hz if cyclic else ev_hz))
     layout = BusLayout(bus, kind, fd, fd, tuple(joints), tuple(node_ids), pdos, frames,  # type: ignore[arg-type]
                        position_targets=targets)
     return layout, pl.findings
@@ -548,7 +550,7 @@ class RpdoEncoder:
         for s in frame.slots:
             if s.fields not in self.KINDS:
                 off = s.offset
-                for f, code in zip(s.fields, s.codes or tuple(_FORMAT[f] for f in s.fields)):
+                for f, code in zip(s.fields, s.codes or tuple(_FORMAT[f] for f in s.fields), strict=True):
                     c = struct.Struct("<" + code)
                     self.loose.append((s.joint, off, c, f))
                     off += c.size

@@ -55,7 +55,8 @@ def input_carrier(layout: BusLayout, joint: int) -> str:
     objs = ", ".join(f"{e.index:04X}h" for e in spec.entries if e.field is not None)
     if cyclic:
         return f"digital inputs in {spec.name} (SYNC) [{objs}]"
-    timer = f"event timer {spec.event_timer_ms} ms" if spec.event_timer_ms else "no event timer: a lost frame cannot show"
+    timer = (f"event timer {spec.event_timer_ms} ms" if spec.event_timer_ms
+             else "no event timer: a lost frame cannot show")
     return f"digital inputs in {spec.name} (event, inhibit {spec.inhibit_100us / 10:g} ms, {timer}) [{objs}]"
 
 

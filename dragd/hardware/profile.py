@@ -326,7 +326,8 @@ class DriveProfile:
         var = self.var(index, sub)
         name = ""
         if var is not None:
-            name = f" '{var.parent.name}/{var.name}'" if isinstance(var.parent, (ODRecord, ODArray)) else f" '{var.name}'"
+            name = (f" '{var.parent.name}/{var.name}'" if isinstance(var.parent, (ODRecord, ODArray))
+                    else f" '{var.name}'")
         return f"{index:04X}h:{sub:02X}{name}"
 
     def _default(self, index: int, sub: int = 0) -> int | None:
@@ -354,7 +355,8 @@ class DriveProfile:
 
     def _process(self, fld: str, index: int, sub: int, direction: Literal["tpdo", "rpdo"], what: str, *,
                  key: str | None = None, quiet: bool = False) -> ProcessObject | None:
-        """A process-data object checked for presence, access, PDO mapping and type; None (and a finding) if unusable."""
+        """A process-data object checked for presence, access, PDO mapping and type; None (and a finding) if
+        unusable."""
         fix = f"set {key}" if key else ""
         var = self.var(index, sub)
         if var is None:
@@ -473,8 +475,9 @@ class DriveProfile:
         var = self.var(index, sub)
         if var is None or var.data_type not in (datatypes.UNSIGNED8, datatypes.UNSIGNED16, datatypes.UNSIGNED32,
                                                  datatypes.INTEGER8, datatypes.INTEGER16, datatypes.INTEGER32):
-            self.finding("error", index, sub, f"{names}: the inputs object is {type_name(getattr(var, 'data_type', None))}"
-                         "; expected an integer of 8, 16 or 32 bits", f"set {key}")
+            self.finding("error", index, sub, f"{names}: the inputs object is "
+                         f"{type_name(getattr(var, 'data_type', None))}; expected an integer of 8, 16 or 32 bits",
+                         f"set {key}")
             return None
         for k, inp in wired:
             for b in inp.bits:
