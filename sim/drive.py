@@ -180,7 +180,7 @@ _ROUTE_GENERATIONS = itertools.count(1)
 def _range(store: ObjectStore, slot: int) -> tuple[int, int]:
     """(min, max) of an integer object's data type (internal cells: INTEGER16)."""
     var = store.vars[slot]
-    if var is None:
+    if var is None or var.data_type is None:
         return _TYPE_RANGES["h"]
     return _TYPE_RANGES.get(STRUCT_CODES.get(var.data_type, "h"), _TYPE_RANGES["h"])
 
@@ -411,7 +411,7 @@ class SimDrive:
             if cob == self._sdo_rx_cob:
                 if nmt is not NmtState.STOPPED:
                     self._sample(self.io)  # an upload of an actual value reads it now
-                    self.sdo.on_request(data)
+                    self.sdo.on_request(bytes(data))  # (a bytearray from some buses)
                 return
             channels = self.pdo.rpdo_by_cob.get(cob)
             if channels is not None:

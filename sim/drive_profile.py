@@ -435,7 +435,9 @@ def build_profile(spec: ProfileSpec, hw: Hardware, base_dir: Path | None = None)
     _commission_hardware(bindings, hw, var_of, commissioned, truth_raw)
     for (index, sub), value in list(commissioned.items()):
         var = var_of(index, sub)
-        lo, hi = (var.min, var.max) if var is not None else (None, None)
+        if var is None:
+            continue
+        lo, hi = var.min, var.max
         if (lo is not None and value < lo) or (hi is not None and value > hi):
             fitted = max(lo, value) if lo is not None else value
             fitted = min(hi, fitted) if hi is not None else fitted

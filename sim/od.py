@@ -50,7 +50,7 @@ STRUCT_CODES: dict[int, str] = {
     datatypes.UNSIGNED64: "Q",
     datatypes.REAL64: "d",
 }
-_STRUCTS = {dt: struct.Struct("<" + code) for dt, code in STRUCT_CODES.items()}
+_STRUCTS: dict[int | None, struct.Struct] = {dt: struct.Struct("<" + code) for dt, code in STRUCT_CODES.items()}
 _STRING_TYPES = (datatypes.VISIBLE_STRING, datatypes.OCTET_STRING, datatypes.DOMAIN)
 
 

@@ -118,8 +118,8 @@ class OfflineArm:
         target_counts = np.rint(table * self.counts_per_rad).astype(np.int64)
         vel = VelocityEstimator(self.cpr, self.cfg.law.velocity_filter_Hz)
         ws = Workspace(n)
-        out = {k: np.empty((steps, n)) for k in ("q_rad", "dq_rad_s", "current_measured_A", "current_command_A",
-                                                   "gravity_A", "friction_A")}
+        out: dict[str, np.ndarray] = {k: np.empty((steps, n)) for k in (
+            "q_rad", "dq_rad_s", "current_measured_A", "current_command_A", "gravity_A", "friction_A")}
         out["t_s"] = np.arange(steps) * dt
         out["q_ref_rad"] = table
         kt = law.kt_Nm_per_A

@@ -457,7 +457,7 @@ class Operator:
             if seg.torques_Nm is not None:
                 self._tau[:] = seg.torques_Nm
             if seg.joint is not None:
-                self._tau[self._index[seg.joint]] += seg.torque_Nm  # type: ignore[operator]
+                self._tau[self._index[seg.joint]] += seg.torque_Nm
             self._wrench[:3] = seg.force_N if seg.force_N is not None else (0.0, 0.0, 0.0)
             self._wrench[3:] = seg.moment_Nm if seg.moment_Nm is not None else (0.0, 0.0, 0.0)
             self._has_wrench = seg.force_N is not None or seg.moment_Nm is not None

@@ -403,10 +403,10 @@ class PdoService:
                 self.send(ch, ch.sample(cells))
         applied = False
         for ch in self.sync_rpdos:
-            data = ch.latched
-            if data is not None:
+            latched = ch.latched
+            if latched is not None:
                 ch.latched = None
-                self.apply(ch, data)
+                self.apply(ch, latched)
                 applied = True
         if applied and self.event_tpdos:
             self.poll_event_tpdos(now, sampled=True)

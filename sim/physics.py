@@ -123,7 +123,7 @@ class ArmPhysics:
 
     def __init__(self, truth: Truth, model: RobotModel | pin.Model, axes: list[AxisIO], *,
                  compiled: bool = True) -> None:
-        src = getattr(model, "model", model)
+        src: pin.Model = getattr(model, "model", model)
         names = tuple(src.names[1:])
         truth.check_model(names)
         n = src.nv

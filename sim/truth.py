@@ -241,6 +241,14 @@ class HandContact(Strict):
     normally_closed: bool = False  # the bit reads 1 while the button is not pressed (a stop: a cut wire stops)
 
 
+HandButton = Literal["mark", "stop", "teach"]
+
+
+def _default_buttons() -> dict[HandButton, HandContact]:
+    return {"mark": HandContact(bit=19), "stop": HandContact(bit=20, normally_closed=True),
+            "teach": HandContact(bit=21)}
+
+
 class HandTruth(Strict):
     """The guiding device on the simulated arm (sim/hand.py): a three-position enabling switch and buttons, wired to
     one drive's digital inputs (60FDh; CiA 402's manufacturer bits 16-31). The operator presses them
@@ -249,9 +257,7 @@ class HandTruth(Strict):
     joint: str | None = None  # the joint whose drive reads the contacts; None: the last joint (the wrist)
     enable_bits: list[Bit] = Field(default_factory=lambda: [16, 17], min_length=1, max_length=2)  # the middle position
     panic_bit: Bit | None = 18  # the squeezed position's contact (None: the device reports none)
-    buttons: dict[Literal["mark", "stop", "teach"], HandContact] = Field(
-        default_factory=lambda: {"mark": HandContact(bit=19), "stop": HandContact(bit=20, normally_closed=True),
-                                 "teach": HandContact(bit=21)})
+    buttons: dict[HandButton, HandContact] = Field(default_factory=_default_buttons)
     bounce_ms: Annotated[float, Field(ge=0, le=20), Expect("milliseconds in [0, 20]")] = 0.0  # contact bounce
 
     @model_validator(mode="after")
