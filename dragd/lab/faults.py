@@ -142,7 +142,7 @@ def run_hand_fault(rig: Rig, name: str) -> dict[str, Any]:
         nonlocal max_speed, max_drift
         s = rig.sim_call("state")
         max_speed = max(max_speed, max(abs(v) for v in s["dq_rad_s"]))
-        max_drift = max(max_drift, max(abs(a - b) for a, b in zip(s["q_rad"], q0)))
+        max_drift = max(max_drift, max(abs(a - b) for a, b in zip(s["q_rad"], q0, strict=True)))
 
     def saw(st: dict[str, Any]) -> dict[str, Any]:
         for f in st["faults"][len(st["faults"]) - (st["fault_count"] - before["fault_count"]):]:
@@ -242,7 +242,8 @@ def drag_at_rest(rig: Rig, timeout_s: float = 20.0) -> None:
         else:
             rig.sleep(0.1)
     st = rig.must('status')
-    raise RuntimeError(f"the arm did not reach drag within {timeout_s:.0f} s: {st['mode']}, faults {[f['text'] for f in st['faults']][-4:]}")
+    raise RuntimeError(f"the arm did not reach drag within {timeout_s:.0f} s: {st['mode']}, "
+                       f"faults {[f['text'] for f in st['faults']][-4:]}")
 
 
 def run_fault(rig: Rig, name: str) -> dict[str, Any]:
@@ -269,7 +270,7 @@ def run_fault(rig: Rig, name: str) -> dict[str, Any]:
         nonlocal max_speed, max_drift
         s = rig.sim_call("state")
         max_speed = max(max_speed, max(abs(v) for v in s["dq_rad_s"]))
-        max_drift = max(max_drift, max(abs(a - b) for a, b in zip(s["q_rad"], q0)))
+        max_drift = max(max_drift, max(abs(a - b) for a, b in zip(s["q_rad"], q0, strict=True)))
 
     t_now = rig.now()  # (lockstep: the arm's time stands still until the next grant: the injection lands now)
     injected = rig.sim_call("inject", kind=case.kind, **case.args)
