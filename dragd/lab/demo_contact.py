@@ -15,7 +15,7 @@ Two sessions of the simulated robot and the daemon (separate processes, as ``dra
 
 Figures: per contact the detection delay (the daemon's event start − the contact force's start, both in the arm's
 time), the peak contact force, the time from the detection until the arm stopped (every joint below
-``STOPPED_RAD_S``) and how far the struck point travelled from the detection; false alarms per free run; in drag the
+``STOPPED_RAD_S`` from then on) and how far the struck point travelled from the detection; false alarms per free run; in drag the
 hand-force error against the truth where the truth is above 10 N.
 """
 
@@ -36,7 +36,9 @@ STRIKE_LINK = "link3"  # the forearm
 STRIKE_POINT_M = (0.0, 0.0, 0.15)  # on it (the link's frame)
 IMPACT_N = 60.0
 IMPACT = {"profile": "half_sine", "duration_s": 0.1}  # a 60 N impact: 100 ms half-sine
-STOPPED_RAD_S = 0.01  # the arm counts as stopped once every joint is slower than this
+STOPPED_RAD_S = 0.01  # the arm counts as stopped once every joint is slower than this ...
+STAYS_S = 0.2  # ... and stays so (for at least this long, within STOP_WINDOW_S of the detection)
+STOP_WINDOW_S = 0.5  # (the demo starts nothing else within it)
 HAND_PUSHES_N = ([18.0, 0.0, 0.0], [0.0, -22.0, 0.0], [0.0, 12.0, 16.0], [-15.0, 10.0, -10.0])  # drag: at the grip
 HAND_FORCE_MIN_N = 10.0
 CALIBRATION_SEED = 3  # the calibration's Fourier excitation; the detection session's identification runs use others  # the hand-force error is judged where the true force is above this
@@ -277,12 +279,15 @@ def strike_figures(res: dict[str, Any], rows: dict[str, np.ndarray], model: Any)
     t_det = res["t_detect_s"]
     k0 = int(np.searchsorted(t, t_det))
     speed = np.abs(rows["dq_rad_s"]).max(axis=1)
-    after = np.nonzero(speed[k0:] < STOPPED_RAD_S)[0]
     res["speed_at_detection_rad_s"] = round(float(speed[min(k0, len(t) - 1)]), 4)
-    if not after.size:
+    # stopped: from the first sample after which every joint stays slower than STOPPED_RAD_S for STAYS_S (a
+    # rebound's turning point is not a stop)
+    k_end = int(np.searchsorted(t, t_det + STOP_WINDOW_S))
+    moving = np.nonzero(speed[k0:k_end] >= STOPPED_RAD_S)[0]
+    k1 = k0 + (int(moving[-1]) + 1 if moving.size else 0)
+    if k1 >= len(t) or t[min(k_end, len(t) - 1)] - t[k1] < STAYS_S:
         res["stopped_after_ms"] = None
         return res
-    k1 = k0 + int(after[0])
     res["stopped_after_ms"] = round(1000.0 * (t[k1] - t_det), 1)
     if res.get("t_contact_end_s") is not None:  # (the contact's force may push the arm after the detection)
         res["stopped_after_contact_end_ms"] = round(1000.0 * (t[k1] - res["t_contact_end_s"]), 1)
@@ -458,6 +463,8 @@ def run_contact_demo(config: Path | None = None, out: Path | None = None, progre
         rig.sleep(1.8 * len(HAND_PUSHES_N) + 0.2)
         t_to = rig.must("status")["t_s"]
         trace = rig.sim_call("operator_trace", timeout_s=30.0, since_t_s=clocks.offset_s + t_from)
+        (work / "hand_truth.json").write_text(json.dumps({"offset_s": clocks.offset_s, "t_from_s": t_from,
+                                                         "t_to_s": t_to, "trace": trace}))
         status = rig.must("status")
         rig.must("stop")
         codes = rig.close()
