@@ -16,7 +16,8 @@ import pytest
 
 from dragd.config import load_config
 from dragd.lab.demo_contact import (IMPACT_N, STRIKE_LINK, STRIKE_POINT_M, Clocks, calibrate_session, detection_config,
-                                    hand_force_error, head_on, point_position, strike_figures, strike_info)
+                                    hand_force_error, hand_force_offline, head_on, identify_session, point_position,
+                                    strike_figures, strike_info)
 from dragd.lab.rig import Rig
 from dragd.model import RobotModel
 from dragd.telemetry.reader import read_rows
@@ -193,6 +194,10 @@ def test_free_motion_of_an_identification_run_raises_nothing(tmp_path, bands):
 
 
 def test_the_hand_force_in_drag_matches_the_operators_true_force(tmp_path, bands):
+    """In drag the residual is the operator's hand plus the model's error: the force at the grip point against the
+    operator's true force. The daemon runs the configuration's model (no rotor inertias); the same drag through the
+    identified model (``identify fit --method full`` on the calibration's recording, the cycle's arithmetic) must be
+    within 15 % of the force above 10 N (issue #29 item 7)."""
     with _rig(tmp_path, bands) as rig:
         clocks = Clocks(rig)
         rig.must("mode", mode="drag")
@@ -209,8 +214,14 @@ def test_the_hand_force_in_drag_matches_the_operators_true_force(tmp_path, bands
         trace = rig.sim_call("operator_trace", since_t_s=clocks.offset_s + t_from)
         rig.must("stop")
     assert mid["watching"] == "drag" and mid["hand_force_N"] is not None and len(mid["grip_m"]) == 3
-    rows = read_rows(tmp_path / "t.mcap", ["t_s", "hand_force_N"])
+    rows = read_rows(tmp_path / "t.mcap", ["t_s", "q_rad", "dq_rad_s", "current_measured_A", "hand_force_N"])
     err = hand_force_error(trace, clocks.offset_s, rows, t_from, t_to)
+    identified = identify_session(None, Path(bands).parent)
+    cfg = load_config(tmp_path / "contact-config.yaml")
+    est = hand_force_offline(identified, cfg, rows, t_from, t_to)
+    err_id = hand_force_error(trace, clocks.offset_s, est, t_from, t_to)
+    assert err_id["samples"] > 1000 and err_id["error_rel_median"] <= 0.15, err_id
+    assert err_id["error_rel_median"] < err["error_rel_median"], (err_id, err)
     assert err["settled_samples"] > 500, err
     # along the true force and of its size: the configuration's model lacks the rotor inertias (J_a·q̈ of the arm the
     # push accelerates is missing from the estimate: ~0.6-0.8 of the force; docs/CONTACT.md "The hand's force")

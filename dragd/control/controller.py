@@ -299,12 +299,13 @@ class Controller:
         self.track.begin(traj, self.t, q, rate, cycles)
         self.set_mode(Mode.TRACK)
 
-    def end_track(self, outcome: str, q: np.ndarray, hold_at_ref: bool = True) -> None:
-        """Leave TRACK for HOLD (at the reference, or where the arm is); the daemon returns the drives to CST."""
+    def end_track(self, outcome: str, q: np.ndarray, hold_at_ref: bool = True, ramp_s: float | None = None) -> None:
+        """Leave TRACK for HOLD (at the reference, or where the arm is; the hold's law in over ``ramp_s``, default
+        the mode ramp); the daemon returns the drives to CST."""
         self.q_hold[:] = self.track.q_ref if hold_at_ref else q
         cycle = self.track.cycle
         tr = self.track.end()
-        self.set_mode(Mode.HOLD)
+        self.set_mode(Mode.HOLD, ramp_s=ramp_s)
         self.events.append(Event("track_end", self.t, text=outcome,
                                  fields={"label": tr.label if tr else None, "cycle": cycle}))
 
@@ -352,8 +353,10 @@ class Controller:
             if isinstance(res, Trip):
                 self.events.append(Event("protective_stop", t, res.joint, res.text, fields={"kind": res.kind}))
                 self.end_track(f"{res.kind}: {res.text}", est.q_rad, hold_at_ref=False)
-            elif res is not None:  # (after a contact's protective stop: held where the arm came to rest)
-                self.end_track(res, est.q_rad, hold_at_ref=self.track.state != "quick_stop")
+            elif res is not None and self.track.state == "quick_stop":  # a contact's stop: held where it rests
+                self.end_track(res, est.q_rad, hold_at_ref=False, ramp_s=self.guard_hold_ramp_s)
+            elif res is not None:
+                self.end_track(res, est.q_rad)
 
     def _hold_step(self, est: Estimate) -> None:
         """HOLD: move the hold pose toward ``hold_move`` at ``hold_move_speed``; average the measured current

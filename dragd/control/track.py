@@ -25,8 +25,8 @@ GRACE_S = 0.05  # after a long loop stall the monitors count only at twice their
 CST_FADE_S = 0.2  # a CST joint's integral fades with this time constant while its reference rests
 MOVING_RAD_S = 0.005  # a joint's reference moves (its loop's integral learns) above this speed
 QUICK_STOP_MIN_S = 0.02  # a protective stop's deceleration takes at least this long (a slow arm: a smooth catch)
-QUICK_STOP_REST_RAD_S = 0.01  # ... and ends once every joint has been slower than this after the profile
-QUICK_STOP_REST_S = 0.05  # ... for this long (not a rebound's turning point)
+QUICK_STOP_REST_RAD_S = 0.01  # ... and ends once every joint is slower than this after the profile: held there at
+QUICK_STOP_REST_S = 0.0  # once (a contact's rebound caught at its turning point: no return into the contact)
 QUICK_STOP_SETTLE_S = 0.5  # ... or this long after the profile (a contact that keeps pushing)
 
 
@@ -247,9 +247,10 @@ class Track:
         1.5·v₀/T ≤ ``decel_rad_s2``, the jerk ≤ 6·v₀/T² ≤ ``jerk_rad_s3``; the stop takes v₀·T/2. dragd's
         position loop holds every joint on it beside the drive's own (an identification track has none otherwise)
         with the full-authority gains of replay.cst_* (the replay's outer loop is bounded to 0.6 A: too little
-        against a contact), the integral frozen. Ends (``outcome``) once every joint has been slower than
-        QUICK_STOP_REST_RAD_S for QUICK_STOP_REST_S after the profile, at most QUICK_STOP_SETTLE_S later; the arm
-        is then held where it rests. Returns T. Rare path."""
+        against a contact), the integral frozen. Ends (``outcome``) once every joint is slower than
+        QUICK_STOP_REST_RAD_S after the profile (at most QUICK_STOP_SETTLE_S later); the controller then holds the
+        arm where it rests, taking over within ``safety.guard.hold_ramp_s``: a contact that displaced the arm is not
+        undone by the loop's spring pulling it back (into the contact). Returns T. Rare path."""
         v = np.abs(dq)
         T = max(QUICK_STOP_MIN_S, float(np.max(1.5 * v / decel_rad_s2)), float(np.max(np.sqrt(6.0 * v / jerk_rad_s3))))
         self._qs_q0[:] = q
