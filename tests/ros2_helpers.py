@@ -7,7 +7,6 @@ import os
 import sys
 import threading
 import time
-from collections.abc import Callable
 from typing import Any
 
 import pytest
@@ -77,10 +76,6 @@ class Probe:
         with self.lock:
             return [m for _t, m in self.heard.get(topic, [])]
 
-    def stamped(self, topic: str) -> list[tuple[float, Any]]:
-        with self.lock:
-            return list(self.heard.get(topic, []))
-
     def call(self, srv_type: Any, name: str, request: Any = None, timeout_s: float = 60.0) -> Any:
         client = self.node.create_client(srv_type, name)
         try:
@@ -101,26 +96,5 @@ class Probe:
     def publisher(self, msg_type: Any, topic: str, qos: Any = 10) -> Any:
         return self.node.create_publisher(msg_type, topic, qos)
 
-    def every(self, period_s: float, fn: Callable[[], None]) -> Repeat:
-        return Repeat(self, period_s, fn)
-
     def now_ns(self) -> int:
         return int(self.node.get_clock().now().nanoseconds)
-
-
-class Repeat:
-    """``fn`` every ``period_s`` on the probe's executor until ``stop`` (which holds once it returns)."""
-
-    def __init__(self, probe: Probe, period_s: float, fn: Callable[[], None]) -> None:
-        self.probe, self.fn, self.on = probe, fn, True
-        self.timer = probe.node.create_timer(period_s, self._tick)
-
-    def _tick(self) -> None:
-        with self.probe.lock:
-            if self.on:
-                self.fn()
-
-    def stop(self) -> None:
-        with self.probe.lock:
-            self.on = False
-        self.timer.cancel()

@@ -33,9 +33,12 @@ from __future__ import annotations
 
 import asyncio
 import datetime
+import faulthandler
 import json
 import os
 import signal
+import sys
+import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -45,6 +48,7 @@ from dragd.client import Client, CommandError, DaemonUnavailable
 from dragd.ros2 import convert
 
 CONNECT_RETRY_S = 1.0
+SHUTDOWN_GUARD_S = 15.0  # SIGTERM: the stream and the lease are closed within ~2 s; a teardown stuck longer ends here
 OPEN_RETRY_S = 1.0  # a stream_open the daemon refused (not in hold) is tried again after this long
 RESUMABLE = ("timeout", "closed")  # stream ends after which new commands may open a new stream by themselves
 
@@ -130,7 +134,20 @@ class Bridge:
     # ------------------------------------------------------------------------------------------ running
 
     def stop(self) -> None:
+        if not self._stop.is_set():
+            guard = threading.Timer(SHUTDOWN_GUARD_S, self._stuck)
+            guard.daemon = True
+            guard.start()
         self._stop.set()
+
+    @staticmethod
+    def _stuck() -> None:
+        """The teardown after SIGTERM (daemon connections, the middleware) did not end: say where, then exit (the
+        daemon's stream deadline and lease end what the bridge held, as for a bridge that died)."""
+        print(f"dragd ros2: the shutdown did not finish within {SHUTDOWN_GUARD_S:g} s; exiting (where it stood:)",
+              file=sys.stderr, flush=True)
+        faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
+        os._exit(1)
 
     async def run(self) -> int:
         from dragd.ros2.node import RosNode
