@@ -47,6 +47,7 @@ def _session(seconds: float, config: Any) -> dict[str, Any]:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from sensor_msgs.msg import JointState
+    from std_srvs.srv import SetBool
 
     from dragd.lab.rig import DEPLOYED_PRIORITY
 
@@ -78,6 +79,7 @@ def _session(seconds: float, config: Any) -> dict[str, Any]:
 
         node.create_subscription(JointState, "/joint_states", heard, 100)
         pub = node.create_publisher(JointState, "/dragd/joint_commands", 10)
+        streaming: Any = node.create_client(SetBool, "/dragd/streaming")
         ex = SingleThreadedExecutor(context=ctx)
         ex.add_node(node)
         spin = threading.Thread(target=ex.spin, daemon=True)
@@ -109,6 +111,7 @@ def _session(seconds: float, config: Any) -> dict[str, Any]:
             for rate in RATES_HZ:
                 rig.wait_for(lambda: rig.must("status")["mode"] == "hold"
                              and rig.must("status")["drive_mode"] == "cst", 10.0, "hold in CST")
+                _follow_commands(streaming)  # (a rate refused before latched the bridge: each rate starts afresh)
                 q0 = np.array(rig.must("state")["q_rad"])
                 s0 = rig.must("status")
                 first = ((s0["stream"] or {}).get("opened") or 0) + 1
@@ -120,7 +123,8 @@ def _session(seconds: float, config: Any) -> dict[str, Any]:
                 stream = s1["stream"] or {}
                 rates.append({"rate_Hz": rate, "published": sent, "daemon_samples": stream.get("samples"),
                               "streams_opened": (stream.get("opened") or 0) - first + 1,
-                              "stream_end": stream.get("end"), "missed_cycles": s1["missed_cycles"] - s0["missed_cycles"],
+                              "stream_end": stream.get("end"), "outcome": stream.get("outcome"),
+                              "missed_cycles": s1["missed_cycles"] - s0["missed_cycles"],
                               "refused": stream.get("refused"), "dry_cycles": stream.get("dry_cycles"),
                               "period_max_us": s1["period_max_us"], "bridge_cpu_pct": (b1 - b0) / seconds * 100.0,
                               "faults": s1["faults"][-1:]})
@@ -149,6 +153,19 @@ def _session(seconds: float, config: Any) -> dict[str, Any]:
         else:
             next(r for r in out["rates"] if r["rate_Hz"] == key).update(split)
     return out
+
+
+def _follow_commands(client: Any) -> None:
+    """``~/streaming true``: the bridge follows commands again (a refusal latches it until then)."""
+    from std_srvs.srv import SetBool
+
+    if not client.wait_for_service(timeout_sec=30.0):
+        raise BenchError("the bridge's ~/streaming service did not appear")
+    done = threading.Event()
+    fut = client.call_async(SetBool.Request(data=True))
+    fut.add_done_callback(lambda _f: done.set())
+    if not done.wait(30.0) or not fut.result().success:
+        raise BenchError(f"~/streaming true: {fut.result() if fut.done() else 'no answer within 30 s'}")
 
 
 def _stream(node: Any, pub: Any, names: list[str], q0: np.ndarray, rate: float, seconds: float) -> int:
