@@ -157,6 +157,9 @@ class Keepalive:
 
     def _tick(self) -> None:
         before = self._lease() if self.follow else {}
+        if self.follow and self.first:  # the bridge's clock is at this time (it stamps the keepalive with it)
+            t = round(self.rig.now() * 1e9)
+            heard(lambda: stamp_ns_clock(self.p) == t, "the bridge's clock at this time", self.bridge)
         self.pub.publish(self.m["Empty"]())
         if not self.follow:
             return
@@ -190,7 +193,7 @@ def test_bridge_publishes_serves_follows_commands_and_trajectories(tmp_path):
             assert p.messages("/robot_description")[-1].data == open(robot["urdf_path"]).read()
             assert p.messages("/dragd/mode")[-1].data == "idle"
             t0 = rig.now()
-            rig.wait_for(lambda: p.messages("/diagnostics") and p.messages("/joint_states"), 3.0, "the bridge's topics")
+            heard(lambda: p.messages("/diagnostics") and p.messages("/joint_states"), "the bridge's first", bridge)
             start = p.call(m["Trigger"], "/dragd/start")
             assert start.success and '"mode": "hold"' in start.message, start
             heard(lambda: p.messages("/dragd/mode")[-1].data == "hold", "mode hold on ~/mode", bridge)

@@ -165,6 +165,8 @@ class Bridge:
         self.daemon_t = float(clock["t_s"]) if self.lockstep else 0.0
         self.node = RosNode(self, loop, self.joints, robot.get("urdf"), self.ros_args, self.node_name,
                             sim_time=self.lockstep)
+        if self.lockstep:
+            self.node.publish_clock(round(self.daemon_t * 1e9))  # (the graph's use_sim_time nodes: the time at once)
         if self.rate_override is not None:
             self.node.set_parameter("joint_states_rate_Hz", float(self.rate_override))
         self.stream_enabled = bool(self.node.param("stream.enabled"))
