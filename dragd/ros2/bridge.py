@@ -117,13 +117,15 @@ class Bridge:
         if not self.lockstep:
             await asyncio.sleep(seconds)
             return
-        until = self.now() + seconds
-        async with self._time_moved:
-            await self._time_moved.wait_for(lambda: self.now() >= until - 1e-9)
+        start = self.now()
+        until = start + seconds
+        async with self._time_moved:  # (a daemon that restarted starts its time again: that wakes it too)
+            await self._time_moved.wait_for(lambda: self.now() >= until - 1e-9 or self.now() < start)
 
     async def _daemon_time(self, t_s: float) -> bool:
-        """A ``state`` answer's time (lockstep: the bridge's clock moves, ``/clock`` says so); True if it moved."""
-        if not self.lockstep or t_s <= self.daemon_t:
+        """A ``state`` answer's time (lockstep: the bridge's clock moves, ``/clock`` says so); True if it moved (back
+        only for a daemon that restarted)."""
+        if not self.lockstep or t_s == self.daemon_t:
             return False
         self.daemon_t = t_s
         self.node.publish_clock(round(t_s * 1e9))
@@ -162,7 +164,7 @@ class Bridge:
         self.program_dir = str(robot.get("program_dir") or "")
         clock = (await self.poll.call("clock"))["clock"]
         self.lockstep = bool(clock.get("lockstep"))
-        self.daemon_t = float(clock["t_s"]) if self.lockstep else 0.0
+        self.daemon_t = float((await self.poll.call("state"))["t_s"]) if self.lockstep else 0.0  # (the polls' source)
         self.node = RosNode(self, loop, self.joints, robot.get("urdf"), self.ros_args, self.node_name,
                             sim_time=self.lockstep)
         if self.lockstep:
@@ -270,7 +272,10 @@ class Bridge:
                 st = await self._call(self.poll, "state")
                 self.state = st
                 if self.lockstep:
+                    restarted = float(st["t_s"]) < self.daemon_t
                     await self._daemon_time(float(st["t_s"]))
+                    if restarted:
+                        sim_due = self.daemon_t
                     if self.daemon_t >= sim_due - 1e-9:  # (on the grid of its periods; behind it: no catching up)
                         self.node.publish_joint_states(st, round(float(st["t_s"]) * 1e9))
                         sim_due += self._period("joint_states_rate_Hz")
