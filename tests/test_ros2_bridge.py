@@ -22,7 +22,8 @@ from dragd.lab.rig import Child, Rig, wait_until
 
 from ros2_helpers import Probe, needs_ros2, start_bridge
 
-pytestmark = [pytest.mark.lockstep, needs_ros2]
+# one worker for the module: every bridge is node /dragd in this process's DDS domain (ros2_helpers.ros_env)
+pytestmark = [pytest.mark.lockstep, needs_ros2, pytest.mark.xdist_group("ros2_bridge")]
 
 STEP = np.array([0.25, -0.15, 0.2, 0.3, -0.25, 0.3])
 HEARD_S = 60.0  # a hang guard in wall time for what the bridge says (no verdict: the arm's time stands still meanwhile)
