@@ -49,6 +49,7 @@ class Probe:
         self.node = rclpy.create_node("dragd_test_probe", context=self.context)
         self.lock = threading.Lock()
         self.heard: dict[str, list[Any]] = {}
+        self.subscriptions: dict[str, Any] = {}
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.thread = threading.Thread(target=self._spin, daemon=True)
@@ -72,7 +73,12 @@ class Probe:
             with self.lock:
                 self.heard[topic].append((time.monotonic(), msg))
 
-        self.node.create_subscription(msg_type, topic, got, qos)
+        self.subscriptions[topic] = self.node.create_subscription(msg_type, topic, got, qos)
+
+    def matched(self) -> bool:
+        """Every topic listened to has a publisher matched (what is published from now on reaches this node: a
+        message published before the match is not delivered, a latched one excepted)."""
+        return all(sub.get_publisher_count() > 0 for sub in self.subscriptions.values())
 
     def messages(self, topic: str) -> list[Any]:
         with self.lock:

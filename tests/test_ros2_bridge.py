@@ -62,6 +62,21 @@ def status_texts(p: Probe, name: str) -> list[tuple[int, str]]:
     return [(s.level[0], s.message) for s in p.messages("/dragd/status") if s.name == name]
 
 
+def bridging(rig: Rig, p: Probe, *ros_args: str) -> Child:
+    """``dragd ros2`` beside the rig's daemon, its topics matched to the probe's subscriptions (what it publishes from
+    then on arrives: the arm's time stands still until the test grants it, and with it the bridge's publishing)."""
+    bridge = start_bridge(rig, *ros_args)
+    heard(p.matched, "the bridge's topics matched to the probe", bridge)
+    return bridge
+
+
+def publisher(p: Probe, msg_type, topic: str, bridge: Child):
+    """A publisher of the probe, matched to the bridge's subscription before anything is published."""
+    pub = p.publisher(msg_type, topic)
+    heard(lambda: pub.get_subscription_count() > 0, f"the bridge's subscription of {topic}", bridge)
+    return pub
+
+
 def heard(cond: Callable[[], object], what: str, bridge: Child) -> None:
     """Wait (wall time, the arm's time standing still) for what the bridge says or does without needing arm time."""
     wait_until(lambda: bool(cond()), HEARD_S, what, bridge, interval_s=0.005)
@@ -95,7 +110,7 @@ class Streamer:
                  path: Callable[[float], np.ndarray] | None = None) -> None:
         self.rig, self.p, self.m, self.bridge, self.names, self.q0, self.T = rig, p, m, bridge, list(names), q0, T
         self.path = path or self.q
-        self.pub = p.publisher(m["JointState"], "/dragd/joint_commands")
+        self.pub = publisher(p, m["JointState"], "/dragd/joint_commands", bridge)
         self.follow = True
         self.sent = 0
         self.first: int | None = None  # commands sent when the stream opened
@@ -144,7 +159,7 @@ class Keepalive:
 
     def __init__(self, rig: Rig, p: Probe, m, bridge: Child) -> None:
         self.rig, self.p, self.m, self.bridge = rig, p, m, bridge
-        self.pub = p.publisher(m["Empty"], "/dragd/drag_keepalive")
+        self.pub = publisher(p, m["Empty"], "/dragd/drag_keepalive", bridge)
         self.follow = True
         self.first = True
         self._present = self._present_count()
@@ -187,13 +202,14 @@ def test_bridge_publishes_serves_follows_commands_and_trajectories(tmp_path):
         robot = rig.must("robot")
         names = robot["joint_names"]
         p = listening(m)
-        bridge = start_bridge(rig)
+        bridge = bridging(rig, p)
         try:
             # --- what it publishes, on the daemon's clock
             heard(lambda: p.messages("/robot_description") and p.messages("/dragd/mode"), "the latched topics", bridge)
             assert p.messages("/robot_description")[-1].data == open(robot["urdf_path"]).read()
             assert p.messages("/dragd/mode")[-1].data == "idle"
             t0 = rig.now()
+            rig.sleep(1.0)  # (/diagnostics at 1 Hz of the daemon's time, /joint_states at 100 Hz)
             heard(lambda: p.messages("/diagnostics") and p.messages("/joint_states"), "the bridge's first", bridge)
             start = p.call(m["Trigger"], "/dragd/start")
             assert start.success and '"mode": "hold"' in start.message, start
@@ -264,8 +280,7 @@ def test_bridge_publishes_serves_follows_commands_and_trajectories(tmp_path):
             rig.wait_for(lambda: rig.must("status")["drive_mode"] == "cst", 5.0, "CST")
             here = np.array(rig.must("state")["q_rad"])
             mid_q = (here + q0) / 2
-            pub_t = p.publisher(m["JointTrajectory"], "/dragd/joint_trajectory")
-            heard(lambda: pub_t.get_subscription_count() > 0, "the bridge's trajectory subscription", bridge)
+            pub_t = publisher(p, m["JointTrajectory"], "/dragd/joint_trajectory", bridge)
             # (the joints in another order than the URDF's: the bridge reorders by name)
             order = list(reversed(range(len(names))))
             pub_t.publish(trajectory(m, [names[i] for i in order], [(1.5, mid_q[order]), (3.0, q0[order])]))
@@ -332,13 +347,12 @@ def test_bridge_refuses_what_the_daemon_refuses_with_the_reason(tmp_path):
         robot = rig.must("robot")
         names = robot["joint_names"]
         p = listening(m)
-        bridge = start_bridge(rig)
+        bridge = bridging(rig, p)
         try:
             assert p.call(m["Trigger"], "/dragd/start").success
             rig.sleep(0.5)
             q0 = np.array(rig.must("state")["q_rad"])
-            pub_t = p.publisher(m["JointTrajectory"], "/dragd/joint_trajectory")
-            heard(lambda: pub_t.get_subscription_count() > 0, "the bridge's trajectory subscription", bridge)
+            pub_t = publisher(p, m["JointTrajectory"], "/dragd/joint_trajectory", bridge)
             beyond = q0.copy()
             beyond[1] = robot["position_limits_rad"][1][0] - 0.05  # joint2 below its lower limit
             pub_t.publish(trajectory(m, names, [(2.0, beyond)]))
@@ -381,7 +395,7 @@ def test_bridge_killed_mid_drag_ends_drag(tmp_path):
         rig.start_sim()
         rig.start_daemon()
         p = listening(m)
-        bridge = start_bridge(rig)
+        bridge = bridging(rig, p)
         try:
             assert p.call(m["Trigger"], "/dragd/start").success
             alive = Keepalive(rig, p, m, bridge)  # the client stays alive: only the bridge dies
@@ -423,7 +437,7 @@ def test_bridge_services_teach_replay_payload_and_check(tmp_path):
         rig.start_daemon()
         p = listening(m)
         # arguments std_srvs cannot carry are the node's parameters (here given on the command line)
-        bridge = start_bridge(rig, "-p", "teach.name:=ros2prog", "-p", "payload.mass_kg:=0.5", "-p",
+        bridge = bridging(rig, p, "-p", "teach.name:=ros2prog", "-p", "payload.mass_kg:=0.5", "-p",
                               "payload.com_m:=[0.0, 0.0, 0.05]", "-p", "payload.poses:=3", "-p",
                               "check_model.step_rad:=0.1", "-p", "replay.speed:=0.5")
         T = m["Trigger"]
