@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from dragd.clock import Clock, WallClock
 from dragd.control.controller import Controller, Estimate
 from dragd.control.estimate import VelocityEstimator
 from dragd.control.modes import Mode
@@ -30,7 +31,6 @@ from dragd.hardware.drives import DriveSupervisor, Target
 from dragd.hardware.io import BusIO, Feedback
 from dragd.hardware.scaling import Scaling
 from dragd.model import RobotModel
-from dragd.clock import Clock, WallClock
 from dragd.stats import Histogram
 
 if TYPE_CHECKING:
@@ -60,7 +60,8 @@ class Cycle:
         self._last_hb_t = -1e9
         self.hold_after, self.disable_after = stale_cycles_hold, stale_cycles_disable
         self.node_ids = node_ids
-        self.est = Estimate(np.zeros(n), velocity.velocity_rad_s, np.zeros(n), np.zeros(n), np.zeros(n),
+        self._p_Nms = np.zeros(n)  # the observers' momentum (the estimate's p_Nms)
+        self.est = Estimate(np.zeros(n), velocity.velocity_rad_s, np.zeros(n), np.zeros(n), self._p_Nms,
                             inputs=io.feedback.inputs, inputs_age=io.feedback.inputs_age)
         self.target_counts = np.zeros(n, dtype=np.int64)
         self.torque_permille = np.zeros(n, dtype=np.int64)
@@ -147,7 +148,7 @@ class Cycle:
         self.model.gravity_at(est.q_rad, self.t, est.tau_g_Nm)  # (blended while a payload change ramps in)
         watch = c.contact_want()  # the contact observer's mode ("": none)
         if watch or (c.mode == Mode.DRAG and c.guard is not None):
-            self.model.momentum(est.q_rad, est.dq_rad_s, est.p_Nms)  # the observers' p = M̄(q)·q̇
+            self.model.momentum(est.q_rad, est.dq_rad_s, self._p_Nms)  # the observers' p = M̄(q)·q̇
         if watch:  # the contact detector (HOLD, TRACK) or, in DRAG, the hand's force: one compiled call after these
             c.contact_step(est, self.model.coriolis(est.q_rad, est.dq_rad_s), worst)
             if watch == "drag" and self.model.grip_frame_id >= 0:

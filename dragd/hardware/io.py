@@ -27,6 +27,8 @@ from dragd.hardware.pdo import BusLayout, RpdoEncoder
 # joint, codec, and where the codec's values hold the position, the statusword, the current and the digital inputs
 # (-1: not in the frame)
 Decoder = tuple[int, struct.Struct, int, int, int, int]
+# a batching bus's prepared datagram, each command frame's (datagram view, encoder buffer), the frames themselves
+_Batch = tuple[PreparedBatch, list[tuple[memoryview, bytearray]], list[can.Message]]
 
 
 class Feedback:
@@ -85,7 +87,7 @@ class BusIO:
         self._heartbeat: list[tuple[can.BusABC, can.Message]] = []
         # per batching bus: its cyclic command frames and SYNC as one prepared datagram (each frame's payload copied
         # from its encoder's buffer when it leaves), and the frames themselves (``flush``)
-        self._batched: dict[can.BusABC, tuple[PreparedBatch, list[tuple[memoryview, bytearray]], list[can.Message]]] = {}
+        self._batched: dict[can.BusABC, _Batch] = {}
         self._commands_wait = False  # write() left cyclic command frames for the next SYNC
         for name, layout in layouts.items():
             bus = buses[name]
@@ -109,8 +111,8 @@ class BusIO:
                 frames = [(msg.arbitration_id, len(enc.buffer), fd) for msg, enc in synced] + [(SYNC_COB_ID, 0, False)]
                 assert isinstance(bus, UdpMulticastCanBus)
                 batch = bus.prepare(frames)
-                self._batched[bus] = (batch, [(view, enc.buffer) for view, (_, enc) in zip(batch.data, synced)],
-                                      [msg for msg, _ in synced])
+                views = [(view, enc.buffer) for view, (_, enc) in zip(batch.data, synced, strict=False)]  # (+ SYNC)
+                self._batched[bus] = (batch, views, [msg for msg, _ in synced])
             self._heartbeat.append((bus, can.Message(arbitration_id=HEARTBEAT_BASE + master_node_id, data=b"\x05",
                                                      is_extended_id=False)))
             if isinstance(bus, UdpMulticastCanBus):  # the TPDOs read by their template, without unpacking maps

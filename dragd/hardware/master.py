@@ -33,15 +33,27 @@ import canopen
 from canopen.objectdictionary import ODVariable
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
-from dragd.hardware.cia301 import HEARTBEAT_BASE, NMT_COB_ID, SYNC_COB_ID, NmtCommand
-from dragd.hardware.reader import BusReader
-from dragd.hardware.cia402 import (MODE_CSP, MODE_CST, OD_ABORT_CONNECTION_OPTION, OD_CONTROLWORD, OD_MAX_TORQUE,
-                                   OD_MODES_OF_OPERATION, OD_MODES_OF_OPERATION_DISPLAY, OD_QUICK_STOP_OPTION,
-                                   OD_STATUSWORD, OD_SUPPORTED_DRIVE_MODES, OD_TARGET_TORQUE, OD_TORQUE_OFFSET, VOLTAGE_ENABLED_STATES, decode_statusword)
 from dragd.config import Config, JointConfig
+from dragd.hardware.cia301 import HEARTBEAT_BASE, NMT_COB_ID, SYNC_COB_ID, NmtCommand
+from dragd.hardware.cia402 import (
+    MODE_CSP,
+    MODE_CST,
+    OD_ABORT_CONNECTION_OPTION,
+    OD_CONTROLWORD,
+    OD_MAX_TORQUE,
+    OD_MODES_OF_OPERATION,
+    OD_MODES_OF_OPERATION_DISPLAY,
+    OD_QUICK_STOP_OPTION,
+    OD_STATUSWORD,
+    OD_SUPPORTED_DRIVE_MODES,
+    OD_TARGET_TORQUE,
+    OD_TORQUE_OFFSET,
+    VOLTAGE_ENABLED_STATES,
+    decode_statusword,
+)
 from dragd.hardware.pdo import BusLayout, PdoSpec
-from dragd.hardware.profile import (CURRENT_UNITS_A, DEVICE_TYPE_402, TORQUE_UNITS_NM, DriveProfile, Profiles,
-                                    address)
+from dragd.hardware.profile import CURRENT_UNITS_A, DEVICE_TYPE_402, TORQUE_UNITS_NM, DriveProfile, Profiles, address
+from dragd.hardware.reader import BusReader
 from dragd.realtime import demote_current_thread
 
 COB_DEFINED_BITS = 0xA000_07FF  # CiA 301 PDO COB-ID: bit 31 valid, bit 29 frame (0: 11-bit), bits 10..0 the id
@@ -132,7 +144,8 @@ class Master:
         self.log = log
         # started during boot, before the cycle thread turns SCHED_FIFO; demoted anyway should it start later
         self.sdo_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dragd-sdo",
-                                             initializer=demote_current_thread, initargs=(set(cfg.loop.cpus or ()) or None,))
+                                             initializer=demote_current_thread,
+                                             initargs=(set(cfg.loop.cpus or ()) or None,))
         self.runtimes: dict[str, BusRuntime] = {}
         # every drive heartbeat (bus, node, NMT state byte), in the loop's thread: the daemon's comms monitor
         self.on_heartbeat: Callable[[str, int, int], None] | None = None
@@ -195,7 +208,8 @@ class Master:
         """Send an NMT command (node 0 = all nodes) on one bus or all."""
         for rt in self.runtimes.values():
             if bus is None or rt.name == bus:
-                rt.bus.send(can.Message(arbitration_id=NMT_COB_ID, data=bytes([command, node_id]), is_extended_id=False))
+                rt.bus.send(can.Message(arbitration_id=NMT_COB_ID, data=bytes([command, node_id]),
+                                        is_extended_id=False))
 
     async def boot(self) -> None:
         """Reset, check, configure and start every drive; DriveError with every node's failures (the drives left
