@@ -487,16 +487,14 @@ class Daemon:
                 bus.shutdown()
             raise
         self.attach(buses)
-        assert self.io is not None
-        self.master = Master(self.cfg, self.buses, self.layouts, loop, self.drives.profiles,
-                             {name: [self.io.listener(name)] for name in self.buses}, log=self.log,
-                             on_data={name: self.io.tpdo_decoder(name) for name in self.buses},
-                             after_frames=self.io.after_frames, read_done=self.io.read_done)
-        self.master.on_heartbeat = self.comms.on_heartbeat
-        self.motions.master = self.comms.master = self.master  # the CST ↔ CSP switch; NMT, a reboot's reconfiguration
         server = None
         comms: asyncio.Task[None] | None = None
         try:
+            # the cycle's I/O reads the buses; the SDO master's canopen networks listen through the same readers
+            self.master = Master(self.cfg, self.buses, self.layouts, loop, self.drives.profiles,
+                                 self.io.open_readers(loop), log=self.log)
+            self.master.on_heartbeat = self.comms.on_heartbeat
+            self.motions.master = self.comms.master = self.master  # the CST ↔ CSP switch; NMT, reconfiguration
             await self.master.boot()
             self.recorder.open_telemetry()
             rt: dict[str, Any] = {}
@@ -553,6 +551,7 @@ class Daemon:
                 await server.close()
             if self.master is not None:
                 await self.master.shutdown()
+            self.io.close_readers()
             await self.recorder.close(self.cycle.cycles)
             for bus in self.buses.values():
                 bus.shutdown()

@@ -118,7 +118,8 @@ class BusRuntime:
     network: canopen.Network
     layout: BusLayout
     nodes: dict[int, NodeInfo] = field(default_factory=dict)
-    notifier: BusReader | None = None  # (#32: python-can's public API only; was a can.Notifier subclass)
+    notifier: BusReader | None = None  # the bus's reader (canopen's Network reads through it)
+    own_reader: bool = False  # made by the master (stopped by it), not the cycle's I/O's
 
 
 STRUCT_TYPES = ODVariable.STRUCT_TYPES
@@ -132,13 +133,11 @@ class Master:
     """Boots and configures the drives of every bus; owns the canopen networks and the SDO worker thread."""
 
     def __init__(self, cfg: Config, buses: dict[str, can.BusABC], layouts: dict[str, BusLayout],
-                 loop: asyncio.AbstractEventLoop, profiles: Profiles, listeners: dict[str, list[can.Listener]],
-                 log: Callable[[str], None] = print,
-                 on_data: dict[str, Callable[[int, bytes | bytearray], bool]] | None = None,
-                 after_frames: Callable[[], None] | None = None, read_done: Callable[[], bool] | None = None) -> None:
-        """``profiles``: every joint's drive profile (its EDS); ``on_data`` (per bus) claims the cyclic TPDOs before
-        any ``can.Message``; ``after_frames`` runs after each wake-up's frames of any bus (the cycle's read step ends
-        there); ``read_done()`` true ends a wake-up's reading early (the cycle has every TPDO it waits for)."""
+                 loop: asyncio.AbstractEventLoop, profiles: Profiles, readers: dict[str, BusReader] | None = None,
+                 log: Callable[[str], None] = print) -> None:
+        """``profiles``: every joint's drive profile (its EDS). ``readers``: the buses' readers of the cycle's I/O
+        (``BusIO.open_readers``), which each bus's canopen network joins as listeners; a bus without one (tools,
+        tests: no cycle) is read by a reader of the master's own."""
         self.cfg = cfg
         self.loop = loop
         self.log = log
@@ -167,10 +166,13 @@ class Master:
             net.subscribe(SYNC_COB_ID, self._foreign_cb(name, "SYNC"))
             net.subscribe(HEARTBEAT_BASE + cfg.master.node_id, self._foreign_cb(name, f"heartbeat of node "
                                                                                   f"{cfg.master.node_id}"))
-            # --- the bus reader (#32: python-can's public API, hardware/reader.py) ---
-            rt.notifier = BusReader(bus, [*net.listeners, *listeners.get(name, [])], timeout=0.5, loop=loop,
-                                    on_data=(on_data or {}).get(name), after=after_frames, until=read_done)
-            net.notifier = rt.notifier  # type: ignore[assignment]  # canopen calls stop() and reads exception
+            reader = (readers or {}).get(name)
+            if reader is None:
+                reader, rt.own_reader = BusReader(bus, [], timeout=0.5, loop=loop), True
+            for listener in net.listeners:  # SDO answers, heartbeats, the foreign-master watch
+                reader.add_listener(listener)
+            rt.notifier = reader
+            net.notifier = reader  # type: ignore[assignment]  # canopen calls stop() and reads exception
             self.runtimes[name] = rt
 
     # ------------------------------------------------------------------------------------------ NMT
@@ -333,13 +335,13 @@ class Master:
         return "; ".join(reasons) or None
 
     async def shutdown(self) -> None:
-        """NMT pre-operational (PDOs and their watchdogs stop), stop the notifiers and the worker.
+        """NMT pre-operational (PDOs and their watchdogs stop), stop the readers the master made and the worker.
 
         A master that never took the bus (another master was heard) sends nothing."""
         if self.took_bus:
             self.nmt(NmtCommand.PRE_OPERATIONAL)
         for rt in self.runtimes.values():
-            if rt.notifier is not None:
+            if rt.notifier is not None and rt.own_reader:
                 rt.notifier.stop(timeout=0.5)
         self.sdo_worker.shutdown(wait=False, cancel_futures=True)
 
