@@ -247,7 +247,7 @@ def test_default_config_passes_the_cross_checks() -> None:
 
 
 def test_log_lines_carry_journald_priorities_under_systemd() -> None:
-    from dragd.daemon.core import LOG_ERR, journal_line
+    from dragd.daemon.faults import LOG_ERR, journal_line
 
     assert journal_line("fault at t=1.000 s: EMCY", LOG_ERR, journal=True) == "<3>dragd: fault at t=1.000 s: EMCY"
     assert journal_line("running", journal=True) == "<6>dragd: running"
@@ -256,7 +256,7 @@ def test_log_lines_carry_journald_priorities_under_systemd() -> None:
     d = Daemon(load_config(DEFAULT_CONFIG), bus_override="udp_multicast:239.74.200.3",
                log=lambda text, priority=6: lines.append((text, priority)))
     d.attach({"arm": can.Bus(interface="virtual", channel="unit-journal")})
-    d.fault(2, "EMCY 0x2310 from node 3")
+    d.fault_sink.fault(2, "EMCY 0x2310 from node 3")
     assert any(p == LOG_ERR and "fault at" in t for t, p in lines), lines
 
 

@@ -230,16 +230,14 @@ def test_payload_estimate_within_5pct_and_apply_stops_the_drift(tmp_path):
 
 @pytest.mark.slow
 def test_check_model_refuses_a_wrong_sign_and_passes_a_right_config():
-    from dragd.daemon.modelcheck import check_model
-
     ok = ClosedLoop()
     ok.start(1.0)
-    r = _drive(ok, check_model(ok.d))
+    r = _drive(ok, ok.d.model_check.run())
     assert r["ok"], r
     assert {row["joint"]: row["verdict"] for row in r["joints"]}["joint1"] == "not checkable here"  # vertical axis
     bad = ClosedLoop(wrong_sign=(2,))
     bad.start(1.0)
-    r = _drive(bad, check_model(bad.d))
+    r = _drive(bad, bad.d.model_check.run())
     assert not r["ok"]
     row = next(x for x in r["joints"] if x["joint"] == "joint3")
     assert row["verdict"] == "wrong sign" and "direction" in row["text"]

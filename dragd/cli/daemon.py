@@ -86,7 +86,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     try:
         import asyncio
 
-        return asyncio.run(daemon.run())
+        from dragd.daemon.commands import command_table
+
+        return asyncio.run(daemon.run(command_table))
     except DriveError as exc:
         raise CliError(str(exc), status=1) from None
     except can.CanError as exc:  # e.g. socketcan:can0 on a machine without that interface

@@ -24,12 +24,12 @@ import numpy as np
 
 from dragd.control.contact import ONSET
 from dragd.control.contact_watch import ContactWatch
-from dragd.control.guard import GuardSettings, RunawayGuard, guard_command_kernel, guard_kernel
 from dragd.control.fused import DragLaw
+from dragd.control.guard import GuardSettings, RunawayGuard, guard_command_kernel, guard_kernel
 from dragd.control.hand import HandInputs
-from dragd.control.permission import R_LEASE_CLOSED, R_LEASE_LAPSED, DragPermission
 from dragd.control.modes import MODE_NAMES, Mode
 from dragd.control.params import LawParams
+from dragd.control.permission import R_LEASE_CLOSED, R_LEASE_LAPSED, DragPermission
 from dragd.control.safety import SafetyTerms, safety_kernel
 from dragd.control.track import CstLoop, Track, TrackLimits, Trip
 from dragd.control.trajectory import Trajectory
@@ -219,7 +219,8 @@ class Controller:
         self.hold_rest_s = 0.0
         if mode == Mode.DRAG:
             self.breakout.reset(self.t)
-        self.events.append(Event("mode", self.t, fields={"mode": MODE_NAMES[mode], "previous": MODE_NAMES[self.prev_mode]}))
+        self.events.append(Event("mode", self.t, fields={"mode": MODE_NAMES[mode],
+                                                         "previous": MODE_NAMES[self.prev_mode]}))
 
     def start(self, q: np.ndarray) -> None:
         """Hold the pose ``q`` (the drives are being enabled); a running motion ends where the arm is."""
@@ -444,7 +445,8 @@ class Controller:
         if trip is None:
             return
         self.guard_trips += 1
-        self.last_trip = {"t_s": round(self.t, 4), "joint": self.names[trip.joint], "residual_Nm": round(trip.residual_Nm, 3),
+        self.last_trip = {"t_s": round(self.t, 4), "joint": self.names[trip.joint],
+                          "residual_Nm": round(trip.residual_Nm, 3),
                           "residual_A": round(trip.residual_A, 3), "speed_rad_s": round(trip.speed_rad_s, 4),
                           "payload_kg": None if trip.payload_kg != trip.payload_kg else round(trip.payload_kg, 3),
                           "unexplained": round(trip.unexplained, 3), "q_rad": est.q_rad.tolist()}

@@ -1,1 +1,2 @@
-"""The servo daemon: lifecycle, the cycle (read → estimate → compute → write → log), commands, motions, teach and recording."""
+"""The servo daemon: lifecycle, the cycle (read → estimate → compute → write → log), commands, motions, teach and
+recording."""

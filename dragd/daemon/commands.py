@@ -9,14 +9,16 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Awaitable, Callable
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from dragd.control.modes import MODE_NAMES, Mode
-from dragd.daemon import feed
 from dragd.hardware.cia402 import MODE_CST
 from dragd.hardware.master import DriveError
-from dragd.server import CommandTable
 from dragd.protocol import ControlError
+from dragd.server import CommandTable
 
 HOLD_WAIT_S = 3.0  # mode drag --accept waits this long beyond the settle time for the arm to rest in HOLD
 
@@ -123,15 +125,15 @@ def command_table(d: Daemon) -> CommandTable:
 
     @command("state")
     async def state() -> dict[str, Any]:
-        return feed.state(d)
+        return _state(d)
 
     @command("events")
     async def events(since: int = 0) -> dict[str, Any]:
-        return feed.events(d, since)
+        return _events(d, since)
 
     @command("robot")
     async def robot() -> dict[str, Any]:
-        return feed.robot(d)
+        return _robot(d)
 
     @command("record")
     async def record(action: str, path: str | None = None, label: str = "") -> dict[str, Any]:
@@ -211,9 +213,7 @@ def command_table(d: Daemon) -> CommandTable:
 
     @command("check_model")
     async def check_model(step_rad: float = 0.25) -> dict[str, Any]:
-        from dragd.daemon.modelcheck import check_model as run_check
-
-        return await run_check(d, float(step_rad))
+        return await d.model_check.run(float(step_rad))
 
     @command("clock")
     async def clock(action: str = "status", seconds: float | None = None) -> dict[str, Any]:
@@ -244,3 +244,37 @@ def command_table(d: Daemon) -> CommandTable:
         return {}
 
     return table
+
+
+def _state(d: Daemon) -> dict[str, Any]:
+    """The ``state`` command: the cycle's time, mode and joints, the effort K_t·I, what changed since (counters)."""
+    c, cy = d.controller, d.cycle
+    est = cy.est
+    return {"t_s": cy.t, "cycles": cy.cycles, "mode": MODE_NAMES[c.mode],
+            # what the operator asked for (a feedback hold shows hold, then returns to it by itself)
+            "requested_mode": MODE_NAMES[c.resume_mode if c.feedback_hold else c.mode],
+            "drives_enabled": d.supervisor.all_enabled,
+            "q_rad": est.q_rad.tolist(), "dq_rad_s": est.dq_rad_s.tolist(), "current_A": est.current_A.tolist(),
+            # the joint torque the drives' measured current gives through the model's torque constants
+            "effort_Nm": (est.current_A * c.kt).tolist(), "command_A": c.cmd_A.tolist(),
+            "fault_count": d.fault_sink.fault_count, "event_seq": d.recorder.events.seq, "stream": d.streams.status()}
+
+
+def _events(d: Daemon, since: int) -> dict[str, Any]:
+    if since < 0:
+        raise ValueError(f"since: expected an event number >= 0, got {since}")
+    got, lost = d.recorder.events.since(since)
+    return {"event_seq": d.recorder.events.seq, "events": got, "lost": lost}
+
+
+def _robot(d: Daemon) -> dict[str, Any]:
+    """The ``robot`` command: joint names (the URDF's), limits, torque constants, loop and stream settings, the URDF."""
+    cfg, c = d.cfg, d.controller
+    urdf = d.model.urdf_path
+    text = Path(urdf).read_text(encoding="utf-8") if urdf is not None else None
+    return {"joint_names": list(cfg.joint_names), "urdf_path": str(urdf) if urdf is not None else None, "urdf": text,
+            "rate_Hz": cfg.loop.rate_Hz,
+            "position_limits_rad": np.column_stack([c.safety.lim_lo_rad, c.safety.lim_hi_rad]).tolist(),
+            "velocity_limits_rad_s": [j.velocity_limit_rad_s for j in cfg.joints],
+            "current_limit_A": c.params.current_limit_A.tolist(), "kt_Nm_per_A": c.kt.tolist(),
+            "stream": cfg.stream.model_dump(), "program_dir": str(cfg.program_dir)}

@@ -14,17 +14,21 @@ Master hands every heartbeat (bus, node, NMT state) to ``on_heartbeat`` in the l
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from dragd.control.modes import Mode
+from dragd.daemon.faults import LOG_NOTICE, LOG_WARNING, FaultSink
 from dragd.hardware.cia301 import NmtCommand, NmtState
 from dragd.hardware.master import DriveError
 
-LOG_WARNING, LOG_NOTICE = 4, 5
-
 if TYPE_CHECKING:
-    from dragd.daemon.core import Daemon
+    from dragd.clock import Clock
+    from dragd.config import Config
+    from dragd.control.controller import Controller
+    from dragd.hardware.io import Feedback
+    from dragd.hardware.master import Master
 
 NMT_NAMES = {0x00: "boot-up", 0x04: "stopped", 0x05: "operational", 0x7F: "pre-operational"}
 CHECK_S = 0.01
@@ -51,12 +55,15 @@ class NodeComms:
 class CommsMonitor:
     """Heartbeat consumer of every drive (timeout: 3 producer periods) and the rejoin after a reboot or outage."""
 
-    def __init__(self, daemon: Daemon) -> None:
-        self.daemon = daemon
-        cfg = daemon.cfg
+    def __init__(self, cfg: Config, controller: Controller, feedback: Feedback, clock: Clock, faults: FaultSink,
+                 start: Callable[[], None]) -> None:
+        """``start()``: enable the drives and hold (the rejoin; ValueError when refused). ``master`` (NMT, the
+        reconfiguration of a rebooted drive) is set once the drives are booted."""
+        self.controller, self.feedback, self.faults, self.start = controller, feedback, faults, start
+        self.master: Master | None = None
         self.period_s = cfg.master.drive_heartbeat_ms * 1e-3
         self.timeout_s = max(0.05, 3.0 * self.period_s)
-        self.clock = daemon.clock
+        self.clock = clock
         now = self.clock.now()
         self.nodes = {(j.bus, j.node_id): NodeComms(i, j.bus, j.node_id, now) for i, j in enumerate(cfg.joints)}
         self.outage = False
@@ -100,8 +107,7 @@ class CommsMonitor:
         return self.enabled_seen >= 0 and self.enabled_seen >= since - 2 * CHECK_S
 
     def check(self, now: float) -> None:
-        d = self.daemon
-        c = d.controller
+        c, faults = self.controller, self.faults
         if c.mode not in (Mode.IDLE, Mode.FAULT):
             self.enabled_seen = now
         for n in self.nodes.values():
@@ -118,20 +124,20 @@ class CommsMonitor:
             elif not silent and n.lost:
                 n.lost = False
                 n.reported = None
-                d.log(f"node {n.node_id}: heartbeat back ({NMT_NAMES.get(n.state, hex(n.state))})")
+                faults.log(f"node {n.node_id}: heartbeat back ({NMT_NAMES.get(n.state, hex(n.state))})")
         lost = [n for n in self.nodes.values() if n.lost]
         if lost and len(lost) == len(self.nodes) and not self.outage:
             self.outage = True
             self.outages += 1
             # heartbeats are out of phase: the whole bus went quiet around the earliest last heartbeat
             self.rejoin = self.rejoin or self._was_enabled(min(n.last_hb for n in lost))
-            d.fault(None, f"bus outage: no heartbeat from any drive for {self.timeout_s * 1e3:.0f} ms "
+            faults.fault(None, f"bus outage: no heartbeat from any drive for {self.timeout_s * 1e3:.0f} ms "
                           "(bus off, link down or power lost)")
         elif not self.outage:
             for n in lost:  # one producer period later, and not every node: that node alone is silent
                 if not n.silent_reported and now - n.last_hb > self.timeout_s + self.period_s:
                     n.silent_reported = True
-                    d.fault(n.joint, f"no heartbeat from node {n.node_id} for "
+                    faults.fault(n.joint, f"no heartbeat from node {n.node_id} for "
                                      f"{(now - n.last_hb) * 1e3:.0f} ms (drive silent)")
         for n in self.nodes.values():
             if n.lost or n.reconfiguring or n.state in (NmtState.OPERATIONAL, NmtState.INITIALISING):
@@ -139,14 +145,14 @@ class CommsMonitor:
             if self.outage or self.rejoin:
                 if not n.restart_sent:  # its own heartbeat-loss reaction during the outage: start it again
                     n.restart_sent = True
-                    assert d.master is not None
-                    d.master.nmt(NmtCommand.START, n.node_id, bus=n.bus)
-                    d.log(f"node {n.node_id}: {NMT_NAMES.get(n.state, hex(n.state))} after the outage; NMT start")
+                    assert self.master is not None
+                    self.master.nmt(NmtCommand.START, n.node_id, bus=n.bus)
+                    faults.log(f"node {n.node_id}: {NMT_NAMES.get(n.state, hex(n.state))} after the outage; NMT start")
             elif not n.confirmed and now - n.started_at < self.timeout_s:
                 continue  # just started: its heartbeat from before the NMT start may still be in flight
             elif n.reported != n.state:
                 n.reported = n.state
-                d.fault(n.joint, f"node {n.node_id} reports NMT {NMT_NAMES.get(n.state, hex(n.state))} "
+                faults.fault(n.joint, f"node {n.node_id} reports NMT {NMT_NAMES.get(n.state, hex(n.state))} "
                                  "(not commanded by dragd)")
         whole = all(not n.lost and not n.reconfiguring and n.state == NmtState.OPERATIONAL for n in self.nodes.values())
         if whole:
@@ -154,41 +160,40 @@ class CommsMonitor:
                 n.restart_sent = False
             if self.outage:
                 self.outage = False
-                d.log("bus outage over: every drive reports operational")
-        if self.rejoin and whole and d.io is not None and int(d.io.feedback.stale.max()) == 0 \
+                faults.log("bus outage over: every drive reports operational")
+        if self.rejoin and whole and int(self.feedback.stale.max()) == 0 \
                 and c.fresh_cycles >= FRESH_CYCLES_REJOIN and c.mode in (Mode.FAULT, Mode.IDLE):
             self.rejoin = False
             try:
-                d.start()
+                self.start()
             except ValueError as exc:
-                d._log_at(f"rejoin: not enabled again: {exc}", LOG_WARNING)
+                faults.log_at(f"rejoin: not enabled again: {exc}", LOG_WARNING)
                 return
             self.rejoins += 1
-            d._log_at("communication whole again: drives enabled, holding the pose (rejoin)", LOG_NOTICE)
+            faults.log_at("communication whole again: drives enabled, holding the pose (rejoin)", LOG_NOTICE)
 
     def _rebooted(self, n: NodeComms, now: float) -> None:
-        d = self.daemon
+        faults = self.faults
         self.reboots += 1
         self.rejoin = self.rejoin or self._was_enabled(now - 0.1)
-        d.fault(n.joint, f"node {n.node_id} rebooted (boot-up while running): reconfiguring it")
+        faults.fault(n.joint, f"node {n.node_id} rebooted (boot-up while running): reconfiguring it")
         n.reconfiguring = True
         task = asyncio.get_running_loop().create_task(self._reconfigure(n))
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
     async def _reconfigure(self, n: NodeComms) -> None:
-        d = self.daemon
-        m = d.master
+        faults, m = self.faults, self.master
         assert m is not None
         try:
             await m.run_sdo(m.configure_node, m.runtimes[n.bus], n.node_id)
             m.nmt(NmtCommand.START, n.node_id, bus=n.bus)
             n.state = NmtState.OPERATIONAL  # (its next heartbeat says so; not a foreign NMT command meanwhile)
             n.confirmed, n.started_at = False, self.clock.now()
-            d.log(f"node {n.node_id}: reconfigured after its reboot and started")
+            faults.log(f"node {n.node_id}: reconfigured after its reboot and started")
         except DriveError as exc:
             self.rejoin = False
-            d.fault(n.joint, f"node {n.node_id}: reconfiguration after its reboot failed: {exc}")
+            faults.fault(n.joint, f"node {n.node_id}: reconfiguration after its reboot failed: {exc}")
         finally:
             n.reconfiguring = False
 

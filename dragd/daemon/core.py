@@ -1,15 +1,19 @@
-"""The servo daemon for one arm: builds the cycle's parts from the configuration, runs them, answers commands.
+"""The servo daemon for one arm: wiring and lifecycle. Builds the parts from the configuration, each with what it
+uses (never the daemon), runs them, and serves the control socket.
 
     Daemon ─┬─ Cycle (daemon/cycle.py): read → estimate → compute → write → log, every tick
             │     ├─ BusIO (hardware/io.py), Scaling (hardware/scaling.py), DriveSupervisor (hardware/drives.py)
             │     └─ Controller (control/controller.py): modes, laws, safety terms, blend, motions' reference
             ├─ Master (hardware/master.py): boot and SDO configuration of the drives
-            ├─ Motions (daemon/motion.py): tracks, replays, the drives' CST ↔ CSP switch, the planner process
-            ├─ Teaching (daemon/teach.py), Recorder (daemon/recording.py)
-            └─ the control socket (dragd/server.py) with one command table (daemon/commands.py)
+            ├─ FaultSink (daemon/faults.py): the controller's events recorded, the fault list, the journal
+            ├─ GravityCheck (daemon/gravity.py): the model against the hold current (before drag, at start)
+            ├─ Motions (daemon/motion.py): tracks, replays, the drives' CST ↔ CSP switch; Streams (daemon/stream.py)
+            ├─ Teaching (daemon/teach.py), Recorder (daemon/recording.py), Guiding (daemon/hand.py)
+            ├─ PayloadTools (daemon/payload.py), ModelCheck (daemon/modelcheck.py), CommsMonitor (daemon/comms.py)
+            └─ the control socket (dragd/server.py) with the command table it is given (daemon/commands.py)
 
-The cycle's decisions (faults, mode changes, a motion's end) come back as controller events; ``record_events``
-turns them into the fault list, log lines and telemetry events after each cycle and each command.
+The cycle's decisions (faults, mode changes, a motion's end) come back as controller events; the fault sink records
+them after each cycle and each command and hands each kind to the parts that registered for it (``attach``).
 """
 
 from __future__ import annotations
@@ -20,12 +24,13 @@ import os
 import signal
 import sys
 from collections.abc import Callable
-from pathlib import Path
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import can
 
+from dragd.clock import GUARD_S, Clock, LockstepClock, WallClock
 from dragd.config import Config, check_joint_names
 from dragd.control.controller import Controller
 from dragd.control.estimate import VelocityEstimator
@@ -33,14 +38,16 @@ from dragd.control.modes import MODE_NAMES, Mode
 from dragd.daemon import sdnotify
 from dragd.daemon.comms import CommsMonitor
 from dragd.daemon.cycle import Cycle
+from dragd.daemon.faults import LOG_ERR, LOG_WARNING, FaultSink, print_log
+from dragd.daemon.gravity import GravityCheck
 from dragd.daemon.hand import Guiding
-from dragd.daemon.motion import Motions
+from dragd.daemon.modelcheck import ModelCheck
+from dragd.daemon.motion import Motions, Planner
 from dragd.daemon.payload import PayloadTools
 from dragd.daemon.recording import Recorder
 from dragd.daemon.stream import Streams
 from dragd.daemon.teach import Teaching
 from dragd.hardware.bus import BusSpec, open_bus, parse_bus
-from dragd.hardware.cia402 import emcy_name
 from dragd.hardware.drives import STATE_NAMES, DriveSupervisor
 from dragd.hardware.io import BusIO
 from dragd.hardware.master import Master
@@ -48,28 +55,10 @@ from dragd.hardware.pdo import BusLayout
 from dragd.hardware.plan import DrivePlan, plan_drives
 from dragd.hardware.scaling import Scaling
 from dragd.model import RobotModel
-from dragd.clock import GUARD_S, Clock, LockstepClock, WallClock
 from dragd.realtime import CpuLatencyRequest, demote_current_thread, scheduler_label, set_realtime
 
-MAX_FAULTS = 100  # the fault list keeps the newest
-CONTACT_REACTION = {"stop": "hold", "retract": "retract", "compliant": "drag"}  # a contact's fault entry: what the arm did
-PAYLOAD_REACH_M = 0.3  # a flange load's centre of mass lies within this of the flange (the guard's plausibility test)
-
-
-LOG_ERR, LOG_WARNING, LOG_NOTICE, LOG_INFO = 3, 4, 5, 6  # syslog priorities (journalctl -p)
-
-
-def journal_line(text: str, priority: int = LOG_INFO, journal: bool | None = None) -> str:
-    """One log line; under systemd (stdout is the journal: $JOURNAL_STREAM) prefixed ``<priority>``, which journald
-    takes as the line's priority, so ``journalctl -p warning`` shows dragd's faults."""
-    if journal is None:
-        journal = bool(os.environ.get("JOURNAL_STREAM"))
-    return f"<{priority}>dragd: {text}" if journal else f"dragd: {text}"
-
-
-def _print_log(text: str, priority: int = LOG_INFO) -> None:
-    print(journal_line(text, priority), flush=True)
-
+if TYPE_CHECKING:
+    from dragd.server import CommandTable
 
 class BusBudgetError(RuntimeError):
     """The configured PDO layout would load a bus beyond its limit."""
@@ -127,7 +116,8 @@ def check_bus_budget(cfg: Config, layouts: dict[str, BusLayout]) -> dict[str, An
             raise BusBudgetError(
                 f"{cfg.source}: buses[{cfg.buses.index(b)}] '{b.name}': worst-case bus load {r.percent:.1f} % exceeds "
                 f"load_limit_pct {b.load_limit_pct:.0f} % at {cfg.loop.rate_Hz:.0f} Hz "
-                f"({'CAN FD' if b.fd else 'classic CAN'} {b.bitrate / 1e6:g} Mbit/s, layout '{layouts[b.name].kind}'):\n{r.table()}\n"
+                f"({'CAN FD' if b.fd else 'classic CAN'} {b.bitrate / 1e6:g} Mbit/s, "
+                f"layout '{layouts[b.name].kind}'):\n{r.table()}\n"
                 "Use CAN FD, layout 'compact', fewer joints per bus (split buses) or a lower loop.rate_Hz.")
     return report
 
@@ -152,7 +142,7 @@ class Daemon:
         self.batch_frames = batch_frames  # udp_multicast: a cycle's command frames leave with the next SYNC
         self.paths = PathPolicy(allowed_dirs(cfg, telemetry_path, allow_dirs))  # where requests may read/write
         self.spool_dir = spool_dir(cfg)  # where clients leave trajectory files (status: spool_dir)
-        self.log = log or _print_log  # log(text) or log(text, priority)
+        self.log = log or print_log  # log(text) or log(text, priority)
         self.socket_path = socket_path or cfg.control.socket
         self.bus_specs = self._bus_specs(bus_override)
         self.drives = drive_plan(cfg)  # every joint's drive profile (its EDS) and every bus's PDO layout
@@ -169,25 +159,17 @@ class Daemon:
         self.scaling = Scaling.from_config(cfg, self.drives.profiles)
         self.controller = Controller.from_config(cfg, self.model.position_limits_rad)
         self.controller.track.cst[:] = [p.motion_mode == "cst" for p in self.drives.profiles]  # (docs/DRIVES.md)
+        self.gravity = GravityCheck(cfg, self.model, self.controller)  # the model against the hold current
         if self.controller.guard is not None:
-            self.controller.guard.explain = self._explain_residual
+            self.controller.guard.explain = self.gravity.explain_residual
             self.controller.guard.load_free[:] = self.model.load_free_joints()
         self._setup_drag_permission(lab_unguarded_drag)
         self.supervisor = DriveSupervisor(self.node_ids, cfg.master.enable_timeout_s)
         self.velocity = VelocityEstimator(self.scaling.counts_per_rev, cfg.law.velocity_filter_Hz,
                                           self.scaling.direction)
         self.recorder = Recorder(cfg, self.n, telemetry_path or cfg.telemetry.path, rerun or cfg.telemetry.rerun)
-        self.motions = Motions(self)
-        self.streams = Streams(self)
-        self.teaching = Teaching(self)
-        self.payload = PayloadTools(self)
-        self.guiding = Guiding(self)  # the drag lease, the hand's inputs and buttons (docs/HAND.md)
-        self.model_check_failed: list[str] = []  # joints `dragd check model` refused: no drag until a check passes
-        self.comms = CommsMonitor(self)
-        self.faults: list[dict[str, Any]] = []
-        self._contact_entry: dict[str, Any] | None = None  # the last contact's fault entry (its end and peaks follow)
-        self.fault_count = 0  # every fault entry since the start (the list is cleared by 'start', capped)
-        self.protective_stops = 0
+        self.fault_sink = FaultSink(self.controller, self.recorder, cfg.joint_names, self.node_ids, self.log)
+        self.planner = Planner(set(cfg.loop.cpus or ()), self.clock)  # replays planned, programs written
         self.stop_requested = False
         self.scheduler = "not started"
         self.memory_locked = False  # mlockall applied (loop.lock_memory with loop.realtime_priority)
@@ -196,8 +178,16 @@ class Daemon:
                                                    "effective_us": None}  # (without a request object)
         self.master: Master | None = None
         self.buses: dict[str, can.BusABC] = {}
-        self.io: BusIO | None = None
-        self.cycle: Cycle = None  # type: ignore[assignment]  # built by attach()
+        # built by attach(), on the buses: the cycle and the parts that use it
+        self.io: BusIO
+        self.cycle: Cycle
+        self.motions: Motions
+        self.streams: Streams
+        self.teaching: Teaching
+        self.payload: PayloadTools
+        self.model_check: ModelCheck
+        self.guiding: Guiding
+        self.comms: CommsMonitor
 
     def _setup_drag_permission(self, lab: bool) -> None:
         """What drag requires (drag.require, or the lab flag) and the hand's inputs, timed by the TPDOs that carry
@@ -235,231 +225,66 @@ class Daemon:
         return specs
 
     def attach(self, buses: dict[str, can.BusABC]) -> None:
-        """Build the cycle on these (open) buses."""
+        """Build the cycle on these (open) buses, and the parts that use it."""
         cfg = self.cfg
         self.buses = buses
-        self.io = BusIO(self.layouts, buses, self.node_ids, cfg.master.node_id, self._on_emcy)
-        self.cycle = Cycle(self.io, self.scaling, self.model, self.controller, self.supervisor, self.velocity,
-                           self.recorder, rate_Hz=cfg.loop.rate_Hz, tpdo_deadline_us=cfg.loop.tpdo_deadline_us,
-                           heartbeat_ms=cfg.master.heartbeat_ms, stale_cycles_hold=cfg.loop.stale_cycles_hold,
-                           stale_cycles_disable=cfg.loop.stale_cycles_disable, node_ids=self.node_ids,
-                           plausible_speed_rad_s=cfg.safety.encoder_plausible_speed_rad_s, compiled=cfg.loop.compiled,
-                           clock=self.clock)
-        self.recorder.attach(self.controller, self.cycle.est, self.io.feedback)
+        sink = self.fault_sink
+        io = self.io = BusIO(self.layouts, buses, self.node_ids, cfg.master.node_id, sink.on_emcy)
+        cycle = self.cycle = Cycle(
+            io, self.scaling, self.model, self.controller, self.supervisor, self.velocity, self.recorder,
+            rate_Hz=cfg.loop.rate_Hz, tpdo_deadline_us=cfg.loop.tpdo_deadline_us, heartbeat_ms=cfg.master.heartbeat_ms,
+            stale_cycles_hold=cfg.loop.stale_cycles_hold, stale_cycles_disable=cfg.loop.stale_cycles_disable,
+            node_ids=self.node_ids, plausible_speed_rad_s=cfg.safety.encoder_plausible_speed_rad_s,
+            compiled=cfg.loop.compiled, clock=self.clock)
+        self.recorder.attach(self.controller, cycle.est, io.feedback)
         if isinstance(self.clock, LockstepClock):
-            self.io.on_time = self.clock.peer_time  # the simulator's TIME frames end its periods
-            self.io.expect_lockstep()
+            io.on_time = self.clock.peer_time  # the simulator's TIME frames end its periods
+            io.expect_lockstep()
             self.recorder.stamp_ns = self.clock.stamp_ns  # telemetry carries the clock's time
             self.clock.gates.append(self.recorder.rings_have_room)  # a row is never dropped for a fast clock
-        self.cycle.after_cycle = [self.record_events, self.teaching.add]
+        c, rec = self.controller, self.recorder
+        m = self.motions = Motions(cfg, c, cycle, io, self.model, self.scaling, self.planner, self.paths, rec, sink)
+        self.streams = Streams(cfg, c, cycle, m, self.model, self.scaling, rec)
+        t = self.teaching = Teaching(cfg, c, cycle, m, self.paths, rec, self.log)
+        m.replay_refusal = t.replay_refusal
+        self.payload = PayloadTools(cfg, c, cycle, self.model)
+        self.model_check = ModelCheck(cfg, self.model, c, self.payload)
+        g = self.guiding = Guiding(cfg, c, cycle, m, t, rec, sink, self.set_mode)  # the lease, the hand (HAND.md)
+        self.comms = CommsMonitor(cfg, c, io.feedback, self.clock, sink, self.start)
+        # the controller's events, recorded after each cycle and command, to the parts that handle them
+        sink.before_record(g.drain_hand)
+        sink.on("fault", m.on_fault)
+        sink.on("fault", t.on_fault)
+        sink.on("track_end", m.on_end)
+        sink.on("lease", g.on_event)
+        sink.on("drag_end", g.on_event)
+        cycle.after_cycle = [sink.record, t.add]
 
-    # ------------------------------------------------------------------------------------------ faults, events
-
-    def _on_emcy(self, joint: int, code: int, register: int) -> None:
-        self.fault(joint, f"EMCY 0x{code:04X} ({emcy_name(code)}; error register 0x{register:02X}) "
-                          f"from node {self.node_ids[joint]}", code)
-
-    def fault(self, joint: int | None, text: str, code: int = 0) -> None:
-        """A safety reaction from outside the cycle (EMCY, a drive that failed a switch)."""
-        self.controller.fault(joint, text, code)
-        self.record_events()
-
-    def _fault_entry(self, joint: int | None, t_s: float, text: str, code: int, **extra: Any) -> None:
-        self.fault_count += 1
-        self.faults.append({"t_s": round(t_s, 4), "joint": self.cfg.joints[joint].name if joint is not None else None,
-                            "node_id": self.node_ids[joint] if joint is not None else None, "code": code,
-                            "text": text, **extra})
-        if len(self.faults) > MAX_FAULTS:
-            del self.faults[:-MAX_FAULTS]
+    @property
+    def faults(self) -> list[dict[str, Any]]:
+        """The fault list (status ``faults``)."""
+        return self.fault_sink.faults
 
     def record_events(self) -> None:
-        """What the cycle decided, recorded: the fault list, log lines (after the cycle), telemetry events."""
-        self.guiding.drain_hand()
-        events = self.controller.events
-        if not events:
-            return
-        self.controller.events = []
-        rec = self.recorder
-        for ev in events:
-            if ev.kind == "mode":
-                rec.event("mode", **(ev.fields or {}))
-            elif ev.kind == "fault":
-                f = ev.fields or {}
-                self._fault_entry(ev.joint, ev.t_s, ev.text, ev.code)
-                self._log_later(f"fault at t={ev.t_s:.3f} s: {ev.text}", LOG_ERR)
-                self.motions.on_fault(ev.text, ev.t_s, bool(f.get("motion")))
-                if self.teaching.recorder is not None:
-                    rec.event("teach_fault", program=self.teaching.recorder.name, text=ev.text)
-                if f.get("new"):
-                    rec.event("fault", text=ev.text, code=ev.code)
-            elif ev.kind == "protective_stop":
-                f = ev.fields or {}
-                kind = f.get("kind")
-                self.protective_stops += 1
-                if kind == "contact":  # the joints, residual and estimated contact torque (docs/CONTACT.md)
-                    extra = {k: v for k, v in f.items() if k not in ("kind", "reaction")}
-                    self._fault_entry(ev.joint, ev.t_s, ev.text, 0, kind=kind, reaction=CONTACT_REACTION.get(
-                        f.get("reaction"), "hold"), **extra)
-                    self._contact_entry = self.faults[-1]
-                    rec.event("contact", text=ev.text, **f)
-                else:
-                    self._fault_entry(ev.joint, ev.t_s, ev.text, 0, reaction="hold", kind=kind)
-                self._log_later(f"protective stop at t={ev.t_s:.3f} s: {ev.text}", LOG_WARNING)
-                rec.event("protective_stop", kind=kind, text=ev.text)
-            elif ev.kind == "contact_end":
-                f = ev.fields or {}
-                entry = self._contact_entry
-                if entry is not None and entry.get("t_end_s") is None:
-                    entry.update(t_end_s=f.get("t_end_s"), peak_Nm=f.get("peak_Nm"), peak_A=f.get("peak_A"))
-                rec.event("contact_end", t_end_s=f.get("t_end_s"), joints=f.get("names"), peak_Nm=f.get("peak_Nm"))
-            elif ev.kind == "track_end":
-                f = ev.fields or {}
-                self.motions.on_end(ev.text, ev.t_s, int(f.get("cycle", 0)))
-                rec.event("track_end", label=f.get("label"), outcome=ev.text)
-            else:
-                self.guiding.on_event(ev)  # drag_end, lease (docs/HAND.md)
-
-    def _log_later(self, text: str, priority: int = LOG_INFO) -> None:
-        try:  # logged after this cycle, not inside it
-            asyncio.get_running_loop().call_soon(self._log_at, text, priority)
-        except RuntimeError:
-            self._log_at(text, priority)
+        """What the cycle (or a command) decided, recorded (daemon/faults.py)."""
+        self.fault_sink.record()
 
     def _report_interrupted_teach(self) -> None:
         """Teach sessions a previous run did not finish (killed, power lost): their recordings are the autosave."""
-        from dragd.teach.recover import interrupted_sessions
+        from dragd.teach.program import interrupted_sessions
 
         for m in interrupted_sessions(self.cfg.program_dir):
-            self._log_at(f"warning: teach session '{m.stem}' was interrupted ({m} has no program file): "
-                         f"'dragd teach recover {m.stem}' writes it from the recording", LOG_WARNING)
-
-    def _log_at(self, text: str, priority: int) -> None:
-        """A log line with its journald priority (a custom ``log`` that takes only the text gets only the text)."""
-        if priority == LOG_INFO:
-            self.log(text)
-            return
-        try:
-            self.log(text, priority)  # type: ignore[call-arg]
-        except TypeError:
-            self.log(text)
+            self.fault_sink.log_at(f"warning: teach session '{m.stem}' was interrupted ({m} has no program file): "
+                                   f"'dragd teach recover {m.stem}' writes it from the recording", LOG_WARNING)
 
     # ------------------------------------------------------------------------------------------ operator actions
-
-    def check_gravity_current(self, what: str) -> None:
-        """Refuse (ValueError) where holding the present pose needs more than a joint's current limit: the arm
-        would sag under a clamped command instead of being held."""
-        c, est = self.controller, self.cycle.est
-        for j in range(self.n):
-            need = abs(est.tau_g_Nm[j]) / c.kt[j]
-            if need > c.params.current_limit_A[j]:
-                raise ValueError(
-                    f"{what}: {self.cfg.joints[j].name} needs {need:.2f} A to hold its gravity load of "
-                    f"{est.tau_g_Nm[j]:+.1f} N·m at {est.q_rad[j]:+.3f} rad, above its current_limit_A "
-                    f"{c.params.current_limit_A[j]:.2f} A (check the URDF's masses, the payload, torque_constant)")
-
-    def _warm_up(self) -> None:
-        """Run the cycle's rare paths once before the first cycle, after the memory is locked.
-
-        The runaway guard's decision path solves a least-squares problem (LAPACK): OpenBLAS allocates its work
-        buffers on its first call, and with the memory locked (mlockall MCL_FUTURE) every page of them is faulted in
-        right then — 10–100 ms measured in the cycle thread the first time a hand pushed the arm in drag (the drives'
-        RPDO watchdogs fired: docs/PERFORMANCE.md, session 11). Here that happens before the loop runs.
-        """
-        import numpy as np
-
-        q = np.zeros(self.n)
-        self._explain_residual(q, np.ones(self.n))
-        self.model.momentum(q, q, np.zeros(self.n))
-
-    def _explain_residual(self, q: Any, r: Any) -> tuple[float, float]:
-        """The runaway guard's rare path: the fraction of residual r no flange load explains at q, and that load's
-        mass [kg] (least squares on the payload regressor)."""
-        import numpy as np
-
-        Y = self.model.payload_regressor(q)
-        nrm = float(np.linalg.norm(r))
-        if nrm == 0.0:
-            return 1.0, float("nan")
-        coef, *_ = np.linalg.lstsq(Y, r, rcond=1e-9)
-        # a physical load: its centre of mass within PAYLOAD_REACH_M of the flange (a torque on one joint alone
-        # needs an implausible lever to look like a load, e.g. the shoulder pushed by hand)
-        if abs(coef[0]) > 1e-9 and float(np.linalg.norm(coef[1:])) > PAYLOAD_REACH_M * abs(float(coef[0])):
-            return 1.0, float("nan")
-        # Y·θ is the load's gravity torque (what holds it); the residual is the torque that moves the arm: −Y·θ
-        return float(np.linalg.norm(r - Y @ coef)) / nrm, -float(coef[0])
-
-    def gravity_check(self) -> list[dict[str, Any]]:
-        """Per joint: the current that truly holds the arm (HOLD's measured current, averaged at rest) against the
-        model's G(q)/K_t, with the bound (the joint's static friction + tolerance). Empty until HOLD has rested
-        ``safety.guard.check_settle_s``."""
-        c, g = self.controller, self.cfg.safety.guard
-        if c.mode != Mode.HOLD or c.hold_rest_s < g.check_settle_s:
-            return []
-        tau = self.model.gravity(c.hold_rest_q)
-        p = c.params
-        out = []
-        for j in range(self.n):
-            model_A = float(tau[j] / c.kt[j])
-            hold_A = float(c.hold_current_A[j])
-            friction_A = float(max(p.static_pos_A[j], -p.static_neg_A[j]))
-            bound = friction_A + g.check_tolerance_A + g.check_tolerance_fraction * abs(model_A)
-            out.append({"joint": self.cfg.joints[j].name, "hold_A": round(hold_A, 3), "model_A": round(model_A, 3),
-                        "difference_A": round(hold_A - model_A, 3), "bound_A": round(bound, 3),
-                        "ok": bool(abs(hold_A - model_A) <= bound)})
-        return out
-
-    def _check_before_drag(self, accept: bool) -> dict[str, Any] | None:
-        """Refuse DRAG (ValueError with the figures) where the hold current disagrees with the model beyond the bound;
-        with ``accept`` drag with the measured hold currents as the gravity offset around this pose."""
-        c, g = self.controller, self.cfg.safety.guard
-        if not g.check or c.mode != Mode.HOLD:
-            return None
-        rows = self.gravity_check()
-        if not rows:
-            if accept:
-                raise ValueError(f"mode drag --accept: the hold current is not measured (the arm did not rest in hold "
-                                 f"for {g.check_settle_s:g} s within the wait); let it come to rest and try again")
-            return None  # not at rest long enough to judge (the runaway guard watches the drag)
-        bad = [r for r in rows if not r["ok"]]
-        if not bad:
-            c.gravity_offset_A.fill(0.0)
-            return {"checked": True}
-        if accept:
-            import numpy as np
-
-            # the flange load the differences imply (least squares on Y(q)) gives the offset on every joint: a joint
-            # whose stiction hid part of its load in HOLD still gets the load's share; a joint the load does not
-            # explain beyond its bound (a sign or K_t error) gets its own measured difference
-            diff = np.array([r["difference_A"] for r in rows])
-            bound = np.array([r["bound_A"] for r in rows])
-            Y = self.model.payload_regressor(c.hold_rest_q)
-            coef, *_ = np.linalg.lstsq(Y, diff * c.kt, rcond=1e-9)
-            off = Y @ coef / c.kt
-            raw = np.abs(diff - off) > bound
-            off[raw] = diff[raw]
-            c.gravity_offset_A[:] = off
-            return {"checked": True, "accepted_offset_A": [round(float(x), 3) for x in off],
-                    "implied_payload_kg": round(float(coef[0]), 3)}
-        import numpy as np
-
-        r = np.array([row["hold_A"] - row["model_A"] for row in rows]) * c.kt
-        frac, kg = self._explain_residual(c.hold_rest_q, -r)  # the hold current carries the load's gravity: −residual
-        guess = (f"; a load of about {kg:.1f} kg at the flange would explain it" if frac < 0.35 and abs(kg) > 0.05
-                 else "; not a flange load alone: check the joint's sign and torque constant (dragd check model)")
-        worst = max(bad, key=lambda row: abs(row["difference_A"]) - row["bound_A"])
-        raise ValueError(
-            "mode drag: refused: the gravity model disagrees with the current that holds the arm: "
-            + "; ".join(f"{row['joint']} needs {row['hold_A']:+.2f} A to hold, the model says {row['model_A']:+.2f} A "
-                        f"(bound ±{row['bound_A']:.2f} A)" for row in bad)
-            + f"{guess}. Run 'dragd payload estimate', or 'dragd mode drag --accept' to drag with the measured hold "
-              f"currents as the gravity offset around this pose (worst: {worst['joint']})")
 
     def start(self) -> None:
         """Enable the drives (fault reset first) and hold the pose."""
         c = self.controller
-        self.check_gravity_current("start")
+        self.gravity.check_current(self.cycle.est, "start")
         if c.mode == Mode.FAULT:
-            self.faults.clear()
+            self.fault_sink.faults.clear()
         c.start(self.cycle.est.q_rad)
         self.supervisor.request_enable(self.cycle.t)
         self.record_events()
@@ -469,7 +294,8 @@ class Daemon:
         self.controller.stop(self.cycle.est.q_rad)
         self.record_events()
 
-    def set_mode(self, name: str, accept: bool = False, lease: int = 0, by_enable: bool = False) -> dict[str, Any] | None:
+    def set_mode(self, name: str, accept: bool = False, lease: int = 0,
+                 by_enable: bool = False) -> dict[str, Any] | None:
         modes = {"idle": Mode.IDLE, "hold": Mode.HOLD, "drag": Mode.DRAG}
         if name not in modes:
             raise ValueError(f"mode: expected one of {', '.join(modes)}, got '{name}'")
@@ -478,12 +304,13 @@ class Daemon:
             why = self.controller.drag_refusal()  # (before the checks below: the answer names what is missing)
             if why is not None:
                 raise ValueError(f"mode drag: refused: {why}")
-            if self.model_check_failed:
-                raise ValueError(f"mode drag: refused: 'dragd check model' failed on {', '.join(self.model_check_failed)} "
+            if self.model_check.failed:
+                raise ValueError("mode drag: refused: 'dragd check model' failed on "
+                                 f"{', '.join(self.model_check.failed)} "
                                  "(a wrong sign or K_t scale); fix the configuration and run the check again")
-            self.check_gravity_current("mode drag")
+            self.gravity.check_current(self.cycle.est, "mode drag")
             if self.controller.mode != Mode.DRAG:
-                check = self._check_before_drag(accept)
+                check = self.gravity.before_drag(accept)
         self.controller.request(modes[name], self.cycle.est.q_rad, lease=lease, by_enable=by_enable)
         self.record_events()
         return check
@@ -549,7 +376,7 @@ class Daemon:
             "command_A": c.cmd_A.tolist(),
             "components_A": self._components(),
             "faults": list(self.faults),
-            "fault_count": self.fault_count,
+            "fault_count": self.fault_sink.fault_count,
             "drives": drives,
             **self.motions.status(),
             "stream": self.streams.status(),
@@ -562,11 +389,13 @@ class Daemon:
             "comms": self.comms.status(),
             "error_frames": io.error_frames if io is not None else 0,
             # the host-local udp_multicast bus's own counters (echoes, duplicates, gaps, kernel drops, ...)
-            "bus_counters": {name: vars(bus.counters()) for name, bus in self.buses.items() if hasattr(bus, "counters")},
+            "bus_counters": {name: vars(bus.counters()) for name, bus in self.buses.items()
+                             if hasattr(bus, "counters")},
             "clamp_cycles": c.clamp_cycles,
             "guard": {"armed": bool(c.guard is not None and c.guard.armed), "trips": c.guard_trips,
                       "hand_runs": c.guard.hand_runs if c.guard is not None else 0,
-                      "stuck_deferrals": c.guard.stuck_deferrals if c.guard is not None else 0, "last_trip": c.last_trip,
+                      "stuck_deferrals": c.guard.stuck_deferrals if c.guard is not None else 0,
+                      "last_trip": c.last_trip,
                       "gravity_offset_A": c.gravity_offset_A.tolist(), "hold_rest_s": round(c.hold_rest_s, 3)},
             "contact": (c.contact.status(self.cfg.joint_names) | {"stops": c.contact_stops}
                         if c.contact is not None else None),
@@ -591,8 +420,8 @@ class Daemon:
         if self.teaching.recorder is not None:  # keep what was taught
             try:
                 await asyncio.wait_for(self.teaching.stop(), 15.0)
-            except (ValueError, RuntimeError, OSError, asyncio.TimeoutError) as exc:
-                self._log_at(f"teach: the program could not be written at shutdown: {exc}", LOG_ERR)
+            except (TimeoutError, ValueError, RuntimeError, OSError) as exc:
+                self.fault_sink.log_at(f"teach: the program could not be written at shutdown: {exc}", LOG_ERR)
         if c.mode not in (Mode.IDLE, Mode.FAULT):
             self.stop()
             await self.wait_for(lambda: c.mode in (Mode.IDLE, Mode.FAULT), self.cfg.safety.mode_ramp_s + 1.0)
@@ -631,8 +460,9 @@ class Daemon:
         os.write(fd, f"{os.getpid()}\n".encode())
         self._run_lock = fd
 
-    async def run(self) -> int:
-        from dragd.daemon.commands import command_table
+    async def run(self, commands: Callable[[Daemon], CommandTable]) -> int:
+        """Boot the drives, run the cycle and answer the control socket (the table ``commands(self)`` builds:
+        daemon/commands.py's ``command_table``) until SIGTERM/SIGINT, a ``shutdown`` command or ``request_exit``."""
         from dragd.server import ControlServer
 
         loop = asyncio.get_running_loop()
@@ -657,15 +487,14 @@ class Daemon:
                 bus.shutdown()
             raise
         self.attach(buses)
-        assert self.io is not None
-        self.master = Master(self.cfg, self.buses, self.layouts, loop, self.drives.profiles,
-                             {name: [self.io.listener(name)] for name in self.buses}, log=self.log,
-                             on_data={name: self.io.tpdo_decoder(name) for name in self.buses},
-                             after_frames=self.io.after_frames, read_done=self.io.read_done)
-        self.master.on_heartbeat = self.comms.on_heartbeat
         server = None
         comms: asyncio.Task[None] | None = None
         try:
+            # the cycle's I/O reads the buses; the SDO master's canopen networks listen through the same readers
+            self.master = Master(self.cfg, self.buses, self.layouts, loop, self.drives.profiles,
+                                 self.io.open_readers(loop), log=self.log)
+            self.master.on_heartbeat = self.comms.on_heartbeat
+            self.motions.master = self.comms.master = self.master  # the CST ↔ CSP switch; NMT, reconfiguration
             await self.master.boot()
             self.recorder.open_telemetry()
             rt: dict[str, Any] = {}
@@ -674,29 +503,29 @@ class Daemon:
             lock = rt.get("memory_lock") or {}
             self.memory_locked = bool(lock.get("applied"))
             if lock.get("requested") and not lock.get("applied"):
-                self._log_at(f"warning: memory not locked: {lock.get('reason')}", LOG_WARNING)
+                self.fault_sink.log_at(f"warning: memory not locked: {lock.get('reason')}", LOG_WARNING)
             latency_us = self.cfg.loop.cpu_latency_us
             if latency_us is not None and self.cfg.loop.realtime_priority is None:
                 self.cpu_latency_status["requested_us"] = latency_us
                 self.cpu_latency_status["reason"] = ("needs a real-time priority (loop.realtime_priority or "
                                                      "--realtime-priority): the request goes with it")
-                self._log_at(f"warning: loop.cpu_latency_us {latency_us} not applied: "
+                self.fault_sink.log_at(f"warning: loop.cpu_latency_us {latency_us} not applied: "
                              f"{self.cpu_latency_status['reason']}", LOG_WARNING)
             elif latency_us is not None:
                 self.cpu_latency = CpuLatencyRequest(latency_us)
                 if not self.cpu_latency.held:
-                    self._log_at(f"warning: loop.cpu_latency_us {latency_us} not applied: "
+                    self.fault_sink.log_at(f"warning: loop.cpu_latency_us {latency_us} not applied: "
                                  f"{self.cpu_latency.info['reason']}", LOG_WARNING)
             for sig in (signal.SIGTERM, signal.SIGINT):
                 loop.add_signal_handler(sig, self.request_exit)
-            self._warm_up()
+            self.gravity.warm_up()
             # everything built so far lives for the whole run: out of the cyclic collector's way, so its
             # occasional full collections (a heap of Pinocchio/scipy/numpy objects) cannot stall a cycle for ms
             gc.collect()
             gc.freeze()
             cycle = loop.create_task(self.cycle.run())
             comms = loop.create_task(self.comms.run())
-            server = ControlServer(self.socket_path, command_table(self))
+            server = ControlServer(self.socket_path, commands(self))
             await server.start()
             self.log(f"running at {self.cfg.loop.rate_Hz:.0f} Hz; control socket {self.socket_path}; "
                      f"cycle thread: {self.scheduler}")
@@ -717,11 +546,12 @@ class Daemon:
                 self.cpu_latency.close()
             if comms is not None:
                 comms.cancel()
-            self.motions.planner.close()
+            self.planner.close()
             if server is not None:
                 await server.close()
             if self.master is not None:
                 await self.master.shutdown()
+            self.io.close_readers()
             await self.recorder.close(self.cycle.cycles)
             for bus in self.buses.values():
                 bus.shutdown()

@@ -1,13 +1,15 @@
 """The 1 kHz cycle, ticked by its clock (dragd/clock.py: a timerfd at absolute deadlines, or the lockstep clock):
 
-    read      SYNC → every drive's TPDO until all arrived or SYNC + tpdo_deadline_us   (hardware/io.py)
+    read      SYNC → every drive's TPDO until all arrived or SYNC + tpdo_deadline_us   (hardware/io.py: BusIO.cycle)
     estimate  q from counts, q̇ by filtered differentiation, measured current, G(q)     (here; control/estimate.py)
     compute   the mode's state and law + safety terms, blended; the CiA 402 walk        (control/controller.py,
                                                                                          hardware/drives.py)
     write     controlwords, torque offsets, CSP targets in the command RPDOs           (hardware/io.py)
     log       one telemetry row to the MCAP writer's ring; timing into histograms      (daemon/recording.py)
 
-``step`` is the synchronous part after the read (what the golden traces replay); ``run`` is the loop. On the
+``step`` is the synchronous part after the read (what the golden traces replay); ``run`` is the loop. The estimate
+and output steps run as compiled kernels (daemon/kernels.py) or as their numpy reference (``loop.compiled: false``),
+chosen once when the cycle is built. On the
 lockstep clock the read step has no wall deadline: it ends when every TPDO arrived or the simulator's TIME frame
 ended the period (what did not arrive by then is late, as a deadline would have judged it). Nothing in
 a cycle allocates per cycle on the usual paths, logs, blocks or calls SDO: decisions the cycle makes (faults, mode
@@ -18,10 +20,12 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from dragd.clock import Clock, WallClock
 from dragd.control.controller import Controller, Estimate
 from dragd.control.estimate import VelocityEstimator
 from dragd.control.modes import Mode
@@ -30,7 +34,6 @@ from dragd.hardware.drives import DriveSupervisor, Target
 from dragd.hardware.io import BusIO, Feedback
 from dragd.hardware.scaling import Scaling
 from dragd.model import RobotModel
-from dragd.clock import Clock, WallClock
 from dragd.stats import Histogram
 
 if TYPE_CHECKING:
@@ -60,7 +63,8 @@ class Cycle:
         self._last_hb_t = -1e9
         self.hold_after, self.disable_after = stale_cycles_hold, stale_cycles_disable
         self.node_ids = node_ids
-        self.est = Estimate(np.zeros(n), velocity.velocity_rad_s, np.zeros(n), np.zeros(n), np.zeros(n),
+        self._p_Nms = np.zeros(n)  # the observers' momentum (the estimate's p_Nms)
+        self.est = Estimate(np.zeros(n), velocity.velocity_rad_s, np.zeros(n), np.zeros(n), self._p_Nms,
                             inputs=io.feedback.inputs, inputs_age=io.feedback.inputs_age)
         self.target_counts = np.zeros(n, dtype=np.int64)
         self.torque_permille = np.zeros(n, dtype=np.int64)
@@ -93,10 +97,18 @@ class Cycle:
         self._jump_lim = np.zeros(n)
         self._jump_mask = np.zeros(n, dtype=bool)
         self._jump_run = np.zeros(n, dtype=np.int64)
-        # the estimate and output steps by compiled kernels (dragd/daemon/kernels.py), the numpy below their reference
-        self._k = kernels() if compiled else None
-        if self._k is not None:
-            velocity.use_kernel(self._k["velocity"])
+        # the estimate and output steps by compiled kernels (dragd/daemon/kernels.py) or by the numpy reference they
+        # are tested against (loop.compiled: false): chosen here, once; ``step`` calls whichever was chosen
+        self.check_encoders: Callable[[Feedback], None] = self._plausible
+        self.decode_inputs: Callable[[Feedback], None] = self._inputs
+        self.encode_outputs: Callable[[], None] = self._outputs
+        k = kernels() if compiled else None  # (None where numba cannot be imported: the reference)
+        if k is not None:
+            velocity.use_kernel(k["velocity"])
+            self._k_plausible, self._k_inputs, self._k_outputs = k["plausible"], k["inputs"], k["outputs"]
+            self.check_encoders = self._plausible_compiled
+            self.decode_inputs = self._inputs_compiled
+            self.encode_outputs = self._outputs_compiled
 
     def tick(self, period_us: float, expirations: int) -> None:
         """A tick: the cycle's time advances (a late tick samples later and counts the ticks it missed)."""
@@ -127,27 +139,16 @@ class Cycle:
             self._prev_counts[:] = fb.counts
             self._since.fill(1.0)
             self.primed = True
-        k, sc = self._k, self.scaling
-        if k is None:
-            self._plausible(fb)
-        elif k["plausible"](fb.counts, fb.rx, self._prev_counts, self._since, self._jump_run, self.jump_step_counts,
-                            self._jump_mask):
-            self._reject(fb, self._jump_mask)  # the rare path (and the bookkeeping the kernel left to it)
-            self._remember(fb)
+        self.check_encoders(fb)
         worst, j = fb.worst_stale()
         c.feedback(worst, j, self.node_ids[j], est.q_rad, self.hold_after, self.disable_after)
         # estimate
-        if k is None:
-            sc.position_rad(fb.counts, est.q_rad, self._tmp)
-            sc.current_A(fb.current_permille, est.current_A)
-        else:
-            k["inputs"](fb.counts, sc.offset_counts, sc.rad_per_count, est.q_rad, fb.current_permille,
-                        sc.A_per_permille, est.current_A)
+        self.decode_inputs(fb)
         self.velocity.update(fb.counts, self.sample_dt_s, fb.rx)
         self.model.gravity_at(est.q_rad, self.t, est.tau_g_Nm)  # (blended while a payload change ramps in)
         watch = c.contact_want()  # the contact observer's mode ("": none)
         if watch or (c.mode == Mode.DRAG and c.guard is not None):
-            self.model.momentum(est.q_rad, est.dq_rad_s, est.p_Nms)  # the observers' p = M̄(q)·q̇
+            self.model.momentum(est.q_rad, est.dq_rad_s, self._p_Nms)  # the observers' p = M̄(q)·q̇
         if watch:  # the contact detector (HOLD, TRACK) or, in DRAG, the hand's force: one compiled call after these
             c.contact_step(est, self.model.coriolis(est.q_rad, est.dq_rad_s), worst)
             if watch == "drag" and self.model.grip_frame_id >= 0:
@@ -161,12 +162,7 @@ class Cycle:
         if fault is not None:
             c.fault(*fault)
         c.compute(est, self.supervisor.enabled)
-        if k is None:
-            sc.torque_permille(c.cmd_A, self.torque_permille, self._tmp)
-            sc.target_counts(c.ref_rad, self.target_counts, self._tmp)
-        else:
-            k["outputs"](c.cmd_A, sc.permille_per_A, self.torque_permille, c.ref_rad, sc.counts_per_rad,
-                         sc.offset_counts, self.target_counts)
+        self.encode_outputs()
         # write
         io.write(self.supervisor.cw, self.target_counts, self.torque_permille, self.t)
         # the master heartbeat by time as well as by count: a loaded host's missed ticks must not stretch it past
@@ -184,6 +180,36 @@ class Cycle:
         rows = [[float(self._missed_log[k % MISSED_LOG, 0]), int(self._missed_log[k % MISSED_LOG, 1])]
                 for k in range(first, n)]
         return rows, max(0, n - MISSED_LOG - since)
+
+    # ------------------------------------------------------------------------------------------ estimate, output
+    # (each as the compiled kernel and as its numpy reference; __init__ chose one of each)
+
+    def _plausible_compiled(self, fb: Feedback) -> None:
+        if self._k_plausible(fb.counts, fb.rx, self._prev_counts, self._since, self._jump_run, self.jump_step_counts,
+                             self._jump_mask):
+            self._reject(fb, self._jump_mask)  # the rare path (and the bookkeeping the kernel left to it)
+            self._remember(fb)
+
+    def _inputs_compiled(self, fb: Feedback) -> None:
+        sc, est = self.scaling, self.est
+        self._k_inputs(fb.counts, sc.offset_counts, sc.rad_per_count, est.q_rad, fb.current_permille,
+                       sc.A_per_permille, est.current_A)
+
+    def _inputs(self, fb: Feedback) -> None:
+        """q [rad] and the motor current [A] from the drive's counts and per mille."""
+        self.scaling.position_rad(fb.counts, self.est.q_rad, self._tmp)
+        self.scaling.current_A(fb.current_permille, self.est.current_A)
+
+    def _outputs_compiled(self) -> None:
+        sc, c = self.scaling, self.controller
+        self._k_outputs(c.cmd_A, sc.permille_per_A, self.torque_permille, c.ref_rad, sc.counts_per_rad,
+                        sc.offset_counts, self.target_counts)
+
+    def _outputs(self) -> None:
+        """The current command → 60B2h per mille, the reference → 607Ah counts."""
+        c = self.controller
+        self.scaling.torque_permille(c.cmd_A, self.torque_permille, self._tmp)
+        self.scaling.target_counts(c.ref_rad, self.target_counts, self._tmp)
 
     def _plausible(self, fb: Feedback) -> None:
         """Reject position samples that moved further than physics allows since the last accepted one."""
@@ -227,9 +253,10 @@ class Cycle:
     async def run(self) -> None:
         """The loop until ``exit_requested``: tick → read → step → log as one chain of loop callbacks.
 
-        The timerfd's callback (``_on_tick``) sends the SYNC; the bus reader's callback ends the read step once the
-        wake-up's frames are decoded, or the deadline timer does, and calls ``_on_read`` (step, log): two loop
-        wake-ups a cycle and no future or task between them. An exception in either ends the loop and is raised
+        The clock's callback (``_on_tick``) makes the period's one call to the buses, ``BusIO.cycle`` (SYNC out with
+        the commands waiting for it, the TPDOs decoded as they come); the bus reader's callback ends the read step
+        once the wake-up's frames are decoded, or the deadline timer does, and calls ``_on_feedback`` (step, log):
+        two loop wake-ups a cycle and no future or task between them. An exception in either ends the loop and is raised
         here; cancelling this coroutine stops the loop."""
         loop = asyncio.get_running_loop()
         self._loop = loop
@@ -274,15 +301,15 @@ class Cycle:
             self._period_us = period_us
             if self._lockstep:  # the sample interval is the clock's; no wall deadline (the TIME frame ends the read)
                 self.tick(self._row_period_us, expirations)
-                self.io.start_read(self._loop, None, self._on_read)
+                self.io.cycle(None, self._on_feedback, self._loop)
                 return
             self._row_period_us = period_us
             self.tick(period_us, expirations)
-            self.io.start_read(self._loop, self.deadline_s, self._on_read)
+            self.io.cycle(self.deadline_s, self._on_feedback, self._loop)
         except Exception as exc:  # the loop must not swallow it: the daemon stops the arm
             self._finish(exc)
 
-    def _on_read(self, complete: bool) -> None:
+    def _on_feedback(self, complete: bool) -> None:
         try:
             t_rx = time.perf_counter()
             self.rx_hist.add((t_rx - self._t_tick) * 1e6)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from dragd.clock import LockstepClock
@@ -21,8 +22,13 @@ from dragd.control.modes import MODE_NAMES, Mode
 from dragd.teach.program import resolve_program
 
 if TYPE_CHECKING:
-    from dragd.control.controller import Event
-    from dragd.daemon.core import Daemon
+    from dragd.config import Config
+    from dragd.control.controller import Controller, Event
+    from dragd.daemon.cycle import Cycle
+    from dragd.daemon.faults import FaultSink
+    from dragd.daemon.motion import Motions
+    from dragd.daemon.recording import Recorder
+    from dragd.daemon.teach import Teaching
 
 # lockstep: how long (wall) the clock waits for a paced holder's next renewal before it counts the holder as gone
 PACED_GUARD_S = 5.0
@@ -37,8 +43,13 @@ END_KINDS = {H.R_NOT_HELD: None, P.R_LEASE_CLOSED: None, H.R_SQUEEZED: "panic", 
 class Guiding:
     """The lease commands, the hand's events and buttons, and their status."""
 
-    def __init__(self, daemon: Daemon) -> None:
-        self.d = daemon
+    def __init__(self, cfg: Config, controller: Controller, cycle: Cycle, motions: Motions, teaching: Teaching,
+                 recorder: Recorder, faults: FaultSink, set_mode: Callable[..., object]) -> None:
+        """``set_mode(name, by_enable=True)``: the operator's mode request (its checks), which the enabling switch's
+        press makes; ``teaching``: the hand's teach buttons; ``faults``: the hand's faults and drag ends listed."""
+        self.cfg, self.controller, self.cycle, self.motions, self.teaching = cfg, controller, cycle, motions, teaching
+        self.recorder, self.faults, self.set_mode = recorder, faults, set_mode
+        self.clock = cycle.clock
         self.last_refusal: dict[str, Any] | None = None  # a press of the enabling switch that did not start drag
         self.button_actions = 0
         self._tasks: set[asyncio.Task[Any]] = set()
@@ -48,20 +59,20 @@ class Guiding:
         # simulated times on every run however slowly the client runs
         self._paced: tuple[int, float] | None = None
         self.paced_gate_timeouts = 0
-        if isinstance(daemon.clock, LockstepClock):
-            daemon.clock.gates.append(self._paced_gate)
+        if isinstance(self.clock, LockstepClock):
+            self.clock.gates.append(self._paced_gate)
 
     # ------------------------------------------------------------------------------------------ the lease
 
     def lease(self, action: str, lease: int | None, holder: str, period_s: float | None) -> dict[str, Any]:
         """The ``lease`` command: open (a new lease), renew, close (drag bound to it ends into HOLD), status."""
-        d, c = self.d, self.d.controller
+        c = self.controller
         ls, t = c.permission.lease, c.t
         if action == "status":
             return {"lease": ls.status(t), "drag": self.status()}
         if action == "open":
             lid = ls.open(t, holder, period_s)
-            d.recorder.event("lease", action="open", lease=lid, holder=ls.holder, period_s=ls.period_s)
+            self.recorder.event("lease", action="open", lease=lid, holder=ls.holder, period_s=ls.period_s)
             self.publish()
             return {"lease": lid, "period_s": ls.period_s, "holder": ls.holder, "mode": MODE_NAMES[c.mode]}
         if lease is None:
@@ -76,9 +87,9 @@ class Guiding:
         if action == "close":
             ls.close(t, lease)
             if c.drag_lease == lease and c.mode == Mode.DRAG:
-                c.end_drag(P.R_LEASE_CLOSED, d.cycle.est.q_rad)  # now, not at the next cycle: the answer says hold
-                d.record_events()
-            d.recorder.event("lease", action="close", lease=lease, holder=ls.holder)
+                c.end_drag(P.R_LEASE_CLOSED, self.cycle.est.q_rad)  # now, not at the next cycle: the answer says hold
+                self.faults.record()
+            self.recorder.event("lease", action="close", lease=lease, holder=ls.holder)
             self.publish()
             return {"lease": lease, "mode": MODE_NAMES[c.mode], "closed": True}
         raise ValueError(f"lease: action: expected open, renew, close or status, got {action!r}")
@@ -87,9 +98,9 @@ class Guiding:
         """Renew now; answer a third of the period later on the daemon's clock (simulated time in lockstep), when the
         holder's next renewal is due. The holder reads no clock of its own: it renews on every answer."""
         ans = self.lease("renew", lease, "", None)
-        c = self.d.controller
+        c = self.controller
         ls = c.permission.lease
-        await self.d.clock.sleep(ls.period_s / 3.0)
+        await self.clock.sleep(ls.period_s / 3.0)
         if ls.active and ls.id == lease:
             self._paced = (int(lease or 0), time.monotonic())
         bound = c.drag_lease == lease
@@ -104,7 +115,7 @@ class Guiding:
         p = self._paced
         if p is None:
             return True
-        ls = self.d.controller.permission.lease
+        ls = self.controller.permission.lease
         if not ls.active or ls.id != p[0]:
             self._paced = None
             return True
@@ -118,12 +129,11 @@ class Guiding:
 
     def on_event(self, ev: Event) -> bool:
         """A controller event of ours (drag_end, lease): recorded; False for any other kind."""
-        d = self.d
         f = ev.fields or {}
         if ev.kind == "lease":
             self._last_lapse = {"t_s": round(ev.t_s, 4), **f}
-            d.recorder.event("lease", **f)
-            d._log_later(f"t={ev.t_s:.3f} s: {ev.text}", 4)
+            self.recorder.event("lease", **f)
+            self.faults.log_later(f"t={ev.t_s:.3f} s: {ev.text}", 4)
             self.publish()
             return True
         if ev.kind != "drag_end":
@@ -134,40 +144,39 @@ class Guiding:
             text += f" (lease {self._last_lapse.get('lease')} of '{self._last_lapse.get('holder')}', no renewal for " \
                     f"{self._last_lapse.get('since_renewal_s')} s)"
         if kind is not None:
-            d.protective_stops += 1
-            d._fault_entry(None, ev.t_s, text, 0, reaction="hold", kind=kind)
-            d._log_later(f"t={ev.t_s:.3f} s: {text}; the arm holds", 4)
+            self.faults.protective_stops += 1
+            self.faults.entry(None, ev.t_s, text, 0, reaction="hold", kind=kind)
+            self.faults.log_later(f"t={ev.t_s:.3f} s: {text}; the arm holds", 4)
         else:
-            d._log_later(f"t={ev.t_s:.3f} s: {text}; the arm holds")
-        d.recorder.event("drag_end", reason=ev.text, kind=kind, lease=f.get("lease"))
+            self.faults.log_later(f"t={ev.t_s:.3f} s: {text}; the arm holds")
+        self.recorder.event("drag_end", reason=ev.text, kind=kind, lease=f.get("lease"))
         self.publish()
         return True
 
     def drain_hand(self) -> None:
         """The hand's events of the cycles since the last call: recorded, and acted on (presses)."""
-        hand = self.d.controller.hand
+        hand = self.controller.hand
         if hand is None or not hand.events:
             return
         events, hand.events = hand.events, []
-        d = self.d
         for e in events:
             inp = hand.inputs[e.input]
             fields = {"input": inp.label, "function": inp.function, "joint": inp.joint_name, "what": e.what}
             if e.detail:
                 fields["detail"] = e.detail
-            d.recorder.event("hand_input", **fields)
+            self.recorder.event("hand_input", **fields)
             if e.what == "fault":
-                d._fault_entry(inp.joint, e.t_s, f"hand input {inp.label}: {e.detail}", 0,
+                self.faults.entry(inp.joint, e.t_s, f"hand input {inp.label}: {e.detail}", 0,
                                reaction="not in drag until fixed and 'dragd start'" if inp.function != "stop"
                                else "held (counted as pressed) until fixed and 'dragd start'", kind="input_fault")
-                d._log_later(f"t={e.t_s:.3f} s: hand input {inp.label}: {e.detail}", 3)
+                self.faults.log_later(f"t={e.t_s:.3f} s: hand input {inp.label}: {e.detail}", 3)
             elif e.what == "lost":
                 react = {"enable": "counted as released", "stop": "counted as pressed: the arm holds"}.get(
                     inp.function, "ignored while lost")
-                d._fault_entry(inp.joint, e.t_s, f"hand input {inp.label} lost: no TPDO with {inp.where()} for "
+                self.faults.entry(inp.joint, e.t_s, f"hand input {inp.label} lost: no TPDO with {inp.where()} for "
                                                  f"{int(hand.lost_after[inp.joint])} cycles", 0, reaction=react,
                                kind="input_lost")
-                d._log_later(f"t={e.t_s:.3f} s: hand input {inp.label} ({inp.where()}) lost: {react}", 4)
+                self.faults.log_later(f"t={e.t_s:.3f} s: hand input {inp.label} ({inp.where()}) lost: {react}", 4)
             elif e.what == "pressed":
                 self._pressed(inp, e.t_s)
         self.publish()
@@ -188,56 +197,54 @@ class Guiding:
 
     def _refused(self, what: str, t_s: float, reason: str) -> None:
         self.last_refusal = {"t_s": round(t_s, 4), "button": what, "reason": reason}
-        self.d.recorder.event("hand_refused", button=what, reason=reason)
-        self.d._log_later(f"t={t_s:.3f} s: {what}: {reason}", 4)
+        self.recorder.event("hand_refused", button=what, reason=reason)
+        self.faults.log_later(f"t={t_s:.3f} s: {what}: {reason}", 4)
         self.publish()
 
     async def _enable_pressed(self, t_s: float) -> None:
         """The enabling switch pressed to the middle: a drag request, with the checks ``mode drag`` makes."""
-        d, c = self.d, self.d.controller
+        c = self.controller
         if c.mode == Mode.DRAG:
             return
         try:
             if c.mode in (Mode.IDLE, Mode.FAULT):
                 raise ValueError(f"the drives are disabled ({MODE_NAMES[c.mode]}); run 'dragd start' first")
-            if c.track.active or d.motions.planning:
+            if c.track.active or self.motions.planning:
                 raise ValueError("a motion is running; stop it first")
-            await d.motions.wait_cst("enabling switch")
+            await self.motions.wait_cst("enabling switch")
             hand = c.hand
             if hand is None or hand.enable is None or not hand.enable.held:
                 return  # released again meanwhile
-            d.set_mode("drag", by_enable=True)
+            self.set_mode("drag", by_enable=True)
             self.publish()  # (the state with the mode it led to)
         except (ValueError, RuntimeError) as exc:
             self._refused("enabling switch", t_s, str(exc).removeprefix("mode drag: "))
         finally:
-            d.record_events()
+            self.faults.record()
 
     async def _mark(self, t_s: float) -> None:
-        d = self.d
-        if d.teaching.recorder is None:
+        if self.teaching.recorder is None:
             self._refused("mark button", t_s, "not teaching: press the teach button (or 'dragd teach start') first")
             return
         try:
-            d.teaching.mark()
+            self.teaching.mark()
         except ValueError as exc:
             self._refused("mark button", t_s, str(exc))
 
     async def _teach(self, t_s: float) -> None:
-        d = self.d
         try:
-            if d.teaching.recorder is None:
-                await d.teaching.start(self._next_name())
+            if self.teaching.recorder is None:
+                await self.teaching.start(self._next_name())
             else:
-                await d.teaching.stop()
+                await self.teaching.stop()
         except (ValueError, RuntimeError, OSError) as exc:
             self._refused("teach button", t_s, str(exc))
         finally:
-            d.record_events()
+            self.faults.record()
 
     def _next_name(self) -> str:
         """``hand_001``, ``hand_002``, ...: the first name no program in ``replay.program_dir`` has."""
-        folder = self.d.cfg.program_dir
+        folder = self.cfg.program_dir
         k = 1
         while resolve_program(f"hand_{k:03d}", folder).with_suffix(".yaml").exists() or \
                 resolve_program(f"hand_{k:03d}", folder).with_suffix(".mcap").exists():
@@ -248,10 +255,10 @@ class Guiding:
 
     def publish(self) -> None:
         """The whole state as one ``hand`` message (the telemetry's /dragd/hand, the clients' event log)."""
-        self.d.recorder.event("hand", **self.status())
+        self.recorder.event("hand", **self.status())
 
     def status(self) -> dict[str, Any]:
-        c = self.d.controller
+        c = self.controller
         t = c.t
         st = c.permission.status(t)
         hand = c.hand

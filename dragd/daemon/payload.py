@@ -22,7 +22,10 @@ from dragd.config import ParamsFile, Payload, load_params, save_params
 from dragd.control.modes import Mode
 
 if TYPE_CHECKING:
-    from dragd.daemon.core import Daemon
+    from dragd.config import Config
+    from dragd.control.controller import Controller
+    from dragd.daemon.cycle import Cycle
+    from dragd.model import RobotModel
 
 RAMP_S = 0.5  # gravity blend of a payload change
 MOVE_SPEED_RAD_S = 0.25
@@ -37,12 +40,15 @@ OBSERVABLE_STD_M = 0.01  # a centre-of-mass component std above this is reported
 
 
 class PayloadTools:
-    def __init__(self, d: Daemon) -> None:
-        self.d = d
-        self.busy = False
+    """The payload commands, and the held pose moved to a target and rested there (``goto``: the model check's too)."""
+
+    def __init__(self, cfg: Config, controller: Controller, cycle: Cycle, model: RobotModel) -> None:
+        self.cfg, self.controller, self.cycle, self.model = cfg, controller, cycle, model
+        self.n = len(cfg.joints)
+        self.busy = False  # an estimate (or the model check) moves the arm
 
     def params_path(self) -> Path | None:
-        cfg = self.d.cfg
+        cfg = self.cfg
         return (cfg.base_dir / cfg.params) if cfg.params else None
 
     def _write(self, mass_kg: float, com_m: list[float], what: str) -> str | None:
@@ -63,13 +69,14 @@ class PayloadTools:
             raise ValueError(f"payload: mass_kg: expected a number >= 0 (kg), got {mass_kg}")
         com = [float(x) for x in com_m]
         if len(com) != 3 or not all(np.isfinite(com)):
-            raise ValueError(f"payload: com_m: expected 3 finite numbers X,Y,Z (m, the last joint's frame), got {com_m}")
-        d, c = self.d, self.d.controller
-        t = d.cycle.t if d.cycle is not None else 0.0
+            raise ValueError("payload: com_m: expected 3 finite numbers X,Y,Z (m, the last joint's frame), "
+                             f"got {com_m}")
+        c = self.controller
+        t = self.cycle.t
         before = self._max_gravity_need(mass_kg, com)
         if before is not None:
             raise ValueError(before)
-        d.model.set_payload(mass_kg, com, ramp_s=RAMP_S, t_s=t)
+        self.model.set_payload(mass_kg, np.array(com), ramp_s=RAMP_S, t_s=t)
         if np.count_nonzero(c.gravity_offset_A):  # an accepted / guard-measured offset was this payload's stand-in:
             c.gravity_offset_A.fill(0.0)  # it goes, and the command blends over the same ramp (no jump)
             c.blend_from_A[:] = c.prev_cmd_A
@@ -82,27 +89,27 @@ class PayloadTools:
 
     def _max_gravity_need(self, mass_kg: float, com: list[float]) -> str | None:
         """Refuse a payload whose gravity at the present pose exceeds a joint's current limit."""
-        d, c = self.d, self.d.controller
-        q = d.cycle.est.q_rad if d.cycle is not None else np.zeros(d.n)
-        Y = d.model.payload_regressor(q)
-        old = np.r_[d.model.payload_mass_kg, d.model.payload_mass_kg * d.model.payload_com_m]
+        c = self.controller
+        q = self.cycle.est.q_rad
+        Y = self.model.payload_regressor(q)
+        old = np.r_[self.model.payload_mass_kg, self.model.payload_mass_kg * self.model.payload_com_m]
         new = np.r_[mass_kg, mass_kg * np.asarray(com)]
-        need = np.abs((d.model.gravity(q) + Y @ (new - old)) / c.kt)
+        need = np.abs((self.model.gravity(q) + Y @ (new - old)) / c.kt)
         over = np.flatnonzero(need > c.params.current_limit_A)
         if over.size:
             j = int(over[0])
-            return (f"payload: {mass_kg:g} kg: {d.cfg.joints[j].name} would need {need[j]:.2f} A to hold this pose, above "
-                    f"its current_limit_A {c.params.current_limit_A[j]:.2f} A")
+            return (f"payload: {mass_kg:g} kg: {self.cfg.joints[j].name} would need {need[j]:.2f} A to hold this "
+                    f"pose, above its current_limit_A {c.params.current_limit_A[j]:.2f} A")
         return None
 
     # ------------------------------------------------------------------------------------------ estimate
 
-    async def _goto(self, target: np.ndarray, timeout_s: float) -> None:
-        d, c = self.d, self.d.controller
+    async def goto(self, target: np.ndarray, timeout_s: float) -> None:
+        c = self.controller
         c.hold_move_speed = MOVE_SPEED_RAD_S
         c.hold_move = target.copy()
         c.hold_rest_s = 0.0
-        ok = await d.wait_for(lambda: c.mode != Mode.HOLD or (c.hold_move is not None and
+        ok = await self.cycle.clock.wait_for(lambda: c.mode != Mode.HOLD or (c.hold_move is not None and
                                                               np.array_equal(c.q_hold, c.hold_move) and
                                                               c.hold_rest_s >= SETTLE_S), timeout_s)
         if c.mode != Mode.HOLD:
@@ -112,7 +119,7 @@ class PayloadTools:
                                "(is something touching it?); nothing applied")
 
     def _poses(self, q0: np.ndarray, n_poses: int) -> list[np.ndarray]:
-        s = self.d.controller.safety
+        s = self.controller.safety
         lo, hi = s.wall_lo_rad + APPROACH_RAD + 0.02, s.wall_hi_rad - APPROACH_RAD - 0.02
         poses = []
         for steps in POSE_STEPS[:n_poses]:
@@ -124,7 +131,7 @@ class PayloadTools:
         return poses
 
     async def estimate(self, n_poses: int = 6, apply: bool = False) -> dict[str, Any]:
-        c = self.d.controller
+        c = self.controller
         if not 3 <= n_poses <= len(POSE_STEPS):
             raise ValueError(f"payload estimate: --poses: expected 3..{len(POSE_STEPS)}, got {n_poses}")
         if c.mode != Mode.HOLD or c.track.active:
@@ -139,12 +146,12 @@ class PayloadTools:
             for q in self._poses(q0, n_poses):
                 dist = float(np.abs(q - c.q_hold).max())
                 for side in (1.0, -1.0):
-                    await self._goto(q + side * APPROACH_RAD, dist / MOVE_SPEED_RAD_S + 10.0)
+                    await self.goto(q + side * APPROACH_RAD, dist / MOVE_SPEED_RAD_S + 10.0)
                     dist = 2 * APPROACH_RAD
-                    await self._goto(q, 10.0)
+                    await self.goto(q, 10.0)
                     rows_q.append(c.hold_rest_q.copy())
                     rows_i.append(c.hold_current_A.copy())
-            await self._goto(q0, float(np.abs(q0 - c.q_hold).max()) / MOVE_SPEED_RAD_S + 10.0)
+            await self.goto(q0, float(np.abs(q0 - c.q_hold).max()) / MOVE_SPEED_RAD_S + 10.0)
         finally:
             c.hold_move = None
             self.busy = False
@@ -156,8 +163,8 @@ class PayloadTools:
 
     def fit(self, q: np.ndarray, current_A: np.ndarray) -> dict[str, Any]:
         """Least squares of the hold currents' residual against the model without payload on Y(q)·[m, m·c]."""
-        d, c = self.d, self.d.controller
-        m = d.model
+        c = self.controller
+        m = self.model
         th_now = np.r_[m.payload_mass_kg, m.payload_mass_kg * m.payload_com_m]
         A, b = [], []
         for qk, ik in zip(q, current_A, strict=True):
@@ -186,8 +193,9 @@ class PayloadTools:
             out["observability"] = "no load found on the flange (mass within noise); the centre of mass is meaningless"
         elif unobs:
             out["observability"] = (f"centre of mass along {', '.join(unobs)} not determined by these poses (std > "
-                                    f"{OBSERVABLE_STD_M * 1000:.0f} mm): a component along the last joint's axis is only "
-                                    "seen when that axis tilts against gravity; use more --poses or move the wrist first")
+                                    f"{OBSERVABLE_STD_M * 1000:.0f} mm): a component along the last joint's axis is "
+                                    "only seen when that axis tilts against gravity; use more --poses or move the "
+                                    "wrist first")
         else:
             out["observability"] = "mass and all three centre-of-mass components determined"
         if not float(std[0]) <= OBSERVABLE_STD_KG:

@@ -28,14 +28,23 @@ ACCEL_SPAN_S = 0.01  # a sample's acceleration is checked over velocities across
 ACCEL_SEARCH = 256  # ... looking at most this many samples back for them
 
 if TYPE_CHECKING:
-    from dragd.daemon.core import Daemon
+    from dragd.config import Config
+    from dragd.control.controller import Controller
+    from dragd.daemon.cycle import Cycle
+    from dragd.daemon.motion import Motions
+    from dragd.daemon.recording import Recorder
+    from dragd.hardware.scaling import Scaling
+    from dragd.model import RobotModel
 
 
 class Streams:
     """The daemon's position stream (one at a time): opening, checking and appending samples, its status."""
 
-    def __init__(self, daemon: Daemon) -> None:
-        self.d = daemon
+    def __init__(self, cfg: Config, controller: Controller, cycle: Cycle, motions: Motions, model: RobotModel,
+                 scaling: Scaling, recorder: Recorder) -> None:
+        """``motions``: a stream is a motion (its checks, the CSP switch, TRACK, the end into HOLD)."""
+        self.cfg, self.controller, self.cycle, self.motions = cfg, controller, cycle, motions
+        self.model, self.scaling, self.recorder = model, scaling, recorder
         self.ref: StreamReference | None = None
         self.id = 0  # the running (or last) stream's number; a sample names it
         self.opened = 0
@@ -49,7 +58,7 @@ class Streams:
 
     def running(self) -> bool:
         """The stream is the motion in TRACK (it may be running out its last samples after its end)."""
-        c = self.d.controller
+        c = self.controller
         return self.ref is not None and c.track.trajectory is self.ref and c.mode == Mode.TRACK
 
     def _live(self, stream: int, what: str) -> StreamReference:
@@ -64,7 +73,7 @@ class Streams:
     def _outcome(self, ref: StreamReference) -> str:
         if ref.end_kind is not None:
             return ref.outcome
-        c = self.d.controller
+        c = self.controller
         if c.mode == Mode.FAULT:
             return "fault"
         return "stopped (replay_stop, stop or a monitor: see faults)"
@@ -73,29 +82,29 @@ class Streams:
 
     async def open(self, label: str = "stream") -> dict[str, Any]:
         """Switch the drives to CSP and play a stream from the present pose (HOLD only)."""
-        d, c = self.d, self.d.controller
+        c = self.controller
         if c.mode != Mode.HOLD:
             raise ValueError(f"stream_open: expected the arm held (hold), it is {MODE_NAMES[c.mode]}"
                              + (": a stream never takes the arm from the operator's hand; 'dragd mode hold' first"
                                 if c.mode == Mode.DRAG else ""))
-        if c.track.active or d.motions.planning or self.running() or self.opening:
+        if c.track.active or self.motions.planning or self.running() or self.opening:
             raise ValueError("stream_open: a motion is running (or being planned, or a stream opening); stop it first")
-        compact = d.motions.untargeted_buses()  # (drives that follow motions in CST need no position targets)
+        compact = self.motions.untargeted_buses()  # (drives that follow motions in CST need no position targets)
         if compact:
             raise ValueError(f"stream_open: bus(es) {', '.join(compact)} use the 'compact' PDO layout, which carries "
                              "no position targets; streams (CSP) need the 'shared' layout")
-        sc = d.cfg.stream
-        ref = StreamReference(d.cycle.est.q_rad.copy(), d.cycle.dt, sc.delay_s, sc.timeout_s, sc.max_lead_s,
+        sc = self.cfg.stream
+        ref = StreamReference(self.cycle.est.q_rad.copy(), self.cycle.dt, sc.delay_s, sc.timeout_s, sc.max_lead_s,
                               sc.catch_up, label=str(label))
         self.opening = True
         try:
-            await d.motions.track(ref)  # the track's checks, the CSP switch, TRACK
+            await self.motions.track(ref)  # the track's checks, the CSP switch, TRACK
         finally:
             self.opening = False
         self.id += 1
         self.opened += 1
         self.ref = ref
-        d.recorder.event("stream_open", stream=self.id, label=str(label), delay_s=sc.delay_s, timeout_s=sc.timeout_s)
+        self.recorder.event("stream_open", stream=self.id, label=str(label), delay_s=sc.delay_s, timeout_s=sc.timeout_s)
         return {"stream": self.id, "mode": MODE_NAMES[c.mode], "delay_s": sc.delay_s, "timeout_s": sc.timeout_s,
                 "max_lead_s": sc.max_lead_s}
 
@@ -122,8 +131,8 @@ class Streams:
 
     def _check(self, ref: StreamReference, t_s: float, q_rad: list[float]) -> tuple[np.ndarray, np.ndarray]:
         """A sample as the ``track`` checks a file; ValueError naming the joint, the value and the limit."""
-        d, c = self.d, self.d.controller
-        names = d.cfg.joint_names
+        c = self.controller
+        names = self.cfg.joint_names
         q = np.asarray(q_rad, dtype=float)
         if q.shape != (c.n,) or not np.all(np.isfinite(q)):
             raise ValueError(f"q_rad: expected {c.n} finite joint positions ({', '.join(names)}), got "
@@ -143,7 +152,7 @@ class Streams:
         if out.any():
             j = int(np.argmax(out))
             raise ValueError(f"{names[j]} at {q[j]:+.4f} rad leaves its position limits [{lo[j]:+.3f}, {hi[j]:+.3f}]")
-        sc = d.scaling
+        sc = self.scaling
         counts = (q * sc.counts_per_rev / (2 * np.pi)) * sc.direction + sc.offset_counts
         if np.abs(counts).max() >= 2 ** 31:
             j = int(np.argmax(np.abs(counts)))
@@ -159,13 +168,13 @@ class Streams:
                                  f"(max {np.degrees(START_TOLERANCE_RAD):.1f}°); a stream starts where the arm is")
         h = s - s0
         v = (q - q0) / h
-        vmax = d.cfg.safety.encoder_plausible_speed_rad_s
+        vmax = self.cfg.safety.encoder_plausible_speed_rad_s
         j = int(np.argmax(np.abs(v)))
         if abs(v[j]) > vmax:
             raise ValueError(f"{names[j]} would move at {abs(v[j]):.2f} rad/s between samples at t_s {t_s:.6f} "
                              f"(a step in the target?), beyond safety.encoder_plausible_speed_rad_s {vmax:g}")
         a = self._acceleration(ref, s, q)
-        amax = d.cfg.safety.track_acceleration_limit_rad_s2
+        amax = self.cfg.safety.track_acceleration_limit_rad_s2
         j = int(np.argmax(np.abs(a)))
         if abs(a[j]) > amax:
             raise ValueError(f"{names[j]} would accelerate at {abs(a[j]):.1f} rad/s² at t_s {t_s:.6f}, beyond "
@@ -212,7 +221,7 @@ class Streams:
             import pinocchio
 
             self._pin = pinocchio
-        model = self.d.model.model
+        model = self.model.model
         if model is not self._model:
             self._model, self._data = model, model.createData()
         pin = self._pin

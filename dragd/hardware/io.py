@@ -1,13 +1,17 @@
 """The cycle's process data on the buses: SYNC out, TPDOs in (decoded into arrays), command RPDOs out, heartbeat.
 
-Frames are read by each bus's notifier in the asyncio loop's thread (hardware/reader.py; ``tpdo_decoder`` takes
-the TPDOs before any ``can.Message`` is made, ``listener`` the rest): TPDOs are decoded with
-precompiled ``struct`` codecs straight into the feedback arrays, EMCYs go to ``on_emcy``; the read step of a
-cycle (``start_read``) ends when every joint's position TPDO arrived after the SYNC (checked by ``after_frames``
-once a wake-up's frames are all decoded) or at the deadline, and hands over by a plain call (``on_read``): no
-future, no task wake-up. ``write`` packs the controlwords, target positions and torque commands into each command
-frame's preallocated buffer. The frames' fields, offsets and struct codes come from the bus's layout (planned from
-each drive's EDS: hardware/pdo.py), precompiled once.
+``BusIO`` owns the buses' readers (``open_readers``: a ``BusReader`` per bus, hardware/reader.py, in the asyncio
+loop's thread; the SDO master's canopen networks join them as listeners). The cycle makes one call per period,
+``cycle``: the SYNC leaves (on a batching bus together with the command frames the previous step wrote), and the
+period's feedback comes back decoded into the preallocated ``Feedback`` arrays, handed over by a plain call
+(``on_feedback(complete)``): no future, no task wake-up. A frame's way, by calls: the socket is readable →
+``BusReader._drain`` (or ``_read_queued``) → ``UdpMulticastCanBus.drain`` → the bus's ``tpdo_decoder`` →
+``BusIO._tpdo`` (``struct`` codecs straight into the arrays; anything else becomes a ``can.Message`` for
+``listener``: EMCYs to ``on_emcy``, SDO and heartbeats to canopen) → ``BusReader`` calls ``after_frames`` once the
+wake-up's frames are decoded → ``end_read_step`` when every joint's position TPDO arrived (or the deadline timer,
+or the simulator's TIME frame on the lockstep clock) → ``on_feedback``. ``write`` packs the controlwords, target
+positions and torque commands into each command frame's preallocated buffer. The frames' fields, offsets and struct
+codes come from the bus's layout (planned from each drive's EDS: hardware/pdo.py), precompiled once.
 """
 
 from __future__ import annotations
@@ -23,10 +27,13 @@ from dragd.clock import TIME_COB_ID
 from dragd.hardware.bus import PreparedBatch, UdpMulticastCanBus
 from dragd.hardware.cia301 import EMCY_BASE, HEARTBEAT_BASE, SYNC_COB_ID
 from dragd.hardware.pdo import BusLayout, RpdoEncoder
+from dragd.hardware.reader import BusReader
 
 # joint, codec, and where the codec's values hold the position, the statusword, the current and the digital inputs
 # (-1: not in the frame)
 Decoder = tuple[int, struct.Struct, int, int, int, int]
+# a batching bus's prepared datagram, each command frame's (datagram view, encoder buffer), the frames themselves
+_Batch = tuple[PreparedBatch, list[tuple[memoryview, bytearray]], list[can.Message]]
 
 
 class Feedback:
@@ -85,7 +92,7 @@ class BusIO:
         self._heartbeat: list[tuple[can.BusABC, can.Message]] = []
         # per batching bus: its cyclic command frames and SYNC as one prepared datagram (each frame's payload copied
         # from its encoder's buffer when it leaves), and the frames themselves (``flush``)
-        self._batched: dict[can.BusABC, tuple[PreparedBatch, list[tuple[memoryview, bytearray]], list[can.Message]]] = {}
+        self._batched: dict[can.BusABC, _Batch] = {}
         self._commands_wait = False  # write() left cyclic command frames for the next SYNC
         for name, layout in layouts.items():
             bus = buses[name]
@@ -109,8 +116,8 @@ class BusIO:
                 frames = [(msg.arbitration_id, len(enc.buffer), fd) for msg, enc in synced] + [(SYNC_COB_ID, 0, False)]
                 assert isinstance(bus, UdpMulticastCanBus)
                 batch = bus.prepare(frames)
-                self._batched[bus] = (batch, [(view, enc.buffer) for view, (_, enc) in zip(batch.data, synced)],
-                                      [msg for msg, _ in synced])
+                views = [(view, enc.buffer) for view, (_, enc) in zip(batch.data, synced, strict=False)]  # (+ SYNC)
+                self._batched[bus] = (batch, views, [msg for msg, _ in synced])
             self._heartbeat.append((bus, can.Message(arbitration_id=HEARTBEAT_BASE + master_node_id, data=b"\x05",
                                                      is_extended_id=False)))
             if isinstance(bus, UdpMulticastCanBus):  # the TPDOs read by their template, without unpacking maps
@@ -119,6 +126,26 @@ class BusIO:
         self._emcy = {EMCY_BASE + node: i for i, node in enumerate(node_ids)}
         self._node_ids = list(node_ids)
         self._buses = [buses[name] for name in layouts]
+        self._bus_by_name = {name: buses[name] for name in layouts}
+        self.readers: dict[str, BusReader] = {}  # (open_readers)
+        self._loop: asyncio.AbstractEventLoop | None = None
+
+    def open_readers(self, loop: asyncio.AbstractEventLoop) -> dict[str, BusReader]:
+        """Start reading every bus in ``loop``: its cyclic TPDOs decoded without a ``can.Message``
+        (``tpdo_decoder``), the rest to ``listener`` (and to whatever joins the reader: the SDO master's canopen
+        network), the read step judged after each wake-up's frames (``after_frames``, ``read_done``)."""
+        self._loop = loop
+        for name, bus in self._bus_by_name.items():
+            self.readers[name] = BusReader(bus, [self.listener(name)], timeout=0.5, loop=loop,
+                                           on_data=self.tpdo_decoder(name), after=self.after_frames,
+                                           until=self.read_done)
+        return self.readers
+
+    def close_readers(self) -> None:
+        """Stop reading the buses (each reader's listeners stopped)."""
+        for reader in self.readers.values():
+            reader.stop(timeout=0.5)
+        self.readers = {}
 
     def expect_lockstep(self) -> None:
         """The lockstep clock: the simulator's datagram per period also carries its TIME frame and, when due, the
@@ -174,7 +201,11 @@ class BusIO:
     def tpdo_decoder(self, bus_name: str) -> Callable[[int, bytes | bytearray], bool]:
         """``on_data`` for the bus's reader: decodes a (plain data) frame that is a TPDO, True if it was one."""
         table, tpdo = self._decoders.setdefault(bus_name, {}), self._tpdo
-        return lambda cob, data: tpdo(cob, data, table)
+
+        def decode_tpdo(cob: int, data: bytes | bytearray) -> bool:
+            return tpdo(cob, data, table)
+
+        return decode_tpdo
 
     def _tpdo(self, cob: int, data: bytes | bytearray, table: dict[int, Decoder]) -> bool:
         entry = table.get(cob)
@@ -240,14 +271,18 @@ class BusIO:
         np.copyto(fb.stale, 0, where=fb.rx)  # (a boolean-mask assignment would allocate)
         return False
 
-    def start_read(self, loop: asyncio.AbstractEventLoop, deadline_s: float | None,
-                   on_read: Callable[[bool], None]) -> None:
-        """Send SYNC and open the read step: ``on_read(complete)`` is called once, in the loop's thread, when every
-        joint's position TPDO arrived (True) or ``deadline_s`` passed (False). Without a deadline (the lockstep
-        clock) the read step ends when the TPDOs are complete or someone calls ``end_read_step`` (the simulator's
-        TIME frame)."""
+    def cycle(self, deadline_s: float | None, on_feedback: Callable[[bool], None],
+              loop: asyncio.AbstractEventLoop | None = None) -> None:
+        """The period's exchange, one call: SYNC out (on a batching bus with the command frames ``write`` left for
+        it, in one datagram), the period's TPDOs decoded into ``feedback`` as they arrive, then
+        ``on_feedback(complete)`` once, in the loop's thread: True when every joint's position TPDO arrived, False
+        when ``deadline_s`` passed first. Without a deadline (the lockstep clock) the read step ends when the
+        TPDOs are complete or someone calls ``end_read_step`` (the simulator's TIME frame). ``loop``: the readers'
+        (``open_readers``) unless given."""
+        loop = loop if loop is not None else self._loop
+        assert loop is not None, "BusIO.cycle: open_readers(loop) first, or give the loop"
         self.begin_cycle()
-        self._on_read = on_read
+        self._on_read = on_feedback
         self.reading = True
         if self._commands_wait:
             self._send_with_sync()
@@ -280,9 +315,9 @@ class BusIO:
             self._deadline_handle = None
 
     async def read(self, loop: asyncio.AbstractEventLoop, deadline_s: float) -> bool:
-        """``start_read`` awaited: True when every joint's position TPDO arrived, False at the deadline."""
+        """``cycle`` awaited: True when every joint's position TPDO arrived, False at the deadline."""
         done: asyncio.Future[bool] = loop.create_future()
-        self.start_read(loop, deadline_s, done.set_result)
+        self.cycle(deadline_s, done.set_result, loop)
         try:
             return await done
         finally:

@@ -33,15 +33,36 @@ import canopen
 from canopen.objectdictionary import ODVariable
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
-from dragd.hardware.cia301 import HEARTBEAT_BASE, NMT_COB_ID, SYNC_COB_ID, NmtCommand
-from dragd.hardware.reader import BusReader
-from dragd.hardware.cia402 import (MODE_CSP, MODE_CST, OD_ABORT_CONNECTION_OPTION, OD_CONTROLWORD, OD_MAX_TORQUE,
-                                   OD_MODES_OF_OPERATION, OD_MODES_OF_OPERATION_DISPLAY, OD_QUICK_STOP_OPTION,
-                                   OD_STATUSWORD, OD_SUPPORTED_DRIVE_MODES, OD_TARGET_TORQUE, OD_TORQUE_OFFSET, VOLTAGE_ENABLED_STATES, decode_statusword)
 from dragd.config import Config, JointConfig
+from dragd.hardware.cia301 import (
+    HEARTBEAT_BASE,
+    NMT_COB_ID,
+    OD_CONSUMER_HEARTBEAT,
+    OD_DEVICE_TYPE,
+    OD_IDENTITY,
+    OD_PRODUCER_HEARTBEAT,
+    SYNC_COB_ID,
+    NmtCommand,
+)
+from dragd.hardware.cia402 import (
+    MODE_CSP,
+    MODE_CST,
+    OD_ABORT_CONNECTION_OPTION,
+    OD_CONTROLWORD,
+    OD_MAX_TORQUE,
+    OD_MODES_OF_OPERATION,
+    OD_MODES_OF_OPERATION_DISPLAY,
+    OD_QUICK_STOP_OPTION,
+    OD_STATUSWORD,
+    OD_SUPPORTED_DRIVE_MODES,
+    OD_TARGET_TORQUE,
+    OD_TORQUE_OFFSET,
+    VOLTAGE_ENABLED_STATES,
+    decode_statusword,
+)
 from dragd.hardware.pdo import BusLayout, PdoSpec
-from dragd.hardware.profile import (CURRENT_UNITS_A, DEVICE_TYPE_402, TORQUE_UNITS_NM, DriveProfile, Profiles,
-                                    address)
+from dragd.hardware.profile import CURRENT_UNITS_A, DEVICE_TYPE_402, TORQUE_UNITS_NM, DriveProfile, Profiles, address
+from dragd.hardware.reader import BusReader
 from dragd.realtime import demote_current_thread
 
 COB_DEFINED_BITS = 0xA000_07FF  # CiA 301 PDO COB-ID: bit 31 valid, bit 29 frame (0: 11-bit), bits 10..0 the id
@@ -106,7 +127,8 @@ class BusRuntime:
     network: canopen.Network
     layout: BusLayout
     nodes: dict[int, NodeInfo] = field(default_factory=dict)
-    notifier: BusReader | None = None  # (#32: python-can's public API only; was a can.Notifier subclass)
+    notifier: BusReader | None = None  # the bus's reader (canopen's Network reads through it)
+    own_reader: bool = False  # made by the master (stopped by it), not the cycle's I/O's
 
 
 STRUCT_TYPES = ODVariable.STRUCT_TYPES
@@ -120,19 +142,18 @@ class Master:
     """Boots and configures the drives of every bus; owns the canopen networks and the SDO worker thread."""
 
     def __init__(self, cfg: Config, buses: dict[str, can.BusABC], layouts: dict[str, BusLayout],
-                 loop: asyncio.AbstractEventLoop, profiles: Profiles, listeners: dict[str, list[can.Listener]],
-                 log: Callable[[str], None] = print,
-                 on_data: dict[str, Callable[[int, bytes | bytearray], bool]] | None = None,
-                 after_frames: Callable[[], None] | None = None, read_done: Callable[[], bool] | None = None) -> None:
-        """``profiles``: every joint's drive profile (its EDS); ``on_data`` (per bus) claims the cyclic TPDOs before
-        any ``can.Message``; ``after_frames`` runs after each wake-up's frames of any bus (the cycle's read step ends
-        there); ``read_done()`` true ends a wake-up's reading early (the cycle has every TPDO it waits for)."""
+                 loop: asyncio.AbstractEventLoop, profiles: Profiles, readers: dict[str, BusReader] | None = None,
+                 log: Callable[[str], None] = print) -> None:
+        """``profiles``: every joint's drive profile (its EDS). ``readers``: the buses' readers of the cycle's I/O
+        (``BusIO.open_readers``), which each bus's canopen network joins as listeners; a bus without one (tools,
+        tests: no cycle) is read by a reader of the master's own."""
         self.cfg = cfg
         self.loop = loop
         self.log = log
         # started during boot, before the cycle thread turns SCHED_FIFO; demoted anyway should it start later
         self.sdo_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dragd-sdo",
-                                             initializer=demote_current_thread, initargs=(set(cfg.loop.cpus or ()) or None,))
+                                             initializer=demote_current_thread,
+                                             initargs=(set(cfg.loop.cpus or ()) or None,))
         self.runtimes: dict[str, BusRuntime] = {}
         # every drive heartbeat (bus, node, NMT state byte), in the loop's thread: the daemon's comms monitor
         self.on_heartbeat: Callable[[str, int, int], None] | None = None
@@ -154,10 +175,13 @@ class Master:
             net.subscribe(SYNC_COB_ID, self._foreign_cb(name, "SYNC"))
             net.subscribe(HEARTBEAT_BASE + cfg.master.node_id, self._foreign_cb(name, f"heartbeat of node "
                                                                                   f"{cfg.master.node_id}"))
-            # --- the bus reader (#32: python-can's public API, hardware/reader.py) ---
-            rt.notifier = BusReader(bus, [*net.listeners, *listeners.get(name, [])], timeout=0.5, loop=loop,
-                                    on_data=(on_data or {}).get(name), after=after_frames, until=read_done)
-            net.notifier = rt.notifier  # type: ignore[assignment]  # canopen calls stop() and reads exception
+            reader = (readers or {}).get(name)
+            if reader is None:
+                reader, rt.own_reader = BusReader(bus, [], timeout=0.5, loop=loop), True
+            for listener in net.listeners:  # SDO answers, heartbeats, the foreign-master watch
+                reader.add_listener(listener)
+            rt.notifier = reader
+            net.notifier = reader  # type: ignore[assignment]  # canopen calls stop() and reads exception
             self.runtimes[name] = rt
 
     # ------------------------------------------------------------------------------------------ NMT
@@ -195,7 +219,8 @@ class Master:
         """Send an NMT command (node 0 = all nodes) on one bus or all."""
         for rt in self.runtimes.values():
             if bus is None or rt.name == bus:
-                rt.bus.send(can.Message(arbitration_id=NMT_COB_ID, data=bytes([command, node_id]), is_extended_id=False))
+                rt.bus.send(can.Message(arbitration_id=NMT_COB_ID, data=bytes([command, node_id]),
+                                        is_extended_id=False))
 
     async def boot(self) -> None:
         """Reset, check, configure and start every drive; DriveError with every node's failures (the drives left
@@ -319,13 +344,13 @@ class Master:
         return "; ".join(reasons) or None
 
     async def shutdown(self) -> None:
-        """NMT pre-operational (PDOs and their watchdogs stop), stop the notifiers and the worker.
+        """NMT pre-operational (PDOs and their watchdogs stop), stop the readers the master made and the worker.
 
         A master that never took the bus (another master was heard) sends nothing."""
         if self.took_bus:
             self.nmt(NmtCommand.PRE_OPERATIONAL)
         for rt in self.runtimes.values():
-            if rt.notifier is not None:
+            if rt.notifier is not None and rt.own_reader:
                 rt.notifier.stop(timeout=0.5)
         self.sdo_worker.shutdown(wait=False, cancel_futures=True)
 
@@ -408,14 +433,14 @@ class _Boot:
 
     def identity(self) -> None:
         info, rep = self.info, self.rep
-        info.device_type = self.read(0x1000, 0, "device type")
+        info.device_type = self.read(OD_DEVICE_TYPE, 0, "device type")
         if info.device_type is not None and info.device_type & 0xFFFF != DEVICE_TYPE_402:
-            rep.fail(0x1000, 0, f"device type 0x{info.device_type:08X}, expected a CiA 402 drive (0x....0192)",
+            rep.fail(OD_DEVICE_TYPE, 0, f"device type 0x{info.device_type:08X}, expected a CiA 402 drive (0x....0192)",
                      f"set {self.jkey}.node_id or {self.jkey}.drive")
-        info.vendor_id = self.read(0x1018, 1, "vendor id")
-        if self.p.has(0x1018, 2):
-            info.product_code = self.read(0x1018, 2, "product code")
-        expect = self.p.var(0x1018, 1)
+        info.vendor_id = self.read(OD_IDENTITY, 1, "vendor id")
+        if self.p.has(OD_IDENTITY, 2):
+            info.product_code = self.read(OD_IDENTITY, 2, "product code")
+        expect = self.p.var(OD_IDENTITY, 1)
         want = expect.default if expect is not None else None
         if isinstance(want, int) and want and info.vendor_id is not None and info.vendor_id != want:
             rep.status.append(f"warning: vendor id 0x{info.vendor_id:08X}, the EDS says 0x{want:08X}: is "
@@ -503,9 +528,9 @@ class _Boot:
 
     def heartbeats(self) -> None:
         m = self.m.cfg.master
-        self.write(0x1017, 0, m.drive_heartbeat_ms, "heartbeat producer time")
-        if self.p.has(0x1016, 1):
-            self.write(0x1016, 1, (m.node_id << 16) | m.heartbeat_consumer_ms, "heartbeat consumer")
+        self.write(OD_PRODUCER_HEARTBEAT, 0, m.drive_heartbeat_ms, "heartbeat producer time")
+        if self.p.has(OD_CONSUMER_HEARTBEAT, 1):
+            self.write(OD_CONSUMER_HEARTBEAT, 1, (m.node_id << 16) | m.heartbeat_consumer_ms, "heartbeat consumer")
 
     def pdos(self) -> None:
         """Every PDO the drive has disabled (its COB-ID bit 31), then the layout's written."""
@@ -564,7 +589,7 @@ class _Boot:
             value = max(1, round(cfg.safety.rpdo_timeout_ms * per_ms))
             if self.write(*w, value, "vendor watchdog", f"set {self.p.key}.rpdo_watchdog"):
                 parts.append(f"vendor watchdog {address(*w)} = {value} {unit}")
-        if self.p.has(0x1016, 1):
+        if self.p.has(OD_CONSUMER_HEARTBEAT, 1):
             parts.append(f"master heartbeat consumer 1016h {cfg.master.heartbeat_consumer_ms} ms")
         else:
             parts.append("no heartbeat consumer (1016h absent)")

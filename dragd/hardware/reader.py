@@ -9,8 +9,9 @@ frame cost more than decoding. dragd's own udp_multicast bus (``UdpMulticastCanB
 to ``on_data(cob_id, data)`` first; the frames it claims (the cyclic TPDOs, decoded straight into the feedback
 arrays) never become ``can.Message`` objects. Everything else reaches the listeners. ``after`` runs once the frames
 of a wake-up are all delivered: the cycle's read step ends there (hardware/io.py ``BusIO.after_frames``), in the same
-loop callback, without a future or a task wake-up. canopen's ``Network`` takes it as its ``notifier`` (it calls
-``stop`` and reads ``exception``).
+loop callback, without a future or a task wake-up. The daemon's readers are the cycle's I/O's (``BusIO.open_readers``);
+the SDO master's canopen ``Network`` joins one as listeners and takes it as its ``notifier`` (it calls ``stop`` and
+reads ``exception``).
 """
 
 from __future__ import annotations

@@ -399,7 +399,7 @@ def run_contact_demo(config: Path | None = None, out: Path | None = None, progre
     """Both sessions (``calibrated``: a params file with bands from an earlier calibration session: the second
     alone)."""
     from dragd.config import load_config
-    from dragd.lab.demo import TEACH_STEPS_RAD, guide_and_settle
+    from dragd.lab.demo_common import TEACH_STEPS_RAD, guide_and_settle
     from dragd.model import RobotModel
 
     out = Path(out) if out is not None else Path.cwd() / "out"

@@ -12,7 +12,7 @@ import asyncio
 import json
 import threading
 from collections.abc import Callable, Coroutine, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import rclpy
 from builtin_interfaces.msg import Time
@@ -31,8 +31,15 @@ from trajectory_msgs.msg import JointTrajectory
 
 from dragd.ros2.convert import service_name
 
-if TYPE_CHECKING:
-    from dragd.ros2.bridge import Bridge
+
+class Bridge(Protocol):
+    """What the node calls on the bridge (dragd/ros2/bridge.py's ``Bridge``; typed here, not imported: no circle)."""
+
+    def on_keepalive(self) -> None: ...
+    def on_command(self, stamp_s: float, names: list[str], positions: list[float]) -> None: ...
+    def on_trajectory(self, stamp_s: float, names: list[str], points: list[tuple[float, list[float]]]) -> None: ...
+    def action(self, name: str, *args: Any) -> Coroutine[Any, Any, tuple[bool, str]]: ...
+
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 SERVICE_WAIT_S = 180.0  # the longest a service waits for the daemon (a payload estimate visits several poses)

@@ -219,6 +219,15 @@ def resolve_program(name_or_path: str, program_dir: str | Path) -> Path:
     return Path(program_dir) / f"{text}.yaml"
 
 
+def interrupted_sessions(program_dir: str | Path) -> list[Path]:
+    """Teach recordings in ``program_dir`` without their program file (sessions that never reached ``stop``)."""
+    d = Path(program_dir)
+    if not d.is_dir():
+        return []
+    return sorted(p for p in d.glob("*.mcap") if not p.with_suffix(".yaml").exists()
+                  and not p.with_suffix(".yml").exists())
+
+
 def list_programs(program_dir: str | Path) -> list[dict[str, Any]]:
     """Every readable program in ``program_dir`` (unreadable files are listed with their error)."""
     out: list[dict[str, Any]] = []
@@ -232,8 +241,6 @@ def list_programs(program_dir: str | Path) -> list[dict[str, Any]]:
             out.append({"path": str(p), "error": str(exc)})
             continue
         out.append({"path": str(p), **prog.summary()})
-    from dragd.teach.recover import interrupted_sessions
-
     for m in interrupted_sessions(d):  # teach sessions that never reached 'stop': their recording is the autosave
         out.append({"path": str(m), "interrupted": True,
                     "error": f"interrupted teach session: 'dragd teach recover {m}' writes its program"})

@@ -17,15 +17,6 @@ import numpy as np
 from dragd.teach.program import ProgramError, check_name
 
 
-def interrupted_sessions(program_dir: str | Path) -> list[Path]:
-    """Teach recordings in ``program_dir`` without their program file (sessions that never reached ``stop``)."""
-    d = Path(program_dir)
-    if not d.is_dir():
-        return []
-    return sorted(p for p in d.glob("*.mcap") if not p.with_suffix(".yaml").exists()
-                  and not p.with_suffix(".yml").exists())
-
-
 def teach_info(mcap: str | Path) -> dict[str, Any]:
     """The session's parameters from its teach_start event; ProgramError when the file is not a teach recording."""
     from dragd.telemetry.reader import TelemetryFileError, read_events
