@@ -127,7 +127,7 @@ def test_detect_finds_every_contact_on_its_joint_and_nothing_else(files: dict[st
     truth = [(5.0, 0.25, "joint2", 40.0), (8.5, 0.3, "joint3", 25.0), (11.0, 0.4, "joint1", 30.0),
              (19.0, 1.0, "joint2", 30.0), (22.5, 1.0, "joint4", 8.0)]
     assert len(events) == len(truth), events
-    for e, (t0, dur, joint, nm) in zip(events, truth):
+    for e, (t0, dur, joint, nm) in zip(events, truth, strict=True):
         assert t0 <= e["t_start_s"] <= t0 + dur, (e, t0)  # found during the contact
         assert joint in e["joints"], (e, joint)
         peak = e["peak_Nm"][e["joints"].index(joint)]
@@ -193,7 +193,8 @@ def test_bad_input_is_named(files: dict[str, Path], tmp_path: Path) -> None:
                 str(files["free_a"]), "--out", str(out), "--margin", "0.9", check=False)
     assert r.returncode == 2 and "--margin" in r.stderr and not out.exists()
     null_kt = tmp_path / "nokt.yaml"
-    null_kt.write_text(files["params"].read_text().replace("torque_constant_Nm_per_A: 9.09", "torque_constant_Nm_per_A: null", 1))
+    null_kt.write_text(files["params"].read_text().replace("torque_constant_Nm_per_A: 9.09",
+                                                           "torque_constant_Nm_per_A: null", 1))
     r = run_cli("contact", "calibrate", "--robot", "seed_cobot", "--params", str(null_kt), "--log",
                 str(files["free_a"]), "--out", str(out), check=False)
     assert r.returncode == 2 and "joint1" in r.stderr and "--torque-constants" in r.stderr
@@ -216,7 +217,7 @@ def test_labels_of_a_periodic_run_and_of_a_held_pose() -> None:
         i[k, j] += a
     lab = periodic_labels(t, q, dq, i)
     assert len(lab.contacts) == 3
-    for c, (t0, j, a) in zip(lab.contacts, bumps):
+    for c, (t0, j, a) in zip(lab.contacts, bumps, strict=True):
         assert abs(c.t_onset_s - t0) <= 0.03 and c.joint == j and c.peak_A == pytest.approx(abs(a), rel=0.25)
     held = np.tile([0.1, 5.0, 2.0], (t.shape[0], 1)) + rng.normal(0.0, 0.02, (t.shape[0], 3))
     k = (t >= 10.0) & (t < 11.0)

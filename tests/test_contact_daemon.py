@@ -15,9 +15,21 @@ import numpy as np
 import pytest
 
 from dragd.config import load_config
-from dragd.lab.demo_contact import (IMPACT_N, STRIKE_LINK, STRIKE_POINT_M, Clocks, calibrate_session, detection_config,
-                                    hand_force_error, hand_force_offline, head_on, identify_session, point_position,
-                                    strike_figures, strike_info)
+from dragd.lab.demo_contact import (
+    IMPACT_N,
+    STRIKE_LINK,
+    STRIKE_POINT_M,
+    Clocks,
+    calibrate_session,
+    detection_config,
+    hand_force_error,
+    hand_force_offline,
+    head_on,
+    identify_session,
+    point_position,
+    strike_figures,
+    strike_info,
+)
 from dragd.lab.rig import Rig
 from dragd.model import RobotModel
 from dragd.telemetry.reader import read_rows

@@ -11,8 +11,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dragd.control.contact import (HELD, MOVING, RELEASED, SETTLING, ContactBands, ContactDetector, ContactSettings,
-                                   contact_kernel)
+from dragd.control.contact import (
+    HELD,
+    MOVING,
+    RELEASED,
+    SETTLING,
+    ContactBands,
+    ContactDetector,
+    ContactSettings,
+    contact_kernel,
+)
 from dragd.control.observer import observer_step, observer_step_np
 
 pytestmark = pytest.mark.unit

@@ -337,7 +337,8 @@ def test_trajectories_accelerating_too_hard_or_needing_too_much_current_are_refu
     finally:
         c.params.current_limit_A[:] = limit
     too_hard = swing(0.5, 0.6)  # 0.5·2π²/0.36 ≈ 27 rad/s²
-    with pytest.raises(ValueError, match=r"joint2 would accelerate at 2\d\.\d rad/s² at t = .*safety\.track_acceleration_limit_rad_s2 20"):
+    with pytest.raises(ValueError, match=r"joint2 would accelerate at 2\d\.\d rad/s² at t = "
+                                         r".*safety\.track_acceleration_limit_rad_s2 20"):
         ip.m.validate(too_hard)
 
 

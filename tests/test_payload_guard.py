@@ -133,7 +133,8 @@ def test_tool_hung_on_during_a_hand_pull_is_held_within_bounds():
     assert dt <= 0.150 and drift <= 1.5  # the hand's pull did not mask the tool
 
 
-@pytest.mark.parametrize(("pull_s", "back_m"), [(0.1, [0.0, 0.0, 0.1]), (0.3, [0.0, 0.0, 0.05]), (0.3, [0.0, 0.0, 0.1])])
+@pytest.mark.parametrize(("pull_s", "back_m"),
+                         [(0.1, [0.0, 0.0, 0.1]), (0.3, [0.0, 0.0, 0.05]), (0.3, [0.0, 0.0, 0.1])])
 def test_a_hand_that_pulls_the_arm_back_up_is_not_a_lighter_load(pull_s, back_m):
     """The loop bench's false trip in CI (sessions 6–9: "joint3 −0.88 rad/s, −3.5 N·m, a load of about −0.86 kg"):
     a hand pulls the flange forward and down, then hauls it back up while the arm still moves down. Its upward force
@@ -164,7 +165,8 @@ def test_check_before_drag_refuses_a_missing_payload_with_figures_and_accept_dra
     resp = cl.mode("drag", accept=True)
     assert cl.c.mode == Mode.DRAG
     assert resp["implied_payload_kg"] == pytest.approx(4.0, rel=0.25)  # stiction biases the hold currents
-    assert cl.c.gravity_offset_A[1] == pytest.approx(resp["accepted_offset_A"][1], abs=1e-3) and abs(resp["accepted_offset_A"][1]) > 1.0
+    assert cl.c.gravity_offset_A[1] == pytest.approx(resp["accepted_offset_A"][1], abs=1e-3)
+    assert abs(resp["accepted_offset_A"][1]) > 1.0
     q0 = cl.phys.q_rad.copy()
     cl.run(0.3)  # around the pose the offset holds the shoulder and elbow (within a degree)
     assert float(np.degrees(np.abs(cl.phys.q_rad[1:3] - q0[1:3])).max()) <= 1.0
@@ -259,7 +261,8 @@ def test_experiments_hands_never_trip():
             cl.run(2.6)
         cl.operator({"name": "place", "segments": [
             {"kind": "move", "joint": name, "velocity_rad_s": v, "duration_s": 1.0},
-            {"kind": "move", "joint": name, "velocity_rad_s": 0.0, "duration_s": 0.6}, {"kind": "release", "duration_s": 0.0}]})
+            {"kind": "move", "joint": name, "velocity_rad_s": 0.0, "duration_s": 0.6},
+            {"kind": "release", "duration_s": 0.0}]})
         cl.run(2.5)
     for j in range(4):
         for sign in (1, -1):
@@ -299,14 +302,12 @@ def test_sim_flange_payload_hook_validates_and_changes_the_truth():
 
 
 def test_guard_config_is_validated():
-    from dragd.config import ConfigError, load_config
-
     import tempfile
     from pathlib import Path
 
     import yaml
 
-    from dragd.config import default_config_path
+    from dragd.config import ConfigError, default_config_path, load_config
 
     data = yaml.safe_load(default_config_path().read_text())
     data["safety"] = {"guard": {"unexplained_max": 1.5}}

@@ -17,10 +17,9 @@ from collections.abc import Callable
 
 import numpy as np
 import pytest
+from ros2_helpers import Probe, needs_ros2, start_bridge
 
 from dragd.lab.rig import Child, Rig, wait_until
-
-from ros2_helpers import Probe, needs_ros2, start_bridge
 
 # one worker for the module: every bridge is node /dragd in this process's DDS domain (ros2_helpers.ros_env)
 pytestmark = [pytest.mark.lockstep, needs_ros2, pytest.mark.xdist_group("ros2_bridge")]

@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
+from ros2_helpers import REASON
 
 from dragd.lab.rig import Rig
 from dragd.robots import resolve_urdf
@@ -28,7 +29,6 @@ from dragd.telemetry.schema import cycle_layout
 from dragd.telemetry.writer import write_file
 
 from conftest import run_cli
-from ros2_helpers import REASON
 
 JOINTS = [f"joint{i}" for i in range(1, 7)]
 URDF = resolve_urdf("seed_cobot")
@@ -131,8 +131,8 @@ needs_ros2 = pytest.mark.skipif(REASON is not None, reason=f"the ros2 extra is n
 @pytest.mark.unit
 @needs_ros2
 def test_ros_type_support_decodes_what_dragd_encoded(tmp_path):
-    from rclpy.serialization import deserialize_message
     from rcl_interfaces.msg import Log
+    from rclpy.serialization import deserialize_message
     from sensor_msgs.msg import JointState
     from std_msgs.msg import String
 

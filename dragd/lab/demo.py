@@ -33,7 +33,7 @@ def _say(progress: bool, text: str) -> None:
 
 
 def _max_deg(a: list[float], b: list[float]) -> float:
-    return max(abs(math.degrees(x - y)) for x, y in zip(a, b))
+    return max(abs(math.degrees(x - y)) for x, y in zip(a, b, strict=True))
 
 
 def run_demo(seconds: float = 20.0, config: Path | None = None, out: Path | None = None, scenario: str = "drag",
@@ -105,7 +105,8 @@ def run_demo(seconds: float = 20.0, config: Path | None = None, out: Path | None
         rig.must("stop")
         codes = rig.close()
         if codes.get("dragd") != 0:
-            raise DemoError(f"the daemon exited with {codes.get('dragd')} on SIGTERM (expected 0):\n{rig.daemon.tail()}")
+            raise DemoError(f"the daemon exited with {codes.get('dragd')} on SIGTERM (expected 0):\n"
+                            f"{rig.daemon.tail()}")
         return {
             "cycles": status["cycles"],
             **_timing(status, stalls, lockstep, mcap),
@@ -210,8 +211,8 @@ def _wait_replay(rig: Rig, timeout_s: float) -> dict[str, Any]:
     try:
         rig.wait_for(ended, timeout_s, "the end of the replay")
     except ProcessError:
-        raise DemoError(f"the replay did not end within {timeout_s:.0f} s:\n{rig.daemon.tail() if rig.daemon else ''}") \
-            from None
+        raise DemoError(f"the replay did not end within {timeout_s:.0f} s:\n"
+                        f"{rig.daemon.tail() if rig.daemon else ''}") from None
     return got[0]
 
 
@@ -270,7 +271,8 @@ def run_teach_demo(seconds: float = 20.0, config: Path | None = None, out: Path 
         rig.must("stop")
         codes = rig.close()
         if codes.get("dragd") != 0:
-            raise DemoError(f"the daemon exited with {codes.get('dragd')} on SIGTERM (expected 0):\n{rig.daemon.tail()}")
+            raise DemoError(f"the daemon exited with {codes.get('dragd')} on SIGTERM (expected 0):\n"
+                            f"{rig.daemon.tail()}")
         rows = read_rows(mcap)
         results = {k: replay_errors(rows, r["t0"], r["t1"], r["marks"], waypoints, r["body_start_s"])
                    for k, r in runs.items()}

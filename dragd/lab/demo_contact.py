@@ -4,8 +4,9 @@ Two sessions of the simulated robot and the daemon (separate processes, as ``dra
 
 1. **Calibration** (the detector not yet calibrated): the arm moves by itself through free motion — each joint
    alone, out and back at two speeds with rests (the held-while-others-move band needs it), two multi-joint moves,
-   then a Fourier excitation (the coupled dynamics of every joint moving) — recorded to MCAP; ``dragd contact calibrate`` on that recording with the daemon's
-   own model (the configuration's K_t and friction as a params file) writes the bands.
+   then a Fourier excitation (the coupled dynamics of every joint moving) — recorded to MCAP; ``dragd contact
+   calibrate`` on that recording with the daemon's own model (the configuration's K_t and friction as a params
+   file) writes the bands.
 2. **Detection** (the daemon restarted with those bands, reaction ``stop`` in every mode): held 2 s; the teach demo
    (three waypoints by hand in drag, replayed linearly and circularly); an identification run of another plan
    (a Fourier excitation); every contact alarm there is a false alarm. Then the contacts, each by the simulator's
@@ -15,8 +16,8 @@ Two sessions of the simulated robot and the daemon (separate processes, as ``dra
 
 Figures: per contact the detection delay (the daemon's event start − the contact force's start, both in the arm's
 time), the peak contact force, the time from the detection until the arm stopped (every joint below
-``STOPPED_RAD_S`` from then on) and how far the struck point travelled from the detection; false alarms per free run; in drag the
-hand-force error against the truth where the truth is above 10 N.
+``STOPPED_RAD_S`` from then on) and how far the struck point travelled from the detection; false alarms per free
+run; in drag the hand-force error against the truth where the truth is above 10 N.
 """
 
 from __future__ import annotations
@@ -40,8 +41,8 @@ STOPPED_RAD_S = 0.01  # the arm counts as stopped once every joint is slower tha
 STAYS_S = 0.2  # ... and stays so (for at least this long, within STOP_WINDOW_S of the detection)
 STOP_WINDOW_S = 0.5  # (the demo starts nothing else within it)
 HAND_PUSHES_N = ([18.0, 0.0, 0.0], [0.0, -22.0, 0.0], [0.0, 12.0, 16.0], [-15.0, 10.0, -10.0])  # drag: at the grip
-HAND_FORCE_MIN_N = 10.0
-CALIBRATION_SEED = 3  # the calibration's Fourier excitation; the detection session's identification runs use others  # the hand-force error is judged where the true force is above this
+HAND_FORCE_MIN_N = 10.0  # the hand-force error is judged where the true force is above this
+CALIBRATION_SEED = 3  # the calibration's Fourier excitation; the detection session's identification runs use others
 
 
 class ContactDemoError(RuntimeError):
@@ -64,7 +65,8 @@ def model_params(cfg: Any) -> Any:
     joints = {}
     for j in cfg.joints:
         f = j.friction
-        fr = FrictionParams(**{k: getattr(f, k) for k in FrictionParams.model_fields if getattr(f, k, None) is not None})
+        fr = FrictionParams(**{k: getattr(f, k) for k in FrictionParams.model_fields
+                               if getattr(f, k, None) is not None})
         joints[j.name] = JointParams(torque_constant_Nm_per_A=j.torque_constant_Nm_per_A, friction=fr,
                                      effects=j.effects)
     return ParamsFile(method="config", robot=cfg.robot.urdf, joints=joints,
@@ -266,7 +268,8 @@ class Clocks:
         return sim_t_s - self.offset_s
 
 
-def head_on(rig: Rig, model: Any, link: str = STRIKE_LINK, point: tuple[float, float, float] = STRIKE_POINT_M) -> list[float]:
+def head_on(rig: Rig, model: Any, link: str = STRIKE_LINK,
+            point: tuple[float, float, float] = STRIKE_POINT_M) -> list[float]:
     """The direction of a head-on impact on ``link``'s point: against its present velocity (world); straight down
     where it is (nearly) at rest."""
     import pinocchio as pin

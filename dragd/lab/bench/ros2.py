@@ -200,7 +200,8 @@ def ros2_bridge_cpu_pct(opts: dict) -> tuple[float, dict[str, Any]]:
     """The bridge's CPU time as a share of one core, publishing /joint_states at 100 Hz (and its diagnostics), the
     arm held."""
     s = _session(*_opts(opts))
-    return float(s["bridge_cpu_pct"]), {"joint_states_Hz": round(s["joint_states_Hz"], 1), "schedulers": s["schedulers"]}
+    return float(s["bridge_cpu_pct"]), {"joint_states_Hz": round(s["joint_states_Hz"], 1),
+                                        "schedulers": s["schedulers"]}
 
 
 @benchmark("ros2_state_latency_ms", "ms")
