@@ -1,21 +1,28 @@
-"""The simulator's bus reader as it runs on the wall clock: a SYNC's answer in one datagram, a reader woken but not
-yet run, the RPDO watchdog judged by what the reader has read. These are the reader's real-time behaviour (threads,
-the GIL, a stalled process), so they stay in the wall-clock tier; tests/test_sim_canopen.py runs the drives against a
-CANopen master on the lockstep clock."""
+"""The simulator on the wall clock: its real-time runner (``--seconds``, SIGINT) and its bus reader (a SYNC's answer in
+one datagram, a reader woken but not yet run, the RPDO watchdog judged by what the reader has read). This is the
+simulator's real-time behaviour (threads, the GIL, a stalled process), so it stays in the wall-clock tier;
+tests/test_sim_canopen.py, test_sim_process.py and test_sim_vendor_eds.py run the drives against a CANopen master on
+the lockstep clock."""
 
 from __future__ import annotations
 
 import hashlib
+import json
 import os
+import signal
 import struct
+import subprocess
+import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import can
 import pytest
 
 from dragd.hardware.bus import open_bus, parse_bus
 from test_sim_canopen import TRUTH
+from test_sim_process import REPO, SimProc, unique_group
 
 pytestmark = [pytest.mark.rig, pytest.mark.timeout(120)]
 
@@ -145,3 +152,21 @@ def test_rpdo_watchdog_waits_for_frames_the_reader_has_not_read(request: pytest.
     finally:
         sim_bus.shutdown()
         master.shutdown()
+
+
+def test_sigint_and_seconds_exit_cleanly(tmp_path: Path) -> None:
+    group = unique_group()
+    proc = subprocess.run([sys.executable, "-m", "sim", "run", "--bus", f"udp_multicast:{group}", "--seconds", "1.5",
+                           "--json"], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads(proc.stdout.splitlines()[-1])
+    assert summary["sim_time_s"] == pytest.approx(1.5) and summary["steps"] == 6000
+    assert summary["rtf"] < 1.05  # paced by the wall clock, never ahead of it (behind it: a loaded host, a benchmark's figure)
+
+    sim = SimProc(tmp_path, unique_group(), lockstep=False)
+    try:
+        rc, summary, err = sim.finish(signal.SIGINT)
+    finally:
+        sim.kill()
+    assert rc == 0, err
+    assert summary["ok"] and summary["steps"] > 0
