@@ -75,6 +75,7 @@ class Bridge:
         self._stream_error_seen: int | None = None
         # drag by the bridge: the daemon's drag lease it holds, renewed per keepalive
         self.drag_by_bridge = False
+        self.drag_gen = 0  # counts the bridge's drags: a state asked for before the latest one began says nothing of it
         self.last_keepalive = -1e9
         self.lease = 0
         self.renewing = False  # a renewal in flight (keepalives meanwhile are coalesced)
@@ -195,6 +196,7 @@ class Bridge:
         while True:
             try:
                 t_ns = self.node.now_ns()  # (the state is the newest cycle's as the request is answered)
+                gen = self.drag_gen
                 st = await self._call(self.poll, "state")
                 self.state = st
                 self.node.publish_joint_states(st, t_ns)
@@ -205,7 +207,7 @@ class Bridge:
                     self.event_seq = 0
                 if st["event_seq"] != self.event_seq:
                     await self._events()
-                await self._watch_drag(st)
+                await self._watch_drag(st, gen)
             except DaemonUnavailable:
                 self.state = None
                 await asyncio.sleep(CONNECT_RETRY_S)
@@ -308,10 +310,11 @@ class Bridge:
     def keepalive_fresh(self) -> bool:
         return self.now() - self.last_keepalive <= float(self.node.param("drag.keepalive_timeout_s"))
 
-    async def _watch_drag(self, st: dict[str, Any]) -> None:
+    async def _watch_drag(self, st: dict[str, Any], gen: int) -> None:
         """The daemon ends drag (its lease lapsed, a hold, a guard trip, a fault ...): said on ``~/status``. A
-        feedback hold (late TPDOs) is not an end: the daemon returns to drag by itself."""
-        if not self.drag_by_bridge or st.get("requested_mode", st["mode"]) == "drag":
+        feedback hold (late TPDOs) is not an end: the daemon returns to drag by itself. ``gen``: the bridge's drag
+        count when the state was asked for (a state asked for before the drag began, answered after, is no end)."""
+        if not self.drag_by_bridge or gen != self.drag_gen or st.get("requested_mode", st["mode"]) == "drag":
             return
         self.drag_by_bridge = False
         try:
@@ -485,6 +488,7 @@ class Bridge:
                         args_["rate_Hz"] = float(p("teach.rate_Hz"))
                     resp = await self._call(self.act, "teach", action="start", lease=lease, **args_)
                 self.drag_by_bridge = resp.get("mode") == "drag"
+                self.drag_gen += self.drag_by_bridge
             elif name == "teach_mark":
                 mark = str(p("teach.mark_name"))
                 resp = await self._call(self.act, "teach", action="mark", **({"name": mark} if mark else {}))
