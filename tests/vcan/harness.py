@@ -14,7 +14,8 @@ CI, whose kernels are built without CAN -- it runs inside a small throw-away gue
 
 Everything downloaded or built is cached in ``$DRAGD_VCAN_CACHE`` (default ``~/.cache/dragd-vcan``); a warm
 run touches neither apt nor the network. The guest's numba cache is ``$DRAGD_VCAN_CACHE/numba`` (a third 9p share,
-``NUMBA_CACHE_DIR``): the simulator's and the daemon's kernels are compiled under TCG once, not at every boot. Delete the directory to rebuild (e.g. for a newer kernel).
+``NUMBA_CACHE_DIR``): the simulator's and the daemon's kernels are compiled under TCG once, not at every boot.
+Delete the directory to rebuild (e.g. for a newer kernel).
 
 Environment:
   DRAGD_VCAN_MODE       auto (default) | guest | local
