@@ -487,6 +487,9 @@ class GripConfig(_Strict):
 
     frame: str = "tool0"  # a frame of the URDF (a link or joint name); the last joint's where there is no tool0
     offset_m: tuple[Finite, Finite, Finite] = (0.0, 0.0, 0.0)  # the grip point in that frame
+    # a resting joint's equation in the hand's force, relative to a moving one's: its residual is uncertain by its
+    # static friction (~1.4-3 N·m on the seed cobot), a moving joint's by the identified model's error (~0.1 N·m)
+    rest_weight: Annotated[float, Field(gt=0, le=1), Expect("a weight in (0, 1]")] = 0.03
 
 
 class ContactConfig(_Strict):
@@ -500,6 +503,10 @@ class ContactConfig(_Strict):
     # retract: the largest joint displacement [rad] and the speed of the hold pose's move
     retract_rad: Annotated[float, Field(gt=0, le=0.2), Expect("radians in (0, 0.2]")] = 0.03
     retract_speed_rad_s: Annotated[float, Field(gt=0, le=1.0), Expect("rad/s in (0, 1]")] = 0.15
+    # the protective stop of a motion (every reaction begins with it): from the arm's state at the detection to rest,
+    # every joint together, deceleration and jerk bounded per joint (docs/CONTACT.md "Reactions")
+    stop_deceleration_rad_s2: PerJoint = 10.0
+    stop_jerk_rad_s3: PerJoint = 1000.0
     grip: GripConfig = GripConfig()  # the hand's wrench in drag (status, telemetry, the live view)
     wrench_Hz: Annotated[float, Field(gt=0, le=100), Expect("a cutoff in (0, 100] Hz")] = 5.0  # its low-pass
 

@@ -23,6 +23,23 @@ def _body_link(model: pin.Model, jid: int) -> str:
     return model.names[jid]
 
 
+def configured_armature(cfg: object, names: tuple[str, ...] | list[str]) -> np.ndarray:
+    """Each joint's rotor inertia at the joint [kg·m²] (Pinocchio's armature, in M̄ = M + diag(J_a)): the identified
+    one (the params' ``notes.armature_kgm2``, ``identify fit``) where there is one, else the joint's
+    ``effects.armature_kgm2`` (a datasheet's rotor inertia × gear², or what ``dragd gap`` found), else 0. One source
+    for the law's model, the observers (runaway guard, contact), identification's prior and the replay's
+    feed-forward (docs/CONTACT.md, docs/MODEL.md)."""
+    identified = getattr(cfg, "armature_kgm2", None) or {}
+    joints = {j.name: j for j in getattr(cfg, "joints", None) or []}
+    out = np.zeros(len(names))
+    for k, nm in enumerate(names):
+        if identified.get(nm) is not None:
+            out[k] = float(identified[nm])
+        elif nm in joints and getattr(joints[nm].effects, "armature_kgm2", None) is not None:
+            out[k] = float(joints[nm].effects.armature_kgm2)
+    return out
+
+
 class RobotModel:
     """Pinocchio ``Model`` (constant) and ``Data`` (scratch) for a fixed-base serial arm of revolute joints."""
 
@@ -69,9 +86,7 @@ class RobotModel:
         payload = getattr(cfg, "payload", None)
         if payload is not None:
             model.add_payload(payload.mass_kg, payload.com_m)
-        armature = getattr(cfg, "armature_kgm2", None)
-        if armature:
-            model.set_armature(np.array([float(armature.get(nm, 0.0)) for nm in model.joint_names]))
+        model.set_armature(configured_armature(cfg, model.joint_names))
         return model
 
     def link_names(self) -> list[str]:

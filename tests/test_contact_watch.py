@@ -26,22 +26,35 @@ def _cfg(**contact):  # noqa: ANN003, ANN202
     return cfg.model_copy(update={"contact_calibration": cal, "contact": cc})
 
 
-def test_grip_force_is_the_least_squares_force_of_the_joint_torques():
+def test_grip_force_is_the_weighted_least_squares_force_of_the_joint_torques():
     model = RobotModel.from_urdf("seed_cobot")
     model.add_grip("tool0", (0.0, 0.0, 0.05))
     rng = np.random.default_rng(3)
-    for _ in range(20):
+    for k in range(20):
         q = rng.uniform(-1.5, 1.5, 6)
         J = model.grip_jacobian(q)
         f = rng.normal(0.0, 20.0, 3)
         r = J[:3].T @ f + rng.normal(0.0, 0.5, 6)  # a hand's force plus model error
+        w = np.ones(6) if k % 2 else np.where(rng.random(6) < 0.4, 0.03 ** 2, 1.0)  # resting joints weigh less
         out = np.zeros(3)
-        assert grip_force(J, r, out)
-        np.testing.assert_allclose(out, np.linalg.lstsq(J[:3].T, r, rcond=None)[0], rtol=1e-9, atol=1e-9)
+        assert grip_force(J, r, w, out)
+        sw = np.sqrt(w)
+        np.testing.assert_allclose(out, np.linalg.lstsq((J[:3] * sw).T, r * sw, rcond=None)[0], rtol=1e-8, atol=1e-9)
+    # a resting joint whose residual is not the hand's (static friction holds it) barely moves the estimate
+    q = np.array([0.3, -0.5, 0.8, 0.2, 0.6, 0.1])
+    J = model.grip_jacobian(q)
+    f = np.array([15.0, -10.0, 5.0])
+    r = J[:3].T @ f
+    r[1] = 0.0  # joint 2 stuck: the motor carries none of the hand's torque there
+    w = np.ones(6)
+    w[1] = 0.03 ** 2
+    out, plain = np.zeros(3), np.zeros(3)
+    assert grip_force(J, r, w, out) and grip_force(J, r, np.ones(6), plain)
+    assert np.linalg.norm(out - f) < 0.2 * np.linalg.norm(plain - f)
     J = np.zeros((6, 6))
     J[0, 0] = 1.0  # rank 1: no force can be told
     out = np.full(3, 7.0)
-    assert not grip_force(J, np.ones(6), out) and (out == 7.0).all()
+    assert not grip_force(J, np.ones(6), np.ones(6), out) and (out == 7.0).all()
 
 
 def test_retract_backs_off_along_the_carrying_joints_by_at_most_retract_rad():

@@ -54,7 +54,11 @@ class ContactModel:
             except ValueError as exc:
                 raise ContactModelError(str(exc)) from None
         arm_notes = (params.notes or {}).get("armature_kgm2") or {}
-        arm = np.array([float(arm_notes.get(nm) or 0.0) for nm in names])
+        # the identified rotor inertias, else the joints' configured ones (effects.armature_kgm2), as the daemon's
+        # model has them (dragd.model.configured_armature)
+        arm = np.array([float(arm_notes[nm]) if arm_notes.get(nm) is not None
+                        else float((jp := params.joints.get(nm)) is not None and jp.effects is not None
+                                   and jp.effects.armature_kgm2 or 0.0) for nm in names])
         rm.model.armature = arm.copy()
         rm.data = rm.model.createData()
         rm._nograv = None

@@ -11,7 +11,8 @@ Pinocchio's p = M̄(q)·q̇, g(q) and C(q, q̇) (dragd/daemon/cycle.py) and it r
   handed to the controller, which reacts as the mode's ``reaction`` says (``stop``, ``retract``, ``compliant``).
 * **DRAG**: the same residual without bands — the operator's hand plus the model's error — mapped to the force at
   the grip point: f = (J_vᵀ)⁺·r (least squares: the hand's force that best explains the joint torques, J_v the grip
-  point's linear Jacobian, world axes), low-passed at ``contact.wrench_Hz``.
+  point's linear Jacobian, world axes; a joint at rest — within its start-up zone, held by static friction — weighs
+  ``contact.grip.rest_weight`` of a moving one), low-passed at ``contact.wrench_Hz``.
 
 Without calibrated bands (a params file without ``contact``: ``dragd contact calibrate``) only the drag residual
 runs; status says why the detector does not. ``contact.enabled: false`` turns both off (the cycle makes none of
@@ -51,23 +52,25 @@ class WatchMode:
     reaction: str  # stop | retract | compliant
 
 
-def grip_force(J: np.ndarray, r: np.ndarray, out: np.ndarray) -> bool:
+def grip_force(J: np.ndarray, r: np.ndarray, w: np.ndarray, out: np.ndarray) -> bool:
     """f = (J_vᵀ)⁺·r into ``out`` (3): the force at the grip point (J: its 6×n Jacobian, linear rows first, world
-    axes) whose joint torques J_vᵀ·f come closest to r. False (``out`` untouched) where J_v is singular."""
+    axes) whose joint torques J_vᵀ·f come closest to r, joint k's equation weighted by ``w[k]`` (the inverse square
+    of how uncertain its residual is). False (``out`` untouched) where the weighted J_v is singular."""
     n = r.shape[0]
     a00 = a01 = a02 = a11 = a12 = a22 = 0.0
     b0 = b1 = b2 = 0.0
     for k in range(n):
+        wk = w[k]
         x, y, z = J[0, k], J[1, k], J[2, k]
-        a00 += x * x
-        a01 += x * y
-        a02 += x * z
-        a11 += y * y
-        a12 += y * z
-        a22 += z * z
-        b0 += x * r[k]
-        b1 += y * r[k]
-        b2 += z * r[k]
+        a00 += wk * x * x
+        a01 += wk * x * y
+        a02 += wk * x * z
+        a11 += wk * y * y
+        a12 += wk * y * z
+        a22 += wk * z * z
+        b0 += wk * x * r[k]
+        b1 += wk * y * r[k]
+        b2 += wk * z * r[k]
     c00 = a11 * a22 - a12 * a12
     c01 = a02 * a12 - a01 * a22
     c02 = a01 * a12 - a02 * a11
@@ -84,8 +87,9 @@ def grip_force(J: np.ndarray, r: np.ndarray, out: np.ndarray) -> bool:
     return True
 
 
-def _grip_force_kernel(J: np.ndarray, r: np.ndarray, raw: np.ndarray, filt: np.ndarray, alpha: float) -> bool:
-    ok = grip_force(J, r, raw)
+def _grip_force_kernel(J: np.ndarray, r: np.ndarray, w: np.ndarray, raw: np.ndarray, filt: np.ndarray,
+                       alpha: float) -> bool:
+    ok = grip_force(J, r, w, raw)
     if ok:
         for k in range(3):
             filt[k] += (raw[k] - filt[k]) * alpha
@@ -95,7 +99,7 @@ def _grip_force_kernel(J: np.ndarray, r: np.ndarray, raw: np.ndarray, filt: np.n
 def _kernels() -> dict[str, Any] | None:
     z = np.zeros(3)
     return compile_kernels(globals(), ("grip_force",), {
-        "grip": (_grip_force_kernel, (np.eye(6)[:, :6].copy(), np.zeros(6), z.copy(), z.copy(), 0.1))})
+        "grip": (_grip_force_kernel, (np.eye(6)[:, :6].copy(), np.zeros(6), np.ones(6), z.copy(), z.copy(), 0.1))})
 
 
 class ContactWatch:
@@ -124,6 +128,10 @@ class ContactWatch:
         self.ended: dict[str, Any] | None = None  # an event that ended since the controller last looked
         self.code = QUIET
         self._abs = np.zeros(n)
+        # the hand's force: a joint's equation weight (1 moving, rest_weight² at rest: below its start-up zone)
+        self.grip_w = np.ones(n)
+        self.rest_speed_rad_s = np.full(n, 0.03)
+        self.rest_weight2 = 0.03 ** 2
         self._grip = None
         if compiled:
             ks = contact_kernels()
@@ -166,8 +174,11 @@ class ContactWatch:
         det.set_model(F, FS)
         modes = {m: WatchMode(getattr(cc, m).sensitivity, getattr(cc, m).reaction) for m in WATCHED}
         alpha = 1.0 - math.exp(-2.0 * math.pi * cc.wrench_Hz * dt_s)
-        return cls(det, modes, cal is not None and cc.enabled, reason, cc.retract_rad, cc.retract_speed_rad_s,
-                   alpha, compiled)
+        w = cls(det, modes, cal is not None and cc.enabled, reason, cc.retract_rad, cc.retract_speed_rad_s,
+                alpha, compiled)
+        w.rest_speed_rad_s[:] = params.rest_threshold_rad_s + params.fade_width_rad_s  # the law's start-up zone
+        w.rest_weight2 = cc.grip.rest_weight ** 2
+        return w
 
     # ------------------------------------------------------------------------------------------ the cycle
 
@@ -199,6 +210,12 @@ class ContactWatch:
             return QUIET
         if self.watching == "drag":
             det.observe_cycle(t_s, dq, p, i_A, g, C)
+            # the hand's force weighs a resting joint's equation by rest_weight²: held by its static friction (and
+            # dithered by the start-up sine), its residual is not the hand's torque
+            np.abs(dq, out=self._abs)
+            np.greater_equal(self._abs, self.rest_speed_rad_s, out=self.ref_moving)
+            self.grip_w.fill(self.rest_weight2)
+            np.copyto(self.grip_w, 1.0, where=self.ref_moving)
             return QUIET
         if dq_ref is not None:
             np.abs(dq_ref, out=self._abs)
@@ -228,9 +245,9 @@ class ContactWatch:
         if self.watching != "drag" or not self.det.armed:
             return
         if self._grip is not None:
-            ok = self._grip(J, self.det.r, self.force_raw_N, self.force_N, self.wrench_alpha)
+            ok = self._grip(J, self.det.r, self.grip_w, self.force_raw_N, self.force_N, self.wrench_alpha)
         else:
-            ok = grip_force(J, self.det.r, self.force_raw_N)
+            ok = grip_force(J, self.det.r, self.grip_w, self.force_raw_N)
             if ok:
                 self.force_N += (self.force_raw_N - self.force_N) * self.wrench_alpha
         self.force_valid = bool(ok)

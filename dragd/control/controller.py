@@ -126,6 +126,9 @@ class Controller:
         self.contact_stops = 0
         self._contact_drag_pending = False
         self._contact_target = np.zeros(n)
+        self._contact_after_stop = ""  # the reaction that follows a motion's protective stop (retract, compliant)
+        self.contact_stop_decel_rad_s2 = np.full(n, 10.0)  # the protective stop's bounds (contact.stop_*)
+        self.contact_stop_jerk_rad_s3 = np.full(n, 1000.0)
         # --- drag permission and the hand's inputs (#30) ---
         self.permission = DragPermission("none", 0.5)  # what DRAG requires (from_config: drag.require)
         self.hand: HandInputs | None = None  # the guiding device's inputs (set_hand)
@@ -185,6 +188,8 @@ class Controller:
             kp_Nm_per_rad=per_joint(rc.cst_kp_Nm_per_rad), kd_Nm_s_per_rad=per_joint(rc.cst_kd_Nm_s_per_rad),
             ki_Nm_per_rad_s=per_joint(rc.cst_ki_Nm_per_rad_s), integral_max_Nm=per_joint(rc.cst_integral_limit_A) * kt))
         c.contact = ContactWatch.from_config(cfg, params, dt, cfg.loop.compiled)
+        c.contact_stop_decel_rad_s2[:] = per_joint(cfg.contact.stop_deceleration_rad_s2)
+        c.contact_stop_jerk_rad_s3[:] = per_joint(cfg.contact.stop_jerk_rad_s3)
         c.permission = DragPermission(cfg.drag.require, cfg.drag.lease_s)
         c.drag_exit_ramp_s = cfg.drag.exit_ramp_s
         exit_kd = cfg.drag.exit_damping_Nm_s_per_rad
@@ -294,12 +299,13 @@ class Controller:
         self.track.begin(traj, self.t, q, rate, cycles)
         self.set_mode(Mode.TRACK)
 
-    def end_track(self, outcome: str, q: np.ndarray, hold_at_ref: bool = True) -> None:
-        """Leave TRACK for HOLD (at the reference, or where the arm is); the daemon returns the drives to CST."""
+    def end_track(self, outcome: str, q: np.ndarray, hold_at_ref: bool = True, ramp_s: float | None = None) -> None:
+        """Leave TRACK for HOLD (at the reference, or where the arm is; the hold's law in over ``ramp_s``, default
+        the mode ramp); the daemon returns the drives to CST."""
         self.q_hold[:] = self.track.q_ref if hold_at_ref else q
         cycle = self.track.cycle
         tr = self.track.end()
-        self.set_mode(Mode.HOLD)
+        self.set_mode(Mode.HOLD, ramp_s=ramp_s)
         self.events.append(Event("track_end", self.t, text=outcome,
                                  fields={"label": tr.label if tr else None, "cycle": cycle}))
 
@@ -333,6 +339,8 @@ class Controller:
         if self.contact is not None:
             if self.contact.code == ONSET:
                 self._contact_react(est)
+            elif self._contact_after_stop and self.mode != Mode.TRACK:
+                self._contact_stopped()
             elif self._contact_drag_pending:
                 self._contact_drag_when_cst()
         self._permission_step(est)
@@ -345,6 +353,8 @@ class Controller:
             if isinstance(res, Trip):
                 self.events.append(Event("protective_stop", t, res.joint, res.text, fields={"kind": res.kind}))
                 self.end_track(f"{res.kind}: {res.text}", est.q_rad, hold_at_ref=False)
+            elif res is not None and self.track.state == "quick_stop":  # a contact's stop: held where it rests
+                self.end_track(res, est.q_rad, hold_at_ref=False, ramp_s=self.guard_hold_ramp_s)
             elif res is not None:
                 self.end_track(res, est.q_rad)
 
@@ -502,12 +512,19 @@ class Controller:
         w.ended = None
 
     def _contact_react(self, est: Estimate) -> None:
-        """An onset: the mode's reaction (``contact.<mode>.reaction``) and the fault entry. Rare path."""
+        """An onset: the mode's reaction (``contact.<mode>.reaction``) and the fault entry. Rare path.
+
+        A motion first comes to a protective stop (``Track.quick_stop``: from the arm's state to rest, bounded
+        deceleration and jerk, the position loops holding it on that profile) and ends there into HOLD; a retract
+        or a compliant reaction follows once it has (``_contact_stopped``). A held arm holds where it is now."""
         w = self.contact
         assert w is not None
         mode = w.watching
         reaction = w.modes[mode].reaction
         note = ""
+        stopping = self.mode == Mode.TRACK and self.track.active and self.track.state == "quick_stop"
+        if stopping:  # another onset while the motion stops from the first: recorded, the stop goes on
+            reaction, note = "stop", "the motion is already stopping from a contact"
         if reaction == "compliant":
             refusal = self.drag_refusal()
             if refusal is not None:
@@ -516,17 +533,35 @@ class Controller:
             sf = self.safety
             if not w.retract_step(est.q_rad, sf.wall_lo_rad, sf.wall_hi_rad, self._contact_target):
                 reaction, note = "stop", "retract: no joint carries the contact"
+            else:
+                self._contact_target -= est.q_rad  # the step back, applied from where the arm comes to rest
         dom, text, fields = w.onset_record(self.names, reaction, note)
         self.contact_stops += 1
-        self.events.append(Event("protective_stop", self.t, dom, text, fields=fields))
-        if self.track.active and self.mode == Mode.TRACK:
-            self.end_track(f"contact: {text}", est.q_rad, hold_at_ref=False)  # → HOLD where the arm is
+        if self.track.active and self.mode == Mode.TRACK and not stopping:
+            T = self.track.quick_stop(self.t, est.q_rad, est.dq_rad_s, self.contact_stop_decel_rad_s2,
+                                      self.contact_stop_jerk_rad_s3, f"contact: {text}")
+            fields["stop_s"] = round(T, 4)
+            self._contact_after_stop = reaction
         elif self.mode == Mode.HOLD:
             self.q_hold[:] = est.q_rad  # hold where it is now (the hold no longer springs back into the contact)
             self.hold_move = None
+            self._contact_after_stop = reaction
+        self.events.append(Event("protective_stop", self.t, dom, text, fields=fields))
+        if self._contact_after_stop and self.mode != Mode.TRACK:
+            self._contact_stopped()
+
+    def _contact_stopped(self) -> None:
+        """The arm has come to rest after a contact (the motion's protective stop ended into HOLD): the reaction's
+        second part — retract: a hold move back along the residual from where it rests; compliant: drag."""
+        reaction, self._contact_after_stop = self._contact_after_stop, ""
+        if self.mode != Mode.HOLD:
+            return
         if reaction == "retract":
+            sf = self.safety
+            np.add(self._contact_target, self.q_hold, out=self._contact_target)
+            np.clip(self._contact_target, sf.wall_lo_rad, sf.wall_hi_rad, out=self._contact_target)
             self.hold_move = self._contact_target.copy()
-            self.hold_move_speed = w.retract_speed_rad_s
+            self.hold_move_speed = self.contact.retract_speed_rad_s if self.contact is not None else 0.1
         elif reaction == "compliant":
             self._contact_drag_pending = True
             self._contact_drag_when_cst()

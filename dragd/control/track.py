@@ -24,6 +24,10 @@ from dragd.control.trajectory import Trajectory
 GRACE_S = 0.05  # after a long loop stall the monitors count only at twice their bounds for this long
 CST_FADE_S = 0.2  # a CST joint's integral fades with this time constant while its reference rests
 MOVING_RAD_S = 0.005  # a joint's reference moves (its loop's integral learns) above this speed
+QUICK_STOP_MIN_S = 0.02  # a protective stop's deceleration takes at least this long (a slow arm: a smooth catch)
+QUICK_STOP_REST_RAD_S = 0.01  # ... and ends once every joint is slower than this after the profile: held there at
+QUICK_STOP_REST_S = 0.0  # once (a contact's rebound caught at its turning point: no return into the contact)
+QUICK_STOP_SETTLE_S = 0.5  # ... or this long after the profile (a contact that keeps pushing)
 
 
 @dataclass(frozen=True)
@@ -73,7 +77,7 @@ class Track:
         self.tau = 0.0  # trajectory time
         self.rate = 1.0  # the clock's rate (d tau / dt)
         self.override = 1.0  # the speed override the clock returns to after a pause
-        self.state = "idle"  # running | pausing | paused | stopping | idle
+        self.state = "idle"  # running | pausing | paused | stopping | quick_stop | idle
         self.cycles = 1  # repetitions of the trajectory's body (0: until stopped)
         self.cycle = 0
         self.t_prev = 0.0
@@ -112,6 +116,13 @@ class Track:
         self._a = np.zeros(n)
         self._b = np.zeros(n)
         self._ws = Workspace(n)
+        # the protective stop after a contact (quick_stop): from the arm's state at the detection to rest
+        self._qs_q0 = np.zeros(n)
+        self._qs_v0 = np.zeros(n)
+        self._qs_t0 = 0.0
+        self._qs_rest_t0 = -1.0
+        self.quick_stop_T = 0.0
+        self._qs_outcome = ""
 
     @property
     def active(self) -> bool:
@@ -196,7 +207,7 @@ class Track:
         self.rate_T = max(T, 0.02)
 
     def pause(self, t: float) -> str:
-        if self.state == "stopping":
+        if self.state in ("stopping", "quick_stop"):
             raise ValueError("pause: the motion is stopping")
         if self.state == "running":
             self.state = "pausing"
@@ -204,7 +215,7 @@ class Track:
         return self.state
 
     def resume(self, t: float) -> str:
-        if self.state == "stopping":
+        if self.state in ("stopping", "quick_stop"):
             raise ValueError("resume: the motion is stopping")
         if self.state in ("pausing", "paused"):
             self.state = "running"
@@ -213,7 +224,7 @@ class Track:
 
     def stop(self, t: float) -> str:
         """Controlled stop: decelerate along the path, then hold where the path stopped."""
-        if self.state != "stopping":
+        if self.state not in ("stopping", "quick_stop"):
             self.state = "stopping"
             if self.rate > 0.0:
                 self._ramp_rate(0.0, t)
@@ -225,6 +236,63 @@ class Track:
         self.override = float(speed)
         if self.trajectory is not None and self.state == "running":
             self._ramp_rate(self.override, t)
+
+    # -- the protective stop after a contact: from where the arm is, bounded jerk, within the stop's deceleration
+
+    def quick_stop(self, t: float, q: np.ndarray, dq: np.ndarray, decel_rad_s2: np.ndarray, jerk_rad_s3: np.ndarray,
+                   outcome: str) -> float:
+        """Leave the path: the reference starts at the arm's state (``q``, ``dq``) — no step for the loops, nothing
+        that pushes on into the contact — and brings every joint to rest together in T with the velocity
+        v(t) = v₀·(1 − s(t/T)), s the smoothstep: the deceleration 6x(1−x)·v₀/T starts and ends at zero and peaks at
+        1.5·v₀/T ≤ ``decel_rad_s2``, the jerk ≤ 6·v₀/T² ≤ ``jerk_rad_s3``; the stop takes v₀·T/2. dragd's
+        position loop holds every joint on it beside the drive's own (an identification track has none otherwise)
+        with the full-authority gains of replay.cst_* (the replay's outer loop is bounded to 0.6 A: too little
+        against a contact), the integral frozen. Ends (``outcome``) once every joint is slower than
+        QUICK_STOP_REST_RAD_S after the profile (at most QUICK_STOP_SETTLE_S later); the controller then holds the
+        arm where it rests, taking over within ``safety.guard.hold_ramp_s``: a contact that displaced the arm is not
+        undone by the loop's spring pulling it back (into the contact). Returns T. Rare path."""
+        v = np.abs(dq)
+        T = max(QUICK_STOP_MIN_S, float(np.max(1.5 * v / decel_rad_s2)), float(np.max(np.sqrt(6.0 * v / jerk_rad_s3))))
+        self._qs_q0[:] = q
+        self._qs_v0[:] = dq
+        self._qs_t0 = t
+        self._qs_rest_t0 = -1.0
+        self.quick_stop_T = T
+        self._qs_outcome = outcome
+        self.state = "quick_stop"
+        self._rate_t0 = -1.0
+        # the stop holds against the contact with full authority (the drives' current limits clamp the command) and
+        # the full-authority loop's damping (replay.cst_*: near critical on the arm's inertia), the integral frozen
+        loop = self.cst_loop
+        self._kp[:] = loop.kp_Nm_per_rad if loop is not None else self.lim.kp_Nm_per_rad
+        self._kd[:] = loop.kd_Nm_s_per_rad if loop is not None else self.lim.kd_Nm_s_per_rad
+        self._out_max[:] = np.inf
+        self._ki[:] = 0.0
+        self._fade[:] = 1.0
+        self.loop_on = True
+        self.ff_Nm.fill(0.0)
+        self.pred_extra_Nm.fill(0.0)
+        self._err_count = 0
+        return T
+
+    def _quick_stop_step(self, t: float, elapsed: float, q: np.ndarray, dq: np.ndarray, current_A: np.ndarray,
+                         stale_max: int) -> str | Trip | None:
+        T = self.quick_stop_T
+        x = min(max((t - self._qs_t0) / T, 0.0), 1.0)
+        np.multiply(self._qs_v0, T * (x - x * x * x + 0.5 * x * x * x * x), out=self.q_ref)
+        self.q_ref += self._qs_q0
+        np.multiply(self._qs_v0, 1.0 - x * x * (3.0 - 2.0 * x), out=self.dq_ref)
+        if x >= 1.0:
+            np.abs(dq, out=self._a)
+            if float(self._a.max()) >= QUICK_STOP_REST_RAD_S:
+                self._qs_rest_t0 = -1.0
+            elif self._qs_rest_t0 < 0.0:
+                self._qs_rest_t0 = t
+            if (self._qs_rest_t0 >= 0.0 and t - self._qs_rest_t0 >= QUICK_STOP_REST_S) or \
+                    t - self._qs_t0 - T >= QUICK_STOP_SETTLE_S:
+                return self._qs_outcome
+        self._position_loop(elapsed, q, dq)
+        return self._monitor(t, q, current_A, stale_max)  # (the residual monitor rests: it is the contact)
 
     # -- one cycle
 
@@ -243,6 +311,8 @@ class Track:
             if elapsed > 5.5 * self.dt:
                 self._grace_until = t + GRACE_S
             elapsed = self.dt
+        if self.state == "quick_stop":
+            return self._quick_stop_step(t, elapsed, q, dq, current_A, stale_max)
         if self._rate_t0 >= 0.0:
             x = (t - self._rate_t0) / self.rate_T
             if x >= 1.0:
@@ -357,7 +427,7 @@ class Track:
         np.abs(self.residual_A, out=a)
         a /= lim.residual_current_A
         assert self.trajectory is not None
-        if a.max() > m and self.trajectory.residual_monitor:
+        if a.max() > m and self.trajectory.residual_monitor and self.state != "quick_stop":
             self._res_count += 1
             if self._res_count >= k:
                 j = int(a.argmax())

@@ -15,7 +15,7 @@ Two sessions of the simulated robot and the daemon (separate processes, as ``dra
 
 Figures: per contact the detection delay (the daemon's event start − the contact force's start, both in the arm's
 time), the peak contact force, the time from the detection until the arm stopped (every joint below
-``STOPPED_RAD_S``) and how far the struck point travelled from the detection; false alarms per free run; in drag the
+``STOPPED_RAD_S`` from then on) and how far the struck point travelled from the detection; false alarms per free run; in drag the
 hand-force error against the truth where the truth is above 10 N.
 """
 
@@ -36,7 +36,9 @@ STRIKE_LINK = "link3"  # the forearm
 STRIKE_POINT_M = (0.0, 0.0, 0.15)  # on it (the link's frame)
 IMPACT_N = 60.0
 IMPACT = {"profile": "half_sine", "duration_s": 0.1}  # a 60 N impact: 100 ms half-sine
-STOPPED_RAD_S = 0.01  # the arm counts as stopped once every joint is slower than this
+STOPPED_RAD_S = 0.01  # the arm counts as stopped once every joint is slower than this ...
+STAYS_S = 0.2  # ... and stays so (for at least this long, within STOP_WINDOW_S of the detection)
+STOP_WINDOW_S = 0.5  # (the demo starts nothing else within it)
 HAND_PUSHES_N = ([18.0, 0.0, 0.0], [0.0, -22.0, 0.0], [0.0, 12.0, 16.0], [-15.0, 10.0, -10.0])  # drag: at the grip
 HAND_FORCE_MIN_N = 10.0
 CALIBRATION_SEED = 3  # the calibration's Fourier excitation; the detection session's identification runs use others  # the hand-force error is judged where the true force is above this
@@ -179,6 +181,55 @@ def calibrate_session(config: Path | None, work: Path, lockstep: bool, progress:
     return p2, json.loads(proc.stdout)
 
 
+def identify_session(config: Path | None, work: Path) -> Path:
+    """The identified model (``dragd identify fit --method full --torque-constants config``) on session 1's
+    recording: rigid-body base parameters, friction and the rotor inertias the data separate."""
+    import subprocess
+
+    out = work / "identified.yaml"
+    cmd = [sys.executable, "-m", "dragd", "identify", "fit", "--log", str(work / "calibration.mcap"), "--method",
+           "full", "--torque-constants", "config", "--out", str(out)]
+    if config is not None:
+        cmd += ["--config", str(config)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=1800.0)
+    if proc.returncode != 0:
+        raise ContactDemoError(f"dragd identify fit failed:\n{proc.stderr}{proc.stdout}")
+    return out
+
+
+def hand_force_offline(params: Path, cfg: Any, rows: dict[str, np.ndarray], t_from: float,
+                       t_to: float) -> dict[str, np.ndarray]:
+    """The hand's force over the drag window from the daemon's telemetry (q, q̇, measured current) with the model of
+    ``params``: the cycle's arithmetic (``ContactModel.log_terms``: p = M̄q̇ and τ_in by the compiled kernel; the
+    observer step; the weighted grip force; the low-pass) — what the daemon shows with that model."""
+    from dragd.config import load_params
+    from dragd.contact.model import ContactModel
+    from dragd.control.contact_watch import grip_force
+    from dragd.control.observer import observer_step
+
+    t = rows["t_s"]
+    k = (t >= t_from - 0.5) & (t <= t_to)
+    t, q, dq, i = t[k], rows["q_rad"][k], rows["dq_rad_s"][k], rows["current_measured_A"][k]
+    cm = ContactModel.from_files(cfg.robot.urdf, load_params(params), str(params))
+    cm.robot.add_grip(cfg.contact.grip.frame, cfg.contact.grip.offset_m, cfg.source)
+    P, T = cm.log_terms(q, dq, i)
+    pc = load_params(params).contact
+    k_o = float(pc.observer_gain_per_s) if pc is not None else 25.0  # (the detector's default without bands)
+    rest = cm.law.rest_threshold_rad_s + cm.law.fade_width_rad_s
+    w2 = cfg.contact.grip.rest_weight ** 2
+    dt0 = float(np.median(np.diff(t))) if len(t) > 1 else 1e-3
+    alpha = 1.0 - math.exp(-2.0 * math.pi * cfg.contact.wrench_Hz * dt0)
+    r, integ, p0 = np.zeros(len(cm.names)), np.zeros(len(cm.names)), P[0].copy()
+    raw, f, out = np.zeros(3), np.zeros(3), np.zeros((len(t), 3))
+    for n in range(len(t)):
+        observer_step(float(t[n] - t[n - 1]) if n else 0.0, k_o, T[n], P[n], p0, integ, r)
+        w = np.where(np.abs(dq[n]) >= rest, 1.0, w2)
+        if grip_force(cm.robot.grip_jacobian(q[n]), r, w, raw):
+            f += (raw - f) * alpha
+        out[n] = f
+    return {"t_s": t, "hand_force_N": out}
+
+
 def detection_config(config: Path | None, params: Path, work: Path, reactions: dict[str, str] | None = None) -> Path:
     """The configuration with ``params`` (the bands) and the reactions per mode (default: stop)."""
     import yaml
@@ -277,12 +328,15 @@ def strike_figures(res: dict[str, Any], rows: dict[str, np.ndarray], model: Any)
     t_det = res["t_detect_s"]
     k0 = int(np.searchsorted(t, t_det))
     speed = np.abs(rows["dq_rad_s"]).max(axis=1)
-    after = np.nonzero(speed[k0:] < STOPPED_RAD_S)[0]
     res["speed_at_detection_rad_s"] = round(float(speed[min(k0, len(t) - 1)]), 4)
-    if not after.size:
+    # stopped: from the first sample after which every joint stays slower than STOPPED_RAD_S for STAYS_S (a
+    # rebound's turning point is not a stop)
+    k_end = int(np.searchsorted(t, t_det + STOP_WINDOW_S))
+    moving = np.nonzero(speed[k0:k_end] >= STOPPED_RAD_S)[0]
+    k1 = k0 + (int(moving[-1]) + 1 if moving.size else 0)
+    if k1 >= len(t) or t[min(k_end, len(t) - 1)] - t[k1] < STAYS_S:
         res["stopped_after_ms"] = None
         return res
-    k1 = k0 + int(after[0])
     res["stopped_after_ms"] = round(1000.0 * (t[k1] - t_det), 1)
     if res.get("t_contact_end_s") is not None:  # (the contact's force may push the arm after the detection)
         res["stopped_after_contact_end_ms"] = round(1000.0 * (t[k1] - res["t_contact_end_s"]), 1)
@@ -358,8 +412,11 @@ def run_contact_demo(config: Path | None = None, out: Path | None = None, progre
     if calibrated is None:
         _say(progress, f"session 1: calibration{' (lockstep clock)' if lockstep else ''} ...")
         params, _ = calibrate_session(config, work, lockstep, progress)
+        _say(progress, "the identified model (identify fit --method full) on the calibration's recording ...")
+        identified: Path | None = identify_session(config, work)
     else:
         params = Path(calibrated)
+        identified = params.parent / "identified.yaml" if (params.parent / "identified.yaml").is_file() else None
     pc = load_params(params).contact
     cal = pc.calibration if pc is not None else {}
     margins = {nm: j.get("moving_max_ratio") for nm, j in (cal.get("joints") or {}).items()}
@@ -458,6 +515,8 @@ def run_contact_demo(config: Path | None = None, out: Path | None = None, progre
         rig.sleep(1.8 * len(HAND_PUSHES_N) + 0.2)
         t_to = rig.must("status")["t_s"]
         trace = rig.sim_call("operator_trace", timeout_s=30.0, since_t_s=clocks.offset_s + t_from)
+        (work / "hand_truth.json").write_text(json.dumps({"offset_s": clocks.offset_s, "t_from_s": t_from,
+                                                         "t_to_s": t_to, "trace": trace}))
         status = rig.must("status")
         rig.must("stop")
         codes = rig.close()
@@ -469,10 +528,15 @@ def run_contact_demo(config: Path | None = None, out: Path | None = None, progre
         rig.close()
     from dragd.telemetry.reader import read_rows
 
-    rows = read_rows(mcap, ["t_s", "q_rad", "dq_rad_s", "hand_force_N"])
+    rows = read_rows(mcap, ["t_s", "q_rad", "dq_rad_s", "hand_force_N", "current_measured_A"])
     result["contacts"] = [strike_figures(c, rows, model) for c in contacts]
     result["hand_force"] = {**hand_force_error(trace, clocks.offset_s, rows, t_from, t_to),
-                            "pushes_N": [list(f) for f in HAND_PUSHES_N], "grip": cfg.contact.grip.frame}
+                            "pushes_N": [list(f) for f in HAND_PUSHES_N], "grip": cfg.contact.grip.frame,
+                            "model": "the configuration's (the daemon's, in the cycle)"}
+    if identified is not None:  # the same drag through the identified model (the cycle's arithmetic, offline)
+        est = hand_force_offline(identified, cfg, rows, t_from, t_to)
+        result["hand_force_identified"] = {**hand_force_error(trace, clocks.offset_s, est, t_from, t_to),
+                                           "params": str(identified)}
     result["contact_status"] = {k: status["contact"][k] for k in ("modes", "thresholds_A", "observer_gain_per_s")}
     result["false_alarms_total"] = sum(false.values())
     result["mcap"] = str(mcap)

@@ -26,6 +26,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -115,6 +116,34 @@ def config_rate_Hz(config: Path | None) -> float:
     return float((data.get("loop") or {}).get("rate_Hz", 1000.0))
 
 
+class Periodic:
+    """A test's action every period of the rig's clock (``Rig.every``); ``stop()`` holds once it returns. (#31)"""
+
+    def __init__(self, period_s: float, fn: Callable[[], None]) -> None:
+        self.period_s, self.fn, self.on = period_s, fn, True
+        self.ticks = self.next_tick = 0  # lockstep: the period and the next due tick
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+
+    def start_thread(self) -> None:
+        def run() -> None:
+            due = time.monotonic()
+            while True:
+                with self._lock:
+                    if not self.on:
+                        return
+                    self.fn()
+                due += self.period_s
+                time.sleep(max(0.0, due - time.monotonic()))
+
+        self._thread = threading.Thread(target=run, name="rig-every", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        with self._lock:
+            self.on = False
+
+
 class Rig:
     """The simulated robot and (optionally) the daemon, each its own process, on a private multicast group.
 
@@ -171,6 +200,7 @@ class Rig:
         self.env = env
         self.sim: Child | None = None
         self.daemon: Child | None = None
+        self._periodic: list[Periodic] = []  # (#31) a test's actions every period of the arm's time: every()
 
     # processes
     def start_sim(self, timeout_s: float = START_GUARD_S) -> None:
@@ -325,6 +355,8 @@ class Rig:
     def advance(self, seconds: float) -> dict[str, Any]:
         """Lockstep: grant ``seconds`` of simulated time and wait until they ran; the daemon's clock status. While
         the rig holds a drag lease, at most a third of its period per grant, renewed after each."""
+        if any(p.on for p in self._periodic):  # (#31)
+            return self._advance_periodic(seconds)
         lease = self.lease
         if lease is not None and seconds > lease.every_s:
             period = 1.0 / config_rate_Hz(self.config)  # (whole periods per grant: the total stays exact)
@@ -336,6 +368,47 @@ class Rig:
                 left -= step
             return clock
         return self._grant(seconds)
+
+    # --- (#31) a test's periodic actions on the arm's time (a ROS client's keepalive, a stream of commands)
+    def every(self, period_s: float, fn: Callable[[], None]) -> Periodic:
+        """``fn()`` now and then every ``period_s`` of the rig's clock until the handle's ``stop()``. Lockstep: between
+        grants, at exact simulated times (no grant runs past the next one due), so what ``fn`` sends lands at a
+        cycle the run determines (``fn`` may wait, in wall time, for its effect before time goes on); wall: a
+        thread on CLOCK_MONOTONIC's grid."""
+        if not period_s > 0:
+            raise ValueError(f"Rig.every: period_s: expected a positive number of seconds, got {period_s!r}")
+        p = Periodic(period_s, fn)
+        if not self.lockstep:
+            p.start_thread()
+            return p
+        period = 1.0 / config_rate_Hz(self.config)
+        p.ticks = max(1, round(period_s / period))
+        p.next_tick = int(self.must("clock")["clock"]["ticks"]) + p.ticks
+        self._periodic.append(p)
+        fn()
+        return p
+
+    def _advance_periodic(self, seconds: float) -> dict[str, Any]:
+        period = 1.0 / config_rate_Hz(self.config)
+        left = round(seconds / period)
+        if left <= 0:
+            return self._grant(0.0)
+        now = int(self.must("clock")["clock"]["ticks"])
+        chunk = max(1, int(self.lease.every_s / period + 1e-9)) if self.lease is not None else left
+        clock: dict[str, Any] = {}
+        while left > 0:
+            live = [p for p in self._periodic if p.on]
+            step = min([left, chunk] + [max(1, p.next_tick - now) for p in live])
+            clock = self._grant(step * period)
+            now = int(clock["ticks"])
+            left -= step
+            for p in live:
+                if p.on and now >= p.next_tick:
+                    p.next_tick += p.ticks
+                    p.fn()
+        self._periodic = [p for p in self._periodic if p.on]
+        return clock
+    # --- (#31) end
 
     def _grant(self, seconds: float) -> dict[str, Any]:
         guard = 60.0 + LOCKSTEP_WALL_S_PER_S * seconds

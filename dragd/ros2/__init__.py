@@ -10,7 +10,7 @@ from __future__ import annotations
 INSTALL_HINT = "pip install 'dragd[ros2]' (rclpy and the message packages as wheels: no ROS installation needed)"
 
 MODULES = ("rclpy", "sensor_msgs.msg", "std_msgs.msg", "std_srvs.srv", "trajectory_msgs.msg", "diagnostic_msgs.msg",
-           "builtin_interfaces.msg")
+           "builtin_interfaces.msg", "rosgraph_msgs.msg")
 
 
 def unavailable() -> str | None:

@@ -19,15 +19,26 @@ What needs a living client:
   ``drag.keepalive_timeout_s``): the bridge opens a drag lease in the daemon with that period (docs/HAND.md) and
   each keepalive renews it (``renew_drag``). When the keepalives stop — the client, the bridge or the DDS link
   died — the daemon's lease lapses and the daemon ends drag into HOLD; the bridge only reports it on ``~/status``.
+
+Time: the bridge's clock is the daemon's (``now``). On the wall clock that is CLOCK_MONOTONIC (the daemon's cycle
+reads the same) and the stamps are ROS time. On the lockstep clock (``dragd run --lockstep``, docs/LOCKSTEP.md) it
+is the daemon's simulated time, read from every ``state`` answer: the stamps, the keepalive's timeout, the rates of
+``/joint_states`` and ``/diagnostics``, the retry of a refused stream and a trajectory's start time all run on it;
+the bridge publishes it on ``/clock`` and its node runs with ``use_sim_time``, as a simulator's ROS side does. The
+bridge waits for the arm only through the daemon's own waiting commands (``replay_stop`` with ``wait``, ``mode``),
+which ask the lockstep clock for the time they need: it never sleeps for arm time itself.
 """
 
 from __future__ import annotations
 
 import asyncio
 import datetime
+import faulthandler
 import json
 import os
 import signal
+import sys
+import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -37,6 +48,7 @@ from dragd.client import Client, CommandError, DaemonUnavailable
 from dragd.ros2 import convert
 
 CONNECT_RETRY_S = 1.0
+SHUTDOWN_GUARD_S = 15.0  # SIGTERM: the stream and the lease are closed within ~2 s; a teardown stuck longer ends here
 OPEN_RETRY_S = 1.0  # a stream_open the daemon refused (not in hold) is tried again after this long
 RESUMABLE = ("timeout", "closed")  # stream ends after which new commands may open a new stream by themselves
 
@@ -80,19 +92,64 @@ class Bridge:
         self.lease = 0
         self.renewing = False  # a renewal in flight (keepalives meanwhile are coalesced)
         self.renewals = 0
+        self.keepalive_present = False  # said on ~/status when it changes (dragd/keepalive)
+        # the bridge's clock: the daemon's (lockstep: its simulated time from the latest state answer)
+        self.lockstep = False
+        self.daemon_t = 0.0
+        self._time_moved = asyncio.Condition()
         self._stop = asyncio.Event()
         self._programs_changed = asyncio.Event()
         self._tasks: set[asyncio.Task[Any]] = set()
 
-    @staticmethod
-    def now() -> float:
-        """The bridge's clock for its own timeouts (keepalive, retries): the one place it reads time."""
-        return time.monotonic()
+    def now(self) -> float:
+        """The bridge's clock for its timeouts and rates (keepalive, retries, the topics' rates): the daemon's.
+        Wall: CLOCK_MONOTONIC (the daemon's WallClock reads the same); lockstep: the daemon's simulated time as of
+        its latest ``state`` answer."""
+        return self.daemon_t if self.lockstep else time.monotonic()
+
+    def ros_now_ns(self) -> int:
+        """ROS time for stamps: the node's clock (system time) on the wall clock, the daemon's simulated time (also
+        on ``/clock``) on the lockstep clock."""
+        return round(self.daemon_t * 1e9) if self.lockstep else self.node.now_ns()
+
+    async def sleep(self, seconds: float) -> None:
+        """Sleep on the bridge's clock (lockstep: until the daemon's time moved on that far; asks for no time)."""
+        if not self.lockstep:
+            await asyncio.sleep(seconds)
+            return
+        start = self.now()
+        until = start + seconds
+        async with self._time_moved:  # (a daemon that restarted starts its time again: that wakes it too)
+            await self._time_moved.wait_for(lambda: self.now() >= until - 1e-9 or self.now() < start)
+
+    async def _daemon_time(self, t_s: float) -> bool:
+        """A ``state`` answer's time (lockstep: the bridge's clock moves, ``/clock`` says so); True if it moved (back
+        only for a daemon that restarted)."""
+        if not self.lockstep or t_s == self.daemon_t:
+            return False
+        self.daemon_t = t_s
+        self.node.publish_clock(round(t_s * 1e9))
+        async with self._time_moved:
+            self._time_moved.notify_all()
+        return True
 
     # ------------------------------------------------------------------------------------------ running
 
     def stop(self) -> None:
+        if not self._stop.is_set():
+            guard = threading.Timer(SHUTDOWN_GUARD_S, self._stuck)
+            guard.daemon = True
+            guard.start()
         self._stop.set()
+
+    @staticmethod
+    def _stuck() -> None:
+        """The teardown after SIGTERM (daemon connections, the middleware) did not end: say where, then exit (the
+        daemon's stream deadline and lease end what the bridge held, as for a bridge that died)."""
+        print(f"dragd ros2: the shutdown did not finish within {SHUTDOWN_GUARD_S:g} s; exiting (where it stood:)",
+              file=sys.stderr, flush=True)
+        faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
+        os._exit(1)
 
     async def run(self) -> int:
         from dragd.ros2.node import RosNode
@@ -105,12 +162,19 @@ class Bridge:
             return 0
         self.joints = list(robot["joint_names"])
         self.program_dir = str(robot.get("program_dir") or "")
-        self.node = RosNode(self, loop, self.joints, robot.get("urdf"), self.ros_args, self.node_name)
+        clock = (await self.poll.call("clock"))["clock"]
+        self.lockstep = bool(clock.get("lockstep"))
+        self.daemon_t = float((await self.poll.call("state"))["t_s"]) if self.lockstep else 0.0  # (the polls' source)
+        self.node = RosNode(self, loop, self.joints, robot.get("urdf"), self.ros_args, self.node_name,
+                            sim_time=self.lockstep)
+        if self.lockstep:
+            self.node.publish_clock(round(self.daemon_t * 1e9))  # (the graph's use_sim_time nodes: the time at once)
         if self.rate_override is not None:
             self.node.set_parameter("joint_states_rate_Hz", float(self.rate_override))
         self.stream_enabled = bool(self.node.param("stream.enabled"))
         print(f"dragd ros2: bridging the daemon at {self.socket} as node {self.node.node.get_fully_qualified_name()} "
-              f"({len(self.joints)} joints)", flush=True)
+              f"({len(self.joints)} joints{', on its lockstep clock: /clock, use_sim_time' if self.lockstep else ''})",
+              flush=True)
         tasks = [loop.create_task(self._forever(p)) for p in (self._poll_state, self._poll_diagnostics,
                                                                self._poll_programs, self._forward)]
         try:
@@ -183,23 +247,42 @@ class Bridge:
 
     # ------------------------------------------------------------------------------------------ pollers
 
-    async def _every(self, rate_param: str, due: list[float]) -> None:
-        """Sleep until the next period of the rate parameter (absolute deadlines; a late one is not caught up)."""
+    def _period(self, rate_param: str) -> float:
         rate = float(self.node.param(rate_param))
-        period = 1.0 / rate if rate > 0 else 1.0
+        return 1.0 / rate if rate > 0 else 1.0
+
+    async def _every(self, rate_param: str, due: list[float]) -> None:
+        """Sleep until the next period of the rate parameter on the bridge's clock (absolute deadlines; a late one is
+        not caught up)."""
+        period = self._period(rate_param)
         now = self.now()
         due[0] = max(due[0] + period, now)
-        await asyncio.sleep(due[0] - now)
+        await self.sleep(due[0] - now)
 
     async def _poll_state(self) -> None:
-        due = [self.now()]
+        """The daemon's state at the joint states' rate. Lockstep: the requests go out at that rate of wall time (the
+        daemon's time may stand still: then nothing is published but changes of mode and events) and a
+        ``/joint_states`` goes out when the daemon's time reached its next period (at most the rate, on its clock)."""
+        wall_due = [time.monotonic()]
+        sim_due = self.daemon_t
         while True:
             try:
-                t_ns = self.node.now_ns()  # (the state is the newest cycle's as the request is answered)
-                gen = self.drag_gen
+                t_ns = self.ros_now_ns()  # (the state is the newest cycle's as the request is answered)
+                gen, sid = self.drag_gen, self.stream_id
                 st = await self._call(self.poll, "state")
                 self.state = st
-                self.node.publish_joint_states(st, t_ns)
+                if self.lockstep:
+                    restarted = float(st["t_s"]) < self.daemon_t
+                    await self._daemon_time(float(st["t_s"]))
+                    if restarted:
+                        sim_due = self.daemon_t
+                    if self.daemon_t >= sim_due - 1e-9:  # (on the grid of its periods; behind it: no catching up)
+                        self.node.publish_joint_states(st, round(float(st["t_s"]) * 1e9))
+                        sim_due += self._period("joint_states_rate_Hz")
+                        if sim_due <= self.daemon_t + 1e-9:
+                            sim_due = self.daemon_t + self._period("joint_states_rate_Hz")
+                else:
+                    self.node.publish_joint_states(st, t_ns)
                 if st["mode"] != self.mode:
                     self.mode = st["mode"]
                     self.node.publish_mode(self.mode)
@@ -208,13 +291,18 @@ class Bridge:
                 if st["event_seq"] != self.event_seq:
                     await self._events()
                 await self._watch_drag(st, gen)
+                self._watch_stream(st.get("stream"), sid)
+                self._watch_keepalive()
             except DaemonUnavailable:
                 self.state = None
                 await asyncio.sleep(CONNECT_RETRY_S)
                 continue
             except CommandError as exc:
                 print(f"dragd ros2: state: {exc}", flush=True)
-            await self._every("joint_states_rate_Hz", due)
+            period = self._period("joint_states_rate_Hz")  # (wall time: the requests' pace on either clock)
+            now = time.monotonic()
+            wall_due[0] = max(wall_due[0] + period, now)
+            await asyncio.sleep(wall_due[0] - now)
 
     async def _events(self) -> None:
         ev = await self._call(self.poll, "events", since=self.event_seq)
@@ -232,7 +320,7 @@ class Bridge:
             except (DaemonUnavailable, CommandError) as exc:
                 status = {"mode": None}
                 self.connected = not isinstance(exc, DaemonUnavailable)
-            self.node.publish_diagnostics(convert.diagnostics(status, self.summary()))
+            self.node.publish_diagnostics(convert.diagnostics(status, self.summary()), self.ros_now_ns())
             await self._every("diagnostics_rate_Hz", due)
 
     async def _poll_programs(self) -> None:
@@ -268,13 +356,26 @@ class Bridge:
                 "commands_forwarded": self.forwarded, "commands_dropped": self.dropped,
                 "commands_coalesced": self.coalesced,
                 "commands_refused": self.refused, "drag_by_bridge": self.drag_by_bridge, "drag_lease": self.lease,
-                "lease_renewals": self.renewals}
+                "lease_renewals": self.renewals, "keepalive_present": self.keepalive_present,
+                "clock": "lockstep (the daemon's simulated time, on /clock)" if self.lockstep else "wall"}
 
     # ------------------------------------------------------------------------------------------ drag keepalive
 
     def on_keepalive(self) -> None:
         self.last_keepalive = self.now()
+        if not self.keepalive_present:
+            self.keepalive_present = True
+            self._status(convert.OK, "dragd/keepalive", "~/drag_keepalive present: ~/drag and ~/teach/start may "
+                                     "be called")
         self.renew_drag()
+
+    def _watch_keepalive(self) -> None:
+        """A keepalive that stopped coming is said once (drag itself ends in the daemon, when its lease lapses)."""
+        if self.keepalive_present and not self.keepalive_fresh():
+            self.keepalive_present = False
+            timeout = float(self.node.param("drag.keepalive_timeout_s"))
+            self._status(convert.WARN if self.lease else convert.OK, "dragd/keepalive",
+                         f"~/drag_keepalive silent for more than {timeout:g} s")
 
     def renew_drag(self) -> None:
         """A keepalive becomes the daemon's drag lease renewal (one in flight at a time: keepalives that come
@@ -337,7 +438,7 @@ class Bridge:
             self.dropped += 1
             self._latch(str(exc))
             return
-        t = stamp_s if stamp_s > 0.0 else self.node.now_ns() * 1e-9
+        t = stamp_s if stamp_s > 0.0 else self.ros_now_ns() * 1e-9
         if self.stream_id is None:
             self.dropped += 1  # (the first command opens the stream; the next ones start at the arm's pose)
             if not self.opening and self.now() - self.open_refused_at >= OPEN_RETRY_S:
@@ -389,14 +490,29 @@ class Bridge:
             except (CommandError, DaemonUnavailable):
                 info = {}
             end = info.get("end") if info.get("stream") == sid else None
-            if end in RESUMABLE:
-                self._status(convert.WARN, "dragd/stream", f"stream {sid} ended ({info.get('outcome')}); "
-                                         "the next command opens a new one")
-            else:
-                self.refused += 1
-                self._latch(exc.error)
+            self._stream_ended(sid, end, info.get("outcome"), exc.error)
         except DaemonUnavailable:
             pass
+
+    def _stream_ended(self, sid: int, end: str | None, outcome: object, reason: str) -> None:
+        if end in RESUMABLE:
+            self._status(convert.WARN, "dragd/stream", f"stream {sid} ended ({outcome}); "
+                                     "the next command opens a new one")
+        else:
+            self.refused += 1
+            self._latch(reason)
+
+    def _watch_stream(self, info: dict[str, Any] | None, sid: int | None) -> None:
+        """The daemon ended the bridge's stream (its deadline, a refused sample, a monitor, a fault): seen in the
+        state polls, so that the next command opens a new stream at once (or the refusal is said) rather than meeting
+        the ended one. ``sid``: the bridge's stream when the state was asked for (a state asked for before the
+        stream opened says nothing of it)."""
+        if sid is None or sid != self.stream_id or not info or info.get("stream") != sid or \
+                info.get("state") == "running":
+            return
+        self.stream_id = None
+        self._stream_error_seen = sid
+        self._stream_ended(sid, info.get("end"), info.get("outcome"), str(info.get("outcome")))
 
     def _latch(self, reason: str) -> None:
         self.latched = reason
@@ -404,7 +520,9 @@ class Bridge:
                                  f"{reason}")
 
     async def _end_stream(self) -> None:
-        """Stop a running stream, trajectory or replay (controlled stop) and wait for HOLD."""
+        """Stop a running stream, trajectory or replay (controlled stop), then HOLD with the drives back in CST. The
+        waits are the daemon's (``replay_stop`` with ``wait``, ``mode hold``): they take the arm's time on either
+        clock, the bridge reads none."""
         sid, self.stream_id = self.stream_id, None
         if sid is not None:
             try:
@@ -412,16 +530,14 @@ class Bridge:
             except CommandError:
                 pass
         st = await self._call(self.act, "status")
-        if st.get("trajectory") is not None and st["mode"] == "track":
+        if st["mode"] == "track":
             try:
                 await self._call(self.act, "replay_stop", wait=True)
             except CommandError:
                 pass
-        for _ in range(50):
             st = await self._call(self.act, "status")
-            if st["mode"] != "track" and st.get("drive_mode") == "cst":
-                return
-            await asyncio.sleep(0.05)
+        if st["mode"] == "hold" and st.get("drive_mode") != "cst":
+            await self._call(self.act, "mode", mode="hold")  # (waits for the drives' return to CST)
 
     # ------------------------------------------------------------------------------------------ trajectories
 
@@ -438,11 +554,11 @@ class Bridge:
             q_now = self.state["q_rad"] if self.state else None
             t_s, q_rad = convert.trajectory_samples(names, points, self.joints, q_now)
             if stamp_s > 0.0:  # a start time in the future: wait for it (one in the past: start now)
-                wait = stamp_s - self.node.now_ns() * 1e-9
+                wait = stamp_s - self.ros_now_ns() * 1e-9
                 if wait > 10.0:
                     raise ValueError(f"trajectory: header.stamp lies {wait:.1f} s ahead (more than 10 s)")
                 if wait > 0.0:
-                    await asyncio.sleep(wait)
+                    await self.sleep(wait)
             resp = await self._call(self.act, "track", t_s=t_s, q_rad=q_rad, label="ros2 trajectory")
             self._status(convert.OK, name, f"trajectory accepted: {len(points)} points, "
                                      f"{resp.get('duration_s', t_s[-1]):g} s", {"points": len(points)})

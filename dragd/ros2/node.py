@@ -18,10 +18,12 @@ import rclpy
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.clock import Clock, ClockType
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.signals import SignalHandlerOptions
+from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Empty, String
 from std_srvs.srv import SetBool, Trigger
@@ -82,7 +84,7 @@ class RosNode:
     """The node ``dragd`` (``--ros-args`` may rename or namespace it) and its executor thread."""
 
     def __init__(self, bridge: Bridge, loop: asyncio.AbstractEventLoop, joints: Sequence[str], urdf: str | None,
-                 ros_args: Sequence[str] = (), node_name: str = "dragd") -> None:
+                 ros_args: Sequence[str] = (), node_name: str = "dragd", sim_time: bool = False) -> None:
         self.bridge, self.loop, self.joints = bridge, loop, list(joints)
         self.context = rclpy.Context()
         rclpy.init(args=["dragd", "--ros-args", *ros_args] if ros_args else None, context=self.context,
@@ -95,6 +97,11 @@ class RosNode:
         self._services_group = MutuallyExclusiveCallbackGroup()
         self._topics_group = MutuallyExclusiveCallbackGroup()
         self._housekeeping = MutuallyExclusiveCallbackGroup()
+        # a daemon on the lockstep clock: its simulated time on /clock, this node on it (use_sim_time), as the ROS
+        # side of a simulator does; the graph's other nodes follow with use_sim_time:=true
+        self.clock = node.create_publisher(ClockMsg, "/clock", 10) if sim_time else None
+        if sim_time:
+            node.set_parameters([Parameter("use_sim_time", value=True)])
         self.joint_states = node.create_publisher(JointState, "/joint_states", 10)
         self.description = node.create_publisher(String, "/robot_description", LATCHED)
         self.mode = node.create_publisher(String, "~/mode", LATCHED)
@@ -113,7 +120,8 @@ class RosNode:
         self._replay_services: dict[str, Any] = {}
         self._programs: list[str] | None = None
         self._programs_lock = threading.Lock()
-        node.create_timer(0.5, self._apply_programs, callback_group=self._housekeeping)
+        node.create_timer(0.5, self._apply_programs, callback_group=self._housekeeping,
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))  # (housekeeping: wall time on either clock)
         if urdf is not None:
             self.description.publish(String(data=urdf))
         self.executor = MultiThreadedExecutor(num_threads=3, context=self.context)
@@ -229,9 +237,14 @@ class RosNode:
         self.status.publish(DiagnosticStatus(level=bytes([level]), name=name, message=message, hardware_id="dragd",
                                              values=[KeyValue(key=k, value=str(v)) for k, v in (values or {}).items()]))
 
-    def publish_diagnostics(self, entries: Sequence[tuple[int, str, str, Sequence[tuple[str, str]]]]) -> None:
+    def publish_clock(self, t_ns: int) -> None:
+        if self.clock is not None:
+            self.clock.publish(ClockMsg(clock=stamp(t_ns)))
+
+    def publish_diagnostics(self, entries: Sequence[tuple[int, str, str, Sequence[tuple[str, str]]]],
+                            stamp_ns: int) -> None:
         arr = DiagnosticArray()
-        arr.header.stamp = stamp(self.now_ns())
+        arr.header.stamp = stamp(stamp_ns)
         arr.status = [DiagnosticStatus(level=bytes([lv]), name=name, message=msg, hardware_id="dragd",
                                        values=[KeyValue(key=k, value=v) for k, v in kv])
                       for lv, name, msg, kv in entries]

@@ -4,6 +4,11 @@ and the highest command-stream rate the whole path carries without the daemon mi
 One session: simulator + daemon as deployed (SCHED_FIFO where permitted) + ``dragd ros2`` as processes, and a plain
 rclpy node in this process (subscribing ``/joint_states``, publishing ``~/joint_commands`` as
 topic_based_ros2_control does). Needs the ros2 extra.
+
+The machine's own stalls are measured through the whole session as in the loop benchmarks (dragd/lab/bench/stalls.py:
+a probe process per CPU above the cycle thread's priority): each window's missed ticks (the arm held with no stream,
+then each stream rate) are split into those a probe's stall explains (the host's) and the daemon's own, exactly as
+``loop_missed_ratio_own`` splits them; the stream rate counts only the daemon's own.
 """
 
 from __future__ import annotations
@@ -19,7 +24,8 @@ from typing import Any
 import numpy as np
 
 from dragd.lab.bench import BenchError, benchmark
-from dragd.lab.bench.loop import process_cpu_s
+from dragd.lab.bench.loop import _missed_by_cause, process_cpu_s
+from dragd.lab.bench.stalls import PROBE_PRIORITY, StallProbe
 
 RATES_HZ = (100, 250, 500, 1000)
 
@@ -41,8 +47,20 @@ def _session(seconds: float, config: Any) -> dict[str, Any]:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from sensor_msgs.msg import JointState
+    from std_srvs.srv import SetBool
+
+    from dragd.lab.rig import DEPLOYED_PRIORITY
 
     out: dict[str, Any] = {}
+    windows: dict[Any, tuple[int, dict[str, Any]]] = {}  # window -> (missed ticks, the daemon's episodes of it)
+
+    def missed_in(rig: Rig, before: dict[str, Any], after: dict[str, Any]) -> tuple[int, dict[str, Any]]:
+        log = rig.must("missed_ticks", since=before["missed_episodes"])  # the window's episodes (as loop.py)
+        n_new = after["missed_episodes"] - before["missed_episodes"]
+        log["episodes"] = log["episodes"][:max(0, n_new - log["lost"])]
+        return after["missed_cycles"] - before["missed_cycles"], log
+
+    probe = StallProbe(min(99, max(PROBE_PRIORITY, DEPLOYED_PRIORITY + 10)))
     with Rig("bench-ros2", config=config, as_deployed=True) as rig:
         rig.start_sim()
         rig.start_daemon()
@@ -61,32 +79,39 @@ def _session(seconds: float, config: Any) -> dict[str, Any]:
 
         node.create_subscription(JointState, "/joint_states", heard, 100)
         pub = node.create_publisher(JointState, "/dragd/joint_commands", 10)
+        streaming: Any = node.create_client(SetBool, "/dragd/streaming")
         ex = SingleThreadedExecutor(context=ctx)
         ex.add_node(node)
         spin = threading.Thread(target=ex.spin, daemon=True)
         spin.start()
         try:
+            try:  # the machine's own stalls through the session
+                probe.__enter__()
+            except OSError as e:
+                probe.errors.append(str(e))
             wait_until(lambda: "bridging the daemon" in bridge.output(), 30.0, "the bridge", bridge)
             wait_until(lambda: len(lat) > 50, 30.0, "joint states from the bridge", bridge)
             # bridge CPU and the latency of /joint_states (100 Hz), the arm held
             with lock:
                 lat.clear()
-            m0 = rig.must("status")["missed_cycles"]
+            m0 = rig.must("status")
             c0, t0 = process_cpu_s(bridge.proc.pid), time.monotonic()
             rig.sleep(seconds)
             cpu = (process_cpu_s(bridge.proc.pid) - c0) / (time.monotonic() - t0) * 100.0
-            out["baseline_missed_cycles"] = rig.must("status")["missed_cycles"] - m0  # the same time, no stream
+            windows["baseline"] = missed_in(rig, m0, rig.must("status"))  # the same time, no stream
             with lock:
                 got = np.array(lat)
             out["bridge_cpu_pct"] = cpu
             out["latency_ms"] = got
             out["joint_states_Hz"] = len(got) / seconds
             # the command stream: a smooth path at each rate, through the bridge into the daemon's stream
-            names = rig.must("robot")["joint_names"]
+            robot = rig.must("robot")
+            names, out["loop_rate_Hz"] = robot["joint_names"], robot["rate_Hz"]
             rates = []
             for rate in RATES_HZ:
                 rig.wait_for(lambda: rig.must("status")["mode"] == "hold"
                              and rig.must("status")["drive_mode"] == "cst", 10.0, "hold in CST")
+                _follow_commands(streaming)  # (a rate refused before latched the bridge: each rate starts afresh)
                 q0 = np.array(rig.must("state")["q_rad"])
                 s0 = rig.must("status")
                 first = ((s0["stream"] or {}).get("opened") or 0) + 1
@@ -94,10 +119,12 @@ def _session(seconds: float, config: Any) -> dict[str, Any]:
                 sent = _stream(node, pub, names, q0, rate, seconds)
                 s1 = rig.must("status")
                 b1 = process_cpu_s(bridge.proc.pid)
+                windows[rate] = missed_in(rig, s0, s1)
                 stream = s1["stream"] or {}
                 rates.append({"rate_Hz": rate, "published": sent, "daemon_samples": stream.get("samples"),
                               "streams_opened": (stream.get("opened") or 0) - first + 1,
-                              "stream_end": stream.get("end"), "missed_cycles": s1["missed_cycles"] - s0["missed_cycles"],
+                              "stream_end": stream.get("end"), "outcome": stream.get("outcome"),
+                              "missed_cycles": s1["missed_cycles"] - s0["missed_cycles"],
                               "refused": stream.get("refused"), "dry_cycles": stream.get("dry_cycles"),
                               "period_max_us": s1["period_max_us"], "bridge_cpu_pct": (b1 - b0) / seconds * 100.0,
                               "faults": s1["faults"][-1:]})
@@ -106,11 +133,39 @@ def _session(seconds: float, config: Any) -> dict[str, Any]:
             out["rates"] = rates
             out["schedulers"] = rig.schedulers()
         finally:
+            try:
+                probe.__exit__(None, None, None)
+            except Exception as e:  # noqa: BLE001 - the probes' end must not hide the session's own error
+                probe.errors.append(str(e))
             ex.shutdown(timeout_sec=2.0)
             node.destroy_node()
             rclpy.shutdown(context=ctx)
             bridge.terminate()
+    dt = 1.0 / float(out["loop_rate_Hz"])  # the cycle's period (episodes are in ticks)
+    out["stalls_measured"] = probe.complete
+    out["probe_errors"] = probe.errors
+    out["host_stall_max_ms"] = probe.summary()["late_max_ms"] if probe.complete else None
+    for key, (missed, log) in windows.items():
+        host, own = _missed_by_cause(missed, log, probe, dt) if probe.complete else (None, None)
+        split = {"missed_cycles": missed, "missed_host": host, "missed_own": own}
+        if key == "baseline":
+            out["baseline"] = split
+        else:
+            next(r for r in out["rates"] if r["rate_Hz"] == key).update(split)
     return out
+
+
+def _follow_commands(client: Any) -> None:
+    """``~/streaming true``: the bridge follows commands again (a refusal latches it until then)."""
+    from std_srvs.srv import SetBool
+
+    if not client.wait_for_service(timeout_sec=30.0):
+        raise BenchError("the bridge's ~/streaming service did not appear")
+    done = threading.Event()
+    fut = client.call_async(SetBool.Request(data=True))
+    fut.add_done_callback(lambda _f: done.set())
+    if not done.wait(30.0) or not fut.result().success:
+        raise BenchError(f"~/streaming true: {fut.result() if fut.done() else 'no answer within 30 s'}")
 
 
 def _stream(node: Any, pub: Any, names: list[str], q0: np.ndarray, rate: float, seconds: float) -> int:
@@ -166,6 +221,11 @@ def ros2_stream_max_rate_Hz(opts: dict) -> tuple[float, dict[str, Any]]:
     so at high rates it forwards a share of them) without the daemon missing a cycle. The detail has each rate's
     figures and the missed cycles of the same time with the arm held and no stream (the machine's own)."""
     s = _session(*_opts(opts))
+    if not s["stalls_measured"]:
+        raise BenchError(f"ros2_stream_max_rate_Hz: the machine's stalls were not measured "
+                         f"({'; '.join(s['probe_errors'])}): the daemon's own missed cycles cannot be told from the "
+                         "host's")
     rates = s["rates"]
-    ok = [r["rate_Hz"] for r in rates if r["missed_cycles"] == 0 and not r["refused"] and r["streams_opened"] == 1]
-    return float(max(ok) if ok else 0.0), {"rates": rates, "baseline_missed_cycles": s["baseline_missed_cycles"]}
+    ok = [r["rate_Hz"] for r in rates if r["missed_own"] == 0 and not r["refused"] and r["streams_opened"] == 1]
+    return float(max(ok) if ok else 0.0), {"rates": rates, "baseline": s["baseline"],
+                                           "host_stall_max_ms": s["host_stall_max_ms"]}
