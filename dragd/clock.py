@@ -32,6 +32,7 @@ import time
 from collections.abc import Callable, Iterator
 from typing import Any, TypeVar
 
+from dragd.hardware.cia301 import TIME_COB_ID
 from dragd.realtime import Ticker
 
 __all__ = ["Clock", "WallClock", "LockstepClock", "LockstepError", "TIME_COB_ID", "encode_time_of_day",
@@ -39,7 +40,6 @@ __all__ = ["Clock", "WallClock", "LockstepClock", "LockstepError", "TIME_COB_ID"
 
 T = TypeVar("T")
 
-TIME_COB_ID = 0x100  # CiA 301 TIME (time stamp object), the default COB-ID of 1012h
 GUARD_S = 10.0  # lockstep: wall seconds without an answer from the simulator before it is an error
 POLL_S = 0.01  # WallClock.wait_for: how often a condition is looked at
 _DAY_MS = 86_400_000

@@ -207,9 +207,9 @@ def _cmd_drives(args: argparse.Namespace) -> int:
         print(f"sim: {exc}", file=sys.stderr)
         return 2
     if args.json:
-        print(json.dumps({j.name: p.summary() for j, p in zip(truth.joints, profiles)}))
+        print(json.dumps({j.name: p.summary() for j, p in zip(truth.joints, profiles, strict=True)}))
     else:
-        for j, p in zip(truth.joints, profiles):
+        for j, p in zip(truth.joints, profiles, strict=True):
             print(f"{j.name}: {p.describe()}")
     return 0
 

@@ -7,8 +7,8 @@ sim/scaling.py. A profile swaps what differs between drive models: which objects
 0602 0000 and cannot be mapped), their access and mapping flags, the PDOs and their COB-IDs, dummy usage, 6502h, where
 the process quantities live and in which unit; what the EDS does not say is assumed as docs/SIM_DRIVES.md lists.
 
-Threads: ``on_message`` / ``on_data`` / ``on_sync`` run in the network's reader thread, ``update`` in the physics thread.
-All take the drive's re-entrant lock for their (short) work. Only ``update`` writes the AxisIO outputs.
+Threads: ``on_message`` / ``on_data`` / ``on_sync`` run in the network's reader thread, ``update`` in the physics
+thread. All take the drive's re-entrant lock for their (short) work. Only ``update`` writes the AxisIO outputs.
 
 Clocks: the drive reads no clock of its own. Communication timing (heartbeats, RPDO deadlines, inhibit and event times)
 runs on the time handed in by ``comm(now)`` and ``on_sync(t)``; a frame is received at ``on_data(..., now)``'s time,
@@ -31,13 +31,19 @@ from typing import Any
 import can
 
 from dragd.hardware.cia301 import (
+    COB_ID_MASK,
     HEARTBEAT_BASE,
+    NMT_COB_ID,
+    NODE_ID_MAX,
+    NODE_ID_MIN,
+    OD_COMMUNICATION_AREA,
     OD_PRODUCER_HEARTBEAT,
     OD_SDO_SERVER,
     OD_SYNC_COB_ID,
     SDO_RX_BASE,
     SDO_TX_BASE,
     SYNC_COB_ID,
+    SYNC_COB_ID_GENERATE,
     NmtCommand,
     NmtState,
 )
@@ -75,7 +81,7 @@ from sim.ds402 import DeviceControl
 from sim.emcy import Errors
 from sim.motion import Motion, Regime
 from sim.nmt import HeartbeatConsumers, Nmt
-from sim.od import ABORT_VALUE_RANGE, COMM_RANGE, STRUCT_CODES, ObjectStore, SdoAbort
+from sim.od import ABORT_VALUE_RANGE, STRUCT_CODES, ObjectStore, SdoAbort
 from sim.pdo import PdoChannel, PdoService
 from sim.scaling import Scaling
 from sim.sdo_server import SdoServer
@@ -174,7 +180,7 @@ _ROUTE_GENERATIONS = itertools.count(1)
 def _range(store: ObjectStore, slot: int) -> tuple[int, int]:
     """(min, max) of an integer object's data type (internal cells: INTEGER16)."""
     var = store.vars[slot]
-    if var is None:
+    if var is None or var.data_type is None:
         return _TYPE_RANGES["h"]
     return _TYPE_RANGES.get(STRUCT_CODES.get(var.data_type, "h"), _TYPE_RANGES["h"])
 
@@ -393,7 +399,7 @@ class SimDrive:
             elif now > self._now:
                 self._now = now
             self._steady = False  # (whatever the frame changes, the next physics step computes the outputs afresh)
-            if cob == 0x000:
+            if cob == NMT_COB_ID:
                 self._on_nmt(data)
                 return
             nmt = self.nmt.state
@@ -405,7 +411,7 @@ class SimDrive:
             if cob == self._sdo_rx_cob:
                 if nmt is not NmtState.STOPPED:
                     self._sample(self.io)  # an upload of an actual value reads it now
-                    self.sdo.on_request(data)
+                    self.sdo.on_request(bytes(data))  # (a bytearray from some buses)
                 return
             channels = self.pdo.rpdo_by_cob.get(cob)
             if channels is not None:
@@ -414,7 +420,7 @@ class SimDrive:
                         self.pdo.receive(ch, data, now)
                 return
             consumer = self.consumers.by_node.get(cob - HEARTBEAT_BASE)
-            if consumer is not None and 0x701 <= cob <= 0x77F:
+            if consumer is not None and HEARTBEAT_BASE + NODE_ID_MIN <= cob <= HEARTBEAT_BASE + NODE_ID_MAX:
                 if self.consumers.received(consumer, now):
                     self.control.clear_error(EMCY_HEARTBEAT)
 
@@ -570,7 +576,7 @@ class SimDrive:
             self._steady = False
             self.control.abort_connection(EMCY_COMMUNICATION)
             self.nmt.state = NmtState.INITIALISING
-            self.store.reset(COMM_RANGE)
+            self.store.reset(OD_COMMUNICATION_AREA)
             self.errors.update_register()
             self._reset_communication_state()
             self.nmt.bootup(self._comm_now())
@@ -599,7 +605,8 @@ class SimDrive:
                 return
             pdo = self.pdo
             for ch in pdo.deadline_rpdos:
-                if ch.last_rx_s is not None and not ch.timed_out and self._deadline_passed(ch.last_rx_s, ch.event_s, now):
+                if (ch.last_rx_s is not None and not ch.timed_out
+                        and self._deadline_passed(ch.last_rx_s, ch.event_s, now)):
                     ch.timed_out = True
                     self._rpdo_timeout(ch.number)
             watchdog = self.s.rpdo_watchdog
@@ -645,18 +652,18 @@ class SimDrive:
     # routing
     # ==================================================================================================
     def _check_sync_cob(self, sub: int, value: int) -> None:
-        if value & 0x40000000:
+        if value & SYNC_COB_ID_GENERATE:
             raise SdoAbort(ABORT_VALUE_RANGE, OD_SYNC_COB_ID, 0, "this drive is a SYNC consumer; bit 30 must be 0")
-        if value & 0x3FFFF800:
+        if value & (SYNC_COB_ID_GENERATE - 1) & ~COB_ID_MASK:  # bits 11-29: 3FFFF800h
             raise SdoAbort(ABORT_VALUE_RANGE, OD_SYNC_COB_ID, 0, "expected an 11-bit COB-ID")
 
     def _load_routing(self) -> None:
         st = self.store
         node = self.node_id
-        self._sync_cob = (st.get(OD_SYNC_COB_ID) if st.has(OD_SYNC_COB_ID) else SYNC_COB_ID) & 0x7FF
-        self._sdo_rx_cob = (st.get(OD_SDO_SERVER, 1) if st.has(OD_SDO_SERVER, 1) else SDO_RX_BASE + node) & 0x7FF
-        self._sdo_tx_cob = (st.get(OD_SDO_SERVER, 2) if st.has(OD_SDO_SERVER, 2) else SDO_TX_BASE + node) & 0x7FF
-        ids = {0x000, self._sync_cob, self._sdo_rx_cob}
+        self._sync_cob = (st.get(OD_SYNC_COB_ID) if st.has(OD_SYNC_COB_ID) else SYNC_COB_ID) & COB_ID_MASK
+        self._sdo_rx_cob = (st.get(OD_SDO_SERVER, 1) if st.has(OD_SDO_SERVER, 1) else SDO_RX_BASE + node) & COB_ID_MASK
+        self._sdo_tx_cob = (st.get(OD_SDO_SERVER, 2) if st.has(OD_SDO_SERVER, 2) else SDO_TX_BASE + node) & COB_ID_MASK
+        ids = {NMT_COB_ID, self._sync_cob, self._sdo_rx_cob}
         ids.update(ch.cob_id for ch in self.pdo.rpdos if ch.valid)
         ids.update(HEARTBEAT_BASE + n for n in self.consumers.by_node)
         self._rx_ids = frozenset(ids)

@@ -17,17 +17,30 @@ import sys
 import time
 from pathlib import Path
 
+from dragd.hardware.cia301 import (
+    HEARTBEAT_BASE,
+    NMT_COB_ID,
+    OD_CONSUMER_HEARTBEAT,
+    OD_PRODUCER_HEARTBEAT,
+    OD_RPDO_COMM,
+    RPDO1_BASE,
+    SDO_RX_BASE,
+    NmtCommand,
+    NmtState,
+)
+from dragd.hardware.cia402 import CMD_ENABLE_OPERATION, CMD_SHUTDOWN, CMD_SWITCH_ON, OD_MODES_OF_OPERATION
 from sim.axis import AxisIO
 from sim.drive import SimDrive
 from sim.truth import drive_params, load_truth, with_eds
 
 STEP_S = 0.00025
+MASTER_NODE_ID = 0x7F
 
 
 def _sdo(drive: SimDrive, index: int, sub: int, value: int, size: int) -> None:
     command = {1: 0x2F, 2: 0x2B, 4: 0x23}[size]
     payload = value.to_bytes(size, "little", signed=value < 0).ljust(4, b"\0")
-    drive.on_data(0x600 + drive.node_id, struct.pack("<BHB", command, index, sub) + payload)
+    drive.on_data(SDO_RX_BASE + drive.node_id, struct.pack("<BHB", command, index, sub) + payload)
 
 
 def cycle_cpu_us(seconds: float, mode: int, eds: str | Path | None = None) -> float:
@@ -40,13 +53,13 @@ def cycle_cpu_us(seconds: float, mode: int, eds: str | Path | None = None) -> fl
     for d in drives:
         d.comm(t)
         d.boot()
-        _sdo(d, 0x1017, 0, 50, 2)
-        _sdo(d, 0x1016, 1, (0x7F << 16) | 200, 4)
-        _sdo(d, 0x1400, 5, 50, 2)
-        _sdo(d, 0x6060, 0, mode, 1)
-        d.on_data(0x000, bytes((0x01, d.node_id)))
-        for word in (0x06, 0x07, 0x0F):
-            d.on_data(0x200 + d.node_id, struct.pack("<Hh", word, 0))
+        _sdo(d, OD_PRODUCER_HEARTBEAT, 0, 50, 2)
+        _sdo(d, OD_CONSUMER_HEARTBEAT, 1, (MASTER_NODE_ID << 16) | 200, 4)
+        _sdo(d, OD_RPDO_COMM, 5, 50, 2)
+        _sdo(d, OD_MODES_OF_OPERATION, 0, mode, 1)
+        d.on_data(NMT_COB_ID, bytes((NmtCommand.START, d.node_id)))
+        for word in (CMD_SHUTDOWN, CMD_SWITCH_ON, CMD_ENABLE_OPERATION):
+            d.on_data(RPDO1_BASE + d.node_id, struct.pack("<Hh", word, 0))
             d.on_sync(t)
     steps = int(seconds * 4000)
     c0 = time.process_time()
@@ -56,9 +69,9 @@ def cycle_cpu_us(seconds: float, mode: int, eds: str | Path | None = None) -> fl
             t += 0.001
             if k % 400 == 0:
                 for d in drives:
-                    d.on_data(0x77F, b"\x05")
+                    d.on_data(HEARTBEAT_BASE + MASTER_NODE_ID, bytes((NmtState.OPERATIONAL,)))
             for d in drives:
-                d.on_data(0x200 + d.node_id, struct.pack("<Hh", 0x0F, (k // 4) % 200 - 100))
+                d.on_data(RPDO1_BASE + d.node_id, struct.pack("<Hh", CMD_ENABLE_OPERATION, (k // 4) % 200 - 100))
                 d.on_sync(t)
         for d in drives:
             io = d.io

@@ -23,39 +23,69 @@ from typing import Any
 import canopen
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable, datatypes
 
-from dragd.hardware.cia301 import OD_DEVICE_TYPE, OD_ERROR_BEHAVIOUR, OD_IDENTITY, OD_PRODUCER_HEARTBEAT
+from dragd.hardware.cia301 import (
+    OD_DEVICE_TYPE,
+    OD_ERROR_BEHAVIOUR,
+    OD_IDENTITY,
+    OD_PRODUCER_HEARTBEAT,
+    OD_RPDO_COMM,
+    OD_RPDO_MAP,
+    OD_TPDO_COMM,
+    OD_TPDO_MAP,
+)
 from dragd.hardware.cia402 import (
+    DEVICE_TYPE_402,
+    DEVICE_TYPE_SERVO,
+    OD_ABORT_CONNECTION_OPTION,
     OD_CONTROLWORD,
+    OD_CURRENT_ACTUAL,
+    OD_DIGITAL_INPUTS,
+    OD_DISABLE_OPERATION_OPTION,
+    OD_FAULT_REACTION_OPTION,
+    OD_MAX_CURRENT,
+    OD_MAX_TORQUE,
     OD_MODES_OF_OPERATION,
+    OD_MOTOR_RATED_CURRENT,
+    OD_MOTOR_RATED_TORQUE,
     OD_POSITION_ACTUAL,
     OD_PROFILE_DECELERATION,
     OD_QUICK_STOP_DECELERATION,
+    OD_QUICK_STOP_OPTION,
+    OD_SHUTDOWN_OPTION,
     OD_STATUSWORD,
     OD_SUPPORTED_DRIVE_MODES,
     OD_TARGET_POSITION,
     OD_TARGET_TORQUE,
     OD_TARGET_VELOCITY,
+    OD_TORQUE_ACTUAL,
+    OD_TORQUE_DEMAND,
     OD_TORQUE_OFFSET,
     OD_TORQUE_SLOPE,
+    AbortConnectionOption,
+    FaultReactionOption,
     Mode,
+    QuickStopOption,
+    ShutdownOption,
     supported_modes_bits,
 )
 from dragd.resources import eds_path as bundled_eds_path
 from dragd.vocabulary import ConfigError, read_yaml
 
 DRIVES_DIR = Path(__file__).resolve().parent / "config" / "drives"
-DEVICE_TYPE_402_SERVO = 0x00020192  # CiA 402 (0192h), additional information 0002h: servo drive
+DEVICE_TYPE_402_SERVO = DEVICE_TYPE_SERVO | DEVICE_TYPE_402  # 00020192h: CiA 402, additional information: servo
 # a drive without a torque offset to feed forward (no RPDO-mappable 60B2h) holds the arm with an integrating position
 # loop (cascaded PI velocity loop): its CSP integral gain per proportional gain where the truth names none (1/s: the
 # integral catches up with a constant load in about 0.1 s)
 VENDOR_CSP_KI_PER_KP = 10.0
 # option codes a drive acts on when its EDS lacks the object: value, and what the drive then does
 ASSUMED_OPTIONS: dict[int, tuple[int, str]] = {
-    0x6007: (1, "a loss of communication (heartbeat, RPDO deadline, NMT stop) faults the drive"),
-    0x605A: (2, "quick stop on the quick stop ramp, then switch on disabled"),
-    0x605B: (0, "shutdown disables the drive at once"),
-    0x605C: (1, "disable operation slows down first"),
-    0x605E: (2, "the fault reaction is the quick stop ramp"),
+    OD_ABORT_CONNECTION_OPTION: (int(AbortConnectionOption.FAULT),
+                                 "a loss of communication (heartbeat, RPDO deadline, NMT stop) faults the drive"),
+    OD_QUICK_STOP_OPTION: (int(QuickStopOption.QUICK_STOP_RAMP),
+                           "quick stop on the quick stop ramp, then switch on disabled"),
+    OD_SHUTDOWN_OPTION: (int(ShutdownOption.DISABLE_DRIVE), "shutdown disables the drive at once"),
+    OD_DISABLE_OPERATION_OPTION: (int(ShutdownOption.SLOW_DOWN_THEN_DISABLE), "disable operation slows down first"),
+    OD_FAULT_REACTION_OPTION: (int(FaultReactionOption.QUICK_STOP_RAMP), "the fault reaction is the quick stop ramp"),
 }
 
 _INTEGER_TYPES = frozenset({datatypes.INTEGER8, datatypes.INTEGER16, datatypes.INTEGER32, datatypes.INTEGER64,
@@ -85,20 +115,25 @@ class Quantity:
 
 
 QUANTITIES: dict[str, Quantity] = {q.name: q for q in (
-    Quantity("current_actual", 0x6078, "current", "permille", "actual", "motor current measured"),
-    Quantity("torque_actual", 0x6077, "torque", "permille", "actual", "motor torque (current x torque constant)"),
-    Quantity("torque_demand", 0x6074, "torque", "permille", "actual", "torque the current loop is asked for"),
-    Quantity("target_torque", 0x6071, "torque", "permille", "command", "CST / profile torque command"),
-    Quantity("torque_offset", 0x60B2, "torque", "permille", "command", "torque added to the mode's command"),
-    Quantity("max_torque", 0x6072, "torque", "permille", "parameter", "torque limit"),
-    Quantity("max_current", 0x6073, "current", "permille", "parameter", "current limit"),
-    Quantity("rated_current", 0x6075, "current", "mA", "parameter", "base of the current per-mille values"),
-    Quantity("rated_torque", 0x6076, "torque", "mNm", "parameter", "base of the torque per-mille values"),
+    Quantity("current_actual", OD_CURRENT_ACTUAL, "current", "permille", "actual", "motor current measured"),
+    Quantity("torque_actual", OD_TORQUE_ACTUAL, "torque", "permille", "actual",
+             "motor torque (current x torque constant)"),
+    Quantity("torque_demand", OD_TORQUE_DEMAND, "torque", "permille", "actual",
+             "torque the current loop is asked for"),
+    Quantity("target_torque", OD_TARGET_TORQUE, "torque", "permille", "command", "CST / profile torque command"),
+    Quantity("torque_offset", OD_TORQUE_OFFSET, "torque", "permille", "command",
+             "torque added to the mode's command"),
+    Quantity("max_torque", OD_MAX_TORQUE, "torque", "permille", "parameter", "torque limit"),
+    Quantity("max_current", OD_MAX_CURRENT, "current", "permille", "parameter", "current limit"),
+    Quantity("rated_current", OD_MOTOR_RATED_CURRENT, "current", "mA", "parameter",
+             "base of the current per-mille values"),
+    Quantity("rated_torque", OD_MOTOR_RATED_TORQUE, "torque", "mNm", "parameter",
+             "base of the torque per-mille values"),
     Quantity("torque_constant", None, "torque_constant", "mNm_per_A", "parameter",
              "the firmware's motor torque constant (torque command -> current)"),
     Quantity("rpdo_watchdog", None, "time", "ms", "parameter",
              "a vendor's reception watchdog: no RPDO for this long (0: off) is an RPDO timeout (EMCY 8250h, 6007h)"),
-    Quantity("digital_inputs", 0x60FD, "bits", "bits", "actual",
+    Quantity("digital_inputs", OD_DIGITAL_INPUTS, "bits", "bits", "actual",
              "the digital inputs (60FDh: 0-3 limit switches, home, interlock; 16-31 the manufacturer's)"),
 )}
 
@@ -207,7 +242,8 @@ class DriveProfile:
         """The profile as JSON-able data (``python -m sim drives --json``)."""
         info = self.od.device_information
         return {
-            "node_id": self.node_id, "eds": str(self.eds_path), "vendor": info.vendor_name, "product": info.product_name,
+            "node_id": self.node_id, "eds": str(self.eds_path), "vendor": info.vendor_name,
+            "product": info.product_name,
             "profile": self.catalog.name if self.catalog else None, "can_fd": self.can_fd,
             "supported_modes": self.supported_modes,
             "rated_current_A": self.hardware.rated_current_A, "rated_torque_Nm": self.hardware.rated_torque_Nm,
@@ -399,7 +435,9 @@ def build_profile(spec: ProfileSpec, hw: Hardware, base_dir: Path | None = None)
     _commission_hardware(bindings, hw, var_of, commissioned, truth_raw)
     for (index, sub), value in list(commissioned.items()):
         var = var_of(index, sub)
-        lo, hi = (var.min, var.max) if var is not None else (None, None)
+        if var is None:
+            continue
+        lo, hi = var.min, var.max
         if (lo is not None and value < lo) or (hi is not None and value > hi):
             fitted = max(lo, value) if lo is not None else value
             fitted = min(hi, fitted) if hi is not None else fitted
@@ -439,7 +477,7 @@ def build_profile(spec: ProfileSpec, hw: Hardware, base_dir: Path | None = None)
     info = od.device_information
     identity = hw.identity if hw.identity is not None else (info.vendor_number or 0, info.product_number or 0,
                                                              info.revision_number or 0)
-    for sub, value in zip((1, 2, 3), identity):
+    for sub, value in zip((1, 2, 3), identity, strict=True):
         if var_of(OD_IDENTITY, sub) is not None:
             commissioned.setdefault((OD_IDENTITY, sub), value)
     if var_of(OD_IDENTITY, 4) is not None:
@@ -478,7 +516,8 @@ def build_profile(spec: ProfileSpec, hw: Hardware, base_dir: Path | None = None)
     if problems:
         raise ProfileError("\n".join(problems))
     return DriveProfile(eds_path=eds, node_id=hw.node_id, od=od, catalog=catalog, bindings=bindings,
-                        commissioned=commissioned, truth_raw=truth_raw, hardware=hw, supported_modes=modes, can_fd=can_fd, assumptions=assumptions,
+                        commissioned=commissioned, truth_raw=truth_raw, hardware=hw, supported_modes=modes,
+                        can_fd=can_fd, assumptions=assumptions,
                         identity=identity)
 
 
@@ -490,7 +529,7 @@ def _default_mapping_problems(od: canopen.ObjectDictionary, eds: Path, can_fd: b
 
     store = ObjectStore(od)
     out = []
-    for comm_base, map_base, receive in ((0x1400, 0x1600, True), (0x1800, 0x1A00, False)):
+    for comm_base, map_base, receive in ((OD_RPDO_COMM, OD_RPDO_MAP, True), (OD_TPDO_COMM, OD_TPDO_MAP, False)):
         for ch in find_channels(store, comm_base, map_base, receive):
             if store.get(ch.comm_index, 1) & COB_INVALID:
                 continue

@@ -13,7 +13,14 @@ from typing import Any
 
 import can
 
-from dragd.hardware.cia301 import EMCY_BASE, OD_EMCY_COB_ID, OD_ERROR_HISTORY, OD_ERROR_REGISTER, NmtState
+from dragd.hardware.cia301 import (
+    COB_ID_MASK,
+    EMCY_BASE,
+    OD_EMCY_COB_ID,
+    OD_ERROR_HISTORY,
+    OD_ERROR_REGISTER,
+    NmtState,
+)
 from dragd.hardware.cia402 import EMCY_NO_ERROR, ERR_REG_GENERIC, OD_ERROR_CODE
 from sim.od import ABORT_VALUE_RANGE, ObjectStore, SdoAbort
 
@@ -92,7 +99,7 @@ class Errors:
             return
         data = _EMCY.pack(code, cells[self.s_register], manufacturer[:5].ljust(5, b"\x00"))
         self.counters.emcys_sent += 1
-        self._tx(can.Message(arbitration_id=cob & 0x7FF, data=data, is_extended_id=False, check=False))
+        self._tx(can.Message(arbitration_id=cob & COB_ID_MASK, data=data, is_extended_id=False, check=False))
 
     def _check_cob(self, sub: int, value: int) -> None:
         if value & 0x7FFFF800:

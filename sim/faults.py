@@ -33,8 +33,20 @@ from typing import Any
 
 import can
 
-from dragd.hardware.cia402 import ERR_REG_GENERIC, State
+from dragd.hardware.cia301 import (
+    COB_ID_MASK,
+    EMCY_BASE,
+    HEARTBEAT_BASE,
+    NODE_ID_MAX,
+    PDO_COB_STEP,
+    TPDO1_BASE,
+)
+from dragd.hardware.cia402 import EMCY_OVER_CURRENT, EMCY_TEMPERATURE_DEVICE, ERR_REG_GENERIC, State
 from dragd.realtime import demote_current_thread
+
+# 181h-4FFh: the pre-defined connection set's PDO COB-IDs from node 1's TPDO 1 to node 127's TPDO 4 (a 'late' fault
+# delays these)
+_PDO_COB_IDS = range(TPDO1_BASE + 1, TPDO1_BASE + 3 * PDO_COB_STEP + NODE_ID_MAX + 1)
 
 KINDS = ("drive_silent", "burst_loss", "duplicates", "late_tpdo", "emcy", "drive_fault", "switched_on",
          "node_reboot", "bus_off", "encoder_jump", "garbage", "inputs_lost")
@@ -134,7 +146,7 @@ class FaultInjector:
             self._rearm()
             return
         if self.late_until:
-            if now < self.late_until and 0x181 <= msg.arbitration_id <= 0x4FF:
+            if now < self.late_until and msg.arbitration_id in _PDO_COB_IDS:
                 c["late"] += 1
                 with self._late_cv:
                     self._late.append((now + self.late_s, msg))
@@ -239,7 +251,7 @@ class FaultInjector:
         elif kind == "inputs_lost":
             d = node()
             index = d.profile.bindings["digital_inputs"].index
-            cobs = [ch.cob_id & 0x7FF for ch in d.tpdos if ch.valid
+            cobs = [ch.cob_id & COB_ID_MASK for ch in d.tpdos if ch.valid
                     and any((e.index, e.subindex) == (index, d.profile.bindings["digital_inputs"].subindex)
                             for e in ch.entries)]
             if not cobs:
@@ -251,11 +263,12 @@ class FaultInjector:
             done["cob_ids"] = [f"0x{c:03X}" for c in cobs]
         elif kind == "garbage":
             d = node()
-            cob = 0x180 + d.node_id
+            cob = TPDO1_BASE + d.node_id
             frames = [can.Message(arbitration_id=cob, data=b"\x01\x02", is_extended_id=False),  # short DLC
                       can.Message(arbitration_id=cob, data=bytes(8), is_extended_id=True),  # 29-bit id
-                      can.Message(arbitration_id=0x700 + d.node_id, data=b"\x00", is_extended_id=True),  # "boot-up"
-                      can.Message(arbitration_id=0x080 + d.node_id, data=b"\x10\x23\x01\x00\x00\x00\x00\x00",
+                      can.Message(arbitration_id=HEARTBEAT_BASE + d.node_id, data=b"\x00",
+                                  is_extended_id=True),  # "boot-up"
+                      can.Message(arbitration_id=EMCY_BASE + d.node_id, data=b"\x10\x23\x01\x00\x00\x00\x00\x00",
                                   is_extended_id=True),  # "EMCY"
                       can.Message(arbitration_id=cob, is_remote_frame=True, dlc=8, is_extended_id=False)]  # RTR
             for msg in frames:
@@ -265,9 +278,9 @@ class FaultInjector:
             d = node()
             with lock:
                 if kind == "emcy":
-                    d.raise_error(int(number("code", 0x4210, 1, 0xFFFF)), ERR_REG_GENERIC)
+                    d.raise_error(int(number("code", EMCY_TEMPERATURE_DEVICE, 1, 0xFFFF)), ERR_REG_GENERIC)
                 elif kind == "drive_fault":
-                    d.inject_fault(int(number("code", 0x2310, 1, 0xFFFF)))
+                    d.inject_fault(int(number("code", EMCY_OVER_CURRENT, 1, 0xFFFF)))
                 elif kind == "switched_on":  # drops out on its own (power stage off, brake); a master's cyclic 0x0F
                     d.force_state(State.SWITCHED_ON)  # would enable it again on the next RPDO (transition 4)
                 elif kind == "node_reboot":

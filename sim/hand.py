@@ -107,7 +107,8 @@ class HandDevice:
         elif kind == "chattering":
             button = args.get("button", "enable")
             if button not in self.controls:
-                raise HandError(f"inject chattering: button: expected one of {', '.join(self.controls)}, got {button!r}")
+                raise HandError(f"inject chattering: button: expected one of {', '.join(self.controls)}, "
+                                f"got {button!r}")
             self.chatter[button] = (t, number("period_ms", 4.0, 0.5, 1000.0) * 1e-3, t + seconds)
             done["button"] = button
         elif kind == "inputs_cut":

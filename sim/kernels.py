@@ -43,7 +43,8 @@ def _solve_into(minv: np.ndarray, idx: np.ndarray, m: int, a: np.ndarray, rows: 
 
 def _hold_kernel(minv: np.ndarray, a: np.ndarray, stuck: np.ndarray, lim_pos: np.ndarray, lim_neg: np.ndarray,
                  fric: np.ndarray, dirs: np.ndarray, idx: np.ndarray, rows: np.ndarray, lam: np.ndarray) -> None:
-    """``sim.physics.hold_stuck`` on arrays (``stuck`` bool; ``idx``, ``rows``, ``lam``: work arrays of the DOF count)."""
+    """``sim.physics.hold_stuck`` on arrays (``stuck`` bool; ``idx``, ``rows``, ``lam``: work arrays of the DOF
+    count)."""
     nf = a.shape[0]
     m = 0
     for k in range(nf):

@@ -154,7 +154,8 @@ class Motion:
         error_rad = target / self.counts_per_rad - self.io.position_rad
         if p.csp_ki_A_per_rad_s:
             limit_A = self.limit_A()
-            self.csp_integral_A = max(-limit_A, min(limit_A, self.csp_integral_A + p.csp_ki_A_per_rad_s * error_rad * dt))
+            integral_A = self.csp_integral_A + p.csp_ki_A_per_rad_s * error_rad * dt
+            self.csp_integral_A = max(-limit_A, min(limit_A, integral_A))
         return (p.csp_kp_A_per_rad * error_rad + p.csp_kd_A_s_per_rad * (self.csp_v_ff_rad_s - self.io.velocity_rad_s)
                 + self.csp_integral_A)
 

@@ -15,6 +15,8 @@ from typing import Any
 import canopen
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable, datatypes
 
+from dragd.hardware.cia301 import DT_UNSIGNED32
+
 # --- SDO abort codes (CiA 301) ---------------------------------------------------------------------------
 ABORT_TOGGLE = 0x05030000
 ABORT_TIMEOUT = 0x05040000
@@ -33,7 +35,6 @@ ABORT_GENERAL = 0x08000000
 ABORT_DEVICE_STATE = 0x08000022
 
 MAX_STRING_BYTES = 255
-COMM_RANGE = (0x1000, 0x1FFF)
 
 # struct codes of the fixed-size types this device stores (and may map into PDOs)
 STRUCT_CODES: dict[int, str] = {
@@ -49,7 +50,7 @@ STRUCT_CODES: dict[int, str] = {
     datatypes.UNSIGNED64: "Q",
     datatypes.REAL64: "d",
 }
-_STRUCTS = {dt: struct.Struct("<" + code) for dt, code in STRUCT_CODES.items()}
+_STRUCTS: dict[int | None, struct.Struct] = {dt: struct.Struct("<" + code) for dt, code in STRUCT_CODES.items()}
 _STRING_TYPES = (datatypes.VISIBLE_STRING, datatypes.OCTET_STRING, datatypes.DOMAIN)
 
 
@@ -102,7 +103,7 @@ class ObjectStore:
             if isinstance(obj, (ODRecord, ODArray)):
                 for sub in sorted(obj.subindices):
                     self._add(obj.subindices[sub])
-            elif index <= 0x0007:
+            elif index <= DT_UNSIGNED32:  # the basic data types 0001h-0007h: dummy mapping entries
                 dummies.append(index)
             else:
                 self._add(obj)
@@ -175,10 +176,10 @@ class ObjectStore:
         self.defaults[slot] = value
         self.cells[slot] = value
 
-    def reset(self, index_range: tuple[int, int] | None = None) -> None:
-        """Restore defaults, for all objects or for those with index in [lo, hi]."""
+    def reset(self, indices: range | None = None) -> None:
+        """Restore defaults, for all objects or for those whose index is in ``indices`` (an area of cia301)."""
         for slot, var in enumerate(self.vars):
-            if index_range is None or (var is not None and index_range[0] <= var.index <= index_range[1]):
+            if indices is None or (var is not None and var.index in indices):
                 self.cells[slot] = self.defaults[slot]
 
     def var(self, index: int, subindex: int) -> ODVariable:
@@ -186,7 +187,7 @@ class ObjectStore:
         slot = self.slots.get((index, subindex))
         if slot is not None:
             return self.vars[slot]  # type: ignore[return-value]  # (slots hold dictionary objects only)
-        if index in self.od.indices and index > 0x0007:
+        if index in self.od.indices and index > DT_UNSIGNED32:
             raise SdoAbort(ABORT_NO_SUBINDEX, index, subindex, "sub-index does not exist")
         raise SdoAbort(ABORT_NO_OBJECT, index, subindex, "object does not exist")
 

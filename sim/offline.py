@@ -30,11 +30,14 @@ from typing import Any
 import numpy as np
 
 from dragd.control.modes import Mode
+from dragd.hardware.cia402 import STATE_STATUSWORD_BITS, SW_CYCLIC_FOLLOWING, SW_REMOTE, SW_VOLTAGE_ENABLED, State
 from sim.axis import AxisIO
 from sim.physics import ArmPhysics
 from sim.truth import Truth, csp_ki_A_per_rad_s
 
-STATUSWORD_ENABLED = 0x1237  # operation enabled, voltage, remote, target reached cleared
+# 1237h: operation enabled, voltage enabled, remote, following the cyclic command; target reached cleared
+STATUSWORD_ENABLED = (STATE_STATUSWORD_BITS[State.OPERATION_ENABLED] | SW_VOLTAGE_ENABLED | SW_REMOTE
+                      | SW_CYCLIC_FOLLOWING)
 
 
 def load_plan(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
@@ -115,8 +118,8 @@ class OfflineArm:
         target_counts = np.rint(table * self.counts_per_rad).astype(np.int64)
         vel = VelocityEstimator(self.cpr, self.cfg.law.velocity_filter_Hz)
         ws = Workspace(n)
-        out = {k: np.empty((steps, n)) for k in ("q_rad", "dq_rad_s", "current_measured_A", "current_command_A",
-                                                   "gravity_A", "friction_A")}
+        out: dict[str, np.ndarray] = {k: np.empty((steps, n)) for k in (
+            "q_rad", "dq_rad_s", "current_measured_A", "current_command_A", "gravity_A", "friction_A")}
         out["t_s"] = np.arange(steps) * dt
         out["q_ref_rad"] = table
         kt = law.kt_Nm_per_A

@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Literal, Union
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import numpy as np
 import pinocchio as pin
@@ -236,7 +236,7 @@ class LetGo(_Strict):
 # --- end of the guiding device's buttons ---
 
 
-Segment = Annotated[Union[Push, Ramp, Hold, Release, Hand, Move, Strike, Obstacle, Press, LetGo],
+Segment = Annotated[Push | Ramp | Hold | Release | Hand | Move | Strike | Obstacle | Press | LetGo,
                     Field(discriminator="kind")]
 SEGMENT_KINDS: dict[str, type[_Strict]] = {"push": Push, "ramp": Ramp, "hold": Hold, "release": Release, "hand": Hand,
                                            "move": Move, "strike": Strike, "obstacle": Obstacle, "press": Press,
@@ -457,7 +457,7 @@ class Operator:
             if seg.torques_Nm is not None:
                 self._tau[:] = seg.torques_Nm
             if seg.joint is not None:
-                self._tau[self._index[seg.joint]] += seg.torque_Nm  # type: ignore[operator]
+                self._tau[self._index[seg.joint]] += seg.torque_Nm
             self._wrench[:3] = seg.force_N if seg.force_N is not None else (0.0, 0.0, 0.0)
             self._wrench[3:] = seg.moment_Nm if seg.moment_Nm is not None else (0.0, 0.0, 0.0)
             self._has_wrench = seg.force_N is not None or seg.moment_Nm is not None

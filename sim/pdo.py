@@ -20,11 +20,14 @@ from dragd.hardware.busload import fd_length
 from dragd.hardware.cia301 import (
     COB_ID_EXTENDED,
     COB_ID_INVALID,
+    COB_ID_MASK,
     COB_ID_NO_RTR,
+    DUMMY_TYPES,
     OD_RPDO_COMM,
     OD_RPDO_MAP,
     OD_TPDO_COMM,
     OD_TPDO_MAP,
+    PDO_TRANSMISSION_EVENT,
     NmtState,
 )
 from dragd.hardware.cia402 import EMCY_PDO_LENGTH, EMCY_RPDO_TIMEOUT, ERR_REG_COMMUNICATION
@@ -43,7 +46,6 @@ from sim.od import (
 COB_INVALID, COB_NO_RTR, COB_EXTENDED = COB_ID_INVALID, COB_ID_NO_RTR, COB_ID_EXTENDED
 CLASSIC_MAX_BYTES = 8
 FD_MAX_BYTES = 64
-_DUMMY_BITS = {0x0002: 8, 0x0003: 16, 0x0004: 32, 0x0005: 8, 0x0006: 16, 0x0007: 32}
 
 
 @dataclass(frozen=True)
@@ -65,13 +67,13 @@ def split_entry(raw: int) -> tuple[int, int, int]:
 def validate_entry(store: ObjectStore, map_index: int, raw: int, receive: bool) -> MapEntry:
     """Check one mapping entry against the dictionary; SdoAbort 0x06020000 / 0x06040041 on failure."""
     index, subindex, bits = split_entry(raw)
-    if index in _DUMMY_BITS:
+    if index in DUMMY_TYPES:
         if not receive or index not in store.dummy_indices:
             raise SdoAbort(ABORT_CANNOT_MAP, map_index, 0,
                            f"dummy 0x{index:04X} is only mappable in RPDOs declared in [DummyUsage]")
-        if bits != _DUMMY_BITS[index]:
+        if bits != DUMMY_TYPES[index]:
             raise SdoAbort(ABORT_CANNOT_MAP, map_index, 0,
-                           f"dummy 0x{index:04X} is {_DUMMY_BITS[index]} bits, entry says {bits}")
+                           f"dummy 0x{index:04X} is {DUMMY_TYPES[index]} bits, entry says {bits}")
         return MapEntry(index, subindex, bits, None, f"{bits // 8}x")
     slot = store.slots.get((index, subindex))
     if slot is None:
@@ -254,8 +256,8 @@ class PdoService:
         """(Re)compile one PDO from the store (called when its parameters change or on reset)."""
         cob = self.store.get(ch.comm_index, 1)
         ch.valid = not cob & COB_INVALID
-        ch.cob_id = cob & 0x7FF
-        ch.trans_type = self._sub(ch.comm_index, 2, 255)
+        ch.cob_id = cob & COB_ID_MASK
+        ch.trans_type = self._sub(ch.comm_index, 2, PDO_TRANSMISSION_EVENT)
         ch.inhibit_s = 0.0 if ch.receive else self._sub(ch.comm_index, 3, 0) * 1e-4
         ch.event_s = self._sub(ch.comm_index, 5, 0) * 1e-3
         entries = validate_mapping(self.store, ch.map_index, self.mapping_raws(ch), ch.receive, self.max_bytes) \
@@ -301,7 +303,7 @@ class PdoService:
         if value & COB_EXTENDED:
             raise SdoAbort(ABORT_VALUE_RANGE, index, 1, "29-bit COB-IDs are not supported; expected bit 29 = 0")
         can_id = value & 0x1FFFFFFF
-        if not 0 < can_id <= 0x7FF:
+        if not 0 < can_id <= COB_ID_MASK:
             raise SdoAbort(ABORT_VALUE_RANGE, index, 1, f"COB-ID 0x{can_id:X} outside 0x001..0x7FF")
         new_valid = not value & COB_INVALID
         if ch.valid and new_valid and can_id != ch.cob_id:
@@ -380,7 +382,7 @@ class PdoService:
 
     def apply(self, ch: PdoChannel, data: bytes | bytearray) -> None:
         cells = self.store.cells
-        for slot, value in zip(ch.slots, ch.layout.unpack_from(data)):
+        for slot, value in zip(ch.slots, ch.layout.unpack_from(data), strict=True):  # (dummies unpack to nothing)
             cells[slot] = value
         hooks = self.rpdo_hooks
         for slot in ch.hooked_slots:  # mode before controlword
@@ -401,10 +403,10 @@ class PdoService:
                 self.send(ch, ch.sample(cells))
         applied = False
         for ch in self.sync_rpdos:
-            data = ch.latched
-            if data is not None:
+            latched = ch.latched
+            if latched is not None:
                 ch.latched = None
-                self.apply(ch, data)
+                self.apply(ch, latched)
                 applied = True
         if applied and self.event_tpdos:
             self.poll_event_tpdos(now, sampled=True)
@@ -422,7 +424,8 @@ class PdoService:
             self.counters.send_errors += 1
 
     def poll_event_tpdos(self, now: float, sampled: bool = False) -> None:
-        """Send the event-driven TPDOs whose data changed (inhibit time kept); ``sampled``: actual values are current."""
+        """Send the event-driven TPDOs whose data changed (inhibit time kept); ``sampled``: actual values are
+        current."""
         if not sampled:
             self._sample()
         cells = self.store.cells

@@ -121,8 +121,9 @@ class ArmPhysics:
     ``compiled=False`` holds stuck DOFs with the Python reference instead of the compiled kernel (sim/kernels.py).
     """
 
-    def __init__(self, truth: Truth, model: RobotModel | pin.Model, axes: list[AxisIO], *, compiled: bool = True) -> None:
-        src = getattr(model, "model", model)
+    def __init__(self, truth: Truth, model: RobotModel | pin.Model, axes: list[AxisIO], *,
+                 compiled: bool = True) -> None:
+        src: pin.Model = getattr(model, "model", model)
         names = tuple(src.names[1:])
         truth.check_model(names)
         n = src.nv
@@ -203,8 +204,9 @@ class ArmPhysics:
         self._d_stop = [j.hard_stops.damping_Nm_s_per_rad for j in joints]
 
         # ripple rows (friction DOF, amplitude, cycles per joint-unit radian of that DOF, phase)
-        self._ripple = [(self._fdof[i], r.amplitude_Nm, r.cycles_per_rev * (j.gear_ratio if r.reference == "motor" else 1.0),
-                         r.phase_rad) for i, j in enumerate(joints) for r in j.hidden.ripple if r.amplitude_Nm > 0]
+        self._ripple = [(self._fdof[i], r.amplitude_Nm,
+                         r.cycles_per_rev * (j.gear_ratio if r.reference == "motor" else 1.0), r.phase_rad)
+                        for i, j in enumerate(joints) for r in j.hidden.ripple if r.amplitude_Nm > 0]
 
         # backlash coupling rows (output DOF, rotor DOF, half gap, stiffness, damping); the damping is the given
         # fraction of critical for the output/rotor pair at the initial pose
@@ -227,7 +229,8 @@ class ArmPhysics:
         if any(row[3] is not None for row in self._drift):
             self._vscale = [1.0] * n
         self._thermal_coef = {row[0]: (row[2], row[6]) for row in self._thermal}
-        self._emf = [(i, b.A_s_per_rad, b.knee_rad_s) for i, j in enumerate(joints) if (b := j.hidden.back_emf) is not None]
+        self._emf = [(i, b.A_s_per_rad, b.knee_rad_s) for i, j in enumerate(joints)
+                     if (b := j.hidden.back_emf) is not None]
 
         # per-step signals
         self._demand = [0.0] * n

@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from dragd.hardware.bus import BusSpec, UdpMulticastCanBus, open_bus, parse_bus
+from dragd.hardware.cia402 import EMCY_OVER_CURRENT
 from dragd.protocol import ControlError
 from dragd.realtime import demote_current_thread, scheduler_label, set_realtime
 from dragd.server import CommandTable, ControlServer
@@ -187,15 +188,16 @@ class SimProcess:
                 self.lockstep.run_period = self._period
                 clock = self.lockstep.clock.now
             self.injectors = [FaultInjector(bus, clock=clock, lockstep=self.lockstep is not None) for bus in self.buses]
-            for j, ax in zip(self.truth.joints, self.axes):
+            for j, ax in zip(self.truth.joints, self.axes, strict=True):
                 spec, inj = self.specs[j.bus_index], self.injectors[j.bus_index]
                 node = drive_params(j, spec.fd).node_id
-                self.drives.append(SimDrive(drive_params(j, spec.fd), ax, inj.sender(node), send_data=inj.data_sender(node),
-                                            clock=clock))
-            self.networks = [SimNetwork(bus, [d for d, j in zip(self.drives, self.truth.joints) if j.bus_index == k],
-                                        lockstep=self.lockstep, bus_index=k)
+                self.drives.append(SimDrive(drive_params(j, spec.fd), ax, inj.sender(node),
+                                            send_data=inj.data_sender(node), clock=clock))
+            on_bus = [[d for d, j in zip(self.drives, self.truth.joints, strict=True) if j.bus_index == k]
+                      for k in range(len(self.buses))]
+            self.networks = [SimNetwork(bus, on_bus[k], lockstep=self.lockstep, bus_index=k)
                              for k, bus in enumerate(self.buses)]
-            for net, inj in zip(self.networks, self.injectors):
+            for net, inj in zip(self.networks, self.injectors, strict=True):
                 net.rx_muted = inj.rx_muted
             if self.control_path is not None:
                 self._start_control()
@@ -351,9 +353,10 @@ class SimProcess:
             "late_ticks": self.late_ticks,
             "late_steps": self.late_steps,
             "dropped_steps": self.dropped_steps,
-            "wake_latency_us": {"p50": float(lat[int(0.5 * (len(lat) - 1))]), "p99": float(lat[int(0.99 * (len(lat) - 1))]),
-                                "max": float(lat[-1])},
-            "tick_busy_us": {"mean": self.busy_ns / self.ticks / 1e3 if self.ticks else 0.0, "max": self.max_busy_ns / 1e3},
+            "wake_latency_us": {"p50": float(lat[int(0.5 * (len(lat) - 1))]),
+                                "p99": float(lat[int(0.99 * (len(lat) - 1))]), "max": float(lat[-1])},
+            "tick_busy_us": {"mean": self.busy_ns / self.ticks / 1e3 if self.ticks else 0.0,
+                             "max": self.max_busy_ns / 1e3},
             "late_tick_times_s": list(self.late_tick_times),
             "cpu_s": round(cpu, 3),
             "cpu_pct": round(100.0 * cpu / wall, 1) if wall > 0 else 0.0,  # the whole process
@@ -394,7 +397,8 @@ class SimProcess:
         def operator(scenario: Any) -> dict[str, Any]:
             """Start a scenario now (a mapping, or a file path / bundled scenario name)."""
             try:
-                scen = load_scenario(scenario) if isinstance(scenario, str) else validate_scenario(scenario, "<control>")
+                scen = (load_scenario(scenario) if isinstance(scenario, str)
+                        else validate_scenario(scenario, "<control>"))
                 with self.lock:
                     op = self._set_operator(scen)
                     t = self.physics.t_s
@@ -427,12 +431,12 @@ class SimProcess:
                     not all(isinstance(v, (int, float)) and math.isfinite(v) for v in q_rad):
                 raise ControlError(f"set_q: q_rad: expected a list of {self.physics.n} finite "
                                    f"numbers (rad), got {q_rad!r}")
-            for i, (v, j) in enumerate(zip(q_rad, self.truth.joints)):
+            for i, (v, j) in enumerate(zip(q_rad, self.truth.joints, strict=True)):  # (length checked above)
                 if not j.hard_stops.lower_rad <= v <= j.hard_stops.upper_rad:
                     raise ControlError(f"set_q: q_rad[{i}]: expected within the hard stops [{j.hard_stops.lower_rad}, "
                                        f"{j.hard_stops.upper_rad}] of {j.name}, got {v}")
             with self.lock:
-                powered = [j.name for j, ax in zip(self.truth.joints, self.axes) if ax.power_stage_on]
+                powered = [j.name for j, ax in zip(self.truth.joints, self.axes, strict=True) if ax.power_stage_on]
                 if powered:
                     raise ControlError("set_q: only while the drives are disabled; power stage "
                                        f"on at {', '.join(powered)}")
@@ -451,7 +455,8 @@ class SimProcess:
                         raise ValueError("payload: expected mass_kg >= 0 and a sim time at_t_s, "
                                          f"got {mass_kg!r}, {at_t_s!r}")
                     self.payloads.add(float(at_t_s), float(mass_kg), com)
-                    return {"scheduled": True, "at_t_s": float(at_t_s), "mass_kg": float(mass_kg), "t": self.physics.t_s}
+                    return {"scheduled": True, "at_t_s": float(at_t_s), "mass_kg": float(mass_kg),
+                            "t": self.physics.t_s}
             except (ValueError, TypeError) as exc:
                 raise ControlError(str(exc)) from None
 
@@ -460,8 +465,8 @@ class SimProcess:
             return {"drives": self.drive_report()}
 
         @table.command("fault")
-        def fault(node_id: int, code: int = 0x2310) -> dict[str, Any]:
-            """Raise a device fault in one drive (EMCY + its fault reaction), e.g. 0x2310 over-current."""
+        def fault(node_id: int, code: int = EMCY_OVER_CURRENT) -> dict[str, Any]:
+            """Raise a device fault in one drive (EMCY + its fault reaction), e.g. 2310h over-current."""
             drive = next((d for d in self.drives if d.node_id == node_id), None)
             if drive is None:
                 raise ControlError("fault: node_id: expected one of "

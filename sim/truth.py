@@ -207,7 +207,8 @@ class JointTruth(Strict):
     gear_ratio: PosFloat
     torque_constant_Nm_per_A: PosFloat  # true joint-side K_t
     rotor_inertia_kgm2: NonNegFloat  # motor side; reflected ×gear² as armature
-    current_loop_time_constant_s: Annotated[float, Field(gt=0, le=0.01), Expect("a time constant in (0, 0.01] s")] = 3e-4
+    current_loop_time_constant_s: Annotated[float, Field(gt=0, le=0.01),
+                                            Expect("a time constant in (0, 0.01] s")] = 3e-4
     current_noise_std_A: NonNegFloat = 0.02  # Hall sensor
     current_quantum_A: NonNegFloat = 0.0  # ADC step; 0: unquantised
     friction: FrictionTruth = FrictionTruth()
@@ -240,6 +241,14 @@ class HandContact(Strict):
     normally_closed: bool = False  # the bit reads 1 while the button is not pressed (a stop: a cut wire stops)
 
 
+HandButton = Literal["mark", "stop", "teach"]
+
+
+def _default_buttons() -> dict[HandButton, HandContact]:
+    return {"mark": HandContact(bit=19), "stop": HandContact(bit=20, normally_closed=True),
+            "teach": HandContact(bit=21)}
+
+
 class HandTruth(Strict):
     """The guiding device on the simulated arm (sim/hand.py): a three-position enabling switch and buttons, wired to
     one drive's digital inputs (60FDh; CiA 402's manufacturer bits 16-31). The operator presses them
@@ -248,9 +257,7 @@ class HandTruth(Strict):
     joint: str | None = None  # the joint whose drive reads the contacts; None: the last joint (the wrist)
     enable_bits: list[Bit] = Field(default_factory=lambda: [16, 17], min_length=1, max_length=2)  # the middle position
     panic_bit: Bit | None = 18  # the squeezed position's contact (None: the device reports none)
-    buttons: dict[Literal["mark", "stop", "teach"], HandContact] = Field(
-        default_factory=lambda: {"mark": HandContact(bit=19), "stop": HandContact(bit=20, normally_closed=True),
-                                 "teach": HandContact(bit=21)})
+    buttons: dict[HandButton, HandContact] = Field(default_factory=_default_buttons)
     bounce_ms: Annotated[float, Field(ge=0, le=20), Expect("milliseconds in [0, 20]")] = 0.0  # contact bounce
 
     @model_validator(mode="after")
@@ -370,7 +377,8 @@ def _absolute_eds(truth: Truth) -> Truth:
             eds = str((truth.base_dir / Path(eds).expanduser()).resolve())
         elif eds is not None:
             eds = str(Path(eds).expanduser())
-        joints.append(j if eds == j.drive.eds else j.model_copy(update={"drive": j.drive.model_copy(update={"eds": eds})}))
+        joints.append(j if eds == j.drive.eds
+                      else j.model_copy(update={"drive": j.drive.model_copy(update={"eds": eds})}))
     return truth.model_copy(update={"joints": joints}) if joints != list(truth.joints) else truth
 
 
@@ -524,14 +532,16 @@ def truth_from_params(params: Any, base: Truth | None = None) -> Truth:
         ripple = [{"amplitude_Nm": kt * float(np.hypot(h.sin_A, h.cos_A)), "cycles_per_rev": h.cycles_per_rev,
                    "reference": "joint", "phase_rad": float(np.arctan2(-h.cos_A, -h.sin_A))}
                   for h in e.position_periodic]
-        hidden = {"ripple": ripple, "load_friction_per_Nm": e.load_friction_per_Nm, "current_offset_A": e.current_offset_A,
+        hidden = {"ripple": ripple, "load_friction_per_Nm": e.load_friction_per_Nm,
+                  "current_offset_A": e.current_offset_A,
                   "backlash_rad": e.backlash_rad or 0.0, "thermal": None,
                   "output_friction_fraction": (e.backlash_output_friction_fraction
                                                if e.backlash_output_friction_fraction is not None
                                                else jt.hidden.output_friction_fraction),
                   "back_emf": None if e.back_emf is None else e.back_emf.model_dump(),
                   "friction_drift": None if e.temperature_drift is None else
-                  {"change": e.temperature_drift.friction_change, "time_constant_s": e.temperature_drift.time_constant_s,
+                  {"change": e.temperature_drift.friction_change,
+                   "time_constant_s": e.temperature_drift.time_constant_s,
                    "viscous_change": e.temperature_drift.viscous_change}}
         jc: dict[str, Any] = {"torque_constant_Nm_per_A": kt, "friction": fr, "hidden": hidden}
         rotor = e.armature_kgm2 if e.armature_kgm2 is not None else e.backlash_inertia_kgm2
@@ -609,8 +619,9 @@ def truth_for_robot(robot: str | Path, base_dir: Path | None = None, *,
         fc, asym = 0.05 * peak, float(rng.uniform(0.92, 0.98))
         joints.append({
             "name": sz.name,
-            "drive": {"node_id": i + 1, "rated_current_A": sz.rated_current_A, "rated_torque_Nm": sz.rated_motor_torque_Nm,
-                      "max_torque_permille": 3000, "max_current_A": limit, "encoder_counts_per_rev": ENCODER_COUNTS_PER_REV,
+            "drive": {"node_id": i + 1, "rated_current_A": sz.rated_current_A,
+                      "rated_torque_Nm": sz.rated_motor_torque_Nm, "max_torque_permille": 3000,
+                      "max_current_A": limit, "encoder_counts_per_rev": ENCODER_COUNTS_PER_REV,
                       # the seed cobot's CSP stiffness and damping relative to the drive's peak torque
                       "csp_kp_A_per_rad": limit * 10.0 / 3.0, "csp_kd_A_s_per_rad": limit / (6.0 if large else 12.0)},
             "gear_ratio": GEAR_RATIO,

@@ -200,7 +200,6 @@ def test_ur5_drag_on_the_simulator(configs, tmp_path):
     """The UR5 on the simulated robot (its truth generated from the URDF), the daemon on the generated config:
     start holds the arm, drag lets a push move the base joint, the arm stays where it comes to rest, stop."""
     from dragd.lab.rig import Rig
-
     from sim.truth import truth_for_robot, truth_yaml
 
     truth = tmp_path / "ur5_truth.yaml"

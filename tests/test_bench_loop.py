@@ -14,7 +14,8 @@ pytestmark = pytest.mark.unit
 
 
 def test_process_cpu_counts_a_busy_child_not_a_sleeping_one() -> None:
-    burn = "import time\nt=time.process_time()\nwhile time.process_time()-t<0.6: pass\nprint('done', flush=True)\ntime.sleep(60)"
+    burn = ("import time\nt=time.process_time()\nwhile time.process_time()-t<0.6: pass\nprint('done', flush=True)\n"
+            "time.sleep(60)")
     busy = subprocess.Popen([sys.executable, "-c", burn], stdout=subprocess.PIPE, text=True)
     idle = subprocess.Popen([sys.executable, "-c", "print('done', flush=True)\nimport time; time.sleep(60)"],
                             stdout=subprocess.PIPE, text=True)
@@ -40,7 +41,8 @@ def test_process_cpu_of_a_missing_process_is_an_error() -> None:
 def test_profile_summary_self_and_inclusive_shares(tmp_path) -> None:
     stacks = tmp_path / "daemon.txt"
     stacks.write_text(
-        "thread (1);run (dragd/daemon/cycle.py:120);step (dragd/daemon/cycle.py:90);compensate (dragd/control/law.py:300) 6\n"
+        "thread (1);run (dragd/daemon/cycle.py:120);step (dragd/daemon/cycle.py:90);"
+        "compensate (dragd/control/law.py:300) 6\n"
         "thread (1);run (dragd/daemon/cycle.py:120);step (dragd/daemon/cycle.py:95) 2\n"
         "thread (1);run (dragd/daemon/cycle.py:120);select (selectors.py:468) 2\n"
         "not a stack line\n")

@@ -18,7 +18,8 @@ from dragd.cli.common import DEFAULT_SOCKET
 pytestmark = pytest.mark.unit
 
 
-def dragd_proc(*args: str, env: dict[str, str] | None = None, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
+def dragd_proc(*args: str, env: dict[str, str] | None = None,
+               timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "dragd", *args], capture_output=True, text=True, timeout=timeout,
                           env={**os.environ, **(env or {})})
 
@@ -69,7 +70,8 @@ def test_socket_commands_import_no_numerics(argv: list[str], tmp_path: Path) -> 
     (["model", "gravity", "--q", "-0.5,0.2,0,0,0,0"], "q", "-0.5,0.2,0,0,0,0"),
     (["model", "current", "--q", "-1,0", "--dq", "-.5,-1e-3"], "dq", "-.5,-1e-3"),
     (["model", "current", "--q", "-1,", "--dq", "0"], "q", "-1,"),
-    (["identify", "plan", "--kind", "lowspeed", "--start", "-0.1,0.2,-0.3", "--out", "p.npz"], "start", "-0.1,0.2,-0.3"),
+    (["identify", "plan", "--kind", "lowspeed", "--start", "-0.1,0.2,-0.3", "--out", "p.npz"], "start",
+     "-0.1,0.2,-0.3"),
     (["config", "init", "--robot", "seed_cobot", "--gravity", "-9.81,0,0"], "gravity", "-9.81,0,0"),
     (["model", "current", "--q", "0", "--dq", "0", "--t", "-2"], "t", -2.0),
 ])

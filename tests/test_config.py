@@ -110,7 +110,8 @@ def test_missing_required_and_cross_checks(tmp_path, base):
 def test_params_file_overrides_config(tmp_path, base):
     params = {"version": 1, "method": "synchronous",
               "joints": {"joint2": {"torque_constant_Nm_per_A": 9.5,
-                                    "friction": {"coulomb_pos_A": 0.8, "coulomb_neg_A": -1.2, "viscous_A_s_per_rad": 0.4,
+                                    "friction": {"coulomb_pos_A": 0.8, "coulomb_neg_A": -1.2,
+                                                 "viscous_A_s_per_rad": 0.4,
                                                  "static_pos_A": None}}}}
     pp = _write(tmp_path, params, "params.yaml")
     base["params"] = "params.yaml"

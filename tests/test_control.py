@@ -8,7 +8,6 @@ import threading
 import numpy as np
 import pytest
 
-from dragd.server import CommandTable, ControlServer
 from dragd.protocol import (
     DEFAULT_SOCKET_PATH,
     ControlClient,
@@ -17,6 +16,7 @@ from dragd.protocol import (
     DaemonTimeout,
     DaemonUnavailable,
 )
+from dragd.server import CommandTable, ControlServer
 
 pytestmark = pytest.mark.unit
 

@@ -3,7 +3,6 @@ statusword and controlword): the daemon boots, enables and drags on both buses; 
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 import yaml

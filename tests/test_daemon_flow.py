@@ -53,7 +53,8 @@ def session(tmp_path_factory):
             {"kind": "release", "duration_s": 0.0}]})
         rig.sleep(0.7)
         # let go: the virtual damping brings the joint to rest, friction then holds it
-        rig.wait_for(lambda: max(abs(v) for v in rig.sim_call("state")["dq_rad_s"]) < 1e-4, 8.0, "the arm to come to rest")
+        rig.wait_for(lambda: max(abs(v) for v in rig.sim_call("state")["dq_rad_s"]) < 1e-4, 8.0,
+                     "the arm to come to rest")
         rig.sleep(0.2)
         rel = rig.sim_call("state")
         rig.sleep(2.0)

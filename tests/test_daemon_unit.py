@@ -28,7 +28,8 @@ def _listener(d: Daemon) -> can.Listener:
 def test_error_frames_are_never_decoded(daemon: Daemon) -> None:
     rx = _listener(daemon)
     for cob in (0x081, 0x181):  # error class bits that equal node 1's EMCY and TPDO1 COB-IDs
-        rx.on_message_received(can.Message(arbitration_id=cob, is_error_frame=True, data=bytes(8), is_extended_id=False))
+        rx.on_message_received(can.Message(arbitration_id=cob, is_error_frame=True, data=bytes(8),
+                                           is_extended_id=False))
     assert daemon.io.error_frames == 2 and daemon.faults == [] and daemon.io.feedback.counts[0] == 0
     rx.on_message_received(can.Message(arbitration_id=0x081, data=bytes([0x10, 0x23, 0x01, 0, 0, 0, 0, 0]),
                                        is_extended_id=False))
@@ -209,7 +210,8 @@ def test_realtime_cycle_thread_puts_helper_threads_below_it() -> None:
     import subprocess
     import sys
 
-    out = subprocess.run([sys.executable, "-c", _REALTIME_PROBE], capture_output=True, text=True, timeout=60, check=True)
+    out = subprocess.run([sys.executable, "-c", _REALTIME_PROBE], capture_output=True, text=True, timeout=60,
+                         check=True)
     r = json.loads(out.stdout)
     if r["cycle"] != r["fifo"]:
         assert "refused" in r["label"], r  # not permitted here: said so, nothing else changes
@@ -237,7 +239,8 @@ def test_gravity_beyond_a_current_limit_is_refused_not_clamped(tmp_path) -> None
     arm = InProcess(load_config(path))
     arm.feed(np.array([0.0, -0.6, 1.2, -0.6, 1.5708, 0.0]))
     arm.cycle()
-    with pytest.raises(ValueError, match=r"start: joint2 needs \d+\.\d+ A to hold .* above its current_limit_A 1\.00 A"):
+    with pytest.raises(ValueError,
+                       match=r"start: joint2 needs \d+\.\d+ A to hold .* above its current_limit_A 1\.00 A"):
         arm.d.start()
     assert arm.c.mode.name == "IDLE" and not arm.d.faults
 

@@ -38,7 +38,7 @@ def test_per_node_on_two_classic_buses_drags_and_refuses_motions(tmp_path: Path)
     def edit(d: dict) -> None:
         two = yaml.safe_load((REPO / "config" / "two_buses.yaml").read_text())
         d["buses"] = [dict(b, layout="per_node", position_targets=False) for b in two["buses"]]
-        for j, tj in zip(d["joints"], two["joints"]):
+        for j, tj in zip(d["joints"], two["joints"], strict=True):
             j["bus"] = tj["bus"]
 
     cfg = derived_config(tmp_path, "per_node", edit)

@@ -22,14 +22,13 @@ from typing import Any
 import can
 import pytest
 import yaml
+from eds_nodes import EdsBus, EdsNode, mapping
 
 from dragd.config import Config
 from dragd.hardware.master import DriveError, Master
 from dragd.hardware.plan import plan_drives
-from dragd.hardware.profile import address
 
 from conftest import DEFAULT_CONFIG, REPO, run_cli
-from eds_nodes import EdsBus, EdsNode, mapping
 
 VARIANTS = REPO / "tests" / "data" / "eds"
 SDO_GUARD_S = 5.0  # the boots' SDO timeout here (default 0.3 s): an answer lost in a loaded host's stall is no verdict
@@ -202,7 +201,8 @@ def _written(cfg: Config) -> Path:
 @pytest.mark.unit
 def test_config_check_lists_every_problem_at_once_with_keys() -> None:
     """One run lists every missing or unmappable object of every drive, errors and fallbacks, with the key to set."""
-    cfg = config(VARIANTS / "vendor_current.eds", {"current": {"object": "30D1h:2"}, "rated_current": {"object": "2075h"},
+    cfg = config(VARIANTS / "vendor_current.eds", {"current": {"object": "30D1h:2"},
+                                                   "rated_current": {"object": "2075h"},
                                                    "rpdo_watchdog": {"object": "9999h"}}, layout="compact")
     d = run_cli("config", "check", "--config", str(_written(cfg)), "--json", check=False)
     assert d.returncode == 1
@@ -339,7 +339,8 @@ def test_config_init_for_a_cst_motion_drive_sends_no_position_targets(tmp_path: 
     data = yaml.safe_load(text)
     assert [b["position_targets"] for b in data["buses"]] == [False, False]
     assert "motions in CST with dragd's position loop need none" in text and "60B2h absent" in text
-    assert data["drives"]["no_60b2h"]["torque_command"] == "6071h" and data["drives"]["no_60b2h"]["motion_mode"] == "cst"
+    assert data["drives"]["no_60b2h"]["torque_command"] == "6071h"
+    assert data["drives"]["no_60b2h"]["motion_mode"] == "cst"
     r = data["replay"]
     assert all(len(r[k]) == 6 and min(r[k]) > 0 for k in ("cst_kp_Nm_per_rad", "cst_kd_Nm_s_per_rad",
                                                           "cst_ki_Nm_per_rad_s", "cst_integral_limit_A"))

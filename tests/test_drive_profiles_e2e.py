@@ -19,7 +19,8 @@ from dragd.lab.bench.drives import _one_drive
 
 from conftest import REPO
 
-pytestmark = [pytest.mark.lockstep, pytest.mark.slow, pytest.mark.timeout(1200)]  # (a hang guard of wall time: on a loaded machine the lockstep clock runs slower, never wrong)
+# a hang guard of wall time: on a loaded machine the lockstep clock runs slower, never wrong
+pytestmark = [pytest.mark.lockstep, pytest.mark.slow, pytest.mark.timeout(1200)]
 
 EDS_DIR = Path(os.environ.get("DRAGD_EDS_DIR", "/work/eds"))
 REFUSED = {"technosoft_ipos": "no CST: 6502h supported modes 0x001F0065 lack cyclic synchronous torque",

@@ -11,7 +11,8 @@ import pytest
 from dragd.lab.faults import CASES, hand_rig_kwargs, run_fault
 from dragd.lab.rig import Rig
 
-pytestmark = [pytest.mark.lockstep, pytest.mark.slow, pytest.mark.timeout(1200)]  # (a hang guard of wall time: on a loaded machine the lockstep clock runs slower, never wrong)
+# a hang guard of wall time: on a loaded machine the lockstep clock runs slower, never wrong
+pytestmark = [pytest.mark.lockstep, pytest.mark.slow, pytest.mark.timeout(1200)]
 
 SPEED_CAP_RAD_S = 1.0  # the lowest joints[].velocity_limit_rad_s of config/default.yaml
 

@@ -10,9 +10,9 @@ import pytest
 import yaml
 
 from dragd.config import ConfigError, ParamsFile, apply_params, load_config, load_params
-from dragd.gap.run import analyse
-from dragd.control.params import LawParams
 from dragd.control.law import LawOutput, Workspace, compensate
+from dragd.control.params import LawParams
+from dragd.gap.run import analyse
 from dragd.model import RobotModel
 
 from conftest import run_cli

@@ -18,7 +18,8 @@ from dragd.model import RobotModel
 from conftest import run_cli
 from identify_helpers import run_plan
 
-pytestmark = [pytest.mark.lockstep, pytest.mark.slow, pytest.mark.timeout(1200)]  # (a hang guard of wall time: on a loaded machine the lockstep clock runs slower, never wrong)
+# a hang guard of wall time: on a loaded machine the lockstep clock runs slower, never wrong
+pytestmark = [pytest.mark.lockstep, pytest.mark.slow, pytest.mark.timeout(1200)]
 
 
 def test_gap_on_daemon_telemetry(tmp_path):

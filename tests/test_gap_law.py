@@ -1,5 +1,5 @@
-"""The law's model-gap term (dragd/control/law.py ``effects_current``, back-EMF knee) against its formulas, and the payload in
-the robot model: what ``dragd gap --out`` adds is what the daemon compensates."""
+"""The law's model-gap term (dragd/control/law.py ``effects_current``, back-EMF knee) against its formulas, and the
+payload in the robot model: what ``dragd gap --out`` adds is what the daemon compensates."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from dragd.config import ParamsFile, apply_params, load_config
-from dragd.control.params import LawParams
 from dragd.control.law import LawOutput, Workspace, compensate, effects_current, friction_current
+from dragd.control.params import LawParams
 from dragd.model import RobotModel
 
 pytestmark = pytest.mark.unit

@@ -27,10 +27,11 @@ pytestmark = pytest.mark.unit
 def test_golden_trace_replays_unchanged(name: str, tmp_path) -> None:
     r = replay(name, tmp_path)
     problems = compare(r)
-    assert not problems, f"golden trace '{name}' ({'bit for bit' if r.exact else 'within 1e-9'}):\n" + "\n".join(problems)
+    how = "bit for bit" if r.exact else "within 1e-9"
+    assert not problems, f"golden trace '{name}' ({how}):\n" + "\n".join(problems)
     if not r.exact:
-        warnings.warn(f"golden trace '{name}': this machine's float arithmetic ({arithmetic()}) is not the recording's: "
-                      "the telemetry was compared within 1e-9, not bit for bit", stacklevel=1)
+        warnings.warn(f"golden trace '{name}': this machine's float arithmetic ({arithmetic()}) is not the "
+                      "recording's: the telemetry was compared within 1e-9, not bit for bit", stacklevel=1)
 
 
 def test_bit_for_bit_means_the_last_bit(tmp_path) -> None:

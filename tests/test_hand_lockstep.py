@@ -473,7 +473,8 @@ def test_vendor_eds_inputs_ride_where_the_drive_maps_60fdh_and_a_drive_without_i
     if not HAS_60FD[vendor]:
         (err,) = inputs_errors
         assert "joint6" in err["at"] and err["text"].startswith("60FDh:00: missing: the digital inputs")
-        assert "hand.inputs[0] (enable) bits 16, 17, 18" in err["text"] and "hand.inputs[2] (stop) bit 20" in err["text"]
+        assert "hand.inputs[0] (enable) bits 16, 17, 18" in err["text"]
+        assert "hand.inputs[2] (stop) bit 20" in err["text"]
         return
     assert not inputs_errors, inputs_errors
     carried = [f["text"] for f in report["findings"] if "digital inputs in" in f["text"]]
@@ -564,7 +565,8 @@ def test_the_client_library_renews_its_lease_on_the_daemons_clock_and_a_dead_cli
 
 def test_on_classic_can_the_inputs_ride_an_event_tpdo_and_a_release_still_holds_at_once(tmp_path):
     """Where the cyclic TPDO is full (classic CAN: statusword, position, torque), 60FDh rides in an event TPDO of its
-    own beside the statusword (inhibit 2 ms, event timer 10 ms): the release still ends drag the next cycle (4 ms at 250 Hz)."""
+    own beside the statusword (inhibit 2 ms, event timer 10 ms): the release still ends drag the next cycle (4 ms at
+    250 Hz)."""
     import json
 
     from dragd.lab.faults import hand_config as classic_hand_config

@@ -17,7 +17,8 @@ pytestmark = pytest.mark.unit
 
 
 def _sim(*args: str, check: bool = True) -> subprocess.CompletedProcess:
-    proc = subprocess.run([sys.executable, "-m", "sim", *args], capture_output=True, text=True, timeout=300, cwd=str(REPO))
+    proc = subprocess.run([sys.executable, "-m", "sim", *args], capture_output=True, text=True, timeout=300,
+                          cwd=str(REPO))
     if check and proc.returncode != 0:
         raise AssertionError(f"python -m sim {' '.join(args)} failed:\n{proc.stderr}")
     return proc
@@ -90,7 +91,8 @@ def test_bad_inputs_exit_2_with_the_reason(tmp_path):
     proc = run_cli("identify", "fit", "--log", str(tmp_path / "none.mcap"), "--out", str(tmp_path / "p.yaml"),
                    check=False)
     assert proc.returncode == 2 and "file not found" in proc.stderr
-    proc = run_cli("identify", "fit", "--log", str(sync_log("csv")), "--method", "magic", "--out", "x.yaml", check=False)
+    proc = run_cli("identify", "fit", "--log", str(sync_log("csv")), "--method", "magic", "--out", "x.yaml",
+                   check=False)
     assert proc.returncode == 2 and "invalid choice" in proc.stderr
     proc = run_cli("identify", "check", "--params", str(tmp_path / "nope.yaml"), "--log", str(sync_log("csv")),
                    check=False)

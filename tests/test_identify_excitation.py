@@ -42,7 +42,7 @@ def test_symmetric_passes_retrace_at_equal_speed():
     plan = b.build("sym")
     segs = [s for s in plan.segments if s.kind == "symmetric"]
     assert len(segs) == 6
-    for fwd, back in zip(segs[::2], segs[1::2]):
+    for fwd, back in zip(segs[::2], segs[1::2], strict=True):
         mf = (plan.t_s >= fwd.t0_s) & (plan.t_s <= fwd.t1_s)
         mb = (plan.t_s >= back.t0_s) & (plan.t_s <= back.t1_s)
         qf, qb = plan.q_rad[mf], plan.q_rad[mb]
@@ -95,7 +95,8 @@ def test_plan_file_round_trip_is_what_the_daemon_loads(tmp_path):
     f = tmp_path / "p.npz"
     plan.save(f)
     again = E.Plan.load(f)
-    assert np.array_equal(again.q_rad, plan.q_rad) and [s.kind for s in again.segments] == [s.kind for s in plan.segments]
+    assert np.array_equal(again.q_rad, plan.q_rad)
+    assert [s.kind for s in again.segments] == [s.kind for s in plan.segments]
     tr = Trajectory.load(f, 0.001)
     assert tr.duration_s == pytest.approx(plan.duration_s)
     assert np.allclose(tr.start_q, START)

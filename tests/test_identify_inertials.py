@@ -12,8 +12,15 @@ import pytest
 import yaml
 
 from dragd.config import ConfigError, LinkInertial, load_config, load_params
-from dragd.identify.inertials import (RowTarget, body_inertial, consistent_inertials, is_consistent,
-                                      logchol_from_params, params_from_logchol, triangle_ok)
+from dragd.identify.inertials import (
+    RowTarget,
+    body_inertial,
+    consistent_inertials,
+    is_consistent,
+    logchol_from_params,
+    params_from_logchol,
+    triangle_ok,
+)
 from dragd.identify.methods import KT_MAX_REL_STD
 from dragd.identify.regressors import RegressorModel
 from dragd.model import RobotModel

@@ -26,6 +26,7 @@ def test_motion_files_go_to_the_daemons_spool_when_it_has_one(tmp_path):
 
 def test_status_names_the_spool_folder_and_requests_may_use_it(tmp_path):
     from dragd.config import load_config
+
     from inproc import InProcess
 
     cfg = load_config(None)

@@ -6,10 +6,20 @@ import numpy as np
 import pytest
 
 from dragd.config import load_config
-from dragd.control.params import LawParams
-from dragd.control.law import LawOutput, Workspace, back_emf_current, clamp_current, compensate, friction_current, gravity_current, startup_current, startup_weight
-from dragd.model import RobotModel
 from dragd.control.estimate import VelocityEstimator
+from dragd.control.law import (
+    LawOutput,
+    Workspace,
+    back_emf_current,
+    clamp_current,
+    compensate,
+    friction_current,
+    gravity_current,
+    startup_current,
+    startup_weight,
+)
+from dragd.control.params import LawParams
+from dragd.model import RobotModel
 
 from conftest import DEFAULT_CONFIG, cli_json
 

@@ -33,6 +33,7 @@ import pytest
 
 from dragd.lab.rig import Rig
 from dragd.telemetry.reader import read_rows
+
 from daemon_helpers import derived_config
 
 pytestmark = pytest.mark.rig  # (one run of it on the wall clock: serial)

@@ -11,7 +11,8 @@ import sys
 
 import pytest
 
-pytestmark = [pytest.mark.lockstep, pytest.mark.timeout(1200)]  # (a hang guard of wall time: on a loaded machine the lockstep clock runs slower, never wrong)
+# a hang guard of wall time: on a loaded machine the lockstep clock runs slower, never wrong
+pytestmark = [pytest.mark.lockstep, pytest.mark.timeout(1200)]
 
 
 @pytest.mark.slow

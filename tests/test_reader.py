@@ -133,8 +133,9 @@ def test_tpdo_decoder_fills_the_feedback_as_the_listener_does(config: str) -> No
     import numpy as np
 
     from dragd.config import load_config
-    from inproc import InProcess
+
     from conftest import REPO
+    from inproc import InProcess
 
     cfg = load_config(REPO / "config" / config)
     a, b = InProcess(cfg).d.io, InProcess(cfg).d.io

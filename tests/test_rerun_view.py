@@ -33,7 +33,7 @@ def entities(path: Path) -> dict[str, dict[str, list]]:
     for chunk in RrdReader(path).stream().to_chunks():
         cols = out.setdefault(chunk.entity_path, {})
         batch = chunk.to_record_batch()
-        for name, col in zip(batch.schema.names, batch.columns):
+        for name, col in zip(batch.schema.names, batch.columns, strict=True):
             if pa.types.is_timestamp(col.type):  # nanoseconds: as integers
                 col = col.cast(pa.int64())
             cols.setdefault(name, []).extend(col.to_pylist())

@@ -35,7 +35,8 @@ class Repo:
         self.path = SOURCES / name / "repo"
 
     def available(self) -> bool:
-        return subprocess.run(["git", "-C", str(self.path), "rev-parse", "--git-dir"], capture_output=True).returncode == 0
+        return subprocess.run(["git", "-C", str(self.path), "rev-parse", "--git-dir"],
+                              capture_output=True).returncode == 0
 
     def show(self, path: str, ref: str = "HEAD") -> str:
         for r in (ref, f"origin/{ref}"):

@@ -1,8 +1,8 @@
 """The machine-stall probes of the loop benchmarks and the split of the daemon's missed ticks by cause.
 
-The attribution is checked on constructed episodes; the probes and the daemon's episodes (`missed_ticks`) on real processes,
-stopped with SIGSTOP: a stop of the daemon alone is the daemon's own, a stop of the daemon and every probe at once
-is what a stall of the whole machine looks like.
+The attribution is checked on constructed episodes; the probes and the daemon's episodes (`missed_ticks`) on real
+processes, stopped with SIGSTOP: a stop of the daemon alone is the daemon's own, a stop of the daemon and every probe
+at once is what a stall of the whole machine looks like.
 """
 
 from __future__ import annotations

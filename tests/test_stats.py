@@ -116,5 +116,6 @@ def test_percentile_matches_nearest_rank_on_random_samples():
         ordered = sorted(xs)
         for p in (0.5, 1, 50, 90, 99, 100):
             v = ordered[max(1, math.ceil(p / 100 * len(xs))) - 1]
-            want = min(lo, max(xs)) if v < lo else max(xs) if v >= hi else min(lo + (int((v - lo) / w) + 1) * w, max(xs))
+            want = (min(lo, max(xs)) if v < lo else max(xs) if v >= hi
+                    else min(lo + (int((v - lo) / w) + 1) * w, max(xs)))
             assert h.percentile(p) == pytest.approx(want, abs=1e-9), (p, lo, hi, w)

@@ -102,8 +102,8 @@ def test_hardening(unit):
     qos = parse_unit((ROOT / "systemd" / "dragd-cpu-latency.conf").read_text())
     assert qos == {"Service": {"PrivateDevices": ["no"], "DevicePolicy": ["closed"],
                                "DeviceAllow": ["/dev/cpu_dma_latency rw"]}}
-    rules = [l for l in (ROOT / "systemd" / "70-dragd-cpu-latency.rules").read_text().splitlines()
-             if l and not l.startswith("#")]
+    rules = [line for line in (ROOT / "systemd" / "70-dragd-cpu-latency.rules").read_text().splitlines()
+             if line and not line.startswith("#")]
     assert rules == ['KERNEL=="cpu_dma_latency", SUBSYSTEM=="misc", GROUP="dragd", MODE="0660"']  # group dragd writes
     from dragd.realtime import CPU_LATENCY_DEVICE
 
@@ -126,9 +126,9 @@ def test_install_section(unit):
 
 
 def test_sysusers_and_tmpfiles_content():
-    users = [l.split() for l in SYSUSERS.read_text().splitlines() if l and not l.startswith("#")]
+    users = [line.split() for line in SYSUSERS.read_text().splitlines() if line and not line.startswith("#")]
     assert users[0][:3] == ["u", "dragd", "-"]
-    tmp = [l.split() for l in TMPFILES.read_text().splitlines() if l and not l.startswith("#")]
+    tmp = [line.split() for line in TMPFILES.read_text().splitlines() if line and not line.startswith("#")]
     assert ["d", "/var/lib/dragd", "0750", "dragd", "dragd", "-"] in tmp
     from dragd.config import ControlConfig
 

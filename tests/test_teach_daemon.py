@@ -31,7 +31,8 @@ from dragd.telemetry.reader import read_events, read_rows
 from conftest import run_cli
 from daemon_helpers import derived_config
 
-pytestmark = [pytest.mark.lockstep, pytest.mark.timeout(1200)]  # (a hang guard of wall time: on a loaded machine the lockstep clock runs slower, never wrong)
+# a hang guard of wall time: on a loaded machine the lockstep clock runs slower, never wrong
+pytestmark = [pytest.mark.lockstep, pytest.mark.timeout(1200)]
 
 Q0 = np.array([0.0, -0.6, 1.2, -0.6, 1.5708, 0.0])  # the simulated arm's start pose
 

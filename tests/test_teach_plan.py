@@ -16,8 +16,7 @@ from dragd.teach.keyframes import extract_keyframes
 from dragd.teach.kinematics import Circle, Kinematics, KinematicsError
 from dragd.teach.plan import PlanError, plan_replay, request_from_config
 from dragd.teach.profile import SCurve
-from dragd.teach.program import (FORMAT, Program, ProgramError, Waypoint, load_program, resolve_program,
-                                 save_program)
+from dragd.teach.program import FORMAT, Program, ProgramError, Waypoint, load_program, resolve_program, save_program
 
 from conftest import DEFAULT_CONFIG, run_cli
 from daemon_helpers import derived_config
@@ -265,7 +264,7 @@ def test_keyframes_and_retimed_path_replay(tmp_path, cfg):
     kf = extract_keyframes(t, q, math.radians(0.5))
     assert kf.kind[0] == "start" and kf.kind[-1] == "end" and "pause" in kf.kind
     assert len(kf.index) < len(t) / 8 and kf.max_deviation_rad <= math.radians(0.5)
-    rows = [[float(a)] + list(map(float, b)) for a, b in zip(t, q)]
+    rows = [[float(a)] + list(map(float, b)) for a, b in zip(t, q, strict=True)]
     path = _program(tmp_path, [], name="rec", path_rows=rows)
     # post-processing from the CLI: keyframes written into the program, then a re-timed replay plan
     out = json.loads(run_cli("teach", "keyframes", str(path), "--tolerance-deg", "0.5", "--write", "--json").stdout)
@@ -297,7 +296,7 @@ def test_keyframes_of_a_hand_recording_with_still_periods_and_marks(tmp_path, cf
     kq = q[kf.index]
     assert np.linalg.norm(np.diff(kq, axis=0), axis=1).min() > 1e-4  # no two keyframes at one place
     assert kf.kind[0] == "start" and kf.kind[-1] == "end" and kf.kind.count("pause") + kf.kind.count("mark") >= 1
-    rows = [[float(a)] + list(map(float, b)) for a, b in zip(t, q)]
+    rows = [[float(a)] + list(map(float, b)) for a, b in zip(t, q, strict=True)]
     path = _program(tmp_path, [], name="hand", path_rows=rows)
     res = plan_replay(request_from_config(cfg, path, q[0], interp="spline"))
     labels = [g["label"] for g in res["summary"]["segments"]]

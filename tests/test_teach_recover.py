@@ -11,17 +11,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_teach_daemon import _cli_json, _config
 
 from dragd.lab.demo import TEACH_STEPS_RAD, guide_and_settle
 from dragd.lab.rig import Rig
 from dragd.teach.program import ProgramError, load_program
 from dragd.teach.recorder import TeachRecorder
 from dragd.teach.recover import recover, sample_rows
-from dragd.telemetry.writer import TelemetryWriter
 from dragd.telemetry.schema import cycle_layout
+from dragd.telemetry.writer import TelemetryWriter
 
 from conftest import run_cli
-from test_teach_daemon import _cli_json, _config
 
 
 @pytest.mark.unit

@@ -9,7 +9,6 @@ machine's load. The rig tests (test_teach_daemon.py) run the same against the si
 from __future__ import annotations
 
 import asyncio
-import math
 
 import numpy as np
 import pytest
@@ -134,7 +133,7 @@ def test_stall_waits_and_start_is_bumpless(tmp_path):
 
     async def main():
         arm = Arm()
-        c, tr = arm.c, arm.c.track
+        tr = arm.c.track
         await arm.m.track(traj)
         # the target starts exactly where the arm is, and reaches the plan by the end of the move to start
         assert np.abs(tr.q_ref - arm.cy.est.q_rad).max() < 1e-12
@@ -182,8 +181,8 @@ def test_monitors_stop_the_motion_and_hold_where_the_arm_is(tmp_path, kind):
 
 
 def test_teach_recorder_rate_and_marks(tmp_path):
-    from dragd.teach.recorder import TeachRecorder, write_program
     from dragd.teach.program import load_program
+    from dragd.teach.recorder import TeachRecorder, write_program
 
     rec = TeachRecorder("t", tmp_path / "t.yaml", tmp_path / "t.mcap", [f"joint{i + 1}" for i in range(6)], 50.0,
                         1e-3, 10.0, t0=5.0)

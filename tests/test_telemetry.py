@@ -127,7 +127,7 @@ def test_round_trip_values_schema_and_events(tmp_path, process):
     assert js["properties"]["statusword"]["items"]["type"] == "integer"
     assert list(js["properties"]) == list(cobot_layout())
 
-    for i, ((_s, _c, m), exp) in enumerate(zip(cycle, expected)):
+    for i, ((_s, _c, m), exp) in enumerate(zip(cycle, expected, strict=True)):
         d = json.loads(m.data)
         assert m.sequence == i + 1
         assert m.log_time == 1_700_000_000_000_000_000 + i * 1_000_000

@@ -13,7 +13,8 @@ from dragd.telemetry.writer import TelemetryWriter
 
 pytestmark = pytest.mark.unit
 
-# (name, per joint or a fixed width, kind): the daemon's row (before the split, then #29's columns) (Daemon._telemetry_layout)
+# (name, per joint or a fixed width, kind): the daemon's row (before the split, then #29's columns)
+# (Daemon._telemetry_layout)
 DAEMON_ROW = [
     ("t_s", False, "float"), ("mode", False, "enum"), ("q_rad", True, "float"), ("dq_rad_s", True, "float"),
     ("current_measured_A", True, "float"), ("current_command_A", True, "float"), ("gravity_A", True, "float"),

@@ -1,4 +1,5 @@
 import asyncio
+import itertools
 import json
 import os
 import subprocess
@@ -32,7 +33,7 @@ def test_period_statistics_around_1ms():
             t.close()
 
     t, wakes, counts, lateness = run(main())
-    periods = sorted((b - a) / 1e6 for a, b in zip(wakes, wakes[1:]))
+    periods = sorted((b - a) / 1e6 for a, b in itertools.pairwise(wakes))
     median_ms = periods[len(periods) // 2]
     # median, not mean: robust when a loaded machine makes us miss some ticks
     assert 0.8 <= median_ms <= 1.2, median_ms

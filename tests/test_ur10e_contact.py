@@ -68,8 +68,8 @@ def test_contact_cli_on_the_struck_real_run(tmp_path: Path):
             "--torque-constants", gains, "--load-friction", "--out", str(fitted), "--json", timeout=900)
     free = [ds / f"identification_data/{n}.csv" for n in ("ur-20_02_06-20sec_5harm", "ur-20_02_19_14harm50sec")]
     free += [ds / f"validation_data/ur-20_01_17-p{k}.csv" for k in (1, 2)]
-    run_cli("contact", "calibrate", "--robot", urdf, "--params", str(fitted), *[a for f in free for a in ("--log", str(f))],
-            "--out", str(bands), "--json", timeout=900)
+    run_cli("contact", "calibrate", "--robot", urdf, "--params", str(fitted),
+            *[a for f in free for a in ("--log", str(f))], "--out", str(bands), "--json", timeout=900)
     r = run_cli("contact", "detect", "--robot", urdf, "--params", str(bands), "--log", str(coll), "--json", check=False)
     assert r.returncode == 2 and "25 columns" in r.stderr and "--columns" in r.stderr  # the layout must be named
     d = json.loads(run_cli("contact", "detect", "--robot", urdf, "--params", str(bands), "--log", str(coll),

@@ -3,8 +3,8 @@ dataset (github:shamilmamedov/dynamic_calibration; not in the repo, no licence: 
 full-dynamics fit on the two 12-harmonic runs predicts the held-out validation runs p1..p10 better than the textbook
 least-squares reference fitted in the same run (same files, same drive gains): overall RMSE ratio ≤ 0.85 with the
 gains given, ≤ 1.0 without, every joint predicted; and (issue #29) on held-out *moving* runs — train on one run,
-validate on each other — ≤ 0.9 on every pairing, over the whole files and over their moving samples. Also: the bench's errors for a missing or wrong DIR, and
-``identify fit`` with several logs (stacked, each its own stretch)."""
+validate on each other — ≤ 0.9 on every pairing, over the whole files and over their moving samples. Also: the
+bench's errors for a missing or wrong DIR, and ``identify fit`` with several logs (stacked, each its own stretch)."""
 
 from __future__ import annotations
 

@@ -36,13 +36,14 @@ def test_real_payload_named_first_within_10pct(tmp_path):
     logs = DATA / "dataset_ur10e" / "identification_data"
     cfg, fitted = tmp_path / "ur10e.yaml", tmp_path / "fitted.yaml"
     run_cli("config", "init", "--robot", str(urdf), "--out", str(cfg))
-    run_cli("identify", "fit", "--config", str(cfg), "--robot", str(urdf), "--log", str(logs / "ur-20_02_19_15harm50sec.csv"),
-            "--method", "full", "--torque-constants", K_UR, "--out", str(fitted), timeout=1200)
+    run_cli("identify", "fit", "--config", str(cfg), "--robot", str(urdf),
+            "--log", str(logs / "ur-20_02_19_15harm50sec.csv"), "--method", "full", "--torque-constants", K_UR,
+            "--out", str(fitted), timeout=1200)
     # the loaded file, named as the issue names it (no extension); its garbage lines 2–10 (time out of sequence)
     # are an error naming them unless --drop-bad-rows
     bare = logs / "ur-20_02_19_15harm50secLoad"
-    refused = run_cli("gap", "--config", str(cfg), "--measured", str(bare), "--model", str(fitted), "--json", check=False,
-                      timeout=300)
+    refused = run_cli("gap", "--config", str(cfg), "--measured", str(bare), "--model", str(fitted), "--json",
+                      check=False, timeout=300)
     assert refused.returncode != 0 and "lines 2" in refused.stderr and "--drop-bad-rows" in refused.stderr
     gap = run_cli("gap", "--config", str(cfg), "--measured", str(bare), "--model", str(fitted), "--drop-bad-rows",
                   "--json", timeout=900)

@@ -40,6 +40,7 @@ from dragd.daemon.recording import Recorder
 from dragd.daemon.stream import Streams
 from dragd.daemon.teach import Teaching
 from dragd.hardware.bus import BusSpec, open_bus, parse_bus
+from dragd.hardware.cia402 import emcy_name
 from dragd.hardware.drives import STATE_NAMES, DriveSupervisor
 from dragd.hardware.io import BusIO
 from dragd.hardware.master import Master
@@ -255,7 +256,8 @@ class Daemon:
     # ------------------------------------------------------------------------------------------ faults, events
 
     def _on_emcy(self, joint: int, code: int, register: int) -> None:
-        self.fault(joint, f"EMCY 0x{code:04X} (error register 0x{register:02X}) from node {self.node_ids[joint]}", code)
+        self.fault(joint, f"EMCY 0x{code:04X} ({emcy_name(code)}; error register 0x{register:02X}) "
+                          f"from node {self.node_ids[joint]}", code)
 
     def fault(self, joint: int | None, text: str, code: int = 0) -> None:
         """A safety reaction from outside the cycle (EMCY, a drive that failed a switch)."""

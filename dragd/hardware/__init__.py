@@ -1,1 +1,2 @@
-"""CANopen hardware interface: buses, CiA 301/402, PDO layouts and codecs, the master, drive supervision, unit scaling."""
+"""CANopen hardware interface: buses, CiA 301/402, PDO layouts and codecs, the master, drive supervision, unit
+scaling."""

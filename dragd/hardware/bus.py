@@ -36,9 +36,9 @@ the block ends. The simulated drives answer a SYNC that way (six TPDOs, one data
 wake-up instead of six). Every bus of this module decodes such datagrams, and ``drain`` hands out all their frames
 at once; ``recv`` returns them one per call, so a reader that waits on the socket between calls (python-can's
 asyncio ``Notifier``, which calls ``recv(0)`` once per wake-up) would leave the rest of a batch queued until the next
-datagram — dragd's daemon reads with ``BusReader`` (hardware/reader.py) and its tools with a thread that calls ``recv(timeout)``
-in a loop. python-can's own udp_multicast bus cannot read batches at all (it expects exactly one map), so a bus
-that talks to python-can's tools leaves batching off (the default).
+datagram — dragd's daemon reads with ``BusReader`` (hardware/reader.py) and its tools with a thread that calls
+``recv(timeout)`` in a loop. python-can's own udp_multicast bus cannot read batches at all (it expects exactly one
+map), so a bus that talks to python-can's tools leaves batching off (the default).
 """
 
 from __future__ import annotations
@@ -403,7 +403,8 @@ class UdpMulticastCanBus(can.BusABC):
         self._expected_heads = tuple(sorted({len(head) for head in expected}))
 
     def _expected_frames(self, raw: bytes) -> list[tuple[int, int, bytes, dict[str, Any]]] | None:
-        """``(stamp, arbitration_id, data, fields)`` of each frame when ``raw`` holds expected frames only, else None."""
+        """``(stamp, arbitration_id, data, fields)`` of each frame when ``raw`` holds expected frames only, else
+        None."""
         expected, heads, stamp_at, head_at = self._expected, self._expected_heads, _STAMP.start, _STAMP.stop
         out = []
         frame, end = 0, len(raw)

@@ -8,6 +8,9 @@ from __future__ import annotations
 
 from enum import IntEnum
 
+DEVICE_TYPE_402 = 0x0192  # 1000h bits 0-15: the device profile number (CiA 402)
+DEVICE_TYPE_SERVO = 0x02 << 16  # 1000h bits 16-23, CiA 402's additional information: a servo drive
+
 # --- object indices used by the device control function ---------------------------------------------
 OD_ABORT_CONNECTION_OPTION = 0x6007
 OD_ERROR_CODE = 0x603F
@@ -305,12 +308,40 @@ class ShutdownOption(IntEnum):
 EMCY_NO_ERROR = 0x0000
 EMCY_GENERIC = 0x1000
 EMCY_CURRENT = 0x2300
+EMCY_OVER_CURRENT = 0x2310  # continuous over-current (current, device output side)
+EMCY_TEMPERATURE_DEVICE = 0x4210  # excess temperature, device
 EMCY_COMMUNICATION = 0x8100
 EMCY_HEARTBEAT = 0x8130
 EMCY_PDO_LENGTH = 0x8210
 EMCY_PDO_LENGTH_EXCEEDED = 0x8220
 EMCY_RPDO_TIMEOUT = 0x8250
 EMCY_FOLLOWING_ERROR = 0x8611
+EMCY_NAMES: dict[int, str] = {
+    EMCY_NO_ERROR: "error reset or no error",
+    EMCY_GENERIC: "generic error",
+    EMCY_CURRENT: "current",
+    EMCY_OVER_CURRENT: "continuous over-current",
+    EMCY_TEMPERATURE_DEVICE: "excess temperature, device",
+    EMCY_COMMUNICATION: "communication",
+    EMCY_HEARTBEAT: "life guard or heartbeat error",
+    EMCY_PDO_LENGTH: "PDO not processed due to length error",
+    EMCY_PDO_LENGTH_EXCEEDED: "PDO length exceeded",
+    EMCY_RPDO_TIMEOUT: "RPDO timeout",
+    EMCY_FOLLOWING_ERROR: "following error",
+}
+
+
+def emcy_name(code: int) -> str:
+    """What an EMCY error code means: its name above, else its CiA 301 class (python-canopen's table)."""
+    name = EMCY_NAMES.get(code)
+    if name is not None:
+        return name
+    from canopen.emcy import EmcyError  # (only where an unnamed code is reported: not on the cycle's import path)
+
+    for base, mask, text in EmcyError.DESCRIPTIONS:
+        if code & mask == base:
+            return f"{text.lower()} (class)"
+    return "no CiA 301 class"
 
 # error register (1001h) bits
 ERR_REG_GENERIC = 1 << 0

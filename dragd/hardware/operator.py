@@ -22,6 +22,10 @@ from dragd.hardware.cia301 import (
     HEARTBEAT_BASE,
     NMT_COB_ID,
     NMT_COMMANDS,
+    OD_DEVICE_NAME,
+    OD_IDENTITY,
+    OD_PRODUCER_HEARTBEAT,
+    RPDO1_BASE,
     SDO_RX_BASE,
     SDO_TX_BASE,
     SDO_TYPES,
@@ -56,7 +60,7 @@ def busy_reason(bus: can.BusABC, master_node_id: int = 127, listen_s: float = 0.
         elif cid == HEARTBEAT_BASE + master_node_id:
             key = f"the master's heartbeat ({HEARTBEAT_BASE + master_node_id:03X}h)"
             seen[key] = seen.get(key, 0) + 1
-        elif 0x200 <= cid < 0x580 and (cid & 0x7F) != 0:
+        elif RPDO1_BASE <= cid < SDO_TX_BASE and (cid & 0x7F) != 0:  # RPDO 1-4 of nodes 1-127
             seen["RPDOs (200h-57Fh)"] = seen.get("RPDOs (200h-57Fh)", 0) + 1
     if not seen:
         return None
@@ -148,15 +152,16 @@ def scan(network: canopen.Network, bus: can.BusABC, *, timeout_s: float = 0.5, n
             dtype = struct.unpack_from("<I", data, 4)[0]
             info = NodeInfo(n, dtype, dtype & 0xFFFF)
         node = _remote(network, n, timeout_s)
-        for attr, (index, sub) in (("heartbeat_ms", (0x1017, 0)), ("vendor_id", (0x1018, 1)),
-                                   ("product_code", (0x1018, 2)), ("revision", (0x1018, 3)), ("serial", (0x1018, 4))):
+        for attr, (index, sub) in (("heartbeat_ms", (OD_PRODUCER_HEARTBEAT, 0)), ("vendor_id", (OD_IDENTITY, 1)),
+                                   ("product_code", (OD_IDENTITY, 2)), ("revision", (OD_IDENTITY, 3)),
+                                   ("serial", (OD_IDENTITY, 4))):
             try:
                 raw = node.sdo.upload(index, sub)
                 setattr(info, attr, int.from_bytes(raw[:4], "little"))
             except (canopen.SdoAbortedError, canopen.SdoCommunicationError) as exc:
                 info.errors.append(f"{index:04X}h:{sub}: {exc}")
         try:
-            info.name = node.sdo.upload(0x1008, 0).rstrip(b"\x00").decode("utf-8", "replace")
+            info.name = node.sdo.upload(OD_DEVICE_NAME, 0).rstrip(b"\x00").decode("utf-8", "replace")
         except (canopen.SdoAbortedError, canopen.SdoCommunicationError) as exc:
             info.errors.append(f"1008h: {exc}")
         if n in heard:

@@ -30,26 +30,36 @@ from typing import TYPE_CHECKING, Literal
 
 from dragd.hardware.busload import BusLoadReport, FrameSpec, bus_load
 from dragd.hardware.cia301 import (
+    COB_ID_MASK,
+    DT_INTEGER8,
+    DT_INTEGER16,
+    DT_INTEGER32,
+    DT_UNSIGNED8,
+    DT_UNSIGNED16,
+    DT_UNSIGNED32,
     DUMMY_TYPES,
     OD_RPDO_COMM,
     OD_RPDO_MAP,
     OD_TPDO_COMM,
     OD_TPDO_MAP,
+    PDO_COB_STEP,
     PDO_TRANSMISSION_EVENT,
     PDO_TRANSMISSION_SYNC,
+    RPDO1_BASE,
+    TPDO1_BASE,
 )
 from dragd.hardware.profile import Finding, PdoChannel, ProcessObject
 
 if TYPE_CHECKING:
     from dragd.hardware.profile import DriveProfile
 
-SHARED_RPDO_BASE = 0x200  # 0x200 (+0x80·k): "RPDO of node 0", unused by any node; not a restricted COB-ID
+SHARED_RPDO_BASE = RPDO1_BASE  # 200h (+80h·k): "RPDO of node 0", unused by any node; not a restricted COB-ID
 STATUS_EVENT_TIMER_MS = 100  # an event TPDO's keep-alive (where the drive has an event timer)
 
 Field = Literal["statusword", "position", "current", "controlword", "target_position", "torque", "inputs"]
 Kind = Literal["shared", "compact", "per_node"]
-_FORMAT = {"statusword": "H", "position": "i", "current": "h", "controlword": "H", "target_position": "i", "torque": "h",
-           "inputs": "I"}
+_FORMAT = {"statusword": "H", "position": "i", "current": "h", "controlword": "H", "target_position": "i",
+           "torque": "h", "inputs": "I"}
 
 
 @dataclass(frozen=True)
@@ -191,13 +201,13 @@ class _Role:
 
 
 def _predefined_cob(direction: str, number: int, node_id: int) -> int:
-    return (0x180 if direction == "tpdo" else 0x200) + 0x100 * (number - 1) + node_id
+    return (TPDO1_BASE if direction == "tpdo" else RPDO1_BASE) + PDO_COB_STEP * (number - 1) + node_id
 
 
 def _dummies(bits: int, have: frozenset[int]) -> list[MapEntry] | None:
     """Dummy entries covering ``bits`` with the largest dummy types the drive supports (None: impossible)."""
     out: list[MapEntry] = []
-    for index in (0x0007, 0x0004, 0x0006, 0x0003, 0x0005, 0x0002):
+    for index in (DT_UNSIGNED32, DT_INTEGER32, DT_UNSIGNED16, DT_INTEGER16, DT_UNSIGNED8, DT_INTEGER8):
         size = DUMMY_TYPES[index]
         while index in have and bits >= size:
             out.append(MapEntry(index, 0, size))
@@ -252,8 +262,9 @@ class _Planner:
                 why.append(f"{ch.name}: no event timer ({ch.comm_index:04X}h sub 5): a lost event TPDO would not show")
                 continue
             cob = role.cob_id if role.cob_id is not None else _predefined_cob(ch.direction, ch.number, p.node_id)
-            if not ch.cob_writable and (ch.cob_default or 0) & 0x7FF != cob:
-                why.append(f"{ch.name}: COB-ID read-only at 0x{(ch.cob_default or 0) & 0x7FF:03X}, 0x{cob:03X} needed")
+            if not ch.cob_writable and (ch.cob_default or 0) & COB_ID_MASK != cob:
+                why.append(f"{ch.name}: COB-ID read-only at 0x{(ch.cob_default or 0) & COB_ID_MASK:03X}, "
+                           f"0x{cob:03X} needed")
                 continue
             if ch.map_writable:
                 if len(role.entries) > ch.max_entries:
@@ -299,7 +310,8 @@ class _Planner:
             event = not role.cyclic
             inhibit_ms = role.inhibit_ms if role.inhibit_ms is not None else self.event_min_interval_ms
             timer_ms = role.event_timer_ms if role.event_timer_ms is not None else STATUS_EVENT_TIMER_MS
-            out.append(PdoSpec(role.direction, ch.number, cob, PDO_TRANSMISSION_SYNC if role.cyclic else PDO_TRANSMISSION_EVENT,
+            transmission = PDO_TRANSMISSION_SYNC if role.cyclic else PDO_TRANSMISSION_EVENT
+            out.append(PdoSpec(role.direction, ch.number, cob, transmission,
                                fixed if fixed is not None else role.entries,
                                inhibit_100us=inhibit_ms * 10 if event and role.direction == "tpdo" else 0,
                                event_timer_ms=(timer_ms if event and role.direction == "tpdo"
@@ -387,7 +399,7 @@ def plan_bus(bus: str, joints: list[int], profiles: list[DriveProfile], *, fd: b
     if kind == "shared":
         slot_fields: tuple[Field, ...] = ("controlword", "target_position", "torque")
         slot_entries: list[tuple[MapEntry, ...] | None] = []
-        for j, p in zip(joints, profiles):
+        for j, p in zip(joints, profiles, strict=True):
             tp = pl.entries(p, ("statusword", "position", "current"))
             slot_entries.append(pl.entries(p, slot_fields))
             if tp is not None:
@@ -405,7 +417,7 @@ def plan_bus(bus: str, joints: list[int], profiles: list[DriveProfile], *, fd: b
         _shared_frames(pl, "shared", "command", joints, profiles, slot_entries, groups, SHARED_RPDO_BASE, rate_Hz,
                        pdos, frames)
     elif kind == "compact":
-        for j, p in zip(joints, profiles):
+        for j, p in zip(joints, profiles, strict=True):
             pc, sw, cw = (pl.entries(p, ("position", "current")), pl.entries(p, ("statusword",)),
                           pl.entries(p, ("controlword",)))
             if pc is None or sw is None or cw is None:
@@ -423,11 +435,11 @@ def plan_bus(bus: str, joints: list[int], profiles: list[DriveProfile], *, fd: b
                     frames.append(FrameLayout(f"{spec.name} node {p.node_id}", spec.cob_id, spec.data_bytes,
                                               (_slot(j, 0, spec.entries),), "rpdo", False, ev_hz))
         groups = [list(range(i, min(i + 4, len(joints)))) for i in range(0, len(joints), 4)]
-        # 0x300, 0x380: PDO COB-IDs of node 0, unused
-        _shared_frames(pl, "compact", "torque", joints, profiles, [pl.entries(p, ("torque",)) for p in profiles], groups,
-                       SHARED_RPDO_BASE + 0x100, rate_Hz, pdos, frames)
+        # 300h, 380h: PDO COB-IDs of node 0, unused
+        _shared_frames(pl, "compact", "torque", joints, profiles, [pl.entries(p, ("torque",)) for p in profiles],
+                       groups, SHARED_RPDO_BASE + PDO_COB_STEP, rate_Hz, pdos, frames)
     else:  # per_node
-        for j, p in zip(joints, profiles):
+        for j, p in zip(joints, profiles, strict=True):
             cmd_fields: tuple[Field, ...] = ("target_position", "torque") if targets else ("torque",)
             pc, sw = pl.entries(p, ("position", "current")), pl.entries(p, ("statusword",))
             cw, cmd = pl.entries(p, ("controlword",)), pl.entries(p, cmd_fields)
@@ -453,7 +465,8 @@ def plan_bus(bus: str, joints: list[int], profiles: list[DriveProfile], *, fd: b
                 else:
                     cyclic = spec.transmission_type <= 240
                     frames.append(FrameLayout(f"{spec.name} node {p.node_id}", spec.cob_id, spec.data_bytes,
-                                              (_slot(j, 0, spec.entries),), "rpdo", cyclic, rate_Hz if cyclic else ev_hz))
+                                              (_slot(j, 0, spec.entries),), "rpdo", cyclic,
+                                              rate_Hz if cyclic else ev_hz))
     layout = BusLayout(bus, kind, fd, fd, tuple(joints), tuple(node_ids), pdos, frames,  # type: ignore[arg-type]
                        position_targets=targets)
     return layout, pl.findings
@@ -537,7 +550,7 @@ class RpdoEncoder:
         for s in frame.slots:
             if s.fields not in self.KINDS:
                 off = s.offset
-                for f, code in zip(s.fields, s.codes or tuple(_FORMAT[f] for f in s.fields)):
+                for f, code in zip(s.fields, s.codes or tuple(_FORMAT[f] for f in s.fields), strict=True):
                     c = struct.Struct("<" + code)
                     self.loose.append((s.joint, off, c, f))
                     off += c.size

@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from dragd.hardware.cia301 import DT_UNSIGNED32
 from dragd.hardware.pdo import BusLayout, PdoSpec, plan_bus
 from dragd.hardware.profile import Finding, Profiles, load_profiles
 
@@ -54,7 +55,8 @@ def input_carrier(layout: BusLayout, joint: int) -> str:
     objs = ", ".join(f"{e.index:04X}h" for e in spec.entries if e.field is not None)
     if cyclic:
         return f"digital inputs in {spec.name} (SYNC) [{objs}]"
-    timer = f"event timer {spec.event_timer_ms} ms" if spec.event_timer_ms else "no event timer: a lost frame cannot show"
+    timer = (f"event timer {spec.event_timer_ms} ms" if spec.event_timer_ms
+             else "no event timer: a lost frame cannot show")
     return f"digital inputs in {spec.name} (event, inhibit {spec.inhibit_100us / 10:g} ms, {timer}) [{objs}]"
 
 
@@ -97,7 +99,7 @@ def plan_drives(cfg: Config, profiles: Profiles | None = None, *, budget_finding
                                             where=p.where))
         kind = b.layout
         if kind == "auto":  # what the drives support: a shared FD frame needs dummy entries in every drive
-            kind = "shared" if b.fd and all(0x0007 in p.dummies for p in bus_profiles) else "per_node"
+            kind = "shared" if b.fd and all(DT_UNSIGNED32 in p.dummies for p in bus_profiles) else "per_node"
         layout, found = plan_bus(b.name, idx, bus_profiles, fd=b.fd, kind=kind, rate_Hz=cfg.loop.rate_Hz,
                                  position_targets=b.position_targets, bus_key=key,
                                  inputs_timer_ms=cfg.hand.event_timer_ms, inputs_inhibit_ms=cfg.hand.event_inhibit_ms)

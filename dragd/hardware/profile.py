@@ -27,18 +27,43 @@ from typing import TYPE_CHECKING, Literal
 import canopen
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable, datatypes
 
-from dragd.hardware.cia301 import DUMMY_TYPES, OD_RPDO_COMM, OD_RPDO_MAP, OD_TPDO_COMM, OD_TPDO_MAP
-from dragd.hardware.cia402 import (MODE_CSP, MODE_CST, OD_ABORT_CONNECTION_OPTION, OD_CONTROLWORD,
-                                   OD_CURRENT_ACTUAL, OD_DIGITAL_INPUTS, OD_MAX_TORQUE, OD_MODES_OF_OPERATION,
-                                   OD_MODES_OF_OPERATION_DISPLAY, OD_MOTOR_RATED_CURRENT, OD_MOTOR_RATED_TORQUE,
-                                   OD_POSITION_ACTUAL, OD_QUICK_STOP_OPTION, OD_STATUSWORD, OD_SUPPORTED_DRIVE_MODES,
-                                   OD_TARGET_POSITION, OD_TARGET_TORQUE, OD_TORQUE_ACTUAL, OD_TORQUE_OFFSET)
+from dragd.hardware.cia301 import (
+    DUMMY_TYPES,
+    OD_CONSUMER_HEARTBEAT,
+    OD_DEVICE_TYPE,
+    OD_IDENTITY,
+    OD_PRODUCER_HEARTBEAT,
+    OD_RPDO_COMM,
+    OD_RPDO_MAP,
+    OD_TPDO_COMM,
+    OD_TPDO_MAP,
+)
+from dragd.hardware.cia402 import DEVICE_TYPE_402 as DEVICE_TYPE_402  # (re-exported: master.py imports it here)
+from dragd.hardware.cia402 import (
+    MODE_CSP,
+    MODE_CST,
+    OD_ABORT_CONNECTION_OPTION,
+    OD_CONTROLWORD,
+    OD_CURRENT_ACTUAL,
+    OD_DIGITAL_INPUTS,
+    OD_MAX_TORQUE,
+    OD_MODES_OF_OPERATION,
+    OD_MODES_OF_OPERATION_DISPLAY,
+    OD_MOTOR_RATED_CURRENT,
+    OD_MOTOR_RATED_TORQUE,
+    OD_POSITION_ACTUAL,
+    OD_QUICK_STOP_OPTION,
+    OD_STATUSWORD,
+    OD_SUPPORTED_DRIVE_MODES,
+    OD_TARGET_POSITION,
+    OD_TARGET_TORQUE,
+    OD_TORQUE_ACTUAL,
+    OD_TORQUE_OFFSET,
+)
 
 if TYPE_CHECKING:
     from dragd.config import Config, DriveConfig, JointConfig
 
-DEVICE_TYPE_402 = 0x0192
-HEARTBEAT_CONSUMER, HEARTBEAT_PRODUCER, IDENTITY = 0x1016, 0x1017, 0x1018
 MAX_PDOS = 512  # CiA 301: 1400h..15FFh, 1800h..19FFh
 
 # struct codes of the EDS data types a PDO may carry (little endian; CiA 301)
@@ -270,7 +295,7 @@ class DriveProfile:
         self.rpdos = channels(self.od, "rpdo")
         self.dummies = frozenset(i for i in DUMMY_TYPES if i in self.od)
         self.supported_modes = self._default(OD_SUPPORTED_DRIVE_MODES)
-        self.device_type = self._default(0x1000)
+        self.device_type = self._default(OD_DEVICE_TYPE)
         self.statusword = self._process("statusword", OD_STATUSWORD, 0, "tpdo", "the CiA 402 statusword")
         self.position = self._process("position", OD_POSITION_ACTUAL, 0, "tpdo", "the position actual value")
         self.controlword = self._process("controlword", OD_CONTROLWORD, 0, "rpdo", "the CiA 402 controlword")
@@ -301,7 +326,8 @@ class DriveProfile:
         var = self.var(index, sub)
         name = ""
         if var is not None:
-            name = f" '{var.parent.name}/{var.name}'" if isinstance(var.parent, (ODRecord, ODArray)) else f" '{var.name}'"
+            name = (f" '{var.parent.name}/{var.name}'" if isinstance(var.parent, (ODRecord, ODArray))
+                    else f" '{var.name}'")
         return f"{index:04X}h:{sub:02X}{name}"
 
     def _default(self, index: int, sub: int = 0) -> int | None:
@@ -329,7 +355,8 @@ class DriveProfile:
 
     def _process(self, fld: str, index: int, sub: int, direction: Literal["tpdo", "rpdo"], what: str, *,
                  key: str | None = None, quiet: bool = False) -> ProcessObject | None:
-        """A process-data object checked for presence, access, PDO mapping and type; None (and a finding) if unusable."""
+        """A process-data object checked for presence, access, PDO mapping and type; None (and a finding) if
+        unusable."""
         fix = f"set {key}" if key else ""
         var = self.var(index, sub)
         if var is None:
@@ -448,8 +475,9 @@ class DriveProfile:
         var = self.var(index, sub)
         if var is None or var.data_type not in (datatypes.UNSIGNED8, datatypes.UNSIGNED16, datatypes.UNSIGNED32,
                                                  datatypes.INTEGER8, datatypes.INTEGER16, datatypes.INTEGER32):
-            self.finding("error", index, sub, f"{names}: the inputs object is {type_name(getattr(var, 'data_type', None))}"
-                         "; expected an integer of 8, 16 or 32 bits", f"set {key}")
+            self.finding("error", index, sub, f"{names}: the inputs object is "
+                         f"{type_name(getattr(var, 'data_type', None))}; expected an integer of 8, 16 or 32 bits",
+                         f"set {key}")
             return None
         for k, inp in wired:
             for b in inp.bits:
@@ -486,7 +514,7 @@ class DriveProfile:
 
     def _check_modes(self) -> None:
         if self.device_type is not None and self.device_type & 0xFFFF != DEVICE_TYPE_402:
-            self.finding("error", 0x1000, 0, f"device type 0x{self.device_type:08X}: not a CiA 402 drive "
+            self.finding("error", OD_DEVICE_TYPE, 0, f"device type 0x{self.device_type:08X}: not a CiA 402 drive "
                          "(expected 0x....0192)", f"set joints[{self.joint_index}].drive to a CiA 402 drive's EDS")
         modes = self.supported_modes
         if not self.has(OD_SUPPORTED_DRIVE_MODES):
@@ -559,17 +587,17 @@ class DriveProfile:
     def _check_required(self) -> None:
         for index, what, need in ((OD_MODES_OF_OPERATION, "modes of operation", "writable"),
                                   (OD_MODES_OF_OPERATION_DISPLAY, "modes of operation display", "readable"),
-                                  (HEARTBEAT_PRODUCER, "heartbeat producer time (dragd watches the drives' "
+                                  (OD_PRODUCER_HEARTBEAT, "heartbeat producer time (dragd watches the drives' "
                                                        "heartbeats)", "writable"),
-                                  (0x1000, "device type", "readable")):
+                                  (OD_DEVICE_TYPE, "device type", "readable")):
             var = self.var(index)
             if var is None:
                 self.finding("error", index, 0, f"missing: {what}", "CiA 301/402 make it mandatory; the drive cannot "
                              "be used")
             elif not getattr(var, need):
                 self.finding("error", index, 0, f"{what}: AccessType={var.access_type}, not {need}")
-        if not self.has(IDENTITY, 1):
-            self.finding("error", IDENTITY, 1, "missing: the vendor id (CiA 301 mandatory)")
+        if not self.has(OD_IDENTITY, 1):
+            self.finding("error", OD_IDENTITY, 1, "missing: the vendor id (CiA 301 mandatory)")
         if not self.tpdos:
             self.finding("error", OD_TPDO_COMM, 0, "the EDS defines no TPDO (1800h + 1A00h)")
         if not self.rpdos:
@@ -595,10 +623,11 @@ class DriveProfile:
                              f"the joint's current_limit_A / rated_current_A = {want:.0f} per mille: the drive "
                              f"limits the current to {var.max / 1000 * self.joint.rated_current_A:.3g} A",
                              f"check joints[{self.joint_index}].rated_current_A (the drive's rated current)")
-        has_consumer = self.has(HEARTBEAT_CONSUMER, 1)
+        has_consumer = self.has(OD_CONSUMER_HEARTBEAT, 1)
         deadline = any(5 in ch.comm_subs for ch in self.rpdos)
         if not has_consumer:
-            self.finding("warning", HEARTBEAT_CONSUMER, 1, "missing: the drive does not watch the master's heartbeat")
+            self.finding("warning", OD_CONSUMER_HEARTBEAT, 1,
+                         "missing: the drive does not watch the master's heartbeat")
         if not deadline and self.watchdog_object is None:
             if has_consumer:
                 self.finding("warning", OD_RPDO_COMM, 5, "missing on every RPDO: no RPDO deadline; the drive stops on "

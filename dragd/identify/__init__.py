@@ -3,4 +3,5 @@
 Only names the command line lists live here (importing this package costs nothing): the modules hold the work.
 """
 
-PLAN_KINDS = ("lowspeed", "symmetric", "friction", "synchronous", "fourier", "gap", "standard", "all")  # excitation plans
+# excitation plans
+PLAN_KINDS = ("lowspeed", "symmetric", "friction", "synchronous", "fourier", "gap", "standard", "all")

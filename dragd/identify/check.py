@@ -237,8 +237,9 @@ def plot(res: CheckResult, names: list[str], out_dir: str | Path, max_points: in
         ax[0].fill_between(t[::step], 0, 1, where=m[::step], transform=ax[0].get_xaxis_transform(), color="C2",
                            alpha=0.08, label=f"evaluated ({res.mask})")
         st = res.joints.get(nm, {})
-        title = f"{nm}: RMSE {st['rmse_A'] * 1e3:.1f} mA, MAE {st['mae_A'] * 1e3:.1f} mA, max {st['max_A'] * 1e3:.1f} mA" \
-            if st.get("rmse_A") is not None else f"{nm}: {st.get('reason', 'not evaluated')}"
+        title = (f"{nm}: RMSE {st['rmse_A'] * 1e3:.1f} mA, MAE {st['mae_A'] * 1e3:.1f} mA, "
+                 f"max {st['max_A'] * 1e3:.1f} mA" if st.get("rmse_A") is not None
+                 else f"{nm}: {st.get('reason', 'not evaluated')}")
         ax[0].set_title(title)
         ax[0].set_ylabel("current [A]")
         ax[0].legend(loc="upper right", fontsize=8)

@@ -181,7 +181,7 @@ def _load_mcap(path: Path, modes: tuple[str, ...]) -> Log:
         raise LogError(f"{path}: no /dragd/cycle messages (expected dragd telemetry)")
     rows = tl.rows
     mode = rows["mode"]
-    counts = {str(m): int(c) for m, c in zip(*np.unique(mode, return_counts=True))}
+    counts = {str(m): int(c) for m, c in zip(*np.unique(mode, return_counts=True), strict=True)}
     keep = np.isin(mode, modes)
     if not keep.any():
         raise LogError(f"{path}: no rows in mode {'/'.join(modes)} (rows per mode: "
@@ -587,7 +587,8 @@ class Prepared:
         fc = cutoff_Hz or self.cutoff_Hz
         step = max(1, int(self.fs / (2.5 * fc)))
         edge = int(round(self.fs / fc))
-        out = [np.arange(s.start + edge, s.stop - edge, step) for s in self.segments if s.stop - s.start > 2 * edge + step]
+        out = [np.arange(s.start + edge, s.stop - edge, step) for s in self.segments
+               if s.stop - s.start > 2 * edge + step]
         return np.concatenate(out) if out else np.zeros(0, dtype=int)
 
 
@@ -595,7 +596,7 @@ def _segments(t: np.ndarray, max_gap_s: float) -> list[Segment]:
     gaps = np.nonzero(np.diff(t) > max_gap_s)[0]
     starts = np.concatenate([[0], gaps + 1])
     stops = np.concatenate([gaps + 1, [t.shape[0]]])
-    return [Segment(int(a), int(b)) for a, b in zip(starts, stops)]
+    return [Segment(int(a), int(b)) for a, b in zip(starts, stops, strict=True)]
 
 
 def prepare(log: Log, cutoff_Hz: float = 5.0, deriv_cutoff_Hz: float = 20.0, work_rate_Hz: float = 200.0,
@@ -615,7 +616,7 @@ def prepare(log: Log, cutoff_Hz: float = 5.0, deriv_cutoff_Hz: float = 20.0, wor
                         f"{len(segs)} separate stretches")
     k = max(1, int(round(fs_in / work_rate_Hz)))
     fs = fs_in / k
-    T, Q, I, DQ, out_segs = [], [], [], [], []
+    T, Q, CUR, DQ, out_segs = [], [], [], [], []
     pos = 0
     short = 0
     for s in segs:
@@ -635,7 +636,7 @@ def prepare(log: Log, cutoff_Hz: float = 5.0, deriv_cutoff_Hz: float = 20.0, wor
             grid = grid[::k]
         T.append(grid)
         Q.append(q)
-        I.append(i)
+        CUR.append(i)
         if dq is not None:
             DQ.append(dq)
         out_segs.append(Segment(pos, pos + grid.shape[0]))
@@ -646,7 +647,7 @@ def prepare(log: Log, cutoff_Hz: float = 5.0, deriv_cutoff_Hz: float = 20.0, wor
         raise LogError(f"{log.path}: no stretch of at least {min_segment_s:g} s of contiguous samples")
     t = np.concatenate(T)
     qr = np.concatenate(Q)
-    i = np.concatenate(I)
+    i = np.concatenate(CUR)
     qf = np.empty_like(qr)
     dq = np.empty_like(qr)
     ddq = np.empty_like(qr)

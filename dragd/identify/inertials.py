@@ -37,8 +37,8 @@ def pseudo_inertia(pi: np.ndarray) -> np.ndarray:
     """4×4 pseudo-inertia of Pinocchio's dynamic parameters (m, mcx, mcy, mcz, Ixx, Ixy, Iyy, Ixz, Iyz, Izz)."""
     m, h = pi[0], pi[1:4]
     Ixx, Ixy, Iyy, Ixz, Iyz, Izz = pi[4:10]
-    I = np.array([[Ixx, Ixy, Ixz], [Ixy, Iyy, Iyz], [Ixz, Iyz, Izz]])
-    S = 0.5 * np.trace(I) * np.eye(3) - I
+    inertia = np.array([[Ixx, Ixy, Ixz], [Ixy, Iyy, Iyz], [Ixz, Iyz, Izz]])
+    S = 0.5 * np.trace(inertia) * np.eye(3) - inertia
     J = np.zeros((4, 4))
     J[:3, :3], J[:3, 3], J[3, :3], J[3, 3] = S, h, h, m
     return J
@@ -46,8 +46,9 @@ def pseudo_inertia(pi: np.ndarray) -> np.ndarray:
 
 def params_from_pseudo(J: np.ndarray) -> np.ndarray:
     S, h, m = J[:3, :3], J[:3, 3], J[3, 3]
-    I = np.trace(S) * np.eye(3) - S
-    return np.array([m, h[0], h[1], h[2], I[0, 0], I[0, 1], I[1, 1], I[0, 2], I[1, 2], I[2, 2]])
+    inertia = np.trace(S) * np.eye(3) - S
+    return np.array([m, h[0], h[1], h[2], inertia[0, 0], inertia[0, 1], inertia[1, 1], inertia[0, 2], inertia[1, 2],
+                     inertia[2, 2]])
 
 
 def _U(x: np.ndarray) -> np.ndarray:
@@ -173,7 +174,7 @@ def consistent_inertials(targets: list[RowTarget | None], pi_urdf: np.ndarray, a
 
     def resid_of(pi: np.ndarray, arm: np.ndarray, g: np.ndarray) -> np.ndarray:
         full = np.concatenate([pi, arm])
-        out = [weight[0] * w * (t.E @ full - g[j] * t.beta) for (j, t), w in zip(rows, wts)]
+        out = [weight[0] * w * (t.E @ full - g[j] * t.beta) for (j, t), w in zip(rows, wts, strict=True)]
         out.append((pi - pi_urdf) / scales)
         out.append((arm - arm0) / arm_scale)
         return np.concatenate(out)
@@ -199,8 +200,8 @@ def consistent_inertials(targets: list[RowTarget | None], pi_urdf: np.ndarray, a
     nfev, stages = 0, []
     pi = arm = None
     g = np.ones(n)
-    A = [base_weight * w[:, None] * t.E for (_, t), w in zip(rows, wts)]
-    y = [base_weight * w * t.beta for (_, t), w in zip(rows, wts)]
+    A = [base_weight * w[:, None] * t.E for (_, t), w in zip(rows, wts, strict=True)]
+    y = [base_weight * w * t.beta for (_, t), w in zip(rows, wts, strict=True)]
     A.append(np.hstack([np.diag(1.0 / scales), np.zeros((10 * n, n))]))
     y.append(pi_urdf / scales)
     A.append(np.hstack([np.zeros((n, 10 * n)), np.diag(1.0 / arm_scale)]))
@@ -239,14 +240,15 @@ def body_inertial(pi: np.ndarray) -> dict[str, Any]:
     """A params-file inertial (mass_kg, com_m, inertia_kgm2 about the COM: ixx, ixy, ixz, iyy, iyz, izz)."""
     import pinocchio as pin
 
-    I = pin.Inertia.FromDynamicParameters(np.asarray(pi, dtype=float))
-    Ic = I.inertia
-    return {"mass_kg": float(I.mass), "com_m": [float(v) for v in I.lever],
+    body = pin.Inertia.FromDynamicParameters(np.asarray(pi, dtype=float))
+    Ic = body.inertia
+    return {"mass_kg": float(body.mass), "com_m": [float(v) for v in body.lever],
             "inertia_kgm2": [float(Ic[0, 0]), float(Ic[0, 1]), float(Ic[0, 2]), float(Ic[1, 1]), float(Ic[1, 2]),
                              float(Ic[2, 2])]}
 
 
-def inertials_from_fit(res: Any, robot: Any, rm: Any, kt_fallback: list[float | None] | None = None) -> dict[str, Any] | None:
+def inertials_from_fit(res: Any, robot: Any, rm: Any,
+                       kt_fallback: list[float | None] | None = None) -> dict[str, Any] | None:
     """The consistent link inertials of a full-dynamics fit (``res.notes['base_parameters']``, current space).
 
     Joint j's target is its identified base parameters × the K_t the law will use for it: the result's (given or

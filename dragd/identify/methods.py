@@ -184,7 +184,8 @@ def _set_friction_from_fit(jr: JointResult, fit: LinearFit, vmax: float, reason_
     for d, sgn in (("pos", 1), ("neg", -1)):
         vk, ck = f"viscous_{d}_A_s_per_rad", f"coulomb_{d}_A"
         if vk in fit.dropped and "not separable" in fit.dropped[vk] and fit.value(ck) is not None:
-            speed = float(np.mean(np.abs(v[np.sign(v) == sgn]))) if v is not None and np.any(np.sign(v) == sgn) else None
+            speed = (float(np.mean(np.abs(v[np.sign(v) == sgn]))) if v is not None and np.any(np.sign(v) == sgn)
+                     else None)
             level = fit.value(ck)
             at = f" at |q̇| ≈ {speed:.3f} rad/s" if speed is not None else ""
             jr.diagnostics[f"friction_level_{d}_A"] = level
@@ -357,6 +358,12 @@ def fit_lowspeed(ctx: Context) -> FitResult:
 # ------------------------------------------------------------------------------------------ seed 002
 
 
+def _stribeck_residual(x: np.ndarray, ctx: Context, j: int, sel: np.ndarray, exponent: float | None) -> np.ndarray:
+    """The quasi-static fit's residual at (ln v_s, ln δ) = ``x`` (δ fixed where ``exponent`` is given)."""
+    f, _ = _quasistatic_fit(ctx, j, sel, (math.exp(x[0]), exponent or math.exp(x[1])))
+    return f.residual
+
+
 def _quasistatic_fit(ctx: Context, j: int, sel: np.ndarray, stribeck: tuple[float, float] | None,
                      use_tau: bool = True) -> tuple[LinearFit, float]:
     """i = τ(q)/K_t + friction(q̇) on quasi-static rows (H on both sides); returns the fit and the τ range."""
@@ -408,7 +415,8 @@ def fit_synchronous(ctx: Context) -> FitResult:
             jr.set(key, None, reason="seed 002's friction model is Coulomb + viscous per direction (no Stribeck "
                                      "term); use the symmetric or auto method for it")
         diag: dict[str, Any] = {"rows": int(sel.size), "condition_number": fit.cond, "residual_A": fit.sigma,
-                                "gravity_range_Nm": rng, "speed_range_rad_s": [float(np.abs(ctx.p.dq[sel, j]).min()), vmax]}
+                                "gravity_range_Nm": rng,
+                                "speed_range_rad_s": [float(np.abs(ctx.p.dq[sel, j]).min()), vmax]}
         a = fit.value("gravity")
         if a is not None:
             fric = ctx.iH[sel, j] - fit.residual - a * ctx.tauH[sel, j]
@@ -667,9 +675,9 @@ def fit_symmetric(ctx: Context) -> FitResult:
         A = np.column_stack([cols, np.ones(a.size)])
         names = [f"beta{k}" for k in range(base.r)] + ["asymmetry_A"]
         fit = linear_fit(A, y, names, priority=names[:-1] + ["asymmetry_A"],
-                         explain={"asymmetry_A": "the direction asymmetry (F₊ + F₋)/2 is not "
-                                                 "separable from the gravity "
-                                                 "terms along these passes (seed 001's odd-friction assumption applies)"})
+                         explain={"asymmetry_A": "the direction asymmetry (F₊ + F₋)/2 is not separable from the "
+                                                 "gravity terms along these passes (seed 001's odd-friction "
+                                                 "assumption applies)"})
         beta = np.array([fit.value(f"beta{k}") or 0.0 for k in range(base.r)])
         live = [k for k in range(base.r) if fit.value(f"beta{k}") is not None]
         ghat = Yg @ beta  # identified gravity current [A], unfiltered
@@ -682,7 +690,8 @@ def fit_symmetric(ctx: Context) -> FitResult:
             slope = float(wvec @ beta[live])
             sslope = float(np.sqrt(wvec @ fit.cov[np.ix_(idx, idx)] @ wvec))
             _kt_from_slope(jr, slope, sslope, "")
-            jr.diagnostics["kt_source"] = "URDF gravity torque / identified gravity current (reference: the URDF's masses)"
+            jr.diagnostics["kt_source"] = ("URDF gravity torque / identified gravity current (reference: the URDF's "
+                                           "masses)")
         else:
             jr.set("torque_constant_Nm_per_A", None, reason=NO_GRAVITY.format(rng=rng)
                    if rng <= 1e-9 else "no identifiable gravity parameters in this joint's row")
@@ -765,6 +774,171 @@ def _row_full_columns(ctx: Context, j: int) -> tuple[np.ndarray, np.ndarray]:
     return full, grav
 
 
+def _fit_full_joint(ctx: Context, j: int, name: str, notes: dict[str, Any], stribeck_grid: bool) -> JointResult:
+    """One joint of ``fit_full`` (its docstring); ``notes`` collects the base parameters and rotor inertias."""
+    p, o = ctx.p, ctx.opts
+    jr = JointResult(name)
+    why = ctx.never_moves(j)
+    if why:
+        jr.null_all(why)
+        return jr
+    # rows where the joint slides throughout the regression filter's support (stiction is not a function of q̇);
+    # smooth reversals without sticking stay in (the sign columns are filtered like the current)
+    sel = ctx.rows[ctx.sliding(j, guard_s=0.6 / o.cutoff_Hz)[ctx.rows]]
+    if sel.size < MIN_ROWS:
+        jr.null_all(f"{name} hardly slides in this log ({sel.size} rows)")
+        return jr
+    Yf, Yg = _row_full_columns(ctx, j)
+    base = ctx.rm.row_full[j]
+    beta_urdf = base.E @ ctx.rm.pi_urdf
+    YfH = p.regfilter(Yf)
+    tauH = YfH @ beta_urdf
+    v = p.dq[:, j]
+    acc_level = float(np.percentile(np.abs(ctx.ddqH[sel, j]), 90))
+    names_rb = [f"dbeta{k}" for k in range(base.r)]
+
+    # stage 1: the URDF's torque scaled, friction, and the joint's own q̈ (rotor inertia): the scale c₀ ≈ 1/K_t
+    F0, f0names = friction_columns(v)
+    F0H = p.regfilter(F0)
+    arm0 = p.regfilter(p.ddq[:, j:j + 1])
+    s1 = linear_fit(np.column_stack([tauH[sel], arm0[sel], F0H[sel]]), ctx.iH[sel, j], ["urdf", "arm"] + f0names,
+                    prefer_drop=PREFER_DROP)
+    given = None if o.torque_constants is None else o.torque_constants[j]
+    # K_t given: the URDF's current is τ_URDF/K_t (the scale is known, not fitted) and the gravity parameters are
+    # no longer the K_t reference: they take the CAD prior of every inertial parameter (the data moves them as far
+    # as it determines them)
+    c0 = 1.0 / float(given) if given else (abs(s1.value("urdf") or 0.0) or 0.1)
+    # prior on the corrections: 30 % of the URDF's value (in current, via c₀), at least what moves the current
+    # by ~20 mA over this data — CAD values are that uncertain; the data moves what it determines
+    colmax = np.maximum(np.abs(YfH[sel]).max(axis=0), 1e-12)
+    prior = {names_rb[k]: max(PRIOR_REL * c0 * abs(beta_urdf[k]), 0.02 / colmax[k]) for k in range(base.r)}
+    gcol = np.abs(Yg[sel]).max(axis=0)
+    for k, nm_ in enumerate(base.names):
+        if ".armature" in nm_:  # rotor inertias are not in the URDF: up to ~1 kg·m² reflected
+            prior[names_rb[k]] = max(prior[names_rb[k]], c0 * ARMATURE_PRIOR_KGM2)
+        elif gcol[k] > 1e-9:  # gravity parameters: the K_t reference (1 %), or with K_t given CAD-uncertain
+            # like every inertial parameter (PRIOR_REL, at least what moves the current by RESOLUTION_A)
+            rel, floor = (PRIOR_REL, RESOLUTION_A) if given else (PRIOR_GRAVITY_REL, 0.002)
+            prior[names_rb[k]] = max(rel * c0 * abs(beta_urdf[k]), floor / colmax[k])
+    y_sel = ctx.iH[sel, j] - (c0 * tauH[sel] if given else 0.0)  # K_t given: the URDF's current is known
+
+    # load-dependent friction (harmonic drives: the Coulomb level grows with the transmitted torque): a column
+    # sign(q̇)·|G(q)| where the joint carries a changing gravity load; kept only when it lowers the residual
+    g_abs = np.abs(ctx.grav[:, j])
+    load_col = p.regfilter((np.sign(v) * g_abs)[:, None])[:, 0] if o.load_friction and np.ptp(g_abs[sel]) > 1.0 \
+        else None
+
+    def solve(stb: tuple[float, float] | None, load: bool = False) -> LinearFit:
+        F, fnames = friction_columns(v, vs=None if stb is None else stb[0], delta=2.0 if stb is None else stb[1])
+        FH = p.regfilter(F)
+        extra = [load_col[sel]] if load and load_col is not None else []
+        A = np.column_stack(([] if given else [tauH[sel]]) + [YfH[sel], FH[sel]] + extra)
+        nm = ([] if given else ["urdf"]) + names_rb + fnames + (["load_A_per_Nm"] if extra else [])
+        f0 = prior_fit(A, y_sel, nm, prior)
+        hi = np.abs(ctx.ddqH[sel, j]) > max(acc_level * 0.5, 0.05)
+        w = np.ones(sel.size)
+        if hi.sum() > MIN_ROWS and (~hi).sum() > MIN_ROWS:  # WLS: each regime weighted by its residual variance
+            w[hi] = 1 / max(float(np.std(f0.residual[hi])), 1e-9) ** 2
+            w[~hi] = 1 / max(float(np.std(f0.residual[~hi])), 1e-9) ** 2
+            w /= w.mean()
+        return prior_fit(A, y_sel, nm, prior, w=w)
+
+    fit = solve(None)
+    best = (fit.sigma, None, fit)
+    vmin_sel = float(np.abs(v[sel]).min())
+    slow_share = float(np.mean(np.abs(v[sel]) < 0.1))
+    if stribeck_grid and slow_share > 0.05:
+        deltas = [o.stribeck_exponent] if o.stribeck_exponent else [1.0, 1.5, 2.0]
+        for dl in deltas:
+            for vs in (0.005, 0.008, 0.012, 0.018, 0.025, 0.035, 0.05):
+                if vs < 0.5 * vmin_sel:
+                    continue
+                f2 = solve((vs, dl))
+                hump_ok = all(f2.value(f"dstatic_{d}_A") is not None and f2.std(f"dstatic_{d}_A") <= RESOLUTION_A
+                              for d in ("pos", "neg"))
+                # a hump enters only if it is determined and lowers the residual clearly (5 %)
+                if hump_ok and f2.sigma < best[0] * 0.95 and f2.value("dstatic_pos_A") > 0 > f2.value("dstatic_neg_A"):
+                    best = (f2.sigma, (vs, dl), f2)
+    fit, stb = best[2], best[1]
+    if load_col is not None:  # with the load-dependent term: kept when positive and 2 % better
+        f3 = solve(stb, load=True)
+        k3 = f3.value("load_A_per_Nm")
+        if k3 is not None and k3 > 0 and f3.sigma < 0.98 * fit.sigma:
+            fit = f3
+            jr.diagnostics["load_friction_A_per_Nm"] = k3
+            jr.diagnostics["load_friction_std_A_per_Nm"] = f3.std("load_A_per_Nm")
+    vmax = float(np.abs(v[sel]).max())
+    _set_friction_from_fit(jr, fit, vmax, v=v[sel])
+    if stb is not None:
+        for d in ("pos", "neg"):
+            c, dv = jr.friction[f"coulomb_{d}_A"], fit.value(f"dstatic_{d}_A")
+            if c is not None and dv is not None:
+                jr.set(f"static_{d}_A", c + dv, math.hypot(fit.std(f"dstatic_{d}_A"), jr.std.get(f"coulomb_{d}_A", 0)))
+            else:
+                jr.set(f"static_{d}_A", None, reason="Stribeck hump not determined")
+        jr.set(STRIBECK_VELOCITY_RAD_S, stb[0], None)
+        jr.set(STRIBECK_EXPONENT, stb[1], None)
+        jr.diagnostics["stribeck"] = "variable projection over a v_s × δ grid (grid resolution, no std)"
+    else:
+        why_s = ("too little sliding below 0.1 rad/s to see a Stribeck hump" if slow_share <= 0.05 else
+                 "a determined Stribeck hump does not lower the residual")
+        for key in (STATIC_POS_A, STATIC_NEG_A, STRIBECK_VELOCITY_RAD_S, STRIBECK_EXPONENT):
+            jr.set(key, None, reason=why_s)
+    # identified base parameters β̂ = c·β_URDF + δβ and their covariance (J·cov·Jᵀ)
+    names = fit.names
+    Jm = np.zeros((base.r, len(names)))
+    if "urdf" in names:
+        Jm[:, names.index("urdf")] = beta_urdf
+    kept = []
+    for k in range(base.r):
+        if f"dbeta{k}" in names:
+            Jm[k, names.index(f"dbeta{k}")] = 1.0
+            kept.append(k)
+    beta = Jm @ fit.theta + (c0 * beta_urdf if given else 0.0)
+    cov_b = Jm @ fit.cov @ Jm.T
+    gu = ctx.grav[sel, j]
+    rng = float(np.ptp(gu))
+    if given is not None:
+        jr.set("torque_constant_Nm_per_A", float(given), None)
+        jr.diagnostics["kt_source"] = "given (--torque-constants or the configuration)"
+    elif rng > 1e-9 and "urdf" in names:  # determined or not: the slope's relative std decides (KT_MAX_REL_STD)
+        wvec = (gu @ Yg[sel]) / (gu @ gu)
+        slope = float(wvec @ beta)
+        sslope = float(np.sqrt(max(wvec @ cov_b @ wvec, 0.0)))
+        _kt_from_slope(jr, slope, sslope, "")
+        if slope > 0:
+            jr.diagnostics["kt_estimate_Nm_per_A"] = 1.0 / slope
+            jr.diagnostics["kt_relative_std"] = sslope / slope
+        jr.diagnostics["kt_source"] = "URDF gravity torque / identified gravity part (reference: the URDF's masses)"
+    else:
+        jr.set("torque_constant_Nm_per_A", None, reason=NO_GRAVITY.format(rng=rng) if rng <= 1e-9 else
+               "the URDF's rigid-body torque is not separable from the other terms in this data")
+    kt = jr.torque_constant_Nm_per_A
+    own = f"{name}.armature"
+    k_arm = next((k for k, nm_ in enumerate(base.names) if nm_.split(" ")[0] == own), None)  # separable
+    if k_arm is not None and k_arm in kept:
+        arm_A = float(beta[k_arm])
+        notes["armature_kgm2"][name] = None if kt is None else arm_A * kt
+        jr.diagnostics["armature_A_s2_per_rad"] = arm_A
+        jr.diagnostics["armature_std_A_s2_per_rad"] = float(np.sqrt(cov_b[k_arm, k_arm]))
+    elif any(own in nm_ for nm_ in base.names):
+        jr.diagnostics["armature"] = ("rotor inertia merged with link inertia in a base parameter (not separable)"
+                                      if k_arm is None else "rotor inertia not determined by this data")
+    sd = np.sqrt(np.maximum(np.diag(cov_b), 0.0))
+    notes["base_parameters"][name] = {
+        "names": base.names, "current_A": beta.tolist(), "std_A": sd.tolist(), "urdf_Nm": beta_urdf.tolist(),
+        "from_data": [k in kept for k in range(base.r)],
+        "kept_at_urdf": {base.names[k]: fit.dropped.get(f"dbeta{k}", "") for k in range(base.r) if k not in kept}}
+    jr.diagnostics.update({"rows": int(sel.size), "condition_number": fit.cond, "residual_A": fit.sigma,
+                           "base_parameters": base.r, "base_parameters_from_data": len(kept),
+                           "gravity_range_Nm": rng, "acceleration_p90_rad_s2": acc_level})
+    if len(kept) < base.r:
+        ctx.warnings.append(f"{name}: {base.r - len(kept)} of {base.r} base parameters not determined by this log "
+                            f"(kept at the URDF's values); excite more (fourier plan)")
+    _physical(jr)
+    return jr
+
+
 def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
     """Full dynamics: base parameters of the rigid-body model + rotor inertia + friction, per joint, in amperes.
 
@@ -789,170 +963,8 @@ def fit_full(ctx: Context, stribeck_grid: bool = True) -> FitResult:
     part (linear in the parameters, so its std follows). A Stribeck hump is chosen by variable projection over a
     (v_s, δ) grid when enough slow sliding is present and it lowers the residual by 5 %.
     """
-    p, o = ctx.p, ctx.opts
-    out = []
     notes: dict[str, Any] = {"base_parameters": {}, "armature_kgm2": {}, "global_base_count": ctx.rm.base_full.r}
-    for j, name in enumerate(ctx.names):
-        jr = JointResult(name)
-        out.append(jr)
-        why = ctx.never_moves(j)
-        if why:
-            jr.null_all(why)
-            continue
-        # rows where the joint slides throughout the regression filter's support (stiction is not a function of q̇);
-        # smooth reversals without sticking stay in (the sign columns are filtered like the current)
-        sel = ctx.rows[ctx.sliding(j, guard_s=0.6 / o.cutoff_Hz)[ctx.rows]]
-        if sel.size < MIN_ROWS:
-            jr.null_all(f"{name} hardly slides in this log ({sel.size} rows)")
-            continue
-        Yf, Yg = _row_full_columns(ctx, j)
-        base = ctx.rm.row_full[j]
-        beta_urdf = base.E @ ctx.rm.pi_urdf
-        YfH = p.regfilter(Yf)
-        tauH = YfH @ beta_urdf
-        v = p.dq[:, j]
-        acc_level = float(np.percentile(np.abs(ctx.ddqH[sel, j]), 90))
-        names_rb = [f"dbeta{k}" for k in range(base.r)]
-
-        # stage 1: the URDF's torque scaled, friction, and the joint's own q̈ (rotor inertia): the scale c₀ ≈ 1/K_t
-        F0, f0names = friction_columns(v)
-        F0H = p.regfilter(F0)
-        arm0 = p.regfilter(p.ddq[:, j:j + 1])
-        s1 = linear_fit(np.column_stack([tauH[sel], arm0[sel], F0H[sel]]), ctx.iH[sel, j], ["urdf", "arm"] + f0names,
-                        prefer_drop=PREFER_DROP)
-        given = None if o.torque_constants is None else o.torque_constants[j]
-        # K_t given: the URDF's current is τ_URDF/K_t (the scale is known, not fitted) and the gravity parameters are
-        # no longer the K_t reference: they take the CAD prior of every inertial parameter (the data moves them as far
-        # as it determines them)
-        c0 = 1.0 / float(given) if given else (abs(s1.value("urdf") or 0.0) or 0.1)
-        # prior on the corrections: 30 % of the URDF's value (in current, via c₀), at least what moves the current
-        # by ~20 mA over this data — CAD values are that uncertain; the data moves what it determines
-        colmax = np.maximum(np.abs(YfH[sel]).max(axis=0), 1e-12)
-        prior = {names_rb[k]: max(PRIOR_REL * c0 * abs(beta_urdf[k]), 0.02 / colmax[k]) for k in range(base.r)}
-        gcol = np.abs(Yg[sel]).max(axis=0)
-        for k, nm_ in enumerate(base.names):
-            if ".armature" in nm_:  # rotor inertias are not in the URDF: up to ~1 kg·m² reflected
-                prior[names_rb[k]] = max(prior[names_rb[k]], c0 * ARMATURE_PRIOR_KGM2)
-            elif gcol[k] > 1e-9:  # gravity parameters: the K_t reference (1 %), or with K_t given CAD-uncertain
-                # like every inertial parameter (PRIOR_REL, at least what moves the current by RESOLUTION_A)
-                rel, floor = (PRIOR_REL, RESOLUTION_A) if given else (PRIOR_GRAVITY_REL, 0.002)
-                prior[names_rb[k]] = max(rel * c0 * abs(beta_urdf[k]), floor / colmax[k])
-        y_sel = ctx.iH[sel, j] - (c0 * tauH[sel] if given else 0.0)  # K_t given: the URDF's current is known
-
-        # load-dependent friction (harmonic drives: the Coulomb level grows with the transmitted torque): a column
-        # sign(q̇)·|G(q)| where the joint carries a changing gravity load; kept only when it lowers the residual
-        g_abs = np.abs(ctx.grav[:, j])
-        load_col = p.regfilter((np.sign(v) * g_abs)[:, None])[:, 0] if o.load_friction and np.ptp(g_abs[sel]) > 1.0 \
-            else None
-
-        def solve(stb: tuple[float, float] | None, load: bool = False) -> LinearFit:
-            F, fnames = friction_columns(v, vs=None if stb is None else stb[0], delta=2.0 if stb is None else stb[1])
-            FH = p.regfilter(F)
-            extra = [load_col[sel]] if load and load_col is not None else []
-            A = np.column_stack(([] if given else [tauH[sel]]) + [YfH[sel], FH[sel]] + extra)
-            nm = ([] if given else ["urdf"]) + names_rb + fnames + (["load_A_per_Nm"] if extra else [])
-            f0 = prior_fit(A, y_sel, nm, prior)
-            hi = np.abs(ctx.ddqH[sel, j]) > max(acc_level * 0.5, 0.05)
-            w = np.ones(sel.size)
-            if hi.sum() > MIN_ROWS and (~hi).sum() > MIN_ROWS:  # WLS: each regime weighted by its residual variance
-                w[hi] = 1 / max(float(np.std(f0.residual[hi])), 1e-9) ** 2
-                w[~hi] = 1 / max(float(np.std(f0.residual[~hi])), 1e-9) ** 2
-                w /= w.mean()
-            return prior_fit(A, y_sel, nm, prior, w=w)
-
-        fit = solve(None)
-        best = (fit.sigma, None, fit)
-        vmin_sel = float(np.abs(v[sel]).min())
-        slow_share = float(np.mean(np.abs(v[sel]) < 0.1))
-        if stribeck_grid and slow_share > 0.05:
-            deltas = [o.stribeck_exponent] if o.stribeck_exponent else [1.0, 1.5, 2.0]
-            for dl in deltas:
-                for vs in (0.005, 0.008, 0.012, 0.018, 0.025, 0.035, 0.05):
-                    if vs < 0.5 * vmin_sel:
-                        continue
-                    f2 = solve((vs, dl))
-                    hump_ok = all(f2.value(f"dstatic_{d}_A") is not None and f2.std(f"dstatic_{d}_A") <= RESOLUTION_A
-                                  for d in ("pos", "neg"))
-                    # a hump enters only if it is determined and lowers the residual clearly (5 %)
-                    if hump_ok and f2.sigma < best[0] * 0.95 and f2.value("dstatic_pos_A") > 0 > f2.value("dstatic_neg_A"):
-                        best = (f2.sigma, (vs, dl), f2)
-        fit, stb = best[2], best[1]
-        if load_col is not None:  # with the load-dependent term: kept when positive and 2 % better
-            f3 = solve(stb, load=True)
-            k3 = f3.value("load_A_per_Nm")
-            if k3 is not None and k3 > 0 and f3.sigma < 0.98 * fit.sigma:
-                fit = f3
-                jr.diagnostics["load_friction_A_per_Nm"] = k3
-                jr.diagnostics["load_friction_std_A_per_Nm"] = f3.std("load_A_per_Nm")
-        vmax = float(np.abs(v[sel]).max())
-        _set_friction_from_fit(jr, fit, vmax, v=v[sel])
-        if stb is not None:
-            for d in ("pos", "neg"):
-                c, dv = jr.friction[f"coulomb_{d}_A"], fit.value(f"dstatic_{d}_A")
-                if c is not None and dv is not None:
-                    jr.set(f"static_{d}_A", c + dv, math.hypot(fit.std(f"dstatic_{d}_A"), jr.std.get(f"coulomb_{d}_A", 0)))
-                else:
-                    jr.set(f"static_{d}_A", None, reason="Stribeck hump not determined")
-            jr.set(STRIBECK_VELOCITY_RAD_S, stb[0], None)
-            jr.set(STRIBECK_EXPONENT, stb[1], None)
-            jr.diagnostics["stribeck"] = "variable projection over a v_s × δ grid (grid resolution, no std)"
-        else:
-            why_s = ("too little sliding below 0.1 rad/s to see a Stribeck hump" if slow_share <= 0.05 else
-                     "a determined Stribeck hump does not lower the residual")
-            for key in (STATIC_POS_A, STATIC_NEG_A, STRIBECK_VELOCITY_RAD_S, STRIBECK_EXPONENT):
-                jr.set(key, None, reason=why_s)
-        # identified base parameters β̂ = c·β_URDF + δβ and their covariance (J·cov·Jᵀ)
-        names = fit.names
-        Jm = np.zeros((base.r, len(names)))
-        if "urdf" in names:
-            Jm[:, names.index("urdf")] = beta_urdf
-        kept = []
-        for k in range(base.r):
-            if f"dbeta{k}" in names:
-                Jm[k, names.index(f"dbeta{k}")] = 1.0
-                kept.append(k)
-        beta = Jm @ fit.theta + (c0 * beta_urdf if given else 0.0)
-        cov_b = Jm @ fit.cov @ Jm.T
-        gu = ctx.grav[sel, j]
-        rng = float(np.ptp(gu))
-        if given is not None:
-            jr.set("torque_constant_Nm_per_A", float(given), None)
-            jr.diagnostics["kt_source"] = "given (--torque-constants or the configuration)"
-        elif rng > 1e-9 and "urdf" in names:  # determined or not: the slope's relative std decides (KT_MAX_REL_STD)
-            wvec = (gu @ Yg[sel]) / (gu @ gu)
-            slope = float(wvec @ beta)
-            sslope = float(np.sqrt(max(wvec @ cov_b @ wvec, 0.0)))
-            _kt_from_slope(jr, slope, sslope, "")
-            if slope > 0:
-                jr.diagnostics["kt_estimate_Nm_per_A"] = 1.0 / slope
-                jr.diagnostics["kt_relative_std"] = sslope / slope
-            jr.diagnostics["kt_source"] = "URDF gravity torque / identified gravity part (reference: the URDF's masses)"
-        else:
-            jr.set("torque_constant_Nm_per_A", None, reason=NO_GRAVITY.format(rng=rng) if rng <= 1e-9 else
-                   "the URDF's rigid-body torque is not separable from the other terms in this data")
-        kt = jr.torque_constant_Nm_per_A
-        own = f"{name}.armature"
-        k_arm = next((k for k, nm_ in enumerate(base.names) if nm_.split(" ")[0] == own), None)  # separable
-        if k_arm is not None and k_arm in kept:
-            arm_A = float(beta[k_arm])
-            notes["armature_kgm2"][name] = None if kt is None else arm_A * kt
-            jr.diagnostics["armature_A_s2_per_rad"] = arm_A
-            jr.diagnostics["armature_std_A_s2_per_rad"] = float(np.sqrt(cov_b[k_arm, k_arm]))
-        elif any(own in nm_ for nm_ in base.names):
-            jr.diagnostics["armature"] = ("rotor inertia merged with link inertia in a base parameter (not separable)"
-                                          if k_arm is None else "rotor inertia not determined by this data")
-        sd = np.sqrt(np.maximum(np.diag(cov_b), 0.0))
-        notes["base_parameters"][name] = {
-            "names": base.names, "current_A": beta.tolist(), "std_A": sd.tolist(), "urdf_Nm": beta_urdf.tolist(),
-            "from_data": [k in kept for k in range(base.r)],
-            "kept_at_urdf": {base.names[k]: fit.dropped.get(f"dbeta{k}", "") for k in range(base.r) if k not in kept}}
-        jr.diagnostics.update({"rows": int(sel.size), "condition_number": fit.cond, "residual_A": fit.sigma,
-                               "base_parameters": base.r, "base_parameters_from_data": len(kept),
-                               "gravity_range_Nm": rng, "acceleration_p90_rad_s2": acc_level})
-        if len(kept) < base.r:
-            ctx.warnings.append(f"{name}: {base.r - len(kept)} of {base.r} base parameters not determined by this log "
-                                f"(kept at the URDF's values); excite more (fourier plan)")
-        _physical(jr)
+    out = [_fit_full_joint(ctx, j, name, notes, stribeck_grid) for j, name in enumerate(ctx.names)]
     return FitResult("full", out, ctx.log.path, str(ctx.robot.urdf_path), list(ctx.warnings), notes)
 
 
@@ -1000,14 +1012,10 @@ def fit_auto(ctx: Context) -> FitResult:
         stb = None
         if vmin < 0.05:
             # variable projection: the linear parameters solved inside, (ln v_s, ln δ) by LM
-            def resid(x: np.ndarray) -> np.ndarray:
-                dl = o.stribeck_exponent or math.exp(x[1])
-                f, _ = _quasistatic_fit(ctx, j, sel, (math.exp(x[0]), dl))
-                return f.residual
-
             x0 = np.array([math.log(0.02), math.log(1.5)])
             try:
-                r = least_squares(resid, x0, method="lm", max_nfev=60, diff_step=0.05)
+                r = least_squares(_stribeck_residual, x0, method="lm", max_nfev=60, diff_step=0.05,
+                                  args=(ctx, j, sel, o.stribeck_exponent))
                 dl = o.stribeck_exponent or math.exp(r.x[1])
                 f2, _ = _quasistatic_fit(ctx, j, sel, (math.exp(r.x[0]), dl))
                 if f2.sigma < fit0.sigma * 0.995 and f2.value("dstatic_pos_A") is not None:

@@ -93,7 +93,8 @@ class RegressorModel:
 
     # ------------------------------------------------------------------------------------ evaluation
 
-    def torque_regressor(self, q: np.ndarray, dq: np.ndarray | None = None, ddq: np.ndarray | None = None) -> np.ndarray:
+    def torque_regressor(self, q: np.ndarray, dq: np.ndarray | None = None,
+                         ddq: np.ndarray | None = None) -> np.ndarray:
         """Y (T × n × 11n) with τ_t = Y_t·π (bodies, then armature); q̇ = q̈ = 0 when not given (gravity)."""
         T = q.shape[0]
         n = self.n

@@ -217,7 +217,8 @@ class FitResult:
     def to_json(self) -> dict[str, Any]:
         return {"method": self.method, "log": self.log, "robot": self.robot,
                 "joints": {j.name: j.to_json() for j in self.joints}, "warnings": list(self.warnings),
-                "notes": _jsonable(self.notes), "elapsed_s": None if self.elapsed_s is None else round(self.elapsed_s, 3)}
+                "notes": _jsonable(self.notes),
+                "elapsed_s": None if self.elapsed_s is None else round(self.elapsed_s, 3)}
 
     def to_params(self):  # noqa: ANN201
         """The params file (dragd.config.ParamsFile) the model, daemon and sim load."""

@@ -10,6 +10,7 @@ Ctrl-C stops the motion along its path (``replay_stop``) and closes the recordin
 
 from __future__ import annotations
 
+import itertools
 import os
 import shutil
 import sys
@@ -60,7 +61,7 @@ def chunks(plan: Plan, chunk_s: float = 600.0) -> list[tuple[float, float]]:
         if t - cuts[-1] >= chunk_s * 0.8 and plan.duration_s - t > 5.0:
             cuts.append(t)
     cuts.append(plan.duration_s)
-    return list(zip(cuts[:-1], cuts[1:]))
+    return list(itertools.pairwise(cuts))
 
 
 def motion_workdir(status: dict[str, Any]) -> Path:
@@ -190,8 +191,8 @@ class _Bar:
             try:
                 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
-                self._rich = Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f} %"),
-                                      TimeRemainingColumn(), transient=False)
+                self._rich = Progress(TextColumn("{task.description}"), BarColumn(),
+                                      TextColumn("{task.percentage:>5.1f} %"), TimeRemainingColumn(), transient=False)
                 self._rich.start()
                 self._task = self._rich.add_task(label, total=self.total)
             except ImportError:  # pragma: no cover
@@ -204,7 +205,8 @@ class _Bar:
         pct = int(10 * min(t, self.total) / self.total)
         if pct != self._last:
             self._last = pct
-            print(f"identify: {self.label}: {10 * pct:3d} % ({t:.0f} / {self.total:.0f} s)", file=sys.stderr, flush=True)
+            print(f"identify: {self.label}: {10 * pct:3d} % ({t:.0f} / {self.total:.0f} s)", file=sys.stderr,
+                  flush=True)
 
     def close(self) -> None:
         if self._rich is not None:

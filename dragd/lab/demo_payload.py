@@ -39,7 +39,7 @@ def _say(progress: bool, text: str) -> None:
 
 
 def _max_deg(a: list[float], b: list[float]) -> float:
-    return max(abs(math.degrees(x - y)) for x, y in zip(a, b))
+    return max(abs(math.degrees(x - y)) for x, y in zip(a, b, strict=True))
 
 
 def _wait_trip(rig: Rig, trips_before: int, timeout_s: float) -> dict[str, Any]:
@@ -87,7 +87,8 @@ def run_payload_demo(config: Path | None = None, out: Path | None = None, progre
     # a config whose params file receives `payload estimate --apply`
     src = Path(config) if config is not None else default_config_path()
     data = yaml.safe_load(src.read_text())
-    if config is not None and isinstance(data.get("robot", {}).get("urdf"), str) and not Path(data["robot"]["urdf"]).is_absolute():
+    if (config is not None and isinstance(data.get("robot", {}).get("urdf"), str)
+            and not Path(data["robot"]["urdf"]).is_absolute()):
         cand = src.parent / data["robot"]["urdf"]
         if cand.exists():
             data["robot"]["urdf"] = str(cand.resolve())
@@ -118,7 +119,8 @@ def run_payload_demo(config: Path | None = None, out: Path | None = None, progre
         if st["mode"] == "fault":
             raise PayloadDemoError("the daemon faulted during hand guiding (not the runaway guard: "
                                    + "; ".join(f["text"] for f in st["faults"][-3:])
-                                   + "); on a loaded machine missed cycles lose the drives' heartbeat: rerun it quieter")
+                                   + "); on a loaded machine missed cycles lose the drives' heartbeat: rerun it "
+                                   "quieter")
         if st["mode"] != "drag":
             rig.must("mode", mode="drag")  # (a false trip held it: counted; drag again for the rest)
             rig.sleep(0.5)

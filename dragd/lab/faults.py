@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from dragd.hardware.cia402 import EMCY_OVER_CURRENT, EMCY_TEMPERATURE_DEVICE
 from dragd.lab.rig import Rig
 
 
@@ -46,8 +47,9 @@ CASES: dict[str, FaultCase] = {
     "duplicates": FaultCase("duplicates", {"frames": 60}, "tolerated", "continue", "duplicate_tpdos"),
     "late_tpdo": FaultCase("late_tpdo", {"delay_ms": 15.0, "seconds": 0.3}, "hold", "continue",
                            "late_tpdo_cycles", 0.4),
-    "emcy": FaultCase("emcy", {"node_id": 2, "code": 0x4210}, "fault", "start", "faults", 0.2, ("EMCY 0x4210",)),
-    "drive_fault": FaultCase("drive_fault", {"node_id": 3, "code": 0x2310}, "fault", "start", "faults", 0.2,
+    "emcy": FaultCase("emcy", {"node_id": 2, "code": EMCY_TEMPERATURE_DEVICE}, "fault", "start", "faults", 0.2,
+                      (f"EMCY 0x{EMCY_TEMPERATURE_DEVICE:04X}",)),
+    "drive_fault": FaultCase("drive_fault", {"node_id": 3, "code": EMCY_OVER_CURRENT}, "fault", "start", "faults", 0.2,
                              ("node 3",)),
     "switched_on": FaultCase("switched_on", {"node_id": 5}, "fault", "start", "faults", 0.3,
                              ("node 5", "left operation enabled")),
@@ -140,7 +142,7 @@ def run_hand_fault(rig: Rig, name: str) -> dict[str, Any]:
         nonlocal max_speed, max_drift
         s = rig.sim_call("state")
         max_speed = max(max_speed, max(abs(v) for v in s["dq_rad_s"]))
-        max_drift = max(max_drift, max(abs(a - b) for a, b in zip(s["q_rad"], q0)))
+        max_drift = max(max_drift, max(abs(a - b) for a, b in zip(s["q_rad"], q0, strict=True)))
 
     def saw(st: dict[str, Any]) -> dict[str, Any]:
         for f in st["faults"][len(st["faults"]) - (st["fault_count"] - before["fault_count"]):]:
@@ -240,7 +242,8 @@ def drag_at_rest(rig: Rig, timeout_s: float = 20.0) -> None:
         else:
             rig.sleep(0.1)
     st = rig.must('status')
-    raise RuntimeError(f"the arm did not reach drag within {timeout_s:.0f} s: {st['mode']}, faults {[f['text'] for f in st['faults']][-4:]}")
+    raise RuntimeError(f"the arm did not reach drag within {timeout_s:.0f} s: {st['mode']}, "
+                       f"faults {[f['text'] for f in st['faults']][-4:]}")
 
 
 def run_fault(rig: Rig, name: str) -> dict[str, Any]:
@@ -267,7 +270,7 @@ def run_fault(rig: Rig, name: str) -> dict[str, Any]:
         nonlocal max_speed, max_drift
         s = rig.sim_call("state")
         max_speed = max(max_speed, max(abs(v) for v in s["dq_rad_s"]))
-        max_drift = max(max_drift, max(abs(a - b) for a, b in zip(s["q_rad"], q0)))
+        max_drift = max(max_drift, max(abs(a - b) for a, b in zip(s["q_rad"], q0, strict=True)))
 
     t_now = rig.now()  # (lockstep: the arm's time stands still until the next grant: the injection lands now)
     injected = rig.sim_call("inject", kind=case.kind, **case.args)

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 
 import yaml
 
+from dragd.hardware.cia301 import DT_UNSIGNED32, OD_MANUFACTURER_AREA
 from dragd.model import RobotModel
 from dragd.robots import urdf_reference
 from dragd.robots.sizing import ENCODER_COUNTS_PER_REV, GEAR_RATIO, JointSizing, size_joints
@@ -125,7 +126,7 @@ def _candidates(od: object, any_of: tuple[str, ...], all_of: tuple[str, ...] = (
 
     out = []
     for obj in od.values():  # type: ignore[attr-defined]
-        if not 0x2000 <= obj.index < 0x6000:
+        if obj.index not in OD_MANUFACTURER_AREA:
             continue
         for var in ([obj] if isinstance(obj, ODVariable) else [v for v in obj.subindices.values() if v.subindex]):
             name = var.name if isinstance(obj, ODVariable) else f"{obj.name}/{var.name}"
@@ -222,7 +223,7 @@ def _eds_config(ref: str, model: RobotModel, sizes: list[JointSizing], gravity: 
 
     probe_cfg, probe = trial(1, 1000.0, "per_node", True)
     prof = probe.profiles[0]  # type: ignore[attr-defined]
-    layout = "shared" if fd and 0x0007 in prof.dummies else "per_node"
+    layout = "shared" if fd and DT_UNSIGNED32 in prof.dummies else "per_node"
     # position targets (607Ah) only for drives that follow motions in CSP: in CST dragd's loop needs none
     targets = prof.target_position is not None and prof.motion_mode == "csp"
     plan = None

@@ -1,4 +1,5 @@
-"""``contact_real``: dragd's contact detector on a real UR10e that was struck and pushed, against the textbook reference.
+"""``contact_real``: dragd's contact detector on a real UR10e that was struck and pushed, against the textbook
+reference.
 
 Data: the public UR10e dataset github:shamilmamedov/dynamic_calibration (no licence: never in this repository; the
 benchmark takes its path, ``dragd bench contact_real --data DIR --json``, DIR = a *git checkout* of that repository,
@@ -209,7 +210,7 @@ def _run(ds: Any, root: Path, tmp: Path, train_spec: Any, Reference: Any, filter
     # 5. the textbook reference, same files
     t0 = time.perf_counter()
     ref = Reference(ds.urdf, ds.gains)
-    ref.fit([filter_data(p.stem, train[p], rows) for p, (_, rows) in zip(ds.train, train_spec)])
+    ref.fit([filter_data(p.stem, train[p], rows) for p, (_, rows) in zip(ds.train, train_spec, strict=True)])
     tb = TextbookDetector(ref)
     ref_res = []
     for n, r in runs:
@@ -219,7 +220,7 @@ def _run(ds: Any, root: Path, tmp: Path, train_spec: Any, Reference: Any, filter
     tb.calibrate(ref_res)
     set_by = {nm: {"log": runs[i][0], "t_s": round(float(cal_logs[runs[i][0]].t[k] - cal_logs[runs[i][0]].t[0]), 2),
                    "speed_rad_s": round(float(abs(cal_logs[runs[i][0]].dq[k, j])), 3)}
-              for j, (nm, (i, k)) in enumerate(zip(names, tb.set_by))}
+              for j, (nm, (i, k)) in enumerate(zip(names, tb.set_by, strict=True))}
     ref_scores = []
     ref_logs: dict[str, Any] = {}
     for name, lg in contact_logs.items():

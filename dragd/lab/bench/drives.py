@@ -206,7 +206,7 @@ def _truth(robot: str, cfg_path: Any, truth_path: Any) -> str | None:
     data = yaml.safe_load(proc.stdout)
     cfg = yaml.safe_load(cfg_path.read_text())
     names = [b["name"] for b in cfg["buses"]]
-    for tj, cj in zip(data["joints"], cfg["joints"]):
+    for tj, cj in zip(data["joints"], cfg["joints"], strict=True):
         tj["bus_index"] = names.index(cj.get("bus", names[0]))
     truth_path.write_text(yaml.safe_dump(data, sort_keys=False))
     return None
@@ -240,7 +240,7 @@ def _datasheet(eds: Any, cfg_path: Any, truth_path: Any) -> dict[str, Any]:
                                           != obj["object"] or have.get("unit") not in (None, obj["unit"])):
             drive[key] = {**have, "object": obj["object"], "unit": obj["unit"]}
             changed[f"drives.{name}.{key}"] = drive[key]
-    for i, (j, (_, row)) in enumerate(zip(cfg["joints"], sheet.items())):
+    for i, (j, (_, row)) in enumerate(zip(cfg["joints"], sheet.items(), strict=True)):
         if first["objects"]["rated_current"]["object"] is None and j["rated_current_A"] != row["rated_current_A"]:
             changed[f"joints[{i}].rated_current_A"] = row["rated_current_A"]
             j["rated_current_A"] = row["rated_current_A"]

@@ -1,8 +1,9 @@
 """Model-gap benchmark (registered with ``dragd bench``): ``gap_10min_s``, the wall time of ``dragd gap`` (load +
 analysis) on 10 min of a 6-joint, 1 kHz daemon-format MCAP with one effect hidden (a 24-cycle/rev ripple on joint 3).
 
-As in dragd/lab/bench/identify.py the log comes through a process boundary (``python -m sim log --config TRUTH``), cached
-under ``$DRAGD_BENCH_CACHE``; the model given is the sim's truth without the ripple (``python -m sim truth --json``).
+As in dragd/lab/bench/identify.py the log comes through a process boundary (``python -m sim log --config TRUTH``),
+cached under ``$DRAGD_BENCH_CACHE``; the model given is the sim's truth without the ripple
+(``python -m sim truth --json``).
 """
 
 from __future__ import annotations

@@ -354,9 +354,11 @@ def _overall(rmse: np.ndarray, cnt: np.ndarray) -> float:
 
 @benchmark("ident_real", "ratio")
 def ident_real(opts: dict) -> tuple[float, dict[str, Any]] | dict[str, Any]:
-    """Held-out RMSE of dragd's fit on a real UR10e's moving runs / the textbook LS reference's, worst pairing (--data DIR).
+    """Held-out RMSE of dragd's fit on a real UR10e's moving runs / the textbook LS reference's, worst pairing
+    (--data DIR).
 
-    The static p1..p10 case (issue #13) in ``detail.with_gains``/``without_gains``; the pairings in ``detail.pairings``."""
+    The static p1..p10 case (issue #13) in ``detail.with_gains``/``without_gains``; the pairings in
+    ``detail.pairings``."""
     data = opts.get("data") or os.environ.get("DRAGD_UR10E_DATA")
     if not data and "ident_real" not in opts.get("selected", ["ident_real"]):  # `dragd bench` (all) without the data
         return {"skipped": "the UR10e dataset is not here (--data DIR or $DRAGD_UR10E_DATA); DIR = " + EXPECTED}
@@ -371,7 +373,7 @@ def ident_real(opts: dict) -> tuple[float, dict[str, Any]] | dict[str, Any]:
     logs = read_logs(ds, names, [p for ts in pair_train for p in ts] + pair_valid)
     t0 = time.perf_counter()
     ref = Reference(ds.urdf, ds.gains)
-    train = [filter_data(p.stem, logs[p], rows) for p, (_, rows) in zip(ds.train, TRAIN)]
+    train = [filter_data(p.stem, logs[p], rows) for p, (_, rows) in zip(ds.train, TRAIN, strict=True)]
     valid = [filter_data(p.stem, logs[p]) for p in ds.valid]
     ref.fit(train)
     e = np.concatenate([tr.i_raw - ref.predict_current(tr) for tr in valid])

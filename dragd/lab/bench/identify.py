@@ -133,8 +133,8 @@ def _run() -> dict[str, Any]:
     # high-frequency current ripple — what no K_t/friction model can predict)
     tp = ParamsFile.model_validate({"joints": {
         nm: {"torque_constant_Nm_per_A": j["torque_constant_Nm_per_A"],
-             "friction": {k: j["friction"][k] for k in ("coulomb_pos_A", "coulomb_neg_A", "static_pos_A", "static_neg_A",
-                                                        "stribeck_velocity_rad_s", "stribeck_exponent",
+             "friction": {k: j["friction"][k] for k in ("coulomb_pos_A", "coulomb_neg_A", "static_pos_A",
+                                                        "static_neg_A", "stribeck_velocity_rad_s", "stribeck_exponent",
                                                         "viscous_pos_A_s_per_rad", "viscous_neg_A_s_per_rad")}}
         for nm, j in truth["joints"].items()}})
     floor = check(vlog, robot, tp, cfg=cfg)

@@ -83,7 +83,8 @@ def profile_summary(stacks: Path, top: int = 25) -> str:
     lines = [f"{stacks.stem}: {total} samples"]
     for title, d in (("self", own), ("inclusive", incl)):
         lines.append(f"  top {title}:")
-        lines += [f"    {100 * c / max(1, total):5.1f} %  {f}" for f, c in sorted(d.items(), key=lambda kv: -kv[1])[:top]]
+        lines += [f"    {100 * c / max(1, total):5.1f} %  {f}"
+                  for f, c in sorted(d.items(), key=lambda kv: -kv[1])[:top]]
     return "\n".join(lines)
 
 
@@ -419,7 +420,8 @@ def bus_load(opts: dict) -> float:
 
     cfg = load_config(opts.get("config"))
     layouts = bus_layouts(cfg)
-    return max(layouts[b.name].budget(cfg.loop.rate_Hz, b.bitrate, b.data_bitrate, 1000.0 / cfg.master.heartbeat_ms).percent
+    heartbeat_Hz = 1000.0 / cfg.master.heartbeat_ms
+    return max(layouts[b.name].budget(cfg.loop.rate_Hz, b.bitrate, b.data_bitrate, heartbeat_Hz).percent
                for b in cfg.buses)
 
 

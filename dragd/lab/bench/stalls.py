@@ -1,12 +1,12 @@
 """The machine's own stalls beside a loop session, and which of the daemon's missed ticks they explain.
 
-A virtual machine's host can stop all of its vCPUs for milliseconds (here, idle, measured with rt-tests'
-cyclictest at SCHED_FIFO 80: 34 of 300,000 wake-ups over 1 ms late on each CPU, up to 11.7 ms; the long ones on
-both CPUs at the same instant; docs/PERFORMANCE.md). No code in the guest can tick through that, so a missed-tick figure mixes the
-machine's stalls with the daemon's own. `StallProbe` measures the machine in the same window: one probe process
-per CPU, pinned, SCHED_FIFO above the daemon's cycle thread, waking on an absolute 1 kHz timerfd and noting every
-wake-up later than ``threshold_us`` (its deadline on CLOCK_MONOTONIC and how late). The probe does nothing else, so
-a wake-up that late is the machine's: the hypervisor, or kernel work (the load's own system calls take tens of µs).
+A virtual machine's host can stop all of its vCPUs for milliseconds (here, idle, measured with rt-tests' cyclictest at
+SCHED_FIFO 80: 34 of 300,000 wake-ups over 1 ms late on each CPU, up to 11.7 ms; the long ones on both CPUs at the same
+instant; docs/PERFORMANCE.md). No code in the guest can tick through that, so a missed-tick figure mixes the machine's
+stalls with the daemon's own. `StallProbe` measures the machine in the same window: one probe process per CPU, pinned,
+SCHED_FIFO above the daemon's cycle thread, waking on an absolute 1 kHz timerfd and noting every wake-up later than
+``threshold_us`` (its deadline on CLOCK_MONOTONIC and how late). The probe does nothing else, so a wake-up that late is
+the machine's: the hypervisor, or kernel work (the load's own system calls take tens of µs).
 
 `attribute` splits the daemon's missed-tick episodes (the control socket's ``missed_ticks``: the late tick's
 CLOCK_MONOTONIC time and the ticks it missed) into the ticks a probe's stall covers (the machine's, in whole periods)

@@ -50,7 +50,7 @@ def _mb_per_h(decimation: int, foxglove: bool) -> float:
         path = Path(d) / "t.mcap"
         w = TelemetryWriter(path, cycle_layout(6), capacity=len(rows) + 1, foxglove=spec,
                             cycle_decimation=decimation)
-        for r, t in zip(rows, t_ns.tolist()):
+        for r, t in zip(rows, t_ns.tolist(), strict=True):
             row = w.begin()
             assert row is not None
             row[:] = r
