@@ -9,7 +9,6 @@ suite fast; the all-joint figures are in docs/EXPERIMENTS.md.
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
 import yaml
