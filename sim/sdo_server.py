@@ -78,8 +78,14 @@ class SdoServer:
                 _, index, subindex = _HEADER.unpack_from(data)
                 raise SdoAbort(ABORT_UNKNOWN_COMMAND, index, subindex,
                                f"command specifier {ccs} not supported (block transfer is not offered)")
-        except SdoAbort as exc:
-            self._abort(exc.code, exc.index, exc.subindex)
+        except SdoAbort as exc:  # (CiA 301: the abort names the transfer's object, whichever object refused it)
+            if ccs in (CCS_INITIATE_DOWNLOAD, CCS_INITIATE_UPLOAD):
+                _, index, subindex = _HEADER.unpack_from(data)
+            elif ccs in (CCS_DOWNLOAD_SEGMENT, CCS_UPLOAD_SEGMENT) and self._mode != _IDLE:
+                index, subindex = self._index, self._subindex
+            else:
+                index, subindex = exc.index, exc.subindex
+            self._abort(exc.code, index, subindex)
         except Exception:  # (a request must never go unanswered: a client would time out and retry)
             log.exception("SDO request %s failed", bytes(data).hex())
             _, index, subindex = _HEADER.unpack_from(data)

@@ -38,10 +38,10 @@ DEFAULT_CONFIG = REPO / "config" / "default.yaml"
 
 
 def run_cli(*args: str, check: bool = True, timeout: float = 120.0,
-            env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
-    """Run ``python -m dragd ARGS`` as a real process."""
+            env: dict[str, str] | None = None, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
+    """Run ``python -m dragd ARGS`` as a real process (in ``cwd``: default the test's)."""
     proc = subprocess.run([sys.executable, "-m", "dragd", *args], capture_output=True, text=True, timeout=timeout,
-                          env=env)
+                          env=env, cwd=cwd)
     if check and proc.returncode != 0:
         raise AssertionError(f"dragd {' '.join(args)} failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}")
     return proc

@@ -5,6 +5,12 @@ with ``dragd `` or ``./dev ``. Each one is run as a real process (``bash -c``, t
 PATH) in a fresh copy of a folder holding the files the documents name (plan.npz, log.mcap, params.yaml, ...),
 against a simulated robot and daemon (``dragd.lab.rig.Rig``) that ``$DRAGD_SOCKET`` and ``$DRAGD_CONFIG`` point to.
 
+That docs rig runs on the lockstep clock (lockstep tier): the preparation says how long the arm runs (``Rig.sleep``),
+and a documented command talking to it runs while its time runs freely (``Rig.running``: as fast as both processes go,
+no cycle ever missed), as the user's commands meet a daemon that runs on. A documented command that starts its own
+simulator and daemon on the wall clock (``dragd demo``, the loop benchmarks, ``dragd experiment`` without
+``--lockstep``) is the deployed real-time path: those run in the wall-clock rig tier (``Rule.wall``).
+
 How a command runs is decided by ``RULES``, an ordered table of patterns; a command that matches none fails, so a new
 documented command needs a rule. The text is changed only by ``./dev X`` → ``dragd X`` (the wrapper only installs
 first), by ``PLACEHOLDERS`` (an inline span's FILE, NAME, Q1,...; deployment paths such as /var/lib/dragd/), by an
@@ -191,6 +197,7 @@ class Rule:
     slow: bool = False
     tool: bool = False  # run only where its program is installed
     ready: str = "sim: running"  # a service's line on its output once it serves
+    wall: bool = False  # starts its own simulator + daemon on the wall clock (unless told --lockstep): the rig tier
 
 
 RULES: list[Rule] = [
@@ -277,33 +284,33 @@ RULES: list[Rule] = [
     Rule(r"^(sed|mkdir|cp|systemd-analyze|systemd-sysusers|systemd-tmpfiles) ", "run", "systemd's offline checks",
          tool=True),
     # long: the shortest documented options
-    Rule(r"^dragd demo --scenario payload\b", "run", "sim + daemon (its own length, ~1 min)", slow=True),
+    Rule(r"^dragd demo --scenario payload\b", "run", "sim + daemon (its own length, ~1 min)", slow=True, wall=True),
     Rule(r"^dragd demo --scenario contact\b", "help", "sim + daemon, two sessions (~10 min on a loaded machine): "
                                                      "tests/test_contact_daemon.py runs its parts on the lockstep clock"),
-    Rule(r"^dragd demo --scenario teach\b", "run", "sim + daemon", extra="--seconds 6", slow=True),
+    Rule(r"^dragd demo --scenario teach\b", "run", "sim + daemon", extra="--seconds 6", slow=True, wall=True),
     Rule(r"^dragd demo --scenario buttons\b", "help", "sim + daemon, ~1.5 min: tests/test_hand_lockstep.py runs the same "
                                                    "session (run_buttons_demo, lockstep tier)"),
-    Rule(r"^dragd demo\b", "run", "sim + daemon", extra="--seconds 8", slow=True),
+    Rule(r"^dragd demo\b", "run", "sim + daemon", extra="--seconds 8", slow=True, wall=True),
     Rule(r"^dragd bench --list$", "run", "offline"),
     Rule(r"^dragd bench (compensation_us|bus_load|io_cycle_us|contact_cycle_us)( |$)", "run", "offline"),
     Rule(r"^dragd bench drive_profiles\b", "run", "sim + daemon per EDS file (two in-repo variants here)", slow=True),
     Rule(r"^dragd bench yardstick_us --json$", "run", "offline"),
     Rule(r"^dragd bench (daemon_cpu_us_per_cycle|yardstick_us (compensation_us )?lockstep_)", "run",
          "sim + daemon (wall or lockstep clock)",
-         extra="--seconds 3", slow=True),
-    Rule(r"^dragd bench ros2_", "run", "sim + daemon + the ROS 2 bridge", extra="--seconds 2", slow=True),
+         extra="--seconds 3", slow=True, wall=True),
+    Rule(r"^dragd bench ros2_", "run", "sim + daemon + the ROS 2 bridge", extra="--seconds 2", slow=True, wall=True),
     Rule(r"^dragd bench fault_matrix\b", "run", "sim + daemon: every injectable fault in turn", slow=True),
     Rule(r"^dragd bench (loop_|--json$)", "run", "sim + daemon (every benchmark: the case matrix cut to two cases)",
-         extra="--seconds 3 --cases none__ptp_0,pair__backlash1+payload --jobs 1", slow=True),
+         extra="--seconds 3 --cases none__ptp_0,pair__backlash1+payload --jobs 1", slow=True, wall=True),
     Rule(r"^dragd bench gap_confusion\b", "run", "the independent case matrix: two of its cases here (all: ~30 min)",
          extra="--cases none__ptp_0,pair__backlash1+payload --jobs 1", slow=True),
     Rule(r"^dragd bench (identify_|gap_|telemetry_)", "run", "a 10 min log (generated once, cached)", slow=True),
     Rule(r"^dragd experiment startup\b", "run", "sim + daemon", extra="--joints 4 --ramp-s 4",
-         before=("identified",), slow=True),
+         before=("identified",), slow=True, wall=True),
     Rule(r"^dragd experiment sine-sweep\b", "run", "sim + daemon", extra="--joint 4 --frequencies 8,16 --ramp-s 4",
-         before=("identified",), slow=True),
+         before=("identified",), slow=True, wall=True),
     Rule(r"^dragd experiment drag-quality\b", "run", "sim + daemon", extra="--joints 4 --ramp-s 4",
-         before=("identified",), slow=True),
+         before=("identified",), slow=True, wall=True),
 ]
 
 
@@ -312,8 +319,12 @@ def rule_for(line: str) -> Rule | None:
 
 
 def _param(cmd: Command) -> object:
-    rule = rule_for(command_line(cmd))
+    line = command_line(cmd)
+    rule = rule_for(line)
     marks = [pytest.mark.slow] if rule is not None and rule.slow else []
+    wall = rule is not None and rule.wall and not re.search(r"--lockstep\b|^dragd bench yardstick_us (compensation_us )?"
+                                                            r"lockstep_\w+( lockstep_\w+)* --", line)
+    marks.append(pytest.mark.rig if wall else pytest.mark.lockstep)
     return pytest.param(cmd, id=cmd.id, marks=marks)
 
 
@@ -399,12 +410,10 @@ class Env:
         _fixture_files(self.fixtures, lambda line: self.shell(line, self.fixtures, check=True, timeout=600))
 
     def _config(self) -> Path:
-        """The default configuration with the test's program folder and watchdogs loose enough for a shared machine."""
+        """The default configuration (its watchdogs: the docs rig runs on the lockstep clock) with the test's program
+        folder."""
         data = yaml.safe_load((REPO / "config" / "default.yaml").read_text())
         data["robot"]["urdf"] = "seed_cobot"
-        data.setdefault("safety", {})["rpdo_timeout_ms"] = 500
-        data.setdefault("master", {})["heartbeat_consumer_ms"] = 2000
-        data.setdefault("loop", {}).update(stale_cycles_hold=400, stale_cycles_disable=2000, fresh_cycles_resume=20)
         data.setdefault("replay", {})["program_dir"] = str(self.root / "programs")
         path = self.root / "dragd.yaml"
         path.write_text(yaml.safe_dump(data, sort_keys=False))
@@ -460,15 +469,16 @@ class Env:
             self.shell(line, self.fixtures, check=True, timeout=900)
 
     # the rig
-    def start_rig(self, lockstep: bool = False) -> Rig:
-        """The docs rig, on the wall clock, or on the lockstep clock for the commands of docs/LOCKSTEP.md."""
-        if self.rig is None or not (self.rig.daemon and self.rig.daemon.alive()) or self.rig.lockstep != lockstep:
+    def start_rig(self) -> Rig:
+        """The docs rig, on the lockstep clock, its time standing still (a command's preparation grants it)."""
+        if self.rig is None or not (self.rig.daemon and self.rig.daemon.alive()):
             if self.rig is not None:
                 self.rig.close()
             self.rig = Rig("docs", workdir=self.root / f"rig{time.monotonic_ns()}", config=self.config,
-                           lockstep=lockstep)
+                           lockstep=True)
             self.rig.start_sim()
             self.rig.start_daemon()
+        self.rig.must("clock", action="pause")  # (docs/LOCKSTEP.md's 'dragd clock run' leaves it running)
         return self.rig
 
     def stop_rig(self) -> None:
@@ -480,7 +490,7 @@ class Env:
 
     def prepare(self, before: tuple[str, ...], line: str = "", work: Path | None = None) -> None:
         """Bring the rig into the state a documented command expects (what the document's previous lines did)."""
-        rig = self.start_rig(lockstep="lockstep" in before)
+        rig = self.start_rig()
         for what in before:
             if what == "fresh_out":  # a run's --out is a new file (it refuses to overwrite)
                 out = Path(shlex.split(line)[shlex.split(line).index("--out") + 1])
@@ -500,7 +510,7 @@ class Env:
                 if not status.get("drives_enabled") or status.get("mode") == "fault":
                     rig.must("start")
                 rig.must("mode", mode="hold")
-                time.sleep(0.5)
+                rig.sleep(0.5)
             elif what == "no_replay":
                 self._stop_replay(rig, status)
             elif what == "new_program":
@@ -531,11 +541,12 @@ class Env:
         """No teaching session, no motion (a replay or identification run stopped and ended)."""
         if status.get("teach"):
             rig.must("teach", action="stop")
-        end = time.monotonic() + 60
-        while rig.must("status").get("trajectory") is not None:
-            assert time.monotonic() < end, f"a motion does not end: {rig.must('status').get('trajectory')}"
+        for _ in range(300):  # 60 s of the arm's time
+            if rig.must("status").get("trajectory") is None:
+                return
             rig.call("replay_stop")
-            time.sleep(0.2)
+            rig.sleep(0.2)
+        raise AssertionError(f"a motion does not end: {rig.must('status').get('trajectory')}")
 
     def close(self) -> None:
         if self.rig is not None:
@@ -567,8 +578,7 @@ def test_every_command_has_a_rule(cmd: Command) -> None:
         f"(documented as '{cmd.text}'): add one saying how it is run")
 
 
-@pytest.mark.rig
-@pytest.mark.slow  # every documented command against a sim + daemon rig: ~6 min, in CI (./dev test --all)
+@pytest.mark.slow  # every documented command against a sim + daemon rig, in CI (./dev test --all); tier per command
 @pytest.mark.parametrize("cmd", [_param(c) for c in ALL])
 def test_documented_command_runs(cmd: Command, env: Env) -> None:
     line = command_line(cmd)
@@ -598,7 +608,10 @@ def test_documented_command_runs(cmd: Command, env: Env) -> None:
         line = first_alternatives(line) if cmd.kind == "span" else line
         if rule.rig:
             env.prepare(rule.before, line, work)
-        _run_service(env, line, work, where, rule.ready)
+            with env.rig.running():  # (a service beside the daemon paces itself on the wall clock)
+                _run_service(env, line, work, where, rule.ready)
+        else:
+            _run_service(env, line, work, where, rule.ready)
     else:
         if rule.tool and shutil.which(line.split()[0]) is None:
             pytest.skip(f"{line.split()[0]} is not installed here")
@@ -617,7 +630,11 @@ def test_documented_command_runs(cmd: Command, env: Env) -> None:
         elif rule.slow:  # its own sim + daemon, or a long offline run: not beside the docs rig
             env.stop_rig()
         full = f"{line} {rule.extra}".strip()
-        proc = env.shell(full, work, timeout=1700 if rule.slow else 300)
+        if rule.rig and "lockstep" not in rule.before:  # the daemon runs on while the command talks to it
+            with env.rig.running():
+                proc = env.shell(full, work, timeout=1700 if rule.slow else 300)
+        else:
+            proc = env.shell(full, work, timeout=1700 if rule.slow else 300)
         failure = None if proc.returncode == 0 else \
             f"exit {proc.returncode}\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
         if key is not None:

@@ -9,7 +9,6 @@ suite fast; the all-joint figures are in docs/EXPERIMENTS.md.
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
 import yaml
@@ -32,9 +31,9 @@ def short(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def startup(tmp_path_factory):
-    work = tmp_path_factory.mktemp("startup")
-    proc = run_cli("experiment", "startup", "--joints", "4", "--reps", "2", "--ramp-s", "5", "--work-dir", str(work),
-                   "--plots", str(work / "plots"), "--lockstep", "--json", timeout=1500)
+    work = tmp_path_factory.mktemp("startup")  # given as a relative path, as a user types it (the rigs run inside it)
+    proc = run_cli("experiment", "startup", "--joints", "4", "--reps", "2", "--ramp-s", "5", "--work-dir", work.name,
+                   "--plots", f"{work.name}/plots", "--lockstep", "--json", timeout=1500, cwd=work.parent)
     return work, json.loads(proc.stdout)
 
 
@@ -52,7 +51,7 @@ def test_startup_identifies_first_and_cuts_the_starting_torque(startup):
     assert j["reduction_pct"] > 60.0, j  # measured 85 % (docs/EXPERIMENTS.md); seed 001: 60.58 % mean
     assert j["oscillation_deg"] <= 0.06
     assert data["mean_reduction_pct"] == pytest.approx(j["reduction_pct"], abs=0.01)
-    assert all(Path(p).stat().st_size > 10_000 for p in data["plots"])
+    assert all((work.parent / p).stat().st_size > 10_000 for p in data["plots"])
 
 
 def test_sine_sweep_picks_a_frequency_writes_it_and_beats_the_published_hand_over(startup, short):

@@ -161,8 +161,10 @@ class Rig:
                  env: dict[str, str] | None = None, bus: str | None = None,
                  allow_dirs: list[Path] | None = None, as_deployed: bool = False, lockstep: bool | None = None,
                  drag_guard: str = "lab") -> None:
-        self.workdir = Path(workdir or tempfile.mkdtemp(prefix=f"dragd-{tag}-"))
+        # absolute paths: the processes run in the work folder (cwd), where a relative path would name another file
+        self.workdir = Path(workdir or tempfile.mkdtemp(prefix=f"dragd-{tag}-")).resolve()
         self.workdir.mkdir(parents=True, exist_ok=True)
+        config, sim_config, telemetry = (None if p is None else Path(p).resolve() for p in (config, sim_config, telemetry))
         if bus is not None and group is not None:
             raise ValueError(f"Rig: give either bus ({bus!r}) or group ({group!r}), not both")
         self.group = None if bus is not None else (group or multicast_group(tag))
@@ -194,7 +196,7 @@ class Rig:
         self.lease: LeaseHolder | None = None  # a drag lease the rig holds (drag())
         self._lease_t = 0.0  # lockstep: the simulated time of its last renewal
         self.lease_error: str | None = None  # why the wall clock's renewal thread stopped
-        self.allow_dirs = [self.workdir, *(allow_dirs or [])]  # where the daemon may write what the rig asks
+        self.allow_dirs = [self.workdir, *(Path(d).resolve() for d in allow_dirs or [])]  # where the daemon may write what the rig asks
         self.env = env
         self.sim: Child | None = None
         self.daemon: Child | None = None

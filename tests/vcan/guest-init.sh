@@ -16,6 +16,10 @@ $B mount -t tmpfs shm /dev/shm
 $B mount -t 9p -o trans=virtio,version=9p2000.L,msize=262144 share "$dragd_share" \
   || fail "mounting the writable share (9p tag share) on $dragd_share"
 [ -f "$dragd_share/guest.env" ] || fail "no guest.env in the share"
+# the compiled numba kernels, kept on the host across boots (tests/vcan/harness.py); without it: a tmpfs, compiled anew
+$B mkdir -p /run/numba
+$B mount -t 9p -o trans=virtio,version=9p2000.L,msize=262144 numba /run/numba \
+  || say "no numba cache share (9p tag numba): kernels compile at this boot"
 . "$dragd_share/guest.env"
 
 $B ip link set lo up
@@ -30,7 +34,7 @@ done
 cd "$REPO" || fail "no repository at $REPO"
 [ -x "$PYTHON" ] || fail "no venv python at $PYTHON"
 say "running: $*"
-HOME=/run/home TMPDIR=/run/tmp MPLCONFIGDIR=/run/home/mpl XDG_CACHE_HOME=/run/home/cache PYTHONDONTWRITEBYTECODE=1 \
+HOME=/run/home TMPDIR=/run/tmp MPLCONFIGDIR=/run/home/mpl XDG_CACHE_HOME=/run/home/cache NUMBA_CACHE_DIR=/run/numba PYTHONDONTWRITEBYTECODE=1 \
   PYTHONUNBUFFERED=1 LANG=C.UTF-8 PATH=/usr/local/bin:/usr/bin:/bin \
   DRAGD_VCAN_BUS="$DRAGD_VCAN_BUS" DRAGD_VCAN_SIM_BUS="$DRAGD_VCAN_SIM_BUS" DRAGD_VCAN_LOOP_HZ="$DRAGD_VCAN_LOOP_HZ" \
   DRAGD_VCAN_PHYSICS_HZ="$DRAGD_VCAN_PHYSICS_HZ" DRAGD_VCAN_GUEST=1 \

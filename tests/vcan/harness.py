@@ -13,7 +13,9 @@ CI, whose kernels are built without CAN -- it runs inside a small throw-away gue
   1 GIPS CPU, idle time skipped), so its timing does not depend on the host's load.
 
 Everything downloaded or built is cached in ``$DRAGD_VCAN_CACHE`` (default ``~/.cache/dragd-vcan``); a warm
-run touches neither apt nor the network. Delete the directory to rebuild (e.g. for a newer kernel).
+run touches neither apt nor the network. The guest's numba cache is ``$DRAGD_VCAN_CACHE/numba`` (a third 9p share,
+``NUMBA_CACHE_DIR``): the simulator's and the daemon's kernels are compiled under TCG once, not at every boot.
+Delete the directory to rebuild (e.g. for a newer kernel).
 
 Environment:
   DRAGD_VCAN_MODE       auto (default) | guest | local
@@ -444,6 +446,8 @@ def boot(guest: Guest, qemu: str, extra: list[str], cache: Path, timeout_s: floa
     for old in sorted(runs.glob("run-*"), key=lambda p: p.stat().st_mtime)[:-5]:  # keep the last failed runs' logs
         shutil.rmtree(old, ignore_errors=True)
     share = Path(tempfile.mkdtemp(prefix="run-", dir=runs))
+    numba_cache = cache / "numba"  # the guest's compiled kernels, kept across boots (compiling them under TCG took
+    numba_cache.mkdir(exist_ok=True)  # most of a run's start-up; numba's index follows the sources' path and mtime)
     check_guest_paths({"the repository": REPO, "the cache": cache, "the venv's python": REPO / ".venv/bin/python"})
     write_guest_env(share, extra)
     argv = [qemu, "-accel", "tcg,thread=single", "-icount", "shift=0,sleep=off", "-cpu", "max", "-smp", "1",
@@ -453,7 +457,8 @@ def boot(guest: Guest, qemu: str, extra: list[str], cache: Path, timeout_s: floa
             "-append", f"console=ttyS0 quiet panic=-1 dragd_busybox={guest.busybox} dragd_init={GUEST_INIT} "
                        f"dragd_share={share}",
             "-virtfs", "local,path=/,mount_tag=hostroot,security_model=none,readonly=on,multidevs=remap",
-            "-virtfs", f"local,path={share},mount_tag=share,security_model=none,multidevs=remap"]
+            "-virtfs", f"local,path={share},mount_tag=share,security_model=none,multidevs=remap",
+            "-virtfs", f"local,path={numba_cache},mount_tag=numba,security_model=none,multidevs=remap"]
     say(f"booting the guest ({kernel.name}, QEMU TCG, 1 vCPU, icount) ...")
     t0 = time.monotonic()
     proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)

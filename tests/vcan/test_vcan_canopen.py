@@ -2,10 +2,10 @@
 
 The protocol tests are tests/test_sim_canopen.py's own, imported unchanged: here their ``rig`` fixture is a
 python-can ``SocketcanBus`` on ``DRAGD_VCAN_BUS`` (CAN_RAW socket, CAN FD frames enabled) and the simulator
-process (``python -m sim run --bus socketcan:vcan0``) runs on ``DRAGD_VCAN_SIM_BUS``. Covered: boot-up, SDO
-(expedited, segmented, aborts), NMT and heartbeats, the 402 walk and quick stop, master heartbeat loss
-(the master heartbeat is ``send_periodic``: a kernel-timed CAN_BCM task on SocketCAN), TPDO remap in
-pre-operational and TPDOs on SYNC, event TPDOs, the shared RPDO with dummy entries, the RPDO-timeout
+process (``python -m sim run --bus socketcan:vcan0 --lockstep``) runs on ``DRAGD_VCAN_SIM_BUS``, its clock stepped by
+the test's SYNCs as on the host (test_sim_canopen.FrameLog: the TIME frame of each period crosses the kernel too).
+Covered: boot-up, SDO (expedited, segmented, aborts), NMT and heartbeats, the 402 walk and quick stop, master heartbeat
+loss, TPDO remap in pre-operational and TPDOs on SYNC, event TPDOs, the shared RPDO with dummy entries, the RPDO-timeout
 reaction. Plus SocketCAN specifics: kernel CAN_RAW filters, error frames, CAN FD frames on the wire.
 """
 
@@ -50,19 +50,19 @@ def rig(tmp_path_factory: pytest.TempPathFactory) -> Iterator[base.Rig]:
     """test_sim_canopen's Rig on SocketCAN: the client's bus, canopen network, frame log; the sim process."""
     bus = open_bus(parse_bus(BUS, fd=base.TRUTH.bus.fd))
     assert isinstance(bus, SocketcanBus), type(bus)
-    log = base.FrameLog()
+    log = base.FrameLog(bus.send)
     net = canopen.Network(bus)
     net.connect()
     net.notifier.add_listener(log)
     nodes = {}
     for n in base.NODES:
         node = canopen.RemoteNode(n, str(base.EDS))
-        node.sdo.RESPONSE_TIMEOUT = 1.0
+        node.sdo.RESPONSE_TIMEOUT = base.GUARD_S
         net.add_node(node)
         nodes[n] = node
     boot_mark = log.mark()
     sim = Processes("vcan-canopen", workdir=tmp_path_factory.mktemp("canopen"), bus=SIM_BUS,
-                    sim_args=["--physics-rate-Hz", str(PHYSICS_HZ)])
+                    sim_args=["--physics-rate-Hz", str(PHYSICS_HZ)], lockstep=True)
     try:
         sim.start_sim(timeout_s=START_TIMEOUT_S)
         r = base.Rig(bus, net, nodes, log, boot_mark)
@@ -111,11 +111,9 @@ def test_kernel_can_raw_filters(rig: base.Rig) -> None:
         rig.nodes[3].sdo[0x1017].raw = 10  # node 3: heartbeat every 10 ms
         rig.nodes[2].sdo[0x1017].raw = 10
         seen: set[int] = set()
-        end = time.monotonic() + 1.0
-        while time.monotonic() < end:
-            msg = filtered.recv(0.1)
-            if msg is not None:
-                seen.add(msg.arbitration_id)
+        rig.log.sleep(0.1)  # 100 periods: ten heartbeats of each, and the SYNCs and TIME frames
+        while (msg := filtered.recv(0.1)) is not None:
+            seen.add(msg.arbitration_id)
         assert seen == {0x703}, sorted(hex(c) for c in seen)
     finally:
         rig.nodes[3].sdo[0x1017].raw = 0
@@ -163,7 +161,7 @@ def test_sync_tpdo_round_trip_through_the_kernel(rig: base.Rig) -> None:
     """All six drives answer one SYNC with their TPDO1 (statusword, position, current) via vcan0."""
     rig.reset_all()
     rig.nmt(0x01)
-    time.sleep(0.05)
+    rig.log.sleep(0.05)
     mark = rig.log.mark()
     rig.sync()
     for n in base.NODES:

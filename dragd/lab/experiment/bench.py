@@ -33,7 +33,9 @@ class Bench:
     _count: int = field(default=0, init=False)
 
     def __post_init__(self) -> None:
+        self.workdir = Path(self.workdir).resolve()  # (its commands and rigs run inside it: a relative path would miss)
         self.workdir.mkdir(parents=True, exist_ok=True)
+        self.params = Path(self.params).resolve() if self.params else None
         self.config = Path(self.config) if self.config else default_config_path()
         self.cfg: Config = load_config(self.config, self.params)
 
