@@ -24,7 +24,9 @@ def cmd_ros2(args: argparse.Namespace) -> int:
 
     bridge = Bridge(args.socket, ros_args=args.ros_args or [], node_name=args.node_name,
                     joint_states_rate_Hz=args.rate)
-    code = asyncio.run(bridge.run())
+    # not asyncio.run: its cleanup waits for every task left to end on its cancel, and run() has closed what counts
+    # (the stream, the lease) and bounded each step of its teardown (Bridge._bounded)
+    code = asyncio.new_event_loop().run_until_complete(bridge.run())
     # the middleware's own threads (DDS, the executor's pool) are joined at interpreter exit, and one blocked in a
     # native wait would hold a SIGTERM'd bridge up: everything of ours is closed, so the process ends here
     sys.stdout.flush()

@@ -48,7 +48,8 @@ from dragd.client import Client, CommandError, DaemonUnavailable
 from dragd.ros2 import convert
 
 CONNECT_RETRY_S = 1.0
-SHUTDOWN_GUARD_S = 15.0  # SIGTERM: the stream and the lease are closed within ~2 s; a teardown stuck longer ends here
+TEARDOWN_STEP_S = 1.0  # SIGTERM: each step of the teardown at most this long (Bridge._bounded)
+SHUTDOWN_GUARD_S = 15.0  # SIGTERM: the teardown ends within ~9 s (Bridge._bounded); a process stuck longer ends here
 OPEN_RETRY_S = 1.0  # a stream_open the daemon refused (not in hold) is tried again after this long
 RESUMABLE = ("timeout", "closed")  # stream ends after which new commands may open a new stream by themselves
 
@@ -182,7 +183,7 @@ class Bridge:
         finally:
             for t in tasks:
                 t.cancel()
-            await asyncio.gather(*tasks, return_exceptions=True)
+            await self._bounded(asyncio.gather(*tasks, return_exceptions=True), "the pollers' end", tasks)
             if self.stream_id is not None:  # a clean exit ends its stream at once (a dead bridge: the deadline)
                 try:
                     await self.stream.call("stream_close", stream=self.stream_id, timeout_s=1.0)
@@ -194,9 +195,25 @@ class Bridge:
                 except (CommandError, DaemonUnavailable):
                     pass
             for c in (self.poll, self.stream, self.act, self.side, self.lists, self.keep):
-                await c.close()
+                await self._bounded(c.close(), "a daemon connection's close")
             self.node.close()
         return 0
+
+    @staticmethod
+    async def _bounded(aw: Any, what: str, tasks: Sequence[asyncio.Task[Any]] = ()) -> None:
+        """One step of the teardown after SIGTERM, at most ``TEARDOWN_STEP_S``: the stream and the lease are closed
+        by then (or end by their deadlines in the daemon, as for a bridge that died), and a step that does not end is
+        said with where its tasks stood instead of holding the exit up."""
+        fut = asyncio.ensure_future(aw)
+        done, _ = await asyncio.wait({fut}, timeout=TEARDOWN_STEP_S)  # (not wait_for: it would wait for the cancel)
+        if done:
+            fut.result()
+            return
+        print(f"dragd ros2: {what} did not end within {TEARDOWN_STEP_S:g} s of the shutdown; going on",
+              file=sys.stderr, flush=True)
+        for t in tasks:
+            if not t.done():
+                t.print_stack(file=sys.stderr)
 
     async def _forever(self, poller: Any) -> None:
         """A poller that fails (a bug, an answer of an unexpected shape) says why and starts again."""
