@@ -181,11 +181,16 @@ def test_topic_qos_pairs_are_compatible():
     src = REPOS[TBR].show("src/topic_based_system.cpp")
     assert re.search(r'get_hardware_parameter\("joint_commands_topic"[^)]*\)\s*,\s*rclcpp::QoS\(1\)', src)
     assert re.search(r'get_hardware_parameter\("joint_states_topic"[^)]*\)\s*,\s*rclcpp::SensorDataQoS\(\)', src)
+    from rclpy.qos import ReliabilityPolicy
+
+    from dragd.ros2.node import COMMANDS_QOS
+
     node_src = (ROOT / "dragd" / "ros2" / "node.py").read_text(encoding="utf-8")
-    assert re.search(r'create_subscription\(JointState, "~/joint_commands", self._on_command, qos_profile_sensor_data',
-                     node_src)
+    assert re.search(r'create_subscription\(JointState, "~/joint_commands", self._on_command, COMMANDS_QOS', node_src)
     assert 'create_publisher(JointState, "/joint_states", 10)' in node_src
-    commands = qos_check_compatible(QoSProfile(depth=1), qos_profile_sensor_data)  # their publisher, our reader
+    # best effort takes a reliable publisher (theirs) and a best-effort one (a controller's sensor-data QoS) alike
+    assert COMMANDS_QOS.reliability == ReliabilityPolicy.BEST_EFFORT
+    commands = qos_check_compatible(QoSProfile(depth=1), COMMANDS_QOS)  # their publisher, our reader
     states = qos_check_compatible(QoSProfile(depth=10), qos_profile_sensor_data)  # our publisher, their reader
     # (WARNING: only that liveliness is the middleware's default on both sides, which rclpy cannot judge)
     for verdict, why in (commands, states):

@@ -11,8 +11,10 @@ daemon's reason and goes out on ``~/status``.
 
 What needs a living client:
 
-- **streamed commands**: the bridge forwards each ``~/joint_commands`` message at most once, as it arrives, one in
-  flight at a time (a newer one replaces one not yet sent: no backlog), and never repeats one; a silent
+- **streamed commands**: the bridge forwards each ``~/joint_commands`` message at most once, as it arrives, in order,
+  at most ``STREAM_IN_FLIGHT`` requests in flight on the stream's connection (the daemon answers them in order) and
+  as many waiting (beyond, the oldest waiting one gives way: no backlog that could reach the arm late), and never
+  repeats one; a silent
   controller, a dead bridge or a partitioned DDS all end in the daemon's stream deadline (``stream.timeout_s``)
   and HOLD.
 - **drag**: ``~/drag`` and ``~/teach/start`` need ``~/drag_keepalive`` (std_msgs/Empty, at least every
@@ -32,6 +34,7 @@ which ask the lockstep clock for the time they need: it never sleeps for arm tim
 from __future__ import annotations
 
 import asyncio
+import collections
 import datetime
 import faulthandler
 import json
@@ -52,6 +55,10 @@ TEARDOWN_STEP_S = 1.0  # SIGTERM: each step of the teardown at most this long (B
 SHUTDOWN_GUARD_S = 15.0  # SIGTERM: the teardown ends within ~9 s (Bridge._bounded); a process stuck longer ends here
 OPEN_RETRY_S = 1.0  # a stream_open the daemon refused (not in hold) is tried again after this long
 RESUMABLE = ("timeout", "closed")  # stream ends after which new commands may open a new stream by themselves
+# stream samples sent and not yet answered, at most: a 1 kHz stream's 8 ms (far inside stream.delay_s), so that the
+# stream's rate is not one sample per round trip to the daemon (~1-5 ms on a loaded 2-core host) and none is
+# coalesced away while the daemon keeps up
+STREAM_IN_FLIGHT = 8
 
 
 class Bridge:
@@ -83,7 +90,9 @@ class Bridge:
         self.open_refused_at = -1e9
         self.latched: str | None = None  # why commands are not forwarded until ~/streaming true
         self.forwarded = self.dropped = self.refused = self.coalesced = 0
-        self._pending: tuple[int, float, list[float]] | None = None  # the newest command not yet sent
+        self.lost = 0  # commands the middleware lost before the bridge (gaps in their publishers' sequence numbers)
+        # commands not yet sent, oldest first (at most STREAM_IN_FLIGHT: beyond, the oldest is dropped, coalesced)
+        self._pending: collections.deque[tuple[int, float, list[float]]] = collections.deque()
         self._command_ready = asyncio.Event()
         self._stream_error_seen: int | None = None
         # drag by the bridge: the daemon's drag lease it holds, renewed per keepalive
@@ -371,7 +380,7 @@ class Bridge:
                                                       if not self.connected else latched or "ok"),
                 "stream_enabled": self.stream_enabled, "stream": self.stream_id, "stream_latched": latched,
                 "commands_forwarded": self.forwarded, "commands_dropped": self.dropped,
-                "commands_coalesced": self.coalesced,
+                "commands_coalesced": self.coalesced, "commands_lost": self.lost,
                 "commands_refused": self.refused, "drag_by_bridge": self.drag_by_bridge, "drag_lease": self.lease,
                 "lease_renewals": self.renewals, "keepalive_present": self.keepalive_present,
                 "clock": "lockstep (the daemon's simulated time, on /clock)" if self.lockstep else "wall"}
@@ -444,8 +453,10 @@ class Bridge:
 
     # ------------------------------------------------------------------------------------------ the command stream
 
-    def on_command(self, stamp_s: float, names: list[str], positions: list[float]) -> None:
-        """A ``~/joint_commands`` message (the topic_based_ros2_control pair): forwarded once, never repeated."""
+    def on_command(self, stamp_s: float, names: list[str], positions: list[float], lost: int = 0) -> None:
+        """A ``~/joint_commands`` message (the topic_based_ros2_control pair): forwarded once, never repeated.
+        ``lost``: its publisher's commands the middleware lost before it (counted, said in the diagnostics)."""
+        self.lost += lost
         if not self.stream_enabled or self.latched is not None or not self.joints:
             self.dropped += 1
             return
@@ -462,22 +473,36 @@ class Bridge:
                 self.opening = True
                 self._spawn(self._open())
             return
-        if self._pending is not None:
-            self.coalesced += 1  # a newer command before the last one left: only the newest goes
-        self._pending = (self.stream_id, t, q)
+        if len(self._pending) >= STREAM_IN_FLIGHT:
+            self._pending.popleft()  # the daemon is that far behind: the oldest not yet sent gives way (no backlog)
+            self.coalesced += 1
+        self._pending.append((self.stream_id, t, q))
         self._command_ready.set()
 
     async def _forward(self) -> None:
-        """One sample in flight at a time, always the newest command (no backlog that could reach the arm late:
-        a command older than the newest is dropped, none is sent twice)."""
+        """Each command as it comes, in order, at most ``STREAM_IN_FLIGHT`` unanswered (the connection keeps their
+        order; the daemon answers them in order) and as many waiting (``on_command``: beyond, the oldest waiting one
+        is dropped, counted as coalesced: no backlog that could reach the arm late); none is sent twice."""
+        slots = asyncio.Semaphore(STREAM_IN_FLIGHT)
         while True:
             await self._command_ready.wait()
-            self._command_ready.clear()
-            pending, self._pending = self._pending, None
-            if pending is None or pending[0] != self.stream_id:
+            await slots.acquire()
+            if not self._pending:
+                self._command_ready.clear()
+                slots.release()
+                continue
+            pending = self._pending.popleft()
+            if pending[0] != self.stream_id:  # (a command of a stream that ended meanwhile)
+                slots.release()
                 continue
             self.forwarded += 1
+            self._spawn(self._sample_in(slots, pending))
+
+    async def _sample_in(self, slots: asyncio.Semaphore, pending: tuple[int, float, list[float]]) -> None:
+        try:
             await self._sample(*pending)
+        finally:
+            slots.release()
 
     async def _open(self) -> None:
         try:

@@ -1,9 +1,16 @@
-"""The bridge's ROS 2 side (rclpy): its topics, services and parameters, spun by an executor in its own threads.
+"""The bridge's ROS 2 side (rclpy): its topics, services and parameters, spun by one executor in its own thread.
 
 Everything it receives goes to the `Bridge` on the asyncio loop (``call_soon_threadsafe`` for topics,
-``run_coroutine_threadsafe`` for services, which wait for the daemon's answer); the bridge publishes through the
-``publish_*`` methods from its loop. Callback groups keep a long service (a payload estimate moves the arm for
-half a minute) from holding up the command topic: services run one at a time in their group, topics in theirs.
+``run_coroutine_threadsafe`` for services); the bridge publishes through the ``publish_*`` methods from its loop.
+
+One `SingleThreadedExecutor`, and services as coroutines: a service awaits the daemon's answer without holding the
+executor (a payload estimate moves the arm for half a minute), so the command topic is taken as it arrives meanwhile;
+services still run one at a time (their callback group is held while one awaits). rclpy's `MultiThreadedExecutor`,
+which the bridge used before, took only a few hundred messages a second on this 2-core machine (rclpy#1452: its hand-
+offs between threads under the GIL) and the command subscription's queue silently dropped the rest — 77 % of a 1 kHz
+stream and 5 % of a 100 Hz one under load never reached the bridge. The command topic's queue holds
+``COMMANDS_DEPTH`` messages (a burst after a stall of this process is taken, not dropped), and the commands the
+middleware lost anyway are counted from the publishers' sequence numbers (``commands_lost`` in the diagnostics).
 """
 
 from __future__ import annotations
@@ -19,10 +26,12 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.clock import Clock, ClockType
-from rclpy.executors import MultiThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.signals import SignalHandlerOptions
+from rclpy.subscription import MessageInfo
+from rclpy.task import Future
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Empty, String
@@ -36,13 +45,17 @@ class Bridge(Protocol):
     """What the node calls on the bridge (dragd/ros2/bridge.py's ``Bridge``; typed here, not imported: no circle)."""
 
     def on_keepalive(self) -> None: ...
-    def on_command(self, stamp_s: float, names: list[str], positions: list[float]) -> None: ...
+    def on_command(self, stamp_s: float, names: list[str], positions: list[float], lost: int = 0) -> None: ...
     def on_trajectory(self, stamp_s: float, names: list[str], points: list[tuple[float, list[float]]]) -> None: ...
     def action(self, name: str, *args: Any) -> Coroutine[Any, Any, tuple[bool, str]]: ...
 
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 SERVICE_WAIT_S = 180.0  # the longest a service waits for the daemon (a payload estimate visits several poses)
+# the command topic's queue (best effort: takes reliable and best-effort publishers, as topic_based_ros2_control's
+# reliable depth-1 one): a 1 kHz stream's 0.1 s, so that a stall of the bridge's process loses none of it
+COMMANDS_DEPTH = 100
+COMMANDS_QOS = QoSProfile(depth=COMMANDS_DEPTH, reliability=ReliabilityPolicy.BEST_EFFORT)
 
 # name -> (default, description): read when a service is called (the arguments std_srvs' types cannot carry)
 PARAMETERS: dict[str, tuple[Any, str]] = {
@@ -116,8 +129,8 @@ class RosNode:
         self.status = node.create_publisher(DiagnosticStatus, "~/status", 20)
         self.diagnostics = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
         g = self._topics_group
-        node.create_subscription(JointState, "~/joint_commands", self._on_command, qos_profile_sensor_data,
-                                 callback_group=g)
+        node.create_subscription(JointState, "~/joint_commands", self._on_command, COMMANDS_QOS, callback_group=g)
+        self._seq: dict[str, int] = {}  # a command publisher (its gid) -> its newest publication sequence number
         node.create_subscription(JointTrajectory, "~/joint_trajectory", self._on_trajectory, 10, callback_group=g)
         node.create_subscription(Empty, "~/drag_keepalive", self._on_keepalive, qos_profile_sensor_data,
                                  callback_group=g)
@@ -131,7 +144,7 @@ class RosNode:
                           clock=Clock(clock_type=ClockType.STEADY_TIME))  # (housekeeping: wall time on either clock)
         if urdf is not None:
             self.description.publish(String(data=urdf))
-        self.executor = MultiThreadedExecutor(num_threads=3, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(node)
         self._thread = threading.Thread(target=self._spin, name="dragd-ros2-executor", daemon=True)
         self._thread.start()
@@ -171,9 +184,21 @@ class RosNode:
         except RuntimeError:  # the loop closed: the bridge is ending
             pass
 
-    def _on_command(self, msg: JointState) -> None:
+    def _on_command(self, msg: JointState, info: MessageInfo) -> None:
         st = msg.header.stamp
-        self._to_loop(self.bridge.on_command, st.sec + st.nanosec * 1e-9, list(msg.name), list(msg.position))
+        self._to_loop(self.bridge.on_command, st.sec + st.nanosec * 1e-9, list(msg.name), list(msg.position),
+                      self._lost_before(info))
+
+    def _lost_before(self, info: MessageInfo) -> int:
+        """Commands of this message's publisher the middleware lost before it (a gap in its publication sequence
+        numbers; 0 where the middleware gives none)."""
+        seq, gid = info.get("publication_sequence_number"), info.get("publisher_gid")
+        if not seq or gid is None:
+            return 0
+        key = str(gid.get("data") if isinstance(gid, dict) else gid)
+        last = self._seq.get(key)
+        self._seq[key] = seq
+        return max(0, seq - last - 1) if last is not None and seq > last else 0
 
     def _on_trajectory(self, msg: JointTrajectory) -> None:
         st = msg.header.stamp
@@ -183,23 +208,36 @@ class RosNode:
     def _on_keepalive(self, _msg: Empty) -> None:
         self._to_loop(self.bridge.on_keepalive)
 
-    def _wait(self, coro: Coroutine[Any, Any, tuple[bool, str]]) -> tuple[bool, str]:
+    async def _wait(self, coro: Coroutine[Any, Any, tuple[bool, str]]) -> tuple[bool, str]:
+        """The bridge's answer to a service, awaited in the executor without holding it (an rclpy `Future` that the
+        asyncio loop completes; its done callback, run as a task of the executor, wakes it)."""
+        answer: Future[Any] = Future(executor=self.executor)
+        answer.add_done_callback(lambda _f: None)
         try:
-            return asyncio.run_coroutine_threadsafe(coro, self.loop).result(SERVICE_WAIT_S)
+            cf = asyncio.run_coroutine_threadsafe(asyncio.wait_for(coro, SERVICE_WAIT_S), self.loop)
+        except RuntimeError:  # the loop closed: the bridge is ending
+            coro.close()
+            return False, "the bridge is shutting down"
+        cf.add_done_callback(answer.set_result)
+        done: Any = await answer
+        try:
+            ok, text = done.result()
+            return bool(ok), str(text)
         except TimeoutError:
             return False, f"no answer within {SERVICE_WAIT_S:g} s"
         except Exception as exc:  # noqa: BLE001 - a service answers, it never takes the executor down
             return False, f"{type(exc).__name__}: {exc}"
 
-    def _trigger(self, action: str, *args: Any) -> Callable[[Trigger.Request, Trigger.Response], Trigger.Response]:
-        def serve(_req: Trigger.Request, resp: Trigger.Response) -> Trigger.Response:
-            resp.success, resp.message = self._wait(self.bridge.action(action, *args))
+    def _trigger(self, action: str, *args: Any) -> Callable[[Trigger.Request, Trigger.Response],
+                                                            Coroutine[Any, Any, Trigger.Response]]:
+        async def serve(_req: Trigger.Request, resp: Trigger.Response) -> Trigger.Response:
+            resp.success, resp.message = await self._wait(self.bridge.action(action, *args))
             return resp
 
         return serve
 
-    def _on_streaming(self, req: SetBool.Request, resp: SetBool.Response) -> SetBool.Response:
-        resp.success, resp.message = self._wait(self.bridge.action("streaming", bool(req.data)))
+    async def _on_streaming(self, req: SetBool.Request, resp: SetBool.Response) -> SetBool.Response:
+        resp.success, resp.message = await self._wait(self.bridge.action("streaming", bool(req.data)))
         return resp
 
     # ------------------------------------------------------------------------------------------ replay services

@@ -9,6 +9,14 @@ The machine's own stalls are measured through the whole session as in the loop b
 a probe process per CPU above the cycle thread's priority): each window's missed ticks (the arm held with no stream,
 then each stream rate) are split into those a probe's stall explains (the host's) and the daemon's own, exactly as
 ``loop_missed_ratio_own`` splits them; the stream rate counts only the daemon's own.
+
+The stream at each rate: the publisher first holds the arm's pose until the bridge's stream runs (the first command
+opens it, those until the drives are in CSP are not followed: by design), then publishes a smooth path for the
+window's length, then ends the stream (``~/streaming false``: a clean close, the arm holds). The stream arrived whole
+when the daemon's stream took exactly as many samples in the window as were published and was still running at its
+end. The rates: up the ladder ``RATES_HZ`` to the first that fails, then ``BISECT_STEPS`` halvings between it and the
+highest that passed (none below 100 Hz: the default ``stream.delay_s`` of 50 ms is for 100-500 Hz controllers; every
+rate's figures in the detail).
 """
 
 from __future__ import annotations
@@ -28,6 +36,8 @@ from dragd.lab.bench.loop import _missed_by_cause, process_cpu_s
 from dragd.lab.bench.stalls import PROBE_PRIORITY, StallProbe
 
 RATES_HZ = (100, 250, 500, 1000)
+BISECT_STEPS = 2  # halvings between the highest rate that passed and the lowest that failed
+PRIME_S = 30.0  # the longest the pose is held for the stream to open (the drives' switch to CSP)
 
 
 def _env() -> dict[str, str]:
@@ -45,7 +55,9 @@ def _session(seconds: float, config: Any) -> dict[str, Any]:
     env = _env()
     os.environ.update(env)
     import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile
     from sensor_msgs.msg import JointState
     from std_srvs.srv import SetBool
 
@@ -78,7 +90,17 @@ def _session(seconds: float, config: Any) -> dict[str, Any]:
                 lat.append((now - (msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)) * 1e-6)
 
         node.create_subscription(JointState, "/joint_states", heard, 100)
-        pub = node.create_publisher(JointState, "/dragd/joint_commands", 10)
+        bridge_diag: dict[str, str] = {}
+
+        def diagnosed(msg: DiagnosticArray) -> None:
+            for st in msg.status:
+                if st.name == "dragd: ros2 bridge":
+                    with lock:
+                        bridge_diag.update({kv.key: kv.value for kv in st.values})
+
+        node.create_subscription(DiagnosticArray, "/diagnostics", diagnosed, 10)
+        # reliable, depth 1: topic_based_ros2_control's command publisher (docs/ROS2.md)
+        pub = node.create_publisher(JointState, "/dragd/joint_commands", QoSProfile(depth=1))
         streaming: Any = node.create_client(SetBool, "/dragd/streaming")
         ex = SingleThreadedExecutor(context=ctx)
         ex.add_node(node)
@@ -107,29 +129,77 @@ def _session(seconds: float, config: Any) -> dict[str, Any]:
             # the command stream: a smooth path at each rate, through the bridge into the daemon's stream
             robot = rig.must("robot")
             names, out["loop_rate_Hz"] = robot["joint_names"], robot["rate_Hz"]
-            rates = []
-            for rate in RATES_HZ:
+            rates: list[dict[str, Any]] = []
+
+            def one_rate(rate: float) -> bool:
+                """A stream at ``rate``: its figures in ``rates``; True if it arrived whole (the missed cycles' split
+                comes after the session, when the probes' stalls are known)."""
                 rig.wait_for(lambda: rig.must("status")["mode"] == "hold"
                              and rig.must("status")["drive_mode"] == "cst", 10.0, "hold in CST")
-                _follow_commands(streaming)  # (a rate refused before latched the bridge: each rate starts afresh)
+                _call(streaming, True)  # (the last rate's close latched the bridge: each rate starts afresh)
                 q0 = np.array(rig.must("state")["q_rad"])
+                opened = (rig.must("status")["stream"] or {}).get("opened") or 0
+                primed = _prime(node, pub, names, q0, rate, lambda: _running(rig, opened))
                 s0 = rig.must("status")
-                first = ((s0["stream"] or {}).get("opened") or 0) + 1
+                sid = (s0["stream"] or {}).get("stream")
+                with lock:
+                    d0 = dict(bridge_diag)
                 b0 = process_cpu_s(bridge.proc.pid)
                 sent = _stream(node, pub, names, q0, rate, seconds)
-                s1 = rig.must("status")
+                s1 = rig.must("status")  # (at once: the stream must still run, its samples in)
                 b1 = process_cpu_s(bridge.proc.pid)
+                _call(streaming, False)  # the stream ends cleanly (closed): the arm runs out its samples, holds
+                rig.wait_for(lambda: (rig.must("status")["stream"] or {}).get("state") == "ended", 10.0,
+                             "the stream's end")
+                end = rig.must("status")
+                time.sleep(1.5)  # (the bridge's next diagnostics, 1 Hz)
+                with lock:
+                    d1 = dict(bridge_diag)
                 windows[rate] = missed_in(rig, s0, s1)
-                stream = s1["stream"] or {}
-                rates.append({"rate_Hz": rate, "published": sent, "daemon_samples": stream.get("samples"),
-                              "streams_opened": (stream.get("opened") or 0) - first + 1,
-                              "stream_end": stream.get("end"), "outcome": stream.get("outcome"),
+                st0, st1, ste = s0["stream"] or {}, s1["stream"] or {}, end["stream"] or {}
+                got = (st1.get("samples") or 0) - (st0.get("samples") or 0)
+                whole = (primed and st1.get("stream") == sid and st1.get("state") == "running" and got == sent
+                         and ste.get("end") == "closed" and ste.get("stream") == sid)
+
+                def delta(key: str) -> int | None:
+                    try:
+                        return int(d1[key]) - int(d0[key])
+                    except (KeyError, ValueError):
+                        return None
+
+                rates.append({"rate_Hz": rate, "published": sent, "daemon_samples": got, "whole": whole,
+                              "running_at_end": st1.get("state") == "running" and st1.get("stream") == sid,
+                              "stream_end": ste.get("end"), "outcome": ste.get("outcome"),
+                              "refused": (ste.get("refused") or 0) - (st0.get("refused") or 0),
+                              "bridge_lost": delta("commands_lost"), "bridge_coalesced": delta("commands_coalesced"),
+                              "bridge_forwarded": delta("commands_forwarded"),
+                              "bridge_dropped": delta("commands_dropped"),
+                              "dry_cycles": (st1.get("dry_cycles") or 0) - (st0.get("dry_cycles") or 0),
+                              "min_buffer_s": st1.get("min_buffer_s"),
                               "missed_cycles": s1["missed_cycles"] - s0["missed_cycles"],
-                              "refused": stream.get("refused"), "dry_cycles": stream.get("dry_cycles"),
                               "period_max_us": s1["period_max_us"], "bridge_cpu_pct": (b1 - b0) / seconds * 100.0,
-                              "faults": s1["faults"][-1:]})
-                if s1["mode"] == "fault":
+                              "faults": end["faults"][-1:] if end["mode"] == "fault" else []})
+                if end["mode"] == "fault":
                     rig.must("start")
+                return whole
+
+            passed, failed = 0.0, None
+            for rate in RATES_HZ:  # up the ladder to the first rate that fails
+                if not one_rate(rate):
+                    failed = rate
+                    break
+                passed = rate
+            if failed is not None and passed > 0:  # then halvings between the highest that passed and it (never
+                # below the ladder's first rate: slower streams need a longer stream.delay_s, docs/ROS2.md)
+                lo, hi = passed, float(failed)
+                for _ in range(BISECT_STEPS):
+                    mid = round((lo + hi) / 2.0)
+                    if mid in (lo, hi):
+                        break
+                    if one_rate(mid):
+                        lo = mid
+                    else:
+                        hi = mid
             out["rates"] = rates
             out["schedulers"] = rig.schedulers()
         finally:
@@ -155,21 +225,48 @@ def _session(seconds: float, config: Any) -> dict[str, Any]:
     return out
 
 
-def _follow_commands(client: Any) -> None:
-    """``~/streaming true``: the bridge follows commands again (a refusal latches it until then)."""
+def _call(client: Any, on: bool) -> None:
+    """``~/streaming true`` (the bridge follows commands again: a close or a refusal latches it until then) or
+    ``false`` (the bridge closes its stream: the arm runs out the samples, then holds)."""
     from std_srvs.srv import SetBool
 
     if not client.wait_for_service(timeout_sec=30.0):
         raise BenchError("the bridge's ~/streaming service did not appear")
     done = threading.Event()
-    fut = client.call_async(SetBool.Request(data=True))
+    fut = client.call_async(SetBool.Request(data=on))
     fut.add_done_callback(lambda _f: done.set())
     if not done.wait(30.0) or not fut.result().success:
-        raise BenchError(f"~/streaming true: {fut.result() if fut.done() else 'no answer within 30 s'}")
+        raise BenchError(f"~/streaming {str(on).lower()}: {fut.result() if fut.done() else 'no answer within 30 s'}")
+
+
+def _running(rig: Any, opened_before: int) -> bool:
+    st = rig.must("status")["stream"] or {}
+    return (st.get("opened") or 0) > opened_before and st.get("state") == "running" and (st.get("samples") or 0) > 0
+
+
+def _prime(node: Any, pub: Any, names: list[str], q0: np.ndarray, rate: float, running: Any) -> bool:
+    """Hold the pose at ``rate`` until the bridge's stream runs (its first command opens it); False if it did not
+    within ``PRIME_S``."""
+    from sensor_msgs.msg import JointState
+
+    t0 = time.monotonic()
+    k = 0
+    while time.monotonic() - t0 < PRIME_S:
+        msg = JointState()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(node.get_clock().now().nanoseconds), 10**9)
+        msg.name = names
+        msg.position = q0.tolist()
+        pub.publish(msg)
+        k += 1
+        if k % max(1, int(rate / 20)) == 0 and running():  # (asked at ~20 Hz)
+            return True
+        time.sleep(max(0.0, t0 + k / rate - time.monotonic()))
+    return False
 
 
 def _stream(node: Any, pub: Any, names: list[str], q0: np.ndarray, rate: float, seconds: float) -> int:
-    """Publish a slow sine path at ``rate`` for ``seconds`` (absolute deadlines), then wait for the stream's end."""
+    """Publish a slow sine path from ``q0`` at ``rate`` for ``seconds`` (absolute deadlines), the number published;
+    then a moment for the last samples in flight to land (the stream's deadline is 0.5 s: it still runs)."""
     from sensor_msgs.msg import JointState
 
     step = np.array([0.1, -0.08, 0.1, 0.12, -0.1, 0.12])
@@ -187,7 +284,7 @@ def _stream(node: Any, pub: Any, names: list[str], q0: np.ndarray, rate: float, 
         pub.publish(msg)
         k += 1
         time.sleep(max(0.0, t0 + k * period - time.monotonic()))
-    time.sleep(1.0)  # the stream's deadline ends it, the arm holds
+    time.sleep(0.1)
     return k
 
 
@@ -217,16 +314,21 @@ def ros2_state_latency_ms(opts: dict) -> tuple[float, dict[str, Any]]:
 
 @benchmark("ros2_stream_max_rate_Hz", "Hz")
 def ros2_stream_max_rate_Hz(opts: dict) -> tuple[float, dict[str, Any]]:
-    """The highest rate of ~/joint_commands (100, 250, 500, 1000 Hz tried) that went into one daemon stream for the
-    whole run (none refused, none ended early; the bridge sends the newest command when the last one is answered,
-    so at high rates it forwards a share of them) without the daemon missing a cycle. The detail has each rate's
-    figures and the missed cycles of the same time with the arm held and no stream (the machine's own)."""
+    """The highest rate of ~/joint_commands whose stream arrived whole in the daemon (every command published in the
+    window a sample of one running stream, none refused, ended by its close) with none of the daemon's own missed
+    cycles in the window. Searched: 100, 250, 500, 1000 Hz up to the first rate not whole, then two halvings
+    between it and the highest whole one (each rate one window of --seconds; 0 if 100 Hz was not). The detail has
+    each rate's figures (published, the daemon's samples, the bridge's commands lost by the middleware and
+    coalesced, missed cycles host/own) and the missed cycles of the same time with the arm held and no stream (the
+    machine's own)."""
     s = _session(*_opts(opts))
     if not s["stalls_measured"]:
         raise BenchError(f"ros2_stream_max_rate_Hz: the machine's stalls were not measured "
                          f"({'; '.join(s['probe_errors'])}): the daemon's own missed cycles cannot be told from the "
                          "host's")
     rates = s["rates"]
-    ok = [r["rate_Hz"] for r in rates if r["missed_own"] == 0 and not r["refused"] and r["streams_opened"] == 1]
+    ok = [r["rate_Hz"] for r in rates if r["whole"] and r["missed_own"] == 0]
     return float(max(ok) if ok else 0.0), {"rates": rates, "baseline": s["baseline"],
-                                           "host_stall_max_ms": s["host_stall_max_ms"]}
+                                           "host_stall_max_ms": s["host_stall_max_ms"],
+                                           "searched": "ladder 100/250/500/1000 Hz to the first rate not whole, "
+                                                       f"then {BISECT_STEPS} halvings"}
