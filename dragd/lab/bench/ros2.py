@@ -38,6 +38,7 @@ from dragd.lab.bench.stalls import PROBE_PRIORITY, StallProbe
 RATES_HZ = (100, 250, 500, 1000)
 BISECT_STEPS = 2  # halvings between the highest rate that passed and the lowest that failed
 PRIME_S = 30.0  # the longest the pose is held for the stream to open (the drives' switch to CSP)
+LAND_S = 0.3  # after the last command, the longest its samples in flight may take to land (the deadline is 0.5 s)
 
 
 def _env() -> dict[str, str]:
@@ -146,7 +147,13 @@ def _session(seconds: float, config: Any) -> dict[str, Any]:
                     d0 = dict(bridge_diag)
                 b0 = process_cpu_s(bridge.proc.pid)
                 sent = _stream(node, pub, names, q0, rate, seconds)
-                s1 = rig.must("status")  # (at once: the stream must still run, its samples in)
+                n0 = (s0["stream"] or {}).get("samples") or 0
+                settle = time.monotonic() + LAND_S  # the last commands in flight land (the stream must still run)
+                while True:
+                    s1 = rig.must("status")
+                    if ((s1["stream"] or {}).get("samples") or 0) - n0 >= sent or time.monotonic() > settle:
+                        break
+                    time.sleep(0.01)
                 b1 = process_cpu_s(bridge.proc.pid)
                 _call(streaming, False)  # the stream ends cleanly (closed): the arm runs out its samples, holds
                 rig.wait_for(lambda: (rig.must("status")["stream"] or {}).get("state") == "ended", 10.0,
@@ -265,8 +272,7 @@ def _prime(node: Any, pub: Any, names: list[str], q0: np.ndarray, rate: float, r
 
 
 def _stream(node: Any, pub: Any, names: list[str], q0: np.ndarray, rate: float, seconds: float) -> int:
-    """Publish a slow sine path from ``q0`` at ``rate`` for ``seconds`` (absolute deadlines), the number published;
-    then a moment for the last samples in flight to land (the stream's deadline is 0.5 s: it still runs)."""
+    """Publish a slow sine path from ``q0`` at ``rate`` for ``seconds`` (absolute deadlines): the number published."""
     from sensor_msgs.msg import JointState
 
     step = np.array([0.1, -0.08, 0.1, 0.12, -0.1, 0.12])
@@ -284,7 +290,6 @@ def _stream(node: Any, pub: Any, names: list[str], q0: np.ndarray, rate: float, 
         pub.publish(msg)
         k += 1
         time.sleep(max(0.0, t0 + k * period - time.monotonic()))
-    time.sleep(0.1)
     return k
 
 
