@@ -11,12 +11,14 @@ then each stream rate) are split into those a probe's stall explains (the host's
 ``loop_missed_ratio_own`` splits them; the stream rate counts only the daemon's own.
 
 The stream at each rate: the publisher first holds the arm's pose until the bridge's stream runs (the first command
-opens it, those until the drives are in CSP are not followed: by design), then publishes a smooth path for the
-window's length, then ends the stream (``~/streaming false``: a clean close, the arm holds). The stream arrived whole
-when the daemon's stream took exactly as many samples in the window as were published and was still running at its
-end. The rates: up the ladder ``RATES_HZ`` to the first that fails, then ``BISECT_STEPS`` halvings between it and the
-highest that passed (none below 100 Hz: the default ``stream.delay_s`` of 50 ms is for 100-500 Hz controllers; every
-rate's figures in the detail).
+opens it, those until the drives are in CSP are not followed: by design), then publishes a smooth path for the window's
+length, then ends the stream (``~/streaming false``: a clean close, the arm holds). The stream arrived whole when no
+command was lost before the bridge nor gave way in it (its ``commands_lost`` and ``commands_coalesced`` from before the
+stream to after its close), the daemon's stream took at least as many samples in the window as were published (the
+window's count also has the pose's last commands, in flight as it began), none was refused, and the one stream ran
+throughout and ended by the close. The rates: up the ladder ``RATES_HZ`` to the first that fails, then ``BISECT_STEPS``
+halvings between it and the highest that passed (none below 100 Hz: the default ``stream.delay_s`` of 50 ms is for
+100-500 Hz controllers; every rate's figures in the detail).
 """
 
 from __future__ import annotations
@@ -140,20 +142,14 @@ def _session(seconds: float, config: Any) -> dict[str, Any]:
                 _call(streaming, True)  # (the last rate's close latched the bridge: each rate starts afresh)
                 q0 = np.array(rig.must("state")["q_rad"])
                 opened = (rig.must("status")["stream"] or {}).get("opened") or 0
+                with lock:
+                    d0 = dict(bridge_diag)  # (the bridge's counters from before the stream to after its close)
                 primed = _prime(node, pub, names, q0, rate, lambda: _running(rig, opened))
                 s0 = rig.must("status")
                 sid = (s0["stream"] or {}).get("stream")
-                with lock:
-                    d0 = dict(bridge_diag)
                 b0 = process_cpu_s(bridge.proc.pid)
                 sent = _stream(node, pub, names, q0, rate, seconds)
-                n0 = (s0["stream"] or {}).get("samples") or 0
-                settle = time.monotonic() + LAND_S  # the last commands in flight land (the stream must still run)
-                while True:
-                    s1 = rig.must("status")
-                    if ((s1["stream"] or {}).get("samples") or 0) - n0 >= sent or time.monotonic() > settle:
-                        break
-                    time.sleep(0.01)
+                s1 = _landed(rig)  # the last commands in flight land (the stream must still run)
                 b1 = process_cpu_s(bridge.proc.pid)
                 _call(streaming, False)  # the stream ends cleanly (closed): the arm runs out its samples, holds
                 rig.wait_for(lambda: (rig.must("status")["stream"] or {}).get("state") == "ended", 10.0,
@@ -165,14 +161,19 @@ def _session(seconds: float, config: Any) -> dict[str, Any]:
                 windows[rate] = missed_in(rig, s0, s1)
                 st0, st1, ste = s0["stream"] or {}, s1["stream"] or {}, end["stream"] or {}
                 got = (st1.get("samples") or 0) - (st0.get("samples") or 0)
-                whole = (primed and st1.get("stream") == sid and st1.get("state") == "running" and got == sent
-                         and ste.get("end") == "closed" and ste.get("stream") == sid)
 
                 def delta(key: str) -> int | None:
                     try:
                         return int(d1[key]) - int(d0[key])
                     except (KeyError, ValueError):
                         return None
+
+                # whole: none lost before the bridge nor given way in it (its counters), none refused, the one
+                # stream running throughout and ended by the close, and at least every published command a sample
+                # (the window's count also has the pose's last commands, in flight when it began)
+                whole = (primed and st1.get("stream") == sid and st1.get("state") == "running" and got >= sent
+                         and delta("commands_lost") == 0 and delta("commands_coalesced") == 0
+                         and ste.get("end") == "closed" and ste.get("stream") == sid)
 
                 rates.append({"rate_Hz": rate, "published": sent, "daemon_samples": got, "whole": whole,
                               "running_at_end": st1.get("state") == "running" and st1.get("stream") == sid,
@@ -244,6 +245,20 @@ def _call(client: Any, on: bool) -> None:
     fut.add_done_callback(lambda _f: done.set())
     if not done.wait(30.0) or not fut.result().success:
         raise BenchError(f"~/streaming {str(on).lower()}: {fut.result() if fut.done() else 'no answer within 30 s'}")
+
+
+def _landed(rig: Any) -> dict[str, Any]:
+    """The daemon's status once its stream's sample count stood still for 50 ms (at most ``LAND_S``) after the last
+    command: those in flight have landed (the stream still runs: its deadline is 0.5 s)."""
+    end = time.monotonic() + LAND_S
+    last = rig.must("status")
+    while time.monotonic() < end:
+        time.sleep(0.05)
+        now = rig.must("status")
+        if (now["stream"] or {}).get("samples") == (last["stream"] or {}).get("samples"):
+            return now
+        last = now
+    return last
 
 
 def _running(rig: Any, opened_before: int) -> bool:
@@ -320,12 +335,12 @@ def ros2_state_latency_ms(opts: dict) -> tuple[float, dict[str, Any]]:
 @benchmark("ros2_stream_max_rate_Hz", "Hz")
 def ros2_stream_max_rate_Hz(opts: dict) -> tuple[float, dict[str, Any]]:
     """The highest rate of ~/joint_commands whose stream arrived whole in the daemon (every command published in the
-    window a sample of one running stream, none refused, ended by its close) with none of the daemon's own missed
-    cycles in the window. Searched: 100, 250, 500, 1000 Hz up to the first rate not whole, then two halvings
-    between it and the highest whole one (each rate one window of --seconds; 0 if 100 Hz was not). The detail has
-    each rate's figures (published, the daemon's samples, the bridge's commands lost by the middleware and
-    coalesced, missed cycles host/own) and the missed cycles of the same time with the arm held and no stream (the
-    machine's own)."""
+    window a sample of one running stream, none lost or coalesced by the bridge, none refused, ended by its close)
+    with none of the daemon's own missed cycles in the window. Searched: 100, 250, 500, 1000 Hz up to the first rate
+    not whole, then two halvings between it and the highest whole one (each rate one window of --seconds; 0 if 100 Hz
+    was not). The detail has each rate's figures (published, the daemon's samples, the bridge's commands lost by the
+    middleware and coalesced, missed cycles host/own) and the missed cycles of the same time with the arm held and no
+    stream (the machine's own)."""
     s = _session(*_opts(opts))
     if not s["stalls_measured"]:
         raise BenchError(f"ros2_stream_max_rate_Hz: the machine's stalls were not measured "
