@@ -33,8 +33,21 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from dragd.hardware.cia402 import EMCY_HEARTBEAT, EMCY_RPDO_TIMEOUT
 from dragd.lease import LeaseHolder
 from dragd.protocol import ControlClient, DaemonUnavailable
+
+# faults a host that starves the daemon or the simulator can cause on the wall clock (a drive's reception deadline or
+# heartbeat consumer, the daemon's lost feedback or heartbeats): the real-time path's outcome, which the wall clock's
+# demo and loop benchmarks report beside the machine's stalls; any other fault is the software's
+TIMING_FAULT_CODES = (EMCY_RPDO_TIMEOUT, EMCY_HEARTBEAT)
+TIMING_FAULT_TEXTS = ("feedback lost: no TPDO", "no heartbeat from node", "bus outage: no heartbeat")
+
+
+def timing_fault(entry: dict[str, Any]) -> bool:
+    """Whether a fault entry (the daemon's status ``faults``) is a communication deadline that passed."""
+    text = str(entry.get("text", ""))
+    return entry.get("code") in TIMING_FAULT_CODES or any(t in text for t in TIMING_FAULT_TEXTS)
 
 
 class ProcessError(RuntimeError):
