@@ -1,8 +1,8 @@
 """dragd.bus on real sockets: the host-local udp_multicast bus across processes, virtual and SocketCAN buses.
 
 The wall-clock tier: these read real sockets until a quiet period (``drain``, ``recv`` timeouts: a frame later than
-that counts as absent) and start peer processes — delivery timing on the host. The parsing of bus specs and the
-SocketCAN probe are pure: tests/test_bus_parse.py (unit tier)."""
+that counts as absent) and start peer processes — delivery timing on the host. The parsing of bus specs, the
+SocketCAN probe and python-can's in-process virtual bus are not: tests/test_bus_offline.py (unit tier)."""
 
 from __future__ import annotations
 
@@ -451,19 +451,6 @@ def test_udp_multicast_batch_takes_each_frame_as_sent_and_oversize_datagrams_are
 
 
 # --- virtual and SocketCAN ---------------------------------------------------------------------------------
-def test_virtual_bus_in_process(request: pytest.FixtureRequest) -> None:
-    spec = parse_bus(f"virtual:{request.node.name}")
-    a, b = open_bus(spec), open_bus(spec)
-    try:
-        a.send(can.Message(arbitration_id=0x181, data=b"\x01\x02", is_extended_id=False))
-        msg = b.recv(1.0)
-        assert msg is not None and msg.arbitration_id == 0x181 and bytes(msg.data) == b"\x01\x02"
-        assert a.recv(0.05) is None, "own frame echoed"
-    finally:
-        a.shutdown()
-        b.shutdown()
-
-
 def test_socketcan_vcan_roundtrip() -> None:
     ok, reason = socketcan_available("vcan0")
     if not ok:

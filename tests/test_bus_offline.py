@@ -1,5 +1,6 @@
-"""dragd.bus without sockets: ``INTERFACE:CHANNEL`` spec parsing (what is accepted, what is refused and how it is
-said) and the SocketCAN probe's reason. Pure: the unit tier (the buses themselves: tests/test_bus.py)."""
+"""dragd.bus without the host's sockets: ``INTERFACE:CHANNEL`` spec parsing (what is accepted, what is refused and how
+it is said), the SocketCAN probe's reason, python-can's in-process virtual bus (a frame is in the peer's queue when
+``send`` returns). The unit tier (the buses on real sockets: tests/test_bus.py)."""
 
 from __future__ import annotations
 
@@ -68,3 +69,16 @@ def test_socketcan_probe_reports_a_reason() -> None:
     if not ok:
         with pytest.raises(can.CanInitializationError, match="SocketCAN unavailable"):
             open_bus(parse_bus("socketcan:vcan0"))
+
+
+def test_virtual_bus_in_process(request: pytest.FixtureRequest) -> None:
+    spec = parse_bus(f"virtual:{request.node.name}")
+    a, b = open_bus(spec), open_bus(spec)
+    try:
+        a.send(can.Message(arbitration_id=0x181, data=b"\x01\x02", is_extended_id=False))
+        msg = b.recv(1.0)
+        assert msg is not None and msg.arbitration_id == 0x181 and bytes(msg.data) == b"\x01\x02"
+        assert a.recv(0.05) is None, "own frame echoed"
+    finally:
+        a.shutdown()
+        b.shutdown()
