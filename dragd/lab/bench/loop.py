@@ -255,9 +255,16 @@ def _viewer(socket: str, rrd: Path, seconds: float, config: str | None) -> subpr
         proc = subprocess.Popen([sys.executable, "-m", "dragd", "view", "--socket", socket, "--save", str(rrd),
                                  "--seconds", f"{seconds + 30:.0f}", *(["--config", config] if config else [])],
                                 stdout=subprocess.DEVNULL, stderr=f)
-    time.sleep(3.0)  # its start-up (imports, the URDF) before the measured window
+    # its start-up (imports, the URDF) before the measured window: until its recording is open (#28: a fixed 3 s was
+    # not enough on a loaded machine, SIGINT then found it still importing and nothing was recorded), hang guard 120 s
+    end = time.monotonic() + 120.0
+    while proc.poll() is None and not rrd.exists() and time.monotonic() < end:
+        time.sleep(0.1)
     if proc.poll() is not None:
         raise BenchError(f"dragd view exited at start (exit {proc.returncode}): {err.read_text()[-500:]}")
+    if not rrd.exists():
+        _stop(proc)
+        raise BenchError(f"dragd view did not open its recording {rrd} within 120 s: {err.read_text()[-500:]}")
     return proc
 
 
