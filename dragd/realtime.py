@@ -457,6 +457,8 @@ def demote_current_thread(avoid_cpus: set[int] | None = None) -> dict[str, Any]:
     helpers (never beside it), and so has a process `set_realtime` did not make real-time. Never raises.
     """
     with _HELPERS_LOCK:
+        for tid in [tid for tid, (t, _) in _HELPERS.items() if not t.is_alive()]:  # (record windows' writers, ...)
+            del _HELPERS[tid]
         _HELPERS[threading.get_native_id()] = (threading.current_thread(), set(avoid_cpus) if avoid_cpus else None)
         return _demote(0, avoid_cpus)
 

@@ -280,6 +280,24 @@ def test_helpers_started_before_the_cycle_turns_realtime_go_below_it_too() -> No
     assert r["encoder"] == r["other"], r
 
 
+def test_helpers_that_ended_are_forgotten():
+    """demote_current_thread remembers its thread (set_realtime re-applies the helper policy to it); one that ended
+    is forgotten at the next registration, so a daemon opening record window after record window keeps none."""
+    import threading
+
+    from dragd import realtime
+    from dragd.realtime import demote_current_thread
+
+    first = threading.Thread(target=demote_current_thread, name="helper-ended")
+    first.start()
+    first.join()
+    second = threading.Thread(target=demote_current_thread, name="helper-next")
+    second.start()
+    second.join()
+    kept = [t for t, _ in realtime._HELPERS.values()]
+    assert first not in kept and second in kept
+
+
 def test_gravity_beyond_a_current_limit_is_refused_not_clamped(tmp_path) -> None:
     """A pose whose gravity current exceeds a joint's limit: start (and drag) are refused naming the joint and the
     numbers, instead of a silently clamped command that lets the arm sag."""
