@@ -9,6 +9,8 @@ against numpy's).
 from __future__ import annotations
 
 import math
+import tracemalloc
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -135,6 +137,47 @@ def test_plausibility_kernel_matches_the_reference(scaling: Scaling) -> None:
             assert np.array_equal(a, b), f"step {step}: {what}"
         assert fbs[0].rx_count == fbs[1].rx_count == int(fbs[0].rx.sum())
     assert got.rejects == ref.rejects > 10 and got_faults == ref_faults and len(ref_faults) >= 1
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_the_plausibility_check_keeps_no_memory_per_cycle(scaling: Scaling, compiled: bool) -> None:
+    """The cycle's call on its usual path (plausible samples, some late): no memory taken per call."""
+    k = kernels() if compiled else None
+    if compiled and k is None:
+        pytest.skip("numba is not importable here")
+    rng = np.random.default_rng(4)
+    # up to ~3 rad/s on 2^19 counts/rev (the bound is 6 rad/s), 10 % of the samples late
+    counts = np.cumsum(rng.integers(-250, 250, (3000, N)), axis=0).astype(np.int64)
+    fresh = rng.random((3000, N)) > 0.1
+    faults: list[str] = []
+    p = _plausibility_state(scaling, faults, None if k is None else k["plausible"])
+    p.prime(counts[0])
+    fb = Feedback(N)
+    for step in range(1, 100):  # warm-up (first calls may cache)
+        fb.counts[:] = counts[step]
+        fb.rx[:] = fresh[step]
+        p.check(fb.counts, fb.rx, fb.stale)
+    rows = list(zip(counts[100:], fresh[100:], strict=True))
+    c, rx, stale = fb.counts, fb.rx, fb.stale
+
+    def traced(check: Callable[[np.ndarray, np.ndarray, np.ndarray], int]) -> tuple[int, int]:
+        """(bytes kept, peak bytes) above the start, over the rows."""
+        tracemalloc.start()
+        before = tracemalloc.get_traced_memory()[0]
+        for cr, fr in rows:
+            c[:] = cr
+            rx[:] = fr
+            check(c, rx, stale)
+        after, peak = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
+        return after - before, peak - before
+
+    loop = traced(lambda c, rx, stale: 0)  # the loop's own
+    got = traced(p.check)
+    # nothing kept from one call to the next (one 6-element array held would be ~150 bytes); the calls' transient
+    # Python objects (the ufuncs' and numba's dispatch: a few hundred bytes at a time) bounded, never per sample
+    assert got[0] <= loop[0] + 32 and got[1] <= loop[1] + 2048, f"kept, peak: {got} bytes; the loop alone {loop}"
+    assert p.rejects == 0 and not faults
 
 
 def test_one_signature_per_kernel() -> None:
