@@ -386,7 +386,7 @@ class Daemon:
             "rejected_frames": io.rejected_frames if io is not None else 0,
             "duplicate_tpdos": io.duplicate_tpdos if io is not None else 0,
             "deferred_statuswords": io.deferred_statuswords if io is not None else 0,
-            "encoder_rejects": cy.encoder_rejects,
+            "encoder_rejects": cy.encoders.rejects,
             "comms": self.comms.status(),
             "error_frames": io.error_frames if io is not None else 0,
             # the host-local udp_multicast bus's own counters (echoes, duplicates, gaps, kernel drops, ...)

@@ -142,6 +142,8 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
                 probe.__enter__()
             except OSError as e:
                 probe.errors.append(str(e))
+            if rig.daemon is None or rig.sim is None:
+                raise BenchError("loop benchmark: the simulator and the daemon did not start")
             pids = (rig.daemon.proc.pid, rig.sim.proc.pid)
             before = rig.must("status")
             sim0, w0 = rig.sim_call("state"), time.monotonic()
@@ -195,12 +197,13 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
     print(f"bench: loop session {seconds:.0f} s, telemetry {telemetry}, daemon cycle thread {after.get('scheduler')}, "
           "CPU wake-up latency " + (f"held to {qos.get('effective_us')} µs" if qos.get("applied")
                                     else f"not held ({qos.get('reason')})"), file=sys.stderr)
-    for name in ("daemon", "sim") if profile else ():
-        stacks = Path(profile) / f"{name}.txt"
-        if stacks.exists():
-            summary = profile_summary(stacks)
-            stacks.with_name(f"{name}-top.txt").write_text(summary + "\n")
-            print(summary, file=sys.stderr)
+    if profile:
+        for name in ("daemon", "sim"):
+            stacks = Path(profile) / f"{name}.txt"
+            if stacks.exists():
+                summary = profile_summary(stacks)
+                stacks.with_name(f"{name}-top.txt").write_text(summary + "\n")
+                print(summary, file=sys.stderr)
     cycles = after["cycles"] - before["cycles"]
     missed = after["missed_cycles"] - before["missed_cycles"]
     host, own = _missed_by_cause(missed, missed_log, probe, 1.0 / cfg.loop.rate_Hz)

@@ -44,7 +44,8 @@ class Bench:
             print(f"experiment: {text}", file=sys.stderr, flush=True)
 
     def derived_config(self, tag: str, edits: dict[tuple[Any, ...], Any]) -> Path:
-        """The configuration with ``edits`` ({("law", "startup"): False, ("joints", 0, "startup", "frequency_Hz"): 8})."""
+        """The configuration with ``edits``, e.g. {("law", "startup"): False,
+        ("joints", 0, "startup", "frequency_Hz"): 8}."""
         data = yaml.safe_load(self.config.read_text())
         base = self.config.resolve().parent
         if not Path(str(data.get("robot", {}).get("urdf", "seed_cobot"))).is_absolute():
@@ -162,7 +163,8 @@ def ramp_breakaway(rig: Rig, joint: str, sign: int, rate_Nm_s: float, timeout_s:
         return any(e["kind"] in ("breakaway", "ramp_timeout", "ramp_limit") for e in ev)
 
     rig.wait_for(finished, timeout_s + 5.0, f"the ramp on {joint}")
-    ev = [e for e in rig.sim_call("operator_events")["events"] if e["kind"] in ("breakaway", "ramp_timeout", "ramp_limit")]
+    ev = [e for e in rig.sim_call("operator_events")["events"]
+          if e["kind"] in ("breakaway", "ramp_timeout", "ramp_limit")]
     return ev[-1]
 
 

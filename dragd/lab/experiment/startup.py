@@ -120,7 +120,8 @@ def run_startup(bench: Bench, joints: list[int], reps: int = 2, rest_s: float = 
             "oscillation_deg": round(float(osc[j]), 5),
             "handover_step_A": round(handover_step_A(rows, j, bench.cfg.joints[j].startup.rest_threshold_rad_s), 4)
             if rows is not None else None,
-            "repetitions": {"without_Nm": [round(x, 4) for x in without[j]], "with_Nm": [round(x, 4) for x in with_[j]]},
+            "repetitions": {"without_Nm": [round(x, 4) for x in without[j]],
+                            "with_Nm": [round(x, 4) for x in with_[j]]},
             "void_repetitions": void_without[j] + void_with[j],
         }
     result["mean_reduction_pct"] = round(float(np.mean(reductions)), 2)
