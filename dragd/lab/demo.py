@@ -109,7 +109,8 @@ def run_demo(seconds: float = 20.0, config: Path | None = None, out: Path | None
         stalls = _missed_by_cause(rig, before, status, probe) if probe is not None else None
         schedulers = rig.schedulers()
         if lockstep and status["faults"]:  # (no host timing reaches the lockstep clock: a fault is the demo failing)
-            raise DemoError(f"the arm faulted on the lockstep clock: {status['faults'][-1]}\n{rig.daemon.tail()}")
+            tail = rig.daemon.tail() if rig.daemon is not None else ""
+            raise DemoError(f"the arm faulted on the lockstep clock: {status['faults'][-1]}\n{tail}")
         _say(progress, "stopping: ramp to hold, disable, SIGTERM ...")
         rig.must("stop")
         _closed_cleanly(rig)
@@ -309,7 +310,7 @@ def run_teach_demo(seconds: float = 20.0, config: Path | None = None, out: Path 
         codes = rig.close()
         if codes.get("dragd") != 0:
             raise DemoError(f"the daemon exited with {codes.get('dragd')} on SIGTERM (expected 0):\n"
-                            f"{rig.daemon.tail()}")
+                            f"{rig.daemon.tail() if rig.daemon is not None else ''}")
         rows = read_rows(mcap)
         results = {k: replay_errors(rows, r["t0"], r["t1"], r["marks"], waypoints, r["body_start_s"])
                    for k, r in runs.items()}

@@ -38,6 +38,7 @@ class Bench:
         self.params = Path(self.params).resolve() if self.params else None
         self.config = Path(self.config) if self.config else default_config_path()
         self.cfg: Config = load_config(self.config, self.params)
+        self.config_path: Path = self.config  # (the resolved one: ``config`` stays Optional as a field)
 
     def say(self, text: str) -> None:
         if self.progress:
@@ -46,8 +47,8 @@ class Bench:
     def derived_config(self, tag: str, edits: dict[tuple[Any, ...], Any]) -> Path:
         """The configuration with ``edits``, e.g. {("law", "startup"): False,
         ("joints", 0, "startup", "frequency_Hz"): 8}."""
-        data = yaml.safe_load(self.config.read_text())
-        base = self.config.resolve().parent
+        data = yaml.safe_load(self.config_path.read_text())
+        base = self.config_path.resolve().parent
         if not Path(str(data.get("robot", {}).get("urdf", "seed_cobot"))).is_absolute():
             urdf = data.setdefault("robot", {}).get("urdf", "seed_cobot")
             if (base / urdf).exists():
@@ -196,7 +197,7 @@ def handover_step_A(rows: dict[str, np.ndarray], joint: int, rest_threshold_rad_
     worst = 0.0
     moving = dq > rest_threshold_rad_s
     onsets = np.flatnonzero(moving[1:] & ~moving[:-1]) + 1
-    for k in onsets:
+    for k in onsets.tolist():
         a = max(0, k - 5)
         gone = np.flatnonzero(np.abs(q[a:k + 100] - q[a]) > BREAKAWAY_THRESHOLD_RAD)
         b = a + int(gone[0]) - 1 if gone.size else k + 100
