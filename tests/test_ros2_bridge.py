@@ -69,10 +69,22 @@ def bridging(rig: Rig, p: Probe, *ros_args: str) -> Child:
     return bridge
 
 
+def matched_publishers(p: Probe, topic: str) -> int:
+    """How many publishers of ``topic`` the bridge's subscription says it has matched (its newest word on it)."""
+    said = [s for s in p.messages("/dragd/status") if s.name == "dragd/publishers"
+            and {v.key: v.value for v in s.values}.get("topic") == topic]
+    return int({v.key: v.value for v in said[-1].values}["count"]) if said else 0
+
+
 def publisher(p: Probe, msg_type, topic: str, bridge: Child):
-    """A publisher of the probe, matched to the bridge's subscription before anything is published."""
+    """A publisher of the probe, matched both ways before anything is published: the probe's side sees the bridge's
+    subscription, and the bridge says its subscription matched one more publisher (discovery is two-sided: a
+    message sent before the subscription has matched its publisher is dropped)."""
+    private = "~/" + topic.rsplit("/", 1)[1]
+    before = matched_publishers(p, private)
     pub = p.publisher(msg_type, topic)
     heard(lambda: pub.get_subscription_count() > 0, f"the bridge's subscription of {topic}", bridge)
+    heard(lambda: matched_publishers(p, private) > before, f"the bridge's subscription of {topic} matched", bridge)
     return pub
 
 

@@ -26,6 +26,7 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.clock import Clock, ClockType
+from rclpy.event_handler import QoSSubscriptionMatchedInfo, SubscriptionEventCallbacks
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -129,11 +130,13 @@ class RosNode:
         self.status = node.create_publisher(DiagnosticStatus, "~/status", 20)
         self.diagnostics = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
         g = self._topics_group
-        node.create_subscription(JointState, "~/joint_commands", self._on_command, COMMANDS_QOS, callback_group=g)
+        node.create_subscription(JointState, "~/joint_commands", self._on_command, COMMANDS_QOS, callback_group=g,
+                                 event_callbacks=self._matched("~/joint_commands"))
         self._seq: dict[str, int] = {}  # a command publisher (its gid) -> its newest publication sequence number
-        node.create_subscription(JointTrajectory, "~/joint_trajectory", self._on_trajectory, 10, callback_group=g)
+        node.create_subscription(JointTrajectory, "~/joint_trajectory", self._on_trajectory, 10, callback_group=g,
+                                 event_callbacks=self._matched("~/joint_trajectory"))
         node.create_subscription(Empty, "~/drag_keepalive", self._on_keepalive, qos_profile_sensor_data,
-                                 callback_group=g)
+                                 callback_group=g, event_callbacks=self._matched("~/drag_keepalive"))
         for name, (action, _text) in TRIGGERS.items():
             node.create_service(Trigger, f"~/{name}", self._trigger(action), callback_group=self._services_group)
         node.create_service(SetBool, "~/streaming", self._on_streaming, callback_group=self._services_group)
@@ -271,6 +274,16 @@ class RosNode:
         msg.velocity = state["dq_rad_s"]
         msg.effort = state["effort_Nm"]
         self.joint_states.publish(msg)
+
+    def _matched(self, topic: str) -> SubscriptionEventCallbacks:
+        """Say on ~/status (name ``dragd/publishers``) each time a publisher of ``topic`` matches this node's
+        subscription or leaves it: an integrator sees the controller connected, and a client can wait for it before
+        its first message (DDS discovery is two-sided: a publisher that already sees this subscription can send
+        before the subscription has matched it, and that message is dropped)."""
+        def said(info: QoSSubscriptionMatchedInfo) -> None:
+            self.publish_status(0, "dragd/publishers", f"{topic}: {info.current_count} publisher(s) matched",
+                                {"topic": topic, "count": info.current_count})
+        return SubscriptionEventCallbacks(matched=said)
 
     def publish_mode(self, mode: str) -> None:
         self.mode.publish(String(data=mode))
