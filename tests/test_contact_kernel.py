@@ -91,7 +91,7 @@ def test_the_contact_kernel_matches_the_numpy_update(seed: int) -> None:
     seq = _sequence(seed, 6000)
     for det in (ref, got):
         det.arm(seq[0][2], seq[0][0])
-    seen = set()
+    seen: set[int] = set()
     states_ref: dict[str, list[np.ndarray]] = {f: [] for f in STATE}
     states_got: dict[str, list[np.ndarray]] = {f: [] for f in STATE}
     for k, (t, dq, p, tau) in enumerate(seq):
