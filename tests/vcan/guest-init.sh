@@ -34,8 +34,7 @@ done
 cd "$REPO" || fail "no repository at $REPO"
 [ -x "$PYTHON" ] || fail "no venv python at $PYTHON"
 say "running: $*"
-HOME=/run/home TMPDIR=/run/tmp MPLCONFIGDIR=/run/home/mpl XDG_CACHE_HOME=/run/home/cache NUMBA_CACHE_DIR=/run/numba NUMBA_CPU_NAME=generic \
-  PYTHONDONTWRITEBYTECODE=1 \
+HOME=/run/home TMPDIR=/run/tmp MPLCONFIGDIR=/run/home/mpl XDG_CACHE_HOME=/run/home/cache NUMBA_CACHE_DIR=/run/numba PYTHONDONTWRITEBYTECODE=1 \
   PYTHONUNBUFFERED=1 LANG=C.UTF-8 PATH=/usr/local/bin:/usr/bin:/bin \
   DRAGD_VCAN_BUS="$DRAGD_VCAN_BUS" DRAGD_VCAN_SIM_BUS="$DRAGD_VCAN_SIM_BUS" DRAGD_VCAN_LOOP_HZ="$DRAGD_VCAN_LOOP_HZ" \
   DRAGD_VCAN_PHYSICS_HZ="$DRAGD_VCAN_PHYSICS_HZ" DRAGD_VCAN_GUEST=1 \

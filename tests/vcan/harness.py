@@ -437,30 +437,6 @@ class Console(threading.Thread):
                     print(line, flush=True)
 
 
-# numba keys a cached kernel by the CPU it was compiled for (name and features): the guest's TCG CPU (-cpu max) is not
-# the host's, so the guest and this prebuild both compile for a generic x86-64 (guest-init.sh sets the same)
-GUEST_NUMBA_CPU = {"NUMBA_CPU_NAME": "generic"}
-
-
-def prebuild_kernels(numba_cache: Path) -> None:
-    """Compile the simulator's and the daemon's kernels on the host, natively, into the guest's numba cache (the
-    guest sees the same paths, sources and venv through 9p, so its index matches): the cold guest then loads them
-    instead of compiling them under TCG (a cold run: 1116 s against 588 s warm). Kernels already cached cost
-    ~0.5 s; a failure here only leaves the guest to compile them itself."""
-    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CPU_FEATURES"}
-    env.update(GUEST_NUMBA_CPU, NUMBA_CACHE_DIR=str(numba_cache))
-    code = "import sys; sys.path.insert(0, 'tests'); from conftest import _compile_kernels; _compile_kernels()"
-    try:
-        proc = subprocess.run([str(REPO / ".venv/bin/python"), "-c", code], cwd=REPO, env=env, capture_output=True,
-                              text=True, timeout=600)
-    except (OSError, subprocess.TimeoutExpired) as e:
-        say(f"the kernels were not prebuilt for the guest ({e}): it compiles them")
-        return
-    if proc.returncode != 0:
-        say(f"the kernels were not prebuilt for the guest (exit {proc.returncode}): it compiles them\n"
-            f"{proc.stderr[-2000:]}")
-
-
 def boot(guest: Guest, qemu: str, extra: list[str], cache: Path, timeout_s: float) -> int:
     kernel = Path(os.environ["DRAGD_VCAN_KERNEL"]) if os.environ.get("DRAGD_VCAN_KERNEL") else guest.kernel
     if not kernel.is_file():
@@ -472,7 +448,6 @@ def boot(guest: Guest, qemu: str, extra: list[str], cache: Path, timeout_s: floa
     share = Path(tempfile.mkdtemp(prefix="run-", dir=runs))
     numba_cache = cache / "numba"  # the guest's compiled kernels, kept across boots (compiling them under TCG took
     numba_cache.mkdir(exist_ok=True)  # most of a run's start-up; numba's index follows the sources' path and mtime)
-    prebuild_kernels(numba_cache)
     check_guest_paths({"the repository": REPO, "the cache": cache, "the venv's python": REPO / ".venv/bin/python"})
     write_guest_env(share, extra)
     argv = [qemu, "-accel", "tcg,thread=single", "-icount", "shift=0,sleep=off", "-cpu", "max", "-smp", "1",
