@@ -35,7 +35,7 @@ SYSTEM_CONFIG = Path("/etc/dragd/dragd.yaml")
 
 
 class RobotConfig(_Strict):
-    urdf: str = Field("seed_cobot", description="bundled robot name or URDF path (relative to the config file)")
+    urdf: str = Field(default="seed_cobot", description="bundled robot name or URDF path (relative to the config file)")
     gravity_m_s2: tuple[Finite, Finite, Finite] = (0.0, 0.0, -9.81)
 
 
@@ -658,14 +658,14 @@ class Config(_Strict):
             raise ValueError(f"stream.max_lead_s: expected more than stream.delay_s ({self.stream.delay_s:g} s), got "
                              f"{self.stream.max_lead_s:g}")
         r = self.replay
-        for key in ("velocity_limits_rad_s", "acceleration_limits_rad_s2", "jerk_limits_rad_s3",
+        for name in ("velocity_limits_rad_s", "acceleration_limits_rad_s2", "jerk_limits_rad_s3",
                     "tracking_error_limit_rad", "residual_current_limit_A", "position_kp_Nm_per_rad",
                     "position_kd_Nm_s_per_rad", "position_ki_Nm_per_rad_s", "position_integral_limit_A",
                     "position_output_limit_A", "cst_kp_Nm_per_rad", "cst_kd_Nm_s_per_rad", "cst_ki_Nm_per_rad_s",
                     "cst_integral_limit_A"):
-            v = getattr(r, key)
+            v = getattr(r, name)
             if isinstance(v, list) and len(v) != len(self.joints):
-                raise ValueError(f"replay.{key}: expected one value or {len(self.joints)} (one per joint), "
+                raise ValueError(f"replay.{name}: expected one value or {len(self.joints)} (one per joint), "
                                  f"got {len(v)}")
         return self
 

@@ -24,12 +24,13 @@ import platform
 import resource
 import struct
 import sys
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
 
 __all__ = ["Ticker", "set_realtime", "scheduler_label", "demote_current_thread", "HELPER_PRIORITY",
-           "CpuLatencyRequest"]
+           "CpuLatencyRequest", "thread_policy", "thread_policies"]
 
 _CLOCK_MONOTONIC = 1
 _TFD_NONBLOCK = os.O_NONBLOCK
@@ -317,12 +318,15 @@ def set_realtime(
         try:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
             global _REALTIME_PRIORITY
-            _REALTIME_PRIORITY = priority
+            with _HELPERS_LOCK:  # (a helper demoting itself right now sees the priority, or is re-demoted here)
+                _REALTIME_PRIORITY = priority
+                helpers = _demote_started_helpers()  # helpers started before: below the cycle from now on
             result["scheduler"] = {
                 "requested_priority": priority,
                 "applied": True,
                 "policy": _policy_name(os.sched_getscheduler(0)),
                 "reason": None,
+                "helpers": helpers,
             }
         except PermissionError:
             result["scheduler"] = {
@@ -433,51 +437,97 @@ def scheduler_label(info: dict[str, Any], priority: int | None) -> str:
 
 HELPER_PRIORITY = 1  # SCHED_FIFO priority of a real-time process's helper threads: below every cycle thread
 _REALTIME_PRIORITY: int | None = None  # the SCHED_FIFO priority set_realtime applied in this process (None: none)
+# every thread that called demote_current_thread: native id → (thread, CPUs to avoid); set_realtime re-applies
+_HELPERS: dict[int, tuple[threading.Thread, set[int] | None]] = {}
+_HELPERS_LOCK = threading.Lock()
 
 
 def demote_current_thread(avoid_cpus: set[int] | None = None) -> dict[str, Any]:
     """Put the calling helper thread (telemetry writer, executors, control socket) below the cycle and, if possible,
     off ``avoid_cpus``.
 
-    For threads started after `set_realtime`, which would otherwise inherit the cycle's SCHED_FIFO priority and CPU
-    set. In a real-time process a helper runs SCHED_FIFO at the lowest priority (``HELPER_PRIORITY``), not
+    In a real-time process a helper runs SCHED_FIFO at the lowest priority (``HELPER_PRIORITY``), not
     SCHED_OTHER: every cycle thread preempts it, and no normal task does — a SCHED_OTHER helper preempted by the
     host's other work *while it holds the GIL* would stall the cycle thread waiting for the GIL for as long as the
-    scheduler keeps it off a CPU (milliseconds; the RPDO watchdogs fault the arm at 50). The policy carries
+    scheduler keeps it off a CPU (milliseconds; the RPDO watchdogs fault the arm at 50). The thread is remembered: a
+    helper started before `set_realtime` (the daemon's SDO worker and telemetry forwarder start during boot) is put
+    at ``HELPER_PRIORITY`` when the process turns real-time, not left SCHED_OTHER. The policy carries
     SCHED_RESET_ON_FORK: processes the helper starts (the telemetry encoder, the planner) run SCHED_OTHER — and so do
     threads it starts, which call this in turn. A cycle at priority ``HELPER_PRIORITY`` or below has SCHED_OTHER
     helpers (never beside it), and so has a process `set_realtime` did not make real-time. Never raises.
     """
+    with _HELPERS_LOCK:
+        for tid in [tid for tid, (t, _) in _HELPERS.items() if not t.is_alive()]:  # (record windows' writers, ...)
+            del _HELPERS[tid]
+        _HELPERS[threading.get_native_id()] = (threading.current_thread(), set(avoid_cpus) if avoid_cpus else None)
+        return _demote(0, avoid_cpus)
+
+
+def _demote(tid: int, avoid_cpus: set[int] | None) -> dict[str, Any]:
+    """`demote_current_thread` for thread ``tid`` (0: the calling one). Never raises."""
     out: dict[str, Any] = {"policy": None, "cpus": None, "reason": None}
     reasons: list[str] = []
     reset = getattr(os, "SCHED_RESET_ON_FORK", 0)
     try:
         if _REALTIME_PRIORITY is not None and _REALTIME_PRIORITY > HELPER_PRIORITY:
             try:
-                os.sched_setscheduler(0, os.SCHED_FIFO | reset, os.sched_param(HELPER_PRIORITY))
+                os.sched_setscheduler(tid, os.SCHED_FIFO | reset, os.sched_param(HELPER_PRIORITY))
             except OSError as e:  # (RLIMIT_RTPRIO lowered since, a kernel without RESET_ON_FORK): SCHED_OTHER
                 reasons.append(f"sched_setscheduler(SCHED_FIFO {HELPER_PRIORITY}) failed: {e.strerror}")
-                os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-        elif os.sched_getscheduler(0) & ~reset != os.SCHED_OTHER:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-        out["policy"] = _policy_name(os.sched_getscheduler(0) & ~reset)
-        if out["policy"] == "SCHED_FIFO":
-            out["policy"] = f"SCHED_FIFO {os.sched_getparam(0).sched_priority}"
+                os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+        elif os.sched_getscheduler(tid) & ~reset != os.SCHED_OTHER:
+            os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+        out["policy"] = thread_policy(tid)
     except OSError as e:
         reasons.append(f"sched_getscheduler/sched_setscheduler failed: {e.strerror}")
     try:
-        allowed = os.sched_getaffinity(0)
+        allowed = os.sched_getaffinity(tid)
         if avoid_cpus:
             rest = set(range(os.cpu_count() or 1)) - set(avoid_cpus)
             if rest:
-                os.sched_setaffinity(0, rest)
+                os.sched_setaffinity(tid, rest)
             else:
                 reasons.append(f"no CPU left outside {sorted(avoid_cpus)}; affinity unchanged")
-            allowed = os.sched_getaffinity(0)
+            allowed = os.sched_getaffinity(tid)
         out["cpus"] = sorted(allowed)
     except OSError as e:
         reasons.append(f"sched_setaffinity failed: {e.strerror}")
     out["reason"] = "; ".join(reasons) or None
+    return out
+
+
+def _demote_started_helpers() -> dict[str, Any]:
+    """Put every live helper thread that called `demote_current_thread` before the process turned real-time at
+    ``HELPER_PRIORITY`` (their name → what `_demote` reports); forget the ones that ended. Holding _HELPERS_LOCK."""
+    done: dict[str, Any] = {}
+    for tid, (thread, avoid) in list(_HELPERS.items()):
+        if not thread.is_alive() or thread.native_id != tid:
+            del _HELPERS[tid]
+            continue
+        done[thread.name] = _demote(tid, avoid)
+    return done
+
+
+def thread_policy(tid: int = 0) -> str:
+    """Thread ``tid``'s (0: the calling thread's) scheduling policy as status reports it: "SCHED_FIFO 1",
+    "SCHED_OTHER"."""
+    reset = getattr(os, "SCHED_RESET_ON_FORK", 0)
+    name = _policy_name(os.sched_getscheduler(tid) & ~reset)
+    return f"{name} {os.sched_getparam(tid).sched_priority}" if name in ("SCHED_FIFO", "SCHED_RR") else name
+
+
+def thread_policies() -> dict[str, str]:
+    """Every live thread of this process (by name; its native id where two share one) → its scheduling policy."""
+    out: dict[str, str] = {}
+    for t in threading.enumerate():
+        tid = t.native_id
+        if tid is None:
+            continue
+        try:
+            policy = thread_policy(tid)
+        except OSError:  # (ended since)
+            continue
+        out[t.name if t.name not in out else f"{t.name} ({tid})"] = policy
     return out
 
 

@@ -14,7 +14,9 @@ Clocks: the drive reads no clock of its own. Communication timing (heartbeats, R
 runs on the time handed in by ``comm(now)`` and ``on_sync(t)``; a frame is received at ``on_data(..., now)``'s time,
 else at the ``clock`` the drive was built with (the simulator's process: CLOCK_MONOTONIC on the wall clock), else at the
 latest time handed in. Reception deadlines are also judged against the time up to which the reader has handed frames
-over (``rx_caught_up``). Motion timing (brake release, stop ramps, torque slope) runs on the physics time of ``update``.
+over (``rx_caught_up``), and leave out the time the simulator itself was not running (``not_running``: a frozen host
+stops the master too; the simulated drive's hardware clock is the simulator's). Motion timing (brake release, stop
+ramps, torque slope) runs on the physics time of ``update``.
 """
 
 from __future__ import annotations
@@ -172,6 +174,7 @@ class DriveCounters:
     heartbeat_losses: int = 0
     stop_timeouts: int = 0
     watchdog_waits: int = 0  # reception deadlines past by the clock, not yet by what the reader has read (stalled sim)
+    watchdog_holds: int = 0  # reception deadlines past by the clock, not over the time the simulator ran (frozen host)
 
 
 _ROUTE_GENERATIONS = itertools.count(1)
@@ -218,6 +221,9 @@ class SimDrive:
         # drives, given now — the reception watchdogs judge against it: a stall of the simulator's reader is not a
         # silent bus
         self.rx_caught_up: Callable[[float], float] | None = None
+        # set by the simulator's process (sim/runner.py OwnStalls.held): how much of [a, b] the simulator did not run —
+        # the reception watchdogs leave it out: a drive watches the bus only while its firmware runs
+        self.not_running: Callable[[float, float], float] | None = None
         self.s = s = self._bind_slots()
         self.scaling = Scaling(self.profile, store)
         self.nmt = Nmt(store, self.node_id, self._tx, self.counters)
@@ -619,13 +625,21 @@ class SimDrive:
                 pdo.poll_event_tpdos(now)
 
     def _deadline_passed(self, last_rx_s: float, timeout_s: float, now: float) -> bool:
-        """Whether a reception deadline has passed — by the clock, and by what the reader has handed over: a real
-        drive's controller takes each frame off the wire as it comes, this process may not have been scheduled to
-        read them yet (counted in ``watchdog_waits``)."""
+        """Whether a reception deadline has passed — by the clock, over the time the simulator was running, and by what
+        the reader has handed over: a real drive's controller takes each frame off the wire as it comes and never stops,
+        this process may have been frozen with the master (counted in ``watchdog_holds``) or not scheduled to read the
+        frames yet (``watchdog_waits``)."""
         if now - last_rx_s <= timeout_s:
             return False
+        not_running = self.not_running
+        if not_running is not None and now - last_rx_s - not_running(last_rx_s, now) <= timeout_s:
+            self.counters.watchdog_holds += 1
+            return False
         caught_up = self.rx_caught_up
-        if caught_up is None or min(now, caught_up(now)) - last_rx_s > timeout_s:
+        if caught_up is None:
+            return True
+        seen = min(now, caught_up(now))
+        if seen - last_rx_s - (0.0 if not_running is None else not_running(last_rx_s, seen)) > timeout_s:
             return True
         self.counters.watchdog_waits += 1
         return False

@@ -10,15 +10,34 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from enum import IntEnum
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from dragd.hardware.cia402 import Mode, State
 from sim.axis import AxisIO
-from sim.stops import Stop, stop_current
+from sim.stops import Stop, StopGains, stop_current
 
 if TYPE_CHECKING:
-    from sim.drive import DriveCounters, DriveParams
     from sim.scaling import Scaling
+
+
+class MotionParams(StopGains, Protocol):
+    """What the laws read of the drive's parameters (sim/drive.py's DriveParams; the drive imports this module,
+    never the other way round)."""
+
+    @property
+    def encoder_counts_per_rev(self) -> int: ...
+    @property
+    def csp_kp_A_per_rad(self) -> float: ...
+    @property
+    def csp_kd_A_s_per_rad(self) -> float: ...
+    @property
+    def csp_ki_A_per_rad_s(self) -> float: ...
+
+
+class StopCounter(Protocol):
+    """Where a stop that timed out is counted (sim/drive.py's DriveCounters)."""
+
+    stop_timeouts: int
 
 _INT32_MIN, _INT32_MAX = -(1 << 31), (1 << 31) - 1
 
@@ -32,8 +51,8 @@ class Regime(IntEnum):
 class Motion:
     """Regime, brake and the state of the mode laws of one drive (slots: see ``Slots`` in sim/drive.py)."""
 
-    def __init__(self, params: DriveParams, io: AxisIO, cells: list[Any], slots: Any, scaling: Scaling,
-                 counters: DriveCounters, stopped: Callable[[State | None], None]) -> None:
+    def __init__(self, params: MotionParams, io: AxisIO, cells: list[Any], slots: Any, scaling: Scaling,
+                 counters: StopCounter, stopped: Callable[[State | None], None]) -> None:
         self.params = params
         self.io = io
         self.cells = cells

@@ -5,7 +5,9 @@ few hundred microseconds of the SYNC. Other frames go to the drives that consume
 RPDOs — also a COB-ID shared by several drives — and consumed heartbeats by routing table). The routing table is
 rebuilt whenever a drive's COB-IDs change. On dragd's udp_multicast bus the reader drains whole datagrams and hands
 plain data frames over as (COB-ID, payload), without a ``can.Message`` each. It keeps the time up to which it has
-handed over everything that arrived (`caught_up`): the drives' reception watchdogs judge against it.
+handed over everything that arrived (`caught_up`): the drives' reception watchdogs judge against it. Its times are on
+the drives' clock (``clock``: in the simulator's process CLOCK_MONOTONIC read through sim/runner.py's OwnStalls, which
+notes when the process did not run).
 
 On the lockstep clock (sim/lockstep.py) a SYNC's reception time is the simulated time; the drives answer it as always,
 then, in the same batch, the period runs (``LockstepSync.on_sync``) and its TIME frame ends the answer — also while
@@ -60,7 +62,10 @@ class SimNetwork:
     """Reader thread for a set of drives sharing one bus."""
 
     def __init__(self, bus: can.BusABC, drives: list[SimDrive], *, late_threshold_s: float = 0.0005,
-                 recv_timeout_s: float = 0.05, lockstep: LockstepSync | None = None, bus_index: int = 0) -> None:
+                 recv_timeout_s: float = 0.05, lockstep: LockstepSync | None = None, bus_index: int = 0,
+                 clock: Callable[[], float] | None = None) -> None:
+        """``clock``: the drives' communication clock (default: CLOCK_MONOTONIC; the lockstep clock's with
+        ``lockstep``)."""
         ids = [d.node_id for d in drives]
         if len(set(ids)) != len(ids):
             raise ValueError(f"SimNetwork: node ids must be unique on one bus, got {ids}")
@@ -71,7 +76,8 @@ class SimNetwork:
         self.counters = NetworkCounters()
         self.lockstep = lockstep
         self.bus_index = bus_index
-        self._now: Callable[[], float] = time.monotonic if lockstep is None else lockstep.clock.now
+        self._now: Callable[[], float] = (clock if clock is not None
+                                          else time.monotonic if lockstep is None else lockstep.clock.now)
         self._sync_cob = SYNC_COB_ID  # (lockstep: a SYNC counts toward the period even while the link is muted)
         self.rx_muted: Callable[[], bool] | None = None  # an injected link-down (sim/faults.py): drop what arrives
         # the TPDOs a SYNC triggers leave in one datagram where the bus batches (udp_multicast, batch_frames)
@@ -122,7 +128,7 @@ class SimNetwork:
         self.stop()
 
     def caught_up(self, now: float) -> float:
-        """The time (monotonic) up to which every frame that reached this process has been handed to the drives:
+        """The time (on ``clock``) up to which every frame that reached this process has been handed to the drives:
         ``now`` while the reader waits on an empty socket (or is not running: then nothing will be read), else when
         it last found the socket empty. The drives' reception watchdogs judge against it (only once a deadline has
         passed by the clock: the rare path). A reader waiting while frames are queued has been woken but not run yet
@@ -145,7 +151,7 @@ class SimNetwork:
         return bool(ready)
 
     def _run(self) -> None:
-        self._caught_up_s, self._running = time.monotonic(), True
+        self._caught_up_s, self._running = self._now(), True
         try:
             if isinstance(self.bus, UdpMulticastCanBus):
                 self._run_draining(self.bus.drain)
@@ -156,9 +162,9 @@ class SimNetwork:
 
     def _run_receiving(self) -> None:
         """The reader on any other python-can bus (socketcan, virtual): frame by frame."""
-        recv, timeout = self.bus.recv, self.recv_timeout_s
+        recv, timeout, clock = self.bus.recv, self.recv_timeout_s, self._now
         while not self._stop.is_set():
-            t0 = time.monotonic()
+            t0 = clock()
             try:
                 msg = recv(0.0)
                 if msg is None:  # nothing queued at t0: everything before it has been handed over
@@ -180,9 +186,9 @@ class SimNetwork:
     def _run_draining(self, drain: Callable[..., int]) -> None:
         """The reader on a bus with ``drain`` (dragd's udp_multicast): every datagram already queued in one go, plain
         data frames (SYNC, RPDOs, SDO requests, NMT) handed over without a ``can.Message`` each."""
-        fd, timeout, bus = self.bus.fileno(), self.recv_timeout_s, self.bus
+        fd, timeout, bus, clock = self.bus.fileno(), self.recv_timeout_s, self.bus, self._now
         while not self._stop.is_set():
-            t0 = time.monotonic()
+            t0 = clock()
             try:
                 n = drain(self._on_data, self._on_message, DRAIN_LIMIT)
             except can.CanError as exc:

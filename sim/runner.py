@@ -6,6 +6,14 @@ a tick that wakes late catches up (``late_steps``), one that is hopelessly late 
 the sim then runs behind real time: rtf < 1). The SimNetwork reader thread answers the bus; the control socket
 (JSON lines, dragd's protocol) runs in its own asyncio thread. The physics lock is held for one tick's batch.
 
+On the wall clock the drives' clock is CLOCK_MONOTONIC read through ``OwnStalls``, which notes when the simulator
+itself was not running. A real drive's firmware watches the bus whatever the host does; the simulated drive watches it
+only while the simulator runs. When the host freezes the VM (both processes stop: nothing can be sent, nothing is
+watched) or the OS does not schedule the simulator, that time is not time the drive saw a silent bus: its reception
+watchdogs (RPDO deadlines, heartbeat consumers) leave it out (CI once saw EMCY 8250h after an 88 ms freeze of both
+processes). A daemon silent beside a running simulator still times the drives out, as a real one would; what the drives
+send (heartbeats, event TPDOs) stays on CLOCK_MONOTONIC and catches up at once, as a real drive's queued frames would.
+
 On the lockstep clock (``--lockstep``, sim/lockstep.py) the SYNC (of every bus) runs one period of the same steps
 (``_period``) in the bus reader's thread instead of the timerfd, and the period's answer ends with a TIME frame; the
 drives' communication clock is the simulated time; ``rtf`` is then as fast as the two processes go.
@@ -19,6 +27,7 @@ hand: sim/hand.py), ``hand`` (press / let go a button of the guiding device now)
 from __future__ import annotations
 
 import asyncio
+import collections
 import ctypes
 import ctypes.util
 import gc
@@ -53,6 +62,7 @@ from sim.scenario_payload import PayloadSchedule, set_flange_payload
 from sim.truth import Truth, drive_params
 
 TICK_NS = 1_000_000
+RUN_CLOCK_MAX_GAP_S = 0.002  # a running simulator reads its clock every tick (1 ms): a longer gap: not running
 MAX_CATCHUP_TICKS = 100  # a wake-up later than this (100 ms) drops the excess steps instead of catching up
 LATENCY_RING = 1 << 16
 
@@ -108,6 +118,66 @@ class TimerFd:
             self.fd = -1
 
 
+class OwnStalls:
+    """CLOCK_MONOTONIC (s) as the simulator's threads read it, and the stalls of the simulator it shows.
+
+    Every thread of the simulator reads ``now`` where it works (the physics loop every tick and every tick it catches
+    up, the bus reader at each wake and each frame): a gap between two readings longer than ``max_gap_s`` is time none
+    of them ran (the host froze the VM, or did not schedule this process) — a stall from ``max_gap_s`` after the
+    earlier reading to the later one. ``held(a, b)``: how much of [a, b] was stalled (the drives' reception watchdogs
+    leave it out: sim/drive.py). Readings never go backwards; thread-safe; the last ``keep`` stalls are kept.
+    ``source`` is the clock read (tests inject one)."""
+
+    def __init__(self, max_gap_s: float = RUN_CLOCK_MAX_GAP_S, source: Callable[[], float] = time.monotonic,
+                 keep: int = 256) -> None:
+        self.max_gap_s = max_gap_s
+        self._source = source
+        self._lock = threading.Lock()
+        self._last = source()
+        self._stalls: collections.deque[tuple[float, float]] = collections.deque(maxlen=keep)  # (start, end)
+        self.count = 0
+        self.total_s = 0.0
+        self.max_s = 0.0
+
+    def now(self) -> float:
+        with self._lock:
+            raw = self._source()
+            last = self._last
+            if raw - last > self.max_gap_s:
+                start = last + self.max_gap_s
+                self._stalls.append((start, raw))
+                held = raw - start
+                self.count += 1
+                self.total_s += held
+                if held > self.max_s:
+                    self.max_s = held
+            if raw > last:
+                self._last = raw
+            return self._last
+
+    def held(self, a: float, b: float) -> float:
+        """Seconds of [a, b] during which the simulator did not run (as far as the kept stalls tell)."""
+        total = 0.0
+        with self._lock:  # (called only once a deadline has passed by the clock: the rare path)
+            for start, end in reversed(self._stalls):  # newest first
+                if end <= a:
+                    break
+                if start < b:
+                    total += min(end, b) - max(start, a)
+        return total
+
+    def reset_counts(self) -> None:
+        """Start the counts afresh (the real-time loop starts: setting up is not a stall)."""
+        with self._lock:
+            self._last = self._source()
+            self.count, self.total_s, self.max_s = 0, 0.0, 0.0
+
+    def report(self) -> dict[str, Any]:
+        """The simulator's own stalls: the host's, beside the daemon's missed cycles."""
+        return {"count": self.count, "total_s": round(self.total_s, 6), "max_s": round(self.max_s, 6),
+                "gap_threshold_s": self.max_gap_s}
+
+
 class SimProcess:
     """Drives + network + physics + control socket of one simulated arm on one bus."""
 
@@ -118,6 +188,7 @@ class SimProcess:
         self.truth = truth
         self.lockstep_period_s = period_s if lockstep else None
         self.lockstep: LockstepSync | None = None
+        self.stalls: OwnStalls | None = None  # the drives' clock on the wall clock, and the simulator's stalls (run)
         self.batch_frames = batch_frames
         self.realtime_priority = realtime_priority
         self.cpus = cpus
@@ -181,8 +252,12 @@ class SimProcess:
             self.realtime = set_realtime(self.realtime_priority, self.cpus)
         try:
             self.buses = [open_bus(spec, batch_frames=self.batch_frames) for spec in self.specs]
-            clock: Callable[[], float] = time.monotonic  # stamps the frames the drives receive
-            if self.lockstep_period_s is not None:
+            # the drives' communication clock: it stamps the frames they receive and times their watchdogs
+            clock: Callable[[], float]
+            if self.lockstep_period_s is None:
+                self.stalls = OwnStalls()
+                clock = self.stalls.now
+            else:
                 self.lockstep = LockstepSync(self.buses, self.lockstep_period_s, self.physics.dt_s)
                 self._limit_steps = None if self.seconds is None else int(round(self.seconds / self.physics.dt_s))
                 self.lockstep.run_period = self._period
@@ -193,9 +268,11 @@ class SimProcess:
                 node = drive_params(j, spec.fd).node_id
                 self.drives.append(SimDrive(drive_params(j, spec.fd), ax, inj.sender(node),
                                             send_data=inj.data_sender(node), clock=clock))
+                if self.stalls is not None:
+                    self.drives[-1].not_running = self.stalls.held
             on_bus = [[d for d, j in zip(self.drives, self.truth.joints, strict=True) if j.bus_index == k]
                       for k in range(len(self.buses))]
-            self.networks = [SimNetwork(bus, on_bus[k], lockstep=self.lockstep, bus_index=k)
+            self.networks = [SimNetwork(bus, on_bus[k], lockstep=self.lockstep, bus_index=k, clock=clock)
                              for k, bus in enumerate(self.buses)]
             for net, inj in zip(self.networks, self.injectors, strict=True):
                 net.rx_muted = inj.rx_muted
@@ -243,6 +320,8 @@ class SimProcess:
                 self._thread_cpu_ns = lockstep.period_cpu_ns
             return
         timer = TimerFd(TICK_NS)
+        if self.stalls is not None:
+            self.stalls.reset_counts()
         timer.start()
         try:
             while not stop.is_set():
@@ -275,12 +354,17 @@ class SimProcess:
         limit = self._limit_steps
         if limit is not None:
             steps = max(0, min(steps, limit - physics.steps))
+        stalls, substeps = self.stalls, self.substeps
+        if stalls is not None:
+            stalls.now()  # (the wake: a gap since the last reading is time this process did not run)
         with self.lock:
-            for _ in range(steps):
+            for i in range(steps):
                 t = physics.t_s
                 for d in drives:
                     d.update(t, dt)
                 physics.step()
+                if stalls is not None and i % substeps == substeps - 1:
+                    stalls.now()  # (catching up is running: readings go on while it does)
             if self.payloads.pending:
                 self.payloads.apply_due(physics)
             if self.hand is not None:
@@ -290,7 +374,7 @@ class SimProcess:
                 for inj in self.injectors:
                     inj.release_due(now)
             else:
-                now = time.monotonic()
+                now = time.monotonic() if stalls is None else stalls.now()
         for d in drives:
             d.comm(now)
         busy = time.monotonic_ns() - wake
@@ -358,6 +442,8 @@ class SimProcess:
             "tick_busy_us": {"mean": self.busy_ns / self.ticks / 1e3 if self.ticks else 0.0,
                              "max": self.max_busy_ns / 1e3},
             "late_tick_times_s": list(self.late_tick_times),
+            # the simulator's own stalls (the drives' clock held over them): the host's, beside the daemon's misses
+            **({"own_stalls": self.stalls.report()} if self.stalls is not None else {}),
             "cpu_s": round(cpu, 3),
             "cpu_pct": round(100.0 * cpu / wall, 1) if wall > 0 else 0.0,  # the whole process
             "physics_cpu_pct": round(100.0 * self._thread_cpu_ns * 1e-9 / wall, 1) if wall > 0 else 0.0,

@@ -6,12 +6,25 @@ at standstill for ``standstill_time_s`` (or after ``stop_timeout_s``) the stop e
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 from dragd.hardware.cia402 import State
 
-if TYPE_CHECKING:
-    from sim.drive import DriveParams
+
+class StopGains(Protocol):
+    """What a stop reads of the drive's parameters (sim/drive.py's DriveParams has them: this module does not
+    import the drive that uses it)."""
+
+    @property
+    def quickstop_kd_A_s_per_rad(self) -> float: ...
+    @property
+    def quickstop_ki_A_per_rad(self) -> float: ...
+    @property
+    def standstill_velocity_rad_s(self) -> float: ...
+    @property
+    def standstill_time_s(self) -> float: ...
+    @property
+    def stop_timeout_s(self) -> float: ...
 
 
 @dataclass
@@ -26,7 +39,7 @@ class Stop:
     still_since_s: float | None = None
 
 
-def stop_current(st: Stop, p: DriveParams, v: float, limit_A: float, t: float, dt: float) -> tuple[float, bool, bool]:
+def stop_current(st: Stop, p: StopGains, v: float, limit_A: float, t: float, dt: float) -> tuple[float, bool, bool]:
     """One step of the stop loop: (current demand before clamping, finished, finished by the timeout)."""
     if st.decel_rad_s2 is None:
         st.v_ref_rad_s = 0.0

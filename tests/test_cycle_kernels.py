@@ -9,13 +9,15 @@ against numpy's).
 from __future__ import annotations
 
 import math
-from types import SimpleNamespace
+import tracemalloc
 
 import numpy as np
 import pytest
 
 from dragd.config import load_config
+from dragd.control import plausible
 from dragd.control.estimate import VelocityEstimator
+from dragd.control.plausible import EncoderPlausibility
 from dragd.daemon.cycle import Cycle
 from dragd.daemon.kernels import kernels
 from dragd.hardware.io import Feedback
@@ -98,15 +100,10 @@ def test_inputs_and_outputs_kernels_match_scaling(scaling: Scaling) -> None:
     assert tq_ref.dtype == np.int64 and np.abs(tq_ref).max() <= 32768
 
 
-def _plausibility_state(scaling: Scaling, rejects: list[str]) -> Cycle:
-    """A Cycle with just what ``_plausible`` / ``_reject`` / ``_remember`` use."""
-    c = Cycle.__new__(Cycle)
-    c.jump_step_counts = 6.0 * 1e-3 * scaling.counts_per_rev / (2.0 * np.pi) + 2.0
-    c.encoder_rejects, c.hold_after, c.node_ids, c.scaling = 0, 3, list(range(1, N + 1)), scaling
-    c.controller = SimpleNamespace(fault=lambda j, text: rejects.append(f"{j}: {text}"))  # type: ignore[assignment]
-    c._prev_counts, c._since, c._jump_d, c._jump_lim = np.zeros(N, dtype=np.int64), np.ones(N), np.zeros(N), np.zeros(N)
-    c._jump_mask, c._jump_run = np.zeros(N, dtype=bool), np.zeros(N, dtype=np.int64)
-    return c
+def _plausibility_state(scaling: Scaling, rejects: list[str], kernel: object = None) -> EncoderPlausibility:
+    """The cycle's encoder plausibility as the daemon builds it (6 rad/s, 1 kHz, hold after 3)."""
+    return EncoderPlausibility(scaling.counts_per_rev, 1e-3, 6.0, 3, list(range(1, N + 1)),
+                               lambda j, text: rejects.append(f"{j}: {text}"), kernel)
 
 
 def test_plausibility_kernel_matches_the_reference(scaling: Scaling) -> None:
@@ -119,9 +116,11 @@ def test_plausibility_kernel_matches_the_reference(scaling: Scaling) -> None:
     counts[2000:2010, 3] += 500_000  # persistent: rejected hold_after times, then a fault and the new baseline
     ref_faults: list[str] = []
     got_faults: list[str] = []
-    ref, got = _plausibility_state(scaling, ref_faults), _plausibility_state(scaling, got_faults)
+    ref, got = _plausibility_state(scaling, ref_faults), _plausibility_state(scaling, got_faults, k["plausible"])
+    assert (ref.check.__func__, got.check.__func__) == (  # type: ignore[attr-defined]
+        EncoderPlausibility._check, EncoderPlausibility._check_compiled)
     for c in (ref, got):
-        c._prev_counts[:] = counts[0]
+        c.prime(counts[0])
     for step in range(1, counts.shape[0]):
         fbs = []
         for _ in range(2):
@@ -130,17 +129,48 @@ def test_plausibility_kernel_matches_the_reference(scaling: Scaling) -> None:
             fb.rx[:] = fresh[step]
             fb.rx_count = int(fresh[step].sum())
             fbs.append(fb)
-        ref._plausible(fbs[0])
-        if k["plausible"](fbs[1].counts, fbs[1].rx, got._prev_counts, got._since, got._jump_run, got.jump_step_counts,
-                          got._jump_mask):
-            got._reject(fbs[1], got._jump_mask)
-            got._remember(fbs[1])
+        for c, fb in ((ref, fbs[0]), (got, fbs[1])):
+            fb.rx_count -= c.check(fb.counts, fb.rx, fb.stale)
         for a, b, what in ((fbs[0].counts, fbs[1].counts, "counts"), (fbs[0].rx, fbs[1].rx, "rx"),
-                           (fbs[0].stale, fbs[1].stale, "stale"), (ref._prev_counts, got._prev_counts, "prev"),
-                           (ref._since, got._since, "since"), (ref._jump_run, got._jump_run, "run")):
+                           (fbs[0].stale, fbs[1].stale, "stale"), (ref.prev_counts, got.prev_counts, "prev"),
+                           (ref.since, got.since, "since"), (ref.run, got.run, "run")):
             assert np.array_equal(a, b), f"step {step}: {what}"
-        assert fbs[0].rx_count == fbs[1].rx_count
-    assert got.encoder_rejects == ref.encoder_rejects > 10 and got_faults == ref_faults and len(ref_faults) >= 1
+        assert fbs[0].rx_count == fbs[1].rx_count == int(fbs[0].rx.sum())
+    assert got.rejects == ref.rejects > 10 and got_faults == ref_faults and len(ref_faults) >= 1
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_the_plausibility_check_keeps_no_memory_per_cycle(scaling: Scaling, compiled: bool) -> None:
+    """The cycle's call on its usual path (plausible samples, some late): no memory taken per call."""
+    k = kernels() if compiled else None
+    if compiled and k is None:
+        pytest.skip("numba is not importable here")
+    rng = np.random.default_rng(4)
+    # up to ~3 rad/s on 2^19 counts/rev (the bound is 6 rad/s), 10 % of the samples late
+    counts = np.cumsum(rng.integers(-250, 250, (3000, N)), axis=0).astype(np.int64)
+    fresh = rng.random((3000, N)) > 0.1
+    faults: list[str] = []
+    p = _plausibility_state(scaling, faults, None if k is None else k["plausible"])
+    p.prime(counts[0])
+    fb = Feedback(N)
+    for step in range(1, 100):  # warm-up (first calls may cache)
+        fb.counts[:] = counts[step]
+        fb.rx[:] = fresh[step]
+        p.check(fb.counts, fb.rx, fb.stale)
+    rows = list(zip(counts[100:], fresh[100:], strict=True))
+    c, rx, stale = fb.counts, fb.rx, fb.stale
+    own = [tracemalloc.Filter(True, plausible.__file__)]  # (what other threads of this worker allocate: not ours)
+    tracemalloc.start()
+    before = sum(t.size for t in tracemalloc.take_snapshot().filter_traces(own).traces)
+    for cr, fr in rows:
+        c[:] = cr
+        rx[:] = fr
+        p.check(c, rx, stale)
+    after = sum(t.size for t in tracemalloc.take_snapshot().filter_traces(own).traces)
+    tracemalloc.stop()
+    # nothing kept from one call to the next (one 6-element array held would be ~150 bytes)
+    assert after - before <= 0, f"{after - before} bytes held by control/plausible.py after {len(rows)} calls"
+    assert p.rejects == 0 and not faults
 
 
 def test_one_signature_per_kernel() -> None:
@@ -160,9 +190,9 @@ def test_the_cycle_runs_the_kernels_or_their_reference_as_chosen_at_construction
     for compiled in (True, False):
         ip = InProcess(cfg.model_copy(update={"loop": cfg.loop.model_copy(update={"compiled": compiled})}))
         cy = ip.cy
-        assert (cy.check_encoders.__func__, cy.decode_inputs.__func__, cy.encode_outputs.__func__) == (
-            (Cycle._plausible_compiled, Cycle._inputs_compiled, Cycle._outputs_compiled) if compiled
-            else (Cycle._plausible, Cycle._inputs, Cycle._outputs))
+        assert (cy.encoders.check.__func__, cy.decode_inputs.__func__, cy.encode_outputs.__func__) == (
+            (EncoderPlausibility._check_compiled, Cycle._inputs_compiled, Cycle._outputs_compiled) if compiled
+            else (EncoderPlausibility._check, Cycle._inputs, Cycle._outputs))
         q0 = np.array([0.1, -0.4, 0.8, 0.0, 0.5, -0.2])
         ip.hold(q0)
         rows = []

@@ -225,6 +225,79 @@ def test_realtime_cycle_thread_puts_helper_threads_below_it() -> None:
     assert r["pool"][3].startswith("dragd-exec")
 
 
+_HELPERS_FIRST_PROBE = """
+import asyncio, json, os, sys, tempfile, threading, time
+from concurrent.futures import ThreadPoolExecutor
+from dragd.daemon.core import go_realtime
+from dragd.realtime import demote_current_thread, thread_policies
+from dragd.telemetry.writer import TelemetryWriter
+
+async def main():
+    loop = asyncio.get_running_loop()
+    # as the daemon's boot does: the SDO worker and the telemetry forwarder start before the cycle turns real-time
+    sdo = ThreadPoolExecutor(1, thread_name_prefix="dragd-sdo", initializer=demote_current_thread, initargs=(None,))
+    sdo.submit(lambda: None).result()
+    w = TelemetryWriter(os.path.join(tempfile.mkdtemp(), "t.mcap"), {"t_s": 1}, process=True)
+    while w.stats()["writer_pid"] is None:  # (the forwarder has demoted itself and started the encoder)
+        time.sleep(0.01)
+    before = {t.name: os.sched_getscheduler(t.native_id) for t in threading.enumerate()}
+    label = go_realtime(loop, 10, None)
+    await loop.run_in_executor(None, lambda: None)  # (an executor thread started after)
+    reset = os.SCHED_RESET_ON_FORK
+    after = {t.name: [os.sched_getscheduler(t.native_id) & ~reset, os.sched_getparam(t.native_id).sched_priority]
+             for t in threading.enumerate()}
+    print(json.dumps({"label": label, "before": before, "after": after, "reported": thread_policies(),
+                      "encoder": os.sched_getscheduler(w.stats()["writer_pid"]), "main": threading.main_thread().name,
+                      "fifo": os.SCHED_FIFO, "other": os.SCHED_OTHER}))
+    w.close()
+    sdo.shutdown()
+
+asyncio.run(main())
+"""
+
+
+def test_helpers_started_before_the_cycle_turns_realtime_go_below_it_too() -> None:
+    """The daemon's SDO worker and telemetry forwarder start during boot, before go_realtime: they were left
+    SCHED_OTHER, and under the host's load the cycle waited for the GIL one of them held while off a CPU (156 missed
+    cycles, the RPDO watchdogs faulted the arm: docs/DECISIONS.md). After go_realtime every thread of the process but
+    the cycle runs SCHED_FIFO 1, whenever it started, and status's ``threads`` says so; the encoder process it
+    started stays SCHED_OTHER."""
+    import json
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", _HELPERS_FIRST_PROBE], capture_output=True, text=True, timeout=60,
+                         check=True)
+    r = json.loads(out.stdout)
+    if "refused" in r["label"]:
+        pytest.skip(f"SCHED_FIFO not permitted: {r['label']}")
+    assert r["before"]["dragd-sdo_0"] == r["before"]["dragd-telemetry"] == r["other"], r  # (the case at hand)
+    helpers = {name: pol for name, pol in r["after"].items() if name != r["main"]}
+    assert {"dragd-sdo_0", "dragd-telemetry"} <= set(helpers) and any(n.startswith("dragd-exec") for n in helpers)
+    assert all(pol == [r["fifo"], 1] for pol in helpers.values()), r
+    assert r["after"][r["main"]] == [r["fifo"], 10], r
+    assert r["reported"] == {name: "SCHED_FIFO 10" if name == r["main"] else "SCHED_FIFO 1" for name in r["after"]}
+    assert r["encoder"] == r["other"], r
+
+
+def test_helpers_that_ended_are_forgotten():
+    """demote_current_thread remembers its thread (set_realtime re-applies the helper policy to it); one that ended
+    is forgotten at the next registration, so a daemon opening record window after record window keeps none."""
+    import threading
+
+    from dragd import realtime
+    from dragd.realtime import demote_current_thread
+
+    first = threading.Thread(target=demote_current_thread, name="helper-ended")
+    first.start()
+    first.join()
+    second = threading.Thread(target=demote_current_thread, name="helper-next")
+    second.start()
+    second.join()
+    kept = [t for t, _ in realtime._HELPERS.values()]
+    assert first not in kept and second in kept
+
+
 def test_gravity_beyond_a_current_limit_is_refused_not_clamped(tmp_path) -> None:
     """A pose whose gravity current exceeds a joint's limit: start (and drag) are refused naming the joint and the
     numbers, instead of a silently clamped command that lets the arm sag."""

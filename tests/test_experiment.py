@@ -19,7 +19,8 @@ from dragd.lab.experiment.bench import Bench
 
 from conftest import run_cli
 
-pytestmark = [pytest.mark.lockstep, pytest.mark.slow, pytest.mark.timeout(1800)]  # (a hang guard of wall time: on a loaded machine the lockstep clock runs slower, never wrong)
+# (the timeout: a hang guard of wall time; on a loaded machine the lockstep clock runs slower, never wrong)
+pytestmark = [pytest.mark.lockstep, pytest.mark.slow, pytest.mark.timeout(1800)]
 
 
 @pytest.fixture

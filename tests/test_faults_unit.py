@@ -82,7 +82,7 @@ def test_an_encoder_jump_is_rejected_then_faults_when_it_persists() -> None:
     jumped[2] += 0.2  # 0.2 rad in 1 ms: 200 rad/s
     ip.feed(jumped)
     ip.cycle()
-    assert ip.cy.encoder_rejects == 1 and abs(ip.cy.est.q_rad[2] - q[2]) < 1e-3  # rejected: the estimate stays
+    assert ip.cy.encoders.rejects == 1 and abs(ip.cy.est.q_rad[2] - q[2]) < 1e-3  # rejected: the estimate stays
     ip.feed(q)  # a glitch: the next sample is plausible again
     ip.cycle()
     assert ip.c.mode == Mode.HOLD and ip.d.faults == []
@@ -103,7 +103,7 @@ def test_plausible_motion_is_never_rejected() -> None:
     for k in range(200):  # 3 rad/s on every joint: fast, but physical
         ip.feed(q + 3.0 * 0.001 * k)
         ip.cycle()
-    assert ip.cy.encoder_rejects == 0
+    assert ip.cy.encoders.rejects == 0
 
 
 def test_motion_across_missed_ticks_is_judged_by_the_time_elapsed() -> None:
@@ -119,11 +119,11 @@ def test_motion_across_missed_ticks_is_judged_by_the_time_elapsed() -> None:
     q1 = q + 3.0 * 0.001 * 19
     ip.feed(q1 + 3.0 * 0.050)
     ip.cycle(ticks=50)
-    assert ip.cy.encoder_rejects == 0 and ip.d.faults == []
+    assert ip.cy.encoders.rejects == 0 and ip.d.faults == []
     assert ip.cy.est.q_rad[0] == pytest.approx(q1[0] + 0.15, abs=1e-3)
     ip.feed(q1 + 3.0 * 0.050 + 0.6)  # 0.6 rad within 50 ms: 12 rad/s, beyond the 6 rad/s bound
     ip.cycle(ticks=50)
-    assert ip.cy.encoder_rejects == 6
+    assert ip.cy.encoders.rejects == 6
 
 
 def _cycle_without(ip: InProcess, silent: int, ticks: int = 1) -> None:

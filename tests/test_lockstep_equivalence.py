@@ -18,8 +18,10 @@ while the hand pushes, the path is forced and agrees within ``PUSH_TOLERANCE`` (
 release the arm coasts weightless, braked only by the law's damping, and the small differences above grow: within
 ``COAST_TOLERANCE`` (8 %) 1.5 s after the release. Measured on this 2-core VM at load 8–10 (other jobs running),
 five wall runs against lockstep, each with 17–31 missed ticks: the push within 0.15 %; the coast 0.3, 1.1, 1.6, 0.07
-and 2.7 %. Only a wall-clock run whose daemon did not hold the arm for lost feedback (a host stall) is a reference;
-otherwise the test says so instead of judging.
+and 2.7 %; beside two busy loops (a CPU hog) one run was 2.33 % off in the push. The claim is about a wall run that
+kept real time: only a run whose daemon did not hold the arm for lost feedback, whose cycle did not stall inside the
+compared window (no gap between two cycles of 2.5 ms or more: one missed tick is the jitter above, two in a row a
+stall) and whose simulator dropped no physics step is a reference; otherwise the test says so instead of judging.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ pytestmark = pytest.mark.rig  # (one run of it on the wall clock: serial)
 
 PUSH_S, COAST_S = 0.5, 1.5  # the push; how long the coast after the release is compared
 PUSH_TOLERANCE, COAST_TOLERANCE = 0.01, 0.08  # of the motion's extent
+STALL_S = 0.0025  # a gap between two cycles from here (two or more ticks missed in a row) is a stall, not jitter
 RESOLUTION_RAD = 2.0 * math.pi / 524288 * 10  # a few encoder counts (524288 per revolution)
 PUSH = {"name": "push", "segments": [{"kind": "push", "joint": "joint1", "torque_Nm": 8.0, "duration_s": PUSH_S},
                                      {"kind": "release", "duration_s": 0.0}]}
@@ -57,8 +60,10 @@ def run(tmp: Path, lockstep: bool) -> dict[str, Any]:
         rig.sleep(0.5)
         rig.must("mode", mode="drag")
         rig.sleep(0.3)
+        sim_before = rig.sim_call("state")
         rig.sim_call("operator", scenario=PUSH)
         rig.sleep(2.0)
+        sim_after = rig.sim_call("state")
         status = rig.must("status")
         rig.must("stop")
     rows = read_rows(mcap)
@@ -72,7 +77,10 @@ def run(tmp: Path, lockstep: bool) -> dict[str, Any]:
     # meanwhile), so rows are not samples of a grid; the cycle's t_s is
     grid = t[onset] + (np.arange(-20, int((PUSH_S + COAST_S) * 1000) + 20) * 1e-3)
     q_at = np.interp(grid, t, q)
-    return {"q": q_at - q_at[0], "dq": np.interp(grid, t, dq), "status": status}
+    inside = t[(t >= grid[0]) & (t <= grid[-1])]
+    return {"q": q_at - q_at[0], "dq": np.interp(grid, t, dq), "status": status,
+            "longest_gap_s": float(np.diff(inside).max()) if len(inside) > 1 else 0.0,
+            "sim_dropped_steps": int(sim_after["dropped_steps"]) - int(sim_before["dropped_steps"])}
 
 
 def test_wall_clock_and_lockstep_agree(tmp_path: Path) -> None:
@@ -82,6 +90,11 @@ def test_wall_clock_and_lockstep_agree(tmp_path: Path) -> None:
     if st["feedback_holds"] or st["faults"]:
         pytest.skip(f"the wall-clock run is no reference on this machine now: {st['feedback_holds']} feedback "
                     f"hold(s), faults {st['faults'][-1:]} ({st['missed_cycles']} missed ticks): run it on a quiet one")
+    if wall["longest_gap_s"] > STALL_S or wall["sim_dropped_steps"]:
+        pytest.skip(f"the wall-clock run is no reference on this machine now: inside the compared window the daemon's "
+                    f"longest gap between cycles was {1e3 * wall['longest_gap_s']:.1f} ms (a stall from "
+                    f"{1e3 * STALL_S:g} ms), the simulator dropped {wall['sim_dropped_steps']} physics step(s): run it "
+                    f"on a quiet one")
     ql, qw = lock["q"], wall["q"]
     extent = float(np.abs(ql).max())
     assert extent > 0.3 and float(np.abs(lock["dq"]).max()) > 0.2  # the push moved the joint: something to compare

@@ -6,7 +6,6 @@ In-process (two udp_multicast buses or a virtual bus, one asyncio loop); no wall
 from __future__ import annotations
 
 import asyncio
-import hashlib
 import os
 import struct
 
@@ -15,13 +14,25 @@ import pytest
 
 from dragd.hardware.bus import open_bus, parse_bus
 from dragd.hardware.reader import BusReader
+from dragd.lab.rig import multicast_group
 
 pytestmark = [pytest.mark.unit, pytest.mark.timeout(60)]
 
 
 def _group(name: str) -> str:
-    h = int.from_bytes(hashlib.sha256(f"reader:{name}:{os.getpid()}".encode()).digest()[:4], "big")
-    return f"239.74.{200 + h % 50}.{1 + (h >> 8) % 254}"
+    """A private group per call (pid- and time-derived, never one given before in this process): two runs of this
+    module at once (two checkouts, xdist workers) do not share a group."""
+    return multicast_group(f"reader:{name}")
+
+
+def test_groups_of_the_same_test_differ() -> None:
+    """The same test name twice (as two concurrent runs of it would ask) gives two groups, each a valid private one."""
+    groups = [_group("test_x") for _ in range(200)]
+    assert len(set(groups)) == len(groups)
+    for g in groups:
+        parse_bus(f"udp_multicast:{g}")  # (an address dragd's bus takes)
+        a, b, c, d = map(int, g.split("."))
+        assert (a, b) == (239, 74) and 0 <= c <= 255 and 1 <= d <= 254
 
 
 class _Collect(can.Listener):

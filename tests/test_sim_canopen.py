@@ -30,7 +30,7 @@ from typing import TypeVar
 import can
 import canopen
 import pytest
-from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
+from canopen.sdo.exceptions import SdoAbortedError
 
 from dragd.clock import TIME_COB_ID, decode_time_of_day
 from dragd.hardware.bus import UdpMulticastCanBus, open_bus, parse_bus
@@ -143,7 +143,8 @@ class FrameLog(can.Listener):
             with self.cond:
                 while self.periods < target:
                     left = end - time.monotonic()
-                    assert left > 0, f"no TIME frame within {GUARD_S:g} s of wall time after the SYNC at t = {self.t_s} s"
+                    assert left > 0, (f"no TIME frame within {GUARD_S:g} s of wall time after the SYNC at "
+                                      f"t = {self.t_s} s")
                     self.cond.wait(min(left, 0.05))  # (in slices: a QEMU guest's idle clock leaps to the next timer)
 
     def sleep(self, seconds: float) -> None:
@@ -680,7 +681,8 @@ def test_sdo_server_edge_cases(local: LocalDrive) -> None:
     assert local.sdo("1b68690000000000") == "3000000000000000"
     assert local.drive.store.get(0x2000) == "abcdefghi"
     # an abort names the transfer's object (1A00h sub 1), also where another part of the dictionary refused it
-    assert local.sdo("23001801" + (0x80000180 + node).to_bytes(4, "little").hex()) == "6000180100000000"  # TPDO1 invalid: its mapping may change
+    # TPDO1 invalid: its mapping may change
+    assert local.sdo("23001801" + (0x80000180 + node).to_bytes(4, "little").hex()) == "6000180100000000"
     assert local.sdo("2f001a0000000000") == "60001a0000000000"
     assert local.sdo("23001a0108000810") == "80001a0141000406"  # 1008h (device name) cannot be mapped
     # frames that are not 8 bytes long are ignored

@@ -105,5 +105,6 @@ def test_an_obstacle_pushes_only_while_a_link_point_is_inside_it():
 
 def test_a_strike_on_an_unknown_link_is_named():
     rm = RobotModel.from_urdf("seed_cobot")
-    with pytest.raises(ScenarioError, match=r"segments\[0\]\.strike\.link: expected a link \(frame\) of the robot, got"):
+    with pytest.raises(ScenarioError,
+                       match=r"segments\[0\]\.strike\.link: expected a link \(frame\) of the robot, got"):
         Operator({"segments": [{"kind": "strike", "link": "arm9", "direction": [1, 0, 0], "peak_N": 10.0}]}, rm, 0.0)

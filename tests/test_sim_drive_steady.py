@@ -1,9 +1,10 @@
 """A simulated drive that skips physics steps while nothing can change its outputs (sim/drive.py ``_steady``).
 
 Two twin drives get the same frames, SYNCs, SDO commands, injected faults (sim/faults.py, as the control socket
-injects them), watchdog timeouts and axis readings on one clock; one skips steady steps, the other is forced to compute every
-step. Their outputs to the physics, statuswords, states and every frame they send (TPDOs with the actual values,
-EMCYs, heartbeats) must agree at every step, and actual values read over SDO are those of the moment they are read.
+injects them), watchdog timeouts and axis readings on one clock; one skips steady steps, the other is forced to
+compute every step. Their outputs to the physics, statuswords, states and every frame they send (TPDOs with the
+actual values, EMCYs, heartbeats) must agree at every step, and actual values read over SDO are those of the moment
+they are read.
 """
 
 from __future__ import annotations
@@ -17,7 +18,13 @@ import can
 import numpy as np
 import pytest
 
-from dragd.hardware.cia402 import CMD_DISABLE_VOLTAGE, CMD_ENABLE_OPERATION, CMD_FAULT_RESET, CMD_QUICK_STOP, CMD_SHUTDOWN
+from dragd.hardware.cia402 import (
+    CMD_DISABLE_VOLTAGE,
+    CMD_ENABLE_OPERATION,
+    CMD_FAULT_RESET,
+    CMD_QUICK_STOP,
+    CMD_SHUTDOWN,
+)
 from sim.axis import AxisIO
 from sim.drive import SimDrive
 from sim.faults import FaultInjector

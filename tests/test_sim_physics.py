@@ -55,7 +55,8 @@ def run(phys: ArmPhysics, seconds: float, record: bool = False) -> np.ndarray:
     return out
 
 
-def hold_gravity(phys: ArmPhysics, axes: list[AxisIO], robot: RobotModel, truth: Truth, scale: float = 1.0) -> np.ndarray:
+def hold_gravity(phys: ArmPhysics, axes: list[AxisIO], robot: RobotModel, truth: Truth,
+                 scale: float = 1.0) -> np.ndarray:
     """Power on with each joint's current = scale·G(q)/K_t (the true K_t); returns G."""
     g = robot.gravity(phys.q_rad)
     for i, ax in enumerate(axes):
@@ -80,7 +81,7 @@ def test_bundled_truth_is_realistic(truth: Truth, robot: RobotModel) -> None:
         assert abs(km * j.gear_ratio - j.torque_constant_Nm_per_A) / j.torque_constant_Nm_per_A < 0.05
     # the drives can hold the arm stretched out
     g = np.abs(robot.gravity(np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0])))
-    for j, gj in zip(truth.joints, g):
+    for j, gj in zip(truth.joints, g, strict=True):
         assert gj < 0.8 * j.drive.max_current_A * j.torque_constant_Nm_per_A
 
 

@@ -12,7 +12,6 @@ import signal
 import struct
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -21,13 +20,13 @@ import can
 import canopen
 import numpy as np
 import pytest
+from test_sim_canopen import GUARD_S, FrameLog
 
 from dragd.hardware.bus import open_bus, parse_bus
-from dragd.protocol import ControlClient
 from dragd.model import RobotModel
+from dragd.protocol import ControlClient
 from sim.drive import DEFAULT_EDS_PATH
 from sim.truth import load_truth
-from test_sim_canopen import GUARD_S, FrameLog
 
 pytestmark = pytest.mark.lockstep
 
@@ -124,7 +123,8 @@ class Master:
     def q_rad(self) -> np.ndarray | None:
         if any(c is None for c in self.counts.values()):
             return None
-        return np.array([self.counts[n] * 2 * np.pi / j.drive.encoder_counts_per_rev for n, j in zip(self.ids, self.joints)])
+        return np.array([self.counts[n] * 2 * np.pi / j.drive.encoder_counts_per_rev
+                         for n, j in zip(self.ids, self.joints, strict=True)])
 
     def enabled(self) -> bool:
         return all(sw & SW_STATE_MASK == SW_OPERATION_ENABLED for sw in self.status.values())
@@ -133,7 +133,7 @@ class Master:
         """The commands of this period (G(q)/K_t from the last TPDOs), sent before its SYNC."""
         q = self.q_rad()
         g = self.robot.gravity(q) if q is not None else np.zeros(len(self.ids))
-        for i, (n, j) in enumerate(zip(self.ids, self.joints)):
+        for i, (n, j) in enumerate(zip(self.ids, self.joints, strict=True)):
             amps = 0.0 if n in self.zero_torque else g[i] / j.torque_constant_Nm_per_A
             permille = int(np.clip(round(1000.0 * amps / j.drive.rated_current_A), -32768, 32767))
             self.bus.send(_msg(0x200 + n, struct.pack("<Hh", self.controlword, permille)))
@@ -206,7 +206,8 @@ def test_cst_master_holds_the_arm_through_the_bus(tmp_path: Path) -> None:
             rc, summary, err = sim.proc.returncode, {}, ""
     assert rc == 0, err
     assert summary["ok"] and summary["dropped_steps"] == 0, summary  # (lockstep: every period runs, none dropped)
-    assert all(d["state"] == "OPERATION_ENABLED" and d["syncs"] > 2000 for d in summary["drives"].values()), summary["drives"]
+    assert all(d["state"] == "OPERATION_ENABLED" and d["syncs"] > 2000
+               for d in summary["drives"].values()), summary["drives"]
     # python-canopen's SYNC and RPDOs, packed as dragd packs them, were read by their templates (sim/network.py)
     bus = summary["bus_counters"]
     assert bus["template_datagrams"] > 1000 and bus["undecodable"] == 0, bus
@@ -226,7 +227,8 @@ def test_control_socket_commands(tmp_path: Path) -> None:
         for key in ("t", "q_rad", "dq_rad_s", "current_A", "tau_ext_Nm", "brakes", "rtf", "late_steps", "steps"):
             assert key in st, key
         assert st["q_rad"] == pytest.approx([j.initial_position_rad for j in truth.joints])
-        assert all(st["brakes"]) and st["steps"] == round(truth.physics_rate_Hz * 0.001) and st["t"] == pytest.approx(0.001)
+        assert all(st["brakes"]) and st["steps"] == round(truth.physics_rate_Hz * 0.001)
+        assert st["t"] == pytest.approx(0.001)
 
         q = [0.1, -1.0, 1.4, -0.3, 1.2, 0.2]
         r = sim.call("set_q", q_rad=q)
@@ -273,7 +275,8 @@ def test_control_socket_commands(tmp_path: Path) -> None:
 
 def test_bad_truth_is_reported(tmp_path: Path) -> None:
     bad = tmp_path / "bad.yaml"
-    bad.write_text((REPO / "sim" / "config" / "seed_cobot.yaml").read_text().replace("gear_ratio: 101", "gear_ratio: abc", 1))
+    seed = (REPO / "sim" / "config" / "seed_cobot.yaml").read_text()
+    bad.write_text(seed.replace("gear_ratio: 101", "gear_ratio: abc", 1))
     proc = subprocess.run([sys.executable, "-m", "sim", "run", "--config", str(bad), "--seconds", "1"], cwd=REPO,
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
@@ -287,7 +290,6 @@ def test_released_joint_swings_with_urdf_period_over_the_bus(tmp_path: Path) -> 
 
     import pinocchio as pin
     import yaml
-
     from test_sim_physics import _stable_equilibrium
 
     j = 2  # joint3

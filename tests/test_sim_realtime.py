@@ -1,6 +1,7 @@
 """The simulator on the wall clock: its real-time runner (``--seconds``, SIGINT) and its bus reader (a SYNC's answer in
 one datagram, a reader woken but not yet run, the RPDO watchdog judged by what the reader has read). This is the
-simulator's real-time behaviour (threads, the GIL, a stalled process), so it stays in the wall-clock tier;
+simulator's real-time behaviour (threads, the GIL, a stalled process), so it stays in the wall-clock tier (its
+watchdogs over a frozen host, judged on an injected clock, are unit tests: tests/test_sim_stalls.py);
 tests/test_sim_canopen.py, test_sim_process.py and test_sim_vendor_eds.py run the drives against a CANopen master on
 the lockstep clock."""
 
@@ -19,10 +20,10 @@ from pathlib import Path
 
 import can
 import pytest
-
-from dragd.hardware.bus import open_bus, parse_bus
 from test_sim_canopen import TRUTH
 from test_sim_process import REPO, SimProc, unique_group
+
+from dragd.hardware.bus import open_bus, parse_bus
 
 pytestmark = [pytest.mark.rig, pytest.mark.timeout(120)]
 
@@ -161,7 +162,8 @@ def test_sigint_and_seconds_exit_cleanly(tmp_path: Path) -> None:
     assert proc.returncode == 0, proc.stderr
     summary = json.loads(proc.stdout.splitlines()[-1])
     assert summary["sim_time_s"] == pytest.approx(1.5) and summary["steps"] == 6000
-    assert summary["rtf"] < 1.05  # paced by the wall clock, never ahead of it (behind it: a loaded host, a benchmark's figure)
+    # paced by the wall clock, never ahead of it (behind it: a loaded host, a benchmark's figure)
+    assert summary["rtf"] < 1.05
 
     sim = SimProc(tmp_path, unique_group(), lockstep=False)
     try:
@@ -170,3 +172,23 @@ def test_sigint_and_seconds_exit_cleanly(tmp_path: Path) -> None:
         sim.kill()
     assert rc == 0, err
     assert summary["ok"] and summary["steps"] > 0
+
+
+def test_a_stopped_simulator_reports_its_own_stall(tmp_path: Path) -> None:
+    """The simulator notes the time it did not run (SIGSTOP: the OS does not schedule it, as a host freeze does):
+    its summary's ``own_stalls``, the time its drives' reception watchdogs leave out (tests/test_sim_stalls.py). The
+    process is stopped at least 0.3 s by construction: the stall it reports is at least that, less the 2 ms a gap
+    between two of its readings may be running time; setting up before the loop is not a stall."""
+    sim = SimProc(tmp_path, unique_group(), lockstep=False)
+    try:
+        sim.proc.send_signal(signal.SIGSTOP)
+        time.sleep(0.3)
+        sim.proc.send_signal(signal.SIGCONT)
+        sim.call("state")  # (running again)
+        rc, summary, err = sim.finish(signal.SIGINT)
+    finally:
+        sim.kill()
+    assert rc == 0, err
+    stalls = summary["own_stalls"]
+    assert stalls["count"] >= 1 and stalls["max_s"] >= 0.3 - stalls["gap_threshold_s"], stalls
+    assert all("watchdog_holds" in d for d in summary["drives"].values())

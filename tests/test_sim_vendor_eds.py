@@ -10,7 +10,8 @@ uses) and from CiA 301: every object present answers an upload, absent objects a
 direction cannot be mapped (0604 0041), mappings beyond 8 bytes abort (0604 0042), dummy entries only where
 [DummyUsage] allows them, the COB-ID, mapping and 6502h defaults of the EDS. Drives with cyclic synchronous torque then
 run a torque command through their own objects (the vendor's current object where its manual puts one). The simulator
-runs on its lockstep clock (``--lockstep``): time passes only by the SYNCs this master sends (test_sim_canopen.FrameLog).
+runs on its lockstep clock (``--lockstep``): time passes only by the SYNCs this master sends
+(test_sim_canopen.FrameLog).
 """
 
 from __future__ import annotations
@@ -19,10 +20,7 @@ import configparser
 import os
 import queue
 import struct
-import subprocess
-import sys
 import threading
-import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,13 +29,13 @@ import can
 import canopen
 import pytest
 from canopen.sdo.exceptions import SdoAbortedError
+from test_sim_canopen import GUARD_S, FrameLog, sim_process, unique_group, walk
 
 from dragd.hardware.bus import open_bus, parse_bus
-from dragd.hardware.cia402 import State, decode_statusword, next_controlword
+from dragd.hardware.cia402 import State
+from sim.truth import drive_profiles, load_truth, truth_yaml, with_eds
 
 from conftest import REPO
-from sim.truth import drive_profiles, load_truth, truth_yaml, with_eds
-from test_sim_canopen import GUARD_S, FrameLog, sim_process, unique_group, walk
 
 pytestmark = [pytest.mark.lockstep]
 
@@ -132,7 +130,8 @@ class RawEds:
                 continue
             key = (index, int(sub, 16) if sub else 0)
             self.entries[key] = Entry(index, key[1], sec.get("ParameterName", ""), int(sec["DataType"], 0),
-                                      sec.get("AccessType", "ro").strip().lower(), sec.get("PDOMapping", "0").strip() == "1",
+                                      sec.get("AccessType", "ro").strip().lower(),
+                                      sec.get("PDOMapping", "0").strip() == "1",
                                       sec.get("ParameterValue") or sec.get("DefaultValue"))
         self.dummies = {i for i in range(1, 8) if cp.has_section("DummyUsage")
                         and cp["DummyUsage"].get(f"Dummy{i:04d}", "0").strip() == "1"}
@@ -246,7 +245,7 @@ def group(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFacto
     log = FrameLog(bus.send)
     net.notifier.add_listener(log)
     drives = []
-    for path, joint in zip(paths, truth.joints):
+    for path, joint in zip(paths, truth.joints, strict=False):  # (a group of fewer drives takes the first joints)
         node = canopen.RemoteNode(joint.drive.node_id, str(path))
         node.sdo.RESPONSE_TIMEOUT = GUARD_S  # (answered at once, between periods: a hang guard)
         net.add_node(node)
@@ -276,12 +275,14 @@ def test_every_object_answers_and_read_only_objects_refuse_writes(drives: list[D
             if index < 0x1000:
                 continue
             if not e.readable:
-                assert d.abort(lambda d=d, i=index, s=sub: d.upload(i, s)) == ABORT_READ_WRITE_ONLY, f"{d}: {index:04X}:{sub}"
+                assert (d.abort(lambda d=d, i=index, s=sub: d.upload(i, s)) == ABORT_READ_WRITE_ONLY), \
+                    f"{d}: {index:04X}:{sub}"
                 continue
             data = d.upload(index, sub)
             size = SIZES.get(e.data_type)
             if size is not None:
-                assert len(data) == size, f"{d}: {index:04X}:{sub} ({e.name}): {len(data)} bytes for type 0x{e.data_type:X}"
+                assert len(data) == size, \
+                    f"{d}: {index:04X}:{sub} ({e.name}): {len(data)} bytes for type 0x{e.data_type:X}"
             uploaded += 1
             if not e.writable and data:
                 code = d.refused_write(index, sub, data)
@@ -342,7 +343,8 @@ def _remappable(eds: RawEds, comm_base: int, map_base: int) -> tuple[int, int]:
 def test_fixed_mappings_refuse_writes(drives: list[Drive]) -> None:
     seen = 0
     for d in drives:
-        fixed = [(i, e) for (i, sub), e in d.eds.entries.items() if 0x1600 <= i <= 0x1BFF and sub == 0 and not e.writable]
+        fixed = [(i, e) for (i, sub), e in d.eds.entries.items()
+                 if 0x1600 <= i <= 0x1BFF and sub == 0 and not e.writable]
         for index, e in fixed:
             count = int.from_bytes(d.upload(index, 0), "little")
             assert count == e.default_value(d.node_id), str(d)
@@ -428,7 +430,8 @@ def test_cyclic_synchronous_torque_through_the_vendor_objects(drives: list[Drive
             continue  # no cyclic synchronous torque: tests/test_sim_drive_profile.py, and dragd refuses such drives
         ran += 1
         joint = truth.joints[d.node_id - 1]
-        k_m = joint.drive.rated_torque_Nm / joint.drive.rated_current_A  # the truth's motor (sim/config/seed_cobot.yaml)
+        # the truth's motor (sim/config/seed_cobot.yaml)
+        k_m = joint.drive.rated_torque_Nm / joint.drive.rated_current_A
         profile = drive_profiles(with_eds(truth, d.path))[d.node_id - 1]  # where the drive keeps what
         node = d.node
         rated_torque = profile.bindings["rated_torque"]

@@ -85,7 +85,10 @@ def test_a_stopped_probe_reports_when_and_how_long() -> None:
 
 @pytest.mark.rig
 def test_the_daemons_missed_ticks_are_split_into_its_own_and_the_machines(tmp_path) -> None:
-    rig = Rig("stalls", workdir=tmp_path)
+    # as deployed (SCHED_FIFO): the probes need real-time priority anyway, and a daemon at SCHED_OTHER beside a busy
+    # machine is starved before and after each stop (45 ticks for a 30 ms stop beside two busy loops): its episodes
+    # would be the scheduler's, not the stops this test makes (#28)
+    rig = Rig("stalls", workdir=tmp_path, as_deployed=True)
     try:
         rig.start_sim()
         rig.start_daemon()

@@ -1,16 +1,15 @@
 import asyncio
 import itertools
 import json
-import os
 import subprocess
 import sys
 import time
 
 import pytest
 
-from dragd.realtime import Ticker, demote_current_thread, set_realtime
+from dragd.realtime import Ticker
 
-pytestmark = pytest.mark.rig
+pytestmark = pytest.mark.rig  # (its argument checks and close: tests/test_ticker_args.py, unit)
 
 
 def run(coro):
@@ -140,28 +139,6 @@ def test_call_each_delivers_every_tick_and_counts_the_missed_ones():
     assert others >= 25, "the overrunning cycle starved the loop's other callbacks"
 
 
-def test_close_is_idempotent_and_wait_after_close_fails():
-    async def main():
-        t = Ticker(0.002)
-        await t.wait()
-        fd = t.fileno
-        t.close()
-        t.close()
-        with pytest.raises(OSError):
-            os.fstat(fd)
-        with pytest.raises(RuntimeError, match="closed"):
-            await t.wait()
-
-    run(main())
-
-
-def test_invalid_period():
-    with pytest.raises(ValueError, match="period"):
-        Ticker(0)
-    with pytest.raises(ValueError, match="10 us"):
-        Ticker(1e-7)
-
-
 _SCRIPT = """
 import json, os
 from dragd.realtime import set_realtime
@@ -212,19 +189,3 @@ def test_set_realtime_in_subprocess_applies_or_explains():
     else:
         assert sched["reason"]
     assert res["affinity"]["requested"] == [0]
-
-
-def test_set_realtime_validates_arguments():
-    with pytest.raises(ValueError, match="priority"):
-        set_realtime(0, None)
-    with pytest.raises(ValueError, match="cpus"):
-        set_realtime(None, set())
-    res = set_realtime(None, None)
-    assert res["scheduler"]["reason"] == "not requested"
-    assert res["affinity"]["reason"] == "not requested"
-
-
-def test_demote_current_thread_is_safe():
-    res = demote_current_thread(None)
-    assert res["policy"] == "SCHED_OTHER"
-    assert res["cpus"]

@@ -148,18 +148,20 @@ def cmd_sdo(args: argparse.Namespace) -> int:
         kind = eds_type(index, sub, _node_eds(load_config(args.config), node))
     else:
         kind = args.type
+    value: str | None = args.value
     if args.action == "write":
-        if args.value is None:
+        if value is None:
             raise CliError("sdo write: missing VALUE")
         if kind is None:
             raise CliError(f"sdo write {index:04X}h:{sub}: the EDS does not describe it; give --type")
-    elif args.value is not None:
+        write_value, write_kind = value, kind  # (narrowed for the call below)
+    elif value is not None:
         raise CliError("sdo read takes no VALUE")
     with _network(args) as (_bus, net, _cfg):
         if args.action == "read":
             data = _sdo_errors(lambda: sdo_read(net, node, index, sub, kind, args.timeout))
         else:
-            data = _sdo_errors(lambda: sdo_write(net, node, index, sub, args.value, kind, args.timeout))
+            data = _sdo_errors(lambda: sdo_write(net, node, index, sub, write_value, write_kind, args.timeout))
     emit(args, data, lambda d: (f"node {d['node']} {d['index']}h:{d['sub']} = {d['value']!r}  (raw {d['raw']})"
                                 if "value" in d else f"node {d['node']} {d['index']}h:{d['sub']} <- {d['raw']}"))
     return 0

@@ -78,7 +78,7 @@ def cmd_model_current(args: argparse.Namespace) -> int:
         "startup_A": out.startup_A.tolist(),
         "back_emf_A": out.back_emf_A.tolist(),
         "damping_A": out.damping_A.tolist(),
-        "effects_A": out.effects_A.tolist(),
+        "effects_A": (np.zeros_like(out.current_A) if out.effects_A is None else out.effects_A).tolist(),
         "clamped": out.clamped.tolist(),
     }
     emit(args, data, lambda d: table(

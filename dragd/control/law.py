@@ -57,9 +57,10 @@ TWO_PI = 2.0 * np.pi
 
 
 class Workspace:
-    """Scratch arrays for one law evaluation (like Pinocchio's Data: allocate once, reuse every cycle)."""
+    """Scratch arrays for one law evaluation (like Pinocchio's Data: allocate once, reuse every cycle); of shape
+    (n,) for a cycle, or (T, n) to evaluate a whole log at once."""
 
-    def __init__(self, n: int) -> None:
+    def __init__(self, n: int | tuple[int, ...]) -> None:
         self.a = np.zeros(n)
         self.b = np.zeros(n)
         self.c = np.zeros(n)

@@ -55,7 +55,7 @@ from dragd.hardware.pdo import BusLayout
 from dragd.hardware.plan import DrivePlan, plan_drives
 from dragd.hardware.scaling import Scaling
 from dragd.model import RobotModel
-from dragd.realtime import CpuLatencyRequest, demote_current_thread, scheduler_label, set_realtime
+from dragd.realtime import CpuLatencyRequest, demote_current_thread, scheduler_label, set_realtime, thread_policies
 
 if TYPE_CHECKING:
     from dragd.server import CommandTable
@@ -367,6 +367,7 @@ class Daemon:
             "feedback_hold": c.feedback_hold,
             "feedback_holds": c.feedback_holds,
             "scheduler": self.scheduler,
+            "threads": thread_policies(),  # every thread's policy: helpers SCHED_FIFO 1 below a real-time cycle
             "memory_locked": self.memory_locked,  # the cycle thread's policy (SCHED_FIFO when configured and permitted)
             "cpu_latency": self.cpu_latency_status if self.cpu_latency is None else self.cpu_latency.status(),
             "requested_mode": MODE_NAMES[c.resume_mode if c.feedback_hold else c.mode],
@@ -385,7 +386,7 @@ class Daemon:
             "rejected_frames": io.rejected_frames if io is not None else 0,
             "duplicate_tpdos": io.duplicate_tpdos if io is not None else 0,
             "deferred_statuswords": io.deferred_statuswords if io is not None else 0,
-            "encoder_rejects": cy.encoder_rejects,
+            "encoder_rejects": cy.encoders.rejects,
             "comms": self.comms.status(),
             "error_frames": io.error_frames if io is not None else 0,
             # the host-local udp_multicast bus's own counters (echoes, duplicates, gaps, kernel drops, ...)

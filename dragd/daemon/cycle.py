@@ -1,7 +1,8 @@
 """The 1 kHz cycle, ticked by its clock (dragd/clock.py: a timerfd at absolute deadlines, or the lockstep clock):
 
     read      SYNC → every drive's TPDO until all arrived or SYNC + tpdo_deadline_us   (hardware/io.py: BusIO.cycle)
-    estimate  q from counts, q̇ by filtered differentiation, measured current, G(q)     (here; control/estimate.py)
+    estimate  implausible jumps rejected, q from counts, q̇ by filtered differentiation,    (here; control/plausible.py,
+              measured current, G(q)                                                  control/estimate.py)
     compute   the mode's state and law + safety terms, blended; the CiA 402 walk        (control/controller.py,
                                                                                          hardware/drives.py)
     write     controlwords, torque offsets, CSP targets in the command RPDOs           (hardware/io.py)
@@ -29,6 +30,7 @@ from dragd.clock import Clock, WallClock
 from dragd.control.controller import Controller, Estimate
 from dragd.control.estimate import VelocityEstimator
 from dragd.control.modes import Mode
+from dragd.control.plausible import EncoderPlausibility
 from dragd.daemon.kernels import kernels
 from dragd.hardware.drives import DriveSupervisor, Target
 from dragd.hardware.io import BusIO, Feedback
@@ -87,26 +89,19 @@ class Cycle:
         self._t_tick = -1.0  # perf_counter at this cycle's tick callback (-1: none yet in this run)
         self._period_us = self.dt * 1e6  # since the previous one (wall: the status histogram)
         self._row_period_us = self.dt * 1e6  # ... as the telemetry row records it (lockstep: the clock's period)
-        # encoder plausibility: a sample further from the last accepted one than plausible_speed allows is rejected
-        # (treated as a missing TPDO); rejected for stale_cycles_hold cycles in a row, it is an encoder fault
-        self.jump_step_counts = plausible_speed_rad_s * self.dt * scaling.counts_per_rev / (2.0 * np.pi) + 2.0
-        self.encoder_rejects = 0
-        self._prev_counts = np.zeros(n, dtype=np.int64)
-        self._since = np.ones(n)  # periods since the last accepted sample (+1), missed ticks included
-        self._jump_d = np.zeros(n)
-        self._jump_lim = np.zeros(n)
-        self._jump_mask = np.zeros(n, dtype=bool)
-        self._jump_run = np.zeros(n, dtype=np.int64)
         # the estimate and output steps by compiled kernels (dragd/daemon/kernels.py) or by the numpy reference they
         # are tested against (loop.compiled: false): chosen here, once; ``step`` calls whichever was chosen
-        self.check_encoders: Callable[[Feedback], None] = self._plausible
         self.decode_inputs: Callable[[Feedback], None] = self._inputs
         self.encode_outputs: Callable[[], None] = self._outputs
         k = kernels() if compiled else None  # (None where numba cannot be imported: the reference)
+        # encoder plausibility (control/plausible.py): a sample further from the last accepted one than
+        # plausible_speed allows is rejected (treated as a missing TPDO); rejected for stale_cycles_hold cycles in a
+        # row, it is an encoder fault
+        self.encoders = EncoderPlausibility(scaling.counts_per_rev, self.dt, plausible_speed_rad_s, stale_cycles_hold,
+                                            node_ids, controller.fault, None if k is None else k["plausible"])
         if k is not None:
             velocity.use_kernel(k["velocity"])
-            self._k_plausible, self._k_inputs, self._k_outputs = k["plausible"], k["inputs"], k["outputs"]
-            self.check_encoders = self._plausible_compiled
+            self._k_inputs, self._k_outputs = k["inputs"], k["outputs"]
             self.decode_inputs = self._inputs_compiled
             self.encode_outputs = self._outputs_compiled
 
@@ -116,7 +111,7 @@ class Cycle:
             self.missed += expirations - 1
             # the encoder plausibility bound grows with the time since each joint's last accepted sample: the
             # periods this tick slept through count (a stalled host must not make real motion look like a jump)
-            np.add(self._since, expirations - 1, out=self._since)
+            self.encoders.skip(expirations - 1)
             # and the feedback's age: a joint already silent counts the periods it stayed silent, so the hold and
             # fault thresholds (stale_cycles_hold / stale_cycles_disable) mean time, not steps (the read step resets
             # every joint that reports this cycle)
@@ -136,10 +131,9 @@ class Cycle:
                 io.statuswords_seen()  # (nothing judges them before the first full set: the newest stands)
                 return False  # wait for a first full set of positions before computing anything
             self.velocity.reset(fb.counts)
-            self._prev_counts[:] = fb.counts
-            self._since.fill(1.0)
+            self.encoders.prime(fb.counts)
             self.primed = True
-        self.check_encoders(fb)
+        fb.rx_count -= self.encoders.check(fb.counts, fb.rx, fb.stale)
         worst, j = fb.worst_stale()
         c.feedback(worst, j, self.node_ids[j], est.q_rad, self.hold_after, self.disable_after)
         # estimate
@@ -184,12 +178,6 @@ class Cycle:
     # ------------------------------------------------------------------------------------------ estimate, output
     # (each as the compiled kernel and as its numpy reference; __init__ chose one of each)
 
-    def _plausible_compiled(self, fb: Feedback) -> None:
-        if self._k_plausible(fb.counts, fb.rx, self._prev_counts, self._since, self._jump_run, self.jump_step_counts,
-                             self._jump_mask):
-            self._reject(fb, self._jump_mask)  # the rare path (and the bookkeeping the kernel left to it)
-            self._remember(fb)
-
     def _inputs_compiled(self, fb: Feedback) -> None:
         sc, est = self.scaling, self.est
         self._k_inputs(fb.counts, sc.offset_counts, sc.rad_per_count, est.q_rad, fb.current_permille,
@@ -210,45 +198,6 @@ class Cycle:
         c = self.controller
         self.scaling.torque_permille(c.cmd_A, self.torque_permille, self._tmp)
         self.scaling.target_counts(c.ref_rad, self.target_counts, self._tmp)
-
-    def _plausible(self, fb: Feedback) -> None:
-        """Reject position samples that moved further than physics allows since the last accepted one."""
-        d, lim, mask, prev, since = self._jump_d, self._jump_lim, self._jump_mask, self._prev_counts, self._since
-        np.subtract(fb.counts, prev, out=d, casting="unsafe")
-        np.abs(d, out=d)
-        np.multiply(self.jump_step_counts, since, out=lim)
-        np.greater(d, lim, out=mask)
-        mask &= fb.rx
-        if np.count_nonzero(mask):
-            self._reject(fb, mask)
-        self._remember(fb)
-
-    def _remember(self, fb: Feedback) -> None:
-        """The accepted samples are the next cycle's reference; the others age."""
-        since = self._since
-        np.copyto(self._prev_counts, fb.counts, where=fb.rx)
-        since += 1.0
-        np.copyto(since, 1.0, where=fb.rx)
-        np.copyto(self._jump_run, 0, where=fb.rx)
-
-    def _reject(self, fb: Feedback, mask: np.ndarray) -> None:
-        """The rare path: each implausible sample is dropped (the joint counts as stale); persistent, a fault."""
-        for j in np.flatnonzero(mask):
-            raw = int(fb.counts[j])
-            jump_rad = (raw - int(self._prev_counts[j])) * 2.0 * np.pi / float(self.scaling.counts_per_rev[j])
-            self.encoder_rejects += 1
-            self._jump_run[j] += 1
-            if self._jump_run[j] >= self.hold_after:
-                # persistent: a real offset, not a glitch: fault (brakes), and the new position is the baseline
-                self.controller.fault(int(j), f"encoder jump on node {self.node_ids[j]}: position moved "
-                                              f"{jump_rad:+.4f} rad in {int(self._since[j])} cycle(s), beyond "
-                                              "physics; samples rejected, arm stopped")
-                self._jump_run[j] = 0
-                continue  # accepted as the new baseline below
-            fb.counts[j] = self._prev_counts[j]
-            fb.rx[j] = False
-            fb.rx_count -= 1
-            fb.stale[j] = int(self._since[j])
 
     async def run(self) -> None:
         """The loop until ``exit_requested``: tick → read → step → log as one chain of loop callbacks.

@@ -1,11 +1,11 @@
 """The cycle's estimate and output steps compiled (numba): encoder plausibility, counts → rad, per mille → A, the
 velocity filter, and A → 60B2h per mille, rad → 607Ah counts.
 
-The numpy code stays the reference (``Cycle._plausible``, ``Scaling``, ``VelocityEstimator.update``): these kernels
-do the same arithmetic in the same order per joint — one call each instead of 30-odd ufunc calls on six-element
-arrays — and tests/test_cycle_kernels.py holds them to it over randomised sequences (wrap-around, late and missing
-samples, jumps, saturation). The rare paths stay in Python: a rejected sample (``Cycle._reject``) and the velocity
-filter's reset. ``loop.compiled: false`` runs the reference.
+The numpy code stays the reference (``EncoderPlausibility._check``, ``Scaling``, ``VelocityEstimator.update``):
+these kernels do the same arithmetic in the same order per joint — one call each instead of 30-odd ufunc calls on
+six-element arrays — and tests/test_cycle_kernels.py holds them to it over randomised sequences (wrap-around, late
+and missing samples, jumps, saturation). The rare paths stay in Python: a rejected sample
+(``EncoderPlausibility._reject``) and the velocity filter's reset. ``loop.compiled: false`` runs the reference.
 """
 
 from __future__ import annotations

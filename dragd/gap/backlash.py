@@ -159,7 +159,8 @@ def rotor_modes(path: JointPath, loop_A: np.ndarray, prm: BacklashParams) -> np.
     f = path.friction_A(path.v)
     load = path.model_A - f - (M + J) * path.a  # the output's loads besides its own inertia and friction
     tooth = (M * (loop_A - (1.0 - phi) * f) + J * (phi * f + load)) / (M + J)
-    fr = tuple(x * (1.0 - phi) for x in path.friction)  # the rotor's share of the friction law
+    c_pos, c_neg, v_pos, v_neg = path.friction
+    fr = (c_pos * (1.0 - phi), c_neg * (1.0 - phi), v_pos * (1.0 - phi), v_neg * (1.0 - phi))  # the rotor's share
     for a, b in path.segments:
         _simulate(path.q[a:b], path.v[a:b], loop_A[a:b], tooth[a:b], modes[a:b], 0.5 * prm.play_rad, J, fr,
                   1.0 / path.fs)

@@ -106,7 +106,8 @@ def given(d: GapData, params: Any, cfg: Any) -> Baseline:
 
 def seed000(d: GapData, cfg: Any) -> Baseline:
     """Seed 000's structure: a·G + direction levels per joint, free (fitted with the effects on the data)."""
-    free, names = [], []
+    free: list[np.ndarray | None] = []
+    names: list[list[str]] = []
     for j in range(d.n):
         w = weight(d.p.dq[:, j])
         cols = [w * (d.p.dq[:, j] > 0), w * (d.p.dq[:, j] < 0)]
@@ -159,5 +160,7 @@ def update_seed000(b: Baseline, d: GapData, j: int, theta: np.ndarray) -> None:
     cp, cn = float(th["coulomb_pos_A"]), float(th["coulomb_neg_A"])
     b.coulomb_A[j] = (cp, cn)
     X = b.free[j]
+    if X is None:
+        raise ValueError(f"update_seed000: joint {j} has no free base columns (a '{b.kind}' baseline)")
     k = len(names)
     b.friction_A[:, j] = X[:, k - 2] * cp + X[:, k - 1] * cn

@@ -399,10 +399,10 @@ class Selector:
                 for jm in self.joints:
                     if jm.j in used[eff.name]:
                         continue
-                    sc = self._score_joint(eff, jm, resid[jm.j])
-                    if sc is not None and sc[0] > 0:
-                        found[jm.j] = sc
-                        total += sc[0]
+                    scj = self._score_joint(eff, jm, resid[jm.j])
+                    if scj is not None and scj[0] > 0:
+                        found[jm.j] = scj
+                        total += scj[0]
                 if found and (best is None or total > best[0]):
                     best = (total, eff, {j: v[1] for j, v in found.items()}, {j: v[2] for j, v in found.items()})
             if best is None:
@@ -608,12 +608,17 @@ class Selector:
             eff = CATALOGUE[st.effect]
             if eff.shared:
                 j0 = next(iter(self.payload_cols))
+                if self.payload_theta is None:
+                    raise RuntimeError(f"gap: the shared effect '{st.effect}' was chosen without a payload fit")
                 out.append((st.effect, st.joints, eff.params(self.payload_theta, None, self.d, j0, info)))
                 continue
             prm = {}
             for nm in st.joints:
                 jm = self.joints[self.d.names.index(nm)]
-                k = self.base.free[jm.j].shape[1] if self.base.free[jm.j] is not None else 0
+                if jm.theta is None:
+                    raise RuntimeError(f"gap: joint {nm} has a step of '{st.effect}' but no fit")
+                fb = self.base.free[jm.j]
+                k = fb.shape[1] if fb is not None else 0
                 for t in jm.terms:
                     kk = t.cols.X.shape[1]
                     if t.effect == st.effect and t.hyper == st.hypers.get(nm):

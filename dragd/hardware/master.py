@@ -150,7 +150,8 @@ class Master:
         self.cfg = cfg
         self.loop = loop
         self.log = log
-        # started during boot, before the cycle thread turns SCHED_FIFO; demoted anyway should it start later
+        # started during boot, before the cycle thread turns SCHED_FIFO: set_realtime puts it at SCHED_FIFO 1 then
+        # (dragd.realtime: a SCHED_OTHER helper preempted while holding the GIL stalls the cycle)
         self.sdo_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dragd-sdo",
                                              initializer=demote_current_thread,
                                              initargs=(set(cfg.loop.cpus or ()) or None,))

@@ -94,10 +94,11 @@ def law_from_params(params: Any, names: list[str], cfg: Any | None = None) -> tu
     return law, warnings
 
 
-def _base_current(rm: Any, params: Any, names: list[str], q: np.ndarray, dq: np.ndarray | None,
-                  ddq: np.ndarray | None) -> dict[int, np.ndarray]:
+def _base_current(rm: Any, params: Any, names: list[str], q: np.ndarray,
+                  motion: tuple[np.ndarray, np.ndarray] | None) -> dict[int, np.ndarray]:
     """Joint j's rigid-body current from the params' identified base parameters (current space, amperes):
-    Y_j(q, q̇, q̈)[base columns]·β̂_j. Only joints whose stored base names match this robot's."""
+    Y_j(q, q̇, q̈)[base columns]·β̂_j (``motion``: (q̇, q̈); None: gravity alone). Only joints whose stored base names
+    match this robot's."""
     bp = (getattr(params, "notes", {}) or {}).get("base_parameters") or {}
     use = {}
     for j, nm in enumerate(names):
@@ -109,7 +110,7 @@ def _base_current(rm: Any, params: Any, names: list[str], q: np.ndarray, dq: np.
         return out
     for s in range(0, q.shape[0], 5000):
         sl = slice(s, s + 5000)
-        Y = rm.torque_regressor(q[sl]) if dq is None else rm.torque_regressor(q[sl], dq[sl], ddq[sl])
+        Y = rm.torque_regressor(q[sl]) if motion is None else rm.torque_regressor(q[sl], motion[0][sl], motion[1][sl])
         for j, beta in use.items():
             out[j][sl] = Y[:, j, rm.row_full[j].cols] @ beta
     return out
@@ -160,8 +161,7 @@ def check(log: Log, robot: Any, params: Any, cfg: Any | None = None, terms: str 
     for j, nm in enumerate(names):
         if armature.get(nm) is not None and terms == "rigid" and np.isfinite(law.kt_Nm_per_A[j]):
             pred[:, j] += armature[nm] * p.ddq[:, j] / law.kt_Nm_per_A[j]
-    base_i = _base_current(rm, params, names, p.q, None if terms == "gravity" else p.dq,
-                           None if terms == "gravity" else p.ddq)
+    base_i = _base_current(rm, params, names, p.q, None if terms == "gravity" else (p.dq, p.ddq))
     source = {nm: "model torque / K_t" for nm in names}
     for j, cur in base_i.items():
         if dynamics == "base" or not np.isfinite(law.kt_Nm_per_A[j]):
@@ -207,8 +207,6 @@ def check(log: Log, robot: Any, params: Any, cfg: Any | None = None, terms: str 
         sq += float(e @ e)
         cnt += e.size
     res = CheckResult(math.sqrt(sq / cnt) if cnt else None, joints, mask, terms, warnings)
-    if cnt:
-        res.joints_mean_rmse_A = float(np.mean([v["rmse_A"] for v in joints.values() if v["rmse_A"] is not None]))
     if keep_series:
         res.series = {"t": p.t, "measured": meas, "predicted": pred, "mask": masks, "dq": p.dq}
     return res

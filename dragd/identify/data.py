@@ -306,7 +306,10 @@ def _load_csv(path: Path, n_joints: int | None, drop_bad_rows: bool, layout: tup
     def take(names: list[str] | None) -> np.ndarray | None:
         return None if names is None else data[:, [idx[c] for c in names]]
 
-    return Log(str(path), data[:, idx["t"]], take(want[1:n + 1]), take(want[n + 1:]), take(opt["dq"]), warnings,
+    def block(names: list[str]) -> np.ndarray:
+        return data[:, [idx[c] for c in names]]
+
+    return Log(str(path), data[:, idx["t"]], block(want[1:n + 1]), block(want[n + 1:]), take(opt["dq"]), warnings,
                i_target=take(opt["i_target"]), tau_target=take(opt["tau_target"]), columns=cols, lines=lines)
 
 
@@ -445,6 +448,9 @@ def stack_logs(logs: list[Log], max_rate_mismatch: float = 0.1) -> Log:
         arrs = [getattr(lg, name) for lg in logs]
         return None if any(a is None for a in arrs) else np.concatenate(arrs)
 
+    def cat_all(name: str) -> np.ndarray:  # (every log has q and i)
+        return np.concatenate([getattr(lg, name) for lg in logs])
+
     warnings = [f"{lg.path}: {w}" for lg in logs for w in lg.warnings]
     warnings.append(f"{len(logs)} logs stacked ({', '.join(str(lg.t.shape[0]) for lg in logs)} rows): each is "
                     "filtered and differentiated as its own stretch")
@@ -452,8 +458,8 @@ def stack_logs(logs: list[Log], max_rate_mismatch: float = 0.1) -> Log:
     for lg in logs:
         for k, v in lg.modes.items():
             modes[k] = modes.get(k, 0) + v
-    return Log(" + ".join(lg.path for lg in logs), np.concatenate(ts), cat("q"), cat("i"), cat("dq"), warnings, modes,
-               cat("i_target"), cat("tau_target"), first.columns, cat("lines"), first.row_word)
+    return Log(" + ".join(lg.path for lg in logs), np.concatenate(ts), cat_all("q"), cat_all("i"), cat("dq"), warnings,
+               modes, cat("i_target"), cat("tau_target"), first.columns, cat("lines"), first.row_word)
 
 
 def _validate(log: Log, drop_bad_rows: bool = False) -> Log:

@@ -216,7 +216,7 @@ class PlanBuilder:
         if bad.size:
             raise PlanError("plan: start pose outside the identification limits (soft limits minus margin) at "
                             + ", ".join(f"{limits.label(i)} = {self.q[i]:.3f} rad not in [{limits.lower_rad[i]:.3f}, "
-                                        f"{limits.upper_rad[i]:.3f}]" for i in bad))
+                                        f"{limits.upper_rad[i]:.3f}]" for i in bad.tolist()))
         self.t_parts: list[np.ndarray] = [np.zeros(1)]
         self.q_parts: list[np.ndarray] = [self.q[None, :].copy()]
         self.t = 0.0
@@ -486,6 +486,7 @@ def optimise_fourier(model: Any, limits: Limits, q_center: np.ndarray, period_s:
         c = cost(x0)
         if best is None or c < best[0]:
             best = (c, x0)
+    assert best is not None  # (the loop above ran)
     x0 = best[1]
     res = minimize(cost, x0, method="L-BFGS-B", options={"maxiter": maxiter, "maxfun": maxiter * (len(x0) + 1)})
     coef, qc = unpack(res.x)

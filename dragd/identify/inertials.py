@@ -23,6 +23,7 @@ inertials nearest to it in that weighted sense; the residual is reported.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -230,7 +231,7 @@ def consistent_inertials(targets: list[RowTarget | None], pi_urdf: np.ndarray, a
         d = t.E @ full - g[j] * t.beta
         w = np.ones(t.beta.size) if t.scale is None else np.asarray(t.scale, dtype=float)
         res_nm.append(w * d)
-        rel.append(float(np.linalg.norm(d) / max(np.linalg.norm(g[j] * t.beta), 1e-300)))
+        rel.append(float(np.linalg.norm(d)) / max(float(np.linalg.norm(g[j] * t.beta)), 1e-300))
         chi.append(float(np.abs(d / np.maximum(t.std, 1e-12)).max()) if t.std is not None else float("nan"))
     ok = all(is_consistent(pi[10 * i:10 * i + 10]) for i in range(n)) and bool(np.all(arm >= 0))
     return MappingResult(pi, arm, g, res_nm, rel, ok, cost, nfev, {"solve": stages, "max_residual_over_std": chi})
@@ -248,7 +249,7 @@ def body_inertial(pi: np.ndarray) -> dict[str, Any]:
 
 
 def inertials_from_fit(res: Any, robot: Any, rm: Any,
-                       kt_fallback: list[float | None] | None = None) -> dict[str, Any] | None:
+                       kt_fallback: Sequence[float | None] | None = None) -> dict[str, Any] | None:
     """The consistent link inertials of a full-dynamics fit (``res.notes['base_parameters']``, current space).
 
     Joint j's target is its identified base parameters × the K_t the law will use for it: the result's (given or

@@ -160,7 +160,7 @@ def friction_columns(v: np.ndarray, direction: np.ndarray | None = None, vs: flo
 
 def friction_value(v: np.ndarray, fr: dict[str, float | None]) -> np.ndarray:
     """I_f(v) of a friction dict (None terms count as zero; no hump without v_s)."""
-    g = {k: (0.0 if fr.get(k) is None else float(fr[k])) for k in FRICTION_KEYS}
+    g = {k: float(fr.get(k) or 0.0) for k in FRICTION_KEYS}
     pos = v > 0
     out = np.where(pos, g[COULOMB_POS_A], g[COULOMB_NEG_A])
     vp = fr.get(VISCOUS_POS_A_S_PER_RAD)
@@ -196,26 +196,30 @@ def _set_friction_from_fit(jr: JointResult, fit: LinearFit, vmax: float, reason_
     for key in (COULOMB_POS_A, COULOMB_NEG_A):
         if key in jr.reasons and "one speed only" in jr.reasons[key]:
             continue
-        v, s = fit.value(key), fit.std(key)
-        if v is None:
+        est = fit.estimate(key)
+        if est is None:
             jr.set(key, None, reason=reason_prefix + fit.dropped.get(key, "not in the model"))
-        elif s is not None and s > RESOLUTION_A and s > DETERMINED_REL * abs(v):
-            jr.set(key, None, reason=f"{reason_prefix}not determined: {v:.4f} ± {s:.4f} A")
+            continue
+        val, sd = est
+        if sd > RESOLUTION_A and sd > DETERMINED_REL * abs(val):
+            jr.set(key, None, reason=f"{reason_prefix}not determined: {val:.4f} ± {sd:.4f} A")
         else:
-            jr.set(key, v, s)
-    vis = {}
+            jr.set(key, val, sd)
+    vis: dict[str, tuple[float, float]] = {}
     for key in (VISCOUS_POS_A_S_PER_RAD, VISCOUS_NEG_A_S_PER_RAD):
         if key in jr.reasons and "one speed only" in jr.reasons[key]:
             continue
-        v, s = fit.value(key), fit.std(key)
-        if v is None:
+        est = fit.estimate(key)
+        if est is None:
             jr.set(key, None, reason=reason_prefix + fit.dropped.get(key, "not in the model"))
-        elif s is not None and s * vmax > RESOLUTION_A and s > DETERMINED_REL * abs(v):
-            jr.set(key, None, reason=f"{reason_prefix}not determined: {v:.4f} ± {s:.4f} A·s/rad over speeds up to "
+            continue
+        val, sd = est
+        if sd * vmax > RESOLUTION_A and sd > DETERMINED_REL * abs(val):
+            jr.set(key, None, reason=f"{reason_prefix}not determined: {val:.4f} ± {sd:.4f} A·s/rad over speeds up to "
                                      f"{vmax:.3f} rad/s")
         else:
-            jr.set(key, v, s)
-            vis[key] = (v, s)
+            jr.set(key, val, sd)
+            vis[key] = (val, sd)
     if len(vis) == 2:
         (a, sa), (b, sb) = vis.values()
         wa, wb = 1 / max(sa, 1e-12) ** 2, 1 / max(sb, 1e-12) ** 2
@@ -453,7 +457,7 @@ def find_pairs(ctx: Context) -> tuple[np.ndarray, np.ndarray]:
     if idx.size < 2:
         return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
     sig = np.where(steady[idx], np.sign(p.dq[idx]), 0).astype(np.int8)
-    keys = {}
+    keys: dict[bytes, list[int]] = {}
     for k, s in enumerate(map(bytes, sig)):
         keys.setdefault(s, []).append(k)
     anchors = set(ctx.rows.tolist())
@@ -728,8 +732,9 @@ def fit_symmetric(ctx: Context) -> FitResult:
                 jr.std[key] *= math.sqrt(2.0)
         shift = c if c is not None else 0.0
         for key in (COULOMB_POS_A, COULOMB_NEG_A, STATIC_POS_A, STATIC_NEG_A):
-            if jr.friction[key] is not None:
-                jr.friction[key] += shift
+            level = jr.friction[key]
+            if level is not None:
+                jr.friction[key] = level + shift
                 jr.std[key] = math.hypot(jr.std.get(key, 0.0), cs)
         why_v = ("symmetric extraction (half-differences) gives the mean slope of both directions only; see "
                  + VISCOUS_A_S_PER_RAD)
@@ -844,7 +849,7 @@ def _fit_full_joint(ctx: Context, j: int, name: str, notes: dict[str, Any], stri
         return prior_fit(A, y_sel, nm, prior, w=w)
 
     fit = solve(None)
-    best = (fit.sigma, None, fit)
+    best: tuple[float, tuple[float, float] | None, LinearFit] = (fit.sigma, None, fit)
     vmin_sel = float(np.abs(v[sel]).min())
     slow_share = float(np.mean(np.abs(v[sel]) < 0.1))
     if stribeck_grid and slow_share > 0.05:
@@ -854,10 +859,10 @@ def _fit_full_joint(ctx: Context, j: int, name: str, notes: dict[str, Any], stri
                 if vs < 0.5 * vmin_sel:
                     continue
                 f2 = solve((vs, dl))
-                hump_ok = all(f2.value(f"dstatic_{d}_A") is not None and f2.std(f"dstatic_{d}_A") <= RESOLUTION_A
-                              for d in ("pos", "neg"))
+                hump = [f2.estimate(f"dstatic_{d}_A") for d in ("pos", "neg")]
                 # a hump enters only if it is determined and lowers the residual clearly (5 %)
-                if hump_ok and f2.sigma < best[0] * 0.95 and f2.value("dstatic_pos_A") > 0 > f2.value("dstatic_neg_A"):
+                if (hump[0] is not None and hump[1] is not None and hump[0][1] <= RESOLUTION_A
+                        and hump[1][1] <= RESOLUTION_A and f2.sigma < best[0] * 0.95 and hump[0][0] > 0 > hump[1][0]):
                     best = (f2.sigma, (vs, dl), f2)
     fit, stb = best[2], best[1]
     if load_col is not None:  # with the load-dependent term: kept when positive and 2 % better
@@ -871,9 +876,10 @@ def _fit_full_joint(ctx: Context, j: int, name: str, notes: dict[str, Any], stri
     _set_friction_from_fit(jr, fit, vmax, v=v[sel])
     if stb is not None:
         for d in ("pos", "neg"):
-            c, dv = jr.friction[f"coulomb_{d}_A"], fit.value(f"dstatic_{d}_A")
-            if c is not None and dv is not None:
-                jr.set(f"static_{d}_A", c + dv, math.hypot(fit.std(f"dstatic_{d}_A"), jr.std.get(f"coulomb_{d}_A", 0)))
+            c, hump_d = jr.friction[f"coulomb_{d}_A"], fit.estimate(f"dstatic_{d}_A")
+            if c is not None and hump_d is not None:
+                dv, ds = hump_d
+                jr.set(f"static_{d}_A", c + dv, math.hypot(ds, jr.std.get(f"coulomb_{d}_A", 0)))
             else:
                 jr.set(f"static_{d}_A", None, reason="Stribeck hump not determined")
         jr.set(STRIBECK_VELOCITY_RAD_S, stb[0], None)
@@ -1060,8 +1066,9 @@ def fit_auto(ctx: Context) -> FitResult:
                            "removed with the fitted K_t (seed 000 eq. 20)")
         if stb is not None and stb[2] < 0.5 * stb[0]:
             for d in ("pos", "neg"):
-                c, dv, ds = jr.friction[f"coulomb_{d}_A"], fit.value(f"dstatic_{d}_A"), fit.std(f"dstatic_{d}_A")
-                if c is not None and dv is not None and ds <= RESOLUTION_A:
+                c, hump_d = jr.friction[f"coulomb_{d}_A"], fit.estimate(f"dstatic_{d}_A")
+                if c is not None and hump_d is not None and hump_d[1] <= RESOLUTION_A:
+                    dv, ds = hump_d
                     jr.set(f"static_{d}_A", c + dv, math.hypot(ds, jr.std.get(f"coulomb_{d}_A", 0.0)))
             jr.set(STRIBECK_VELOCITY_RAD_S, stb[0], stb[2])
             jr.set(STRIBECK_EXPONENT, stb[1], stb[3])

@@ -58,6 +58,11 @@ class LinearFit:
         return float(np.sqrt(max(self.cov[self.names.index(name)][self.names.index(name)], 0.0))) \
             if name in self.names else None
 
+    def estimate(self, name: str) -> tuple[float, float] | None:
+        """(value, standard deviation) of a term in the model; None when it is not."""
+        v, s = self.value(name), self.std(name)
+        return None if v is None or s is None else (v, s)
+
 
 def condition_number(A: np.ndarray) -> float:
     if A.shape[1] == 0 or A.shape[0] == 0:
@@ -97,7 +102,7 @@ def linear_fit(A: np.ndarray, y: np.ndarray, names: list[str], w: np.ndarray | N
         try:
             Ginv = np.linalg.inv(G)
             vif = np.diag(Ginv)
-            ok = np.all(np.isfinite(vif)) and np.all(vif > 0)
+            ok = bool(np.all(np.isfinite(vif)) and np.all(vif > 0))
         except np.linalg.LinAlgError:
             ok = False
         if not ok:

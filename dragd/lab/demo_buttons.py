@@ -131,8 +131,10 @@ def run_buttons_demo(config: Path | None = None, out: Path | None = None, progre
             _guide(rig, step, f"p{i + 1}")
             n = int(rig.must("status")["teach"]["marks"])
             _press(rig, "mark")
-            rig.wait_for(lambda n=n: int(rig.must("status")["teach"]["marks"]) > n, 1.0,
-                         f"waypoint {i + 1} after the mark button")
+            def marked(n: int = n) -> bool:
+                return int(rig.must("status")["teach"]["marks"]) > n
+
+            rig.wait_for(marked, 1.0, f"waypoint {i + 1} after the mark button")
             _say(progress, f"marked waypoint {i + 1} by the mark button")
 
         _say(progress, "the operator guides the arm on and lets go of it and of the switch mid-motion ...")

@@ -33,17 +33,45 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from dragd.hardware.cia402 import EMCY_HEARTBEAT, EMCY_RPDO_TIMEOUT
 from dragd.lease import LeaseHolder
 from dragd.protocol import ControlClient, DaemonUnavailable
+
+# faults a host that starves the daemon or the simulator can cause on the wall clock (a drive's reception deadline or
+# heartbeat consumer, the daemon's lost feedback or heartbeats): the real-time path's outcome, which the wall clock's
+# demo and loop benchmarks report beside the machine's stalls; any other fault is the software's
+TIMING_FAULT_CODES = (EMCY_RPDO_TIMEOUT, EMCY_HEARTBEAT)
+TIMING_FAULT_TEXTS = ("feedback lost: no TPDO", "no heartbeat from node", "bus outage: no heartbeat")
+
+
+def timing_fault(entry: dict[str, Any]) -> bool:
+    """Whether a fault entry (the daemon's status ``faults``) is a communication deadline that passed."""
+    text = str(entry.get("text", ""))
+    return entry.get("code") in TIMING_FAULT_CODES or any(t in text for t in TIMING_FAULT_TEXTS)
+
 
 class ProcessError(RuntimeError):
     """A child process that failed to start or answer; the message carries its output's tail."""
 
 
+_GROUPS = 256 * 254  # 239.74.X.Y, Y 1..254
+_groups_taken: set[int] = set()
+_groups_lock = threading.Lock()
+
+
 def multicast_group(tag: str) -> str:
-    """A private udp_multicast group 239.74.X.Y derived from ``tag`` and the pid (no cross-talk between runs)."""
+    """A private udp_multicast group 239.74.X.Y derived from ``tag``, the pid and the time (no cross-talk between
+    runs: two checkouts testing at once, xdist workers); two groups of one process always differ (the next free one
+    where the derived one was given already)."""
     h = hashlib.sha256(f"{tag}:{os.getpid()}:{time.monotonic_ns()}".encode()).digest()
-    return f"239.74.{h[0]}.{1 + h[1] % 254}"
+    k = int.from_bytes(h[:4], "big") % _GROUPS
+    with _groups_lock:
+        if len(_groups_taken) >= _GROUPS:
+            raise RuntimeError(f"multicast_group: all {_GROUPS} groups of 239.74.0.0/16 given out by this process")
+        while k in _groups_taken:
+            k = (k + 1) % _GROUPS
+        _groups_taken.add(k)
+    return f"239.74.{k // 254}.{1 + k % 254}"
 
 
 class Child:
@@ -88,7 +116,8 @@ def wait_until(cond: Callable[[], bool], timeout_s: float, what: str, child: Chi
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:
         if child is not None and not child.alive():
-            raise ProcessError(f"{child.name} exited ({child.proc.returncode}) while waiting for {what}:\n{child.tail()}")
+            raise ProcessError(f"{child.name} exited ({child.proc.returncode}) while waiting for {what}:\n"
+                               f"{child.tail()}")
         try:
             if cond():
                 return
@@ -164,7 +193,8 @@ class Rig:
         # absolute paths: the processes run in the work folder (cwd), where a relative path would name another file
         self.workdir = Path(workdir or tempfile.mkdtemp(prefix=f"dragd-{tag}-")).resolve()
         self.workdir.mkdir(parents=True, exist_ok=True)
-        config, sim_config, telemetry = (None if p is None else Path(p).resolve() for p in (config, sim_config, telemetry))
+        config, sim_config, telemetry = (None if p is None else Path(p).resolve()
+                                         for p in (config, sim_config, telemetry))
         if bus is not None and group is not None:
             raise ValueError(f"Rig: give either bus ({bus!r}) or group ({group!r}), not both")
         self.group = None if bus is not None else (group or multicast_group(tag))
@@ -196,7 +226,8 @@ class Rig:
         self.lease: LeaseHolder | None = None  # a drag lease the rig holds (drag())
         self._lease_t = 0.0  # lockstep: the simulated time of its last renewal
         self.lease_error: str | None = None  # why the wall clock's renewal thread stopped
-        self.allow_dirs = [self.workdir, *(Path(d).resolve() for d in allow_dirs or [])]  # where the daemon may write what the rig asks
+        # where the daemon may write what the rig asks
+        self.allow_dirs = [self.workdir, *(Path(d).resolve() for d in allow_dirs or [])]
         self.env = env
         self.sim: Child | None = None
         self.daemon: Child | None = None
@@ -462,5 +493,6 @@ class Rig:
     def must(self, cmd: str, **args: Any) -> dict[str, Any]:
         resp = self.call(cmd, **args)
         if not resp.get("ok"):
-            raise ProcessError(f"daemon refused {cmd} {args}: {resp.get('error')}\n{self.daemon.tail() if self.daemon else ''}")
+            raise ProcessError(f"daemon refused {cmd} {args}: {resp.get('error')}\n"
+                               f"{self.daemon.tail() if self.daemon else ''}")
         return resp

@@ -12,15 +12,18 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from scipy.interpolate import CubicSpline
+
+KeyframeKind = Literal["start", "end", "pause", "mark", "shape"]  # (the order of importance: _RANK)
 
 
 @dataclass(frozen=True)
 class KeyframeResult:
     index: np.ndarray  # sample indices of the keyframes, increasing
-    kind: list[str]  # start | end | pause | mark | shape
+    kind: list[KeyframeKind]
     max_deviation_rad: float  # of the recorded samples from the spline through the keyframes
 
 
@@ -114,7 +117,7 @@ def spline_deviation(q: np.ndarray, idx: np.ndarray, stops: set[int]) -> np.ndar
 _RANK = {"start": 4, "end": 4, "pause": 3, "mark": 2, "shape": 1}
 
 
-def _dedupe(q: np.ndarray, idx: list[int], kinds: dict[int, str], min_chord: float) -> np.ndarray:
+def _dedupe(q: np.ndarray, idx: list[int], kinds: dict[int, KeyframeKind], min_chord: float) -> np.ndarray:
     """Merge keyframes closer than ``min_chord`` (a still hand gives several at one place): the most important kind
     stays (start/end, then pause, mark, shape); the recording's first and last sample always do."""
     out = [idx[0]]
@@ -143,7 +146,7 @@ def extract_keyframes(t: np.ndarray, q: np.ndarray, tol_rad: float = np.radians(
         raise ValueError(f"keyframes: expected t (N ≥ 2) and q (N, joints), got {t.shape} and {q.shape}")
     if not tol_rad > 0:
         raise ValueError(f"keyframes: expected a positive tolerance, got {tol_rad}")
-    kinds: dict[int, str] = {0: "start", len(t) - 1: "end"}
+    kinds: dict[int, KeyframeKind] = {0: "start", len(t) - 1: "end"}
     stops: set[int] = set()
     for i0, i1 in find_pauses(t, q, pause_speed_rad_s, pause_min_s):
         m = (i0 + i1) // 2

@@ -107,7 +107,7 @@ class PTP(Piece):
         return cls(qa.copy(), qb.copy(), SCurve.plan(1.0, V, A, J), label)
 
     @property
-    def duration(self):  # type: ignore[override]
+    def duration(self) -> float:  # type: ignore[override]  # computed here; Piece declares the attribute Dwell sets
         return self.profile.duration
 
     def evaluate(self, t):
@@ -135,7 +135,7 @@ class PathPiece(Piece):
     passes: list[tuple[float, str]] = field(default_factory=list)  # (u, waypoint name) passed on the way
 
     @property
-    def duration(self):  # type: ignore[override]
+    def duration(self) -> float:  # type: ignore[override]  # computed here; Piece declares the attribute Dwell sets
         return (len(self.u) - 1) * self.dt
 
     def _at(self, t: np.ndarray) -> tuple[np.ndarray, ...]:

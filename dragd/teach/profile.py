@@ -66,9 +66,9 @@ class SCurve:
         mid = max(ta - 2.0 * tj, 0.0)
         return [(tj, J), (mid, 0.0), (tj, -J), (tv, 0.0), (tj, -J), (mid, 0.0), (tj, J)]
 
-    def evaluate(self, t: np.ndarray | float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Position, velocity, acceleration and jerk at times ``t`` (clipped to [0, duration])."""
-        t = np.clip(np.asarray(t, dtype=float), 0.0, self.duration)
+    def evaluate(self, t_s: np.ndarray | float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Position, velocity, acceleration and jerk at times ``t_s`` (clipped to [0, duration])."""
+        t = np.clip(np.asarray(t_s, dtype=float), 0.0, self.duration)
         s = np.zeros_like(t)
         v = np.zeros_like(t)
         a = np.zeros_like(t)

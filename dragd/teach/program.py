@@ -24,12 +24,13 @@ import math
 import re
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Final, Literal
 
 import numpy as np
 import yaml
 from pydantic import Field, ValidationError, model_validator
 
+from dragd.teach.keyframes import KeyframeKind
 from dragd.vocabulary import (
     ConfigError,
     Expect,
@@ -40,8 +41,8 @@ from dragd.vocabulary import (
     read_yaml,
 )
 
-FORMAT = "dragd.teach.program"
-VERSION = 1
+FORMAT: Final = "dragd.teach.program"
+VERSION: Final = 1
 NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 class ProgramError(ConfigError):
@@ -57,7 +58,7 @@ class Waypoint(StrictEditable):
 class Keyframe(StrictEditable):
     t_s: NonNegFloat
     q_rad: list[Finite]
-    kind: Literal["start", "end", "pause", "mark", "shape"] = "shape"
+    kind: KeyframeKind = "shape"
 
 
 class Recording(StrictEditable):

@@ -218,6 +218,9 @@ def _run(ds: Any, root: Path, tmp: Path, train_spec: Any, Reference: Any, filter
         pp, tau = tb.terms(lg.q, lg.dq, lg.i)
         ref_res.append((tb.residual(lg.t, pp, tau), usable(r, settings)[0]))
     tb.calibrate(ref_res)
+    thresholds = tb.thresholds_A
+    if thresholds is None:
+        raise BenchError("contact_real: the textbook detector set no thresholds from the free-motion logs")
     set_by = {nm: {"log": runs[i][0], "t_s": round(float(cal_logs[runs[i][0]].t[k] - cal_logs[runs[i][0]].t[0]), 2),
                    "speed_rad_s": round(float(abs(cal_logs[runs[i][0]].dq[k, j])), 3)}
               for j, (nm, (i, k)) in enumerate(zip(names, tb.set_by, strict=True))}
@@ -229,11 +232,10 @@ def _run(ds: Any, root: Path, tmp: Path, train_spec: Any, Reference: Any, filter
         pp, tau = tb.terms(lg.q, lg.dq, lg.i)
         rr = tb.detect(lg.t, tb.residual(lg.t, pp, tau))
         evs = [(e.t_start_s - lg.t[0], e.t_end_s - lg.t[0], [names[j] for j in e.joints]) for e in rr.events]
-        assert tb.thresholds_A is not None
         sc = score(labels.contacts, evs)
         ref_scores.append(sc)
         with np.errstate(invalid="ignore", divide="ignore"):
-            rat = np.abs(rr.r_A) / tb.thresholds_A
+            rat = np.abs(rr.r_A) / thresholds
         ref_logs[name] = {"score": sc, "max_ratio_outside_contacts": max_ratio_outside(lg.t, rat, labels.contacts)}
     timing["reference_s"] = time.perf_counter() - t0
 
@@ -259,7 +261,7 @@ def _run(ds: Any, root: Path, tmp: Path, train_spec: Any, Reference: Any, filter
                                "dragd contact detect --robot URDF --params contact.yaml --log LOG [--columns "
                                "q,dq,i,-] --json"]},
         "reference": {"total": ref_total, "logs": ref_logs,
-                      "thresholds_A": [round(float(x), 4) for x in tb.thresholds_A], "thresholds_set_by": set_by,
+                      "thresholds_A": [round(float(x), 4) for x in thresholds], "thresholds_set_by": set_by,
                       "model": "OLS base rigid-body + viscous/Coulomb/offset (ident_real's reference, scripts' rows)",
                       "observer_gain_per_s": tb.gain, "threshold": "1.2 × the largest free-motion |residual|"},
         "targets": {"every_contact_of_1A_found": True, "false_alarms": 0, "free_motion_ratio_max": TARGET_FREE_RATIO,

@@ -29,7 +29,16 @@ import numpy as np
 from dragd.lab.bench import benchmark
 from dragd.resources import config_path
 
-SIM_DIR = Path(importlib.util.find_spec("sim").origin).parent  # the installed simulator (a lab tool)
+
+def _sim_dir() -> Path:
+    """The installed simulator's folder (a lab tool: dragd itself never imports sim)."""
+    spec = importlib.util.find_spec("sim")
+    if spec is None or spec.origin is None:
+        raise ImportError("dragd bench: the simulator package 'sim' is not installed (pip install -e . installs it)")
+    return Path(spec.origin).parent
+
+
+SIM_DIR = _sim_dir()
 _CACHE: dict[str, Any] = {}
 START = (0.0, -0.6, 1.2, -0.6, 1.5708, 0.0)  # the sim's initial pose
 

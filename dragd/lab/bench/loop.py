@@ -102,7 +102,7 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
     import tempfile
 
     from dragd.config import load_config
-    from dragd.lab.rig import Rig, multicast_group
+    from dragd.lab.rig import ProcessError, Rig, multicast_group, timing_fault
 
     yardstick_us_once()  # (measured before the session's processes start: the same run, a quiet moment of it)
     rt = ["--realtime-priority", str(priority)] if priority else []
@@ -128,7 +128,12 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
                                  "SCHED_OTHER")
         rig.must("start")
         time.sleep(0.5)
-        rig.must("mode", mode="drag")
+        try:
+            rig.must("mode", mode="drag")
+        except ProcessError:  # (#28: refused after a communication deadline passed: said below with the figures)
+            faults = rig.must("status").get("faults") or []
+            if not faults or not all(timing_fault(f) for f in faults):
+                raise
         rig.sim_call("operator", scenario="flange_drag")
         viewer = _viewer(rig.socket, tmp / "view.rrd", seconds, config) if telemetry == "view" else None
         probe = StallProbe(min(99, max(PROBE_PRIORITY, priority + 10)))
@@ -137,6 +142,8 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
                 probe.__enter__()
             except OSError as e:
                 probe.errors.append(str(e))
+            if rig.daemon is None or rig.sim is None:
+                raise BenchError("loop benchmark: the simulator and the daemon did not start")
             pids = (rig.daemon.proc.pid, rig.sim.proc.pid)
             before = rig.must("status")
             sim0, w0 = rig.sim_call("state"), time.monotonic()
@@ -165,7 +172,15 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
     paused = (after.get("mode") == "hold" and after.get("feedback_hold") and after.get("requested_mode") == "drag"
               and after.get("fault_count") == before.get("fault_count")
               and (after.get("guard") or {}).get("trips") == (before.get("guard") or {}).get("trips"))
-    if after.get("mode") != "drag" and not paused:
+    # (#28) a communication deadline that passed (the drives' RPDO deadline, heartbeats, lost feedback) is what the
+    # machine did to the real-time path on the wall clock: a figure, said with the machine's stalls below, not a failure
+    # (the session's daemon is its own: every fault it has is of this run, also one between `mode drag` and the window)
+    faults = after.get("faults") or []
+    timed_out = bool(faults) and all(timing_fault(f) for f in faults)
+    if timed_out:
+        print(f"bench: the daemon faulted on a communication deadline ({faults[-1].get('text')}); the figures below "
+              "are the session's, the machine's stalls with them", file=sys.stderr)
+    if after.get("mode") != "drag" and not paused and not timed_out:
         guard = after.get("guard") or {}
         raise BenchError(f"loop benchmark: the daemon left drag during the session (mode {after.get('mode')!r}, "
                          f"requested {after.get('requested_mode')!r}, feedback hold {after.get('feedback_hold')}, "
@@ -182,12 +197,13 @@ def _session(seconds: float, config: str | None, priority: int, profile: str | N
     print(f"bench: loop session {seconds:.0f} s, telemetry {telemetry}, daemon cycle thread {after.get('scheduler')}, "
           "CPU wake-up latency " + (f"held to {qos.get('effective_us')} µs" if qos.get("applied")
                                     else f"not held ({qos.get('reason')})"), file=sys.stderr)
-    for name in ("daemon", "sim") if profile else ():
-        stacks = Path(profile) / f"{name}.txt"
-        if stacks.exists():
-            summary = profile_summary(stacks)
-            stacks.with_name(f"{name}-top.txt").write_text(summary + "\n")
-            print(summary, file=sys.stderr)
+    if profile:
+        for name in ("daemon", "sim"):
+            stacks = Path(profile) / f"{name}.txt"
+            if stacks.exists():
+                summary = profile_summary(stacks)
+                stacks.with_name(f"{name}-top.txt").write_text(summary + "\n")
+                print(summary, file=sys.stderr)
     cycles = after["cycles"] - before["cycles"]
     missed = after["missed_cycles"] - before["missed_cycles"]
     host, own = _missed_by_cause(missed, missed_log, probe, 1.0 / cfg.loop.rate_Hz)
@@ -242,9 +258,16 @@ def _viewer(socket: str, rrd: Path, seconds: float, config: str | None) -> subpr
         proc = subprocess.Popen([sys.executable, "-m", "dragd", "view", "--socket", socket, "--save", str(rrd),
                                  "--seconds", f"{seconds + 30:.0f}", *(["--config", config] if config else [])],
                                 stdout=subprocess.DEVNULL, stderr=f)
-    time.sleep(3.0)  # its start-up (imports, the URDF) before the measured window
+    # its start-up (imports, the URDF) before the measured window: until its recording is open (#28: a fixed 3 s was
+    # not enough on a loaded machine, SIGINT then found it still importing and nothing was recorded), hang guard 120 s
+    end = time.monotonic() + 120.0
+    while proc.poll() is None and not rrd.exists() and time.monotonic() < end:
+        time.sleep(0.1)
     if proc.poll() is not None:
         raise BenchError(f"dragd view exited at start (exit {proc.returncode}): {err.read_text()[-500:]}")
+    if not rrd.exists():
+        _stop(proc)
+        raise BenchError(f"dragd view did not open its recording {rrd} within 120 s: {err.read_text()[-500:]}")
     return proc
 
 

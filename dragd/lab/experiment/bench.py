@@ -38,15 +38,17 @@ class Bench:
         self.params = Path(self.params).resolve() if self.params else None
         self.config = Path(self.config) if self.config else default_config_path()
         self.cfg: Config = load_config(self.config, self.params)
+        self.config_path: Path = self.config  # (the resolved one: ``config`` stays Optional as a field)
 
     def say(self, text: str) -> None:
         if self.progress:
             print(f"experiment: {text}", file=sys.stderr, flush=True)
 
     def derived_config(self, tag: str, edits: dict[tuple[Any, ...], Any]) -> Path:
-        """The configuration with ``edits`` ({("law", "startup"): False, ("joints", 0, "startup", "frequency_Hz"): 8})."""
-        data = yaml.safe_load(self.config.read_text())
-        base = self.config.resolve().parent
+        """The configuration with ``edits``, e.g. {("law", "startup"): False,
+        ("joints", 0, "startup", "frequency_Hz"): 8}."""
+        data = yaml.safe_load(self.config_path.read_text())
+        base = self.config_path.resolve().parent
         if not Path(str(data.get("robot", {}).get("urdf", "seed_cobot"))).is_absolute():
             urdf = data.setdefault("robot", {}).get("urdf", "seed_cobot")
             if (base / urdf).exists():
@@ -162,7 +164,8 @@ def ramp_breakaway(rig: Rig, joint: str, sign: int, rate_Nm_s: float, timeout_s:
         return any(e["kind"] in ("breakaway", "ramp_timeout", "ramp_limit") for e in ev)
 
     rig.wait_for(finished, timeout_s + 5.0, f"the ramp on {joint}")
-    ev = [e for e in rig.sim_call("operator_events")["events"] if e["kind"] in ("breakaway", "ramp_timeout", "ramp_limit")]
+    ev = [e for e in rig.sim_call("operator_events")["events"]
+          if e["kind"] in ("breakaway", "ramp_timeout", "ramp_limit")]
     return ev[-1]
 
 
@@ -194,7 +197,7 @@ def handover_step_A(rows: dict[str, np.ndarray], joint: int, rest_threshold_rad_
     worst = 0.0
     moving = dq > rest_threshold_rad_s
     onsets = np.flatnonzero(moving[1:] & ~moving[:-1]) + 1
-    for k in onsets:
+    for k in onsets.tolist():
         a = max(0, k - 5)
         gone = np.flatnonzero(np.abs(q[a:k + 100] - q[a]) > BREAKAWAY_THRESHOLD_RAD)
         b = a + int(gone[0]) - 1 if gone.size else k + 100

@@ -27,7 +27,8 @@ def startup_bars(result: dict[str, Any], path: Path) -> Path:
     ax.bar(x - 0.2, w0, 0.4, label="without start-up compensation")
     ax.bar(x + 0.2, w1, 0.4, label="with start-up compensation")
     for i, n in enumerate(names):
-        ax.text(x[i] + 0.2, w1[i], f"−{result['joints'][n]['reduction_pct']:.0f} %", ha="center", va="bottom", fontsize=8)
+        ax.text(x[i] + 0.2, w1[i], f"−{result['joints'][n]['reduction_pct']:.0f} %", ha="center", va="bottom",
+                fontsize=8)
     ax.set_xticks(x, names)
     ax.set_ylabel("starting torque [N·m]")
     ax.set_title(f"Start-up torque (mean reduction {result['mean_reduction_pct']:.1f} %)")

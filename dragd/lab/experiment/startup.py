@@ -120,7 +120,8 @@ def run_startup(bench: Bench, joints: list[int], reps: int = 2, rest_s: float = 
             "oscillation_deg": round(float(osc[j]), 5),
             "handover_step_A": round(handover_step_A(rows, j, bench.cfg.joints[j].startup.rest_threshold_rad_s), 4)
             if rows is not None else None,
-            "repetitions": {"without_Nm": [round(x, 4) for x in without[j]], "with_Nm": [round(x, 4) for x in with_[j]]},
+            "repetitions": {"without_Nm": [round(x, 4) for x in without[j]],
+                            "with_Nm": [round(x, 4) for x in with_[j]]},
             "void_repetitions": void_without[j] + void_with[j],
         }
     result["mean_reduction_pct"] = round(float(np.mean(reductions)), 2)
@@ -146,8 +147,9 @@ def run_sweep(bench: Bench, joint: int, frequencies: list[float] | None = None, 
     ok = [p for p in points if p["oscillation_deg"] <= OSCILLATION_LIMIT_DEG]
     best = min(ok, key=lambda p: p["starting_torque_Nm"]) if ok else None
     f_best = best["frequency_Hz"] if best else max(freqs)
-    comparisons = {}
-    for label, edits in (("sine_fade", {}),  # ours: faded hand-over + break-out latch
+    comparisons: dict[str, dict[str, Any]] = {}
+    no_edits: dict[tuple[Any, ...], Any] = {}
+    for label, edits in (("sine_fade", no_edits),  # ours: faded hand-over + break-out latch
                          ("square_fade", {("law", "startup_waveform"): "square"}),  # the peers' dither
                          ("sine_fade_no_breakout", {("law", "startup_breakout"): False}),
                          ("sine_abrupt", {("law", "startup_handover"): "abrupt",  # seed 001 as published
@@ -158,6 +160,7 @@ def run_sweep(bench: Bench, joint: int, frequencies: list[float] | None = None, 
             osc = oscillation_deg(record(rig, bench.workdir / f"rest-{label}.mcap", rest_s))[joint]
             loads, rows, void = _starting_torques(bench, rig, [joint], reps, bench.workdir / f"ramps-{label}.mcap",
                                                   ramp_s)
+        assert rows is not None  # (a rows_path was given: the ramps were recorded)
         comparisons[label] = {"oscillation_deg": round(float(osc), 5),
                               "starting_torque_Nm": round(float(np.mean(loads[joint])), 4),
                               "handover_step_A": round(handover_step_A(rows, joint, phi), 4),

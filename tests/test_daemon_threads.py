@@ -1,0 +1,36 @@
+"""Every thread of a daemon run as deployed has the scheduling policy meant for it: the cycle SCHED_FIFO 70, every
+helper SCHED_FIFO 1 (below it, above every normal task), whether it started during boot (the SDO worker, the
+telemetry forwarder), with the loop (the executor) or later (a record window's writer). A SCHED_OTHER helper,
+preempted by the host's other work while it held the GIL, stalled the cycle for milliseconds (docs/DECISIONS.md).
+
+On the lockstep clock: the policies do not depend on the clock, and the verdict does not depend on the machine's load.
+Skipped where SCHED_FIFO is not permitted (the daemon says so in ``scheduler``).
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from dragd.lab.rig import DEPLOYED_PRIORITY, Rig
+
+pytestmark = pytest.mark.lockstep
+
+
+def test_every_daemon_thread_runs_with_its_policy_as_deployed(tmp_path) -> None:
+    with Rig("threads", workdir=tmp_path, telemetry=tmp_path / "t.mcap", as_deployed=True, lockstep=True) as rig:
+        rig.start_sim()
+        rig.start_daemon()
+        st = rig.must("status")
+        if not str(st["scheduler"]).startswith("SCHED_FIFO"):
+            pytest.skip(f"SCHED_FIFO not permitted here: {st['scheduler']}")
+        rig.must("start")
+        rig.must("record", action="start", path=str(tmp_path / "window.mcap"))
+        rig.sleep(0.2)
+        threads = rig.must("status")["threads"]
+        rig.must("record", action="stop")
+        rig.must("stop")
+    assert threads.pop("MainThread") == f"SCHED_FIFO {DEPLOYED_PRIORITY}", threads  # the cycle's (asyncio) thread
+    assert {"dragd-sdo_0", "dragd-telemetry"} <= set(threads), threads  # (the two that start during boot)
+    assert any(name.startswith("dragd-exec") for name in threads), threads  # (the record window's writer opened)
+    assert sum(name.startswith("dragd-telemetry") for name in threads) == 2, threads  # (the window's writer)
+    assert set(threads.values()) == {"SCHED_FIFO 1"}, threads
