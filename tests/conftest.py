@@ -37,9 +37,12 @@ REPO = Path(__file__).resolve().parents[1]
 DEFAULT_CONFIG = REPO / "config" / "default.yaml"
 
 
-def run_cli(*args: str, check: bool = True, timeout: float = 120.0,
+def run_cli(*args: str, check: bool = True, timeout: float = 600.0,
             env: dict[str, str] | None = None, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
-    """Run ``python -m dragd ARGS`` as a real process (in ``cwd``: default the test's)."""
+    """Run ``python -m dragd ARGS`` as a real process (in ``cwd``: default the test's). ``timeout`` is a hang guard,
+    not a clock: wall seconds, so far above a run's CPU time (``dragd gap`` of 8 s of CPU took 120+ s at load 16 on 2
+    cores and failed a unit test's fixture) and below the unit tier's pytest-timeout (900 s), so a hung child is
+    killed and named."""
     proc = subprocess.run([sys.executable, "-m", "dragd", *args], capture_output=True, text=True, timeout=timeout,
                           env=env, cwd=cwd)
     if check and proc.returncode != 0:

@@ -97,13 +97,20 @@ def plan(poses: int = 2) -> Any:
 def _generate(args: tuple[str, int, int]) -> tuple[str, dict[str, np.ndarray]]:
     from sim.offline import generate
 
+    from identify_helpers import cached_npz  # (kept across runs of the same sources: see identify_helpers)
+
     case, seed, poses = args
-    p = plan(poses)
-    return case, generate(p.t_s, p.q_rad, truth_for(case), seed=seed)
+
+    def make() -> dict[str, np.ndarray]:
+        p = plan(poses)
+        return generate(p.t_s, p.q_rad, truth_for(case), seed=seed)
+
+    return case, cached_npz(f"gap-{case}-{seed}-{poses}", make)
 
 
 def generate_all(cases: list[str], seed: int = 7, poses: int = 2, workers: int = 2) -> dict[str, dict[str, np.ndarray]]:
-    """Offline logs of the gap plan for each case (two processes: the machine has two cores)."""
+    """Offline logs of the gap plan for each case (two processes: the machine has two cores), generated once for
+    the same sources (tests/identify_helpers.py: cached_npz)."""
     with ProcessPoolExecutor(workers) as ex:
         return dict(ex.map(_generate, [(c, seed, poses) for c in cases]))
 

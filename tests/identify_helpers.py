@@ -1,12 +1,20 @@
-"""Shared data for the identification tests: short plans run offline on the sim (generated once per test run, for
-every xdist worker of it: the first worker that needs a log generates it under a lock, the others read it)."""
+"""Shared data for the identification tests: short plans run offline on the sim, generated once and kept (the first
+worker that needs a log generates it under a lock, the others read it) in a folder named by a hash of everything
+that makes the log — dragd/, sim/, config/, this file and gap_helpers.py, the Python, numpy and Pinocchio
+versions — so a later run of the same sources reads it and any change generates it again, as the benchmarks' cached
+logs do. ``$DRAGD_TEST_CACHE`` (default ``~/.cache/dragd/test-logs``); ``DRAGD_TEST_CACHE=off``: a folder per run."""
 
 from __future__ import annotations
 
 import fcntl
 import functools
+import hashlib
 import os
+import platform
+import shutil
 import tempfile
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -16,10 +24,46 @@ from dragd.identify import excitation as E
 from dragd.model import RobotModel
 
 START = np.array([0.0, -0.6, 1.2, -0.6, 1.5708, 0.0])
-# one folder per test run, shared by its xdist workers (PYTEST_XDIST_TESTRUNUID: the same in every worker of a run)
-_RUN = os.environ.get("PYTEST_XDIST_TESTRUNUID")
-TMP = (Path(tempfile.gettempdir()) / f"dragd-identify-tests-{_RUN}" if _RUN
-       else Path(tempfile.mkdtemp(prefix="dragd-identify-tests-")))
+_REPO = Path(__file__).resolve().parents[1]
+_KEEP_S = 2 * 86400.0  # a cached folder not used for this long is removed (another source tree's)
+
+
+def _source_key() -> str:
+    """A hash of every file that makes the logs: dragd/, sim/, config/ (all files, not only Python), this file and
+    gap_helpers.py (the plans and truths), and the versions of Python, numpy and Pinocchio."""
+    import pinocchio
+
+    h = hashlib.sha256(f"{platform.python_version()} {np.__version__} {pinocchio.__version__}".encode())
+    files = [Path(__file__).resolve(), Path(__file__).resolve().with_name("gap_helpers.py")]
+    for root in ("dragd", "sim", "config"):
+        files += (p for p in (_REPO / root).rglob("*") if p.is_file() and "__pycache__" not in p.parts)
+    for f in sorted(files):
+        h.update(f.relative_to(_REPO).as_posix().encode() + b"\0" + f.read_bytes() + b"\0")
+    return h.hexdigest()[:16]
+
+
+def _folder() -> Path:
+    cache = os.environ.get("DRAGD_TEST_CACHE", str(Path.home() / ".cache" / "dragd" / "test-logs"))
+    if cache == "off":  # one folder per test run, shared by its xdist workers (PYTEST_XDIST_TESTRUNUID)
+        run = os.environ.get("PYTEST_XDIST_TESTRUNUID")
+        return (Path(tempfile.gettempdir()) / f"dragd-identify-tests-{run}" if run
+                else Path(tempfile.mkdtemp(prefix="dragd-identify-tests-")))
+    root = Path(cache)
+    root.mkdir(parents=True, exist_ok=True)
+    now = time.time()
+    for old in root.iterdir():  # other source trees' folders, unused for days
+        try:
+            if old.is_dir() and now - old.stat().st_mtime > _KEEP_S:
+                shutil.rmtree(old, ignore_errors=True)
+        except OSError:
+            pass
+    out = root / _source_key()
+    out.mkdir(exist_ok=True)
+    os.utime(out)  # (used now)
+    return out
+
+
+TMP = _folder()
 TMP.mkdir(exist_ok=True)
 
 
@@ -41,6 +85,20 @@ def truth() -> dict:
     return truth_summary(load_truth())
 
 
+def cached_npz(stem: str, make: Callable[[], dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """The arrays of ``TMP/stem.npz``, made by ``make()`` under a lock by the first process that needs them."""
+    raw = TMP / f"{stem}.npz"
+    with open(TMP / f"{stem}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # (another process making it: wait for its file)
+        if not raw.exists():
+            data = make()
+            np.savez(TMP / f"{stem}.tmp.npz", **data)
+            os.replace(TMP / f"{stem}.tmp.npz", raw)
+            return data
+    with np.load(raw) as z:
+        return {k: z[k] for k in z.files}
+
+
 def _generate(plan: E.Plan, name: str, seed: int, fmt: str = "mcap", interp: bool = True) -> Path:
     """Offline log of a plan. ``interp``: drives that interpolate CSP targets over each SYNC period (60C2h) —
     the estimators' accuracy without sim/drive.py's CSP sawtooth sampling bias (see test_identify_methods)."""
@@ -49,18 +107,11 @@ def _generate(plan: E.Plan, name: str, seed: int, fmt: str = "mcap", interp: boo
 
     stem = f"{name}-{seed}-{'i' if interp else 'n'}"
     out = TMP / f"{stem}.{fmt}"
-    with open(TMP / f"{stem}.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)  # (another worker generating it: wait for its file)
-        if not out.exists():
-            raw = TMP / f"{stem}.npz"
-            if raw.exists():  # one run serves both formats
-                with np.load(raw) as z:
-                    data = {k: z[k] for k in z.files}
-            else:
-                data = generate(plan.t_s, plan.q_rad, load_truth(), seed=seed, csp_interpolation=interp,
-                                config=_feed_forward_config())
-                np.savez(TMP / f"{stem}.tmp.npz", **data)
-                os.replace(TMP / f"{stem}.tmp.npz", raw)
+    with open(TMP / f"{stem}.{fmt}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # (another worker writing it: wait for its file)
+        if not out.exists():  # (one simulated run, the .npz, serves every format)
+            data = cached_npz(stem, lambda: generate(plan.t_s, plan.q_rad, load_truth(), seed=seed,
+                                                     csp_interpolation=interp, config=_feed_forward_config()))
             write_log(TMP / f"{stem}.tmp.{fmt}", data)
             os.replace(TMP / f"{stem}.tmp.{fmt}", out)
     return out

@@ -71,6 +71,17 @@ def _sequence(seed: int, steps: int) -> list[tuple[float, np.ndarray, np.ndarray
 
 
 @pytest.mark.skipif(contact_kernel() is None, reason="numba is not installed")
+def _same(a: np.ndarray, b: np.ndarray, what: str) -> None:
+    """Equal (integers, booleans) or within rtol = atol = 1e-12 (floats; NaN where NaN), step by step: ``a`` and
+    ``b`` are the reference's and the kernel's values stacked over the steps (axis 0); a mismatch names its first
+    step."""
+    ok = np.isclose(b, a, rtol=1e-12, atol=1e-12, equal_nan=True) if a.dtype.kind == "f" else b == a
+    bad = np.flatnonzero(~ok.reshape(ok.shape[0], -1).all(axis=1))
+    if bad.size:
+        k = int(bad[0])
+        raise AssertionError(f"step {k}: {what}: kernel {b[k]!r} vs numpy {a[k]!r}")
+
+
 @pytest.mark.parametrize("seed", [3, 17])
 def test_the_contact_kernel_matches_the_numpy_update(seed: int) -> None:
     kt = np.array([10.0, 10.7, 8.5, 9.0, 9.5, 10.1])
@@ -80,18 +91,19 @@ def test_the_contact_kernel_matches_the_numpy_update(seed: int) -> None:
     seq = _sequence(seed, 6000)
     for det in (ref, got):
         det.arm(seq[0][2], seq[0][0])
-    seen = set()
+    seen: set[int] = set()
+    states_ref: dict[str, list[np.ndarray]] = {f: [] for f in STATE}
+    states_got: dict[str, list[np.ndarray]] = {f: [] for f in STATE}
     for k, (t, dq, p, tau) in enumerate(seq):
         a = ref.update(t, dq, p, tau)
         b = got.update(t, dq, p, tau)
         assert a == b, f"step {k}: code {a} vs {b}"
-        for f in STATE:
-            x, y = getattr(ref, f), getattr(got, f)
-            if x.dtype.kind == "f":
-                assert np.allclose(y, x, rtol=1e-12, atol=1e-12, equal_nan=True), f"step {k}: {f}"
-            else:
-                assert np.array_equal(y, x), f"step {k}: {f}"
+        for f in STATE:  # (kept per step, compared once at the end: the same test for each step's values)
+            states_ref[f].append(np.array(getattr(ref, f), copy=True))
+            states_got[f].append(np.array(getattr(got, f), copy=True))
         seen.update(int(x) for x in ref.state)
+    for f in STATE:
+        _same(np.stack(states_ref[f]), np.stack(states_got[f]), f)
     assert seen == {MOVING, SETTLING, HELD, RELEASED}, seen  # every state was visited
     assert len(ref.events) >= 5
     assert [e.to_json(list("abcdef")) for e in ref.events] == [e.to_json(list("abcdef")) for e in got.events]

@@ -24,6 +24,16 @@ def _explain(q: np.ndarray, r: np.ndarray) -> tuple[float, float]:
     return 1.0 - share, float(r[1]) / 10.0
 
 
+def _same(a: np.ndarray, b: np.ndarray, what: str) -> None:
+    """Equal (integers, booleans) or within rtol = atol = 1e-12 (floats; NaN fails), step by step: ``a`` and ``b``
+    are the reference's and the kernel's values stacked over the steps (axis 0); a mismatch names its first step."""
+    ok = np.isclose(b, a, rtol=1e-12, atol=1e-12) if a.dtype.kind == "f" else b == a
+    bad = np.flatnonzero(~ok.reshape(ok.shape[0], -1).all(axis=1))
+    if bad.size:
+        k = int(bad[0])
+        raise AssertionError(f"step {k}: {what}: kernel {b[k]!r} vs numpy {a[k]!r}")
+
+
 @pytest.mark.parametrize("entry", ["update", "command", "command_effects"])
 def test_the_guard_kernel_matches_the_numpy_update(entry: str) -> None:
     """``update`` (τ_in given) and ``update_from_command`` (τ_in from the command and the law's terms, fused into
@@ -43,6 +53,8 @@ def test_the_guard_kernel_matches_the_numpy_update(entry: str) -> None:
         g.arm(p, t)
     dq = np.zeros(N)
     load = np.zeros(N)
+    states_ref: dict[str, list[np.ndarray]] = {f: [] for f in STATE}
+    states_got: dict[str, list[np.ndarray]] = {f: [] for f in STATE}
     for k in range(30000):
         t += 1e-3 * (rng.integers(2, 5) if rng.random() < 0.01 else 1)  # late cycles
         if k % 1500 == 0:  # a new phase: rest, a hand (braking or driving), or a load on joint 2
@@ -74,12 +86,9 @@ def test_the_guard_kernel_matches_the_numpy_update(entry: str) -> None:
             trips_ref.append(a.text)
             trips_got.append(b.text)
             assert a.joint == b.joint and a.residual_Nm == pytest.approx(b.residual_Nm, rel=1e-12)
-        for f in STATE:
-            x, y = getattr(ref, f), getattr(got, f)
-            if x.dtype.kind == "f":
-                assert np.allclose(y, x, rtol=1e-12, atol=1e-12), f"step {k}: {f}"
-            else:
-                assert np.array_equal(x, y), f"step {k}: {f}"
+        for f in STATE:  # (kept per step, compared once at the end: the same test for each step's values)
+            states_ref[f].append(getattr(ref, f).copy())
+            states_got[f].append(getattr(got, f).copy())
         assert (ref.running, ref.checks, ref.hand_runs, ref.stuck_deferrals, ref.retest_at, ref.armed) == \
             (got.running, got.checks, got.hand_runs, got.stuck_deferrals, got.retest_at, got.armed), f"step {k}"
         assert (ref._stuck_open, ref._stuck_since, ref._retest_stuck_at) == \
@@ -87,6 +96,8 @@ def test_the_guard_kernel_matches_the_numpy_update(entry: str) -> None:
         if not ref.armed:  # after a trip: armed again, as the controller does when drag resumes
             for g in (ref, got):
                 g.arm(p, t)
+    for f in STATE:
+        _same(np.stack(states_ref[f]), np.stack(states_got[f]), f)
     assert trips_got == trips_ref and len(trips_ref) >= 2, "the sequence must trip"
     assert ref.hand_runs >= 2, "the sequence must have hand runs"
     assert ref.stuck_deferrals >= 1, "the sequence must defer a verdict (a joint at rest)"

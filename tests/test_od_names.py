@@ -36,9 +36,11 @@ EMCY_CODES = frozenset(v for k, v in vars(cia402).items() if k.startswith("EMCY_
 def _hex_literals(text: str, name: str) -> list[tuple[int, int, str]]:
     """(line, value, source text) of every integer literal written in hex."""
     found = []
+    lines = text.splitlines()  # (once: ast.get_source_segment splits the whole text again for every literal)
     for node in ast.walk(ast.parse(text, name)):
-        if isinstance(node, ast.Constant) and type(node.value) is int:
-            src = ast.get_source_segment(text, node) or ""
+        if isinstance(node, ast.Constant) and type(node.value) is int and node.end_lineno == node.lineno:
+            # the literal's text (one line; the offsets count UTF-8 bytes, as get_source_segment's do)
+            src = lines[node.lineno - 1].encode()[node.col_offset:node.end_col_offset].decode()
             if src.lower().startswith("0x"):
                 found.append((node.lineno, node.value, src))
     return found

@@ -350,10 +350,10 @@ def test_the_sim_cli_names_the_drive_or_the_missing_file(tmp_path: Path) -> None
 
     run = [sys.executable, "-m", "sim"]
     p = subprocess.run([*run, "run", "--eds", str(tmp_path / "absent.eds"), "--seconds", "1"], cwd=REPO,
-                       capture_output=True, text=True, timeout=120)
+                       capture_output=True, text=True, timeout=600)  # (hang guards: see run_cli)
     assert p.returncode == 2 and "--eds: " in p.stderr and "absent.eds: file not found" in p.stderr
     p = subprocess.run([*run, "drives", "--eds", str(variant("no_6075h")), "--json"], cwd=REPO, capture_output=True,
-                       text=True, timeout=120)
+                       text=True, timeout=600)
     assert p.returncode == 0, p.stderr
     sheet = json.loads(p.stdout)
     assert list(sheet) == [j.name for j in TRUTH.joints]
