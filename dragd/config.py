@@ -337,7 +337,7 @@ class LoopConfig(_Strict):
     # with realtime_priority: every CPU's wake-up latency held to this many µs while the daemon runs (the kernel's
     # PM QoS, /dev/cpu_dma_latency); 0: idle CPUs poll instead of sleeping deeply, so the cycle's wake-ups start at
     # once with warm caches. Off (null) by default: idle CPUs then spin, and in a virtual machine a host may preempt
-    # the busy vCPUs (docs/PERFORMANCE.md "Session 16"). 'dragd status' cpu_latency says whether it applied;
+    # the busy vCPUs (docs/DECISIONS.md). 'dragd status' cpu_latency says whether it applied;
     # under systemd: systemd/dragd-cpu-latency.conf and systemd/70-dragd-cpu-latency.rules (docs/SYSTEMD.md)
     cpu_latency_us: Annotated[int, Field(ge=0, le=2_000_000_000)] | None = None
     cpus: list[Annotated[int, Field(ge=0)]] | None = None
@@ -414,7 +414,7 @@ class TelemetryConfig(_Strict):
     # rcl_interfaces/Log on /rosout; docs/ROS2.md)
     foxglove_encoding: Literal["json", "ros2"] = "json"
     # how often the daemon hands the ring's rows to its writer process: each hand-over takes the GIL from the cycle
-    # for a moment (at 50 Hz the demo's period p99 was 1090-1160 us, at 4 Hz 1040-1060 us; docs/PERFORMANCE.md)
+    # for a moment (at 50 Hz the demo's period p99 was 1090-1160 us, at 4 Hz 1040-1060 us)
     forward_interval_s: Annotated[float, Field(gt=0, le=2.0), Expect("an interval in (0, 2] s")] = 0.25
 
 

@@ -550,7 +550,7 @@ def single_threaded_blas() -> None:
 
     OpenBLAS keeps worker threads (SCHED_OTHER) that spin-wait for work; a SCHED_FIFO thread that hands them a
     share of a matrix product and waits for it can wait until the scheduler finds a worker a free core: 80–100 ms
-    measured here (the daemon's cycle stalled, the drives' RPDO watchdogs fired, docs/PERFORMANCE.md). The cycle's
+    measured here (the daemon's cycle stalled, the drives' RPDO watchdogs fired). The cycle's
     matrices are a few joints wide: one thread loses nothing. A value the user set is kept.
     """
     if "numpy" in sys.modules:

@@ -4,7 +4,7 @@ stall the cycle.
 The runaway guard's decision path solves a small least-squares problem (LAPACK). OpenBLAS allocates its work buffers
 on its first call and, with the memory locked (mlockall MCL_FUTURE), every page of them is faulted in right then: the
 first push stalled the cycle 10–100 ms, the drives' RPDO watchdogs (50 ms) fired EMCY 0x8250 and the arm faulted — in
-most runs of the loop benchmark (docs/PERFORMANCE.md, session 11). The daemon now runs those paths before its first
+most runs of the loop benchmark. The daemon now runs those paths before its first
 cycle. Skipped where SCHED_FIFO is not permitted (the daemon would run SCHED_OTHER, where the stall never showed).
 """
 

@@ -49,7 +49,7 @@ class GravityCheck:
         The runaway guard's decision path solves a least-squares problem (LAPACK): OpenBLAS allocates its work
         buffers on its first call, and with the memory locked (mlockall MCL_FUTURE) every page of them is faulted in
         right then — 10–100 ms measured in the cycle thread the first time a hand pushed the arm in drag (the drives'
-        RPDO watchdogs fired: docs/PERFORMANCE.md, session 11). Here that happens before the loop runs.
+        RPDO watchdogs fired). Here that happens before the loop runs.
         """
         q = np.zeros(self.n)
         self.explain_residual(q, np.ones(self.n))

@@ -24,7 +24,7 @@ the writer thread only forwards the drained rows (one array) and the events, eve
 ``flush_interval_s``), through a pipe to a writer *process* (started by that thread, so it runs SCHED_OTHER off the
 real-time CPUs), which runs this same writer in thread mode and sends its counters back; `stats()` merges both
 sides. The cycle thread then never shares the GIL with the formatting (measured: the demo's missed ticks with the
-file written went from ~3× to ~1× those without it, docs/PERFORMANCE.md); each hand-over still takes the GIL for a
+file written went from ~3× to ~1× those without it, docs/DECISIONS.md); each hand-over still takes the GIL for a
 moment, so the daemon hands over a few times a second (dragd/daemon/recording.py). The file's checks and rotation
 happen here, before the process starts, so a bad path still fails at once. If the process dies, its error is
 reported and the rows from then on are dropped and counted.

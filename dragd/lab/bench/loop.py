@@ -12,7 +12,7 @@ samples both processes with py-spy over the session.
 Every session also measures the machine's own stalls in its window (dragd/lab/bench/stalls.py: a probe process per
 CPU at SCHED_FIFO 80, or 10 above ``--realtime-priority``): ``loop_missed_ratio_own`` counts only the missed ticks no
 probe's stall explains, ``host_stall_max_ms`` is the longest stall. The probes cost the daemon a few µs a cycle (their
-wake-ups preempt it), which weighs against its figures, never for them (docs/PERFORMANCE.md, session 18).
+wake-ups preempt it), which weighs against its figures, never for them.
 
 The session runs as deployed (docs/SYSTEMD.md): the daemon's cycle thread SCHED_FIFO 70 and the simulator's
 threads 60, where the system permits it (`--realtime-priority 0`: both SCHED_OTHER). The policy in force is
