@@ -129,3 +129,23 @@ def test_the_daemons_parts_are_built_with_what_they_use_never_the_daemon() -> No
     reach_back = sorted(m for m, deps in graph.items() if "dragd.daemon.core" in deps
                         and m.startswith("dragd.daemon.") and m != "dragd.daemon.commands")
     assert not reach_back, f"daemon parts that import dragd/daemon/core.py: {reach_back}"
+
+
+def test_the_daemon_never_imports_scipy() -> None:
+    """The daemon's modules (and what they import, lazily included: every module of dragd/daemon, dragd/hardware,
+    dragd/control, dragd/teach/program) leave scipy out of the 1 kHz process: its extension modules and OpenBLAS
+    threads beside the cycle (the planner's splines run in dragd/teach/worker.py's process). A type shared with
+    the planner once pulled scipy.interpolate in through dragd/teach/program.py."""
+    import subprocess
+    import sys
+
+    code = ("import importlib, pkgutil, sys\n"
+            "import dragd.daemon, dragd.hardware, dragd.control\n"
+            "for pkg in (dragd.daemon, dragd.hardware, dragd.control):\n"
+            "    for m in pkgutil.iter_modules(pkg.__path__):\n"
+            "        importlib.import_module(f'{pkg.__name__}.{m.name}')\n"
+            "import dragd.teach.program, dragd.__main__\n"
+            "print(sorted(n for n in sys.modules if n == 'scipy' or n.startswith('scipy.')))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]", f"scipy modules imported by the daemon's modules: {out.stdout.strip()}"

@@ -12,12 +12,11 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-KeyframeKind = Literal["start", "end", "pause", "mark", "shape"]  # (the order of importance: _RANK)
+from dragd.teach.program import KeyframeKind
 
 
 @dataclass(frozen=True)

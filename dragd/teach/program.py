@@ -30,7 +30,6 @@ import numpy as np
 import yaml
 from pydantic import Field, ValidationError, model_validator
 
-from dragd.teach.keyframes import KeyframeKind
 from dragd.vocabulary import (
     ConfigError,
     Expect,
@@ -53,6 +52,11 @@ class Waypoint(StrictEditable):
     name: str
     t_s: NonNegFloat
     q_rad: list[Finite]
+
+
+# a keyframe's kind, owned by the program format (dragd/teach/keyframes.py, which finds them, imports it from here: the
+# daemon reads programs and must not import the planner's scipy beside the cycle)
+KeyframeKind = Literal["start", "end", "pause", "mark", "shape"]  # (the order of importance: keyframes._RANK)
 
 
 class Keyframe(StrictEditable):
