@@ -3,7 +3,7 @@
 Needs numba (not a dragd dependency): ``pip install --target /tmp/nb numba==0.68.1`` then
 ``PYTHONPATH=.:/tmp/nb python docs/experiments/numba_breakout.py``. Runs 60 000 cycles of rests, creeps (latches
 fire, gravity suppression included) and motions through both, asserts every state array identical bit for bit each
-cycle, and prints the thread CPU per call of each. Findings: docs/PERFORMANCE.md (issue 17, "Left open").
+cycle, and prints the thread CPU per call of each. Findings: docs/DECISIONS.md ("The cycle"; the measurements in git: docs/PERFORMANCE.md before 3f63959).
 """
 import time
 
