@@ -35,6 +35,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -332,15 +333,31 @@ def rule_for(line: str) -> Rule | None:
     return next((r for r in RULES if re.search(r.pattern, line)), None)
 
 
+def _long_key(cmd: Command) -> str | None:
+    """The key under which a long run (its own sim + daemon, a long offline run) documented word for word in several
+    places runs once; None for any other command."""
+    rule = rule_for(command_line(cmd))
+    if rule is None or not rule.slow or rule.rig or rule.how != "run":
+        return None
+    raw = first_alternatives(command_line(cmd)) if cmd.kind == "span" else command_line(cmd)
+    return f"{raw} {rule.extra}".strip()
+
+
 def _param(cmd: Command) -> object:
     line = command_line(cmd)
     rule = rule_for(line)
     marks = [pytest.mark.slow] if rule is not None and rule.slow else []
+    key = _long_key(cmd)
+    if key is not None and _LONG_COPIES[key] > 1:  # its copies run on the worker that ran it, and take its verdict
+        marks.append(pytest.mark.xdist_group(f"docs-long:{key}"))
     full = f"{line} {rule.extra}" if rule is not None else line  # (the rule's extra options may say --lockstep)
     wall = rule is not None and rule.wall and not re.search(
         r"--lockstep\b|^dragd bench yardstick_us (compensation_us )?lockstep_\w+( lockstep_\w+)* --", full)
     marks.append(pytest.mark.rig if wall else pytest.mark.lockstep)
     return pytest.param(cmd, id=cmd.id, marks=marks)
+
+
+_LONG_COPIES = Counter(k for c in ALL if (k := _long_key(c)) is not None)
 
 
 # --------------------------------------------------------------------------------------------- the environment
@@ -534,7 +551,9 @@ class Env:
                     rig.must("teach", action="stop")
                 for f in (self.root / "programs").glob("pick.*"):
                     f.unlink()
-            elif what == "program" and not (self.root / "programs" / "pick.yaml").exists():
+            elif what == "program" and not self._replayable(self.root / "programs" / "pick.yaml"):
+                # (a program taught by an earlier command on this worker, whose recording may be too short to replay,
+                # gives way to the fixture's: the commands run in any order, on any worker)
                 (self.root / "programs").mkdir(exist_ok=True)
                 shutil.copy(self.fixtures / "pick.yaml", self.root / "programs" / "pick.yaml")
             elif what == "teaching" and not status.get("teach"):
@@ -553,6 +572,13 @@ class Env:
                     rig.must("replay_pause")
 
     @staticmethod
+    def _replayable(path: Path) -> bool:
+        """A program at ``path`` with a continuous recording to replay (as the fixture's pick.yaml has)."""
+        from dragd.teach.program import load_program
+
+        return path.exists() and len(load_program(path).path_arrays()[0]) >= 2
+
+    @staticmethod
     def _stop_replay(rig: Rig, status: dict) -> None:
         """No teaching session, no motion (a replay or identification run stopped and ended)."""
         if status.get("teach"):
@@ -569,8 +595,8 @@ class Env:
             self.rig.close()
 
 
-@pytest.fixture(scope="module")
-def env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Env]:
+@pytest.fixture(scope="session")  # one per xdist worker: the commands go to whichever worker is free (a module
+def env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Env]:  # fixture would hold all ~340 on one worker)
     e = Env(tmp_path_factory.mktemp("docs"))
     try:
         yield e
@@ -634,9 +660,7 @@ def test_documented_command_runs(cmd: Command, env: Env) -> None:
         line = first_alternatives(line) if cmd.kind == "span" else line
         # a long run (its own sim + daemon, a long offline run) documented word for word in several places runs once,
         # in the same fixture folder as every copy would: the copies take its verdict
-        raw = command_line(cmd)  # (before its folders are filled in)
-        raw = first_alternatives(raw) if cmd.kind == "span" else raw
-        key = f"{raw} {rule.extra}".strip() if rule.slow and not rule.rig else None
+        key = _long_key(cmd)  # (the line before its folders are filled in)
         if key in env.verdicts:
             first, failure = env.verdicts[key]
             assert failure is None, where.format(key) + f"\nthe same command failed as {first}:\n{failure}"
