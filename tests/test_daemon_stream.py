@@ -196,6 +196,12 @@ def test_a_refused_sample_ends_the_stream_with_its_reason(tmp_path):
         step[0] += 0.1
         fast = rig.call("stream", stream=sid, t_s=t + 0.001, q_rad=step.tolist())
         rig.wait_for(lambda: rig.must("status")["mode"] == "hold", 2.0, "hold after the refusal")
+        rig.wait_for(lambda: rig.must("status")["drive_mode"] == "cst", 2.0, "CST")
+        # a sample stamped beyond stream.max_lead_s (1 s) after the playback: the field, the latest it may be
+        sid = rig.must("stream_open")["stream"]
+        rig.must("stream", stream=sid, t_s=t, q_rad=q0.tolist())
+        ahead = rig.call("stream", stream=sid, t_s=t + 1.5, q_rad=q0.tolist())
+        rig.wait_for(lambda: rig.must("status")["mode"] == "hold", 2.0, "hold after the refusal")
         rig.must("mode", mode="drag")
         from_drag = rig.call("stream_open")
         truth = np.array(rig.sim_call("state")["q_rad"])
@@ -203,5 +209,10 @@ def test_a_refused_sample_ends_the_stream_with_its_reason(tmp_path):
     assert st["stream"]["end"] == "refused" and "position limits" in st["stream"]["outcome"], st["stream"]
     assert not dq["ok"] and "ended" in dq["error"], dq
     assert not fast["ok"] and "rad/s" in fast["error"] and "encoder_plausible_speed" in fast["error"], fast
+    assert not ahead["ok"] and ahead["error"].startswith(f"stream {sid}: t_s {t + 1.5:.6f}: expected at most "), ahead
+    latest = float(ahead["error"].split("expected at most ")[1].split()[0])
+    # the first sample went in delay_s (0.05 s) ahead of the playback, which had not moved yet: t + 0.95 at most
+    assert abs(latest - (t + 1.0 - 0.05)) < 0.002 and "stream.max_lead_s 1 s after the playback" in ahead["error"], \
+        ahead
     assert not from_drag["ok"] and "never takes the arm from the operator's hand" in from_drag["error"], from_drag
     assert np.degrees(np.abs(truth - q0)).max() < 0.5  # nothing refused ever moved the arm
