@@ -157,7 +157,8 @@ class Streams:
             latest = p + ref.max_lead_s - ref.offset_s  # the latest stamp the playback's place allows, sender time
             raise ValueError(f"t_s {t_s:.6f}: expected at most {latest:.6f} (stream.max_lead_s {ref.max_lead_s:g} s "
                              f"after the playback, which is at sender time {p - ref.offset_s:.6f}): the sample lies "
-                             f"{s - p:.3f} s ahead of it — a sender's clock that jumped, or samples sent faster than "
+                             f"{s - p:.3f} s ahead of it — a gap in the samples (lost or late ones: the playback "
+                             "stopped at the last it had), a sender's clock that jumped, or samples sent faster than "
                              "their stamps advance")
         if ref.room() < 1:
             raise ValueError(f"{ref.cap} samples ahead of the playback: the buffer is full")
