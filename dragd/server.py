@@ -15,6 +15,7 @@ import logging
 import os
 import socket
 import stat
+import threading
 import types
 import typing
 from collections.abc import Awaitable, Callable
@@ -390,3 +391,100 @@ class ControlServer:
         if rid is not None:
             response["id"] = rid
         return response
+
+
+# -- the server on a thread of its own ------------------------------------------------------------------------------
+
+
+class ThreadedControlServer:
+    """A `ControlServer` on a thread and event loop of its own, so that no client's request delays the loop that
+    owns ``handler`` (the daemon's: its 1 kHz cycle runs on it).
+
+    The socket's I/O, the requests' parsing and the responses' encoding run on the server's thread; a request whose
+    ``cmd`` is in ``here`` is answered there too (``handler`` called on the server's loop: a command that only reads
+    the owner's state and hands data over through a single-writer structure, the daemon's ``stream``), every other
+    one is handed to the owner's loop (``handler`` runs there, as on an unthreaded server) and its response comes
+    back. Requests of one connection are answered in order, as by `ControlServer`. ``thread_init`` runs first on the
+    server's thread (the daemon puts it below the cycle: dragd/realtime.py's ``demote_current_thread``).
+    """
+
+    def __init__(self, path: str | os.PathLike[str], handler: Handler, *, here: frozenset[str] | set[str] = frozenset(),
+                 mode: int = 0o660, thread_init: Callable[[], object] | None = None) -> None:
+        self.path = os.fspath(path)
+        self._handler = handler
+        self.here = frozenset(here)
+        self._thread_init = thread_init
+        self._owner: asyncio.AbstractEventLoop | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self.server = ControlServer(path, self._dispatch, mode=mode)
+        self.handed_over = 0  # requests answered on the owner's loop
+        self.answered_here = 0  # ... on the server's thread
+
+    @property
+    def requests(self) -> int:
+        return self.server.requests
+
+    @property
+    def errors(self) -> int:
+        return self.server.errors
+
+    async def _dispatch(self, request: dict[str, Any]) -> dict[str, Any]:
+        if request.get("cmd") in self.here:
+            self.answered_here += 1
+            result = self._handler(request)
+            return await result if inspect.isawaitable(result) else result
+        self.handed_over += 1
+        assert self._owner is not None
+        return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(self._on_owner(request), self._owner))
+
+    async def _on_owner(self, request: dict[str, Any]) -> dict[str, Any]:
+        result = self._handler(request)
+        return await result if inspect.isawaitable(result) else result
+
+    def _run(self, loop: asyncio.AbstractEventLoop) -> None:
+        if self._thread_init is not None:
+            self._thread_init()
+        asyncio.set_event_loop(loop)
+        try:
+            loop.run_forever()
+        finally:
+            loop.run_until_complete(loop.shutdown_asyncgens())
+            loop.close()
+
+    async def start(self) -> ThreadedControlServer:
+        """Start the thread and the server on it (as `ControlServer.start`: its errors are raised here)."""
+        self._owner = asyncio.get_running_loop()
+        loop = self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self._run, args=(loop,), name="dragd-control", daemon=True)
+        self._thread.start()
+        try:
+            await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(self.server.start(), loop))
+        except BaseException:
+            self._stop_thread()
+            raise
+        return self
+
+    async def close(self) -> None:
+        """Stop accepting, drop open connections, remove the socket file, end the thread."""
+        loop = self._loop
+        if loop is None:
+            return
+        try:
+            await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(self.server.close(), loop))
+        finally:
+            self._stop_thread()
+
+    def _stop_thread(self) -> None:
+        loop, thread = self._loop, self._thread
+        self._loop = self._thread = None
+        if loop is not None and not loop.is_closed():
+            loop.call_soon_threadsafe(loop.stop)
+        if thread is not None:
+            thread.join(5.0)
+
+    async def __aenter__(self) -> ThreadedControlServer:
+        return await self.start()
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()

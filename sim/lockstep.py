@@ -17,7 +17,6 @@ long it takes.
 from __future__ import annotations
 
 import threading
-import time
 from collections.abc import Callable
 
 import can
@@ -54,8 +53,7 @@ class LockstepSync:
         self.steps = int(round(steps))
         self.clock = SimClock()
         self.run_period: Callable[[int], object] = lambda steps: None  # set by the simulator (SimProcess._period)
-        self.periods = 0  # periods run
-        self.period_cpu_ns = 0  # CPU time the periods took (in whichever reader ran them)
+        self.periods = 0  # periods run (their CPU: the bus readers' SimNetwork.cpu_ns; no clock read per period)
         self.time_frames = 0
         self._syncs = [0] * len(buses)
         self._cv = threading.Condition()
@@ -67,17 +65,19 @@ class LockstepSync:
             self._syncs[bus_index] += 1
             due = self._syncs[bus_index]
             if min(self._syncs) >= due and self.periods < due:
-                c0 = time.thread_time_ns()
                 try:
                     self.run_period(self.steps)
                 finally:
                     self.periods += 1
-                    self.period_cpu_ns += time.thread_time_ns() - c0
                     self._cv.notify_all()
             else:
                 while self.periods < due:
                     self._cv.wait(1.0)
             t = self.clock.t_s
-        self.buses[bus_index].send(can.Message(arbitration_id=TIME_COB_ID, data=encode_time_of_day(t),
-                                               is_extended_id=False))
+        bus = self.buses[bus_index]
+        send_data = getattr(bus, "send_data", None)  # (dragd's udp_multicast: the same bytes, without a can.Message)
+        if send_data is not None:
+            send_data(TIME_COB_ID, encode_time_of_day(t))
+        else:
+            bus.send(can.Message(arbitration_id=TIME_COB_ID, data=encode_time_of_day(t), is_extended_id=False))
         self.time_frames += 1

@@ -93,6 +93,7 @@ class SimNetwork:
         self._caught_up_s = 0.0
         self._idle = False
         self._running = False
+        self.cpu_ns = 0  # CPU time of the reader thread (on the lockstep clock it also runs the periods)
         for drive in self.drives:
             drive.rx_caught_up = self.caught_up
 
@@ -152,6 +153,7 @@ class SimNetwork:
 
     def _run(self) -> None:
         self._caught_up_s, self._running = self._now(), True
+        cpu0 = time.thread_time_ns()
         try:
             if isinstance(self.bus, UdpMulticastCanBus):
                 self._run_draining(self.bus.drain)
@@ -159,6 +161,7 @@ class SimNetwork:
                 self._run_receiving()
         finally:
             self._running = False
+            self.cpu_ns += time.thread_time_ns() - cpu0
 
     def _run_receiving(self) -> None:
         """The reader on any other python-can bus (socketcan, virtual): frame by frame."""

@@ -224,7 +224,7 @@ class SimProcess:
         self.dropped_steps = 0
         self.max_busy_ns = 0
         self.late_tick_times: list[float] = []  # sim time of the first late ticks (diagnostics)
-        self._thread_cpu_ns = 0  # CPU time of the physics thread in the loop
+        self._thread_cpu_ns = 0  # CPU time of the physics thread in the loop (lockstep: the bus readers, which run it)
         self.busy_ns = 0
         self._latency_us = np.zeros(LATENCY_RING, dtype=np.float32)
         self._wall_start = 0.0
@@ -293,6 +293,8 @@ class SimProcess:
             finally:
                 for net in self.networks:
                     net.stop()
+                if self.lockstep is not None:  # the periods ran in the bus readers (their CPU: SYNC answers included)
+                    self._thread_cpu_ns = sum(net.cpu_ns for net in self.networks)
         finally:
             self._stop_control()
             for bus in self.buses:
@@ -317,7 +319,6 @@ class SimProcess:
             finally:
                 self._wall_end = time.monotonic()
                 self._cpu_end = time.process_time()
-                self._thread_cpu_ns = lockstep.period_cpu_ns
             return
         timer = TimerFd(TICK_NS)
         if self.stalls is not None:

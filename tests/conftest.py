@@ -24,6 +24,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cli_fork  # i28-unit: run_cli's fork server
 import pytest
 
 # One BLAS/OpenMP thread per process, set before anything imports numpy (children inherit it): the tests run as
@@ -32,6 +33,7 @@ import pytest
 # two threads on this 2-core machine under load (25 s against 2.9 s for one test). An explicit setting wins.
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
+cli_fork.BASE_ENV = dict(os.environ)  # i28-unit: the fork server's environment (never a test's monkeypatched one)
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_CONFIG = REPO / "config" / "default.yaml"
@@ -43,10 +45,27 @@ def run_cli(*args: str, check: bool = True, timeout: float = 600.0,
     not a clock: wall seconds, so far above a run's CPU time (``dragd gap`` of 8 s of CPU took 120+ s at load 16 on 2
     cores and failed a unit test's fixture) and below the unit tier's pytest-timeout (900 s), so a hung child is
     killed and named."""
-    proc = subprocess.run([sys.executable, "-m", "dragd", *args], capture_output=True, text=True, timeout=timeout,
-                          env=env, cwd=cwd)
+    # i28-unit: forked from a server that has imported the package (tests/cli_fork.py: same entry point, own
+    # process, without ~1.5 s of imports each); a fresh interpreter where the environment differs from the server's
+    proc = cli_fork.run(args, env, cwd, timeout)
+    if proc is None:
+        proc = subprocess.run([sys.executable, "-m", "dragd", *args], capture_output=True, text=True,
+                              timeout=timeout, env=env, cwd=cwd)
     if check and proc.returncode != 0:
         raise AssertionError(f"dragd {' '.join(args)} failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}")
+    return proc
+
+
+def run_sim(*args: str, check: bool = True, timeout: float = 600.0,
+            cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
+    """i28-unit: ``python -m sim ARGS`` as ``run_cli`` runs dragd's (forked from the server where it can be)."""
+    proc = cli_fork.run(args, None, cwd, timeout, module="sim")
+    if proc is None:
+        proc = subprocess.run([sys.executable, "-m", "sim", *args], capture_output=True, text=True, timeout=timeout,
+                              cwd=cwd)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"python -m sim {' '.join(args)} failed ({proc.returncode}):\n{proc.stdout}\n"
+                             f"{proc.stderr}")
     return proc
 
 

@@ -3,7 +3,9 @@ process beside a rig's simulator and daemon. Skips with the reason where the ros
 
 from __future__ import annotations
 
+import functools
 import os
+import socket
 import sys
 import threading
 import time
@@ -18,11 +20,32 @@ REASON = unavailable()
 needs_ros2 = pytest.mark.skipif(REASON is not None, reason=f"the ros2 extra is not installed: {REASON}")
 
 
+_domain_claims: list[socket.socket] = []  # held until this process exits
+
+
+@functools.cache
+def _domain() -> int:
+    """A DDS domain 1-99 claimed for this process on the whole machine: an abstract Unix socket named for it, which the
+    kernel frees when the process exits (as dragd/lab/rig.py claims multicast groups); another test run's worker, at
+    the same time, gets another."""
+    for i in range(99):
+        d = 1 + (os.getpid() + i) % 99
+        claim = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        try:
+            claim.bind(f"\0dragd-test-ros-domain-{d}")
+        except OSError:
+            claim.close()
+            continue
+        _domain_claims.append(claim)
+        return d
+    raise RuntimeError("ros_env: every DDS domain 1-99 is held by another test process")
+
+
 def ros_env() -> dict[str, str]:
-    """A DDS domain of this test process's own, discovery on this host only (no cross-talk with other runs): 1-99,
-    apart from the documented commands' 100-199 (tests/test_docs_commands.py), which may run at the same time in
-    another worker. The bridge tests of one run share a worker (their module's xdist group)."""
-    return {"ROS_DOMAIN_ID": str(1 + os.getpid() % 99), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+    """A DDS domain of this test process's own (`_domain`), discovery on this host only (no cross-talk with other
+    runs): 1-99, apart from the documented commands' 100-199 (tests/test_docs_commands.py), which may run at the same
+    time in another worker. The bridge tests of one run share a worker (their module's xdist group)."""
+    return {"ROS_DOMAIN_ID": str(_domain()), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
 
 
 def start_bridge(rig: Rig, *ros_args: str, name: str = "bridge") -> Child:

@@ -8,8 +8,6 @@ from __future__ import annotations
 import importlib.metadata
 import json
 import math
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +18,7 @@ import yaml
 from dragd.config import ConfigError, load_config
 from dragd.model import RobotModel
 
-from conftest import run_cli
+from conftest import run_cli, run_sim
 
 ROBOTS = ("ur5", "ur10")
 START = "0,-0.5,0.8,-1.57,-1.57,0"  # elbow up, wrist down: every joint's identification range is reachable
@@ -154,9 +152,8 @@ def identified(request, configs, tmp_path_factory):
     cfg = str(configs[name])
     run_cli("identify", "plan", "--kind", "gap", "--scale", "0.34", "--config", cfg, "--start", START,
             "--out", str(d / "plan.npz"))
-    subprocess.run([sys.executable, "-m", "sim", "log", "--plan", str(d / "plan.npz"), "--out", str(d / "log.mcap"),
-                    "--config", str(erd_urdf(name)), "--dragd-config", cfg], check=True, capture_output=True,
-                   timeout=300)
+    run_sim("log", "--plan", str(d / "plan.npz"), "--out", str(d / "log.mcap"), "--config", str(erd_urdf(name)),
+            "--dragd-config", cfg, timeout=300)
     fit = json.loads(run_cli("identify", "fit", "--log", str(d / "log.mcap"), "--config", cfg, "--out",
                              str(d / "params.yaml"), "--json").stdout)
     gap = json.loads(run_cli("gap", "--measured", str(d / "log.mcap"), "--config", cfg, "--model",

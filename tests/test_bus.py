@@ -6,9 +6,7 @@ SocketCAN probe and python-can's in-process virtual bus are not: tests/test_bus_
 
 from __future__ import annotations
 
-import hashlib
 import json
-import os
 import socket
 import subprocess
 import sys
@@ -26,15 +24,15 @@ from dragd.hardware.bus import (
     parse_bus,
     socketcan_available,
 )
+from dragd.lab.rig import multicast_group
 
 pytestmark = [pytest.mark.rig, pytest.mark.timeout(60)]
 
 
 def unique_group(name: str) -> str:
-    """A multicast group derived from the test name and this process id (never the default 239.74.163.x)."""
-    h = int.from_bytes(hashlib.sha256(f"{name}:{os.getpid()}".encode()).digest()[:4], "big")
-    third = (h >> 8) % 160
-    return f"239.74.{third + 1 if third == 163 else third}.{1 + h % 254}"
+    """A multicast group of its own (dragd/lab/rig.py ``multicast_group``: claimed machine-wide, never the docs'
+    239.74.163.x): no cross-talk with another test or another test run."""
+    return multicast_group(name)
 
 
 def raw_sender() -> socket.socket:

@@ -19,7 +19,7 @@ pytestmark = pytest.mark.unit
 
 
 def dragd_proc(*args: str, env: dict[str, str] | None = None,
-               timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
+               timeout: float = 600.0) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "dragd", *args], capture_output=True, text=True, timeout=timeout,
                           env={**os.environ, **(env or {})})
 
@@ -61,6 +61,33 @@ def test_socket_commands_import_no_numerics(argv: list[str], tmp_path: Path) -> 
     assert "Traceback" not in proc.stderr, proc.stderr
     last = proc.stdout.splitlines()[-1]
     assert last == "imported: ", f"{argv}: {last}"
+
+
+# The offline tools load what they use and no more: no JIT (numba), no viewer (rerun), no ROS 2 (rclpy) outside the
+# commands that run them; the model and its optimiser only where a command evaluates the model. The forked CLI of
+# the tests (tests/cli_fork.py) loads all of that before a command runs, so only a fresh interpreter can tell.
+NEVER_OFFLINE = ("numba", "rerun", "rclpy")
+
+
+@pytest.mark.parametrize("argv, absent", [
+    (["config", "check", "--config", "config/default.yaml"], NEVER_OFFLINE),
+    (["config", "init", "--robot", "seed_cobot"], (*NEVER_OFFLINE, "canopen")),
+    (["model", "gravity", "--q", "0,0,0,0,0,0"], (*NEVER_OFFLINE, "scipy", "canopen")),
+    (["identify", "plan", "--kind", "synchronous", "--start", "0,0,0,0,0,0", "--out", "{tmp}/p.npz"],
+     (*NEVER_OFFLINE, "scipy", "canopen")),
+    (["log", "summary", "{log}"], (*NEVER_OFFLINE, "pinocchio", "scipy", "canopen", "pydantic")),
+])
+def test_offline_tools_import_only_what_they_use(argv: list[str], absent: tuple[str, ...], tmp_path: Path) -> None:
+    from identify_helpers import sync_log
+
+    log = str(sync_log("mcap")) if "{log}" in argv else ""
+    argv = [a.format(tmp=tmp_path, log=log) for a in argv]
+    code = ("import sys\nfrom dragd.cli.app import main\nstatus = main(sys.argv[1:])\n"
+            f"print('imported:', ','.join(m for m in {absent!r} if m in sys.modules), 'status:', status)")
+    proc = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, timeout=600,
+                          cwd=Path(__file__).resolve().parents[1])
+    assert "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stdout.splitlines()[-1] == "imported:  status: 0", f"{argv}: {proc.stdout.splitlines()[-1]}"
 
 
 # --------------------------------------------------------------------------------------------- number lists

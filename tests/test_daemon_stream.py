@@ -1,13 +1,18 @@
 """Position streams into TRACK over the control socket: followed (the simulator's truth), ended by the client, by
-its silence (a dead client) or by a refused sample; never opened from drag. The ROS 2 bridge's command topic rides
-on exactly this (tests/test_ros2_bridge.py).
+its silence (a dead client) or by a refused sample; never opened from drag; another client's flood of stream
+requests answered on the control socket's thread, none on the cycle's loop, the stream followed as without it. The
+ROS 2 bridge's command topic rides on exactly this (tests/test_ros2_bridge.py).
 
 On the lockstep clock: the client stamps its samples with the arm's time (``rig.now()``) and sends one every 10 ms
 of it, so the lag behind the path and the silence's timeout are the daemon's own figures, not the host's."""
 
 from __future__ import annotations
 
+import json
 import math
+import socket
+import threading
+from typing import Any
 
 import numpy as np
 import pytest
@@ -27,6 +32,40 @@ def path(q0: np.ndarray, t: float, T: float) -> np.ndarray:
     return q0 + STEP * (1.0 - math.cos(math.pi * x)) / 2.0
 
 
+class Flood:
+    """A client flooding the daemon with ``stream`` requests for stream ``sid`` on a connection of its own, 50 at a
+    time, from a thread, until ``stop``."""
+
+    def __init__(self, path: str, sid: int) -> None:
+        self.path, self.sid = path, sid
+        self.sent = self.refused = 0
+        self.other: list[str] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        line = json.dumps({"cmd": "stream", "stream": self.sid, "t_s": 0.0, "q_rad": [0.0] * 6}).encode() + b"\n"
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+            s.settimeout(30.0)
+            s.connect(self.path)
+            f = s.makefile("rb")
+            while not self._stop.is_set():
+                s.sendall(line * 50)
+                for _ in range(50):
+                    r = json.loads(f.readline())
+                    self.sent += 1
+                    if not r["ok"] and f"no stream {self.sid}" in r["error"]:
+                        self.refused += 1
+                    else:
+                        self.other.append(str(r))
+
+    def stop(self) -> dict[str, Any]:
+        self._stop.set()
+        self._thread.join(30.0)
+        return {"sent": self.sent, "refused": self.refused, "other": self.other[:3]}
+
+
 def held(rig: Rig) -> np.ndarray:
     rig.must("start")
     rig.wait_for(lambda: rig.must("status")["mode"] == "hold", 5.0, "hold")
@@ -43,6 +82,8 @@ def test_stream_follows_the_path_then_ends_into_hold(tmp_path):
         assert opened["mode"] == "track" and opened["delay_s"] == 0.05
         sid = opened["stream"]
         assert rig.must("status")["drive_mode"] == "csp"
+        c0 = rig.must("status")["control"]
+        flood = Flood(rig.socket, sid + 1000)  # another client's stream requests all along (refused: no such stream)
         lags = []
         sent_t, sent_q = [], []
         t0 = rig.now()
@@ -59,6 +100,7 @@ def test_stream_follows_the_path_then_ends_into_hold(tmp_path):
                 err = [np.abs(path(q0, g, 2.0) - truth).max() for g in grid]
                 lags.append(t_truth - grid[int(np.argmin(err))])
             rig.sleep(0.01)
+        flooded = flood.stop()
         st = rig.must("state")["stream"]
         assert st["state"] == "running" and st["samples"] == len(sent_t), st
         rig.must("stream_close", stream=sid)
@@ -69,6 +111,12 @@ def test_stream_follows_the_path_then_ends_into_hold(tmp_path):
         truth = np.array(rig.sim_call("state")["q_rad"])
         refused = rig.call("stream", stream=sid, t_s=rig.now(), q_rad=q0.tolist())
         ev = rig.must("events", since=0)["events"]
+        c1 = rig.must("status")["control"]
+    # the flood and the samples were answered on the control socket's thread, none on the cycle's loop (which ran
+    # the path as without it: every sample in, the buffer never dry, the lag below)
+    assert flooded["sent"] > len(sent_t) and flooded["refused"] == flooded["sent"], flooded
+    # (+ the close and the refused sample after it)
+    assert c1["off_cycle"] - c0["off_cycle"] == flooded["sent"] + len(sent_t) + 2, (c0, c1, flooded)
     assert end["faults"] == [], end["faults"]
     assert end["stream"]["end"] == "closed" and end["stream"]["outcome"] == "stream closed", end["stream"]
     assert end["stream"]["dry_cycles"] == 0, end["stream"]  # a 100 Hz stream never ran the 50 ms buffer dry
@@ -148,6 +196,12 @@ def test_a_refused_sample_ends_the_stream_with_its_reason(tmp_path):
         step[0] += 0.1
         fast = rig.call("stream", stream=sid, t_s=t + 0.001, q_rad=step.tolist())
         rig.wait_for(lambda: rig.must("status")["mode"] == "hold", 2.0, "hold after the refusal")
+        rig.wait_for(lambda: rig.must("status")["drive_mode"] == "cst", 2.0, "CST")
+        # a sample stamped beyond stream.max_lead_s (1 s) after the playback: the field, the latest it may be
+        sid = rig.must("stream_open")["stream"]
+        rig.must("stream", stream=sid, t_s=t, q_rad=q0.tolist())
+        ahead = rig.call("stream", stream=sid, t_s=t + 1.5, q_rad=q0.tolist())
+        rig.wait_for(lambda: rig.must("status")["mode"] == "hold", 2.0, "hold after the refusal")
         rig.must("mode", mode="drag")
         from_drag = rig.call("stream_open")
         truth = np.array(rig.sim_call("state")["q_rad"])
@@ -155,5 +209,10 @@ def test_a_refused_sample_ends_the_stream_with_its_reason(tmp_path):
     assert st["stream"]["end"] == "refused" and "position limits" in st["stream"]["outcome"], st["stream"]
     assert not dq["ok"] and "ended" in dq["error"], dq
     assert not fast["ok"] and "rad/s" in fast["error"] and "encoder_plausible_speed" in fast["error"], fast
+    assert not ahead["ok"] and ahead["error"].startswith(f"stream {sid}: t_s {t + 1.5:.6f}: expected at most "), ahead
+    latest = float(ahead["error"].split("expected at most ")[1].split()[0])
+    # the first sample went in delay_s (0.05 s) ahead of the playback, which had not moved yet: t + 0.95 at most
+    assert abs(latest - (t + 1.0 - 0.05)) < 0.002 and "stream.max_lead_s 1 s after the playback" in ahead["error"], \
+        ahead
     assert not from_drag["ok"] and "never takes the arm from the operator's hand" in from_drag["error"], from_drag
     assert np.degrees(np.abs(truth - q0)).max() < 0.5  # nothing refused ever moved the arm

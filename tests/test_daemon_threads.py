@@ -31,6 +31,7 @@ def test_every_daemon_thread_runs_with_its_policy_as_deployed(tmp_path) -> None:
         rig.must("stop")
     assert threads.pop("MainThread") == f"SCHED_FIFO {DEPLOYED_PRIORITY}", threads  # the cycle's (asyncio) thread
     assert {"dragd-sdo_0", "dragd-telemetry"} <= set(threads), threads  # (the two that start during boot)
+    assert "dragd-control" in threads, threads  # the control socket's thread (below the cycle: the set below)
     assert any(name.startswith("dragd-exec") for name in threads), threads  # (the record window's writer opened)
     assert sum(name.startswith("dragd-telemetry") for name in threads) == 2, threads  # (the window's writer)
     assert set(threads.values()) == {"SCHED_FIFO 1"}, threads

@@ -4,24 +4,19 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 
 import numpy as np
 import pytest
 import yaml
 
-from conftest import REPO, run_cli
+from conftest import REPO, run_cli, run_sim
 from identify_helpers import START, sync_log
 
 pytestmark = pytest.mark.unit
 
 
 def _sim(*args: str, check: bool = True) -> subprocess.CompletedProcess:
-    proc = subprocess.run([sys.executable, "-m", "sim", *args], capture_output=True, text=True, timeout=300,
-                          cwd=str(REPO))
-    if check and proc.returncode != 0:
-        raise AssertionError(f"python -m sim {' '.join(args)} failed:\n{proc.stderr}")
-    return proc
+    return run_sim(*args, check=check, timeout=300, cwd=REPO)
 
 
 def test_fit_json_and_params_file(tmp_path):

@@ -175,3 +175,34 @@ def test_tpdo_decoder_fills_the_feedback_as_the_listener_does(config: str) -> No
     for field in ("counts", "statusword", "current_permille", "rx"):
         assert np.array_equal(getattr(a.feedback, field), getattr(b.feedback, field)), field
     assert a.feedback.rx_count == b.feedback.rx_count == a.n and a.end_read() and b.end_read()
+
+
+def test_lockstep_time_frame_is_taken_by_the_decoder_as_by_the_listener() -> None:
+    """On the lockstep clock the reader's decoder takes the simulator's TIME frame (no can.Message), as the listener
+    does, and the bus's reader then looks for no more frames in that period (``until``); a 29-bit frame with the
+    same id is not a TIME frame."""
+    from dragd.clock import TIME_COB_ID, encode_time_of_day
+    from dragd.config import load_config
+
+    from conftest import REPO
+    from inproc import InProcess
+
+    cfg = load_config(REPO / "config" / "two_buses.yaml")
+    a, b = InProcess(cfg).d.io, InProcess(cfg).d.io
+    got: dict[str, list[tuple[str, bytes]]] = {"a": [], "b": []}
+    a.on_time = lambda bus, data: got["a"].append((bus, bytes(data)))
+    b.on_time = lambda bus, data: got["b"].append((bus, bytes(data)))
+    first, second = list(b.layouts)
+    decoders = {name: b.tpdo_decoder(name) for name in b.layouts}
+    untils = {name: b._time_until(name) for name in b.layouts}
+    for io in (a, b):
+        io.begin_cycle()
+    data = encode_time_of_day(12.345)
+    assert not untils[first]() and not untils[second]()
+    a.listener(first).on_message_received(can.Message(arbitration_id=TIME_COB_ID, data=data, is_extended_id=False))
+    a.listener(first).on_message_received(can.Message(arbitration_id=TIME_COB_ID, data=data, is_extended_id=True))
+    assert decoders[first](TIME_COB_ID, data) is True
+    assert got["a"] == got["b"] == [(first, data)] and a.rejected_frames == 1
+    assert untils[first]() and not untils[second]()
+    b.begin_cycle()  # the next SYNC: the period is open again
+    assert not untils[first]()

@@ -13,9 +13,7 @@ arm itself keeps its pose between tests, so tests that enable torque use the gra
 
 from __future__ import annotations
 
-import hashlib
 import math
-import os
 import struct
 import subprocess
 import sys
@@ -45,6 +43,7 @@ from dragd.hardware.cia402 import (
     decode_statusword,
     next_controlword,
 )
+from dragd.lab.rig import multicast_group
 from sim.truth import load_truth
 
 REPO = Path(__file__).resolve().parents[1]
@@ -61,10 +60,9 @@ GUARD_S = 10.0  # wall time a period may take before the simulator counts as sta
 
 
 def unique_group(name: str) -> str:
-    """An IPv4 multicast group derived from a name and this process id (not the production 239.74.163.x)."""
-    h = int.from_bytes(hashlib.sha256(f"{name}:{os.getpid()}".encode()).digest()[:4], "big")
-    third = (h >> 8) % 160
-    return f"239.74.{third + 1 if third == 163 else third}.{1 + h % 254}"
+    """A multicast group of its own (dragd/lab/rig.py ``multicast_group``: claimed machine-wide, never the docs'
+    239.74.163.x): no cross-talk with another test or another test run."""
+    return multicast_group(name)
 
 
 # ======================================================================================================

@@ -148,3 +148,62 @@ def test_track_ends_a_stream_into_hold_with_its_reason():
     assert res == "stream timeout: no sample for 0.2 s", res
     assert 0.2 < t < 0.35
     assert np.allclose(tr.q_ref, 0.02)  # where the last sample was
+
+
+def test_the_cycle_takes_what_the_client_published_at_its_next_step_and_the_end_after_it():
+    r = ref()
+    out = np.zeros(N)
+    r.sample(0.0, out)
+    r.append(0.0, np.zeros(N), np.zeros(N))
+    r.append(0.01, np.full(N, 0.001), np.zeros(N))
+    r.request_end("closed", "stream closed")
+    # the client's side: accepted, not yet the playback's (the cycle is the only writer of what it plays)
+    assert (r.accepted, r.written, r.samples, r.count, r.ended, r.closing) == (2, 3, 0, 1, False, True)
+    r.sample(0.001, out)
+    assert (r.samples, r.count, r.last_arrival) == (2, 3, 0.001)
+    assert r.ended and r.end_kind == "closed" and r.outcome == "stream closed"
+    tau = 0.001
+    while not np.isfinite(r.duration_s):  # the end ran out the samples written before it
+        tau += DT
+        r.sample(tau, out)
+        assert tau < 1.0
+    assert np.array_equal(out, np.full(N, 0.001))
+
+
+def test_samples_written_from_another_thread_reach_the_playback_whole_and_in_order():
+    import threading
+
+    total = 3000
+    r = ref(capacity=64)
+    out = np.zeros(N)
+    stop = threading.Event()
+
+    def client() -> None:  # as the control socket's thread: appends as fast as the ring has room
+        k = 0
+        while k < total and not stop.is_set():
+            if r.room() < 1:
+                continue
+            r.append(k * 0.001, np.full(N, k * 1e-6), np.full(N, float(k)))
+            k += 1
+
+    th = threading.Thread(target=client)
+    th.start()
+    seen = 0
+    tau = 0.0
+    try:
+        while r.samples < total:
+            r.sample(tau, out)
+            # every slot the playback may read is whole: its position, its prediction and its time agree
+            for i in range(max(r.k, 1), r.count):
+                j = i - 1  # (slot 0 is the seed)
+                s = r._s[i % r.cap] - r.offset_s
+                assert np.all(r._q[i % r.cap] == j * 1e-6) and np.all(r._pred[i % r.cap] == float(j)), i
+                assert abs(s - j * 0.001) < 1e-9, (i, s)
+            assert r.samples >= seen
+            seen = r.samples
+            tau += DT
+            assert tau < 60.0
+    finally:
+        stop.set()
+        th.join()
+    assert r.samples == r.accepted == total and not r.ended

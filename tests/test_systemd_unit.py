@@ -174,3 +174,57 @@ def test_sysusers_and_tmpfiles_apply_to_a_scratch_root(tmp_path):
     assert out.returncode == 0, out.stderr
     st = (tmp_path / "var" / "lib" / "dragd").stat()
     assert oct(st.st_mode & 0o777) == "0o750"
+
+
+# -- the ROS 2 bridge's unit (systemd/dragd-ros2.service) -----------------------------------------------------------
+
+ROS2_UNIT = ROOT / "systemd" / "dragd-ros2.service"
+# the daemon's hardening the bridge's unit keeps as it is (RestrictRealtime and RestrictAddressFamilies differ, below)
+SAME_HARDENING = ("NoNewPrivileges", "ProtectSystem", "ProtectHome", "PrivateTmp", "PrivateDevices",
+                  "ProtectKernelTunables", "ProtectKernelModules", "ProtectKernelLogs", "ProtectControlGroups",
+                  "ProtectClock", "ProtectHostname", "ProtectProc", "RestrictNamespaces", "RestrictSUIDSGID",
+                  "LockPersonality", "MemoryDenyWriteExecute", "SystemCallArchitectures", "SystemCallFilter",
+                  "SystemCallErrorNumber", "CapabilityBoundingSet", "AmbientCapabilities", "User", "Group", "UMask")
+
+
+@pytest.fixture(scope="module")
+def ros2_unit():
+    return parse_unit(ROS2_UNIT.read_text())
+
+
+def test_ros2_unit_after_the_daemon_restarting_on_failure(ros2_unit, unit):
+    u, s = ros2_unit["Unit"], ros2_unit["Service"]
+    assert "dragd.service" in " ".join(u["After"]).split() and "dragd.service" in " ".join(u["Wants"]).split()
+    assert "Requires" not in u and "BindsTo" not in u  # it reconnects to a restarted daemon by itself
+    assert one(s, "Restart") == "on-failure" and one(s, "KillSignal") == "SIGTERM"
+    argv = one(s, "ExecStart").split()
+    assert argv[:2] == ["/opt/dragd/.venv/bin/dragd", "ros2"]  # the daemon's venv
+    # the daemon's socket, in the directory the daemon's unit creates (and the bridge's does not own)
+    assert argv[argv.index("--socket") + 1] == "/run/dragd/dragd.sock"
+    assert one(unit["Service"], "RuntimeDirectory") == "dragd" and "RuntimeDirectory" not in s
+    from dragd.ros2.bridge import SHUTDOWN_GUARD_S
+
+    assert int(one(s, "TimeoutStopSec")[:-1]) > SHUTDOWN_GUARD_S  # the bridge's own guard ends it first
+    assert one(ros2_unit["Install"], "WantedBy") == "multi-user.target"
+
+
+def test_ros2_unit_has_the_daemons_hardening(ros2_unit, unit):
+    s, d = ros2_unit["Service"], unit["Service"]
+    for key in SAME_HARDENING:
+        assert s.get(key) == d.get(key), (key, s.get(key), d.get(key))
+    assert one(s, "RestrictRealtime") == "yes"  # no real-time scheduling for the bridge
+    assert set(one(s, "RestrictAddressFamilies").split()) == {"AF_UNIX", "AF_INET", "AF_INET6", "AF_NETLINK"}  # DDS
+    # ROS writes its logs and home where ProtectSystem=strict lets it: the unit's own directories
+    env = dict(kv.split("=", 1) for line in s["Environment"] for kv in line.split())
+    assert env["ROS_LOG_DIR"] == "/var/log/" + one(s, "LogsDirectory")
+    assert env["ROS_HOME"] == "/var/lib/" + one(s, "StateDirectory")
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze not installed")
+def test_ros2_unit_systemd_analyze_verify(tmp_path):
+    exe = shutil.which("true") or "/bin/true"
+    copy = tmp_path / "dragd-ros2.service"
+    copy.write_text(ROS2_UNIT.read_text().replace("ExecStart=/opt/dragd/.venv/bin/dragd", f"ExecStart={exe}"))
+    out = subprocess.run(["systemd-analyze", "verify", str(copy)], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "dragd-ros2.service" not in out.stderr, out.stderr  # no warnings about our unit

@@ -52,6 +52,22 @@ def test_recover_refuses_what_is_not_a_teach_recording(tmp_path):
     assert proc.returncode != 0 and "not a teach recording" in proc.stderr and "Traceback" not in proc.stderr
 
 
+def _on_disk_until_s(mcap: Path) -> float:
+    """The session time of the last cycle row ``mcap`` holds in complete chunks so far (-inf before any)."""
+    import warnings
+
+    from dragd.teach.recover import teach_info
+    from dragd.telemetry.reader import TelemetryFileError, read_log
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # (still being written: no footer yet)
+            t = read_log(mcap, ["t_s"]).rows["t_s"]
+            return float(t[-1]) - float(teach_info(mcap)["t0_s"]) if len(t) else -math.inf
+    except (OSError, ProgramError, TelemetryFileError, KeyError, TypeError):
+        return -math.inf  # (not there yet, or no complete chunk)
+
+
 @pytest.mark.slow
 def test_killed_daemon_mid_teach_the_session_is_recovered(tmp_path):
     cfg = _config(tmp_path, "recover")
@@ -66,7 +82,10 @@ def test_killed_daemon_mid_teach_the_session_is_recovered(tmp_path):
         for i, step in enumerate(TEACH_STEPS_RAD[:2]):
             guide_and_settle(rig, step, 2.0, f"p{i + 1}")
             marks.append(_cli_json(rig, "teach", "mark"))
-        time.sleep(1.5)  # past the last mark: the writer's flushes carry the session to the file
+        # past the last mark: the writer's flushes carry the session to the file (its complete chunks hold rows
+        # after the mark)
+        raw = programs / "crash.mcap"
+        rig.wait_for(lambda: _on_disk_until_s(raw) > marks[-1]["t_s"], 30.0, "the rows after the last mark on disk")
         last = rig.must("status")["teach"]
         rig.daemon.proc.send_signal(signal.SIGKILL)  # no 'teach stop': the program file is never written
         rig.daemon.proc.wait(10)

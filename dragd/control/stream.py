@@ -1,9 +1,14 @@
 """A position stream played back in TRACK: what a client streams (ROS 2's ros2_control, the ``stream`` command)
 becomes the path the drives' CSP loops follow.
 
-Samples ``(t, q)`` arrive off the cycle (the daemon checks each one first: dragd/daemon/stream.py) and go into a
-preallocated ring; the cycle samples the ring through the same interface as a `Trajectory` (``sample``/``row``),
-so `Track` runs it with its clock, its monitors and its end into HOLD. The playback:
+Samples ``(t, q)`` arrive off the cycle, on the control socket's own thread (the daemon checks each one first:
+dragd/daemon/stream.py), and are written into a preallocated ring beyond what the playback may read: one writer (the
+client's side: ``append``, ``request_end``) and one reader (the cycle: ``sample``), no lock. The writer fills a slot,
+then publishes it by advancing ``written``; at the start of each ``sample`` the cycle takes what was published (and an
+end the client asked for) into its own state — the cycle is the only writer of the playback and of what it commands,
+and the writer never touches a slot the playback still reads (``room``). The cycle samples the ring through the same
+interface as a `Trajectory` (``sample``/``row``), so `Track` runs it with its clock, its monitors and its end into
+HOLD. The playback:
 
 - lags the newest sample by ``delay_s`` (the jitter the stream may have), on the sender's time axis (sample spacing
   from the sender's stamps, not from arrival times); the rate varies within ``1 ± catch_up`` to hold that lag
@@ -56,11 +61,16 @@ class StreamReference(Trajectory):
         self._pred = np.zeros((self.cap, n))  # M q̈ + C q̇ at each sample (the residual monitor's)
         self.pred_table = self._pred
         self._q[0] = q0  # the seed: where the arm was when the stream opened
-        self.count = 1  # samples written (absolute index of the next)
-        self.samples = 0  # the client's samples
-        self.start_q = q0.copy()
+        # the client's side (written off the cycle, read by the cycle only through ``written`` and ``_end_request``)
+        self.written = 1  # slots written and published (absolute index of the next; the seed is the first)
+        self.accepted = 0  # the client's samples accepted
         self.offset_s = 0.0  # stream axis = sender time + offset (set by the first sample)
         self.t_last = -math.inf  # the newest sample's sender time
+        self._end_request: tuple[str, str] | None = None  # (kind, outcome) the client's side asked for
+        # the cycle's side
+        self.count = 1  # slots the playback reads (absolute index of the next): the published ones it took
+        self.samples = 0  # the client's samples the playback took
+        self.start_q = q0.copy()
         self.p = 0.0  # playback position on the stream axis
         self.rate = 0.0  # d p / d tau
         self.now = 0.0  # tau of the last cycle
@@ -79,44 +89,70 @@ class StreamReference(Trajectory):
 
     def stream_time(self, t_s: float) -> float:
         """Where a sample stamped ``t_s`` (sender time) lies on the stream axis."""
-        return (self.p + self.delay_s) if self.samples == 0 else t_s + self.offset_s
+        return (self.p + self.delay_s) if self.accepted == 0 else t_s + self.offset_s
 
     def newest(self, back: int = 0) -> tuple[float, np.ndarray] | None:
-        """The ``back``-th newest sample (0: the newest, the seed included) as (stream time, q), or None."""
-        i = self.count - 1 - back
-        if i < 0 or self.count - i > self.cap:
+        """The ``back``-th newest sample written (0: the newest, the seed included) as (stream time, q), or None."""
+        i = self.written - 1 - back
+        if i < 0 or self.written - i > self.cap:
             return None
         return float(self._s[i % self.cap]), self._q[i % self.cap]
 
     def room(self) -> int:
-        """Samples that can still be appended."""
-        return self.cap - (self.count - self.k)
+        """Samples that can still be appended (the playback's segment ``k`` read as of its last cycle: it only grows,
+        so an older value errs on the safe side)."""
+        return self.cap - (self.written - self.k)
+
+    @property
+    def closing(self) -> bool:
+        """The stream takes no more samples: it ended, or the client's side asked it to."""
+        return self.ended or self._end_request is not None
 
     def append(self, t_s: float, q: np.ndarray, pred_Nm: np.ndarray) -> None:
-        """A checked sample (its time after the newest, room in the ring: the caller checked)."""
+        """A checked sample (its time after the newest, room in the ring: the caller checked), published to the cycle
+        once written whole."""
         s = self.stream_time(t_s)
-        if self.samples == 0:
+        if self.accepted == 0:
             self.offset_s = s - t_s
-        i = self.count % self.cap
+        i = self.written % self.cap
         self._s[i] = s
         self._q[i] = q
         self._pred[i] = pred_Nm
-        self.count += 1
-        self.samples += 1
+        self.accepted += 1
         self.t_last = t_s
-        self.last_arrival = self.now
+        self.written += 1  # (last: the cycle reads the slot only after this)
+
+    def request_end(self, kind: str, outcome: str) -> None:
+        """The client's side: no more samples (closed, refused); the cycle ends the stream at its next step, after
+        the samples written before."""
+        if self._end_request is None:
+            self._end_request = (kind, outcome)
 
     def end(self, kind: str, outcome: str) -> None:
-        """No more samples: the playback runs out the samples it has, then the motion ends with ``outcome``."""
+        """The cycle's side: no more samples, the playback runs out the samples it has, then the motion ends with
+        ``outcome``."""
         if not self.ended:
             self.ended, self.end_kind, self.outcome = True, kind, outcome
 
     # -- the cycle's side (Track.step)
 
+    def take(self) -> None:
+        """What the client's side published since the last cycle: its samples (they arrived now), then its end."""
+        written = self.written
+        if written != self.count:
+            self.samples += written - self.count
+            self.count = written
+            self.last_arrival = self.now
+        req = self._end_request
+        if req is not None and not self.ended:
+            self.end(*req)
+
     def sample(self, tau: float, out: np.ndarray) -> np.ndarray:
-        """The reference at trajectory time ``tau``: advance the playback, interpolate the samples."""
+        """The reference at trajectory time ``tau``: take what the client's side published, advance the playback,
+        interpolate the samples."""
         dtau = tau - self.now if tau > self.now else 0.0
         self.now = tau
+        self.take()
         if not self.ended and tau - self.last_arrival > self.timeout_s:
             self.end("timeout", self._timeout_text)
         cap = self.cap

@@ -45,7 +45,7 @@ from dragd.daemon.modelcheck import ModelCheck
 from dragd.daemon.motion import Motions, Planner
 from dragd.daemon.payload import PayloadTools
 from dragd.daemon.recording import Recorder
-from dragd.daemon.stream import Streams
+from dragd.daemon.stream import OFF_CYCLE_COMMANDS, Streams
 from dragd.daemon.teach import Teaching
 from dragd.hardware.bus import BusSpec, open_bus, parse_bus
 from dragd.hardware.drives import STATE_NAMES, DriveSupervisor
@@ -56,6 +56,7 @@ from dragd.hardware.plan import DrivePlan, plan_drives
 from dragd.hardware.scaling import Scaling
 from dragd.model import RobotModel
 from dragd.realtime import CpuLatencyRequest, demote_current_thread, scheduler_label, set_realtime, thread_policies
+from dragd.server import ThreadedControlServer
 
 if TYPE_CHECKING:
     from dragd.server import CommandTable
@@ -172,6 +173,7 @@ class Daemon:
         self.planner = Planner(set(cfg.loop.cpus or ()), self.clock)  # replays planned, programs written
         self.stop_requested = False
         self.scheduler = "not started"
+        self.server: ThreadedControlServer | None = None  # the control socket (set by run)
         self.memory_locked = False  # mlockall applied (loop.lock_memory with loop.realtime_priority)
         self.cpu_latency: CpuLatencyRequest | None = None  # loop.cpu_latency_us's PM QoS request, while held
         self.cpu_latency_status: dict[str, Any] = {"requested_us": None, "applied": False, "reason": "not requested",
@@ -381,6 +383,9 @@ class Daemon:
             "drives": drives,
             **self.motions.status(),
             "stream": self.streams.status(),
+            # the control socket's requests: answered on its own thread (the stream's samples) / on the cycle's loop
+            "control": ({"requests": srv.requests, "off_cycle": srv.answered_here, "on_cycle": srv.handed_over}
+                        if (srv := self.server) is not None else None),
             "bus_load_pct": {k: round(v["load_pct"], 2) for k, v in self.budget.items()},
             "tx_errors": io.tx_errors if io is not None else 0,
             "rejected_frames": io.rejected_frames if io is not None else 0,
@@ -464,7 +469,6 @@ class Daemon:
     async def run(self, commands: Callable[[Daemon], CommandTable]) -> int:
         """Boot the drives, run the cycle and answer the control socket (the table ``commands(self)`` builds:
         daemon/commands.py's ``command_table``) until SIGTERM/SIGINT, a ``shutdown`` command or ``request_exit``."""
-        from dragd.server import ControlServer
 
         loop = asyncio.get_running_loop()
         self.clock.attach(loop)  # (lockstep: the loop's executor jobs hold the clock)
@@ -526,7 +530,11 @@ class Daemon:
             gc.freeze()
             cycle = loop.create_task(self.cycle.run())
             comms = loop.create_task(self.comms.run())
-            server = ControlServer(self.socket_path, commands(self))
+            # the control socket on a thread of its own below the cycle: no client's request delays a cycle; the
+            # stream's samples are answered there (daemon/stream.py), every other command on this loop
+            avoid = set(self.cfg.loop.cpus) if self.cfg.loop.cpus else None
+            server = self.server = ThreadedControlServer(self.socket_path, commands(self), here=OFF_CYCLE_COMMANDS,
+                                                         thread_init=lambda: demote_current_thread(avoid))
             await server.start()
             self.log(f"running at {self.cfg.loop.rate_Hz:.0f} Hz; control socket {self.socket_path}; "
                      f"cycle thread: {self.scheduler}")

@@ -9,6 +9,12 @@ pose, no faster than ``safety.encoder_plausible_speed_rad_s`` nor accelerating h
 ``current_limit_A`` (accelerations over spans of at least 10 ms, so that stamp jitter at high rates is no step).
 A refused sample ends the stream (the arm stops along the samples it has, then holds).
 
+Threads: ``stream`` and ``stream_close`` are answered on the control socket's own thread (dragd/server.py's
+`ThreadedControlServer`), never on the cycle's: a client's samples, however many, cost the cycle nothing but taking
+what was published (`StreamReference.take`, at the start of its playback step). The checks read the cycle's state
+(the mode, the playback's place, the limits) and write only the stream's client side (its ring beyond the playback,
+its end request); ``stream_open`` (the drives' switch to CSP) runs on the cycle's loop as every other command.
+
 A client that dies, hangs or is cut off stops sending: after ``stream.timeout_s`` without a sample (the cycle's time)
 the stream ends the same way. No request keeps a stream alive but a valid sample: the deadline is the daemon's.
 """
@@ -24,6 +30,7 @@ from dragd.control.modes import MODE_NAMES, Mode
 from dragd.control.stream import StreamReference
 from dragd.daemon.motion import START_TOLERANCE_RAD
 
+OFF_CYCLE_COMMANDS = frozenset({"stream", "stream_close"})  # answered on the control socket's thread
 ACCEL_SPAN_S = 0.01  # a sample's acceleration is checked over velocities across at least this long
 ACCEL_SEARCH = 256  # ... looking at most this many samples back for them
 
@@ -66,13 +73,16 @@ class Streams:
         if ref is None or stream != self.id:
             raise ValueError(f"{what}: no stream {stream} (the last one opened is {self.id or 'none'}); "
                              "'stream_open' first")
-        if ref.ended or not self.running():
+        if ref.closing or not self.running():
             raise ValueError(f"{what}: stream {stream} ended ({self._outcome(ref)}); open a new one from hold")
         return ref
 
     def _outcome(self, ref: StreamReference) -> str:
         if ref.end_kind is not None:
             return ref.outcome
+        req = ref._end_request
+        if req is not None:
+            return req[1]
         c = self.controller
         if c.mode == Mode.FAULT:
             return "fault"
@@ -115,17 +125,17 @@ class Streams:
             q, pred = self._check(ref, float(t_s), q_rad)
         except ValueError as exc:
             self.refused += 1
-            ref.end("refused", f"stream refused: {exc}")
+            ref.request_end("refused", f"stream refused: {exc}")
             raise ValueError(f"stream {stream}: {exc}; the stream ends (the arm stops along its samples, "
                              "then holds)") from None
         ref.append(float(t_s), q, pred)
-        return {"samples": ref.samples, "lead_s": round(ref.lead_s, 4)}
+        return {"samples": ref.accepted, "lead_s": round(ref.lead_s, 4)}
 
     def close(self, stream: int) -> dict[str, Any]:
         """The client's end of the stream: the playback runs out the samples it has, then the arm holds."""
         ref = self._live(stream, "stream_close")
-        ref.end("closed", "stream closed")
-        return {"stream": stream, "samples": ref.samples}
+        ref.request_end("closed", "stream closed")
+        return {"stream": stream, "samples": ref.accepted}
 
     # ------------------------------------------------------------------------------------------ the checks
 
@@ -142,9 +152,14 @@ class Streams:
         if t_s <= ref.t_last:
             raise ValueError(f"t_s {t_s:.6f} is not after the previous sample's {ref.t_last:.6f}")
         s = ref.stream_time(t_s)
-        if s - ref.p > ref.max_lead_s:
-            raise ValueError(f"the sample lies {s - ref.p:.3f} s ahead of the playback, beyond stream.max_lead_s "
-                             f"{ref.max_lead_s:g} (a sender's clock that jumped?)")
+        p = ref.p
+        if s - p > ref.max_lead_s:
+            latest = p + ref.max_lead_s - ref.offset_s  # the latest stamp the playback's place allows, sender time
+            raise ValueError(f"t_s {t_s:.6f}: expected at most {latest:.6f} (stream.max_lead_s {ref.max_lead_s:g} s "
+                             f"after the playback, which is at sender time {p - ref.offset_s:.6f}): the sample lies "
+                             f"{s - p:.3f} s ahead of it — a gap in the samples (lost or late ones: the playback "
+                             "stopped at the last it had), a sender's clock that jumped, or samples sent faster than "
+                             "their stamps advance")
         if ref.room() < 1:
             raise ValueError(f"{ref.cap} samples ahead of the playback: the buffer is full")
         lo, hi = c.safety.lim_lo_rad, c.safety.lim_hi_rad
@@ -160,7 +175,7 @@ class Streams:
         prev = ref.newest(0)
         assert prev is not None
         s0, q0 = prev
-        if ref.samples == 0:
+        if ref.accepted == 0:
             err = np.abs(q - q0)
             if err.max() > START_TOLERANCE_RAD:
                 j = int(np.argmax(err))
@@ -237,10 +252,12 @@ class Streams:
         if ref is None:
             return None
         running = self.running()
-        state = ("running" if not ref.ended else "ending") if running else "ended"
+        state = ("running" if not ref.closing else "ending") if running else "ended"
+        req = ref._end_request
+        kind = ref.end_kind if ref.end_kind is not None else req[0] if req is not None else None
         return {"stream": self.id, "state": state, "label": ref.label,
-                "end": ref.end_kind if ref.end_kind is not None else (None if running else "stopped"),
+                "end": kind if kind is not None else (None if running else "stopped"),
                 "outcome": None if state == "running" else self._outcome(ref),
-                "samples": ref.samples, "lead_s": round(ref.lead_s, 4), "rate": round(ref.rate, 4),
+                "samples": ref.accepted, "lead_s": round(ref.lead_s, 4), "rate": round(ref.rate, 4),
                 "min_buffer_s": None if ref.min_rem_s == math.inf else round(ref.min_rem_s, 4),
                 "dry_cycles": ref.dry_cycles, "refused": self.refused, "opened": self.opened}

@@ -679,15 +679,21 @@ class UdpMulticastCanBus(can.BusABC):
                        on_data: Callable[[int, bytes | bytearray], bool], messages: list[can.Message]) -> None:
         """``drain`` of expected frames: the sender checks and delivery of ``_unpacked`` and ``drain``'s loop, by the
         stamp and the template's fields instead of a map per frame (plain data frames: ``on_data`` first)."""
-        c = self._c
+        c, own, senders = self._c, self._token, self._senders
         accepted = []
         for frame in frames:  # every frame's sender checks before any delivery (as _unpacked before drain's loop)
-            token = frame[0] >> 32
+            stamp = frame[0]
+            token = stamp >> 32
             if token:
-                if token == self._token:
+                if token == own:
                     c["own_echoes_dropped"] += 1
                     continue  # (``expect`` is off with receive_own_messages)
-                if not self._accept(token, frame[0] & 0xFFFFFFFF):
+                seq = stamp & 0xFFFFFFFF
+                state = senders.get(token)
+                if state is not None and seq == (state[0] + 1) & 0xFFFFFFFF:  # the next in sequence: as _accept does
+                    state[0] = seq
+                    state[1] = ((state[1] << 1) | 1) & _WINDOW_MASK
+                elif not self._accept(token, seq):
                     continue
             else:
                 c["foreign_frames"] += 1

@@ -83,6 +83,7 @@ class BusIO:
         # that clock the read step ends only when the simulator ended its period (every bus's TIME frame: then every
         # frame of the period was decoded, whichever bus's datagram came first), never on the TPDOs alone
         self.on_time: Callable[[str, bytes | bytearray], None] | None = None
+        self._period_ended = {name: False for name in layouts}  # (lockstep) the bus's TIME frame since the SYNC
         self._on_read: Callable[[bool], None] = lambda complete: None
         self._deadline_handle: asyncio.TimerHandle | None = None
         self._decoders: dict[str, dict[int, Decoder]] = {}
@@ -138,8 +139,19 @@ class BusIO:
         for name, bus in self._bus_by_name.items():
             self.readers[name] = BusReader(bus, [self.listener(name)], timeout=0.5, loop=loop,
                                            on_data=self.tpdo_decoder(name), after=self.after_frames,
-                                           until=self.read_done)
+                                           until=self.read_done if self.on_time is None else self._time_until(name))
         return self.readers
+
+    def _time_until(self, bus_name: str) -> Callable[[], bool]:
+        """The lockstep clock's ``until`` for one bus's reader: that bus's TIME frame ended the period (its datagram
+        was the period's last: the reader need not look for more, which saves the read that finds the queue empty;
+        anything queued later keeps the socket readable and is read before the next tick)."""
+        ended = self._period_ended
+
+        def period_ended() -> bool:
+            return ended[bus_name]
+
+        return period_ended
 
     def close_readers(self) -> None:
         """Stop reading the buses (each reader's listeners stopped)."""
@@ -158,20 +170,21 @@ class BusIO:
 
     def listener(self, bus_name: str) -> can.Listener:
         """The Notifier listener of one bus (runs in the loop's thread)."""
-        on_frame, table, on_time = self.on_frame, self._decoders.setdefault(bus_name, {}), self.on_time
+        on_frame, table = self.on_frame, self._decoders.setdefault(bus_name, {})
+        time_frame = self.tpdo_decoder(bus_name)
 
         class _Rx(can.Listener):
             def on_message_received(self, msg: can.Message) -> None:
                 on_frame(msg, table)
 
-        if on_time is None:
+        if self.on_time is None:
             return _Rx()
 
         class _RxTime(can.Listener):  # the lockstep clock: the simulator's TIME frame ends its period
-            def on_message_received(self, msg: can.Message) -> None:
+            def on_message_received(self, msg: can.Message) -> None:  # (a reader's on_data takes it first)
                 if msg.arbitration_id == TIME_COB_ID and not (msg.is_extended_id or msg.is_remote_frame
                                                               or msg.is_error_frame):
-                    on_time(bus_name, msg.data)  # type: ignore[misc]
+                    time_frame(TIME_COB_ID, msg.data)
                     return
                 on_frame(msg, table)
 
@@ -199,13 +212,25 @@ class BusIO:
                 self.on_emcy(emcy_joint, code, msg.data[2])
 
     def tpdo_decoder(self, bus_name: str) -> Callable[[int, bytes | bytearray], bool]:
-        """``on_data`` for the bus's reader: decodes a (plain data) frame that is a TPDO, True if it was one."""
-        table, tpdo = self._decoders.setdefault(bus_name, {}), self._tpdo
+        """``on_data`` for the bus's reader: decodes a (plain data) frame that is a TPDO, True if it was one. On the
+        lockstep clock (``on_time`` set) it also takes the simulator's TIME frame (without a ``can.Message``)."""
+        table, tpdo, on_time = self._decoders.setdefault(bus_name, {}), self._tpdo, self.on_time
 
         def decode_tpdo(cob: int, data: bytes | bytearray) -> bool:
             return tpdo(cob, data, table)
 
-        return decode_tpdo
+        if on_time is None:
+            return decode_tpdo
+        ended = self._period_ended
+
+        def decode_lockstep(cob: int, data: bytes | bytearray) -> bool:
+            if cob == TIME_COB_ID:
+                ended[bus_name] = True
+                on_time(bus_name, data)
+                return True
+            return tpdo(cob, data, table)
+
+        return decode_lockstep
 
     def _tpdo(self, cob: int, data: bytes | bytearray, table: dict[int, Decoder]) -> bool:
         entry = table.get(cob)
@@ -260,6 +285,10 @@ class BusIO:
         self.feedback.rx.fill(False)
         self.feedback.rx_count = 0
         self.feedback.inputs_age += 1
+        if self.on_time is not None:
+            ended = self._period_ended
+            for name in ended:
+                ended[name] = False
 
     def end_read(self) -> bool:
         """After the read step: age the joints that did not report; True when every joint reported."""

@@ -23,6 +23,7 @@ import hashlib
 import math
 import os
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -54,24 +55,42 @@ class ProcessError(RuntimeError):
     """A child process that failed to start or answer; the message carries its output's tail."""
 
 
-_GROUPS = 256 * 254  # 239.74.X.Y, Y 1..254
+_GROUPS = 255 * 254  # 239.74.X.Y, X 0..255 but 163 (the docs' and examples' 239.74.163.2), Y 1..254
 _groups_taken: set[int] = set()
 _groups_lock = threading.Lock()
+_group_claims: list[socket.socket] = []  # held until this process exits
+
+
+def _claim_group(k: int) -> bool:
+    """Claim group ``k`` for this process on the whole machine (its network namespace, where the group's traffic
+    goes): an abstract Unix socket named for it, which the kernel frees when the process exits, however it ends.
+    False: another process (another test run's worker, a demo) holds it."""
+    claim = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    try:
+        claim.bind(f"\0dragd-udp-multicast-group-{k}")
+    except OSError:
+        claim.close()
+        return False
+    _group_claims.append(claim)
+    return True
 
 
 def multicast_group(tag: str) -> str:
-    """A private udp_multicast group 239.74.X.Y derived from ``tag``, the pid and the time (no cross-talk between
-    runs: two checkouts testing at once, xdist workers); two groups of one process always differ (the next free one
-    where the derived one was given already)."""
+    """A private udp_multicast group 239.74.X.Y derived from ``tag``, the pid and the time, and claimed for this
+    process machine-wide (`_claim_group`): no cross-talk between runs (two checkouts testing at once, xdist workers);
+    two groups of one process always differ (the next free one where the derived one was given already)."""
     h = hashlib.sha256(f"{tag}:{os.getpid()}:{time.monotonic_ns()}".encode()).digest()
     k = int.from_bytes(h[:4], "big") % _GROUPS
     with _groups_lock:
-        if len(_groups_taken) >= _GROUPS:
-            raise RuntimeError(f"multicast_group: all {_GROUPS} groups of 239.74.0.0/16 given out by this process")
-        while k in _groups_taken:
+        for _ in range(_GROUPS):
+            if k not in _groups_taken:
+                _groups_taken.add(k)  # (given out or held elsewhere: never tried again by this process)
+                if _claim_group(k):
+                    x = k // 254
+                    return f"239.74.{x + (x >= 163)}.{1 + k % 254}"
             k = (k + 1) % _GROUPS
-        _groups_taken.add(k)
-    return f"239.74.{k // 254}.{1 + k % 254}"
+        raise RuntimeError(f"multicast_group: all {_GROUPS} groups of 239.74.0.0/16 are given out by this process "
+                           "or held by others")
 
 
 class Child:

@@ -16,7 +16,7 @@ $B mount -t tmpfs shm /dev/shm
 $B mount -t 9p -o trans=virtio,version=9p2000.L,msize=262144 share "$dragd_share" \
   || fail "mounting the writable share (9p tag share) on $dragd_share"
 [ -f "$dragd_share/guest.env" ] || fail "no guest.env in the share"
-# the compiled numba kernels, kept on the host across boots (tests/vcan/harness.py); without it: a tmpfs, compiled anew
+# the numba kernels, prebuilt on the host for NUMBA_CPU_NAME (tests/vcan/harness.py); without it: compiled here
 $B mkdir -p /run/numba
 $B mount -t 9p -o trans=virtio,version=9p2000.L,msize=262144 numba /run/numba \
   || say "no numba cache share (9p tag numba): kernels compile at this boot"
@@ -33,8 +33,13 @@ done
 
 cd "$REPO" || fail "no repository at $REPO"
 [ -x "$PYTHON" ] || fail "no venv python at $PYTHON"
+# the host compiles the numba kernels into /run/numba while this guest boots (tests/vcan/harness.py): wait for it
+# (the guest's idle time costs no wall time under icount sleep=off; the harness's wall-clock limit guards this)
+[ -e "$SHARE/prebuilt" ] || say "waiting for the host's numba prebuild"
+while [ ! -e "$SHARE/prebuilt" ]; do $B sleep 1; done
 say "running: $*"
-HOME=/run/home TMPDIR=/run/tmp MPLCONFIGDIR=/run/home/mpl XDG_CACHE_HOME=/run/home/cache NUMBA_CACHE_DIR=/run/numba PYTHONDONTWRITEBYTECODE=1 \
+HOME=/run/home TMPDIR=/run/tmp MPLCONFIGDIR=/run/home/mpl XDG_CACHE_HOME=/run/home/cache NUMBA_CACHE_DIR=/run/numba NUMBA_CPU_NAME="$NUMBA_CPU_NAME" \
+  PYTHONDONTWRITEBYTECODE=1 \
   PYTHONUNBUFFERED=1 LANG=C.UTF-8 PATH=/usr/local/bin:/usr/bin:/bin \
   DRAGD_VCAN_BUS="$DRAGD_VCAN_BUS" DRAGD_VCAN_SIM_BUS="$DRAGD_VCAN_SIM_BUS" DRAGD_VCAN_LOOP_HZ="$DRAGD_VCAN_LOOP_HZ" \
   DRAGD_VCAN_PHYSICS_HZ="$DRAGD_VCAN_PHYSICS_HZ" DRAGD_VCAN_GUEST=1 \

@@ -14,7 +14,8 @@ CI, whose kernels are built without CAN -- it runs inside a small throw-away gue
 
 Everything downloaded or built is cached in ``$DRAGD_VCAN_CACHE`` (default ``~/.cache/dragd-vcan``); a warm
 run touches neither apt nor the network. The guest's numba cache is ``$DRAGD_VCAN_CACHE/numba`` (a third 9p share,
-``NUMBA_CACHE_DIR``): the simulator's and the daemon's kernels are compiled under TCG once, not at every boot.
+``NUMBA_CACHE_DIR``): the simulator's and the daemon's kernels are compiled into it on the host before each boot, for
+a generic x86-64 CPU on both sides (``NUMBA_CPU_NAME``), so the guest loads them rather than compiling under TCG.
 Delete the directory to rebuild (e.g. for a newer kernel).
 
 Environment:
@@ -47,6 +48,7 @@ import tarfile
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
@@ -239,36 +241,23 @@ def apt_download(package: str, dest: Path, state: dict[str, bool]) -> Path:
     raise HarnessError(f"apt-get download {package} failed ({proc.returncode}):\n{proc.stdout}{proc.stderr}")
 
 
-def deb_members(deb: Path) -> list[str]:
-    """Names of the files in a .deb's data archive (``./boot/...``)."""
-    with subprocess.Popen(["dpkg-deb", "--fsys-tarfile", str(deb)], stdout=subprocess.PIPE) as p:
-        assert p.stdout is not None
-        with tarfile.open(fileobj=p.stdout, mode="r|") as tar:
-            names = [m.name for m in tar]
-    if p.returncode != 0:
-        raise HarnessError(f"dpkg-deb --fsys-tarfile {deb} failed ({p.returncode}); delete it to download it again")
-    return names
-
-
-def deb_extract(deb: Path, members: dict[str, Path]) -> None:
-    """Extract ``{member name in the .deb: destination}`` (regular files only)."""
-    wanted = dict(members)
+def deb_pick(deb: Path, wanted: Callable[[str], object]) -> dict[str, bytes]:
+    """The regular files of a .deb's data archive whose names (``./boot/...``) ``wanted`` accepts, in one pass (the
+    kernel's archive is ~400 MB unpacked: each pass costs seconds of CPU)."""
+    picked: dict[str, bytes] = {}
     with subprocess.Popen(["dpkg-deb", "--fsys-tarfile", str(deb)], stdout=subprocess.PIPE) as p:
         assert p.stdout is not None
         with tarfile.open(fileobj=p.stdout, mode="r|") as tar:
             for m in tar:
-                dest = wanted.pop(m.name, None)
-                if dest is None:
+                if not m.isfile() or not wanted(m.name):
                     continue
-                if not m.isfile():
-                    raise HarnessError(f"{deb.name}: {m.name} is not a regular file")
                 src = tar.extractfile(m)
                 assert src is not None
-                dest.write_bytes(src.read())
+                picked[m.name] = src.read()
         if p.wait() != 0:
-            raise HarnessError(f"dpkg-deb --fsys-tarfile {deb.name} failed ({p.returncode})")
-    if wanted:
-        raise HarnessError(f"{deb.name} lacks {', '.join(sorted(wanted))}")
+            raise HarnessError(f"dpkg-deb --fsys-tarfile {deb.name} failed ({p.returncode}); delete it to download it "
+                               "again")
+    return picked
 
 
 def cpio_newc(entries: list[tuple[str, int, bytes, tuple[int, int]]]) -> bytes:
@@ -345,21 +334,26 @@ def prepare_guest(cache: Path) -> Guest:
         say(f"building the guest from {kdeb.name} and {bdeb.name} ...")
         tmp = Path(tempfile.mkdtemp(prefix="build-", dir=cache))
         try:
-            names = deb_members(kdeb)
-            vmlinuz = [n for n in names if re.match(r"\./boot/vmlinuz-", n)]
+            ko = re.compile(rf"/({'|'.join(map(re.escape, MODULES))})\.ko(\.xz)?$")
+            files = deb_pick(kdeb, lambda n: n.startswith("./boot/vmlinuz-")
+                             or (n.startswith("./lib/modules/") and ko.search(n) is not None))
+            vmlinuz = [n for n in files if n.startswith("./boot/vmlinuz-")]
             if not vmlinuz:
                 raise HarnessError(f"{kdeb.name} has no /boot/vmlinuz-*")
             kver = vmlinuz[0].split("vmlinuz-", 1)[1]
-            mods = module_paths(names, kver)
-            deb_extract(kdeb, {vmlinuz[0]: tmp / "vmlinuz", **{m: tmp / f"{k}.ko.src" for k, m in mods.items()}})
-            deb_extract(bdeb, {"./bin/busybox": tmp / "busybox"})
+            mods = module_paths(list(files), kver)
+            (tmp / "vmlinuz").write_bytes(files[vmlinuz[0]])
+            busybox = deb_pick(bdeb, lambda n: n == "./bin/busybox")
+            if not busybox:
+                raise HarnessError(f"{bdeb.name} lacks ./bin/busybox")
+            (tmp / "busybox").write_bytes(busybox["./bin/busybox"])
             (tmp / "busybox").chmod(0o755)
             entries: list[tuple[str, int, bytes, tuple[int, int]]] = [
                 (d, stat.S_IFDIR | 0o755, b"", (0, 0)) for d in ("bin", "dev", "host", "lib", "lib/modules", "proc")]
             entries.append(("dev/console", stat.S_IFCHR | 0o600, b"", (5, 1)))
             entries.append(("bin/busybox", stat.S_IFREG | 0o755, (tmp / "busybox").read_bytes(), (0, 0)))
             for k, member in mods.items():
-                data = (tmp / f"{k}.ko.src").read_bytes()
+                data = files[member]
                 if member.endswith(".xz"):
                     data = lzma.decompress(data)
                 entries.append((f"lib/modules/{k}.ko", stat.S_IFREG | 0o644, data, (0, 0)))
@@ -409,7 +403,8 @@ def check_guest_paths(paths: dict[str, Path]) -> None:
 
 def write_guest_env(share: Path, extra: list[str]) -> None:
     python = REPO / ".venv" / "bin" / "python"
-    env = {**suite_env(), "REPO": str(REPO), "PYTHON": str(python), "SHARE": str(share)}
+    env = {**suite_env(), "REPO": str(REPO), "PYTHON": str(python), "SHARE": str(share),
+           "NUMBA_CPU_NAME": GUEST_NUMBA_CPU}
     lines = [f"{k}={shlex.quote(v)}" for k, v in env.items()]
     lines.append("set -- " + " ".join(shlex.quote(a) for a in pytest_argv(str(python), extra, "/run/tmp/pytest")))
     (share / "guest.env").write_text("\n".join(lines) + "\n")
@@ -437,6 +432,48 @@ class Console(threading.Thread):
                     print(line, flush=True)
 
 
+# numba keys a cached kernel by the CPU it was compiled for (LLVM's name and features): TCG's -cpu max is not the host's
+# CPU, so the guest and the host's prebuild below both compile for a generic x86-64 (numba: features "" with it)
+GUEST_NUMBA_CPU = "generic"
+PREBUILT_FLAG = "prebuilt"  # in the run's share once the prebuild has ended (built or not): guest-init.sh waits for it
+# every module's kernels as the simulator's and the daemon's processes compile them (dragd.jit.compile_kernels, once per
+# module, with the cycle's argument types); boot() reports any kernel the guest still had to compile itself
+PREBUILD = """
+from dragd.control import contact, contact_watch, fused, guard, safety
+from dragd.daemon import kernels
+from sim import kernels as sim_kernels
+for compile_ in (fused._compiled, guard._kernels, safety.safety_kernel, contact.contact_kernels, contact_watch._kernels,
+                 kernels.kernels, sim_kernels.hold_kernel):
+    assert compile_() is not None, compile_
+"""
+
+
+def prebuild_kernels(numba_cache: Path) -> float:
+    """Compile the simulator's and the daemon's numba kernels on the host, natively, into the guest's numba cache: the
+    guest sees the same sources, venv and cache directory (9p), so its cache index matches and it loads them instead
+    of compiling them under TCG, which took most of a cold run (~8 s of CPU here, ~20x that in the guest, in each
+    first process of a kind). Kernels cached already: ~1 s. Returns the time taken. A failure only leaves the guest
+    to compile them itself."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}
+    env.update(NUMBA_CPU_NAME=GUEST_NUMBA_CPU, NUMBA_CACHE_DIR=str(numba_cache))
+    t0 = time.monotonic()
+    try:
+        proc = subprocess.run([str(REPO / ".venv/bin/python"), "-c", PREBUILD], cwd=REPO, env=env,
+                              capture_output=True, text=True, timeout=900)
+    except (OSError, subprocess.TimeoutExpired) as e:
+        say(f"the kernels were not prebuilt for the guest ({e}): it compiles them itself")
+        return time.monotonic() - t0
+    if proc.returncode != 0:
+        say(f"the kernels were not prebuilt for the guest (exit {proc.returncode}): it compiles them itself\n"
+            f"{proc.stderr[-2000:]}")
+    return time.monotonic() - t0
+
+
+def cached_kernels(numba_cache: Path) -> dict[str, float]:
+    """numba's index files in the cache (one per compiled function), with their mtimes."""
+    return {str(p.relative_to(numba_cache)): p.stat().st_mtime for p in numba_cache.rglob("*.nbi")}
+
+
 def boot(guest: Guest, qemu: str, extra: list[str], cache: Path, timeout_s: float) -> int:
     kernel = Path(os.environ["DRAGD_VCAN_KERNEL"]) if os.environ.get("DRAGD_VCAN_KERNEL") else guest.kernel
     if not kernel.is_file():
@@ -448,6 +485,18 @@ def boot(guest: Guest, qemu: str, extra: list[str], cache: Path, timeout_s: floa
     share = Path(tempfile.mkdtemp(prefix="run-", dir=runs))
     numba_cache = cache / "numba"  # the guest's compiled kernels, kept across boots (compiling them under TCG took
     numba_cache.mkdir(exist_ok=True)  # most of a run's start-up; numba's index follows the sources' path and mtime)
+    prebuilt: dict[str, float] = {}
+
+    def prebuild() -> None:  # beside the guest's boot (QEMU's one thread): the guest waits for PREBUILT_FLAG
+        try:
+            took = prebuild_kernels(numba_cache)
+            prebuilt.update(cached_kernels(numba_cache))
+            say(f"numba kernels for the guest ({GUEST_NUMBA_CPU} CPU) prebuilt on the host in {took:.1f} s: "
+                f"{len(prebuilt)} cached")
+        finally:
+            (share / PREBUILT_FLAG).touch()
+
+    builder = threading.Thread(target=prebuild, name="numba-prebuild", daemon=True)
     check_guest_paths({"the repository": REPO, "the cache": cache, "the venv's python": REPO / ".venv/bin/python"})
     write_guest_env(share, extra)
     argv = [qemu, "-accel", "tcg,thread=single", "-icount", "shift=0,sleep=off", "-cpu", "max", "-smp", "1",
@@ -461,6 +510,7 @@ def boot(guest: Guest, qemu: str, extra: list[str], cache: Path, timeout_s: floa
             "-virtfs", f"local,path={numba_cache},mount_tag=numba,security_model=none,multidevs=remap"]
     say(f"booting the guest ({kernel.name}, QEMU TCG, 1 vCPU, icount) ...")
     t0 = time.monotonic()
+    builder.start()
     proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     console = Console(proc, share / "console.log")
     console.start()
@@ -483,6 +533,10 @@ def boot(guest: Guest, qemu: str, extra: list[str], cache: Path, timeout_s: floa
         raise HarnessError(f"the guest could not run the suite: {reason}\n--- console (last lines) ---\n{tail}\n"
                            f"--- full console log: {share / 'console.log'}")
     rc = int(rc_file.read_text().strip() or "1")
+    builder.join()
+    compiled = sorted(k for k, m in cached_kernels(numba_cache).items() if prebuilt.get(k) != m)
+    if compiled:  # the prebuild missed these (a new kernel module or signature): add them to PREBUILD
+        say(f"the guest compiled {len(compiled)} numba kernel(s) itself under TCG: {', '.join(compiled)}")
     say(f"guest finished in {took:.0f} s (wall), suite exit status {rc}")
     if rc == 0:
         shutil.rmtree(share, ignore_errors=True)

@@ -44,10 +44,11 @@ def test_resources_name_the_shipped_files() -> None:
     assert resources.eds_path().is_file()
     assert resources.config_path().is_file()
     assert {p.name for p in resources.shipped_configs()} >= {"default.yaml"}
-    for name in ("dragd.service", "dragd.sysusers.conf", "dragd.tmpfiles.conf", "dragd-lab-udp.conf",
-                 "dragd-cpu-latency.conf", "70-dragd-cpu-latency.rules"):
+    for name in ("dragd.service", "dragd-ros2.service", "dragd.sysusers.conf", "dragd.tmpfiles.conf",
+                 "dragd-lab-udp.conf", "dragd-cpu-latency.conf", "70-dragd-cpu-latency.rules"):
         assert resources.systemd_path(name).is_file(), name
     assert (resources.DATA_DIR / "docs" / "SYSTEMD.md").is_file()
+    assert (resources.DATA_DIR / "docs" / "ROS2.md").is_file()  # dragd-ros2.service's Documentation=
 
 
 def test_sim_data_is_packaged() -> None:

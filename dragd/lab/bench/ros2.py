@@ -28,6 +28,7 @@ import os
 import sys
 import threading
 import time
+from collections.abc import Callable
 from functools import lru_cache
 from typing import Any
 
@@ -352,3 +353,144 @@ def ros2_stream_max_rate_Hz(opts: dict) -> tuple[float, dict[str, Any]]:
                                            "host_stall_max_ms": s["host_stall_max_ms"],
                                            "searched": "ladder 100/250/500/1000 Hz to the first rate not whole, "
                                                        f"then {BISECT_STEPS} halvings"}
+
+
+# -- the stream's cost to the cycle (no ROS: a socket client streaming as the bridge does) ---------------------------
+
+STREAM_RATES_HZ = (100, 500)
+
+
+def _thread_cpu_ns(pid: int) -> dict[int, int]:
+    """Each thread's CPU time so far [ns] (``/proc/PID/task/TID/schedstat``)."""
+    out = {}
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            with open(f"/proc/{pid}/task/{tid}/schedstat") as f:
+                out[int(tid)] = int(f.read().split()[0])
+        except (OSError, ValueError, IndexError):
+            continue
+    return out
+
+
+def _socket_stream(rig: Any, rate: float, seconds: float, mark: Callable[[], None]) -> dict[str, Any]:
+    """A stream of a smooth path at ``rate`` on one connection, the samples sent without waiting for their answers (as
+    the bridge pipelines them; a reader thread takes the answers), then closed; the arm holds again. ``mark`` is
+    called as the sending begins (the stream open) and as it ends (before the close)."""
+    import json
+    import socket
+
+    q0 = np.array(rig.must("status")["q_rad"])
+    sid = rig.must("stream_open", label="bench")["stream"]
+    sent_at: list[float] = []
+    lat: list[float] = []
+    got: dict[str, Any] = {"ok": 0, "refused": 0, "first_refusal": None}
+    sign = np.array([1.0, -1.0, 1.0, 1.0, -1.0, 1.0])[: q0.size]
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+        s.connect(rig.socket)
+        f = s.makefile("rb")
+
+        def reader() -> None:
+            while True:
+                line = f.readline()
+                if not line:
+                    return
+                r = json.loads(line)
+                lat.append(time.monotonic() - sent_at[len(lat)])
+                if r["ok"]:
+                    got["ok"] += 1
+                else:
+                    got["refused"] += 1
+                    got["first_refusal"] = got["first_refusal"] or r["error"]
+
+        th = threading.Thread(target=reader, daemon=True)
+        th.start()
+        mark()
+        t0 = due = time.monotonic()
+        while (now := time.monotonic()) - t0 < seconds:
+            q = q0 + 0.05 * math.sin(math.pi * (now - t0)) * sign
+            sent_at.append(time.monotonic())
+            s.sendall(json.dumps({"cmd": "stream", "stream": sid, "t_s": now, "q_rad": q.tolist()}).encode() + b"\n")
+            due += 1.0 / rate
+            pause = due - time.monotonic()
+            if pause > 0:
+                time.sleep(pause)
+        wait_until = time.monotonic() + 10.0  # the answers still on their way (pipelined)
+        while len(lat) < len(sent_at) and time.monotonic() < wait_until:
+            time.sleep(0.001)
+        mark()
+        s.shutdown(socket.SHUT_RDWR)  # (the reader's readline ends)
+        th.join(10.0)
+    rig.call("stream_close", stream=sid)  # (refused if the stream ended before: its end says how)
+    rig.wait_for(lambda: rig.must("status")["mode"] == "hold", 10.0, "hold after the stream's end")
+    end = rig.must("status")["stream"] or {}
+    return {"stream_end": end.get("end"), "outcome": end.get("outcome"), "sent": len(sent_at), "accepted": got["ok"],
+            "refused": got["refused"],
+            "first_refusal": got["first_refusal"], "sent_Hz": round(len(sent_at) / seconds, 1),
+            "answer_p50_ms": round(1e3 * float(np.median(lat)), 3) if lat else None,
+            "answer_p99_ms": round(1e3 * float(np.percentile(lat, 99)), 3) if lat else None}
+
+
+@benchmark("ros2_stream_cycle_cpu_us", "us")
+def ros2_stream_cycle_cpu_us(opts: dict) -> tuple[float, dict[str, Any]]:
+    """The cycle thread's CPU time per streamed sample: a socket client streams into TRACK at 100 Hz, then 500 Hz
+    (one window of --seconds each, samples pipelined as the bridge sends them), and the cycle thread's CPU per cycle
+    (``/proc``'s schedstat of the daemon's main thread) grows by this much per sample a cycle (the two rates' slope:
+    the TRACK mode's own cost cancels). 0 when no request runs on the cycle's thread. The detail has each window (the
+    arm held with no stream, then each rate): the cycle thread's and the other threads' CPU per cycle, the samples,
+    the answers' latency, and the missed cycles split into the host's and the daemon's own (probes, as
+    ``loop_missed_ratio_own``). Simulator + daemon as deployed (SCHED_FIFO where permitted); no ROS."""
+    from dragd.lab.rig import DEPLOYED_PRIORITY, Rig
+
+    seconds, config = _opts(opts)
+    probe = StallProbe(min(99, max(PROBE_PRIORITY, DEPLOYED_PRIORITY + 10)))
+    windows: dict[str, dict[str, Any]] = {}
+    logs: dict[str, tuple[int, dict[str, Any]]] = {}
+    with Rig("bench-stream", config=config, as_deployed=True) as rig:
+        rig.start_sim()
+        rig.start_daemon()
+        rig.must("start")
+        rig.wait_for(lambda: rig.must("status")["mode"] == "hold", 10.0, "hold")
+        assert rig.daemon is not None
+        pid = rig.daemon.proc.pid
+        probe.__enter__()
+        try:
+            for name, rate in (("held", 0), *((f"stream_{r}Hz", r) for r in STREAM_RATES_HZ)):
+                marks: list[tuple[dict[str, Any], dict[int, int]]] = []
+
+                def mark(into: list[tuple[dict[str, Any], dict[int, int]]] = marks) -> None:
+                    into.append((rig.must("status"), _thread_cpu_ns(pid)))
+
+                extra: dict[str, Any] = {}
+                if rate:  # (the window: the sending alone, not the drives' switch to CSP nor the end into hold)
+                    extra = _socket_stream(rig, rate, seconds, mark)
+                else:
+                    mark()
+                    time.sleep(seconds)
+                    mark()
+                (s0, c0), (s1, c1) = marks
+                cycles = s1["cycles"] - s0["cycles"]
+                others = sum(ns - c0.get(tid, 0) for tid, ns in c1.items() if tid != pid)
+                windows[name] = {"cycles": cycles,
+                                 "cycle_thread_us_per_cycle": round((c1[pid] - c0[pid]) / 1e3 / cycles, 2),
+                                 "other_threads_us_per_cycle": round(others / 1e3 / cycles, 2),
+                                 "samples_per_cycle": round(extra.get("sent", 0) / cycles, 4),
+                                 "control": s1.get("control"), **extra}
+                log = rig.must("missed_ticks", since=s0["missed_episodes"])
+                n_new = s1["missed_episodes"] - s0["missed_episodes"]
+                log["episodes"] = log["episodes"][:max(0, n_new - log["lost"])]
+                logs[name] = (s1["missed_cycles"] - s0["missed_cycles"], log)
+            dt = 1.0 / float(rig.must("robot")["rate_Hz"])
+            schedulers = rig.schedulers()
+        finally:
+            try:
+                probe.__exit__(None, None, None)
+            except Exception as e:  # noqa: BLE001 - the probes' end must not hide the session's own error
+                probe.errors.append(str(e))
+    for name, (missed, log) in logs.items():
+        host, own = _missed_by_cause(missed, log, probe, dt) if probe.complete else (None, None)
+        windows[name].update(missed_cycles=missed, missed_host=host, missed_own=own)
+    lo, hi = (windows[f"stream_{r}Hz"] for r in STREAM_RATES_HZ)
+    per = (hi["cycle_thread_us_per_cycle"] - lo["cycle_thread_us_per_cycle"]) / max(
+        hi["samples_per_cycle"] - lo["samples_per_cycle"], 1e-9)
+    return round(per, 1), {"windows": windows, "stalls_measured": probe.complete, "probe_errors": probe.errors,
+                           "schedulers": schedulers}
