@@ -24,12 +24,13 @@ _domain_claims: list[socket.socket] = []  # held until this process exits
 
 
 @functools.cache
-def _domain() -> int:
-    """A DDS domain 1-99 claimed for this process on the whole machine: an abstract Unix socket named for it, which the
-    kernel frees when the process exits (as dragd/lab/rig.py claims multicast groups); another test run's worker, at
-    the same time, gets another."""
-    for i in range(99):
-        d = 1 + (os.getpid() + i) % 99
+def claim_domain(first: int = 1, last: int = 99) -> int:
+    """A DDS domain in ``first``..``last`` claimed for this process on the whole machine: an abstract Unix socket named
+    for it, which the kernel frees when the process exits (as dragd/lab/rig.py claims multicast groups); another test
+    run's worker, at the same time, gets another."""
+    n = last - first + 1
+    for i in range(n):
+        d = first + (os.getpid() + i) % n
         claim = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         try:
             claim.bind(f"\0dragd-test-ros-domain-{d}")
@@ -38,7 +39,11 @@ def _domain() -> int:
             continue
         _domain_claims.append(claim)
         return d
-    raise RuntimeError("ros_env: every DDS domain 1-99 is held by another test process")
+    raise RuntimeError(f"every DDS domain {first}-{last} is held by another test process")
+
+
+def _domain() -> int:
+    return claim_domain(1, 99)
 
 
 def ros_env() -> dict[str, str]:

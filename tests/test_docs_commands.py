@@ -19,6 +19,11 @@ breakaway within the ramp"). What stays on the wall clock is the real-time path 
 and reports its timing: the loop benchmarks (figures: a stall is one, with the host's own stalls beside the daemon's
 misses) and ``./dev demo`` (the README's main job: its missed cycles beside the machine's stalls).
 
+Each document's commands run in its order against an environment of its own (a fresh folder and docs rig; the
+fixture files are made once per test process and copied), so the documents go to whichever xdist worker is free and no
+document meets the state another one left. A long run documented word for word in several documents runs once: its
+copies take its verdict (``_shared_verdict``, across workers).
+
 How a command runs is decided by ``RULES``, an ordered table of patterns; a command that matches none fails, so a new
 documented command needs a rule. The text is changed only by ``./dev X`` → ``dragd X`` (the wrapper only installs
 first), by ``PLACEHOLDERS`` (an inline span's FILE, NAME, Q1,...; deployment paths such as /var/lib/dragd/), by an
@@ -27,6 +32,10 @@ inline span's notation ([optional] kept, a|b → a), and by a rule's ``extra`` o
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
+import hashlib
+import json
 import os
 import re
 import shlex
@@ -34,8 +43,8 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
-from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -347,17 +356,12 @@ def _param(cmd: Command) -> object:
     line = command_line(cmd)
     rule = rule_for(line)
     marks = [pytest.mark.slow] if rule is not None and rule.slow else []
-    key = _long_key(cmd)
-    if key is not None and _LONG_COPIES[key] > 1:  # its copies run on the worker that ran it, and take its verdict
-        marks.append(pytest.mark.xdist_group(f"docs-long:{key}"))
+    marks.append(pytest.mark.xdist_group(f"docs:{cmd.doc}"))  # a document's commands in its order, on one worker
     full = f"{line} {rule.extra}" if rule is not None else line  # (the rule's extra options may say --lockstep)
     wall = rule is not None and rule.wall and not re.search(
         r"--lockstep\b|^dragd bench yardstick_us (compensation_us )?lockstep_\w+( lockstep_\w+)* --", full)
     marks.append(pytest.mark.rig if wall else pytest.mark.lockstep)
     return pytest.param(cmd, id=cmd.id, marks=marks)
-
-
-_LONG_COPIES = Counter(k for c in ALL if (k := _long_key(c)) is not None)
 
 
 # --------------------------------------------------------------------------------------------- the environment
@@ -420,7 +424,8 @@ def _kill_session(sid: int) -> list[str]:
 class Env:
     """The folders, the rig (started on first use) and the environment the documented commands run in."""
 
-    def __init__(self, root: Path) -> None:
+    def __init__(self, root: Path, fixtures: Path | None = None) -> None:
+        """``fixtures``: a folder of the fixture files made already (copied; made here where None)."""
         self.root = root
         self.fixtures = root / "fixtures"
         # PATH: the installed entry points beside this Python (a venv's bin), shims for what is missing there
@@ -436,10 +441,12 @@ class Env:
         self.rig: Rig | None = None
         self.marks = 0
         self.runs = 0
-        self.verdicts: dict[str, tuple[str, str | None]] = {}  # a long command line that ran: (where, its failure)
         self.spare_group = multicast_group("docs-sim")
-        self.fixtures.mkdir()
-        _fixture_files(self.fixtures, lambda line: self.shell(line, self.fixtures, check=True, timeout=600))
+        if fixtures is not None:
+            shutil.copytree(fixtures, self.fixtures, symlinks=True)
+        else:
+            self.fixtures.mkdir()
+            _fixture_files(self.fixtures, lambda line: self.shell(line, self.fixtures, check=True, timeout=600))
 
     def _config(self) -> Path:
         """The default configuration (its watchdogs: the docs rig runs on the lockstep clock) with the test's program
@@ -456,10 +463,12 @@ class Env:
         return self.rig.socket if self.rig is not None else str(self.root / "no-rig.sock")
 
     def environ(self) -> dict[str, str]:
+        from ros2_helpers import claim_domain  # (here: it imports rclpy, which collection need not)
+
         return {**os.environ, "PATH": f"{self.path}{os.pathsep}{os.environ.get('PATH', '')}",
                 "DRAGD_SOCKET": self.socket, "DRAGD_CONFIG": str(self.config),
                 # a documented `dragd ros2`: DDS discovery on this host, in a domain of this run's own
-                "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": str(100 + os.getpid() % 100)}
+                "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": str(claim_domain(100, 199))}
 
     def fill(self, line: str, work: Path) -> str:
         return (line.replace("{work}", str(work)).replace("{root}", str(self.root))
@@ -595,13 +604,61 @@ class Env:
             self.rig.close()
 
 
-@pytest.fixture(scope="session")  # one per xdist worker: the commands go to whichever worker is free (a module
-def env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Env]:  # fixture would hold all ~340 on one worker)
-    e = Env(tmp_path_factory.mktemp("docs"))
+class Envs:
+    """This test process's environments: one per document, the current one closed when the next document starts (its
+    commands arrive together: their xdist group); the fixture files made once and copied into each."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = root
+        self.made: Env | None = None  # the first environment, whose fixture folder the others copy
+        self.current: tuple[str, Env] | None = None
+        # the long runs' verdicts, shared by this run's workers (one run's folder: pytest-xdist's workers share the
+        # parent of their base temp; without xdist the base temp is the run's own)
+        self.verdicts = root / "verdicts"
+        self.verdicts.mkdir(parents=True, exist_ok=True)
+
+    def get(self, doc: str) -> Env:
+        if self.current is not None and self.current[0] == doc:
+            return self.current[1]
+        if self.current is not None and self.current[1] is not self.made:
+            self.current[1].close()
+        e = Env(Path(tempfile.mkdtemp(prefix="docs", dir=self.root)),
+                fixtures=self.made.fixtures if self.made is not None else None)
+        if self.made is None:
+            self.made = e
+        elif self.current is not None and self.current[1] is self.made:
+            self.made.close()  # (its rig; its fixture folder stays for the next ones)
+        self.current = (doc, e)
+        return e
+
+    def close(self) -> None:
+        for e in {id(x): x for x in (self.made, self.current[1] if self.current else None) if x}.values():
+            e.close()
+
+
+@pytest.fixture(scope="session")  # per test process: the documents go to whichever xdist worker is free
+def envs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Envs]:
+    base = tmp_path_factory.getbasetemp()
+    shared = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+    e = Envs(shared / "docs")
     try:
         yield e
     finally:
         e.close()
+
+
+@contextlib.contextmanager
+def _shared_verdict(envs: Envs, key: str) -> Iterator[dict[str, str | None]]:
+    """The verdict of the long run ``key``: ``out["first"]``/``out["failure"]`` from the run that ran it first in any
+    worker of this test run (waiting while it runs), else empty — then the caller runs it and fills both in."""
+    path = envs.verdicts / hashlib.sha256(key.encode()).hexdigest()[:32]
+    with open(path.with_suffix(".lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # (held while the first run of it runs)
+        out: dict[str, str | None] = json.loads(path.read_text()) if path.exists() else {}
+        ran = bool(out)
+        yield out
+        if not ran and "first" in out:
+            path.write_text(json.dumps(out))
 
 
 # --------------------------------------------------------------------------------------------- the tests
@@ -622,7 +679,8 @@ def test_every_command_has_a_rule(cmd: Command) -> None:
 
 @pytest.mark.slow  # every documented command against a sim + daemon rig, in CI (./dev test --all); tier per command
 @pytest.mark.parametrize("cmd", [_param(c) for c in ALL])
-def test_documented_command_runs(cmd: Command, env: Env) -> None:
+def test_documented_command_runs(cmd: Command, envs: Envs) -> None:
+    env = envs.get(cmd.doc)
     line = command_line(cmd)
     rule = rule_for(line)
     if rule is None:
@@ -661,24 +719,26 @@ def test_documented_command_runs(cmd: Command, env: Env) -> None:
         # a long run (its own sim + daemon, a long offline run) documented word for word in several places runs once,
         # in the same fixture folder as every copy would: the copies take its verdict
         key = _long_key(cmd)  # (the line before its folders are filled in)
-        if key in env.verdicts:
-            first, failure = env.verdicts[key]
-            assert failure is None, where.format(key) + f"\nthe same command failed as {first}:\n{failure}"
-            return
-        if rule.rig:
-            env.prepare(rule.before, line, work)
-        elif rule.slow:  # its own sim + daemon, or a long offline run: not beside the docs rig
-            env.stop_rig()
-        full = f"{line} {rule.extra}".strip()
-        if rule.rig and "lockstep" not in rule.before:  # the daemon runs on while the command talks to it
-            with env.rig.running():
+        verdict: contextlib.AbstractContextManager[dict[str, str | None]] = \
+            _shared_verdict(envs, key) if key is not None else contextlib.nullcontext({})
+        with verdict as shared:
+            if shared:
+                assert shared["failure"] is None, \
+                    where.format(key) + f"\nthe same command failed as {shared['first']}:\n{shared['failure']}"
+                return
+            if rule.rig:
+                env.prepare(rule.before, line, work)
+            elif rule.slow:  # its own sim + daemon, or a long offline run: not beside the docs rig
+                env.stop_rig()
+            full = f"{line} {rule.extra}".strip()
+            if rule.rig and "lockstep" not in rule.before:  # the daemon runs on while the command talks to it
+                with env.rig.running():
+                    proc = env.shell(full, work, timeout=1700 if rule.slow else 300)
+            else:
                 proc = env.shell(full, work, timeout=1700 if rule.slow else 300)
-        else:
-            proc = env.shell(full, work, timeout=1700 if rule.slow else 300)
-        failure = None if proc.returncode == 0 else \
-            f"exit {proc.returncode}\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
-        if key is not None:
-            env.verdicts[key] = (cmd.id, failure)
+            failure = None if proc.returncode == 0 else \
+                f"exit {proc.returncode}\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
+            shared.update(first=cmd.id, failure=failure)
         assert failure is None, where.format(full) + f"\n{failure}"
 
 
