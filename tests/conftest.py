@@ -98,13 +98,13 @@ def _compile_kernels() -> None:
     clone, ~0.5 s once cached. Without it each xdist worker and each simulator/daemon process started before the
     cache exists compiles the same kernels at the same time. (Add a module here when it gets compiled kernels.)"""
     try:
-        from dragd.control import contact, fused, guard, safety
+        from dragd.control import contact, contact_watch, fused, guard, safety
         from dragd.daemon import kernels
         from sim import kernels as sim_kernels
     except ImportError:  # pragma: no cover - a broken checkout: the tests say what is wrong
         return
-    for compile_ in (fused._compiled, guard._kernels, safety.safety_kernel, contact.contact_kernel, kernels.kernels,
-                     sim_kernels.hold_kernel):
+    for compile_ in (fused._compiled, guard._kernels, safety.safety_kernel, contact.contact_kernel,
+                     contact_watch._kernels, kernels.kernels, sim_kernels.hold_kernel):
         compile_()
 
 
