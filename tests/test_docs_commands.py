@@ -444,6 +444,7 @@ class Env:
         self.spare_group = multicast_group("docs-sim")
         if fixtures is not None:
             shutil.copytree(fixtures, self.fixtures, symlinks=True)
+            shutil.copytree(fixtures.parent / "var-lib-dragd", root / "var-lib-dragd")  # (_fixture_files' ../)
         else:
             self.fixtures.mkdir()
             _fixture_files(self.fixtures, lambda line: self.shell(line, self.fixtures, check=True, timeout=600))
