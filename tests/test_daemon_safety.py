@@ -143,8 +143,8 @@ def test_full_telemetry_disk_never_stalls_control(tmp_path):
         # the writer runs beside the cycle on the host's clock (it drains the ring every flush_interval_s of wall
         # time), so how much of the arm's time passes before its first write met the full disk is the host's: run
         # the arm on until it has
-        rig.wait_for(lambda: rig.must("status")["telemetry"]["errors"] >= 1, 60.0,
-                     "the telemetry writer's first error on the full disk")
+        rig.wait_for(lambda: (lambda t: t["errors"] >= 1 and t["dropped"] > 0)(rig.must("status")["telemetry"]), 60.0,
+                     "the telemetry writer's first error on the full disk and the rows it dropped")
         s2 = rig.must("status")
     # the loop kept running (a write blocked on the full disk would stop it for good): every one of the 2000 cycles
     assert s1["cycles"] - s0["cycles"] == 2000

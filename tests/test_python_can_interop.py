@@ -28,9 +28,11 @@ from dragd.hardware.bus import open_bus, parse_bus
 
 group, work = sys.argv[1], Path(sys.argv[2])
 out = {}
-logger = subprocess.Popen([sys.executable, "-m", "can.logger", "-i", "udp_multicast", "-c", group,
-                           "-f", str(work / "bus.log")], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-time.sleep(1.5)  # the logger's bus is up before the sim boots
+logger = subprocess.Popen([sys.executable, "-u", "-m", "can.logger", "-i", "udp_multicast", "-c", group,
+                           "-f", str(work / "bus.log")], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+for line in logger.stdout:  # the logger's bus is up before the sim boots (it says so once it is: a loaded host's
+    if line.startswith("Can Logger"):  # python-can can take seconds to import)
+        break
 sim = subprocess.Popen([sys.executable, "-m", "sim", "run", "--bus", f"udp_multicast:{group}"],
                        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
 try:
@@ -69,7 +71,7 @@ finally:
     sim.wait(10)
     time.sleep(0.3)
     logger.send_signal(signal.SIGINT)
-    logger.wait(10)
+    logger.wait(60)  # (a guard against a hang, not a clock: the logger flushes its file and exits)
 out["log"] = (work / "bus.log").read_text() if (work / "bus.log").exists() else ""
 print(json.dumps(out))
 '''
