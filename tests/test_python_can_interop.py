@@ -21,7 +21,7 @@ pytestmark = pytest.mark.rig
 REPO = Path(__file__).resolve().parents[1]
 
 SCRIPT = r'''
-import json, signal, subprocess, sys, time
+import json, signal, subprocess, sys, threading, time
 from pathlib import Path
 import can
 from dragd.hardware.bus import open_bus, parse_bus
@@ -33,6 +33,7 @@ logger = subprocess.Popen([sys.executable, "-u", "-m", "can.logger", "-i", "udp_
 for line in logger.stdout:  # the logger's bus is up before the sim boots (it says so once it is: a loaded host's
     if line.startswith("Can Logger"):  # python-can can take seconds to import)
         break
+threading.Thread(target=logger.stdout.read, daemon=True).start()  # (its pipe never fills while it logs)
 sim = subprocess.Popen([sys.executable, "-m", "sim", "run", "--bus", f"udp_multicast:{group}"],
                        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
 try:
