@@ -159,8 +159,10 @@ class _Server:
 
 _server: _Server | None = None
 
-# Set by pytest for each test phase; nothing reads it at import (the child gets the caller's value).
-_PER_CALL = ("PYTEST_CURRENT_TEST",)
+# Set for each test (pytest's phase; tests/conftest.py's rig clock of the test's tier); nothing reads them at import
+# (the child gets the caller's values). (Without DRAGD_RIG_CLOCK here every call differed from the server's
+# environment and ran as a fresh interpreter.)
+_PER_CALL = ("PYTEST_CURRENT_TEST", "DRAGD_RIG_CLOCK")
 
 
 def _imported(env: dict[str, str]) -> dict[str, str]:
