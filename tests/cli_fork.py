@@ -453,6 +453,8 @@ def launch(argv: list[str], cwd: Path, env: dict[str, str], log: Path) -> Forked
     than the server's)."""
     if os.environ.get("DRAGD_TEST_CLI") == "exec" or len(argv) < 3 or argv[0] != sys.executable or argv[1] != "-m":
         return None
+    if not hasattr(os, "pidfd_open"):  # (Linux >= 5.3: the server waits on its children's pidfds)
+        return None
     module = argv[2]
     if module not in SPAWN_PRELOAD:
         return None
