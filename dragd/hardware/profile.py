@@ -60,6 +60,7 @@ from dragd.hardware.cia402 import (
     OD_TORQUE_ACTUAL,
     OD_TORQUE_OFFSET,
 )
+from dragd.hardware.eds import import_od as cached_import_od
 
 if TYPE_CHECKING:
     from dragd.config import Config, DriveConfig, JointConfig
@@ -191,19 +192,15 @@ class ProcessObject:
         return (self.index << 16) | (self.sub << 8) | self.bits
 
 
-@functools.lru_cache(maxsize=64)
-def _import_od(path: str, mtime_ns: int, node_id: int) -> canopen.ObjectDictionary:
-    return canopen.import_od(path, node_id)
-
-
 def import_eds(path: Path, node_id: int) -> canopen.ObjectDictionary:
-    """``canopen.import_od`` of an EDS for a node (cached per file version and node id; treat it as read-only)."""
+    """``canopen.import_od`` of an EDS for a node (hardware/eds.py: parsed once per file version, cached per node;
+    treat it as read-only)."""
     try:
-        st = path.stat()
+        path.stat()
     except OSError as exc:
         raise ProfileError(f"{path}: cannot be read: {exc.strerror}") from None
     try:
-        return _import_od(str(path), st.st_mtime_ns, node_id)
+        return cached_import_od(path, node_id)
     except Exception as exc:  # canopen raises configparser, ValueError, KeyError ... for a broken file
         raise ProfileError(f"{path}: not a readable EDS (canopen.import_od: {type(exc).__name__}: {exc})") from None
 
