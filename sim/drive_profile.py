@@ -343,7 +343,7 @@ def takes_torque_offset(eds: str | Path, node_id: int) -> bool:
 
 
 def _variable(od: canopen.ObjectDictionary, index: int, subindex: int) -> ODVariable | None:
-    obj = od.get(index)
+    obj = od.indices.get(index)  # (``od.get`` builds a KeyError text for every absent index)
     if obj is None:
         return None
     if isinstance(obj, (ODRecord, ODArray)):
