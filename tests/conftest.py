@@ -137,6 +137,11 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
     than one worker (DRAGD_PARALLEL_RIG=1 overrides)."""
     t = tier(item)
     os.environ["DRAGD_RIG_CLOCK"] = "lockstep" if t == "lockstep" else "wall"
+    # the lockstep tier's simulator and daemon fork from servers that have imported them (tests/cli_fork.py); the
+    # rig tier's start as the deployed ones do (real-time behaviour is its subject, fresh processes its condition)
+    from dragd.lab import rig as rig_module
+
+    rig_module.LAUNCHER = cli_fork.launch if t == "lockstep" else None
     workers = int(getattr(item.config, "workerinput", {}).get("workercount", 1))
     if workers > 1 and t == "rig" and os.environ.get("DRAGD_PARALLEL_RIG") != "1":
         pytest.fail(f"a rig test (or one without a unit/rig marker) on {workers} xdist workers: rig tests start "

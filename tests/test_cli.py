@@ -45,6 +45,21 @@ def test_version() -> None:
     assert proc.returncode == 0 and proc.stdout == f"dragd {want}\n", proc
 
 
+def test_the_tests_cli_runs_fork_from_the_server_on_either_rig_clock(monkeypatch: pytest.MonkeyPatch) -> None:
+    """tests/conftest.py's run_cli forks ``python -m dragd`` from the worker's server (tests/cli_fork.py) unless
+    DRAGD_TEST_CLI=exec: the rig clock the tiers set for each test is no reason for a fresh interpreter (it was, and
+    every call of every tier paid the interpreter's start and imports again)."""
+    import cli_fork
+
+    if os.environ.get("DRAGD_TEST_CLI") == "exec":
+        pytest.skip("DRAGD_TEST_CLI=exec: every call is a fresh interpreter, as asked")
+    for clock in ("wall", "lockstep"):
+        monkeypatch.setenv("DRAGD_RIG_CLOCK", clock)
+        proc = cli_fork.run(("--version",), None, None, 60.0)
+        assert proc is not None, f"DRAGD_RIG_CLOCK={clock}: run_cli would start a fresh interpreter"
+        assert proc.returncode == 0 and proc.stdout.startswith("dragd "), proc
+
+
 # --------------------------------------------------------------------------------------------- light commands
 
 HEAVY = ("scipy", "pinocchio", "numpy", "pydantic", "canopen", "can", "yaml", "asyncio")

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import socket
 import struct
 
 import can
@@ -33,6 +34,12 @@ def test_groups_of_the_same_test_differ() -> None:
         parse_bus(f"udp_multicast:{g}")  # (an address dragd's bus takes)
         a, b, c, d = map(int, g.split("."))
         assert (a, b) == (239, 74) and 0 <= c <= 255 and 1 <= d <= 254
+
+
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("", 0))
+        return int(s.getsockname()[1])
 
 
 class _Collect(can.Listener):
@@ -124,8 +131,9 @@ def test_bus_without_drain_is_read_with_the_same_split(interface: str, threaded:
     queued frame by recv(0) (BusReader._read_queued)."""
     if interface == "virtual":
         channel, kw = f"reader-{request.node.name}-{os.getpid()}", {}
-    else:
-        channel, kw = _group(request.node.name), {"fd": True}
+    else:  # python-can's socket is bound to its port on every address, so it hears every group sent to that port
+        # (another test's rig on dragd's default port): a port of its own, the kernel's pick of a free one
+        channel, kw = _group(request.node.name), {"fd": True, "port": _free_udp_port()}
     bus = can.Bus(interface=interface, channel=channel, **kw)
     peer = can.Bus(interface=interface, channel=channel, **kw)
     try:

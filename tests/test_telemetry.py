@@ -345,18 +345,26 @@ def test_retry_on_a_fresh_file_after_an_io_error(tmp_path, monkeypatch):
     w = TelemetryWriter(path, {"t_s": 1}, capacity=256, flush_interval_s=0.005,
                         chunk_size=2048, retry_after_s=0.05)
     run_rows(w, 300)
-    wait_for(lambda: w.stats()["pending"] == 0)
+    wait_for(lambda: w.stats()["written"] > 0)  # rows on disk: the file that fails next holds some
     failing["on"] = True
     run_rows(w, 300)
     wait_for(lambda: w.stats()["errors"] >= 1)
     failing["on"] = False
-    time.sleep(0.1)
+    offered = 0
+
+    def retried() -> bool:  # rows keep coming (as from the cycle) until the writer has opened a fresh file
+        nonlocal offered
+        run_rows(w, 1)
+        offered += 1
+        return w.stats()["segments"] >= 2
+
+    wait_for(retried)
     run_rows(w, 300)
     st = w.close()
     monkeypatch.undo()
     assert st["segments"] >= 2
     assert "EIO" in st["first_error"]
-    assert st["written"] + st["dropped"] == 900
+    assert st["written"] + st["dropped"] == 900 + offered
     s = summarize(path)  # the fresh file is complete
     assert s["complete"] and s["cycle"]["rows"] > 0
     assert len(list(tmp_path.glob("r.*.mcap"))) == 1  # the failed file was rotated aside

@@ -93,6 +93,14 @@ def multicast_group(tag: str) -> str:
                            "or held by others")
 
 
+# How a Child's process starts: None (the default) is subprocess.Popen. A test harness may set a launcher
+# ``(argv, cwd, env, log_path) -> process or None`` whose process has Popen's ``pid``, ``returncode``, ``poll``,
+# ``wait(timeout)``, ``send_signal`` and ``kill``, its stdout and stderr appended to ``log_path`` (None: Popen starts
+# it). tests/conftest.py: the lockstep tier's ``python -m sim`` / ``python -m dragd`` fork from a server that has
+# imported them (tests/cli_fork.py).
+LAUNCHER: Callable[[list[str], Path, dict[str, str], Path], Any] | None = None
+
+
 class Child:
     """A child process whose stdout/stderr go to a log file; ``tail()`` for error messages."""
 
@@ -101,8 +109,10 @@ class Child:
         self.argv = argv
         self.log_path = workdir / f"{name}.log"
         self._log = self.log_path.open("wb")
-        self.proc = subprocess.Popen(argv, stdout=self._log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                     env={**os.environ, **(env or {})}, cwd=str(workdir))
+        full_env = {**os.environ, **(env or {})}
+        proc = LAUNCHER(argv, workdir, full_env, self.log_path) if LAUNCHER is not None else None
+        self.proc = proc if proc is not None else subprocess.Popen(
+            argv, stdout=self._log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=full_env, cwd=str(workdir))
 
     def alive(self) -> bool:
         return self.proc.poll() is None
