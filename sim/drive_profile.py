@@ -68,6 +68,7 @@ from dragd.hardware.cia402 import (
     ShutdownOption,
     supported_modes_bits,
 )
+from dragd.hardware.eds import import_od as cached_import_od
 from dragd.resources import eds_path as bundled_eds_path
 from dragd.vocabulary import ConfigError, read_yaml
 
@@ -302,16 +303,11 @@ def _matches(entry: CatalogEntry, od: canopen.ObjectDictionary) -> bool:
 
 
 # ======================================================================================================= EDS
-@functools.lru_cache(maxsize=64)
-def _import_od(path: str, node_id: int, mtime_ns: int) -> canopen.ObjectDictionary:
-    return canopen.import_od(path, node_id)
-
-
 def import_eds(path: str | Path, node_id: int) -> canopen.ObjectDictionary:
-    """The dictionary of an EDS for a node ($NODEID resolved), parsed once per file version and node."""
-    p = Path(path)
+    """The dictionary of an EDS for a node ($NODEID resolved): python-canopen's ``import_od``, the file parsed once
+    per version (dragd/hardware/eds.py, proven equal to canopen's per-node import by tests/test_eds_cache.py)."""
     try:
-        return _import_od(str(p.resolve()), node_id, p.stat().st_mtime_ns)
+        return cached_import_od(path, node_id)
     except FileNotFoundError:
         raise ProfileError(f"{path}: EDS file not found") from None
     except Exception as exc:  # (python-canopen raises what configparser and int() raise on a broken file)
@@ -347,7 +343,7 @@ def takes_torque_offset(eds: str | Path, node_id: int) -> bool:
 
 
 def _variable(od: canopen.ObjectDictionary, index: int, subindex: int) -> ODVariable | None:
-    obj = od.get(index)
+    obj = od.indices.get(index)  # (``od.get`` builds a KeyError text for every absent index)
     if obj is None:
         return None
     if isinstance(obj, (ODRecord, ODArray)):

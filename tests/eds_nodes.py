@@ -17,6 +17,7 @@ read-only objects (0601 0002).
 
 from __future__ import annotations
 
+import functools
 import struct
 import time
 from pathlib import Path
@@ -26,8 +27,23 @@ import canopen
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable
 from canopen.sdo import SdoAbortedError
 
+from dragd.hardware.eds import for_node
+
 CANNOT_MAP = 0x06040041
 TOO_LONG = 0x06040042
+
+
+@functools.lru_cache(maxsize=64)
+def _parsed(path: str, mtime_ns: int) -> canopen.ObjectDictionary:
+    """python-canopen's own ``import_od`` of the file (for node 1), once per file version in this process."""
+    return canopen.import_od(path, 1)
+
+
+def _dictionary(eds: Path, node_id: int) -> canopen.ObjectDictionary:
+    """The node's own dictionary: a copy of canopen's parse with the ``$NODEID`` values for ``node_id``
+    (dragd/hardware/eds.py ``for_node``: equal to ``canopen.import_od(eds, node_id)`` object by object for every EDS
+    these tests load, tests/test_eds_cache.py), never an object dragd's own cache hands its profiles."""
+    return for_node(_parsed(str(eds), Path(eds).stat().st_mtime_ns), node_id)
 
 
 class EdsNode(canopen.LocalNode):
@@ -35,7 +51,7 @@ class EdsNode(canopen.LocalNode):
 
     def __init__(self, node_id: int, eds: Path, facts: dict[tuple[int, int], int] | None = None,
                  max_pdo_bits: int = 64, sticky_statusword: int | None = None) -> None:
-        super().__init__(node_id, canopen.import_od(str(eds), node_id))
+        super().__init__(node_id, _dictionary(eds, node_id))
         self.eds = eds
         self.facts = dict(facts or {})
         self.max_pdo_bits = max_pdo_bits
@@ -157,6 +173,8 @@ class EdsBus:
 
     def __init__(self, channel: str, nodes: list[EdsNode]) -> None:
         self.network = canopen.Network()
+        # the notifier's receive timeout bounds how long ``close`` waits for its thread (canopen's 1 s per bus)
+        self.network.NOTIFIER_CYCLE = 0.05
         self.network.connect(interface="virtual", channel=channel, receive_own_messages=False)
         self.nodes = {n.id: n for n in nodes}
         for n in nodes:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import copy
+import functools
 import itertools
 import os
 from pathlib import Path
@@ -36,11 +37,17 @@ EDS_DIR = Path(os.environ.get("DRAGD_EDS_DIR", "/work/eds"))
 _channels = itertools.count()
 
 
+@functools.cache
+def _default_config() -> dict[str, Any]:
+    """config/default.yaml's data, read once (``config`` works on a deep copy)."""
+    data: dict[str, Any] = yaml.safe_load(DEFAULT_CONFIG.read_text())
+    return data
+
+
 def config(eds: Path | None, drive: dict[str, Any] | None = None, *, joints: int = 6, layout: str = "per_node",
            fd: bool = False, targets: bool = True, rate_Hz: float = 250.0) -> Config:
     """config/default.yaml's joints on one bus with ``eds`` (None: dragd's own drive) and profile overrides."""
-    base = yaml.safe_load(DEFAULT_CONFIG.read_text())
-    data: dict[str, Any] = copy.deepcopy(base)
+    data: dict[str, Any] = copy.deepcopy(_default_config())
     data["joints"] = data["joints"][:joints]
     for key, value in data["replay"].items():
         if isinstance(value, list):

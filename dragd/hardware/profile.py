@@ -60,6 +60,7 @@ from dragd.hardware.cia402 import (
     OD_TORQUE_ACTUAL,
     OD_TORQUE_OFFSET,
 )
+from dragd.hardware.eds import import_od as cached_import_od
 
 if TYPE_CHECKING:
     from dragd.config import Config, DriveConfig, JointConfig
@@ -191,19 +192,15 @@ class ProcessObject:
         return (self.index << 16) | (self.sub << 8) | self.bits
 
 
-@functools.lru_cache(maxsize=64)
-def _import_od(path: str, mtime_ns: int, node_id: int) -> canopen.ObjectDictionary:
-    return canopen.import_od(path, node_id)
-
-
 def import_eds(path: Path, node_id: int) -> canopen.ObjectDictionary:
-    """``canopen.import_od`` of an EDS for a node (cached per file version and node id; treat it as read-only)."""
+    """``canopen.import_od`` of an EDS for a node (hardware/eds.py: parsed once per file version, cached per node;
+    treat it as read-only)."""
     try:
-        st = path.stat()
+        path.stat()
     except OSError as exc:
         raise ProfileError(f"{path}: cannot be read: {exc.strerror}") from None
     try:
-        return _import_od(str(path), st.st_mtime_ns, node_id)
+        return cached_import_od(path, node_id)
     except Exception as exc:  # canopen raises configparser, ValueError, KeyError ... for a broken file
         raise ProfileError(f"{path}: not a readable EDS (canopen.import_od: {type(exc).__name__}: {exc})") from None
 
@@ -238,7 +235,7 @@ def eds_says_fd(path: Path) -> bool:
 
 def od_var(od: canopen.ObjectDictionary, index: int, sub: int = 0) -> ODVariable | None:
     """An object dictionary's entry for index:sub, or None."""
-    obj = od.get(index)
+    obj = od.indices.get(index)  # (``od.get`` builds a KeyError text for every absent index)
     if obj is None:
         return None
     if isinstance(obj, ODVariable):
@@ -257,7 +254,9 @@ def channels(od: canopen.ObjectDictionary, direction: Literal["tpdo", "rpdo"]) -
     comm_base, map_base = (OD_TPDO_COMM, OD_TPDO_MAP) if direction == "tpdo" else (OD_RPDO_COMM, OD_RPDO_MAP)
     out = []
     for k in range(MAX_PDOS):
-        comm, mapping = od.get(comm_base + k), od.get(map_base + k)
+        comm, mapping = od.indices.get(comm_base + k), od.indices.get(map_base + k)
+        if comm is None or mapping is None:  # (most of the 512: before the slower ABC isinstance below)
+            continue
         if not isinstance(comm, (ODRecord, ODArray)) or not isinstance(mapping, (ODRecord, ODArray)):
             continue
         subs = frozenset(comm.subindices)
