@@ -28,8 +28,12 @@ from dragd.hardware.bus import open_bus, parse_bus
 
 group, work = sys.argv[1], Path(sys.argv[2])
 out = {}
+logger_err = open(work / "logger.err", "w")  # (a file: a pipe nobody reads fills and blocks the logger's writes)
 logger = subprocess.Popen([sys.executable, "-u", "-m", "can.logger", "-i", "udp_multicast", "-c", group,
-                           "-f", str(work / "bus.log")], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                           "-f", str(work / "bus.log")], stdout=subprocess.PIPE, stderr=logger_err, text=True,
+                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+# (SIGINT ends can.logger: a Python started with SIGINT ignored, as a shell script's background jobs are, never
+# raises KeyboardInterrupt, and the logger ran until the guard below)
 for line in logger.stdout:  # the logger's bus is up before the sim boots (it says so once it is: a loaded host's
     if line.startswith("Can Logger"):  # python-can can take seconds to import)
         break
@@ -74,6 +78,7 @@ finally:
     logger.send_signal(signal.SIGINT)
     logger.wait(60)  # (a guard against a hang, not a clock: the logger flushes its file and exits)
 out["log"] = (work / "bus.log").read_text() if (work / "bus.log").exists() else ""
+out["logger_stderr"] = (work / "logger.err").read_text()[-2000:]
 print(json.dumps(out))
 '''
 

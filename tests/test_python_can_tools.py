@@ -85,7 +85,9 @@ def test_python_can_logger_hears_dragds_bus(request: pytest.FixtureRequest) -> N
     group = _group(request.node.name)
     logger = subprocess.Popen([sys.executable, "-m", "can.logger", "-i", INTERFACE, "-c", group],
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, bufsize=0,
-                              env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                              env={**os.environ, "PYTHONUNBUFFERED": "1"},
+                              preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # (SIGINT ends it
+    # even where this run's SIGINT is ignored, as in a shell script's background job: tests/test_python_can_interop.py)
     ours = open_bus(parse_bus(f"udp_multicast:{group}"), batch_frames=True)
     try:
         head = _lines_until(logger, lambda lines: any(line.startswith("Connected to") for line in lines), 60)
