@@ -60,6 +60,7 @@ def test_off_loop_commands_are_answered_while_the_owners_loop_is_blocked(tmp_pat
         got["here"] = exchange(path, [{"cmd": "sample", "k": k, "id": k} for k in range(N)]
                                + [{"cmd": "sample", "k": "x"}])
         answered.set()
+        release.wait(60.0)  # (the owner's loop has counted what was handed over while it was blocked)
         got["owner"] = exchange(path, [{"cmd": "whoami"}, {"cmd": "bad", "x": 2}, {"cmd": "sample", "k": N}])
 
     async def main() -> tuple[bool, int, int]:
