@@ -33,8 +33,51 @@ from pathlib import Path
 PRELOAD = ("numpy", "scipy.optimize", "scipy.signal", "pinocchio", "canopen", "can", "mcap", "numba", "yaml",
            "dragd.cli.app", "dragd.config", "dragd.model", "dragd.robots.gravity", "dragd.hardware.plan")
 
-_SERVER = r'''
-import importlib, json, os, sys, traceback
+# In a forked child whose fds 0, 1, 2 are set (and nothing else of the server's open): the entry point as
+# ``python -m MODULE ARGS`` runs it, in the request's folder and environment; never returns (its exit status).
+_RUN_ENTRY = r'''
+def run_entry(req):
+    import atexit, os, runpy, sys, threading, traceback
+    code = 1
+    try:
+        # (Python 3.11 keeps the parent's native id after a fork: what a daemon reports of its threads,
+        # dragd/realtime.py, would be the server's main thread's)
+        threading.current_thread()._set_native_id()
+        os.chdir(req["cwd"])
+        os.environ.clear()
+        os.environ.update(req["env"])
+        sys.stdin = open(0, closefd=False)
+        sys.stdout = open(1, "w", closefd=False)
+        sys.stderr = open(2, "w", closefd=False)
+        sys.argv = ["-m", *req["args"]]  # runpy sets argv[0] to the module's file, as python -m does
+        try:
+            runpy.run_module(req["module"], run_name="__main__", alter_sys=True)
+            code = 0
+        except SystemExit as exc:
+            c = exc.code
+            if c is None:
+                code = 0
+            elif isinstance(c, int):
+                code = c & 0xFF
+            else:
+                print(c, file=sys.stderr)
+                code = 1
+        except BaseException:
+            traceback.print_exc()
+            code = 1
+        threading._shutdown()
+        atexit._run_exitfuncs()
+        for s in (sys.stdout, sys.stderr):
+            try:
+                s.flush()
+            except Exception:
+                pass
+    finally:
+        os._exit(code)
+'''
+
+_SERVER = _RUN_ENTRY + r'''
+import importlib, json, os, sys
 reply_fd = int(sys.argv[1])
 for name in sys.argv[2:]:
     try:
@@ -47,11 +90,8 @@ for line in sys.stdin:
     req = json.loads(line)
     pid = os.fork()
     if pid == 0:
-        code = 1
         try:
             os.setsid()
-            import threading
-            threading.current_thread()._set_native_id()  # (as the rig's children: tests/cli_fork.py below)
             fd0 = os.open(os.devnull, os.O_RDONLY)
             os.dup2(fd0, 0)
             for fd, path in ((1, req["stdout"]), (2, req["stderr"])):
@@ -59,39 +99,9 @@ for line in sys.stdin:
                 os.dup2(f, fd)
                 os.close(f)
             os.close(reply_fd)
-            os.chdir(req["cwd"])
-            os.environ.clear()
-            os.environ.update(req["env"])
-            sys.stdin = open(0, closefd=False)
-            sys.stdout = open(1, "w", closefd=False)
-            sys.stderr = open(2, "w", closefd=False)
-            sys.argv = ["-m", *req["args"]]  # runpy sets argv[0] to the module's file, as python -m does
-            import runpy
-            try:
-                runpy.run_module(req["module"], run_name="__main__", alter_sys=True)
-                code = 0
-            except SystemExit as exc:
-                c = exc.code
-                if c is None:
-                    code = 0
-                elif isinstance(c, int):
-                    code = c & 0xFF
-                else:
-                    print(c, file=sys.stderr)
-                    code = 1
-            except BaseException:
-                traceback.print_exc()
-                code = 1
-            import atexit, threading
-            threading._shutdown()
-            atexit._run_exitfuncs()
-            for s in (sys.stdout, sys.stderr):
-                try:
-                    s.flush()
-                except Exception:
-                    pass
-        finally:
-            os._exit(code)
+        except BaseException:
+            os._exit(1)
+        run_entry(req)
     out.write(json.dumps({"pid": pid}) + "\n")
     _, status = os.waitpid(pid, 0)
     out.write(json.dumps({"status": os.waitstatus_to_exitcode(status)}) + "\n")
@@ -226,8 +236,8 @@ SPAWN_WARM = {  # (module, function): each loads its module's kernels (tests/con
     "sim": (("sim.kernels", "hold_kernel"),),
 }
 
-_SPAWN_SERVER = r'''
-import ctypes, importlib, json, os, select, signal, sys, time, traceback
+_SPAWN_SERVER = _RUN_ENTRY + r'''
+import ctypes, importlib, json, os, select, signal, sys, time
 reply_fd, module = int(sys.argv[1]), sys.argv[2]
 preload, warm = json.loads(sys.argv[3]), json.loads(sys.argv[4])
 if module == "sim":
@@ -251,12 +261,8 @@ def start(req):
     pid = os.fork()
     if pid:
         return pid
-    code = 1
     try:
         libc.prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG: a child outlives no server
-        import threading
-        threading.current_thread()._set_native_id()  # (Python 3.11 keeps the server's after a fork: the thread
-        # policies a daemon reports, dragd/realtime.py, would be its server's main thread's)
         os.close(reply_fd)
         for fd in children:
             os.close(fd)
@@ -267,39 +273,9 @@ def start(req):
         os.dup2(log, 2)
         for fd in (fd0, log):
             os.close(fd)
-        os.chdir(req["cwd"])
-        os.environ.clear()
-        os.environ.update(req["env"])
-        sys.stdin = open(0, closefd=False)
-        sys.stdout = open(1, "w", closefd=False)
-        sys.stderr = open(2, "w", closefd=False)
-        sys.argv = ["-m", *req["args"]]
-        import runpy
-        try:
-            runpy.run_module(req["module"], run_name="__main__", alter_sys=True)
-            code = 0
-        except SystemExit as exc:
-            c = exc.code
-            if c is None:
-                code = 0
-            elif isinstance(c, int):
-                code = c & 0xFF
-            else:
-                print(c, file=sys.stderr)
-                code = 1
-        except BaseException:
-            traceback.print_exc()
-            code = 1
-        import atexit, threading
-        threading._shutdown()
-        atexit._run_exitfuncs()
-        for s in (sys.stdout, sys.stderr):
-            try:
-                s.flush()
-            except Exception:
-                pass
-    finally:
-        os._exit(code)
+    except BaseException:
+        os._exit(1)
+    run_entry(req)
 
 
 def reap(fd):
