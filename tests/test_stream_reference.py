@@ -172,6 +172,7 @@ def test_the_cycle_takes_what_the_client_published_at_its_next_step_and_the_end_
 
 def test_samples_written_from_another_thread_reach_the_playback_whole_and_in_order():
     import threading
+    import time
 
     total = 3000
     r = ref(capacity=64)
@@ -182,6 +183,7 @@ def test_samples_written_from_another_thread_reach_the_playback_whole_and_in_ord
         k = 0
         while k < total and not stop.is_set():
             if r.room() < 1:
+                time.sleep(0)  # (the GIL to the playback, as a socket thread waiting for its client would)
                 continue
             r.append(k * 0.001, np.full(N, k * 1e-6), np.full(N, float(k)))
             k += 1
@@ -190,8 +192,15 @@ def test_samples_written_from_another_thread_reach_the_playback_whole_and_in_ord
     th.start()
     seen = 0
     tau = 0.0
+    guard = time.monotonic() + 120.0  # a hang guard only: the verdict never depends on the pace
     try:
         while r.samples < total:
+            # The playback's time advances once the writer has published something new, or when the ring is full
+            # (the writer then waits for the playback): a writer the host starves never lets the stream run dry,
+            # which would end it (the timeout is counted in the playback's time).
+            while r.written == r.count and r.room() >= 1 and th.is_alive():
+                assert time.monotonic() < guard, "the writer thread published nothing for 120 s"
+                time.sleep(0)
             r.sample(tau, out)
             # every slot the playback may read is whole: its position, its prediction and its time agree
             for i in range(max(r.k, 1), r.count):
