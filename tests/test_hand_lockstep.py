@@ -316,14 +316,17 @@ def test_mode_drag_hold_ends_drag_on_ctrl_c_and_after_its_seconds(tmp_path):
         holder_renewing(rig, cli, "dragd mode drag --hold --seconds 0.6")
         t0 = float(rig.must("clock")["clock"]["t_s"])
         rig.wait_for(lambda: cli.poll() is not None, 2.0, "the command's end after --seconds 0.6")
-        t1 = float(rig.must("clock")["clock"]["t_s"])
+        end = rig.must("status")["drag"]["last_drag_end"]
         out, err = cli.communicate(timeout=30)
     import json
 
     data = json.loads(out)
     assert cli.returncode == 0 and data["outcome"] == "ended by 0.6 s" and data["mode"] == "hold", (out, err)
     assert data["held_s"] == pytest.approx(0.6, abs=0.101)  # (renewals every 0.1 s of the daemon's clock)
-    assert 0.5 <= t1 - t0 <= 0.8
+    # when drag ended on the daemon's clock: no period starts between a paced answer and the holder's next request
+    # (its close here), so this is the same on every run; the process's exit after it is the host's pace
+    assert end["reason"] == "the drag lease was closed by its client"
+    assert 0.5 <= end["t_s"] - t0 <= 0.8, (end, t0)
 
 
 def test_drag_require_none_only_with_the_lab_flag_which_status_reports(tmp_path):
