@@ -9,6 +9,7 @@ from typing import Any
 
 import pytest
 
+from dragd.client import CommandError
 from dragd.ros2.bridge import STREAM_IN_FLIGHT, Bridge
 
 pytestmark = pytest.mark.unit
@@ -105,3 +106,75 @@ def test_a_steady_stream_is_forwarded_whole_when_the_daemon_keeps_up():
     assert conn.sent == [1000.0 + k for k in range(500)]
     assert bridge.coalesced == 0 and bridge.forwarded == 500
     assert 1 < conn.most_in_flight <= STREAM_IN_FLIGHT
+
+
+class RefusingConnection:
+    """The stream's connection when the daemon refuses a sample: ``stream`` is refused, ``state`` (how the stream
+    ended) is answered once ``gate`` is set, ``stream_open`` is counted and answered with stream 2."""
+
+    def __init__(self, end: str) -> None:
+        self.end = end
+        self.gate = asyncio.Event()
+        self.opens = 0
+
+    async def call(self, cmd: str, timeout_s: float | None = None, **args: Any) -> dict[str, Any]:
+        if cmd == "stream":
+            raise CommandError(cmd, f"stream {args['stream']}: the first sample is 11.46° from the arm's pose", {})
+        if cmd == "state":
+            await self.gate.wait()
+            return {"stream": {"stream": 1, "state": "ended", "end": self.end, "outcome": f"stream {self.end}"}}
+        assert cmd == "stream_open", cmd
+        self.opens += 1
+        return {"stream": 2, "delay_s": 0.05}
+
+    async def close(self) -> None:
+        pass
+
+
+class SaidStatus:
+    """The node's ``~/status`` as the bridge publishes it (level, name, message)."""
+
+    def __init__(self) -> None:
+        self.said: list[tuple[int, str, str]] = []
+
+    def publish_status(self, level: int, name: str, message: str, values: dict[str, Any] | None = None) -> None:
+        self.said.append((level, name, message))
+
+
+@pytest.mark.parametrize("end", ["refused", "timeout"])
+def test_no_command_opens_a_stream_while_a_refusal_is_looked_into(end):
+    """The daemon refuses a sample; until its ``state`` says how the stream ended (here held as long as a loaded
+    host may take), the commands that come are dropped. A refusal then latches (nothing opens a stream until
+    ~/streaming true); a resumable end (a timeout) lets the next command open a new stream."""
+
+    async def scenario() -> tuple[Bridge, RefusingConnection, SaidStatus]:
+        bridge = Bridge("/nonexistent/dragd.sock")
+        bridge.joints, bridge.stream_id = J, 1
+        conn, node = RefusingConnection(end), SaidStatus()
+        bridge.stream, bridge.node = conn, node  # type: ignore[assignment]
+        forward = asyncio.create_task(bridge._forward())
+        bridge.on_command(1000.0, J, [0.2, 0.2, 0.2])
+        await _settle()
+        assert bridge.stream_id is None and bridge.ending  # refused, its end asked for and not yet answered
+        for k in range(1, 4):  # the controller's next updates meanwhile
+            bridge.on_command(1000.0 + 0.01 * k, J, [0.2, 0.2, 0.2])
+            await _settle()
+        assert conn.opens == 0 and bridge.dropped == 3
+        conn.gate.set()
+        await _settle()
+        assert not bridge.ending
+        bridge.on_command(1000.04, J, [0.2, 0.2, 0.2])
+        await _settle()
+        forward.cancel()
+        return bridge, conn, node
+
+    bridge, conn, node = asyncio.run(scenario())
+    texts = [m for _lv, name, m in node.said if name == "dragd/stream"]
+    if end == "refused":
+        assert conn.opens == 0 and bridge.latched is not None and bridge.dropped == 4 and bridge.refused == 1
+        assert texts == ["commands not followed until ~/streaming true: stream 1: the first sample is 11.46° from "
+                         "the arm's pose"], texts
+    else:
+        assert conn.opens == 1 and bridge.latched is None and bridge.stream_id == 2 and bridge.refused == 0
+        assert texts == ["stream 1 ended (stream timeout); the next command opens a new one",
+                         "stream 2 open: commands go to the arm (0.05 s behind)"], texts

@@ -87,6 +87,7 @@ class Bridge:
         self.stream_enabled = True
         self.stream_id: int | None = None
         self.opening = False
+        self.ending = False  # a stream's refusal is being looked into: no command opens a new stream meanwhile
         self.open_refused_at = -1e9
         self.latched: str | None = None  # why commands are not forwarded until ~/streaming true
         self.forwarded = self.dropped = self.refused = self.coalesced = 0
@@ -469,7 +470,7 @@ class Bridge:
         t = stamp_s if stamp_s > 0.0 else self.ros_now_ns() * 1e-9
         if self.stream_id is None:
             self.dropped += 1  # (the first command opens the stream; the next ones start at the arm's pose)
-            if not self.opening and self.now() - self.open_refused_at >= OPEN_RETRY_S:
+            if not self.opening and not self.ending and self.now() - self.open_refused_at >= OPEN_RETRY_S:
                 self.opening = True
                 self._spawn(self._open())
             return
@@ -527,12 +528,18 @@ class Bridge:
                 return  # samples in flight after the first error of this stream
             self._stream_error_seen = sid
             self.stream_id = None
+            # until the daemon says how the stream ended (resumable, or a refusal that latches), the commands that
+            # come are dropped: one of them must not open a new stream past a refusal
+            self.ending = True
             try:
-                info = (await self._call(self.stream, "state"))["stream"] or {}
-            except (CommandError, DaemonUnavailable):
-                info = {}
-            end = info.get("end") if info.get("stream") == sid else None
-            self._stream_ended(sid, end, info.get("outcome"), exc.error)
+                try:
+                    info = (await self._call(self.stream, "state"))["stream"] or {}
+                except (CommandError, DaemonUnavailable):
+                    info = {}
+                end = info.get("end") if info.get("stream") == sid else None
+                self._stream_ended(sid, end, info.get("outcome"), exc.error)
+            finally:
+                self.ending = False
         except DaemonUnavailable:
             pass
 
