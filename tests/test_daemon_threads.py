@@ -9,6 +9,8 @@ Skipped where SCHED_FIFO is not permitted (the daemon says so in ``scheduler``).
 
 from __future__ import annotations
 
+import os
+
 import pytest
 
 from dragd.lab.rig import DEPLOYED_PRIORITY, Rig
@@ -26,7 +28,8 @@ def test_every_daemon_thread_runs_with_its_policy_as_deployed(tmp_path) -> None:
         rig.must("start")
         rig.must("record", action="start", path=str(tmp_path / "window.mcap"))
         rig.sleep(0.2)
-        threads = rig.must("status")["threads"]
+        status = rig.must("status")
+        threads = status["threads"]
         rig.must("record", action="stop")
         rig.must("stop")
     assert threads.pop("MainThread") == f"SCHED_FIFO {DEPLOYED_PRIORITY}", threads  # the cycle's (asyncio) thread
@@ -35,3 +38,8 @@ def test_every_daemon_thread_runs_with_its_policy_as_deployed(tmp_path) -> None:
     assert any(name.startswith("dragd-exec") for name in threads), threads  # (the record window's writer opened)
     assert sum(name.startswith("dragd-telemetry") for name in threads) == 2, threads  # (the window's writer)
     assert set(threads.values()) == {"SCHED_FIFO 1"}, threads
+    if os.geteuid() == 0:  # root may lock memory: the unit's claim
+        assert status["memory_locked"] is True, status
+    # PM QoS is opt-in (loop.cpu_latency_us), also as deployed: a default daemon leaves the CPUs' idle states alone
+    assert status["cpu_latency"] == {"requested_us": None, "applied": False, "reason": "not requested",
+                                     "effective_us": None}, status["cpu_latency"]

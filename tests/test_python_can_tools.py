@@ -22,7 +22,7 @@ import pytest
 
 from dragd.hardware.bus import UdpMulticastCanBus, open_bus, parse_bus
 
-pytestmark = [pytest.mark.unit, pytest.mark.timeout(120)]
+pytestmark = pytest.mark.unit
 
 INTERFACE = "dragd_udp"
 FRAMES = [

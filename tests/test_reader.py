@@ -17,7 +17,7 @@ from dragd.hardware.bus import open_bus, parse_bus
 from dragd.hardware.reader import BusReader
 from dragd.lab.rig import multicast_group
 
-pytestmark = [pytest.mark.unit, pytest.mark.timeout(60)]
+pytestmark = pytest.mark.unit
 
 
 def _group(name: str) -> str:

@@ -3,11 +3,13 @@ on another socket, the listen for another master's SYNC/heartbeat before any NMT
 
 On the lockstep clock the running arm's bus is silent while its time stands still (its SYNCs and the drives'
 heartbeats come with granted time), so the clock runs freely (``dragd clock run``) while the second daemon starts:
-its 0.3 s listen (wall time: it has no clock yet) then hears the first master as it would on a wall-clock bus."""
+its 0.3 s listen (wall time: it has no clock yet) then hears the first master as it would on a wall-clock bus. The
+running arm is not at real-time priority here: with its clock running freely it would be a SCHED_FIFO busy loop, which
+starves every thread below it (its own control socket's, the second daemon, another test's processes) for as long as
+it runs. The policies as deployed are tests/test_daemon_threads.py's, on granted time."""
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 
@@ -24,8 +26,7 @@ def _second(rig: Rig, socket: str) -> subprocess.CompletedProcess:
 
 
 def test_second_daemon_refuses_and_leaves_the_running_arm_alone(tmp_path):
-    with Rig("second", workdir=tmp_path, daemon_args=["--realtime-priority", "70"],
-             sim_args=["--realtime-priority", "60"]) as rig:
+    with Rig("second", workdir=tmp_path) as rig:
         rig.start_sim()
         rig.start_daemon()
         rig.must("start")
@@ -47,9 +48,3 @@ def test_second_daemon_refuses_and_leaves_the_running_arm_alone(tmp_path):
     assert all(d["state"] == "OPERATION_ENABLED" and d["nmt"] == "OPERATIONAL" for d in after.values()), after
     assert status["mode"] == "hold" and status["drives_enabled"], status
     assert status["fault_count"] == status0["fault_count"], status["faults"]
-    if os.geteuid() == 0 and status["scheduler"].startswith("SCHED_FIFO"):  # root may lock memory: the unit's claim
-        assert status["memory_locked"] is True, status
-    # PM QoS is opt-in (loop.cpu_latency_us), also as deployed: a default daemon leaves the CPUs' idle states alone
-    assert status["cpu_latency"] == {"requested_us": None, "applied": False, "reason": "not requested",
-                                     "effective_us": None}, \
-        status["cpu_latency"]
